@@ -1,0 +1,176 @@
+//! Sphere coverage: which of 100 equal-area regions of the unit sphere hold at least one measured
+//! direction (MotionCal's layout of latitude bands: 1 + 15 + 34 + 34 + 15 + 1 regions), and the
+//! seed-002 (theta, phi) projection. Directions are taken about the current hard-iron centre.
+
+use crate::types::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Number of regions.
+pub const REGIONS: usize = 100;
+
+/// Latitude band edges (deg) and the number of regions in each band, north to south.
+const BANDS: [(f64, f64, usize); 6] = [
+    (78.52, 90.0, 1),
+    (42.84, 78.52, 15),
+    (0.0, 42.84, 34),
+    (-42.84, 0.0, 34),
+    (-78.52, -42.84, 15),
+    (-90.0, -78.52, 1),
+];
+
+/// Region index (0..100) of a direction (any length, not zero).
+pub fn region(v: &Vec3) -> Option<usize> {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    if !(n > 0.0) || !n.is_finite() {
+        return None;
+    }
+    let lat = (v[2] / n).clamp(-1.0, 1.0).asin().to_degrees();
+    let phi = v[1].atan2(v[0]).to_degrees(); // -180..180
+    let mut base = 0;
+    for &(lo, hi, count) in BANDS.iter() {
+        if lat >= lo && lat <= hi {
+            let k = (((phi + 180.0) / 360.0) * count as f64).floor() as usize;
+            return Some(base + k.min(count - 1));
+        }
+        base += count;
+    }
+    None
+}
+
+/// (theta, phi) of seed 002 in degrees: theta polar angle from +z (0..180), phi azimuth (-180..180).
+pub fn theta_phi(v: &Vec3) -> (f64, f64) {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-300);
+    ((v[2] / n).clamp(-1.0, 1.0).acos().to_degrees(), v[1].atan2(v[0]).to_degrees())
+}
+
+/// Coverage summary as the report gives it.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Coverage {
+    pub regions: usize,
+    pub filled: usize,
+    pub gaps_pct: f64,
+    #[serde(skip)]
+    pub filled_mask: Vec<bool>,
+}
+
+/// Coverage of a set of directions about `centre`.
+pub fn coverage<'a>(points: impl IntoIterator<Item = &'a Vec3>, centre: &Vec3) -> Coverage {
+    let mut mask = vec![false; REGIONS];
+    for p in points {
+        if let Some(r) = region(&[p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]]) {
+            mask[r] = true;
+        }
+    }
+    let filled = mask.iter().filter(|&&b| b).count();
+    Coverage { regions: REGIONS, filled, gaps_pct: 100.0 * (REGIONS - filled) as f64 / REGIONS as f64, filled_mask: mask }
+}
+
+/// Keeps fit points at least a minimum angle apart: directions about a centre are binned on a grid
+/// of cells about `min_separation_deg` wide and each cell keeps the running mean of its raw vectors.
+#[derive(Debug, Clone)]
+pub struct DirectionBins {
+    pub centre: Vec3,
+    cell_rad: f64,
+    cells: std::collections::HashMap<(i32, i32), ([f64; 3], usize)>,
+}
+
+impl DirectionBins {
+    pub fn new(centre: Vec3, min_separation_deg: f64) -> Self {
+        DirectionBins { centre, cell_rad: min_separation_deg.max(0.01).to_radians(), cells: Default::default() }
+    }
+
+    fn key(&self, raw: &Vec3) -> Option<(i32, i32)> {
+        let d = [raw[0] - self.centre[0], raw[1] - self.centre[1], raw[2] - self.centre[2]];
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        if !(n > 0.0) {
+            return None;
+        }
+        // Equal-area-ish grid: rows in z (= cos theta) of height cell, columns in phi scaled by the row's circle.
+        let z = (d[2] / n).clamp(-1.0, 1.0);
+        let theta = z.acos();
+        let row = (theta / self.cell_rad).floor() as i32;
+        let ring = (theta.sin() * std::f64::consts::TAU / self.cell_rad).ceil().max(1.0);
+        let phi = d[1].atan2(d[0]) + std::f64::consts::PI;
+        let col = ((phi / std::f64::consts::TAU) * ring).floor() as i32;
+        Some((row, col))
+    }
+
+    pub fn add(&mut self, raw: &Vec3) {
+        self.add_weighted(raw, 1);
+    }
+
+    fn add_weighted(&mut self, raw: &Vec3, count: usize) {
+        if let Some(k) = self.key(raw) {
+            let e = self.cells.entry(k).or_insert(([0.0; 3], 0));
+            let n = e.1 + count;
+            for i in 0..3 {
+                e.0[i] += (raw[i] - e.0[i]) * count as f64 / n as f64;
+            }
+            e.1 = n;
+        }
+    }
+
+    /// Re-bin all cell means about a new centre (after a fit moved the hard-iron estimate).
+    pub fn recentre(&mut self, centre: Vec3) {
+        let old = std::mem::take(&mut self.cells);
+        self.centre = centre;
+        for (_, (m, c)) in old {
+            self.add_weighted(&m, c);
+        }
+    }
+
+    /// Cell means (raw units).
+    pub fn points(&self) -> Vec<Vec3> {
+        self.cells.values().map(|(m, _)| *m).collect()
+    }
+
+    pub fn len(&self) -> usize {
+        self.cells.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.cells.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn regions_are_equal_area_and_numbered_0_to_99() {
+        // Monte-Carlo over a Fibonacci sphere: each region gets ~1% of the points.
+        let n = 200_000;
+        let mut counts = [0usize; REGIONS];
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        for i in 0..n {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - z * z).sqrt();
+            let phi = golden * i as f64;
+            counts[region(&[r * phi.cos(), r * phi.sin(), z]).unwrap()] += 1;
+        }
+        for (i, c) in counts.iter().enumerate() {
+            let frac = *c as f64 / n as f64;
+            assert!((frac - 0.01).abs() < 0.0005, "region {i}: {frac}");
+        }
+        assert_eq!(region(&[0.0, 0.0, 1.0]), Some(0));
+        assert_eq!(region(&[0.0, 0.0, -1.0]), Some(99));
+    }
+
+    #[test]
+    fn coverage_counts_filled_regions() {
+        let c = coverage([[0.0, 0.0, 5.0], [0.0, 0.0, 6.0], [0.0, 0.0, -1.0]].iter(), &[0.0, 0.0, 1.0]);
+        assert_eq!(c.filled, 2);
+        assert!((c.gaps_pct - 98.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bins_keep_points_apart() {
+        let mut b = DirectionBins::new([0.0; 3], 5.0);
+        for i in 0..1000 {
+            let a = i as f64 * 0.001; // 1 rad arc in 1000 steps
+            b.add(&[a.cos() * 50.0, a.sin() * 50.0, 0.0]);
+        }
+        // ~57 deg of arc at 5 deg cells: about 12 cells (rows straddle the equator: up to 2x)
+        assert!(b.len() >= 11 && b.len() <= 26, "{}", b.len());
+    }
+}

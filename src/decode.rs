@@ -1,0 +1,699 @@
+//! Decoding bytes into [`Sample`]s: MAVLink frames (live links and `.tlog` files) and CSV text.
+//! Pure functions over byte slices; the transports live in `sources`.
+//!
+//! Every kind of bad input is counted by reason in [`DecodeStats`] and skipped, never fatal:
+//! `bad_crc`, `truncated`, `resync` (garbage bytes between frames), `unknown_message` (an id this
+//! dialect does not know), `bad_payload`, `non_finite`, `bad_row`, `other_instance`.
+
+use crate::types::{Sample, Unit, Units, Vec3};
+use mavlink::dialects::ardupilotmega::MavMessage;
+use mavlink::{MavlinkVersion, Message};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Counters of what was read and what was skipped, by reason.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct DecodeStats {
+    /// Frames (or CSV rows) decoded.
+    pub records: u64,
+    /// Samples carrying each sensor: "accel", "gyro", "mag", "temp", "throttle".
+    pub counts: BTreeMap<String, u64>,
+    /// Skipped items by reason.
+    pub skipped: BTreeMap<String, u64>,
+}
+
+impl DecodeStats {
+    pub fn skip(&mut self, reason: &str) {
+        *self.skipped.entry(reason.to_string()).or_insert(0) += 1;
+    }
+    pub fn skip_n(&mut self, reason: &str, n: u64) {
+        if n > 0 {
+            *self.skipped.entry(reason.to_string()).or_insert(0) += n;
+        }
+    }
+    pub fn count_sample(&mut self, s: &Sample) {
+        let mut inc = |k: &str, present: bool| {
+            if present {
+                *self.counts.entry(k.to_string()).or_insert(0) += 1;
+            }
+        };
+        inc("accel", s.accel_mps2.is_some());
+        inc("gyro", s.gyro_rad_s.is_some());
+        inc("mag", s.mag_ut.is_some());
+        inc("temp", s.temp_c.is_some());
+        inc("throttle", s.throttle.is_some());
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// MAVLink framing
+
+/// A decoded frame.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub version: MavlinkVersion,
+    pub system_id: u8,
+    pub component_id: u8,
+    pub message: MavMessage,
+}
+
+/// Result of looking for one frame at the start of a buffer.
+#[derive(Debug)]
+pub enum FrameParse {
+    /// A good frame and the number of bytes it used.
+    Frame(Box<Frame>, usize),
+    /// The buffer holds the start of a frame but not all of it.
+    Incomplete,
+    /// Not a frame here (or a damaged one): skip `usize` bytes and count `&'static str`.
+    Skip(usize, &'static str),
+}
+
+const V1_MAGIC: u8 = 0xFE;
+const V2_MAGIC: u8 = 0xFD;
+
+/// Parse one MAVLink v1 or v2 frame at the start of `buf`, checking the CRC with the dialect's extra
+/// CRC. Signed v2 frames are accepted (the signature is not checked).
+pub fn parse_frame(buf: &[u8]) -> FrameParse {
+    let Some(&magic) = buf.first() else { return FrameParse::Incomplete };
+    let (version, header_len, total) = match magic {
+        V1_MAGIC => {
+            if buf.len() < 2 {
+                return FrameParse::Incomplete;
+            }
+            let len = buf[1] as usize;
+            (MavlinkVersion::V1, 6usize, 6 + len + 2)
+        }
+        V2_MAGIC => {
+            if buf.len() < 3 {
+                return FrameParse::Incomplete;
+            }
+            let len = buf[1] as usize;
+            let incompat = buf[2];
+            if incompat & !0x01 != 0 {
+                return FrameParse::Skip(1, "resync");
+            }
+            let sig = if incompat & 0x01 != 0 { 13 } else { 0 };
+            (MavlinkVersion::V2, 10usize, 10 + len + 2 + sig)
+        }
+        _ => return FrameParse::Skip(1, "resync"),
+    };
+    if buf.len() < total {
+        return FrameParse::Incomplete;
+    }
+    let len = buf[1] as usize;
+    let (sys, comp, msgid) = match version {
+        MavlinkVersion::V1 => (buf[3], buf[4], buf[5] as u32),
+        MavlinkVersion::V2 => (buf[5], buf[6], u32::from_le_bytes([buf[7], buf[8], buf[9], 0])),
+    };
+    let payload = &buf[header_len..header_len + len];
+    let crc_got = u16::from_le_bytes([buf[header_len + len], buf[header_len + len + 1]]);
+    if MavMessage::default_message_from_id(msgid).is_none() {
+        // The CRC cannot be checked without the message's extra CRC: skip the frame as unknown.
+        return FrameParse::Skip(total, "unknown_message");
+    }
+    let crc = mavlink::calculate_crc(&buf[1..header_len + len], MavMessage::extra_crc(msgid));
+    if crc != crc_got {
+        return FrameParse::Skip(1, "bad_crc");
+    }
+    match MavMessage::parse(version, msgid, payload) {
+        Ok(message) => FrameParse::Frame(Box::new(Frame { version, system_id: sys, component_id: comp, message }), total),
+        Err(_) => FrameParse::Skip(total, "bad_payload"),
+    }
+}
+
+/// Streaming frame decoder for byte streams (serial, TCP): feed bytes, take frames.
+#[derive(Debug, Default)]
+pub struct FrameDecoder {
+    buf: Vec<u8>,
+    pub stats: DecodeStats,
+}
+
+impl FrameDecoder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Append bytes and return every complete frame now available.
+    pub fn push(&mut self, bytes: &[u8]) -> Vec<Frame> {
+        self.buf.extend_from_slice(bytes);
+        let mut out = Vec::new();
+        let mut pos = 0;
+        while pos < self.buf.len() {
+            match parse_frame(&self.buf[pos..]) {
+                FrameParse::Frame(f, n) => {
+                    out.push(*f);
+                    pos += n;
+                }
+                FrameParse::Incomplete => break,
+                FrameParse::Skip(n, why) => {
+                    // Count a bad frame once, not once per byte of it.
+                    if why != "resync" || self.buf[pos] == V1_MAGIC || self.buf[pos] == V2_MAGIC {
+                        self.stats.skip(why);
+                    }
+                    pos += n;
+                }
+            }
+        }
+        self.buf.drain(..pos);
+        // Bound memory: a frame is at most 280 bytes.
+        if self.buf.len() > 4096 {
+            let drop = self.buf.len() - 280;
+            self.stats.skip_n("resync", 1);
+            self.buf.drain(..drop);
+        }
+        out
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Messages to samples
+
+/// Which IMU instance to take samples from.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub enum InstanceChoice {
+    /// The first instance seen that carries a magnetometer (the default).
+    Auto,
+    /// A named instance: `highres_imu:ID`, `scaled_imu`, `scaled_imu2`, `scaled_imu3`, `raw_imu:ID`.
+    Named(String),
+}
+
+/// Scales for RAW_IMU counts (from config).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RawImuScale {
+    /// m/s^2 per count; 0 keeps counts (the fit scales them).
+    pub accel: f64,
+    /// rad/s per count; 0 keeps counts.
+    pub gyro: f64,
+    /// uT per count; 0 keeps counts.
+    pub mag: f64,
+}
+
+impl Default for RawImuScale {
+    fn default() -> Self {
+        RawImuScale { accel: 0.0, gyro: 0.0, mag: 0.0 }
+    }
+}
+
+/// Turns MAVLink messages into samples of one IMU instance, with throttle from VFR_HUD.
+#[derive(Debug, Clone)]
+pub struct MessageConverter {
+    pub choice: InstanceChoice,
+    pub raw_scale: RawImuScale,
+    locked: Option<String>,
+    throttle: Option<f64>,
+    t0_us: Option<u64>,
+    pub stats: DecodeStats,
+}
+
+const MG_TO_MPS2: f64 = crate::types::STANDARD_GRAVITY_MPS2 / 1000.0;
+
+fn finite3(v: Vec3) -> Option<Vec3> {
+    if v.iter().all(|x| x.is_finite()) {
+        Some(v)
+    } else {
+        None
+    }
+}
+
+impl MessageConverter {
+    pub fn new(choice: InstanceChoice, raw_scale: RawImuScale) -> Self {
+        MessageConverter { choice, raw_scale, locked: None, throttle: None, t0_us: None, stats: DecodeStats::default() }
+    }
+
+    /// The instance samples are taken from, once chosen.
+    pub fn instance(&self) -> Option<&str> {
+        self.locked.as_deref()
+    }
+
+    /// Units of the samples produced (RAW_IMU without a scale gives counts).
+    pub fn units(&self) -> Units {
+        let raw = self.locked.as_deref().is_some_and(|s| s.starts_with("raw_imu"));
+        let u = |scale: f64| if raw && scale == 0.0 { Unit::Counts } else { Unit::Si };
+        Units { accel: u(self.raw_scale.accel), gyro: u(self.raw_scale.gyro), mag: u(self.raw_scale.mag) }
+    }
+
+    /// Convert one message; `time_us` is the receive time (tlog timestamp or clock) used when the
+    /// message carries no time of its own.
+    pub fn convert(&mut self, msg: &MavMessage, time_us: u64) -> Option<Sample> {
+        type Raw = (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool);
+        let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
+            MavMessage::VFR_HUD(d) => {
+                let th = d.throttle as f64 / 100.0;
+                self.throttle = if th.is_finite() { Some(th.clamp(0.0, 1.5)) } else { None };
+                return None;
+            }
+            MavMessage::HIGHRES_IMU(d) => {
+                let m = [d.xmag as f64 * 100.0, d.ymag as f64 * 100.0, d.zmag as f64 * 100.0];
+                let has = m.iter().any(|v| *v != 0.0);
+                (
+                    format!("highres_imu:{}", d.id),
+                    d.time_usec,
+                    [d.xacc as f64, d.yacc as f64, d.zacc as f64],
+                    [d.xgyro as f64, d.ygyro as f64, d.zgyro as f64],
+                    m,
+                    Some(d.temperature as f64),
+                    has,
+                )
+            }
+            MavMessage::SCALED_IMU(d) => scaled("scaled_imu", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
+            MavMessage::SCALED_IMU2(d) => scaled("scaled_imu2", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
+            MavMessage::SCALED_IMU3(d) => scaled("scaled_imu3", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
+            MavMessage::RAW_IMU(d) => {
+                let sc = |v: i16, s: f64| if s == 0.0 { v as f64 } else { v as f64 * s };
+                let m = [sc(d.xmag, self.raw_scale.mag), sc(d.ymag, self.raw_scale.mag), sc(d.zmag, self.raw_scale.mag)];
+                (
+                    format!("raw_imu:{}", d.id),
+                    d.time_usec,
+                    [sc(d.xacc, self.raw_scale.accel), sc(d.yacc, self.raw_scale.accel), sc(d.zacc, self.raw_scale.accel)],
+                    [sc(d.xgyro, self.raw_scale.gyro), sc(d.ygyro, self.raw_scale.gyro), sc(d.zgyro, self.raw_scale.gyro)],
+                    m,
+                    if d.temperature != 0 { Some(d.temperature as f64 / 100.0) } else { None },
+                    m.iter().any(|v| *v != 0.0),
+                )
+            }
+            _ => return None,
+        };
+        match (&self.locked, &self.choice) {
+            (Some(l), _) if *l != name => {
+                self.stats.skip("other_instance");
+                return None;
+            }
+            (None, InstanceChoice::Named(want)) if *want != name => {
+                self.stats.skip("other_instance");
+                return None;
+            }
+            (None, InstanceChoice::Auto) if !has_mag => {
+                self.stats.skip("other_instance");
+                return None;
+            }
+            (None, _) => self.locked = Some(name.clone()),
+            _ => {}
+        }
+        let t = if t_us > 0 { t_us } else { time_us };
+        let t0 = *self.t0_us.get_or_insert(t);
+        let t_s = (t as f64 - t0 as f64) * 1e-6;
+        let mut s = Sample { t_s, throttle: self.throttle, ..Default::default() };
+        let mut bad = false;
+        let mut take = |v: Vec3| {
+            let r = finite3(v);
+            bad |= r.is_none();
+            r
+        };
+        s.accel_mps2 = take(acc);
+        s.gyro_rad_s = take(gyr);
+        s.mag_ut = if has_mag { take(mag) } else { None };
+        s.temp_c = temp.filter(|x| x.is_finite());
+        if bad {
+            self.stats.skip("non_finite");
+        }
+        self.stats.records += 1;
+        self.stats.count_sample(&s);
+        Some(s)
+    }
+}
+
+fn scaled(name: &str, t_ms: u32, a: [i16; 3], g: [i16; 3], m: [i16; 3], temp: i16) -> (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
+    let f = |v: [i16; 3], k: f64| [v[0] as f64 * k, v[1] as f64 * k, v[2] as f64 * k];
+    (
+        name.to_string(),
+        t_ms as u64 * 1000,
+        f(a, MG_TO_MPS2),
+        f(g, 1e-3),
+        f(m, 0.1),
+        if temp != 0 { Some(temp as f64 / 100.0) } else { None },
+        m.iter().any(|v| *v != 0),
+    )
+}
+
+// ---------------------------------------------------------------------------------------------
+// tlog
+
+/// Read a whole `.tlog` (each record: big-endian u64 microseconds, then one raw frame) into samples.
+/// Garbage between records, damaged frames and a truncated tail are counted and skipped.
+pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
+    let mut out = Vec::new();
+    let mut pos = 0usize;
+    let mut last_ts: Option<u64> = None;
+    let plausible = |ts: u64, last: Option<u64>| match last {
+        // Within a day of the previous record.
+        Some(l) => ts.abs_diff(l) < 86_400_000_000,
+        None => true,
+    };
+    while pos + 8 < bytes.len() {
+        let ts = u64::from_be_bytes(bytes[pos..pos + 8].try_into().expect("8 bytes"));
+        let rest = &bytes[pos + 8..];
+        let magic_ok = rest[0] == V1_MAGIC || rest[0] == V2_MAGIC;
+        if !magic_ok || !plausible(ts, last_ts) {
+            // Resynchronise: find the next offset that looks like timestamp + magic.
+            conv.stats.skip("resync");
+            pos = next_record(bytes, pos + 1, last_ts);
+            continue;
+        }
+        match parse_frame(rest) {
+            FrameParse::Frame(f, n) => {
+                last_ts = Some(ts);
+                pos += 8 + n;
+                if let Some(s) = conv.convert(&f.message, ts) {
+                    out.push(s);
+                }
+            }
+            FrameParse::Incomplete => {
+                conv.stats.skip("truncated");
+                break;
+            }
+            FrameParse::Skip(n, why) => {
+                conv.stats.skip(why);
+                if why == "unknown_message" || why == "bad_payload" {
+                    last_ts = Some(ts);
+                    pos += 8 + n;
+                } else {
+                    pos = next_record(bytes, pos + 1, last_ts);
+                }
+            }
+        }
+    }
+    if pos < bytes.len() && pos + 8 >= bytes.len() && bytes.len() > pos {
+        conv.stats.skip("truncated");
+    }
+    out
+}
+
+fn next_record(bytes: &[u8], from: usize, last_ts: Option<u64>) -> usize {
+    let mut p = from;
+    while p + 9 < bytes.len() {
+        let m = bytes[p + 8];
+        if m == V1_MAGIC || m == V2_MAGIC {
+            let ts = u64::from_be_bytes(bytes[p..p + 8].try_into().expect("8 bytes"));
+            let ok = match last_ts {
+                Some(l) => ts.abs_diff(l) < 86_400_000_000,
+                None => ts > 0,
+            };
+            if ok {
+                if let FrameParse::Frame(..) = parse_frame(&bytes[p + 8..]) {
+                    return p;
+                }
+            }
+        }
+        p += 1;
+    }
+    bytes.len()
+}
+
+// ---------------------------------------------------------------------------------------------
+// CSV
+
+/// Column mapping for CSV input: which header name feeds which field, with a unit scale.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CsvMapping {
+    /// Field -> column name in the user's file. Fields: t, ax, ay, az, gx, gy, gz, mx, my, mz, temp,
+    /// throttle, current, ref_qw, ref_qx, ref_qy, ref_qz, moving.
+    #[serde(default)]
+    pub columns: BTreeMap<String, String>,
+    /// Field -> factor that turns the column's unit into ours (e.g. ax = 9.80665 for g, t = 0.001 for ms).
+    #[serde(default)]
+    pub scales: BTreeMap<String, f64>,
+}
+
+const FIELDS: [&str; 18] = ["t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current", "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving"];
+
+/// Decompress if gzip, else borrow.
+pub fn maybe_gunzip(bytes: &[u8]) -> std::io::Result<std::borrow::Cow<'_, [u8]>> {
+    if bytes.len() >= 2 && bytes[0] == 0x1F && bytes[1] == 0x8B {
+        use std::io::Read;
+        let mut out = Vec::new();
+        let mut d = flate2::read::MultiGzDecoder::new(bytes);
+        match d.read_to_end(&mut out) {
+            Ok(_) => {}
+            // A truncated .gz still yields what came before the cut.
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !out.is_empty() => {}
+            Err(e) => return Err(e),
+        }
+        Ok(std::borrow::Cow::Owned(out))
+    } else {
+        Ok(std::borrow::Cow::Borrowed(bytes))
+    }
+}
+
+/// Decode CSV text (header row first). Columns may come in any order and subset; empty cells mean
+/// "no reading". Rows with the wrong number of cells or unparsable numbers are counted and skipped.
+pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> Result<Vec<Sample>, String> {
+    let mut lines = text.lines();
+    let header = loop {
+        match lines.next() {
+            Some(l) if l.trim().is_empty() || l.starts_with('#') => continue,
+            Some(l) => break l,
+            None => return Err("empty file: no header row".into()),
+        }
+    };
+    let cols: Vec<String> = header.split(',').map(|c| c.trim().trim_matches('"').to_string()).collect();
+    // field index -> column index
+    let mut idx = [usize::MAX; FIELDS.len()];
+    for (fi, f) in FIELDS.iter().enumerate() {
+        let want = mapping.columns.get(*f).map(String::as_str).unwrap_or(f);
+        if let Some(ci) = cols.iter().position(|c| c == want) {
+            idx[fi] = ci;
+        }
+    }
+    for (f, c) in &mapping.columns {
+        if !FIELDS.contains(&f.as_str()) {
+            return Err(format!("column mapping names unknown field `{f}` (known: {})", FIELDS.join(", ")));
+        }
+        if !cols.iter().any(|h| h == c) {
+            return Err(format!("column `{c}` (mapped to `{f}`) is not in the header: {}", cols.join(",")));
+        }
+    }
+    let has = |f: &str| idx[FIELDS.iter().position(|x| *x == f).expect("field")] != usize::MAX;
+    if !(has("ax") || has("mx") || has("gx")) {
+        return Err(format!(
+            "no sensor columns found in header `{header}`: expected ax/ay/az, gx/gy/gz or mx/my/mz, or a [input.csv] columns mapping"
+        ));
+    }
+    let scale: Vec<f64> = FIELDS.iter().map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0)).collect();
+    let mut out = Vec::new();
+    let mut row_no = 0u64;
+    let mut cells: Vec<&str> = Vec::with_capacity(cols.len());
+    for line in lines {
+        if line.trim().is_empty() {
+            continue;
+        }
+        row_no += 1;
+        cells.clear();
+        cells.extend(line.split(','));
+        if cells.len() != cols.len() {
+            stats.skip("bad_row");
+            continue;
+        }
+        let mut vals = [None::<f64>; FIELDS.len()];
+        let mut bad = false;
+        for fi in 0..FIELDS.len() {
+            let ci = idx[fi];
+            if ci == usize::MAX {
+                continue;
+            }
+            let c = cells[ci].trim();
+            if c.is_empty() {
+                continue;
+            }
+            match c.parse::<f64>() {
+                Ok(v) => vals[fi] = Some(v * scale[fi]),
+                Err(_) => bad = true,
+            }
+        }
+        if bad {
+            stats.skip("bad_row");
+            continue;
+        }
+        let v3 = |a: usize, stats: &mut DecodeStats| -> Option<Vec3> {
+            match (vals[a], vals[a + 1], vals[a + 2]) {
+                (Some(x), Some(y), Some(z)) => {
+                    let v = [x, y, z];
+                    if v.iter().all(|q| q.is_finite()) {
+                        Some(v)
+                    } else {
+                        stats.skip("non_finite");
+                        None
+                    }
+                }
+                (None, None, None) => None,
+                _ => {
+                    stats.skip("partial_vector");
+                    None
+                }
+            }
+        };
+        let s = Sample {
+            t_s: vals[0].unwrap_or(row_no as f64),
+            accel_mps2: v3(1, stats),
+            gyro_rad_s: v3(4, stats),
+            mag_ut: v3(7, stats),
+            temp_c: vals[10].filter(|v| v.is_finite()),
+            throttle: vals[11].filter(|v| v.is_finite()),
+            current_a: vals[12].filter(|v| v.is_finite()),
+            ref_q: match (vals[13], vals[14], vals[15], vals[16]) {
+                (Some(w), Some(x), Some(y), Some(z)) if [w, x, y, z].iter().all(|q| q.is_finite()) => Some([w, x, y, z]),
+                _ => None,
+            },
+            moving: vals[17].map(|v| v > 0.5),
+        };
+        if !s.t_s.is_finite() {
+            stats.skip("non_finite");
+            continue;
+        }
+        if s.is_empty() {
+            continue;
+        }
+        stats.records += 1;
+        stats.count_sample(&s);
+        out.push(s);
+    }
+    Ok(out)
+}
+
+/// Input formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Format {
+    Tlog,
+    Csv,
+}
+
+impl Format {
+    pub fn parse(s: &str) -> Option<Format> {
+        match s {
+            "tlog" => Some(Format::Tlog),
+            "csv" => Some(Format::Csv),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Tlog => "tlog",
+            Format::Csv => "csv",
+        }
+    }
+}
+
+/// Detect the format from content: a tlog has a MAVLink magic byte after its first 8-byte
+/// timestamp; CSV is text whose first line has a comma.
+pub fn detect_format(bytes: &[u8]) -> Option<Format> {
+    if bytes.len() > 9 && (bytes[8] == V1_MAGIC || bytes[8] == V2_MAGIC) {
+        return Some(Format::Tlog);
+    }
+    let head = &bytes[..bytes.len().min(4096)];
+    let text = String::from_utf8_lossy(head);
+    let first = text.lines().find(|l| !l.trim().is_empty() && !l.starts_with('#'))?;
+    if first.contains(',') && first.chars().all(|c| !c.is_control() || c == '\t' || c == '\r') {
+        return Some(Format::Csv);
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame_bytes(msg: &MavMessage, v: MavlinkVersion) -> Vec<u8> {
+        let mut out = Vec::new();
+        let h = mavlink::MavHeader { system_id: 1, component_id: 1, sequence: 0 };
+        mavlink::write_versioned_msg(&mut out, v, h, msg).unwrap();
+        out
+    }
+
+    fn imu_msg(x: f32) -> MavMessage {
+        let mut d = mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA::default();
+        d.time_usec = 1000;
+        d.xacc = x;
+        d.zacc = -9.8;
+        d.xmag = 0.2;
+        d.ymag = 0.01;
+        d.zmag = 0.4;
+        d.temperature = 30.0;
+        MavMessage::HIGHRES_IMU(d)
+    }
+
+    #[test]
+    fn frames_v1_and_v2_roundtrip_and_bad_crc_is_counted() {
+        for v in [MavlinkVersion::V1, MavlinkVersion::V2] {
+            let b = frame_bytes(&imu_msg(0.5), v);
+            match parse_frame(&b) {
+                FrameParse::Frame(f, n) => {
+                    assert_eq!(n, b.len());
+                    assert!(matches!(f.message, MavMessage::HIGHRES_IMU(_)));
+                }
+                other => panic!("{other:?}"),
+            }
+            let mut bad = b.clone();
+            let k = bad.len() - 4;
+            bad[k] ^= 0x55;
+            assert!(matches!(parse_frame(&bad), FrameParse::Skip(_, "bad_crc")));
+            assert!(matches!(parse_frame(&b[..b.len() - 1]), FrameParse::Incomplete));
+        }
+    }
+
+    #[test]
+    fn stream_decoder_resyncs_over_garbage() {
+        let mut bytes = vec![0x00, 0x13, 0xFD, 0x77];
+        bytes.extend(frame_bytes(&imu_msg(1.0), MavlinkVersion::V2));
+        bytes.extend([1, 2, 3]);
+        bytes.extend(frame_bytes(&imu_msg(2.0), MavlinkVersion::V1));
+        let mut d = FrameDecoder::new();
+        let mut frames = d.push(&bytes[..10]);
+        frames.extend(d.push(&bytes[10..]));
+        assert_eq!(frames.len(), 2);
+    }
+
+    #[test]
+    fn tlog_with_damage_is_decoded_and_counted() {
+        let mut log = Vec::new();
+        for i in 0..10u64 {
+            log.extend((1_700_000_000_000_000u64 + i * 10_000).to_be_bytes());
+            log.extend(frame_bytes(&imu_msg(i as f32), MavlinkVersion::V2));
+        }
+        // Damage record 3's CRC and cut the last record in half.
+        let rec = log.len() / 10;
+        log[3 * rec + rec - 3] ^= 0xFF;
+        log.truncate(log.len() - rec / 2);
+        let mut conv = MessageConverter::new(InstanceChoice::Auto, RawImuScale::default());
+        let s = decode_tlog(&log, &mut conv);
+        assert_eq!(s.len(), 8);
+        assert_eq!(conv.stats.skipped.get("bad_crc"), Some(&1));
+        assert_eq!(conv.stats.skipped.get("truncated"), Some(&1));
+        let m = s[0].mag_ut.unwrap();
+        assert!((m[0] - 20.0).abs() < 1e-4 && (m[2] - 40.0).abs() < 1e-4);
+        assert_eq!(conv.instance(), Some("highres_imu:0"));
+    }
+
+    #[test]
+    fn csv_any_order_subset_and_empty_cells() {
+        let text = "mz,t,mx,my,ax,ay,az\n3,0.0,1,2,,,\n6,0.1,4,5,0,0,-9.8\nbad,row\n9,0.2,7,8,0,NaN,1\n";
+        let mut st = DecodeStats::default();
+        let s = decode_csv(text, &CsvMapping::default(), &mut st).unwrap();
+        assert_eq!(s.len(), 3);
+        assert_eq!(s[0].mag_ut, Some([1.0, 2.0, 3.0]));
+        assert_eq!(s[0].accel_mps2, None);
+        assert_eq!(s[1].accel_mps2, Some([0.0, 0.0, -9.8]));
+        assert_eq!(s[2].accel_mps2, None);
+        assert_eq!(st.skipped.get("bad_row"), Some(&1));
+        assert_eq!(st.skipped.get("non_finite"), Some(&1));
+    }
+
+    #[test]
+    fn csv_user_mapping_with_scales() {
+        let text = "time_ms,AccX,AccY,AccZ\n10,0,0,-1\n";
+        let mut m = CsvMapping::default();
+        for (f, c) in [("t", "time_ms"), ("ax", "AccX"), ("ay", "AccY"), ("az", "AccZ")] {
+            m.columns.insert(f.into(), c.into());
+        }
+        m.scales.insert("t".into(), 0.001);
+        for f in ["ax", "ay", "az"] {
+            m.scales.insert(f.into(), 9.80665);
+        }
+        let mut st = DecodeStats::default();
+        let s = decode_csv(text, &m, &mut st).unwrap();
+        assert!((s[0].t_s - 0.01).abs() < 1e-12);
+        assert_eq!(s[0].accel_mps2, Some([0.0, 0.0, -9.80665]));
+        m.columns.insert("mx".into(), "Nope".into());
+        assert!(decode_csv(text, &m, &mut st).unwrap_err().contains("Nope"));
+    }
+}

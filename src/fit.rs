@@ -1,0 +1,549 @@
+//! Fitting: Levenberg-Marquardt on fixed-size normal equations, an algebraic ellipsoid start that
+//! needs no datasheet, parameter uncertainties, acceptance checks and automatic model choice.
+//! Pure math: no I/O.
+//!
+//! The scalar (norm) residual of seeds 000 and 002: for each point `r_i = |A (x_i - p)| - 1` on data
+//! normalised by the starting centre and radius, so the same tolerances hold for counts, uT or m/s^2.
+
+use crate::model::{a_from_params, mat_to_rows, n_norm_params, norm_residual_grad, params_from_a, Calibration, ModelKind};
+use crate::types::Vec3;
+use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Why a fit was refused. The names are the report's `failure` strings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FitFailure {
+    NotEnoughSamples,
+    NotIdentifiable,
+    Coverage,
+    Radius,
+    Offsets,
+    DiagonalScaling,
+    Residuals,
+    DidNotConverge,
+}
+
+impl FitFailure {
+    pub fn name(self) -> &'static str {
+        match self {
+            FitFailure::NotEnoughSamples => "not_enough_samples",
+            FitFailure::NotIdentifiable => "not_identifiable",
+            FitFailure::Coverage => "coverage",
+            FitFailure::Radius => "radius",
+            FitFailure::Offsets => "offsets",
+            FitFailure::DiagonalScaling => "diagonal_scaling",
+            FitFailure::Residuals => "residuals",
+            FitFailure::DidNotConverge => "did_not_converge",
+        }
+    }
+}
+
+/// Outcome of a Levenberg-Marquardt run.
+#[derive(Debug, Clone)]
+pub struct LmOutcome<const N: usize> {
+    pub params: SVector<f64, N>,
+    /// Sum of squared residuals at the solution.
+    pub ssr: f64,
+    pub iterations: usize,
+    /// J^T J at the solution (for uncertainties).
+    pub jtj: SMatrix<f64, N, N>,
+    pub converged: bool,
+}
+
+/// Levenberg-Marquardt with Marquardt's diagonal scaling (seed 000 eq. 13). `resid(p, i, grad)` returns
+/// residual `i` and writes its gradient. Normal equations are accumulated point by point, so memory is
+/// O(N^2) whatever the number of points.
+pub fn levenberg_marquardt<const N: usize>(
+    x0: SVector<f64, N>,
+    n_points: usize,
+    max_iter: usize,
+    resid: impl Fn(&SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
+) -> LmOutcome<N> {
+    let eval = |x: &SVector<f64, N>| {
+        let mut jtj = SMatrix::<f64, N, N>::zeros();
+        let mut jtr = SVector::<f64, N>::zeros();
+        let mut g = SVector::<f64, N>::zeros();
+        let mut ssr = 0.0;
+        for i in 0..n_points {
+            let r = resid(x, i, &mut g);
+            ssr += r * r;
+            jtr += g * r;
+            // Symmetric rank-1 update, upper triangle only.
+            for c in 0..N {
+                let gc = g[c];
+                for rr in 0..=c {
+                    jtj[(rr, c)] += g[rr] * gc;
+                }
+            }
+        }
+        for c in 0..N {
+            for rr in 0..c {
+                jtj[(c, rr)] = jtj[(rr, c)];
+            }
+        }
+        (ssr, jtj, jtr)
+    };
+    let ssr_only = |x: &SVector<f64, N>| {
+        let mut g = SVector::<f64, N>::zeros();
+        let mut s = 0.0;
+        for i in 0..n_points {
+            let r = resid(x, i, &mut g);
+            s += r * r;
+        }
+        s
+    };
+    let mut x = x0;
+    let (mut ssr, mut jtj, mut jtr) = eval(&x);
+    let mut lambda = 1e-3;
+    let mut converged = false;
+    let mut it = 0;
+    while it < max_iter {
+        it += 1;
+        let mut a = jtj;
+        for k in 0..N {
+            a[(k, k)] += lambda * jtj[(k, k)].max(1e-12);
+        }
+        let step = match a.cholesky() {
+            Some(ch) => ch.solve(&(-jtr)),
+            None => {
+                lambda *= 10.0;
+                if lambda > 1e12 {
+                    break;
+                }
+                continue;
+            }
+        };
+        let x_new = x + step;
+        let ssr_new = ssr_only(&x_new);
+        if ssr_new.is_finite() && ssr_new <= ssr {
+            let small_step = step.norm() <= 1e-12 * (x.norm() + 1e-12);
+            let small_gain = ssr - ssr_new <= 1e-14 * ssr.max(1e-300);
+            x = x_new;
+            let e = eval(&x);
+            ssr = e.0;
+            jtj = e.1;
+            jtr = e.2;
+            lambda = (lambda * 0.1).max(1e-15);
+            if small_step || small_gain || ssr == 0.0 {
+                converged = true;
+                break;
+            }
+        } else {
+            lambda *= 10.0;
+            if lambda > 1e12 {
+                // No descent direction left: we are at a minimum to working precision.
+                converged = jtr.norm() <= 1e-8 * (1.0 + ssr.sqrt());
+                break;
+            }
+        }
+    }
+    LmOutcome { params: x, ssr, iterations: it, jtj, converged }
+}
+
+/// A starting point: centre `p` and symmetric positive-definite shape `A` with |A (x - p)| ~ 1.
+#[derive(Debug, Clone, Copy)]
+pub struct Start {
+    pub centre: Vector3<f64>,
+    pub shape: Matrix3<f64>,
+}
+
+/// Linear least-squares sphere fit: |x|^2 = 2 c.x + k.
+pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
+    let n = points.len();
+    if n < 4 {
+        return None;
+    }
+    let mut ata = nalgebra::Matrix4::<f64>::zeros();
+    let mut atb = nalgebra::Vector4::<f64>::zeros();
+    for p in points {
+        let row = nalgebra::Vector4::new(2.0 * p[0], 2.0 * p[1], 2.0 * p[2], 1.0);
+        let b = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
+        ata += row * row.transpose();
+        atb += row * b;
+    }
+    let sol = ata.cholesky()?.solve(&atb);
+    let c = Vector3::new(sol[0], sol[1], sol[2]);
+    let r2 = sol[3] + c.norm_squared();
+    if !(r2 > 0.0) || !r2.is_finite() {
+        return None;
+    }
+    Some(Start { centre: c, shape: Matrix3::identity() / r2.sqrt() })
+}
+
+/// Algebraic ellipsoid fit: the general quadric x^T Q x + 2 g.x = 1, solved linearly; returns `None`
+/// when the quadric is not an ellipsoid (poor coverage), so the caller falls back to a sphere.
+pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
+    let n = points.len();
+    if n < 9 {
+        return None;
+    }
+    let mut ata = DMatrix::<f64>::zeros(9, 9);
+    let mut atb = DVector::<f64>::zeros(9);
+    for p in points {
+        let (x, y, z) = (p[0], p[1], p[2]);
+        let row = DVector::from_column_slice(&[x * x, y * y, z * z, 2.0 * x * y, 2.0 * x * z, 2.0 * y * z, 2.0 * x, 2.0 * y, 2.0 * z]);
+        ata += &row * row.transpose();
+        atb += row;
+    }
+    let s = ata.cholesky()?.solve(&atb);
+    let q = Matrix3::new(s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]);
+    let g = Vector3::new(s[6], s[7], s[8]);
+    let qi = q.try_inverse()?;
+    let c = -(qi * g);
+    // (x-c)^T Q (x-c) = 1 + c^T Q c
+    let k = 1.0 + (c.transpose() * q * c)[0];
+    if k == 0.0 || !k.is_finite() {
+        return None;
+    }
+    // k < 0 when the origin lies outside the ellipsoid (Q then came out negative definite).
+    let qn = q / k;
+    let eig = qn.symmetric_eigen();
+    if eig.eigenvalues.iter().any(|&l| !(l > 0.0) || !l.is_finite()) {
+        return None;
+    }
+    let sq = eig.eigenvectors * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.sqrt())) * eig.eigenvectors.transpose();
+    Some(Start { centre: c, shape: sq })
+}
+
+/// Options for a norm fit.
+#[derive(Debug, Clone, Copy)]
+pub struct NormFitOptions {
+    /// Magnitude the calibrated vectors should have (e.g. g in m/s^2). `None` keeps the raw scale:
+    /// the matrix then has determinant 1 and `radius` is the field magnitude in raw units.
+    pub target_norm: Option<f64>,
+    pub max_iterations: usize,
+}
+
+impl Default for NormFitOptions {
+    fn default() -> Self {
+        NormFitOptions { target_norm: None, max_iterations: 200 }
+    }
+}
+
+/// Result of a norm fit, before acceptance checks.
+#[derive(Debug, Clone)]
+pub struct NormFit {
+    pub calibration: Calibration,
+    /// Field magnitude in calibrated units (the target norm, or the raw-unit radius).
+    pub radius: f64,
+    /// Radius of the data in raw units (1 / cbrt(det A_raw)).
+    pub raw_radius: f64,
+    /// RMS of |calibrated| - radius, calibrated units.
+    pub rms_residual: f64,
+    /// 1-sigma of the offset, raw units.
+    pub offset_sigma: Vec3,
+    /// 1-sigma of each matrix parameter relative to its value scale (dimensionless).
+    pub matrix_sigma_max: f64,
+    pub ssr_normalised: f64,
+    pub samples_used: usize,
+    pub iterations: usize,
+    pub converged: bool,
+    /// Condition number of the normal matrix (identifiability).
+    pub condition: f64,
+}
+
+fn solve_norm<const N: usize>(kind: ModelKind, xs: &[Vec3], x0: &[f64], max_iter: usize) -> (Vec<f64>, f64, usize, bool, DMatrix<f64>) {
+    let x0v = SVector::<f64, N>::from_column_slice(x0);
+    let out = levenberg_marquardt::<N>(x0v, xs.len(), max_iter, |p, i, g| norm_residual_grad(kind, p.as_slice(), &xs[i], g.as_mut_slice()));
+    let jtj = DMatrix::from_column_slice(N, N, out.jtj.as_slice());
+    (out.params.as_slice().to_vec(), out.ssr, out.iterations, out.converged, jtj)
+}
+
+/// Fit a norm-only model (`sphere`, `diag6`, `sym9`, `full12` upper-triangular) to points in raw units.
+pub fn fit_norm(points: &[Vec3], kind: ModelKind, opts: &NormFitOptions) -> Result<NormFit, FitFailure> {
+    let np = n_norm_params(kind);
+    let pts: Vec<Vec3> = points.iter().copied().filter(|p| p.iter().all(|v| v.is_finite())).collect();
+    if pts.len() < np + 3 {
+        return Err(FitFailure::NotEnoughSamples);
+    }
+    // Normalise: centre and scale from the sphere fit (always defined when the points are not coplanar).
+    let sph = sphere_start(&pts).ok_or(FitFailure::NotIdentifiable)?;
+    let c0 = sph.centre;
+    let s0 = 1.0 / sph.shape[(0, 0)];
+    let xs: Vec<Vec3> = pts.iter().map(|p| [(p[0] - c0[0]) / s0, (p[1] - c0[1]) / s0, (p[2] - c0[2]) / s0]).collect();
+    let start = match kind {
+        ModelKind::Sphere => Start { centre: Vector3::zeros(), shape: Matrix3::identity() },
+        _ => ellipsoid_start(&xs)
+            .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
+            .unwrap_or(Start { centre: Vector3::zeros(), shape: Matrix3::identity() }),
+    };
+    let shape0 = if kind == ModelKind::Full12 {
+        // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
+        let s2 = start.shape.transpose() * start.shape;
+        s2.cholesky().map(|c| c.l().transpose()).unwrap_or(Matrix3::identity())
+    } else {
+        start.shape
+    };
+    let mut x0 = vec![start.centre[0], start.centre[1], start.centre[2]];
+    x0.extend(params_from_a(kind, &shape0));
+    let (p, ssr, iters, converged, jtj) = match np {
+        4 => solve_norm::<4>(kind, &xs, &x0, opts.max_iterations),
+        6 => solve_norm::<6>(kind, &xs, &x0, opts.max_iterations),
+        9 => solve_norm::<9>(kind, &xs, &x0, opts.max_iterations),
+        _ => unreachable!("norm models have 4, 6 or 9 parameters"),
+    };
+    if p.iter().any(|v| !v.is_finite()) {
+        return Err(FitFailure::DidNotConverge);
+    }
+    let a = a_from_params(kind, &p[3..]);
+    let offset = [c0[0] + s0 * p[0], c0[1] + s0 * p[1], c0[2] + s0 * p[2]];
+    let a_raw = a / s0;
+    let det = a_raw.determinant();
+    if !(det.abs() > 0.0) {
+        return Err(FitFailure::NotIdentifiable);
+    }
+    let raw_radius = 1.0 / det.abs().cbrt();
+    let radius = opts.target_norm.unwrap_or(raw_radius);
+    let mut m = a_raw * radius;
+    // Keep a proper (det > 0) matrix: a reflection cannot be told apart by norms.
+    if m.determinant() < 0.0 {
+        m = -m;
+    }
+    let n = xs.len();
+    let dof = (n - np).max(1) as f64;
+    let s2 = ssr / dof;
+    let eig = jtj.clone().symmetric_eigen();
+    let (mut lmin, mut lmax) = (f64::INFINITY, 0.0f64);
+    for &l in eig.eigenvalues.iter() {
+        lmin = lmin.min(l);
+        lmax = lmax.max(l);
+    }
+    let condition = if lmin > 0.0 { lmax / lmin } else { f64::INFINITY };
+    let cov = jtj.try_inverse().map(|inv| inv * s2);
+    let (offset_sigma, matrix_sigma_max) = match &cov {
+        Some(c) => {
+            let os = [s0 * c[(0, 0)].max(0.0).sqrt(), s0 * c[(1, 1)].max(0.0).sqrt(), s0 * c[(2, 2)].max(0.0).sqrt()];
+            let ms = (3..np).map(|k| c[(k, k)].max(0.0).sqrt()).fold(0.0, f64::max);
+            (os, ms)
+        }
+        None => ([f64::INFINITY; 3], f64::INFINITY),
+    };
+    Ok(NormFit {
+        calibration: Calibration { model: kind, offset, matrix: mat_to_rows(&m) },
+        radius,
+        raw_radius,
+        rms_residual: (ssr / n as f64).sqrt() * radius,
+        offset_sigma,
+        matrix_sigma_max,
+        ssr_normalised: ssr,
+        samples_used: n,
+        iterations: iters,
+        converged,
+        condition,
+    })
+}
+
+/// Upper 0.999 quantile of chi-square with `df` degrees of freedom (Wilson-Hilferty), used for the
+/// nested-model test of automatic model choice.
+pub fn chi2_quantile_999(df: usize) -> f64 {
+    let k = df as f64;
+    let z = 3.090_232; // standard normal 0.999 quantile
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// Is the more complex nested fit a significant improvement? F-test in its chi-square form, plus a
+/// floor on the relative improvement so that numerically tiny gains on huge samples do not count.
+pub fn significantly_better(simple_ssr: f64, complex_ssr: f64, extra_params: usize, n: usize, complex_params: usize) -> bool {
+    if complex_ssr >= simple_ssr || n <= complex_params {
+        return false;
+    }
+    let s2 = complex_ssr / (n - complex_params) as f64;
+    if s2 <= 0.0 {
+        return true;
+    }
+    let stat = (simple_ssr - complex_ssr) / s2;
+    stat > chi2_quantile_999(extra_params) && (simple_ssr - complex_ssr) > 0.005 * simple_ssr
+}
+
+/// Accelerometer calibration from static poses near the six axis directions (seed 004, seed 000
+/// section IV): the linear 12-parameter model raw = K f + b, solved by least squares against the
+/// nominal specific force of each pose (+-g on one axis). Returns `None` unless every one of the six
+/// directions has a pose within `max_angle_deg`.
+pub fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<Calibration> {
+    if pose_means.len() < 6 {
+        return None;
+    }
+    let sph = sphere_start(pose_means)?;
+    let c = sph.centre;
+    let mut rows: Vec<(Vector3<f64>, Vector3<f64>)> = Vec::new();
+    let mut seen = [false; 6];
+    let cos_max = max_angle_deg.to_radians().cos();
+    for p in pose_means {
+        let v = Vector3::new(p[0], p[1], p[2]) - c;
+        let d = v.normalize();
+        let (mut best, mut best_dot) = (0usize, -2.0);
+        for axis in 0..3 {
+            for (s_i, s) in [1.0, -1.0].iter().enumerate() {
+                let dot = s * d[axis];
+                if dot > best_dot {
+                    best_dot = dot;
+                    best = axis * 2 + s_i;
+                }
+            }
+        }
+        if best_dot < cos_max {
+            continue;
+        }
+        seen[best] = true;
+        let mut f = Vector3::zeros();
+        f[best / 2] = if best % 2 == 0 { g } else { -g };
+        rows.push((f, Vector3::new(p[0], p[1], p[2])));
+    }
+    if !seen.iter().all(|&s| s) {
+        return None;
+    }
+    // raw_j = sum_k K_jk f_k + b_j for each axis j: a 4-unknown least-squares problem per row of K.
+    let mut ata = nalgebra::Matrix4::<f64>::zeros();
+    for (f, _) in &rows {
+        let r = nalgebra::Vector4::new(f[0], f[1], f[2], 1.0);
+        ata += r * r.transpose();
+    }
+    let ch = ata.cholesky()?;
+    let mut k = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for j in 0..3 {
+        let mut atb = nalgebra::Vector4::zeros();
+        for (f, raw) in &rows {
+            atb += nalgebra::Vector4::new(f[0], f[1], f[2], 1.0) * raw[j];
+        }
+        let s = ch.solve(&atb);
+        k[(j, 0)] = s[0];
+        k[(j, 1)] = s[1];
+        k[(j, 2)] = s[2];
+        b[j] = s[3];
+    }
+    let m = k.try_inverse()?;
+    Some(Calibration { model: ModelKind::Full12, offset: [b[0], b[1], b[2]], matrix: mat_to_rows(&m) })
+}
+
+/// Rotation between the magnetometer and accelerometer frames from the gravity-field angle: at each
+/// static pose the angle between calibrated gravity direction `g_i` (unit, down) and calibrated field
+/// `m_i` (unit) is the same (the dip). Finds the rotation `R` (applied to the field) and the dip that
+/// make `g_i . (R m_i) = sin(dip)` hold best. Returns (R, dip_rad, rms, condition).
+pub fn fit_dip_rotation(gravity_dirs: &[Vec3], field_dirs: &[Vec3]) -> Option<(Matrix3<f64>, f64, f64, f64)> {
+    let n = gravity_dirs.len().min(field_dirs.len());
+    if n < 6 {
+        return None;
+    }
+    let g: Vec<Vector3<f64>> = gravity_dirs[..n].iter().map(|v| Vector3::new(v[0], v[1], v[2]).normalize()).collect();
+    let m: Vec<Vector3<f64>> = field_dirs[..n].iter().map(|v| Vector3::new(v[0], v[1], v[2]).normalize()).collect();
+    let mean_dot = g.iter().zip(&m).map(|(a, b)| a.dot(b)).sum::<f64>() / n as f64;
+    let x0 = SVector::<f64, 4>::new(0.0, 0.0, 0.0, mean_dot);
+    let out = levenberg_marquardt::<4>(x0, n, 100, |p, i, grad| {
+        let w = Vector3::new(p[0], p[1], p[2]);
+        let r = crate::model::rotation_from_vector(&w);
+        let rm = r * m[i];
+        // Small-angle derivative about the current rotation: d(R m)/dw ~ -[R m]x
+        let dw = rm.cross(&g[i]);
+        grad[0] = dw[0];
+        grad[1] = dw[1];
+        grad[2] = dw[2];
+        grad[3] = -1.0;
+        g[i].dot(&rm) - p[3]
+    });
+    let w = Vector3::new(out.params[0], out.params[1], out.params[2]);
+    let eig = out.jtj.symmetric_eigen();
+    let lmin = eig.eigenvalues.iter().cloned().fold(f64::INFINITY, f64::min);
+    let lmax = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+    let cond = if lmin > 0.0 { lmax / lmin } else { f64::INFINITY };
+    Some((crate::model::rotation_from_vector(&w), out.params[3].clamp(-1.0, 1.0).asin(), (out.ssr / n as f64).sqrt(), cond))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn sphere_points(n: usize, seed: u64) -> Vec<Vector3<f64>> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| loop {
+                let v = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+                let l = v.norm();
+                if l > 0.1 && l < 1.0 {
+                    break v / l;
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn recovers_sym9_exactly_without_noise() {
+        let m_true = Matrix3::new(1.05, 0.02, -0.01, 0.02, 0.97, 0.03, -0.01, 0.03, 1.01);
+        let o = Vector3::new(12.0, -30.0, 45.0);
+        let radius = 48.0;
+        let minv = m_true.try_inverse().unwrap();
+        let raw: Vec<Vec3> = sphere_points(400, 1).iter().map(|u| {
+            let r = minv * (u * radius) + o;
+            [r[0], r[1], r[2]]
+        }).collect();
+        let fit = fit_norm(&raw, ModelKind::Sym9, &NormFitOptions::default()).unwrap();
+        for k in 0..3 {
+            assert!((fit.calibration.offset[k] - o[k]).abs() < 1e-6, "offset {:?}", fit.calibration.offset);
+        }
+        let mn = fit.calibration.normalised_matrix();
+        let tn = m_true / m_true.determinant().cbrt();
+        assert!((mn - tn).abs().max() < 1e-8, "{mn} vs {tn}");
+        assert!(fit.rms_residual < 1e-6);
+    }
+
+    #[test]
+    fn ellipsoid_start_matches_truth() {
+        let pts: Vec<Vec3> = sphere_points(200, 2).iter().map(|u| [u[0] * 2.0 + 1.0, u[1] * 1.0 - 1.0, u[2] * 0.5]).collect();
+        let s = ellipsoid_start(&pts).unwrap();
+        assert!((s.centre - Vector3::new(1.0, -1.0, 0.0)).norm() < 1e-9);
+        assert!((s.shape[(0, 0)] - 0.5).abs() < 1e-9 && (s.shape[(2, 2)] - 2.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn auto_test_prefers_simple_when_equal() {
+        assert!(!significantly_better(1.0, 0.9999, 3, 1000, 9));
+        assert!(significantly_better(1.0, 0.5, 3, 1000, 9));
+        assert!((chi2_quantile_999(3) - 16.27).abs() < 0.5);
+    }
+
+    #[test]
+    fn six_position_recovers_bias_and_scale() {
+        let k = Matrix3::new(1.01, 0.0, 0.0, 0.0, 0.98, 0.0, 0.0, 0.0, 1.02);
+        let b = Vector3::new(0.1, -0.05, 0.2);
+        let g = 9.81;
+        let mut poses = vec![];
+        for axis in 0..3 {
+            for s in [1.0, -1.0] {
+                let mut f = Vector3::zeros();
+                f[axis] = s * g;
+                let r = k * f + b;
+                poses.push([r[0], r[1], r[2]]);
+            }
+        }
+        let c = six_position(&poses, g, 20.0).unwrap();
+        let a = c.apply(&poses[0]);
+        assert!((a[0] - g).abs() < 1e-9 && a[1].abs() < 1e-9);
+        assert!((c.offset[2] - 0.2).abs() < 1e-9);
+    }
+
+    #[test]
+    fn dip_rotation_recovers_misalignment() {
+        let dip = 60f64.to_radians();
+        let r_true = crate::model::rotation_from_vector(&Vector3::new(0.02, -0.01, 0.03));
+        let mut gs = vec![];
+        let mut ms = vec![];
+        for (i, u) in sphere_points(30, 3).iter().enumerate() {
+            // body attitude: random rotation taking world to body
+            let q = crate::model::rotation_from_vector(&(u * (0.3 + 0.1 * i as f64)));
+            let g_w = Vector3::new(0.0, 0.0, 1.0);
+            let m_w = Vector3::new(dip.cos(), 0.0, dip.sin());
+            let gb = q * g_w;
+            let mb = r_true.transpose() * (q * m_w);
+            gs.push([gb[0], gb[1], gb[2]]);
+            ms.push([mb[0], mb[1], mb[2]]);
+        }
+        let (r, d, rms, _) = fit_dip_rotation(&gs, &ms).unwrap();
+        assert!(rms < 1e-9, "rms {rms}");
+        assert!((d - dip).abs() < 1e-8);
+        // Rotation about gravity is free only when all poses share one gravity direction; here it is not.
+        assert!((r - r_true).abs().max() < 1e-6, "{r} vs {r_true}");
+    }
+}

@@ -1,0 +1,351 @@
+//! Gating: the scalar Kalman prefilter of seed 000 (eq. 3) and static-pose detection by sliding-window
+//! variance (seed 002), with a threshold that needs no hand tuning. Pure, streaming, bounded memory.
+
+use crate::types::{Sample, Vec3};
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+
+/// Seed 000 eq. 3: a random-constant Kalman filter per channel.
+/// x_k|k-1 = x, P_k|k-1 = P + Q, K = P/(P + R), x += K (z - x), P = (1 - K) P.
+#[derive(Debug, Clone, Copy)]
+pub struct ScalarKalman {
+    pub x: f64,
+    pub p: f64,
+    pub q: f64,
+    pub r: f64,
+    started: bool,
+}
+
+impl ScalarKalman {
+    /// Seed 000's values: Q = 1e-4, R = 1, P0 = 1; the state starts at the first measurement.
+    pub fn new(q: f64, r: f64) -> Self {
+        ScalarKalman { x: 0.0, p: 1.0, q, r, started: false }
+    }
+    pub fn update(&mut self, z: f64) -> f64 {
+        if !self.started {
+            self.x = z;
+            self.started = true;
+            return z;
+        }
+        let p = self.p + self.q;
+        let k = p / (p + self.r);
+        self.x += k * (z - self.x);
+        self.p = (1.0 - k) * p;
+        self.x
+    }
+}
+
+/// Three channels of [`ScalarKalman`].
+#[derive(Debug, Clone, Copy)]
+pub struct Prefilter3([ScalarKalman; 3]);
+
+impl Prefilter3 {
+    pub fn new(q: f64, r: f64) -> Self {
+        Prefilter3([ScalarKalman::new(q, r); 3])
+    }
+    pub fn update(&mut self, v: &Vec3) -> Vec3 {
+        [self.0[0].update(v[0]), self.0[1].update(v[1]), self.0[2].update(v[2])]
+    }
+}
+
+/// Settings of the static detector.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct GateConfig {
+    /// Sliding window length, seconds.
+    pub window_s: f64,
+    /// Fixed threshold on the summed per-axis accel variance ((m/s^2)^2 or counts^2); `None` = automatic.
+    pub threshold: Option<f64>,
+    /// Automatic threshold = factor x the noise floor (the 10th percentile of window variances).
+    pub threshold_factor: f64,
+    /// Shortest static run that counts as a pose, seconds.
+    pub min_pose_s: f64,
+}
+
+impl Default for GateConfig {
+    fn default() -> Self {
+        GateConfig { window_s: 1.0, threshold: None, threshold_factor: 8.0, min_pose_s: 1.0 }
+    }
+}
+
+/// A static pose: the mean of the samples of one still interval.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct Pose {
+    pub t_start: f64,
+    pub t_end: f64,
+    pub samples: usize,
+    pub accel: Vec3,
+    pub mag: Option<Vec3>,
+    pub gyro: Option<Vec3>,
+    pub temp_c: Option<f64>,
+    pub throttle: Option<f64>,
+    /// Summed per-axis accel variance inside the pose.
+    pub accel_var: f64,
+}
+
+#[derive(Debug, Clone, Default)]
+struct Acc {
+    t_start: f64,
+    t_end: f64,
+    n: usize,
+    a: [f64; 3],
+    a2: [f64; 3],
+    m: [f64; 3],
+    nm: usize,
+    g: [f64; 3],
+    ng: usize,
+    temp: f64,
+    nt: usize,
+    thr: f64,
+    nthr: usize,
+}
+
+impl Acc {
+    fn add(&mut self, s: &Sample, a: &Vec3) {
+        if self.n == 0 {
+            self.t_start = s.t_s;
+        }
+        self.t_end = s.t_s;
+        self.n += 1;
+        for k in 0..3 {
+            self.a[k] += a[k];
+            self.a2[k] += a[k] * a[k];
+        }
+        if let Some(m) = s.mag_ut {
+            self.nm += 1;
+            for k in 0..3 {
+                self.m[k] += m[k];
+            }
+        }
+        if let Some(g) = s.gyro_rad_s {
+            self.ng += 1;
+            for k in 0..3 {
+                self.g[k] += g[k];
+            }
+        }
+        if let Some(t) = s.temp_c {
+            self.nt += 1;
+            self.temp += t;
+        }
+        if let Some(t) = s.throttle {
+            self.nthr += 1;
+            self.thr += t;
+        }
+    }
+    fn pose(&self) -> Pose {
+        let n = self.n as f64;
+        let mean = |v: &[f64; 3], c: usize| {
+            let c = c as f64;
+            [v[0] / c, v[1] / c, v[2] / c]
+        };
+        let a = mean(&self.a, self.n);
+        let var: f64 = (0..3).map(|k| (self.a2[k] / n - a[k] * a[k]).max(0.0)).sum();
+        Pose {
+            t_start: self.t_start,
+            t_end: self.t_end,
+            samples: self.n,
+            accel: a,
+            mag: (self.nm > 0).then(|| mean(&self.m, self.nm)),
+            gyro: (self.ng > 0).then(|| mean(&self.g, self.ng)),
+            temp_c: (self.nt > 0).then(|| self.temp / self.nt as f64),
+            throttle: (self.nthr > 0).then(|| self.thr / self.nthr as f64),
+            accel_var: var,
+        }
+    }
+}
+
+/// Log-spaced histogram for a streaming quantile of window variances (bounded memory).
+#[derive(Debug, Clone)]
+struct LogHistogram {
+    bins: Vec<u64>,
+    total: u64,
+}
+
+const HIST_MIN_LOG10: f64 = -14.0;
+const HIST_BINS_PER_DECADE: f64 = 20.0;
+const HIST_BINS: usize = 500;
+
+impl LogHistogram {
+    fn new() -> Self {
+        LogHistogram { bins: vec![0; HIST_BINS], total: 0 }
+    }
+    fn add(&mut self, v: f64) {
+        let l = if v > 0.0 { v.log10() } else { HIST_MIN_LOG10 };
+        let i = ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE).floor().clamp(0.0, (HIST_BINS - 1) as f64) as usize;
+        self.bins[i] += 1;
+        self.total += 1;
+    }
+    fn quantile(&self, q: f64) -> Option<f64> {
+        if self.total == 0 {
+            return None;
+        }
+        let target = (q * self.total as f64).ceil().max(1.0) as u64;
+        let mut c = 0;
+        for (i, &b) in self.bins.iter().enumerate() {
+            c += b;
+            if c >= target {
+                return Some(10f64.powf(HIST_MIN_LOG10 + (i as f64 + 0.5) / HIST_BINS_PER_DECADE));
+            }
+        }
+        None
+    }
+}
+
+/// Streaming static detector on accelerometer samples. Each accel sample is judged by the variance of
+/// the window centred on it (so output lags input by half a window); a run of still samples at least
+/// `min_pose_s` long becomes a [`Pose`].
+#[derive(Debug, Clone)]
+pub struct StaticDetector {
+    cfg: GateConfig,
+    window: VecDeque<(Sample, Vec3)>,
+    half: usize,
+    len: usize,
+    hist: LogHistogram,
+    cur: Acc,
+    rate_est: Option<f64>,
+    first_t: Option<f64>,
+    n_seen: usize,
+    /// Current threshold in use.
+    pub threshold: f64,
+}
+
+impl StaticDetector {
+    pub fn new(cfg: GateConfig) -> Self {
+        StaticDetector {
+            cfg,
+            window: VecDeque::new(),
+            half: 0,
+            len: 0,
+            hist: LogHistogram::new(),
+            cur: Acc::default(),
+            rate_est: None,
+            first_t: None,
+            n_seen: 0,
+            threshold: cfg.threshold.unwrap_or(f64::INFINITY),
+        }
+    }
+
+    /// The noise-floor variance estimate (10th percentile of window variances so far).
+    pub fn noise_floor(&self) -> Option<f64> {
+        self.hist.quantile(0.10)
+    }
+
+    fn window_variance(&self) -> f64 {
+        let n = self.window.len() as f64;
+        let r = self.window[0].1;
+        let mut s = [0.0; 3];
+        let mut s2 = [0.0; 3];
+        for (_, a) in &self.window {
+            for k in 0..3 {
+                let d = a[k] - r[k];
+                s[k] += d;
+                s2[k] += d * d;
+            }
+        }
+        (0..3).map(|k| (s2[k] / n - (s[k] / n).powi(2)).max(0.0)).sum()
+    }
+
+    /// Feed one sample (accel = the prefiltered accel vector to judge). Returns a pose when one ends.
+    pub fn push(&mut self, s: &Sample, accel: &Vec3) -> Option<Pose> {
+        // The window length in samples is fixed from the rate seen in the first 50 samples.
+        self.n_seen += 1;
+        let t0 = *self.first_t.get_or_insert(s.t_s);
+        if self.rate_est.is_none() {
+            if self.n_seen == 50 {
+                let dt = (s.t_s - t0) / 49.0;
+                let rate = if dt > 0.0 { 1.0 / dt } else { 100.0 };
+                self.rate_est = Some(rate);
+                self.len = ((self.cfg.window_s * rate).round() as usize).clamp(5, 20_000) | 1;
+                self.half = self.len / 2;
+            }
+        }
+        self.window.push_back((*s, *accel));
+        if self.len == 0 {
+            // Rate not known yet: keep the first samples (bounded) until it is.
+            return None;
+        }
+        let mut out = None;
+        while self.window.len() > self.len {
+            self.window.pop_front();
+        }
+        if self.window.len() == self.len {
+            let var = self.window_variance();
+            self.hist.add(var);
+            if self.cfg.threshold.is_none() {
+                if let Some(f) = self.noise_floor() {
+                    self.threshold = f * self.cfg.threshold_factor;
+                }
+            }
+            let (cs, ca) = self.window[self.half];
+            if var <= self.threshold {
+                self.cur.add(&cs, &ca);
+            } else {
+                out = self.close();
+            }
+        }
+        out
+    }
+
+    fn close(&mut self) -> Option<Pose> {
+        let acc = std::mem::take(&mut self.cur);
+        if acc.n > 0 && acc.t_end - acc.t_start >= self.cfg.min_pose_s {
+            Some(acc.pose())
+        } else {
+            None
+        }
+    }
+
+    /// End of input: close the current run.
+    pub fn finish(&mut self) -> Option<Pose> {
+        self.close()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    #[test]
+    fn kalman_prefilter_converges_and_smooths() {
+        let mut k = ScalarKalman::new(1e-4, 1.0);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let n = Normal::new(9.8, 0.5).unwrap();
+        let mut last = 0.0;
+        for _ in 0..2000 {
+            last = k.update(n.sample(&mut rng));
+        }
+        assert!((last - 9.8).abs() < 0.1, "{last}");
+    }
+
+    #[test]
+    fn finds_poses_between_motion_without_tuning() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let noise = Normal::new(0.0, 0.02).unwrap();
+        let mut det = StaticDetector::new(GateConfig::default());
+        let mut poses = vec![];
+        let rate = 100.0;
+        let mut t = 0.0;
+        for p in 0..10 {
+            let still = [0.0, (p as f64).sin() * 9.8, (p as f64).cos() * 9.8];
+            for _ in 0..300 {
+                let a = [still[0] + noise.sample(&mut rng), still[1] + noise.sample(&mut rng), still[2] + noise.sample(&mut rng)];
+                let s = Sample { t_s: t, accel_mps2: Some(a), ..Default::default() };
+                poses.extend(det.push(&s, &a));
+                t += 1.0 / rate;
+            }
+            for i in 0..150 {
+                let w = i as f64 * 0.1;
+                let a = [3.0 * w.sin(), 9.8 * w.cos(), 2.0];
+                let s = Sample { t_s: t, accel_mps2: Some(a), ..Default::default() };
+                poses.extend(det.push(&s, &a));
+                t += 1.0 / rate;
+            }
+        }
+        poses.extend(det.finish());
+        assert_eq!(poses.len(), 10, "{:?}", poses.iter().map(|p| p.t_start).collect::<Vec<_>>());
+        assert!(poses[3].samples > 150);
+        assert!((poses[3].accel[1] - 3f64.sin() * 9.8).abs() < 0.01);
+    }
+}

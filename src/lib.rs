@@ -1,0 +1,23 @@
+//! imucald: online calibration of accelerometer, magnetometer and gyroscope, with heading.
+//!
+//! Modules by pipeline stage (see ARCHITECTURE.md). The math and gating modules (`gate`, `coverage`,
+//! `model`, `fit`, `attitude`, `pipeline`, `export`) do no I/O and know nothing of tokio; only
+//! `sources`/`decode` read bytes and only `publish` writes them.
+
+pub mod attitude;
+pub mod config;
+pub mod coverage;
+pub mod decode;
+pub mod error;
+pub mod export;
+pub mod fit;
+pub mod gate;
+pub mod model;
+pub mod pipeline;
+pub mod plot;
+pub mod publish;
+pub mod report;
+pub mod sim;
+pub mod types;
+
+pub use error::Error;
