@@ -1,1 +1,197 @@
-//! (being written)
+//! Attitude from calibrated vectors: pitch and roll from specific force (seed 000 eq. 8 written for
+//! specific force, see CONVENTIONS.md), tilt-compensated heading (seed 000 eq. 7-8, seed 004 eq. 1-2),
+//! true heading through World Magnetic Model declination, and the MAVLink sensor orientations.
+//! Body frame FRD, world NED. Pure math, no I/O.
+
+use crate::types::Vec3;
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Roll, pitch (deg) from calibrated specific force `f` (FRD; reads (0, 0, -g) level at rest).
+pub fn roll_pitch_deg(f: &Vec3) -> (f64, f64) {
+    let pitch = f[0].atan2((f[1] * f[1] + f[2] * f[2]).sqrt());
+    let roll = (-f[1]).atan2(-f[2]);
+    (roll.to_degrees(), pitch.to_degrees())
+}
+
+/// Tilt-compensated magnetic heading (deg, 0..360) from calibrated field `m` (FRD) and roll/pitch (deg).
+pub fn heading_deg(m: &Vec3, roll_deg: f64, pitch_deg: f64) -> f64 {
+    let (r, p) = (roll_deg.to_radians(), pitch_deg.to_radians());
+    let xh = m[0] * p.cos() + m[1] * r.sin() * p.sin() + m[2] * r.cos() * p.sin();
+    let yh = m[1] * r.cos() - m[2] * r.sin();
+    wrap360((-yh).atan2(xh).to_degrees())
+}
+
+/// Wrap an angle in degrees to [0, 360).
+pub fn wrap360(a: f64) -> f64 {
+    let w = a.rem_euclid(360.0);
+    if w >= 360.0 {
+        0.0
+    } else {
+        w
+    }
+}
+
+/// Signed difference a - b wrapped to (-180, 180].
+pub fn angle_diff_deg(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(360.0);
+    if d > 180.0 {
+        d - 360.0
+    } else {
+        d
+    }
+}
+
+/// Roll, pitch, heading (deg) from calibrated accel and mag; heading is true when `declination_deg`
+/// is given (east positive), magnetic otherwise.
+pub fn attitude_deg(f: &Vec3, m: &Vec3, declination_deg: Option<f64>) -> (f64, f64, f64) {
+    let (roll, pitch) = roll_pitch_deg(f);
+    let h = heading_deg(m, roll, pitch) + declination_deg.unwrap_or(0.0);
+    (roll, pitch, wrap360(h))
+}
+
+/// A place and date for the World Magnetic Model.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Place {
+    pub latitude_deg: f64,
+    pub longitude_deg: f64,
+    /// Height above the WGS84 ellipsoid, m.
+    #[serde(default)]
+    pub altitude_m: f64,
+    /// Date as "YYYY-MM-DD"; today when absent.
+    #[serde(default)]
+    pub date: Option<String>,
+}
+
+/// The earth field at a place (WMM2025).
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct EarthField {
+    pub declination_deg: f64,
+    pub inclination_deg: f64,
+    pub total_ut: f64,
+}
+
+/// Evaluate the World Magnetic Model. Errors name what is wrong (date outside the model's span,
+/// latitude out of range, bad date string).
+pub fn earth_field(place: &Place) -> Result<EarthField, String> {
+    use world_magnetic_model::time::{Date, Month};
+    use world_magnetic_model::uom::si::angle::degree;
+    use world_magnetic_model::uom::si::f32::{Angle, Length};
+    use world_magnetic_model::uom::si::length::meter;
+    use world_magnetic_model::uom::si::magnetic_flux_density::nanotesla;
+    let date = match &place.date {
+        Some(s) => {
+            let parts: Vec<&str> = s.split('-').collect();
+            let bad = || format!("place.date `{s}` is not YYYY-MM-DD");
+            if parts.len() != 3 {
+                return Err(bad());
+            }
+            let y: i32 = parts[0].parse().map_err(|_| bad())?;
+            let m: u8 = parts[1].parse().map_err(|_| bad())?;
+            let d: u8 = parts[2].parse().map_err(|_| bad())?;
+            let month = Month::try_from(m).map_err(|_| bad())?;
+            Date::from_calendar_date(y, month, d).map_err(|_| bad())?
+        }
+        None => {
+            let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+            let days = (secs / 86_400) as i32;
+            Date::from_julian_day(2_440_588 + days).map_err(|e| e.to_string())?
+        }
+    };
+    if !(-90.0..=90.0).contains(&place.latitude_deg) || !(-180.0..=360.0).contains(&place.longitude_deg) {
+        return Err(format!("place: latitude {} / longitude {} out of range", place.latitude_deg, place.longitude_deg));
+    }
+    let f = world_magnetic_model::GeomagneticField::new(
+        Length::new::<meter>(place.altitude_m as f32),
+        Angle::new::<degree>(place.latitude_deg as f32),
+        Angle::new::<degree>(place.longitude_deg as f32),
+        date,
+    )
+    .map_err(|e| format!("world magnetic model: {e} (WMM2025 covers 2025-2029)"))?;
+    Ok(EarthField {
+        declination_deg: f.declination().get::<degree>() as f64,
+        inclination_deg: f.inclination().get::<degree>() as f64,
+        total_ut: f.f().get::<nanotesla>() as f64 / 1000.0,
+    })
+}
+
+/// Rotation from sensor axes to body axes for a MAVLink MAV_SENSOR_ORIENTATION name such as
+/// `ROTATION_NONE`, `ROTATION_YAW_90`, `ROTATION_ROLL_180_YAW_45`, `ROTATION_PITCH_270`
+/// (the `MAV_SENSOR_` / `ROTATION_` prefix is optional). The name's roll, pitch and yaw make
+/// R = Rz(yaw) Ry(pitch) Rx(roll), and body = R sensor.
+pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
+    let n = name.trim().to_ascii_uppercase();
+    let n = n.trim_start_matches("MAV_SENSOR_").trim_start_matches("ROTATION_");
+    if n == "NONE" {
+        return Ok(Matrix3::identity());
+    }
+    let parts: Vec<&str> = n.split('_').collect();
+    if parts.len() % 2 != 0 || parts.is_empty() {
+        return Err(format!("unknown sensor orientation `{name}`: use a MAV_SENSOR_ORIENTATION name such as ROTATION_YAW_90"));
+    }
+    let (mut r, mut p, mut y) = (0.0, 0.0, 0.0);
+    for pair in parts.chunks(2) {
+        let deg: f64 = pair[1].parse().map_err(|_| format!("unknown sensor orientation `{name}`"))?;
+        match pair[0] {
+            "ROLL" => r = deg,
+            "PITCH" => p = deg,
+            "YAW" => y = deg,
+            _ => return Err(format!("unknown sensor orientation `{name}`: `{}` is not ROLL, PITCH or YAW", pair[0])),
+        }
+    }
+    Ok(*Rotation3::from_euler_angles(r.to_radians(), p.to_radians(), y.to_radians()).matrix())
+}
+
+pub fn rotate(r: &Matrix3<f64>, v: &Vec3) -> Vec3 {
+    let o = r * Vector3::new(v[0], v[1], v[2]);
+    [o[0], o[1], o[2]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Forward model: the NED field and gravity seen in body axes for a ZYX attitude.
+    fn body_of(roll: f64, pitch: f64, yaw: f64, v_ned: Vector3<f64>) -> Vec3 {
+        let r = Rotation3::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians());
+        let b = r.inverse() * v_ned;
+        [b[0], b[1], b[2]]
+    }
+
+    #[test]
+    fn level_reads_zero_and_heading_follows_yaw() {
+        let g = 9.80665;
+        let field = Vector3::new(20.0f64, 2.0, 40.0);
+        let decl = field[1].atan2(field[0]).to_degrees();
+        for &(roll, pitch, yaw) in &[(0.0, 0.0, 0.0), (10.0, -20.0, 135.0), (-35.0, 50.0, 290.0), (170.0, 10.0, 45.0)] {
+            // specific force = -gravity in body axes
+            let f = body_of(roll, pitch, yaw, Vector3::new(0.0, 0.0, -g));
+            let m = body_of(roll, pitch, yaw, field);
+            let (r, p, h) = attitude_deg(&f, &m, None);
+            assert!(angle_diff_deg(r, roll).abs() < 1e-9, "roll {r} vs {roll}");
+            assert!((p - pitch).abs() < 1e-9, "pitch {p} vs {pitch}");
+            assert!(angle_diff_deg(h + decl, yaw).abs() < 1e-9, "heading {h} + {decl} vs {yaw}");
+        }
+    }
+
+    #[test]
+    fn wmm_matches_the_check_value_in_stack_md() {
+        let f = earth_field(&Place { latitude_deg: 22.5, longitude_deg: 113.9, altitude_m: 0.0, date: Some("2026-11-22".into()) }).unwrap();
+        assert!((f.declination_deg - -3.2909).abs() < 0.01, "{f:?}");
+        assert!((f.inclination_deg - 34.3203).abs() < 0.01);
+        assert!((f.total_ut - 45.6768).abs() < 0.01);
+    }
+
+    #[test]
+    fn sensor_rotations_by_name() {
+        let r = sensor_rotation("ROTATION_YAW_90").unwrap();
+        let v = rotate(&r, &[1.0, 0.0, 0.0]);
+        assert!((v[1] - 1.0).abs() < 1e-12);
+        let r = sensor_rotation("ROTATION_ROLL_180").unwrap();
+        let v = rotate(&r, &[0.0, 0.0, 1.0]);
+        assert!((v[2] + 1.0).abs() < 1e-12);
+        assert!(sensor_rotation("ROTATION_SIDEWAYS").is_err());
+        assert_eq!(sensor_rotation("NONE").unwrap(), Matrix3::identity());
+    }
+}

@@ -1,1 +1,283 @@
-//! (being written)
+//! Start-up configuration (TOML). Every section and key has a default, unknown keys are errors that
+//! name the key, and `validate` checks ranges with messages that say what to fix.
+
+use crate::attitude::Place;
+use crate::decode::{CsvMapping, RawImuScale};
+use crate::error::Error;
+use crate::gate::GateConfig;
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    pub input: InputConfig,
+    pub gate: GateConfig,
+    pub fit: FitConfig,
+    pub accept: AcceptConfig,
+    /// Where and when: enables true heading (declination) and the expected field strength.
+    pub place: Option<Place>,
+    pub orientation: OrientationConfig,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct InputConfig {
+    /// "auto" (from content), "tlog" or "csv".
+    pub format: String,
+    /// IMU instance in MAVLink logs: "auto" (first with a magnetometer), "highres_imu:0", "scaled_imu",
+    /// "scaled_imu2", "scaled_imu3", "raw_imu:0".
+    pub instance: String,
+    /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them).
+    pub raw_imu_scale: RawImuScale,
+    /// Column mapping and unit scales for users' own CSV files.
+    pub csv: CsvMapping,
+    /// Accelerometer units: "auto" (m/s^2 when the static norm is near g, else counts), "si", "counts".
+    pub accel_units: String,
+}
+
+impl Default for InputConfig {
+    fn default() -> Self {
+        InputConfig { format: "auto".into(), instance: "auto".into(), raw_imu_scale: RawImuScale::default(), csv: CsvMapping::default(), accel_units: "auto".into() }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct FitConfig {
+    /// "auto", "sphere", "diag6", "sym9", "full12".
+    pub mag_model: String,
+    /// "auto", "sphere", "diag6", "sym9", "full12", "six_position".
+    pub accel_model: String,
+    /// Refit every this many seconds of data.
+    pub refit_every_s: f64,
+    /// Local gravity, m/s^2 (the accelerometer's calibrated norm).
+    pub gravity_mps2: f64,
+    /// Minimum angle between kept magnetometer samples, deg.
+    pub min_separation_deg: f64,
+    /// Seed 000's scalar Kalman prefilter on accel and mag before gating and fitting.
+    pub prefilter: bool,
+    pub prefilter_q: f64,
+    pub prefilter_r: f64,
+}
+
+impl Default for FitConfig {
+    fn default() -> Self {
+        FitConfig {
+            mag_model: "auto".into(),
+            accel_model: "auto".into(),
+            refit_every_s: 10.0,
+            gravity_mps2: crate::types::STANDARD_GRAVITY_MPS2,
+            min_separation_deg: 2.0,
+            prefilter: false,
+            prefilter_q: 1e-4,
+            prefilter_r: 1.0,
+        }
+    }
+}
+
+/// Acceptance limits of one sensor's fit. Field magnitudes are in the sensor's calibrated units.
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct AcceptLimits {
+    /// Radius (field magnitude) limits; checked only when the input's units are known.
+    pub min_radius: f64,
+    pub max_radius: f64,
+    /// Largest |offset| per axis, raw units (checked when units are known).
+    pub max_offset: f64,
+    /// Limits on the diagonal of the normalised matrix.
+    pub min_diag: f64,
+    pub max_diag: f64,
+    /// Largest |off-diagonal| of the normalised matrix.
+    pub max_offdiag: f64,
+    /// Largest RMS residual as a fraction of the radius.
+    pub max_rms_ratio: f64,
+    /// Fewest filled coverage regions (of 100).
+    pub min_filled_regions: usize,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(from = "AcceptToml")]
+pub struct AcceptConfig {
+    pub mag: AcceptLimits,
+    pub accel: AcceptLimits,
+}
+
+impl Default for AcceptConfig {
+    fn default() -> Self {
+        AcceptConfig {
+            // ArduPilot's calibrator accepts radius 150-950 mG, DIA in (0.2, 5), |ODI| < 1 and
+            // |OFS| < 1800 mG; phones carry far larger hard iron (~400 uT), so the offset limit is wider.
+            mag: AcceptLimits { min_radius: 15.0, max_radius: 95.0, max_offset: 1000.0, min_diag: 0.2, max_diag: 5.0, max_offdiag: 1.0, max_rms_ratio: 0.05, min_filled_regions: 25 },
+            // ArduPilot: accel scale 0.8-1.2, offsets within 3.5 m/s^2.
+            accel: AcceptLimits { min_radius: 7.0, max_radius: 12.0, max_offset: 3.5, min_diag: 0.8, max_diag: 1.2, max_offdiag: 0.2, max_rms_ratio: 0.02, min_filled_regions: 6 },
+        }
+    }
+}
+
+/// TOML form of the limits: every key optional, missing keys keep the sensor's default.
+#[derive(Debug, Clone, Copy, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct LimitsToml {
+    min_radius: Option<f64>,
+    max_radius: Option<f64>,
+    max_offset: Option<f64>,
+    min_diag: Option<f64>,
+    max_diag: Option<f64>,
+    max_offdiag: Option<f64>,
+    max_rms_ratio: Option<f64>,
+    min_filled_regions: Option<usize>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+struct AcceptToml {
+    mag: LimitsToml,
+    accel: LimitsToml,
+}
+
+impl LimitsToml {
+    fn over(self, d: AcceptLimits) -> AcceptLimits {
+        AcceptLimits {
+            min_radius: self.min_radius.unwrap_or(d.min_radius),
+            max_radius: self.max_radius.unwrap_or(d.max_radius),
+            max_offset: self.max_offset.unwrap_or(d.max_offset),
+            min_diag: self.min_diag.unwrap_or(d.min_diag),
+            max_diag: self.max_diag.unwrap_or(d.max_diag),
+            max_offdiag: self.max_offdiag.unwrap_or(d.max_offdiag),
+            max_rms_ratio: self.max_rms_ratio.unwrap_or(d.max_rms_ratio),
+            min_filled_regions: self.min_filled_regions.unwrap_or(d.min_filled_regions),
+        }
+    }
+}
+
+impl From<AcceptToml> for AcceptConfig {
+    fn from(t: AcceptToml) -> Self {
+        let d = AcceptConfig::default();
+        AcceptConfig { mag: t.mag.over(d.mag), accel: t.accel.over(d.accel) }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct OrientationConfig {
+    /// MAV_SENSOR_ORIENTATION name of the IMU in the body frame, e.g. "ROTATION_NONE", "ROTATION_YAW_90".
+    pub sensor: String,
+}
+
+impl Default for OrientationConfig {
+    fn default() -> Self {
+        OrientationConfig { sensor: "ROTATION_NONE".into() }
+    }
+}
+
+fn err(key: &str, message: impl Into<String>) -> Error {
+    Error::Config { key: key.to_string(), message: message.into() }
+}
+
+impl Config {
+    /// Parse and validate TOML text.
+    pub fn from_toml_str(text: &str) -> Result<Config, Error> {
+        let cfg: Config = toml::from_str(text).map_err(|e| {
+            let msg = e.message().to_string();
+            let loc = e.span().map(|s| {
+                let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                format!(" (line {line})")
+            });
+            err("toml", format!("{msg}{}", loc.unwrap_or_default()))
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Read, parse and validate a TOML file.
+    pub fn load(path: &std::path::Path) -> Result<Config, Error> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read { path: path.to_path_buf(), source })?;
+        Config::from_toml_str(&text).map_err(|e| match e {
+            Error::Config { key, message } => Error::Config { key: format!("{}: {key}", path.display()), message },
+            other => other,
+        })
+    }
+
+    /// Range and name checks; each error names the key and the fix.
+    pub fn validate(&self) -> Result<(), Error> {
+        if !["auto", "tlog", "csv"].contains(&self.input.format.as_str()) {
+            return Err(err("input.format", format!("`{}` is not one of auto, tlog, csv", self.input.format)));
+        }
+        let inst = self.input.instance.as_str();
+        let inst_ok = inst == "auto"
+            || ["scaled_imu", "scaled_imu2", "scaled_imu3"].contains(&inst)
+            || inst.strip_prefix("highres_imu:").or(inst.strip_prefix("raw_imu:")).is_some_and(|n| n.parse::<u8>().is_ok());
+        if !inst_ok {
+            return Err(err("input.instance", format!("`{inst}` is not auto, highres_imu:N, scaled_imu, scaled_imu2, scaled_imu3 or raw_imu:N")));
+        }
+        if !["auto", "si", "counts"].contains(&self.input.accel_units.as_str()) {
+            return Err(err("input.accel_units", format!("`{}` is not one of auto, si, counts", self.input.accel_units)));
+        }
+        let models = ["auto", "sphere", "diag6", "sym9", "full12"];
+        if !models.contains(&self.fit.mag_model.as_str()) {
+            return Err(err("fit.mag_model", format!("`{}` is not one of {}", self.fit.mag_model, models.join(", "))));
+        }
+        if !models.contains(&self.fit.accel_model.as_str()) && self.fit.accel_model != "six_position" {
+            return Err(err("fit.accel_model", format!("`{}` is not one of {}, six_position", self.fit.accel_model, models.join(", "))));
+        }
+        let pos = |key: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(()) } else { Err(err(key, format!("must be a positive number, got {v}"))) };
+        pos("fit.refit_every_s", self.fit.refit_every_s)?;
+        pos("fit.gravity_mps2", self.fit.gravity_mps2)?;
+        pos("fit.min_separation_deg", self.fit.min_separation_deg)?;
+        pos("fit.prefilter_q", self.fit.prefilter_q)?;
+        pos("fit.prefilter_r", self.fit.prefilter_r)?;
+        pos("gate.window_s", self.gate.window_s)?;
+        pos("gate.threshold_factor", self.gate.threshold_factor)?;
+        if !(self.gate.min_pose_s >= 0.0) {
+            return Err(err("gate.min_pose_s", "must be zero or more seconds"));
+        }
+        if let Some(t) = self.gate.threshold {
+            pos("gate.threshold", t)?;
+        }
+        for (name, l) in [("accept.mag", &self.accept.mag), ("accept.accel", &self.accept.accel)] {
+            if !(l.min_radius < l.max_radius) {
+                return Err(err(&format!("{name}.min_radius"), "must be below max_radius"));
+            }
+            if !(l.min_diag < l.max_diag) {
+                return Err(err(&format!("{name}.min_diag"), "must be below max_diag"));
+            }
+            if l.min_filled_regions > crate::coverage::REGIONS {
+                return Err(err(&format!("{name}.min_filled_regions"), "there are only 100 regions"));
+            }
+        }
+        crate::attitude::sensor_rotation(&self.orientation.sensor).map_err(|m| err("orientation.sensor", m))?;
+        if let Some(p) = &self.place {
+            crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_validate() {
+        Config::default().validate().unwrap();
+        let c = Config::from_toml_str("").unwrap();
+        assert_eq!(c, Config::default());
+        let c = Config::from_toml_str("[accept.mag]\nmax_rms_ratio = 0.1\n").unwrap();
+        assert_eq!(c.accept.mag.max_rms_ratio, 0.1);
+        assert_eq!(c.accept.mag.max_radius, 95.0);
+        assert_eq!(c.accept.accel, AcceptConfig::default().accel);
+    }
+
+    #[test]
+    fn errors_name_the_key() {
+        let e = Config::from_toml_str("[fit]\nmag_modle = \"sym9\"\n").unwrap_err().to_string();
+        assert!(e.contains("mag_modle") && e.contains("line 2"), "{e}");
+        let e = Config::from_toml_str("[fit]\nmag_model = \"sym10\"\n").unwrap_err().to_string();
+        assert!(e.contains("fit.mag_model") && e.contains("sym9"), "{e}");
+        let e = Config::from_toml_str("[gate]\nwindow_s = -1\n").unwrap_err().to_string();
+        assert!(e.contains("gate.window_s"), "{e}");
+        let e = Config::from_toml_str("[orientation]\nsensor = \"UPSIDE_DOWN\"\n").unwrap_err().to_string();
+        assert!(e.contains("orientation.sensor"), "{e}");
+        let e = Config::from_toml_str("[place]\nlatitude_deg = 45.0\nlongitude_deg = 7.0\ndate = \"2031-01-01\"\n").unwrap_err().to_string();
+        assert!(e.contains("place"), "{e}");
+    }
+}

@@ -16,8 +16,10 @@ pub mod model;
 pub mod pipeline;
 pub mod plot;
 pub mod publish;
+pub mod replay;
 pub mod report;
 pub mod sim;
+pub mod sources;
 pub mod types;
 
 pub use error::Error;

@@ -1,1 +1,575 @@
-//! (being written)
+//! The calibration pipeline as pure, streaming library code: samples in, static poses, coverage and
+//! fits out. The same `Pipeline` serves `replay` (fits run inline) and the live daemon (fits run on a
+//! snapshot off the async executor, see [`Pipeline::snapshot`] and [`fit_all`]).
+//!
+//! Per sample: sensor-to-body rotation -> optional prefilter -> static detector (accel variance) ->
+//! magnetometer direction bins. Per refit: norm fits of mag (bin means) and accel (pose means),
+//! automatic model choice, acceptance checks, gyro bias from poses.
+
+use crate::config::{AcceptLimits, Config};
+use crate::coverage::{coverage, Coverage, DirectionBins};
+use crate::fit::{fit_norm, significantly_better, six_position, FitFailure, NormFitOptions};
+use crate::gate::{Pose, Prefilter3, StaticDetector};
+use crate::model::{Calibration, ModelKind};
+use crate::report::{Candidate, GyroCalibration, RefitReport, SensorCalibration};
+use crate::types::{norm, Sample, Unit, Vec3};
+use nalgebra::Matrix3;
+
+/// Everything a refit needs, cloned out of the pipeline so the fit can run elsewhere.
+#[derive(Debug, Clone)]
+pub struct FitInput {
+    pub mag_points: Vec<Vec3>,
+    pub poses: Vec<Pose>,
+    pub mag_units: Unit,
+    pub gyro_units: Unit,
+    /// From config: "auto", "si", "counts".
+    pub accel_units: String,
+}
+
+/// One sensor's outcome.
+#[derive(Debug, Clone)]
+pub struct SensorResult {
+    pub report: SensorCalibration,
+    /// The calibration when status is ok.
+    pub calibration: Option<Calibration>,
+    pub coverage_before: Coverage,
+    pub coverage_after: Coverage,
+    /// Raw points about the raw centre and calibrated points, for plots.
+    pub dirs_before: Vec<Vec3>,
+    pub dirs_after: Vec<Vec3>,
+    /// Per fitted point: time unknown for bins, so index; norm residual in calibrated units.
+    pub residuals: Vec<f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct FitResults {
+    pub mag: SensorResult,
+    pub accel: SensorResult,
+    pub gyro: GyroCalibration,
+}
+
+/// The streaming pipeline state.
+#[derive(Debug, Clone)]
+pub struct Pipeline {
+    cfg: Config,
+    rot: Matrix3<f64>,
+    pre_a: Option<Prefilter3>,
+    pre_m: Option<Prefilter3>,
+    detector: StaticDetector,
+    poses: Vec<Pose>,
+    mag_buffer: Vec<Vec3>,
+    mag_stride: usize,
+    mag_seen: usize,
+    mag_bins: Option<DirectionBins>,
+    last_refit_t: Option<f64>,
+    pub last_t: f64,
+    pub samples: u64,
+    pub mag_units: Unit,
+    pub gyro_units: Unit,
+    /// Latest results (whether accepted or not) and refit history.
+    pub latest: Option<FitResults>,
+    pub refits: Vec<RefitReport>,
+}
+
+const MAG_BUFFER_MAX: usize = 4000;
+
+impl Pipeline {
+    pub fn new(cfg: &Config) -> Result<Self, crate::error::Error> {
+        let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor)
+            .map_err(|m| crate::error::Error::Config { key: "orientation.sensor".into(), message: m })?;
+        let pf = cfg.fit.prefilter.then(|| Prefilter3::new(cfg.fit.prefilter_q, cfg.fit.prefilter_r));
+        Ok(Pipeline {
+            cfg: cfg.clone(),
+            rot,
+            pre_a: pf,
+            pre_m: pf,
+            detector: StaticDetector::new(cfg.gate),
+            poses: Vec::new(),
+            mag_buffer: Vec::new(),
+            mag_stride: 1,
+            mag_seen: 0,
+            mag_bins: None,
+            last_refit_t: None,
+            last_t: 0.0,
+            samples: 0,
+            mag_units: Unit::Si,
+            gyro_units: Unit::Si,
+            latest: None,
+            refits: Vec::new(),
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    pub fn poses(&self) -> &[Pose] {
+        &self.poses
+    }
+
+    /// Rotate a sample's vectors from sensor to body axes.
+    pub fn to_body(&self, s: &Sample) -> Sample {
+        let r = |v: Option<Vec3>| v.map(|v| crate::attitude::rotate(&self.rot, &v));
+        Sample { accel_mps2: r(s.accel_mps2), gyro_rad_s: r(s.gyro_rad_s), mag_ut: r(s.mag_ut), ..*s }
+    }
+
+    /// Feed one sample. Returns true when a refit is due (every `fit.refit_every_s` of data).
+    pub fn push(&mut self, raw: &Sample) -> bool {
+        let mut s = self.to_body(raw);
+        self.samples += 1;
+        self.last_t = s.t_s;
+        if let (Some(pf), Some(a)) = (self.pre_a.as_mut(), s.accel_mps2) {
+            s.accel_mps2 = Some(pf.update(&a));
+        }
+        if let (Some(pf), Some(m)) = (self.pre_m.as_mut(), s.mag_ut) {
+            s.mag_ut = Some(pf.update(&m));
+        }
+        if let Some(a) = s.accel_mps2 {
+            if let Some(p) = self.detector.push(&s, &a) {
+                self.poses.push(p);
+            }
+        }
+        if let Some(m) = s.mag_ut {
+            self.add_mag(m);
+        }
+        let due = match self.last_refit_t {
+            None => {
+                self.last_refit_t = Some(s.t_s);
+                false
+            }
+            Some(t) => s.t_s - t >= self.cfg.fit.refit_every_s,
+        };
+        if due {
+            self.last_refit_t = Some(s.t_s);
+        }
+        due
+    }
+
+    fn add_mag(&mut self, m: Vec3) {
+        if let Some(b) = self.mag_bins.as_mut() {
+            b.add(&m);
+            return;
+        }
+        self.mag_seen += 1;
+        if self.mag_seen % self.mag_stride == 0 {
+            self.mag_buffer.push(m);
+        }
+        if self.mag_buffer.len() >= MAG_BUFFER_MAX {
+            // Bounded memory before a centre is known: keep every other point, sample half as often.
+            let kept: Vec<Vec3> = self.mag_buffer.iter().step_by(2).copied().collect();
+            self.mag_buffer = kept;
+            self.mag_stride *= 2;
+        }
+        if self.mag_buffer.len() >= 100 && self.mag_buffer.len() % 50 == 0 {
+            self.try_start_bins();
+        }
+    }
+
+    /// Start direction binning once the buffered field vectors span enough of a sphere to place its centre.
+    fn try_start_bins(&mut self) {
+        let Some(st) = crate::fit::sphere_start(&self.mag_buffer) else { return };
+        let r = 1.0 / st.shape[(0, 0)];
+        // The smallest spread of the points must be a fair part of the radius (not a small cap).
+        let n = self.mag_buffer.len() as f64;
+        let mean = self.mag_buffer.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
+        let mut cov = Matrix3::zeros();
+        for p in &self.mag_buffer {
+            let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
+            cov += d * d.transpose() / n;
+        }
+        let min_sd = cov.symmetric_eigen().eigenvalues.min().max(0.0).sqrt();
+        if min_sd > 0.25 * r && r.is_finite() {
+            let c = [st.centre[0], st.centre[1], st.centre[2]];
+            let mut b = DirectionBins::new(c, self.cfg.fit.min_separation_deg);
+            for p in self.mag_buffer.drain(..) {
+                b.add(&p);
+            }
+            self.mag_bins = Some(b);
+        }
+    }
+
+    /// Copy out what a refit needs.
+    pub fn snapshot(&self) -> FitInput {
+        let mut poses = self.poses.clone();
+        // Include a still run that has not ended yet.
+        let mut det = self.detector.clone();
+        if let Some(p) = det.finish() {
+            poses.push(p);
+        }
+        let mag_points = match &self.mag_bins {
+            Some(b) => b.points(),
+            None => self.mag_buffer.clone(),
+        };
+        FitInput { mag_points, poses, mag_units: self.mag_units, gyro_units: self.gyro_units, accel_units: self.cfg.input.accel_units.clone() }
+    }
+
+    /// Take in results computed from a snapshot: record them, and re-centre the direction bins on the
+    /// new hard-iron estimate.
+    pub fn install(&mut self, t_s: f64, results: FitResults) {
+        for (name, r) in [("mag", &results.mag), ("accel", &results.accel)] {
+            self.refits.push(RefitReport {
+                t_s,
+                sensor: name.into(),
+                model: r.report.model.clone(),
+                status: r.report.status.clone(),
+                failure: r.report.failure.clone(),
+                rms_residual: r.report.rms_residual,
+            });
+        }
+        if let (Some(b), Some(c)) = (self.mag_bins.as_mut(), results.mag.calibration.as_ref()) {
+            let d = norm(&[b.centre[0] - c.offset[0], b.centre[1] - c.offset[1], b.centre[2] - c.offset[2]]);
+            if d > 1e-3 * results.mag.report.radius.max(1e-9) {
+                b.recentre(c.offset);
+            }
+        }
+        self.latest = Some(results);
+    }
+
+    /// Refit now, inline.
+    pub fn refit(&mut self) -> &FitResults {
+        let input = self.snapshot();
+        let r = fit_all(&input, &self.cfg);
+        let t = self.last_t;
+        self.install(t, r);
+        self.latest.as_ref().expect("just installed")
+    }
+
+    /// End of input: close the last pose and refit.
+    pub fn finish(&mut self) -> &FitResults {
+        if let Some(p) = self.detector.finish() {
+            self.poses.push(p);
+        }
+        self.refit()
+    }
+}
+
+fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> SensorCalibration {
+    SensorCalibration {
+        status: "failed".into(),
+        failure: Some(failure.name().into()),
+        detail: Some(detail),
+        model: model.into(),
+        units: units.into(),
+        offset: [0.0; 3],
+        matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        radius: 0.0,
+        rms_residual: 0.0,
+        offset_sigma: [0.0; 3],
+        samples_used: 0,
+        iterations: 0,
+        candidates: vec![],
+    }
+}
+
+/// Which sensor a norm fit is for, and what its output must look like.
+struct SensorSpec<'a> {
+    model: &'a str,
+    target_norm: Option<f64>,
+    units: &'a str,
+    /// Check radius and offsets in physical units.
+    units_known: bool,
+    limits: &'a AcceptLimits,
+    is_accel: bool,
+}
+
+fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
+    let c = coverage(points.iter(), &[0.0; 3]);
+    SensorResult { report, calibration: None, coverage_before: c.clone(), coverage_after: c, dirs_before: vec![], dirs_after: vec![], residuals: vec![] }
+}
+
+/// Fit one sensor: candidate models, automatic choice, acceptance checks.
+fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
+    let opts = NormFitOptions { target_norm: spec.target_norm, ..Default::default() };
+    let kinds: Vec<ModelKind> = match spec.model {
+        "auto" => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
+        "six_position" => vec![],
+        m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
+    };
+    // Centre for the "before" coverage: the plain sphere fit.
+    let raw_centre = crate::fit::sphere_start(points).map(|s| [s.centre[0], s.centre[1], s.centre[2]]).unwrap_or([0.0; 3]);
+    let dirs_before: Vec<Vec3> = points.iter().map(|p| [p[0] - raw_centre[0], p[1] - raw_centre[1], p[2] - raw_centre[2]]).collect();
+    let cov_before = coverage(dirs_before.iter(), &[0.0; 3]);
+
+    let mut fits = Vec::new();
+    for k in &kinds {
+        if let Ok(f) = fit_norm(points, *k, &opts) {
+            fits.push(f);
+        }
+    }
+    // Six-position accel when asked, or when the log holds only a handful of poses near the axes.
+    let mut six = None;
+    if spec.is_accel && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12)) {
+        six = six_position(points, spec.target_norm.unwrap_or(crate::types::STANDARD_GRAVITY_MPS2), 15.0);
+    }
+    let n = points.len();
+    let mut candidates: Vec<Candidate> = fits
+        .iter()
+        .map(|f| Candidate { model: f.calibration.model.name().into(), rms_residual: f.rms_residual, params: f.calibration.model.n_params(), chosen: false })
+        .collect();
+    // Simplest model that a richer one does not beat significantly.
+    let mut chosen: Option<usize> = if fits.is_empty() { None } else { Some(0) };
+    for i in 1..fits.len() {
+        let c = chosen.expect("set");
+        let (a, b) = (&fits[c], &fits[i]);
+        let extra = crate::model::n_norm_params(b.calibration.model) - crate::model::n_norm_params(a.calibration.model);
+        if significantly_better(a.ssr_normalised, b.ssr_normalised, extra, n, crate::model::n_norm_params(b.calibration.model)) {
+            chosen = Some(i);
+        }
+    }
+    let (cal, mut report) = if let Some(cal) = six {
+        let g = spec.target_norm.unwrap_or(crate::types::STANDARD_GRAVITY_MPS2);
+        let res: Vec<f64> = points.iter().map(|p| norm(&cal.apply(p)) - g).collect();
+        let rms = (res.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+        candidates.push(Candidate { model: "six_position".into(), rms_residual: rms, params: 12, chosen: true });
+        let rep = SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: None,
+            model: "six_position".into(),
+            units: spec.units.into(),
+            offset: cal.offset,
+            matrix: cal.matrix,
+            radius: g,
+            rms_residual: rms,
+            offset_sigma: [f64::NAN; 3],
+            samples_used: n,
+            iterations: 1,
+            candidates: candidates.clone(),
+        };
+        (cal, rep)
+    } else {
+        let Some(ci) = chosen else {
+            let (why, detail) = if n >= 7 && cov_before.filled < spec.limits.min_filled_regions {
+                (FitFailure::Coverage, format!("{} of 100 sphere regions filled, need {}", cov_before.filled, spec.limits.min_filled_regions))
+            } else if n < 7 {
+                (FitFailure::NotEnoughSamples, format!("{n} points; need at least 7 (more for richer models)"))
+            } else {
+                (FitFailure::NotIdentifiable, format!("no model could be fitted to {n} points (all on a plane or a small cap?)"))
+            };
+            return empty_result(failed(spec.model, spec.units, why, detail), points);
+        };
+        candidates[ci].chosen = true;
+        let f = &fits[ci];
+        let rep = SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: None,
+            model: f.calibration.model.name().into(),
+            units: spec.units.into(),
+            offset: f.calibration.offset,
+            matrix: f.calibration.matrix,
+            radius: f.radius,
+            rms_residual: f.rms_residual,
+            offset_sigma: f.offset_sigma,
+            samples_used: f.samples_used,
+            iterations: f.iterations,
+            candidates: candidates.clone(),
+        };
+        // Identifiability and convergence come from the fit itself.
+        let mut rep = rep;
+        if !f.converged {
+            set_fail(&mut rep, FitFailure::DidNotConverge, format!("no convergence in {} iterations", f.iterations));
+        } else if !f.condition.is_finite() || f.condition > 1e12 || f.offset_sigma.iter().any(|s| !(*s <= 0.05 * f.raw_radius)) {
+            set_fail(
+                &mut rep,
+                FitFailure::NotIdentifiable,
+                format!("offset sigma {:?} vs radius {:.3}, condition {:.2e}: rotate through more orientations", f.offset_sigma, f.raw_radius, f.condition),
+            );
+        }
+        (f.calibration, rep)
+    };
+    let dirs_after: Vec<Vec3> = points.iter().map(|p| cal.apply(p)).collect();
+    let residuals: Vec<f64> = dirs_after.iter().map(|c| norm(c) - report.radius).collect();
+    let cov_after = coverage(dirs_after.iter(), &[0.0; 3]);
+    if report.status == "ok" {
+        check_limits(&mut report, &cal, &cov_after, spec);
+    }
+    // A fit that failed for numerical reasons on data that covers too little of the sphere failed
+    // because of the coverage: say so, since that is what the user can fix.
+    let numeric = matches!(report.failure.as_deref(), Some("did_not_converge") | Some("not_identifiable"));
+    if numeric && cov_before.filled < spec.limits.min_filled_regions {
+        let d = format!("{} of 100 sphere regions filled, need {}: rotate through the missing directions", cov_before.filled, spec.limits.min_filled_regions);
+        set_fail(&mut report, FitFailure::Coverage, d);
+    }
+    let calibration = (report.status == "ok").then_some(cal);
+    SensorResult { report, calibration, coverage_before: cov_before, coverage_after: cov_after, dirs_before, dirs_after, residuals }
+}
+
+fn set_fail(rep: &mut SensorCalibration, why: FitFailure, detail: String) {
+    rep.status = "failed".into();
+    rep.failure = Some(why.name().into());
+    rep.detail = Some(detail);
+}
+
+fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, spec: &SensorSpec) {
+    let l = spec.limits;
+    let nm = cal.normalised_matrix();
+    if cov.filled < l.min_filled_regions {
+        return set_fail(rep, FitFailure::Coverage, format!("{} of 100 sphere regions filled, need {}: rotate through the missing directions", cov.filled, l.min_filled_regions));
+    }
+    if spec.units_known {
+        // For accel the raw radius is the norm of the raw data (before scaling to g).
+        let raw_radius = if spec.is_accel { rep.radius / cal.matrix3().determinant().abs().cbrt() } else { rep.radius };
+        if raw_radius < l.min_radius || raw_radius > l.max_radius {
+            return set_fail(rep, FitFailure::Radius, format!("field magnitude {raw_radius:.3} outside [{}, {}]", l.min_radius, l.max_radius));
+        }
+        if rep.offset.iter().any(|o| o.abs() > l.max_offset) {
+            return set_fail(rep, FitFailure::Offsets, format!("offset {:?} beyond +-{}", rep.offset, l.max_offset));
+        }
+    }
+    for i in 0..3 {
+        if nm[(i, i)] < l.min_diag || nm[(i, i)] > l.max_diag {
+            return set_fail(rep, FitFailure::DiagonalScaling, format!("normalised diagonal {:.4} outside ({}, {})", nm[(i, i)], l.min_diag, l.max_diag));
+        }
+        for j in 0..3 {
+            if i != j && nm[(i, j)].abs() > l.max_offdiag {
+                return set_fail(rep, FitFailure::DiagonalScaling, format!("normalised off-diagonal {:.4} beyond +-{}", nm[(i, j)], l.max_offdiag));
+            }
+        }
+    }
+    if rep.rms_residual > l.max_rms_ratio * rep.radius {
+        set_fail(rep, FitFailure::Residuals, format!("RMS residual {:.4} above {} x radius {:.4}", rep.rms_residual, l.max_rms_ratio, rep.radius))
+    }
+}
+
+/// Gyro bias from static poses: the mean of pose means.
+fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
+    let g: Vec<Vec3> = poses.iter().filter_map(|p| p.gyro).collect();
+    // A gyro at rest reading more than 35 rad/s (2000 deg/s) is in counts, whatever the input said.
+    let mut norms: Vec<f64> = g.iter().map(norm).collect();
+    norms.sort_by(|a, b| a.total_cmp(b));
+    let counts = units == Unit::Counts || norms.get(norms.len() / 2).is_some_and(|m| *m > 35.0);
+    let units = if counts { "counts" } else { "rad/s" }.to_string();
+    if g.len() < 2 {
+        return GyroCalibration { status: "failed".into(), failure: Some("not_enough_samples".into()), units, bias: [0.0; 3], bias_sigma: [0.0; 3], poses_used: g.len() };
+    }
+    let n = g.len() as f64;
+    let mut mean = [0.0; 3];
+    for v in &g {
+        for k in 0..3 {
+            mean[k] += v[k] / n;
+        }
+    }
+    let mut sd = [0.0; 3];
+    for v in &g {
+        for k in 0..3 {
+            sd[k] += (v[k] - mean[k]).powi(2) / (n - 1.0);
+        }
+    }
+    GyroCalibration { status: "ok".into(), failure: None, units, bias: mean, bias_sigma: sd.map(|v| (v / n).sqrt()), poses_used: g.len() }
+}
+
+/// Detect accelerometer units from the static norms: near g means m/s^2, otherwise counts.
+pub fn accel_units(poses: &[Pose], setting: &str) -> Unit {
+    match setting {
+        "si" => Unit::Si,
+        "counts" => Unit::Counts,
+        _ => {
+            let mut norms: Vec<f64> = poses.iter().map(|p| norm(&p.accel)).collect();
+            if norms.is_empty() {
+                return Unit::Si;
+            }
+            norms.sort_by(|a, b| a.total_cmp(b));
+            let med = norms[norms.len() / 2];
+            if (5.0..=15.0).contains(&med) {
+                Unit::Si
+            } else {
+                Unit::Counts
+            }
+        }
+    }
+}
+
+/// All fits from a snapshot. Pure; may run on any thread.
+pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
+    let au = accel_units(&input.poses, &input.accel_units);
+    let mag = fit_sensor(
+        &input.mag_points,
+        &SensorSpec {
+            model: &cfg.fit.mag_model,
+            target_norm: None,
+            units: if input.mag_units == Unit::Si { "uT" } else { "counts" },
+            units_known: input.mag_units == Unit::Si,
+            limits: &cfg.accept.mag,
+            is_accel: false,
+        },
+    );
+    let accel_points: Vec<Vec3> = input.poses.iter().map(|p| p.accel).collect();
+    let accel = fit_sensor(
+        &accel_points,
+        &SensorSpec {
+            model: &cfg.fit.accel_model,
+            target_norm: Some(cfg.fit.gravity_mps2),
+            units: "m/s^2",
+            units_known: au == Unit::Si,
+            limits: &cfg.accept.accel,
+            is_accel: true,
+        },
+    );
+    let gyro = fit_gyro(&input.poses, input.gyro_units);
+    FitResults { mag, accel, gyro }
+}
+
+/// Applies finished calibrations to samples and derives attitude, holding the last accel and mag
+/// so that sensors at different rates still give a heading on every row.
+#[derive(Debug, Clone)]
+pub struct Calibrator {
+    pub accel: Option<Calibration>,
+    pub mag: Option<Calibration>,
+    pub gyro_bias: Option<Vec3>,
+    pub declination_deg: Option<f64>,
+    last_accel: Option<Vec3>,
+    last_mag: Option<Vec3>,
+}
+
+/// A calibrated sample (body frame) with attitude in degrees.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Calibrated {
+    pub t_s: f64,
+    pub accel_mps2: Option<Vec3>,
+    pub gyro_rad_s: Option<Vec3>,
+    pub mag_ut: Option<Vec3>,
+    pub roll_deg: Option<f64>,
+    pub pitch_deg: Option<f64>,
+    pub heading_deg: Option<f64>,
+}
+
+impl Calibrator {
+    pub fn new(results: &FitResults, declination_deg: Option<f64>) -> Self {
+        Calibrator {
+            accel: results.accel.calibration,
+            mag: results.mag.calibration,
+            gyro_bias: (results.gyro.status == "ok").then_some(results.gyro.bias),
+            declination_deg,
+            last_accel: None,
+            last_mag: None,
+        }
+    }
+
+    /// Calibrate one body-frame sample. Sensors without an accepted calibration pass through raw.
+    pub fn apply(&mut self, s: &Sample) -> Calibrated {
+        let a = s.accel_mps2.map(|v| self.accel.map_or(v, |c| c.apply(&v)));
+        let m = s.mag_ut.map(|v| self.mag.map_or(v, |c| c.apply(&v)));
+        let g = s.gyro_rad_s.map(|v| match self.gyro_bias {
+            Some(b) => [v[0] - b[0], v[1] - b[1], v[2] - b[2]],
+            None => v,
+        });
+        if a.is_some() {
+            self.last_accel = a;
+        }
+        if m.is_some() {
+            self.last_mag = m;
+        }
+        let mut out = Calibrated { t_s: s.t_s, accel_mps2: a, gyro_rad_s: g, mag_ut: m, ..Default::default() };
+        if let Some(f) = self.last_accel {
+            let (r, p) = crate::attitude::roll_pitch_deg(&f);
+            out.roll_deg = Some(r);
+            out.pitch_deg = Some(p);
+            if let Some(mv) = self.last_mag {
+                let h = crate::attitude::heading_deg(&mv, r, p) + self.declination_deg.unwrap_or(0.0);
+                out.heading_deg = Some(crate::attitude::wrap360(h));
+            }
+        }
+        out
+    }
+}

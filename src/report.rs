@@ -1,1 +1,125 @@
-//! (being written)
+//! The replay/run report (`imucald.report/1`), as serialisable data. Field names are the contract.
+
+use crate::coverage::Coverage;
+use crate::decode::DecodeStats;
+use crate::gate::Pose;
+use crate::types::Vec3;
+use serde::{Deserialize, Serialize};
+
+pub const SCHEMA: &str = "imucald.report/1";
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Report {
+    pub schema: String,
+    pub input: InputReport,
+    pub static_poses: Vec<PoseReport>,
+    pub coverage: CoverageReport,
+    pub calibration: CalibrationReport,
+    /// True heading uses this declination (deg, east positive) when a place is configured.
+    pub declination_deg: Option<f64>,
+    /// Refits done while the data came in (time of data, model, status).
+    pub refits: Vec<RefitReport>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct InputReport {
+    pub format: String,
+    pub path: Option<String>,
+    /// MAVLink instance used, when the input is MAVLink.
+    pub instance: Option<String>,
+    pub samples: u64,
+    pub counts: std::collections::BTreeMap<String, u64>,
+    pub skipped: std::collections::BTreeMap<String, u64>,
+    pub duration_s: f64,
+}
+
+impl InputReport {
+    pub fn new(format: &str, path: Option<String>, instance: Option<String>, stats: &DecodeStats, samples: u64, duration_s: f64) -> Self {
+        InputReport { format: format.into(), path, instance, samples, counts: stats.counts.clone(), skipped: stats.skipped.clone(), duration_s }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PoseReport {
+    pub t_start: f64,
+    pub t_end: f64,
+    pub samples: usize,
+    pub accel: Vec3,
+    pub mag: Option<Vec3>,
+    pub gyro: Option<Vec3>,
+}
+
+impl From<&Pose> for PoseReport {
+    fn from(p: &Pose) -> Self {
+        PoseReport { t_start: p.t_start, t_end: p.t_end, samples: p.samples, accel: p.accel, mag: p.mag, gyro: p.gyro }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CoverageReport {
+    pub mag: Coverage,
+    pub accel: Coverage,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CalibrationReport {
+    pub mag: SensorCalibration,
+    pub accel: SensorCalibration,
+    pub gyro: GyroCalibration,
+}
+
+/// One sensor's calibration result.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SensorCalibration {
+    /// "ok" or "failed".
+    pub status: String,
+    /// Null or the reason: not_enough_samples, not_identifiable, coverage, radius, offsets,
+    /// diagonal_scaling, residuals, did_not_converge.
+    pub failure: Option<String>,
+    /// Human-readable detail of the failure.
+    pub detail: Option<String>,
+    pub model: String,
+    /// Units of the calibrated output: "m/s^2", "uT", or "counts" when the input's units are unknown.
+    pub units: String,
+    pub offset: Vec3,
+    /// calibrated = matrix * (raw - offset)
+    pub matrix: [[f64; 3]; 3],
+    /// Field magnitude in calibrated units.
+    pub radius: f64,
+    pub rms_residual: f64,
+    pub offset_sigma: Vec3,
+    pub samples_used: usize,
+    pub iterations: usize,
+    /// Every model tried, for `auto`.
+    pub candidates: Vec<Candidate>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Candidate {
+    pub model: String,
+    pub rms_residual: f64,
+    pub params: usize,
+    pub chosen: bool,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GyroCalibration {
+    /// "ok" or "failed".
+    pub status: String,
+    pub failure: Option<String>,
+    pub units: String,
+    /// Bias = mean gyro over the static poses, rad/s.
+    pub bias: Vec3,
+    pub bias_sigma: Vec3,
+    pub poses_used: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RefitReport {
+    pub t_s: f64,
+    pub sensor: String,
+    pub model: String,
+    pub status: String,
+    pub failure: Option<String>,
+    pub rms_residual: f64,
+}

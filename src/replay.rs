@@ -1,0 +1,144 @@
+//! `replay`: a captured log through the same pipeline as the live service, as fast as it goes.
+
+use crate::config::Config;
+use crate::decode::Format;
+use crate::error::Error;
+use crate::pipeline::{Calibrated, Calibrator, FitResults, Pipeline};
+use crate::report::{CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// What to write besides the report.
+#[derive(Debug, Clone, Default)]
+pub struct ReplayOptions {
+    pub format: Option<Format>,
+    pub report: Option<PathBuf>,
+    pub calibrated_out: Option<PathBuf>,
+    pub plot_dir: Option<PathBuf>,
+    /// Directory for ArduPilot/PX4/Fusion exports.
+    pub export_dir: Option<PathBuf>,
+}
+
+pub struct ReplayOutcome {
+    pub report: Report,
+    pub results: FitResults,
+    pub written: Vec<PathBuf>,
+}
+
+/// Run a log through the pipeline. `progress(done, total)` is called now and then.
+pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dyn FnMut(u64, u64)) -> Result<ReplayOutcome, Error> {
+    let log = crate::sources::read_log(path, opts.format, cfg)?;
+    let mut pipe = Pipeline::new(cfg)?;
+    pipe.mag_units = log.units.mag;
+    pipe.gyro_units = log.units.gyro;
+    let total = log.samples.len() as u64;
+    for (i, s) in log.samples.iter().enumerate() {
+        if pipe.push(s) {
+            pipe.refit();
+        }
+        if i % 65_536 == 0 {
+            progress(i as u64, total);
+        }
+    }
+    let results = pipe.finish().clone();
+    progress(total, total);
+    let declination = match &cfg.place {
+        Some(p) => Some(crate::attitude::earth_field(p).map_err(|m| Error::Config { key: "place".into(), message: m })?.declination_deg),
+        None => None,
+    };
+    let duration = match (log.samples.first(), log.samples.last()) {
+        (Some(a), Some(b)) => b.t_s - a.t_s,
+        _ => 0.0,
+    };
+    let report = Report {
+        schema: SCHEMA.into(),
+        input: InputReport::new(log.format.name(), Some(path.display().to_string()), log.instance.clone(), &log.stats, total, duration),
+        static_poses: pipe.poses().iter().map(PoseReport::from).collect(),
+        coverage: CoverageReport { mag: results.mag.coverage_after.clone(), accel: results.accel.coverage_after.clone() },
+        calibration: CalibrationReport { mag: results.mag.report.clone(), accel: results.accel.report.clone(), gyro: results.gyro.clone() },
+        declination_deg: declination,
+        refits: pipe.refits.clone(),
+    };
+    let mut written = vec![];
+    if let Some(p) = &opts.report {
+        crate::publish::write_json(p, &report)?;
+        written.push(p.clone());
+    }
+    if let Some(p) = &opts.calibrated_out {
+        let mut cal = Calibrator::new(&results, declination);
+        let mut text = String::with_capacity(log.samples.len() * 120);
+        text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg\n");
+        for s in &log.samples {
+            let c = cal.apply(&pipe.to_body(s));
+            write_row(&mut text, &c);
+        }
+        crate::publish::write_atomic(p, text.as_bytes())?;
+        written.push(p.clone());
+    }
+    if let Some(dir) = &opts.export_dir {
+        std::fs::create_dir_all(dir).map_err(|source| Error::Write { path: dir.clone(), source })?;
+        let (m, a) = (results.mag.calibration.as_ref().filter(|_| report.calibration.mag.units == "uT"), results.accel.calibration.as_ref());
+        for (name, text) in [
+            ("ardupilot.parm", crate::export::ardupilot_file(m, a)),
+            ("px4.params", crate::export::px4_file(m, a)),
+            ("fusion.h", crate::export::fusion_file(m, a)),
+        ] {
+            let p = dir.join(name);
+            crate::publish::write_atomic(&p, text.as_bytes())?;
+            written.push(p);
+        }
+    }
+    Ok(ReplayOutcome { report, results, written })
+}
+
+fn opt3(out: &mut String, v: Option<[f64; 3]>) {
+    match v {
+        Some(v) => {
+            let _ = write!(out, ",{:.6},{:.6},{:.6}", v[0], v[1], v[2]);
+        }
+        None => out.push_str(",,,"),
+    }
+}
+
+fn write_row(out: &mut String, c: &Calibrated) {
+    let _ = write!(out, "{:.6}", c.t_s);
+    opt3(out, c.accel_mps2);
+    opt3(out, c.gyro_rad_s);
+    opt3(out, c.mag_ut);
+    for v in [c.roll_deg, c.pitch_deg, c.heading_deg] {
+        match v {
+            Some(x) => {
+                let _ = write!(out, ",{x:.4}");
+            }
+            None => out.push(','),
+        }
+    }
+    out.push('\n');
+}
+
+/// A terminal summary of a report.
+pub fn summary(r: &Report) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "input: {} ({}), {} samples over {:.1} s{}", r.input.path.as_deref().unwrap_or("-"), r.input.format, r.input.samples, r.input.duration_s, r.input.instance.as_ref().map(|i| format!(", instance {i}")).unwrap_or_default());
+    if !r.input.skipped.is_empty() {
+        let _ = writeln!(s, "skipped: {}", r.input.skipped.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "));
+    }
+    let _ = writeln!(s, "static poses: {}", r.static_poses.len());
+    let _ = writeln!(s, "coverage: mag {}/100 regions, accel {}/100", r.coverage.mag.filled, r.coverage.accel.filled);
+    for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
+        if c.status == "ok" {
+            let _ = writeln!(
+                s,
+                "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
+                c.model, c.offset[0], c.offset[1], c.offset[2], c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
+            );
+        } else {
+            let _ = writeln!(s, "{name:5}: FAILED ({}): {}", c.failure.as_deref().unwrap_or("?"), c.detail.as_deref().unwrap_or(""));
+        }
+    }
+    let g = &r.calibration.gyro;
+    if g.status == "ok" {
+        let _ = writeln!(s, "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses", g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used);
+    }
+    s
+}
