@@ -601,15 +601,16 @@ mod tests {
     }
 
     fn imu_msg(x: f32) -> MavMessage {
-        let mut d = mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA::default();
-        d.time_usec = 1000;
-        d.xacc = x;
-        d.zacc = -9.8;
-        d.xmag = 0.2;
-        d.ymag = 0.01;
-        d.zmag = 0.4;
-        d.temperature = 30.0;
-        MavMessage::HIGHRES_IMU(d)
+        MavMessage::HIGHRES_IMU(mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA {
+            time_usec: 1000,
+            xacc: x,
+            zacc: -9.8,
+            xmag: 0.2,
+            ymag: 0.01,
+            zmag: 0.4,
+            temperature: 30.0,
+            ..Default::default()
+        })
     }
 
     #[test]

@@ -250,14 +250,12 @@ impl StaticDetector {
         // The window length in samples is fixed from the rate seen in the first 50 samples.
         self.n_seen += 1;
         let t0 = *self.first_t.get_or_insert(s.t_s);
-        if self.rate_est.is_none() {
-            if self.n_seen == 50 {
-                let dt = (s.t_s - t0) / 49.0;
-                let rate = if dt > 0.0 { 1.0 / dt } else { 100.0 };
-                self.rate_est = Some(rate);
-                self.len = ((self.cfg.window_s * rate).round() as usize).clamp(5, 20_000) | 1;
-                self.half = self.len / 2;
-            }
+        if self.rate_est.is_none() && self.n_seen == 50 {
+            let dt = (s.t_s - t0) / 49.0;
+            let rate = if dt > 0.0 { 1.0 / dt } else { 100.0 };
+            self.rate_est = Some(rate);
+            self.len = ((self.cfg.window_s * rate).round() as usize).clamp(5, 20_000) | 1;
+            self.half = self.len / 2;
         }
         self.window.push_back((*s, *accel));
         if self.len == 0 {

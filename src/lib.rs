@@ -4,6 +4,10 @@
 //! `model`, `fit`, `attitude`, `pipeline`, `export`) do no I/O and know nothing of tokio; only
 //! `sources`/`decode` read bytes and only `publish` writes them.
 
+// `!(x > 0.0)` is deliberate throughout: it is true for NaN, which `x <= 0.0` is not.
+// Index loops over the three axes read more plainly than iterator chains in the math.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 pub mod attitude;
 pub mod config;
 pub mod coverage;

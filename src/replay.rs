@@ -54,7 +54,7 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
         schema: SCHEMA.into(),
         input: InputReport::new(log.format.name(), Some(path.display().to_string()), log.instance.clone(), &log.stats, total, duration),
         static_poses: pipe.poses().iter().map(PoseReport::from).collect(),
-        coverage: CoverageReport { mag: results.mag.coverage_after.clone(), accel: results.accel.coverage_after.clone() },
+        coverage: CoverageReport { mag: shown_coverage(&results.mag), accel: shown_coverage(&results.accel) },
         calibration: CalibrationReport { mag: results.mag.report.clone(), accel: results.accel.report.clone(), gyro: results.gyro.clone() },
         declination_deg: declination,
         refits: pipe.refits.clone(),
@@ -89,6 +89,15 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
         }
     }
     Ok(ReplayOutcome { report, results, written })
+}
+
+/// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise.
+fn shown_coverage(r: &crate::pipeline::SensorResult) -> crate::coverage::Coverage {
+    if r.calibration.is_some() {
+        r.coverage_after.clone()
+    } else {
+        r.coverage_before.clone()
+    }
 }
 
 fn opt3(out: &mut String, v: Option<[f64; 3]>) {
