@@ -483,10 +483,11 @@ pub fn accel_units(poses: &[Pose], setting: &str) -> Unit {
 /// All fits from a snapshot. Pure; may run on any thread.
 pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
     let au = accel_units(&input.poses, &input.accel_units);
-    let mag = fit_sensor(
+    let mag_full12 = cfg.fit.mag_model == "full12";
+    let mut mag = fit_sensor(
         &input.mag_points,
         &SensorSpec {
-            model: &cfg.fit.mag_model,
+            model: if mag_full12 { "sym9" } else { &cfg.fit.mag_model },
             target_norm: None,
             units: if input.mag_units == Unit::Si { "uT" } else { "counts" },
             units_known: input.mag_units == Unit::Si,
@@ -506,6 +507,9 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
             is_accel: true,
         },
     );
+    if mag_full12 {
+        mag_rotation_from_dip(&mut mag, &accel, &input.poses);
+    }
     let gyro = fit_gyro(&input.poses, input.gyro_units);
     FitResults { mag, accel, gyro }
 }
@@ -571,5 +575,38 @@ impl Calibrator {
             }
         }
         out
+    }
+}
+
+/// `full12` magnetometer: the symmetric (sym9) fit, then the rotation that norms cannot see, from the
+/// gravity-field angle at static poses against the calibrated accelerometer (matrix = R S).
+fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[Pose]) {
+    let Some(mcal) = mag.calibration else { return };
+    let fail = |mag: &mut SensorResult, d: String| {
+        set_fail(&mut mag.report, FitFailure::NotIdentifiable, d);
+        mag.report.model = "full12".into();
+        mag.calibration = None;
+    };
+    let Some(acal) = accel.calibration else {
+        return fail(mag, "full12 needs an accepted accelerometer calibration to fix the rotation from the dip angle".into());
+    };
+    let (mut gs, mut ms) = (vec![], vec![]);
+    for p in poses {
+        if let Some(m) = p.mag {
+            let f = acal.apply(&p.accel);
+            gs.push([-f[0], -f[1], -f[2]]);
+            ms.push(mcal.apply(&m));
+        }
+    }
+    match crate::fit::fit_dip_rotation(&gs, &ms) {
+        Some((r, _dip, _rms, cond)) if cond.is_finite() && cond < 1e8 => {
+            let m = r * mcal.matrix3();
+            let cal = Calibration { model: ModelKind::Full12, offset: mcal.offset, matrix: crate::model::mat_to_rows(&m) };
+            mag.report.model = "full12".into();
+            mag.report.matrix = cal.matrix;
+            mag.calibration = Some(cal);
+            mag.dirs_after = mag.dirs_after.iter().map(|v| crate::attitude::rotate(&r, v)).collect();
+        }
+        _ => fail(mag, format!("full12: {} static poses with accel and mag do not fix the rotation (need 6+ in varied attitudes)", gs.len())),
     }
 }

@@ -88,7 +88,57 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
             written.push(p);
         }
     }
+    if let Some(dir) = &opts.plot_dir {
+        written.extend(write_plots(dir, &pipe, &log.samples, &results)?);
+    }
     Ok(ReplayOutcome { report, results, written })
+}
+
+/// Coverage maps (seed 002's (theta, phi) projection, before and after) and residual plots.
+fn write_plots(dir: &Path, pipe: &Pipeline, samples: &[crate::types::Sample], r: &FitResults) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write { path: dir.to_path_buf(), source })?;
+    let mut out = vec![];
+    for (name, s) in [("mag", &r.mag), ("accel", &r.accel)] {
+        if s.dirs_before.is_empty() {
+            continue;
+        }
+        for ext in ["png", "svg"] {
+            let p = dir.join(format!("{name}_coverage.{ext}"));
+            let title = format!("{name} coverage: {} ({}), before and after calibration", s.report.model, s.report.status);
+            crate::plot::coverage_map(&p, &title, &s.dirs_before, &s.dirs_after, &s.coverage_before.filled_mask, &s.coverage_after.filled_mask)?;
+            out.push(p);
+        }
+    }
+    // Field-magnitude residual of every magnetometer sample over time, and of every accel pose.
+    let (mut tm, mut rm) = (vec![], vec![]);
+    if let Some(c) = r.mag.calibration {
+        for s in samples {
+            if let Some(m) = pipe.to_body(s).mag_ut {
+                tm.push(s.t_s);
+                rm.push(crate::types::norm(&c.apply(&m)) - r.mag.report.radius);
+            }
+        }
+    }
+    let (mut ta, mut ra) = (vec![], vec![]);
+    if let Some(c) = r.accel.calibration {
+        for p in pipe.poses() {
+            ta.push(0.5 * (p.t_start + p.t_end));
+            ra.push(crate::types::norm(&c.apply(&p.accel)) - r.accel.report.radius);
+        }
+    }
+    for (name, t, res, unit) in [("mag", &tm, &rm, r.mag.report.units.as_str()), ("accel", &ta, &ra, "m/s^2")] {
+        if t.is_empty() {
+            continue;
+        }
+        for ext in ["png", "svg"] {
+            let p = dir.join(format!("{name}_residuals.{ext}"));
+            let label = format!("|calibrated| - radius ({unit})");
+            let series_name = if name == "mag" { "every sample" } else { "static poses" };
+            crate::plot::residuals(&p, &format!("{name} norm residual after calibration"), &label, &[(series_name, t.as_slice(), res.as_slice())])?;
+            out.push(p);
+        }
+    }
+    Ok(out)
 }
 
 /// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise.

@@ -466,3 +466,1100 @@ impl Scenario {
         Ok(())
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// Trajectories
+
+type Quat = UnitQuaternion<f64>;
+
+/// Body -> NED rotation from ZYX Euler angles in degrees.
+pub fn quat_from_euler_deg(roll: f64, pitch: f64, yaw: f64) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians())
+}
+
+/// `[roll, pitch, yaw]` degrees (yaw in [0, 360)) of a body -> NED rotation.
+/// At pitch +-90 deg (gimbal lock) roll is reported as 0 and the rotation about the vertical as yaw.
+pub fn euler_deg_from_quat(q: &UnitQuaternion<f64>) -> [f64; 3] {
+    let m = q.to_rotation_matrix();
+    let r = m.matrix();
+    let c = (r[(0, 0)] * r[(0, 0)] + r[(1, 0)] * r[(1, 0)]).sqrt();
+    let pitch = (-r[(2, 0)]).atan2(c);
+    let (roll, yaw) = if c > 1e-7 {
+        (r[(2, 1)].atan2(r[(2, 2)]), r[(1, 0)].atan2(r[(0, 0)]))
+    } else {
+        // R = Rz(yaw) Ry(+-90) with roll 0: R01 = -sin(yaw), R11 = cos(yaw).
+        (0.0, (-r[(0, 1)]).atan2(r[(1, 1)]))
+    };
+    [roll.to_degrees(), pitch.to_degrees(), wrap360(yaw.to_degrees())]
+}
+
+fn wrap360(d: f64) -> f64 {
+    let w = d.rem_euclid(360.0);
+    if w >= 360.0 {
+        0.0
+    } else {
+        w
+    }
+}
+
+/// Minimum-jerk profile 0 -> 1 on u in [0, 1] (zero velocity and acceleration at both ends).
+fn min_jerk(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
+}
+
+/// Piece of an attitude timeline: a hold or a rotation about a fixed body axis.
+#[derive(Debug, Clone)]
+enum Segment {
+    Hold { t1: f64, q: Quat },
+    /// From `q0` by the rotation vector `v` (body axes of `q0`), min-jerk in time.
+    Slew { t0: f64, t1: f64, q0: Quat, v: Vector3<f64> },
+}
+
+impl Segment {
+    fn t1(&self) -> f64 {
+        match self {
+            Segment::Hold { t1, .. } | Segment::Slew { t1, .. } => *t1,
+        }
+    }
+}
+
+/// Small smooth attitude jitter: a sum of sinusoids per body axis (rotation vector, rad).
+#[derive(Debug, Clone)]
+struct Tremor {
+    /// (axis, amplitude rad, frequency Hz, phase rad)
+    comps: Vec<(usize, f64, f64, f64)>,
+}
+
+impl Tremor {
+    fn new<R: rand::Rng>(amp_deg: f64, rng: &mut R) -> Tremor {
+        let mut comps = Vec::new();
+        for axis in 0..3 {
+            // Relative amplitudes 1, 0.7, 0.5: the RMS of the sum is c * sqrt(1.74 / 2), made `amp_deg`.
+            let c = amp_deg.to_radians() / (1.74f64 / 2.0).sqrt();
+            for rel in [1.0, 0.7, 0.5] {
+                let f = rng.random_range(1.0..9.0);
+                let ph = rng.random_range(0.0..std::f64::consts::TAU);
+                comps.push((axis, c * rel, f, ph));
+            }
+        }
+        Tremor { comps }
+    }
+
+    fn rotvec(&self, t: f64) -> Vector3<f64> {
+        let mut v = Vector3::zeros();
+        for &(axis, a, f, ph) in &self.comps {
+            v[axis] += a * (std::f64::consts::TAU * f * t + ph).sin();
+        }
+        v
+    }
+}
+
+/// The flight trajectory: closed-form functions of time.
+#[derive(Debug, Clone)]
+struct FlightPlan {
+    t_total: f64,
+    /// Lift-off and touch-down times.
+    t_up: f64,
+    t_down: f64,
+    /// Length of the climb and the descent.
+    t_climb: f64,
+    alt_m: f64,
+    ground_rp_deg: [f64; 2],
+    yaw0_deg: f64,
+    /// (t0, t1, delta deg) yaw turns.
+    turns: Vec<(f64, f64, f64)>,
+    /// (amplitude deg, frequency Hz, phase) for roll and pitch.
+    roll: Vec<(f64, f64, f64)>,
+    pitch: Vec<(f64, f64, f64)>,
+    /// (amplitude m, frequency Hz, phase) for north and east.
+    north: (f64, f64, f64),
+    east: (f64, f64, f64),
+    hover_throttle: f64,
+}
+
+fn sines(c: &[(f64, f64, f64)], t: f64) -> f64 {
+    c.iter().map(|&(a, f, ph)| a * (std::f64::consts::TAU * f * t + ph).sin()).sum()
+}
+
+impl FlightPlan {
+    fn new<R: rand::Rng>(total: f64, rng: &mut R) -> FlightPlan {
+        let t_total = total.max(30.0);
+        let t_up = 5.0;
+        let t_climb = 5.0;
+        let t_down = t_total - 5.0 - t_climb;
+        let h0 = t_up + t_climb;
+        let hl = t_down - h0;
+        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
+        let yaw0_deg = rng.random_range(0.0..360.0);
+        FlightPlan {
+            t_total,
+            t_up,
+            t_down,
+            t_climb,
+            alt_m: 5.0,
+            ground_rp_deg: [rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)],
+            yaw0_deg,
+            turns: vec![(h0 + 0.10 * hl, h0 + 0.45 * hl, 360.0), (h0 + 0.55 * hl, h0 + 0.90 * hl, -360.0)],
+            roll: vec![(6.0, 0.13, ph(rng)), (3.0, 0.31, ph(rng)), (1.5, 0.7, ph(rng))],
+            pitch: vec![(6.0, 0.11, ph(rng)), (3.0, 0.27, ph(rng)), (1.5, 0.6, ph(rng))],
+            north: (2.0, 0.05, ph(rng)),
+            east: (1.5, 0.08, ph(rng)),
+            hover_throttle: 0.5,
+        }
+    }
+
+    /// 0 on the ground, 1 in the air, min-jerk during climb and descent.
+    fn airborne(&self, t: f64) -> f64 {
+        if t < self.t_down {
+            min_jerk((t - self.t_up) / self.t_climb)
+        } else {
+            1.0 - min_jerk((t - self.t_down) / self.t_climb)
+        }
+    }
+
+    fn attitude(&self, t: f64) -> Quat {
+        let e = self.airborne(t);
+        let roll = (1.0 - e) * self.ground_rp_deg[0] + e * sines(&self.roll, t);
+        let pitch = (1.0 - e) * self.ground_rp_deg[1] + e * sines(&self.pitch, t);
+        let yaw = self.yaw0_deg + self.turns.iter().map(|&(t0, t1, d)| d * min_jerk((t - t0) / (t1 - t0))).sum::<f64>();
+        quat_from_euler_deg(roll, pitch, yaw)
+    }
+
+    fn position_ned(&self, t: f64) -> Vector3<f64> {
+        let e = self.airborne(t);
+        Vector3::new(e * sines(&[self.north], t), e * sines(&[self.east], t), -self.alt_m * e)
+    }
+
+    /// Throttle before noise: proportional to the thrust needed, spooled up 1 s before lift-off.
+    fn throttle(&self, t: f64, a_ned: &Vector3<f64>, gravity: f64) -> f64 {
+        let spool = if t < self.t_down {
+            min_jerk((t - (self.t_up - 1.0)) / 1.0)
+        } else {
+            1.0 - min_jerk((t - (self.t_down + self.t_climb)) / 1.0)
+        };
+        let thrust = (a_ned - Vector3::new(0.0, 0.0, gravity)).norm() / gravity;
+        let wobble = 1.0 + 0.02 * (std::f64::consts::TAU * 1.3 * t).sin();
+        (self.hover_throttle * thrust * wobble * spool).clamp(0.0, 1.0)
+    }
+}
+
+#[derive(Debug, Clone)]
+enum Motion {
+    Segments { segs: Vec<Segment>, tremor: Option<Tremor> },
+    Flight(FlightPlan),
+}
+
+impl Motion {
+    fn end(&self) -> f64 {
+        match self {
+            Motion::Segments { segs, .. } => segs.last().map(|s| s.t1()).unwrap_or(0.0),
+            Motion::Flight(p) => p.t_total,
+        }
+    }
+
+    fn attitude(&self, t: f64) -> Quat {
+        match self {
+            Motion::Segments { segs, tremor } => {
+                let i = segs.partition_point(|s| s.t1() <= t).min(segs.len().saturating_sub(1));
+                let base = match segs.get(i) {
+                    None => Quat::identity(),
+                    Some(Segment::Hold { q, .. }) => *q,
+                    Some(Segment::Slew { t0, t1, q0, v }) => {
+                        let s = min_jerk((t - t0) / (t1 - t0));
+                        q0 * Quat::from_scaled_axis(v * s)
+                    }
+                };
+                match tremor {
+                    Some(tr) => base * Quat::from_scaled_axis(tr.rotvec(t)),
+                    None => base,
+                }
+            }
+            Motion::Flight(p) => p.attitude(t),
+        }
+    }
+
+    /// Body angular rate, rad/s: central difference of the attitude.
+    fn body_rate(&self, t: f64) -> Vector3<f64> {
+        let h = 1e-4;
+        let qa = self.attitude(t - h);
+        let qb = self.attitude(t + h);
+        (qa.inverse() * qb).scaled_axis() / (2.0 * h)
+    }
+
+    /// Acceleration in NED, m/s^2 (zero for the ground scenarios: rotation about the sensor).
+    fn accel_ned(&self, t: f64) -> Vector3<f64> {
+        match self {
+            Motion::Segments { .. } => Vector3::zeros(),
+            Motion::Flight(p) => {
+                let h = 1e-3;
+                (p.position_ned(t + h) - 2.0 * p.position_ned(t) + p.position_ned(t - h)) / (h * h)
+            }
+        }
+    }
+}
+
+/// A duration in whole sample ticks (at least one).
+fn ticks(d: f64, rate: f64) -> u64 {
+    (d * rate).round().max(1.0) as u64
+}
+
+/// Build hold/slew segments through `poses` (roll, pitch, yaw deg), recording the holds as [`PoseTruth`].
+fn build_segments<R: rand::Rng>(
+    poses: &[[f64; 3]],
+    hold_s: &mut dyn FnMut(&mut R) -> f64,
+    slew_s: [f64; 2],
+    rate: f64,
+    rng: &mut R,
+) -> (Vec<Segment>, Vec<PoseTruth>) {
+    let mut segs = Vec::new();
+    let mut truths = Vec::new();
+    // Boundaries on the sample grid (tick / rate, computed like the sample times) so a hold of N
+    // ticks holds exactly N samples.
+    let mut tick: u64 = 0;
+    let at = |k: u64| k as f64 / rate;
+    for (k, p) in poses.iter().enumerate() {
+        let q = quat_from_euler_deg(p[0], p[1], p[2]);
+        let d = ticks(hold_s(rng), rate);
+        segs.push(Segment::Hold { t1: at(tick + d), q });
+        truths.push(PoseTruth {
+            t_start: at(tick),
+            t_end: at(tick + d),
+            roll_deg: p[0],
+            pitch_deg: p[1],
+            yaw_deg: wrap360(p[2]),
+        });
+        tick += d;
+        if let Some(n) = poses.get(k + 1) {
+            let q1 = quat_from_euler_deg(n[0], n[1], n[2]);
+            let d = ticks(if slew_s[1] > slew_s[0] { rng.random_range(slew_s[0]..slew_s[1]) } else { slew_s[0] }, rate);
+            let v = (q.inverse() * q1).scaled_axis();
+            segs.push(Segment::Slew { t0: at(tick), t1: at(tick + d), q0: q, v });
+            tick += d;
+        }
+    }
+    (segs, truths)
+}
+
+/// Seed 000's 32 turntable attitudes (roll, pitch, yaw deg), ordered to keep slews short.
+pub fn turntable_attitudes() -> Vec<[f64; 3]> {
+    let mut v: Vec<[f64; 3]> = Vec::new();
+    let golden = 137.5;
+    let mut k = 0.0;
+    let mut yaw = || {
+        k += 1.0;
+        wrap360(k * golden)
+    };
+    for p in [-60.0, -30.0, 0.0, 30.0, 60.0] {
+        for r in [0.0, 90.0, 180.0, -90.0] {
+            v.push([r, p, yaw()]);
+        }
+    }
+    v.push([0.0, 90.0, yaw()]);
+    v.push([0.0, -90.0, yaw()]);
+    for r in [45.0, 135.0, -135.0, -45.0] {
+        v.push([r, 0.0, yaw()]);
+    }
+    v.push([45.0, 45.0, yaw()]);
+    v.push([-135.0, 45.0, yaw()]);
+    v.push([-45.0, -45.0, yaw()]);
+    v.push([135.0, -45.0, yaw()]);
+    // Seed 000's check settings: pitch 15, roll +-20.
+    v.push([20.0, 15.0, 0.0]);
+    v.push([-20.0, 15.0, 45.0]);
+    // Greedy nearest-neighbour order from the level pose.
+    let start = v.iter().position(|p| p[0] == 0.0 && p[1] == 0.0).unwrap_or(0);
+    let mut order = vec![v.swap_remove(start)];
+    while !v.is_empty() {
+        let last = order.last().copied().unwrap_or([0.0; 3]);
+        let ql = quat_from_euler_deg(last[0], last[1], last[2]);
+        let (i, _) = v
+            .iter()
+            .enumerate()
+            .map(|(i, p)| (i, ql.angle_to(&quat_from_euler_deg(p[0], p[1], p[2]))))
+            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
+        order.push(v.swap_remove(i));
+    }
+    order
+}
+
+/// Random attitudes for a hand tumble: the first level, the others with a uniform random down
+/// direction and a uniform random yaw.
+fn tumble_attitudes<R: rand::Rng>(n: usize, rng: &mut R) -> Vec<[f64; 3]> {
+    let mut v = Vec::with_capacity(n);
+    for k in 0..n {
+        let yaw = rng.random_range(0.0..360.0);
+        if k == 0 {
+            v.push([0.0, 0.0, yaw]);
+            continue;
+        }
+        // Down in body axes: d = (-sin(pitch), sin(roll) cos(pitch), cos(roll) cos(pitch)).
+        let z: f64 = rng.random_range(-1.0..1.0);
+        let phi: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let s = (1.0 - z * z).max(0.0).sqrt();
+        let d = [s * phi.cos(), s * phi.sin(), z];
+        let pitch = (-d[0]).clamp(-1.0, 1.0).asin().to_degrees();
+        let roll = d[1].atan2(d[2]).to_degrees();
+        v.push([roll, pitch, yaw]);
+    }
+    v
+}
+
+// ---------------------------------------------------------------------------------------------
+// Simulation
+
+/// What [`simulate`] produces.
+#[derive(Debug, Clone)]
+pub struct SimOutput {
+    /// Raw samples (truth model + noise), one per tick with accel, gyro, mag, temperature, throttle.
+    pub samples: Vec<Sample>,
+    /// The truth, with `poses` filled.
+    pub truth: Truth,
+    /// True attitude `[roll, pitch, yaw]` degrees (yaw [0, 360)) per sample.
+    pub true_attitude: Vec<[f64; 3]>,
+}
+
+fn raw_with_noise<R: rand::Rng>(t: &SensorTruth, v: &Vector3<f64>, rng: &mut R) -> Vec3 {
+    use rand_distr::Distribution;
+    let mut r = t.forward(&[v[0], v[1], v[2]]);
+    for x in r.iter_mut() {
+        let z: f64 = rand_distr::StandardNormal.sample(rng);
+        *x += t.noise_sd * z;
+    }
+    r
+}
+
+/// Run a scenario. Deterministic for a seed (ChaCha8: stream 0 draws the trajectory, stream 1 the noise).
+pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut noise_rng = ChaCha8Rng::seed_from_u64(seed);
+    noise_rng.set_stream(1);
+
+    let mut truth = scenario.truth.clone();
+    let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 { truth.rate_hz } else { 100.0 };
+    let motion = match scenario.kind {
+        TrajectoryKind::Turntable | TrajectoryKind::Tumble => {
+            let turntable = scenario.kind == TrajectoryKind::Turntable;
+            let poses = match &scenario.attitudes {
+                Some(a) => a.clone(),
+                None if turntable => turntable_attitudes(),
+                None => tumble_attitudes(scenario.pauses.max(1), &mut rng),
+            };
+            let n_hold = scenario.samples_per_pose.max(1) as f64 / rate;
+            let pr = scenario.pause_s;
+            let mut hold = |r: &mut ChaCha8Rng| -> f64 {
+                if turntable {
+                    n_hold
+                } else if pr[1] > pr[0] {
+                    r.random_range(pr[0]..pr[1])
+                } else {
+                    pr[0]
+                }
+            };
+            let (segs, pose_truth) = build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            truth.poses = pose_truth;
+            let tremor = if scenario.tremor_deg > 0.0 { Some(Tremor::new(scenario.tremor_deg, &mut rng)) } else { None };
+            Motion::Segments { segs, tremor }
+        }
+        TrajectoryKind::Flight => {
+            let p = FlightPlan::new(scenario.duration_s.unwrap_or(80.0), &mut rng);
+            let q0 = euler_deg_from_quat(&p.attitude(0.0));
+            truth.poses = vec![
+                PoseTruth { t_start: 0.0, t_end: p.t_up - 1.0, roll_deg: q0[0], pitch_deg: q0[1], yaw_deg: q0[2] },
+            ];
+            let qe = euler_deg_from_quat(&p.attitude(p.t_total));
+            truth.poses.push(PoseTruth {
+                t_start: p.t_down + p.t_climb + 1.0,
+                t_end: p.t_total,
+                roll_deg: qe[0],
+                pitch_deg: qe[1],
+                yaw_deg: qe[2],
+            });
+            Motion::Flight(p)
+        }
+    };
+    let mut end = motion.end();
+    if let Some(d) = scenario.duration_s {
+        end = end.min(d);
+    }
+    let n = (end * rate - 1e-6).ceil().max(0.0) as usize;
+    let g_ned = Vector3::new(0.0, 0.0, truth.world.gravity_mps2);
+    let f = truth.world.field_ned_ut;
+    let field = Vector3::new(f[0], f[1], f[2]);
+    let mut samples = Vec::with_capacity(n);
+    let mut att = Vec::with_capacity(n);
+    for i in 0..n {
+        let t = i as f64 / rate;
+        let q = motion.attitude(t);
+        let qi = q.inverse();
+        let a_ned = motion.accel_ned(t);
+        let acc = qi * (a_ned - g_ned);
+        let mag = qi * field;
+        let gyr = motion.body_rate(t);
+        let mut s = Sample {
+            t_s: t,
+            accel_mps2: Some(raw_with_noise(&truth.accel, &acc, &mut noise_rng)),
+            gyro_rad_s: Some(raw_with_noise(&truth.gyro, &gyr, &mut noise_rng)),
+            mag_ut: Some(raw_with_noise(&truth.mag, &mag, &mut noise_rng)),
+            temp_c: Some(scenario.temp_c + scenario.temp_drift_c * (1.0 - (-t / 120.0).exp())),
+            throttle: Some(0.0),
+            ..Default::default()
+        };
+        if let Motion::Flight(p) = &motion {
+            use rand_distr::Distribution;
+            let z: f64 = rand_distr::StandardNormal.sample(&mut noise_rng);
+            let th = p.throttle(t, &a_ned, truth.world.gravity_mps2);
+            let th = if th > 0.0 { (th + 0.005 * z).clamp(0.0, 1.0) } else { 0.0 };
+            s.throttle = Some(th);
+            s.current_a = Some(0.3 + 30.0 * th.powf(1.5));
+        }
+        samples.push(s);
+        att.push(euler_deg_from_quat(&q));
+    }
+    truth.poses.retain(|p| p.t_start < end);
+    for p in truth.poses.iter_mut() {
+        p.t_end = p.t_end.min(end);
+    }
+    truth.rate_hz = rate;
+    SimOutput { samples, truth, true_attitude: att }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writers
+
+static TMP_COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Write a file atomically: into a temporary file in the same directory, then rename over `path`.
+fn write_atomic<F>(path: &std::path::Path, body: F) -> Result<(), Error>
+where
+    F: FnOnce(std::fs::File) -> std::io::Result<std::fs::File>,
+{
+    let werr = |source: std::io::Error| Error::Write { path: path.to_path_buf(), source };
+    let name = path
+        .file_name()
+        .ok_or_else(|| werr(std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path")))?;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    let n = TMP_COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = dir.join(format!(".{}.tmp-{}-{}", name.to_string_lossy(), std::process::id(), n));
+    let result = (|| -> std::io::Result<()> {
+        let file = std::fs::OpenOptions::new().write(true).create_new(true).open(&tmp)?;
+        let file = body(file)?;
+        file.sync_all()?;
+        drop(file);
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(werr(e));
+    }
+    Ok(())
+}
+
+/// The CSV header [`write_csv`] writes.
+pub const CSV_HEADER: &str = "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle";
+
+fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result<()> {
+    writeln!(w, "{CSV_HEADER}")?;
+    let mut line = String::with_capacity(256);
+    for s in samples {
+        use std::fmt::Write as _;
+        line.clear();
+        let _ = write!(line, "{}", s.t_s);
+        for v in [s.accel_mps2, s.gyro_rad_s, s.mag_ut] {
+            match v {
+                Some(v) => {
+                    let _ = write!(line, ",{},{},{}", v[0], v[1], v[2]);
+                }
+                None => line.push_str(",,,"),
+            }
+        }
+        for x in [s.temp_c, s.throttle] {
+            line.push(',');
+            if let Some(x) = x {
+                let _ = write!(line, "{x}");
+            }
+        }
+        line.push('\n');
+        w.write_all(line.as_bytes())?;
+    }
+    Ok(())
+}
+
+/// Write samples as CSV (`t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle`; SI units: s, m/s^2, rad/s, uT,
+/// deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
+pub fn write_csv(path: &std::path::Path, samples: &[Sample]) -> Result<(), Error> {
+    let gz = path.to_string_lossy().to_ascii_lowercase().ends_with(".gz");
+    write_atomic(path, |file| {
+        let buf = std::io::BufWriter::with_capacity(1 << 16, file);
+        if gz {
+            let mut enc = flate2::write::GzEncoder::new(buf, flate2::Compression::default());
+            csv_rows(&mut enc, samples)?;
+            enc.finish()?.into_inner().map_err(|e| e.into_error())
+        } else {
+            let mut buf = buf;
+            csv_rows(&mut buf, samples)?;
+            buf.into_inner().map_err(|e| e.into_error())
+        }
+    })
+}
+
+/// Which IMU message [`write_tlog`] writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImuMessage {
+    /// HIGHRES_IMU (105): m/s^2, rad/s, gauss, degC.
+    #[default]
+    HighresImu,
+    /// SCALED_IMU (26): mG, mrad/s, mgauss, cdegC (i16, rounded and saturated).
+    ScaledImu,
+}
+
+/// Options of [`write_tlog`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TlogWriteOptions {
+    pub message: ImuMessage,
+    pub system_id: u8,
+    pub component_id: u8,
+    /// 2 (default) or 1.
+    pub mavlink_version: u8,
+}
+
+impl Default for TlogWriteOptions {
+    fn default() -> Self {
+        TlogWriteOptions { message: ImuMessage::HighresImu, system_id: 1, component_id: 1, mavlink_version: 2 }
+    }
+}
+
+/// Unix time of `t_s = 0` in a written tlog, microseconds.
+pub const TLOG_EPOCH_US: u64 = 1_700_000_000_000_000;
+/// Time since boot of `t_s = 0` in the messages' own time fields (non-zero, so readers use it).
+pub const TLOG_BOOT_OFFSET_US: u64 = 10_000_000;
+
+fn sat_i16(x: f64) -> i16 {
+    if x.is_nan() {
+        0
+    } else {
+        x.round().clamp(i16::MIN as f64, i16::MAX as f64) as i16
+    }
+}
+
+fn tlog_records<W: std::io::Write>(w: &mut W, samples: &[Sample], opts: &TlogWriteOptions) -> std::io::Result<()> {
+    use mavlink::dialects::ardupilotmega as apm;
+    let version = if opts.mavlink_version == 1 { mavlink::MavlinkVersion::V1 } else { mavlink::MavlinkVersion::V2 };
+    let mut seq: u8 = 0;
+    let mut put = |w: &mut W, time_us: u64, msg: &apm::MavMessage| -> std::io::Result<()> {
+        let header = mavlink::MavHeader { system_id: opts.system_id as u32, component_id: opts.component_id, sequence: seq };
+        seq = seq.wrapping_add(1);
+        let mut frame = Vec::with_capacity(64);
+        mavlink::write_versioned_msg(&mut frame, version, header, msg)
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("mavlink: {e:?}")))?;
+        w.write_all(&time_us.to_be_bytes())?;
+        w.write_all(&frame)
+    };
+    let heartbeat = apm::MavMessage::HEARTBEAT(apm::HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: apm::MavType::MAV_TYPE_QUADROTOR,
+        autopilot: apm::MavAutopilot::MAV_AUTOPILOT_PX4,
+        base_mode: apm::MavModeFlag::empty(),
+        system_status: apm::MavState::MAV_STATE_STANDBY,
+        mavlink_version: 3,
+    });
+    let mut next_heartbeat_s = f64::NEG_INFINITY;
+    for s in samples {
+        if !s.t_s.is_finite() {
+            continue;
+        }
+        let t_us = (s.t_s.max(0.0) * 1e6).round() as u64;
+        let stamp = TLOG_EPOCH_US + t_us;
+        if s.t_s >= next_heartbeat_s {
+            put(w, stamp, &heartbeat)?;
+            next_heartbeat_s = if next_heartbeat_s.is_finite() { next_heartbeat_s + 1.0 } else { s.t_s + 1.0 };
+            while next_heartbeat_s <= s.t_s {
+                next_heartbeat_s += 1.0;
+            }
+        }
+        if let Some(th) = s.throttle.filter(|x| x.is_finite()) {
+            // Before the IMU message so a reader applies it to this sample.
+            let hud = apm::VFR_HUD_DATA { throttle: (th * 100.0).round().clamp(0.0, 100.0) as u16, ..Default::default() };
+            put(w, stamp, &apm::MavMessage::VFR_HUD(hud))?;
+        }
+        let a = s.accel_mps2.unwrap_or([0.0; 3]);
+        let gy = s.gyro_rad_s.unwrap_or([0.0; 3]);
+        let m = s.mag_ut.unwrap_or([0.0; 3]);
+        let msg = match opts.message {
+            ImuMessage::HighresImu => {
+                let mut bits: u16 = 0;
+                if s.accel_mps2.is_some() {
+                    bits |= 0x7;
+                }
+                if s.gyro_rad_s.is_some() {
+                    bits |= 0x38;
+                }
+                if s.mag_ut.is_some() {
+                    bits |= 0x1C0;
+                }
+                if s.temp_c.is_some() {
+                    bits |= 0x1000;
+                }
+                let mut d = apm::HIGHRES_IMU_DATA::default();
+                d.time_usec = TLOG_BOOT_OFFSET_US + t_us;
+                d.xacc = a[0] as f32;
+                d.yacc = a[1] as f32;
+                d.zacc = a[2] as f32;
+                d.xgyro = gy[0] as f32;
+                d.ygyro = gy[1] as f32;
+                d.zgyro = gy[2] as f32;
+                d.xmag = (m[0] / 100.0) as f32;
+                d.ymag = (m[1] / 100.0) as f32;
+                d.zmag = (m[2] / 100.0) as f32;
+                d.temperature = s.temp_c.unwrap_or(0.0) as f32;
+                d.fields_updated = apm::HighresImuUpdatedFlags::from_bits_truncate(bits);
+                apm::MavMessage::HIGHRES_IMU(d)
+            }
+            ImuMessage::ScaledImu => {
+                let k_acc = 1000.0 / STANDARD_GRAVITY_MPS2;
+                let mut d = apm::SCALED_IMU_DATA::default();
+                d.time_boot_ms = ((TLOG_BOOT_OFFSET_US + t_us) / 1000) as u32;
+                d.xacc = sat_i16(a[0] * k_acc);
+                d.yacc = sat_i16(a[1] * k_acc);
+                d.zacc = sat_i16(a[2] * k_acc);
+                d.xgyro = sat_i16(gy[0] * 1000.0);
+                d.ygyro = sat_i16(gy[1] * 1000.0);
+                d.zgyro = sat_i16(gy[2] * 1000.0);
+                d.xmag = sat_i16(m[0] * 10.0);
+                d.ymag = sat_i16(m[1] * 10.0);
+                d.zmag = sat_i16(m[2] * 10.0);
+                // 0 means "no temperature" in SCALED_IMU: send 1 cdegC for an exact 0.
+                d.temperature = match s.temp_c {
+                    Some(c) => match sat_i16(c * 100.0) {
+                        0 => 1,
+                        v => v,
+                    },
+                    None => 0,
+                };
+                apm::MavMessage::SCALED_IMU(d)
+            }
+        };
+        put(w, stamp, &msg)?;
+    }
+    Ok(())
+}
+
+/// Write samples as a `.tlog`: per record a big-endian u64 Unix time in microseconds
+/// ([`TLOG_EPOCH_US`] + t_s) then one raw MAVLink frame. A HEARTBEAT (quadrotor, PX4) every second,
+/// a VFR_HUD before each sample that has a throttle, and the IMU message of `opts`. Atomic.
+pub fn write_tlog(path: &std::path::Path, samples: &[Sample], opts: &TlogWriteOptions) -> Result<(), Error> {
+    if opts.mavlink_version != 1 && opts.mavlink_version != 2 {
+        return Err(Error::Config {
+            key: "mavlink_version".into(),
+            message: format!("must be 1 or 2, got {}", opts.mavlink_version),
+        });
+    }
+    write_atomic(path, |file| {
+        let mut buf = std::io::BufWriter::with_capacity(1 << 16, file);
+        tlog_records(&mut buf, samples, opts)?;
+        buf.into_inner().map_err(|e| e.into_error())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn noise_free(mut sc: Scenario) -> Scenario {
+        sc.truth.accel.noise_sd = 0.0;
+        sc.truth.mag.noise_sd = 0.0;
+        sc.truth.gyro.noise_sd = 0.0;
+        sc
+    }
+
+    fn tmpdir() -> tempfile::TempDir {
+        tempfile::tempdir().unwrap()
+    }
+
+    #[test]
+    fn names_resolve() {
+        for n in Scenario::names() {
+            let sc = Scenario::named(n).unwrap();
+            assert_eq!(sc.kind.name(), *n);
+            sc.validate().unwrap();
+        }
+        assert!(Scenario::named("nope").is_none());
+    }
+
+    #[test]
+    fn deterministic_for_a_seed() {
+        let mut sc = Scenario::named("tumble").unwrap();
+        sc.duration_s = Some(20.0);
+        let a = simulate(&sc, 42);
+        let b = simulate(&sc, 42);
+        assert_eq!(a.samples, b.samples);
+        assert_eq!(a.truth, b.truth);
+        assert_eq!(a.true_attitude, b.true_attitude);
+        let c = simulate(&sc, 43);
+        assert_ne!(a.samples, c.samples);
+        let f = Scenario::named("flight").unwrap();
+        assert_eq!(simulate(&f, 5).samples, simulate(&f, 5).samples);
+    }
+
+    #[test]
+    fn turntable_layout_and_truth() {
+        let sc = Scenario::named("turntable").unwrap();
+        assert_eq!(turntable_attitudes().len(), 32);
+        let out = simulate(&sc, 1);
+        assert_eq!(out.truth.poses.len(), 32);
+        for p in &out.truth.poses {
+            let n = out.samples.iter().filter(|s| s.t_s >= p.t_start && s.t_s < p.t_end - 1e-9).count();
+            assert_eq!(n, 1000, "{p:?}");
+        }
+        // Full coverage of the accelerometer: every body axis sees both +g and -g.
+        let dirs: Vec<Vector3<f64>> = out
+            .truth
+            .poses
+            .iter()
+            .map(|p| quat_from_euler_deg(p.roll_deg, p.pitch_deg, p.yaw_deg).inverse() * Vector3::z())
+            .collect();
+        for axis in 0..3 {
+            assert!(dirs.iter().any(|d| d[axis] > 0.85), "axis {axis} +");
+            assert!(dirs.iter().any(|d| d[axis] < -0.85), "axis {axis} -");
+        }
+        assert!((out.truth.accel.offset[0] - 0.016 * 9.80665).abs() < 1e-12);
+        assert_eq!(out.truth.mag.matrix[2][2], 1.1232);
+        assert!((out.truth.mag.offset[2] + 11.21).abs() < 1e-12);
+    }
+
+    #[test]
+    fn static_poses_satisfy_the_forward_model() {
+        for name in ["turntable", "tumble"] {
+            let mut sc = noise_free(Scenario::named(name).unwrap());
+            sc.tremor_deg = 0.0;
+            sc.duration_s = Some(60.0);
+            let out = simulate(&sc, 9);
+            let t = &out.truth;
+            let (ca, cm, cg) = (t.accel.calibration(), t.mag.calibration(), t.gyro.calibration());
+            let field = t.world.field_strength_ut();
+            let mut checked = 0;
+            for p in &t.poses {
+                let q = quat_from_euler_deg(p.roll_deg, p.pitch_deg, p.yaw_deg);
+                for (s, att) in out.samples.iter().zip(&out.true_attitude) {
+                    if s.t_s < p.t_start || s.t_s >= p.t_end - 1e-9 {
+                        continue;
+                    }
+                    let m = cm.apply(&s.mag_ut.unwrap());
+                    let a = ca.apply(&s.accel_mps2.unwrap());
+                    let w = cg.apply(&s.gyro_rad_s.unwrap());
+                    assert!((norm(&m) - field).abs() < 1e-9, "{name} |m| {}", norm(&m));
+                    assert!((norm(&a) - t.world.gravity_mps2).abs() < 1e-9);
+                    assert!(norm(&w) < 1e-6, "{name} gyro at rest {w:?}");
+                    // Vectors agree with the pose: R * body = NED.
+                    let mn = q * Vector3::new(m[0], m[1], m[2]);
+                    let an = q * Vector3::new(a[0], a[1], a[2]);
+                    for i in 0..3 {
+                        assert!((mn[i] - t.world.field_ned_ut[i]).abs() < 1e-9);
+                    }
+                    assert!((an - Vector3::new(0.0, 0.0, -t.world.gravity_mps2)).norm() < 1e-9);
+                    let qa = quat_from_euler_deg(att[0], att[1], att[2]);
+                    assert!(qa.angle_to(&q) < 1e-6, "{p:?} {att:?} {}", qa.angle_to(&q));
+                    checked += 1;
+                }
+            }
+            assert!(checked > 1000, "{name}: {checked}");
+        }
+    }
+
+    fn norm(v: &Vec3) -> f64 {
+        crate::types::norm(v)
+    }
+
+    #[test]
+    fn level_accel_reads_minus_g() {
+        let mut sc = noise_free(Scenario::named("tumble").unwrap());
+        sc.tremor_deg = 0.0;
+        sc.attitudes = Some(vec![[0.0, 0.0, 0.0], [0.0, 0.0, 123.0]]);
+        sc.truth.accel = SensorTruth::ideal();
+        let out = simulate(&sc, 3);
+        let a = out.samples[10].accel_mps2.unwrap();
+        assert!(a[0].abs() < 1e-12 && a[1].abs() < 1e-12 && (a[2] + 9.80665).abs() < 1e-12, "{a:?}");
+        let last = out.samples.last().unwrap().accel_mps2.unwrap();
+        assert!((last[2] + 9.80665).abs() < 1e-12);
+        // Nose up 90 deg: x forward points up, the reaction to gravity is +g along x.
+        sc.attitudes = Some(vec![[0.0, 90.0, 0.0]]);
+        let a = simulate(&sc, 3).samples[0].accel_mps2.unwrap();
+        assert!((a[0] - 9.80665).abs() < 1e-9 && a[2].abs() < 1e-9, "{a:?}");
+        // Right wing down (roll +90): y points down, specific force -g along y.
+        sc.attitudes = Some(vec![[90.0, 0.0, 0.0]]);
+        let a = simulate(&sc, 3).samples[0].accel_mps2.unwrap();
+        assert!((a[1] + 9.80665).abs() < 1e-9 && a[2].abs() < 1e-9, "{a:?}");
+    }
+
+    #[test]
+    fn gyro_integrates_to_the_true_attitude() {
+        for name in ["tumble", "flight"] {
+            let mut sc = noise_free(Scenario::named(name).unwrap());
+            sc.truth.gyro = SensorTruth::ideal();
+            sc.duration_s = Some(40.0);
+            let out = simulate(&sc, 11);
+            let dt = 1.0 / out.truth.rate_hz;
+            let a0 = out.true_attitude[0];
+            let mut q = quat_from_euler_deg(a0[0], a0[1], a0[2]);
+            for k in 0..out.samples.len() - 1 {
+                let w0 = out.samples[k].gyro_rad_s.unwrap();
+                let w1 = out.samples[k + 1].gyro_rad_s.unwrap();
+                let w = Vector3::new(w0[0] + w1[0], w0[1] + w1[1], w0[2] + w1[2]) * 0.5;
+                q *= UnitQuaternion::from_scaled_axis(w * dt);
+            }
+            let e = out.true_attitude.last().unwrap();
+            let err = q.angle_to(&quat_from_euler_deg(e[0], e[1], e[2])).to_degrees();
+            assert!(err < 1.0, "{name}: integrated attitude off by {err} deg");
+        }
+    }
+
+    #[test]
+    fn tumble_shape() {
+        let sc = Scenario::named("tumble").unwrap();
+        let out = simulate(&sc, 2);
+        let dur = out.samples.last().unwrap().t_s;
+        assert!((100.0..200.0).contains(&dur), "{dur}");
+        assert_eq!(out.truth.poses.len(), 30);
+        for p in &out.truth.poses {
+            let d = p.t_end - p.t_start;
+            assert!((2.0 - 1e-9..=4.0 + 1e-9).contains(&d));
+        }
+        assert!(out.samples.iter().all(|s| s.throttle == Some(0.0)));
+        // Tremor: the attitude wobbles by about 0.05 deg inside a pause.
+        let p = out.truth.poses[3];
+        let q = quat_from_euler_deg(p.roll_deg, p.pitch_deg, p.yaw_deg);
+        let dev: Vec<f64> = out
+            .true_attitude
+            .iter()
+            .zip(&out.samples)
+            .filter(|(_, s)| s.t_s >= p.t_start && s.t_s < p.t_end)
+            .map(|(a, _)| quat_from_euler_deg(a[0], a[1], a[2]).angle_to(&q).to_degrees())
+            .collect();
+        let max = dev.iter().cloned().fold(0.0, f64::max);
+        assert!(max > 0.01 && max < 0.5, "tremor {max}");
+    }
+
+    #[test]
+    fn flight_shape() {
+        let sc = noise_free(Scenario::named("flight").unwrap());
+        let out = simulate(&sc, 4);
+        let dur = out.samples.last().unwrap().t_s;
+        assert!((60.0..=90.0).contains(&dur));
+        let mut yaw_span = 0.0;
+        let mut prev = out.true_attitude[0][2];
+        let mut max_tilt: f64 = 0.0;
+        for a in &out.true_attitude {
+            let mut d = a[2] - prev;
+            d -= 360.0 * (d / 360.0).round();
+            yaw_span += d.abs();
+            prev = a[2];
+            max_tilt = max_tilt.max(a[0].abs()).max(a[1].abs());
+        }
+        assert!(yaw_span >= 359.0, "{yaw_span}");
+        assert!(max_tilt < 15.0, "{max_tilt}");
+        let th: Vec<f64> = out.samples.iter().map(|s| s.throttle.unwrap()).collect();
+        assert_eq!(th[0], 0.0);
+        let mid = th[th.len() / 2];
+        assert!((0.4..0.6).contains(&mid), "{mid}");
+        // Ground: calibrated accel has magnitude g; in the air the specific force stays near g.
+        let ca = out.truth.accel.calibration();
+        let a0 = ca.apply(&out.samples[0].accel_mps2.unwrap());
+        assert!((norm(&a0) - 9.80665).abs() < 1e-9);
+        for s in &out.samples {
+            let a = ca.apply(&s.accel_mps2.unwrap());
+            assert!((norm(&a) - 9.80665).abs() < 1.5, "{}", norm(&a));
+        }
+    }
+
+    #[test]
+    fn toml_overrides_and_unknown_keys() {
+        let sc = Scenario::from_toml_str(
+            "name = \"tumble\"\nrate_hz = 50\npauses = 5\n[mag]\noffset = [1.0, 2.0, 3.0]\n[world]\ngravity_mps2 = 9.8\n",
+        )
+        .unwrap();
+        assert_eq!(sc.kind, TrajectoryKind::Tumble);
+        assert_eq!(sc.truth.rate_hz, 50.0);
+        assert_eq!(sc.pauses, 5);
+        assert_eq!(sc.truth.mag.offset, [1.0, 2.0, 3.0]);
+        assert_eq!(sc.truth.mag.matrix, default_mag().matrix);
+        assert_eq!(sc.truth.world.gravity_mps2, 9.8);
+        let out = simulate(&sc, 1);
+        assert_eq!(out.truth.poses.len(), 5);
+
+        let e = Scenario::from_toml_str("name = \"tumble\"\nbogus_key = 1\n").unwrap_err();
+        assert!(e.to_string().contains("bogus_key"), "{e}");
+        assert!(matches!(&e, Error::Config { key, .. } if key == "bogus_key"), "{e:?}");
+        let e = Scenario::from_toml_str("name = \"tumble\"\n[mag]\nofset = [1.0, 2.0, 3.0]\n").unwrap_err();
+        assert!(e.to_string().contains("ofset"), "{e}");
+        let e = Scenario::from_toml_str("name = \"nope\"\n").unwrap_err();
+        assert!(e.to_string().contains("nope"), "{e}");
+        let e = Scenario::from_toml_str("name = \"tumble\"\n[accel]\nmatrix = [[0,0,0],[0,0,0],[0,0,0]]\n").unwrap_err();
+        assert!(e.to_string().contains("singular"), "{e}");
+        // Truth round-trips through JSON (truth.json).
+        let j = serde_json::to_string(&out.truth).unwrap();
+        let back: Truth = serde_json::from_str(&j).unwrap();
+        assert_eq!(back.mag, out.truth.mag);
+        assert_eq!(back.poses.len(), out.truth.poses.len());
+        for (a, b) in back.poses.iter().zip(&out.truth.poses) {
+            assert!((a.t_end - b.t_end).abs() < 1e-12 && (a.yaw_deg - b.yaw_deg).abs() < 1e-12);
+        }
+    }
+
+    fn short_samples() -> Vec<Sample> {
+        let mut sc = Scenario::named("flight").unwrap();
+        sc.truth.rate_hz = 20.0;
+        sc.duration_s = Some(40.0);
+        simulate(&sc, 8).samples
+    }
+
+    #[test]
+    fn csv_header_and_gz() {
+        let dir = tmpdir();
+        let samples = short_samples();
+        let p = dir.path().join("out.csv");
+        write_csv(&p, &samples).unwrap();
+        let text = std::fs::read_to_string(&p).unwrap();
+        let mut lines = text.lines();
+        assert_eq!(lines.next().unwrap(), "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle");
+        let first: Vec<f64> = lines.next().unwrap().split(',').map(|c| c.parse().unwrap()).collect();
+        assert_eq!(first.len(), 12);
+        assert_eq!(first[1], samples[0].accel_mps2.unwrap()[0]);
+        assert_eq!(text.lines().count(), samples.len() + 1);
+
+        let pg = dir.path().join("out.csv.gz");
+        write_csv(&pg, &samples).unwrap();
+        let mut dec = flate2::read::GzDecoder::new(std::fs::File::open(&pg).unwrap());
+        let mut s = String::new();
+        std::io::Read::read_to_string(&mut dec, &mut s).unwrap();
+        assert_eq!(s, text);
+        // No temporary files left behind.
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(names.len(), 2, "{names:?}");
+        // Absent fields are empty cells.
+        let p2 = dir.path().join("sparse.csv");
+        write_csv(&p2, &[Sample { t_s: 0.5, mag_ut: Some([1.0, 2.0, 3.0]), ..Default::default() }]).unwrap();
+        assert_eq!(std::fs::read_to_string(&p2).unwrap().lines().nth(1).unwrap(), "0.5,,,,,,,1,2,3,,");
+    }
+
+    /// Split a tlog into (timestamp, frame) records by hand, checking each frame's framing.
+    fn split_tlog(bytes: &[u8]) -> Vec<(u64, &[u8])> {
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i < bytes.len() {
+            assert!(i + 8 < bytes.len(), "truncated record at {i}");
+            let ts = u64::from_be_bytes(bytes[i..i + 8].try_into().unwrap());
+            let f = &bytes[i + 8..];
+            let len = f[1] as usize;
+            let total = match f[0] {
+                0xFD => 10 + len + 2 + if f[2] & 1 != 0 { 13 } else { 0 },
+                0xFE => 6 + len + 2,
+                m => panic!("bad magic {m:#x} at {}", i + 8),
+            };
+            out.push((ts, &f[..total]));
+            i += 8 + total;
+        }
+        out
+    }
+
+    fn msg_id(frame: &[u8]) -> u32 {
+        if frame[0] == 0xFD {
+            u32::from_le_bytes([frame[7], frame[8], frame[9], 0])
+        } else {
+            frame[5] as u32
+        }
+    }
+
+    #[test]
+    fn tlog_records_have_timestamp_and_magic() {
+        use mavlink::dialects::ardupilotmega::MavMessage;
+        let dir = tmpdir();
+        let samples = short_samples();
+        let p = dir.path().join("sim.tlog");
+        write_tlog(&p, &samples, &TlogWriteOptions::default()).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let recs = split_tlog(&bytes);
+        assert!(recs.iter().all(|(_, f)| f[0] == 0xFD));
+        let mut prev = 0;
+        for (ts, _) in &recs {
+            assert!(*ts >= TLOG_EPOCH_US && *ts < TLOG_EPOCH_US + 3_600_000_000 && *ts >= prev);
+            prev = *ts;
+        }
+        let count = |id: u32| recs.iter().filter(|(_, f)| msg_id(f) == id).count();
+        assert_eq!(count(105), samples.len());
+        assert_eq!(count(74), samples.len());
+        let secs = samples.last().unwrap().t_s.floor() as usize + 1;
+        assert_eq!(count(0), secs);
+        // Frames decode with the mavlink crate and carry the units of HIGHRES_IMU.
+        let imu: Vec<_> = recs.iter().filter(|(_, f)| msg_id(f) == 105).collect();
+        let s = samples[100];
+        let (ts, frame) = imu[100];
+        assert_eq!(*ts, TLOG_EPOCH_US + (s.t_s * 1e6).round() as u64);
+        let (h, msg) = mavlink::MavlinkReader::new(*frame).read_any_message::<MavMessage>().unwrap();
+        assert_eq!((h.system_id, h.component_id), (1, 1));
+        match msg {
+            MavMessage::HIGHRES_IMU(d) => {
+                assert!((d.xacc as f64 - s.accel_mps2.unwrap()[0]).abs() < 1e-5);
+                assert!((d.zmag as f64 * 100.0 - s.mag_ut.unwrap()[2]).abs() < 1e-4);
+                assert!((d.temperature as f64 - s.temp_c.unwrap()).abs() < 1e-4);
+                assert_eq!(d.fields_updated.bits(), 0x11FF);
+                assert_eq!(d.time_usec, TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64);
+            }
+            m => panic!("{m:?}"),
+        }
+        let hb = recs.iter().find(|(_, f)| msg_id(f) == 0).unwrap().1;
+        match mavlink::MavlinkReader::new(hb).read_any_message::<MavMessage>().unwrap().1 {
+            MavMessage::HEARTBEAT(d) => {
+                assert_eq!(d.autopilot, mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_PX4);
+                assert_eq!(d.mavtype, mavlink::dialects::ardupilotmega::MavType::MAV_TYPE_QUADROTOR);
+            }
+            m => panic!("{m:?}"),
+        }
+    }
+
+    #[test]
+    fn tlog_scaled_imu_v1() {
+        use mavlink::dialects::ardupilotmega::MavMessage;
+        let dir = tmpdir();
+        let samples = short_samples();
+        let p = dir.path().join("sim1.tlog");
+        let opts = TlogWriteOptions { message: ImuMessage::ScaledImu, system_id: 7, component_id: 3, mavlink_version: 1 };
+        write_tlog(&p, &samples, &opts).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let recs = split_tlog(&bytes);
+        assert!(recs.iter().all(|(_, f)| f[0] == 0xFE));
+        let imu: Vec<_> = recs.iter().filter(|(_, f)| msg_id(f) == 26).collect();
+        assert_eq!(imu.len(), samples.len());
+        let s = samples[50];
+        let (h, msg) = mavlink::MavlinkReader::new(imu[50].1).read_any_message::<MavMessage>().unwrap();
+        assert_eq!((h.system_id, h.component_id), (7, 3));
+        match msg {
+            MavMessage::SCALED_IMU(d) => {
+                let a = s.accel_mps2.unwrap();
+                assert_eq!(d.zacc, (a[2] / 9.80665 * 1000.0).round() as i16);
+                assert_eq!(d.xmag, (s.mag_ut.unwrap()[0] * 10.0).round() as i16);
+                assert_eq!(d.xgyro, (s.gyro_rad_s.unwrap()[0] * 1000.0).round() as i16);
+            }
+            m => panic!("{m:?}"),
+        }
+        assert!(write_tlog(&p, &samples, &TlogWriteOptions { mavlink_version: 3, ..Default::default() }).is_err());
+    }
+
+    #[test]
+    fn euler_round_trip_including_gimbal_lock() {
+        for e in [[10.0, 20.0, 30.0], [-170.0, -80.0, 359.0], [0.0, 90.0, 145.0], [30.0, -90.0, 10.0], [180.0, 0.0, 0.0]] {
+            let q = quat_from_euler_deg(e[0], e[1], e[2]);
+            let back = euler_deg_from_quat(&q);
+            let q2 = quat_from_euler_deg(back[0], back[1], back[2]);
+            assert!(q.angle_to(&q2) < 1e-6, "{e:?} -> {back:?}");
+            assert!((0.0..360.0).contains(&back[2]));
+        }
+        let b = euler_deg_from_quat(&quat_from_euler_deg(10.0, 20.0, 30.0));
+        assert!((b[0] - 10.0).abs() < 1e-9 && (b[1] - 20.0).abs() < 1e-9 && (b[2] - 30.0).abs() < 1e-9);
+    }
+}
