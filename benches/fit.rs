@@ -19,20 +19,35 @@ fn points(n: usize, seed: u64) -> Vec<[f64; 3]> {
     (0..n)
         .map(|_| {
             let u = loop {
-                let v = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+                let v = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                );
                 if v.norm() > 0.1 && v.norm() < 1.0 {
                     break v.normalize();
                 }
             };
-            let r = minv * (u * 48.0) + o + Vector3::new(noise.sample(&mut rng), noise.sample(&mut rng), noise.sample(&mut rng));
+            let r = minv * (u * 48.0)
+                + o
+                + Vector3::new(
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                );
             [r[0], r[1], r[2]]
         })
         .collect()
 }
 
 fn python() -> Option<String> {
-    let p = std::env::var("IMUCALD_PYTHON").unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = Command::new(&p).args(["-c", "import scipy, pymavlink"]).output().map(|o| o.status.success()).unwrap_or(false);
+    let p = std::env::var("IMUCALD_PYTHON")
+        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
+    let ok = Command::new(&p)
+        .args(["-c", "import scipy, pymavlink"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
     if ok {
         Some(p)
     } else {
@@ -43,7 +58,10 @@ fn python() -> Option<String> {
 
 fn bench_fit(py: Option<&str>) {
     println!("== sym9 fit (ellipsoid, noise 0.15 uT, radius 48 uT)");
-    println!("{:>6} {:>14} {:>14} {:>8} {:>22}", "points", "imucald us/fit", "scipy us/fit", "ratio", "max |offset diff| uT");
+    println!(
+        "{:>6} {:>14} {:>14} {:>8} {:>22}",
+        "points", "imucald us/fit", "scipy us/fit", "ratio", "max |offset diff| uT"
+    );
     for &n in &[300usize, 3000] {
         let pts = points(n, n as u64);
         let opts = NormFitOptions::default();
@@ -51,20 +69,42 @@ fn bench_fit(py: Option<&str>) {
         let reps = if n <= 300 { 2000 } else { 300 };
         let t0 = Instant::now();
         for _ in 0..reps {
-            std::hint::black_box(fit_norm(std::hint::black_box(&pts), ModelKind::Sym9, &opts).expect("fit"));
+            std::hint::black_box(
+                fit_norm(std::hint::black_box(&pts), ModelKind::Sym9, &opts).expect("fit"),
+            );
         }
         let ours = t0.elapsed().as_secs_f64() / reps as f64;
         let (peer, diff) = match py {
             Some(py) => {
                 let dir = tempfile::tempdir().expect("tempdir");
                 let f = dir.path().join("points.csv");
-                let text: String = pts.iter().map(|p| format!("{:.17e},{:.17e},{:.17e}\n", p[0], p[1], p[2])).collect();
+                let text: String = pts
+                    .iter()
+                    .map(|p| format!("{:.17e},{:.17e},{:.17e}\n", p[0], p[1], p[2]))
+                    .collect();
                 std::fs::write(&f, text).expect("write");
                 let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/peer_fit.py");
-                let out = Command::new(py).args([script, f.to_str().unwrap(), if n <= 300 { "200" } else { "50" }]).output().expect("python");
-                let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|_| panic!("peer failed: {}", String::from_utf8_lossy(&out.stderr)));
-                let off: Vec<f64> = v["offset"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
-                let d = (0..3).map(|k| (off[k] - first.calibration.offset[k]).abs()).fold(0.0, f64::max);
+                let out = Command::new(py)
+                    .args([
+                        script,
+                        f.to_str().unwrap(),
+                        if n <= 300 { "200" } else { "50" },
+                    ])
+                    .output()
+                    .expect("python");
+                let v: serde_json::Value =
+                    serde_json::from_slice(&out.stdout).unwrap_or_else(|_| {
+                        panic!("peer failed: {}", String::from_utf8_lossy(&out.stderr))
+                    });
+                let off: Vec<f64> = v["offset"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|x| x.as_f64().unwrap())
+                    .collect();
+                let d = (0..3)
+                    .map(|k| (off[k] - first.calibration.offset[k]).abs())
+                    .fold(0.0, f64::max);
                 (Some(v["seconds_per_fit"].as_f64().unwrap()), Some(d))
             }
             None => (None, None),
@@ -73,8 +113,10 @@ fn bench_fit(py: Option<&str>) {
             "{:>6} {:>14.1} {:>14} {:>8} {:>22}",
             n,
             ours * 1e6,
-            peer.map(|p| format!("{:.1}", p * 1e6)).unwrap_or("-".into()),
-            peer.map(|p| format!("{:.0}x", p / ours)).unwrap_or("-".into()),
+            peer.map(|p| format!("{:.1}", p * 1e6))
+                .unwrap_or("-".into()),
+            peer.map(|p| format!("{:.0}x", p / ours))
+                .unwrap_or("-".into()),
             diff.map(|d| format!("{d:.2e}")).unwrap_or("-".into())
         );
     }
@@ -90,9 +132,13 @@ fn bench_replay(py: Option<&str>) {
     let mut samples = Vec::new();
     let dur = sim.samples.last().map(|s| s.t_s).unwrap_or(0.0) + 0.01;
     for k in 0..5 {
-        samples.extend(sim.samples.iter().map(|s| imucald::types::Sample { t_s: s.t_s + k as f64 * dur, ..*s }));
+        samples.extend(sim.samples.iter().map(|s| imucald::types::Sample {
+            t_s: s.t_s + k as f64 * dur,
+            ..*s
+        }));
     }
-    imucald::sim::write_tlog(&log, &samples, &imucald::sim::TlogWriteOptions::default()).expect("write tlog");
+    imucald::sim::write_tlog(&log, &samples, &imucald::sim::TlogWriteOptions::default())
+        .expect("write tlog");
     let cfg = imucald::config::Config::default();
     let opts = imucald::replay::ReplayOptions::default();
     let mut best = f64::INFINITY;
@@ -105,17 +151,36 @@ fn bench_replay(py: Option<&str>) {
     }
     let ours = n as f64 / best;
     let size = std::fs::metadata(&log).map(|m| m.len()).unwrap_or(0);
-    print!("{n} IMU samples ({:.1} MB): imucald {:.0} samples/s", size as f64 / 1e6, ours);
+    print!(
+        "{n} IMU samples ({:.1} MB): imucald {:.0} samples/s",
+        size as f64 / 1e6,
+        ours
+    );
     if let Some(py) = py {
         let code = "import sys,time,os\nos.environ['MAVLINK20']='1'\nfrom pymavlink import mavutil\nt=time.perf_counter()\nm=mavutil.mavlink_connection(sys.argv[1],dialect='ardupilotmega')\nn=0\nwhile True:\n  x=m.recv_msg()\n  if x is None: break\n  if x.get_type() in ('HIGHRES_IMU','SCALED_IMU'): n+=1\nprint(n, time.perf_counter()-t)";
-        let out = Command::new(py).args(["-c", code, log.to_str().unwrap()]).env("MAVLINK20", "1").output().expect("python");
+        let out = Command::new(py)
+            .args(["-c", code, log.to_str().unwrap()])
+            .env("MAVLINK20", "1")
+            .output()
+            .expect("python");
         let s = String::from_utf8_lossy(&out.stdout);
-        let parts: Vec<f64> = s.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+        let parts: Vec<f64> = s
+            .split_whitespace()
+            .filter_map(|x| x.parse().ok())
+            .collect();
         if parts.len() == 2 {
             let peer = parts[0] / parts[1];
-            println!(", pymavlink parse only {:.0} samples/s ({} samples) -> ratio {:.0}x", peer, parts[0], ours / peer);
+            println!(
+                ", pymavlink parse only {:.0} samples/s ({} samples) -> ratio {:.0}x",
+                peer,
+                parts[0],
+                ours / peer
+            );
         } else {
-            println!(", pymavlink failed: {}", String::from_utf8_lossy(&out.stderr));
+            println!(
+                ", pymavlink failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
     } else {
         println!();

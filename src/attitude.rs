@@ -94,13 +94,21 @@ pub fn earth_field(place: &Place) -> Result<EarthField, String> {
             Date::from_calendar_date(y, month, d).map_err(|_| bad())?
         }
         None => {
-            let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+            let secs = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs())
+                .unwrap_or(0);
             let days = (secs / 86_400) as i32;
             Date::from_julian_day(2_440_588 + days).map_err(|e| e.to_string())?
         }
     };
-    if !(-90.0..=90.0).contains(&place.latitude_deg) || !(-180.0..=360.0).contains(&place.longitude_deg) {
-        return Err(format!("place: latitude {} / longitude {} out of range", place.latitude_deg, place.longitude_deg));
+    if !(-90.0..=90.0).contains(&place.latitude_deg)
+        || !(-180.0..=360.0).contains(&place.longitude_deg)
+    {
+        return Err(format!(
+            "place: latitude {} / longitude {} out of range",
+            place.latitude_deg, place.longitude_deg
+        ));
     }
     let f = world_magnetic_model::GeomagneticField::new(
         Length::new::<meter>(place.altitude_m as f32),
@@ -122,7 +130,9 @@ pub fn earth_field(place: &Place) -> Result<EarthField, String> {
 /// R = Rz(yaw) Ry(pitch) Rx(roll), and body = R sensor.
 pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
     let n = name.trim().to_ascii_uppercase();
-    let n = n.trim_start_matches("MAV_SENSOR_").trim_start_matches("ROTATION_");
+    let n = n
+        .trim_start_matches("MAV_SENSOR_")
+        .trim_start_matches("ROTATION_");
     if n == "NONE" {
         return Ok(Matrix3::identity());
     }
@@ -132,12 +142,19 @@ pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
     }
     let (mut r, mut p, mut y) = (0.0, 0.0, 0.0);
     for pair in parts.chunks(2) {
-        let deg: f64 = pair[1].parse().map_err(|_| format!("unknown sensor orientation `{name}`"))?;
+        let deg: f64 = pair[1]
+            .parse()
+            .map_err(|_| format!("unknown sensor orientation `{name}`"))?;
         match pair[0] {
             "ROLL" => r = deg,
             "PITCH" => p = deg,
             "YAW" => y = deg,
-            _ => return Err(format!("unknown sensor orientation `{name}`: `{}` is not ROLL, PITCH or YAW", pair[0])),
+            _ => {
+                return Err(format!(
+                    "unknown sensor orientation `{name}`: `{}` is not ROLL, PITCH or YAW",
+                    pair[0]
+                ))
+            }
         }
     }
     Ok(*Rotation3::from_euler_angles(r.to_radians(), p.to_radians(), y.to_radians()).matrix())
@@ -154,7 +171,8 @@ mod tests {
 
     /// Forward model: the NED field and gravity seen in body axes for a ZYX attitude.
     fn body_of(roll: f64, pitch: f64, yaw: f64, v_ned: Vector3<f64>) -> Vec3 {
-        let r = Rotation3::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians());
+        let r =
+            Rotation3::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians());
         let b = r.inverse() * v_ned;
         [b[0], b[1], b[2]]
     }
@@ -164,20 +182,34 @@ mod tests {
         let g = 9.80665;
         let field = Vector3::new(20.0f64, 2.0, 40.0);
         let decl = field[1].atan2(field[0]).to_degrees();
-        for &(roll, pitch, yaw) in &[(0.0, 0.0, 0.0), (10.0, -20.0, 135.0), (-35.0, 50.0, 290.0), (170.0, 10.0, 45.0)] {
+        for &(roll, pitch, yaw) in &[
+            (0.0, 0.0, 0.0),
+            (10.0, -20.0, 135.0),
+            (-35.0, 50.0, 290.0),
+            (170.0, 10.0, 45.0),
+        ] {
             // specific force = -gravity in body axes
             let f = body_of(roll, pitch, yaw, Vector3::new(0.0, 0.0, -g));
             let m = body_of(roll, pitch, yaw, field);
             let (r, p, h) = attitude_deg(&f, &m, None);
             assert!(angle_diff_deg(r, roll).abs() < 1e-9, "roll {r} vs {roll}");
             assert!((p - pitch).abs() < 1e-9, "pitch {p} vs {pitch}");
-            assert!(angle_diff_deg(h + decl, yaw).abs() < 1e-9, "heading {h} + {decl} vs {yaw}");
+            assert!(
+                angle_diff_deg(h + decl, yaw).abs() < 1e-9,
+                "heading {h} + {decl} vs {yaw}"
+            );
         }
     }
 
     #[test]
     fn wmm_matches_the_check_value_in_stack_md() {
-        let f = earth_field(&Place { latitude_deg: 22.5, longitude_deg: 113.9, altitude_m: 0.0, date: Some("2026-11-22".into()) }).unwrap();
+        let f = earth_field(&Place {
+            latitude_deg: 22.5,
+            longitude_deg: 113.9,
+            altitude_m: 0.0,
+            date: Some("2026-11-22".into()),
+        })
+        .unwrap();
         assert!((f.declination_deg - -3.2909).abs() < 0.01, "{f:?}");
         assert!((f.inclination_deg - 34.3203).abs() < 0.01);
         assert!((f.total_ut - 45.6768).abs() < 0.01);

@@ -37,7 +37,13 @@ pub struct InputConfig {
 
 impl Default for InputConfig {
     fn default() -> Self {
-        InputConfig { format: "auto".into(), instance: "auto".into(), raw_imu_scale: RawImuScale::default(), csv: CsvMapping::default(), accel_units: "auto".into() }
+        InputConfig {
+            format: "auto".into(),
+            instance: "auto".into(),
+            raw_imu_scale: RawImuScale::default(),
+            csv: CsvMapping::default(),
+            accel_units: "auto".into(),
+        }
     }
 }
 
@@ -67,7 +73,7 @@ impl Default for FitConfig {
             accel_model: "auto".into(),
             refit_every_s: 10.0,
             gravity_mps2: crate::types::STANDARD_GRAVITY_MPS2,
-            min_separation_deg: 2.0,
+            min_separation_deg: 1.0,
             prefilter: false,
             prefilter_q: 1e-4,
             prefilter_r: 1.0,
@@ -106,9 +112,27 @@ impl Default for AcceptConfig {
         AcceptConfig {
             // ArduPilot's calibrator accepts radius 150-950 mG, DIA in (0.2, 5), |ODI| < 1 and
             // |OFS| < 1800 mG; phones carry far larger hard iron (~400 uT), so the offset limit is wider.
-            mag: AcceptLimits { min_radius: 15.0, max_radius: 95.0, max_offset: 1000.0, min_diag: 0.2, max_diag: 5.0, max_offdiag: 1.0, max_rms_ratio: 0.05, min_filled_regions: 25 },
+            mag: AcceptLimits {
+                min_radius: 15.0,
+                max_radius: 95.0,
+                max_offset: 1000.0,
+                min_diag: 0.2,
+                max_diag: 5.0,
+                max_offdiag: 1.0,
+                max_rms_ratio: 0.05,
+                min_filled_regions: 25,
+            },
             // ArduPilot: accel scale 0.8-1.2, offsets within 3.5 m/s^2.
-            accel: AcceptLimits { min_radius: 7.0, max_radius: 12.0, max_offset: 3.5, min_diag: 0.8, max_diag: 1.2, max_offdiag: 0.2, max_rms_ratio: 0.02, min_filled_regions: 6 },
+            accel: AcceptLimits {
+                min_radius: 7.0,
+                max_radius: 12.0,
+                max_offset: 3.5,
+                min_diag: 0.8,
+                max_diag: 1.2,
+                max_offdiag: 0.2,
+                max_rms_ratio: 0.02,
+                min_filled_regions: 6,
+            },
         }
     }
 }
@@ -152,7 +176,10 @@ impl LimitsToml {
 impl From<AcceptToml> for AcceptConfig {
     fn from(t: AcceptToml) -> Self {
         let d = AcceptConfig::default();
-        AcceptConfig { mag: t.mag.over(d.mag), accel: t.accel.over(d.accel) }
+        AcceptConfig {
+            mag: t.mag.over(d.mag),
+            accel: t.accel.over(d.accel),
+        }
     }
 }
 
@@ -165,12 +192,17 @@ pub struct OrientationConfig {
 
 impl Default for OrientationConfig {
     fn default() -> Self {
-        OrientationConfig { sensor: "ROTATION_NONE".into() }
+        OrientationConfig {
+            sensor: "ROTATION_NONE".into(),
+        }
     }
 }
 
 fn err(key: &str, message: impl Into<String>) -> Error {
-    Error::Config { key: key.to_string(), message: message.into() }
+    Error::Config {
+        key: key.to_string(),
+        message: message.into(),
+    }
 }
 
 impl Config {
@@ -190,9 +222,15 @@ impl Config {
 
     /// Read, parse and validate a TOML file.
     pub fn load(path: &std::path::Path) -> Result<Config, Error> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Read { path: path.to_path_buf(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Config::from_toml_str(&text).map_err(|e| match e {
-            Error::Config { key, message } => Error::Config { key: format!("{}: {key}", path.display()), message },
+            Error::Config { key, message } => Error::Config {
+                key: format!("{}: {key}", path.display()),
+                message,
+            },
             other => other,
         })
     }
@@ -200,26 +238,60 @@ impl Config {
     /// Range and name checks; each error names the key and the fix.
     pub fn validate(&self) -> Result<(), Error> {
         if !["auto", "tlog", "csv"].contains(&self.input.format.as_str()) {
-            return Err(err("input.format", format!("`{}` is not one of auto, tlog, csv", self.input.format)));
+            return Err(err(
+                "input.format",
+                format!("`{}` is not one of auto, tlog, csv", self.input.format),
+            ));
         }
         let inst = self.input.instance.as_str();
         let inst_ok = inst == "auto"
             || ["scaled_imu", "scaled_imu2", "scaled_imu3"].contains(&inst)
-            || inst.strip_prefix("highres_imu:").or(inst.strip_prefix("raw_imu:")).is_some_and(|n| n.parse::<u8>().is_ok());
+            || inst
+                .strip_prefix("highres_imu:")
+                .or(inst.strip_prefix("raw_imu:"))
+                .is_some_and(|n| n.parse::<u8>().is_ok());
         if !inst_ok {
             return Err(err("input.instance", format!("`{inst}` is not auto, highres_imu:N, scaled_imu, scaled_imu2, scaled_imu3 or raw_imu:N")));
         }
         if !["auto", "si", "counts"].contains(&self.input.accel_units.as_str()) {
-            return Err(err("input.accel_units", format!("`{}` is not one of auto, si, counts", self.input.accel_units)));
+            return Err(err(
+                "input.accel_units",
+                format!(
+                    "`{}` is not one of auto, si, counts",
+                    self.input.accel_units
+                ),
+            ));
         }
         let models = ["auto", "sphere", "diag6", "sym9", "full12"];
         if !models.contains(&self.fit.mag_model.as_str()) {
-            return Err(err("fit.mag_model", format!("`{}` is not one of {}", self.fit.mag_model, models.join(", "))));
+            return Err(err(
+                "fit.mag_model",
+                format!(
+                    "`{}` is not one of {}",
+                    self.fit.mag_model,
+                    models.join(", ")
+                ),
+            ));
         }
-        if !models.contains(&self.fit.accel_model.as_str()) && self.fit.accel_model != "six_position" {
-            return Err(err("fit.accel_model", format!("`{}` is not one of {}, six_position", self.fit.accel_model, models.join(", "))));
+        if !models.contains(&self.fit.accel_model.as_str())
+            && self.fit.accel_model != "six_position"
+        {
+            return Err(err(
+                "fit.accel_model",
+                format!(
+                    "`{}` is not one of {}, six_position",
+                    self.fit.accel_model,
+                    models.join(", ")
+                ),
+            ));
         }
-        let pos = |key: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(()) } else { Err(err(key, format!("must be a positive number, got {v}"))) };
+        let pos = |key: &str, v: f64| {
+            if v > 0.0 && v.is_finite() {
+                Ok(())
+            } else {
+                Err(err(key, format!("must be a positive number, got {v}")))
+            }
+        };
         pos("fit.refit_every_s", self.fit.refit_every_s)?;
         pos("fit.gravity_mps2", self.fit.gravity_mps2)?;
         pos("fit.min_separation_deg", self.fit.min_separation_deg)?;
@@ -233,18 +305,28 @@ impl Config {
         if let Some(t) = self.gate.threshold {
             pos("gate.threshold", t)?;
         }
-        for (name, l) in [("accept.mag", &self.accept.mag), ("accept.accel", &self.accept.accel)] {
+        for (name, l) in [
+            ("accept.mag", &self.accept.mag),
+            ("accept.accel", &self.accept.accel),
+        ] {
             if !(l.min_radius < l.max_radius) {
-                return Err(err(&format!("{name}.min_radius"), "must be below max_radius"));
+                return Err(err(
+                    &format!("{name}.min_radius"),
+                    "must be below max_radius",
+                ));
             }
             if !(l.min_diag < l.max_diag) {
                 return Err(err(&format!("{name}.min_diag"), "must be below max_diag"));
             }
             if l.min_filled_regions > crate::coverage::REGIONS {
-                return Err(err(&format!("{name}.min_filled_regions"), "there are only 100 regions"));
+                return Err(err(
+                    &format!("{name}.min_filled_regions"),
+                    "there are only 100 regions",
+                ));
             }
         }
-        crate::attitude::sensor_rotation(&self.orientation.sensor).map_err(|m| err("orientation.sensor", m))?;
+        crate::attitude::sensor_rotation(&self.orientation.sensor)
+            .map_err(|m| err("orientation.sensor", m))?;
         if let Some(p) = &self.place {
             crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
         }
@@ -269,15 +351,27 @@ mod tests {
 
     #[test]
     fn errors_name_the_key() {
-        let e = Config::from_toml_str("[fit]\nmag_modle = \"sym9\"\n").unwrap_err().to_string();
+        let e = Config::from_toml_str("[fit]\nmag_modle = \"sym9\"\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("mag_modle") && e.contains("line 2"), "{e}");
-        let e = Config::from_toml_str("[fit]\nmag_model = \"sym10\"\n").unwrap_err().to_string();
+        let e = Config::from_toml_str("[fit]\nmag_model = \"sym10\"\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("fit.mag_model") && e.contains("sym9"), "{e}");
-        let e = Config::from_toml_str("[gate]\nwindow_s = -1\n").unwrap_err().to_string();
+        let e = Config::from_toml_str("[gate]\nwindow_s = -1\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("gate.window_s"), "{e}");
-        let e = Config::from_toml_str("[orientation]\nsensor = \"UPSIDE_DOWN\"\n").unwrap_err().to_string();
+        let e = Config::from_toml_str("[orientation]\nsensor = \"UPSIDE_DOWN\"\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("orientation.sensor"), "{e}");
-        let e = Config::from_toml_str("[place]\nlatitude_deg = 45.0\nlongitude_deg = 7.0\ndate = \"2031-01-01\"\n").unwrap_err().to_string();
+        let e = Config::from_toml_str(
+            "[place]\nlatitude_deg = 45.0\nlongitude_deg = 7.0\ndate = \"2031-01-01\"\n",
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("place"), "{e}");
     }
 }

@@ -40,7 +40,10 @@ pub fn region(v: &Vec3) -> Option<usize> {
 /// (theta, phi) of seed 002 in degrees: theta polar angle from +z (0..180), phi azimuth (-180..180).
 pub fn theta_phi(v: &Vec3) -> (f64, f64) {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-300);
-    ((v[2] / n).clamp(-1.0, 1.0).acos().to_degrees(), v[1].atan2(v[0]).to_degrees())
+    (
+        (v[2] / n).clamp(-1.0, 1.0).acos().to_degrees(),
+        v[1].atan2(v[0]).to_degrees(),
+    )
 }
 
 /// Coverage summary as the report gives it.
@@ -62,66 +65,86 @@ pub fn coverage<'a>(points: impl IntoIterator<Item = &'a Vec3>, centre: &Vec3) -
         }
     }
     let filled = mask.iter().filter(|&&b| b).count();
-    Coverage { regions: REGIONS, filled, gaps_pct: 100.0 * (REGIONS - filled) as f64 / REGIONS as f64, filled_mask: mask }
+    Coverage {
+        regions: REGIONS,
+        filled,
+        gaps_pct: 100.0 * (REGIONS - filled) as f64 / REGIONS as f64,
+        filled_mask: mask,
+    }
 }
 
-/// Keeps fit points at least a minimum angle apart: directions about a centre are binned on a grid
-/// of cells about `min_separation_deg` wide and each cell keeps the running mean of its raw vectors.
+/// Keeps fit points at least about a minimum angle apart: directions about a centre are binned on a
+/// grid of cells about `min_separation_deg` wide and each cell keeps the first raw vector that fell in
+/// it. Raw samples are kept as they are (no averaging: a mean of points on a sphere lies inside it and
+/// would bias the fit).
 #[derive(Debug, Clone)]
 pub struct DirectionBins {
     pub centre: Vec3,
     cell_rad: f64,
-    cells: std::collections::HashMap<(i32, i32), ([f64; 3], usize)>,
+    cells: std::collections::HashMap<(i32, i32), Vec3>,
 }
 
 impl DirectionBins {
     pub fn new(centre: Vec3, min_separation_deg: f64) -> Self {
-        DirectionBins { centre, cell_rad: min_separation_deg.max(0.01).to_radians(), cells: Default::default() }
+        DirectionBins {
+            centre,
+            cell_rad: min_separation_deg.max(0.01).to_radians(),
+            cells: Default::default(),
+        }
     }
 
     fn key(&self, raw: &Vec3) -> Option<(i32, i32)> {
-        let d = [raw[0] - self.centre[0], raw[1] - self.centre[1], raw[2] - self.centre[2]];
+        let d = [
+            raw[0] - self.centre[0],
+            raw[1] - self.centre[1],
+            raw[2] - self.centre[2],
+        ];
         let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if !(n > 0.0) {
             return None;
         }
-        // Equal-area-ish grid: rows in z (= cos theta) of height cell, columns in phi scaled by the row's circle.
+        // Rows of constant polar angle one cell high, each ring cut into as many cells as fit its circumference.
         let z = (d[2] / n).clamp(-1.0, 1.0);
         let theta = z.acos();
         let row = (theta / self.cell_rad).floor() as i32;
-        let ring = (theta.sin() * std::f64::consts::TAU / self.cell_rad).ceil().max(1.0);
+        let ring = (theta.sin() * std::f64::consts::TAU / self.cell_rad)
+            .ceil()
+            .max(1.0);
         let phi = d[1].atan2(d[0]) + std::f64::consts::PI;
         let col = ((phi / std::f64::consts::TAU) * ring).floor() as i32;
         Some((row, col))
     }
 
-    pub fn add(&mut self, raw: &Vec3) {
-        self.add_weighted(raw, 1);
-    }
-
-    fn add_weighted(&mut self, raw: &Vec3, count: usize) {
-        if let Some(k) = self.key(raw) {
-            let e = self.cells.entry(k).or_insert(([0.0; 3], 0));
-            let n = e.1 + count;
-            for i in 0..3 {
-                e.0[i] += (raw[i] - e.0[i]) * count as f64 / n as f64;
-            }
-            e.1 = n;
+    /// Keep `raw` if its cell is still empty. Returns whether it was kept.
+    pub fn add(&mut self, raw: &Vec3) -> bool {
+        match self.key(raw) {
+            Some(k) => match self.cells.entry(k) {
+                std::collections::hash_map::Entry::Vacant(e) => {
+                    e.insert(*raw);
+                    true
+                }
+                std::collections::hash_map::Entry::Occupied(_) => false,
+            },
+            None => false,
         }
     }
 
-    /// Re-bin all cell means about a new centre (after a fit moved the hard-iron estimate).
+    /// Re-bin the kept vectors about a new centre (after a fit moved the hard-iron estimate).
     pub fn recentre(&mut self, centre: Vec3) {
-        let old = std::mem::take(&mut self.cells);
+        let mut old: Vec<Vec3> = std::mem::take(&mut self.cells).into_values().collect();
+        // Deterministic order whatever the hash map did.
+        old.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
         self.centre = centre;
-        for (_, (m, c)) in old {
-            self.add_weighted(&m, c);
+        for p in old {
+            self.add(&p);
         }
     }
 
-    /// Cell means (raw units).
+    /// Kept raw vectors, in a deterministic order.
     pub fn points(&self) -> Vec<Vec3> {
-        self.cells.values().map(|(m, _)| *m).collect()
+        let mut keys: Vec<&(i32, i32)> = self.cells.keys().collect();
+        keys.sort();
+        keys.into_iter().map(|k| self.cells[k]).collect()
     }
 
     pub fn len(&self) -> usize {
@@ -158,7 +181,10 @@ mod tests {
 
     #[test]
     fn coverage_counts_filled_regions() {
-        let c = coverage([[0.0, 0.0, 5.0], [0.0, 0.0, 6.0], [0.0, 0.0, -1.0]].iter(), &[0.0, 0.0, 1.0]);
+        let c = coverage(
+            [[0.0, 0.0, 5.0], [0.0, 0.0, 6.0], [0.0, 0.0, -1.0]].iter(),
+            &[0.0, 0.0, 1.0],
+        );
         assert_eq!(c.filled, 2);
         assert!((c.gaps_pct - 98.0).abs() < 1e-12);
     }

@@ -74,7 +74,9 @@ const V2_MAGIC: u8 = 0xFD;
 /// Parse one MAVLink v1 or v2 frame at the start of `buf`, checking the CRC with the dialect's extra
 /// CRC. Signed v2 frames are accepted (the signature is not checked).
 pub fn parse_frame(buf: &[u8]) -> FrameParse {
-    let Some(&magic) = buf.first() else { return FrameParse::Incomplete };
+    let Some(&magic) = buf.first() else {
+        return FrameParse::Incomplete;
+    };
     let (version, header_len, total) = match magic {
         V1_MAGIC => {
             if buf.len() < 2 {
@@ -103,7 +105,11 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
     let len = buf[1] as usize;
     let (sys, comp, msgid) = match version {
         MavlinkVersion::V1 => (buf[3], buf[4], buf[5] as u32),
-        MavlinkVersion::V2 => (buf[5], buf[6], u32::from_le_bytes([buf[7], buf[8], buf[9], 0])),
+        MavlinkVersion::V2 => (
+            buf[5],
+            buf[6],
+            u32::from_le_bytes([buf[7], buf[8], buf[9], 0]),
+        ),
     };
     let payload = &buf[header_len..header_len + len];
     let crc_got = u16::from_le_bytes([buf[header_len + len], buf[header_len + len + 1]]);
@@ -116,7 +122,15 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
         return FrameParse::Skip(1, "bad_crc");
     }
     match MavMessage::parse(version, msgid, payload) {
-        Ok(message) => FrameParse::Frame(Box::new(Frame { version, system_id: sys, component_id: comp, message }), total),
+        Ok(message) => FrameParse::Frame(
+            Box::new(Frame {
+                version,
+                system_id: sys,
+                component_id: comp,
+                message,
+            }),
+            total,
+        ),
         Err(_) => FrameParse::Skip(total, "bad_payload"),
     }
 }
@@ -190,7 +204,11 @@ pub struct RawImuScale {
 
 impl Default for RawImuScale {
     fn default() -> Self {
-        RawImuScale { accel: 0.0, gyro: 0.0, mag: 0.0 }
+        RawImuScale {
+            accel: 0.0,
+            gyro: 0.0,
+            mag: 0.0,
+        }
     }
 }
 
@@ -217,7 +235,14 @@ fn finite3(v: Vec3) -> Option<Vec3> {
 
 impl MessageConverter {
     pub fn new(choice: InstanceChoice, raw_scale: RawImuScale) -> Self {
-        MessageConverter { choice, raw_scale, locked: None, throttle: None, t0_us: None, stats: DecodeStats::default() }
+        MessageConverter {
+            choice,
+            raw_scale,
+            locked: None,
+            throttle: None,
+            t0_us: None,
+            stats: DecodeStats::default(),
+        }
     }
 
     /// The instance samples are taken from, once chosen.
@@ -227,9 +252,22 @@ impl MessageConverter {
 
     /// Units of the samples produced (RAW_IMU without a scale gives counts).
     pub fn units(&self) -> Units {
-        let raw = self.locked.as_deref().is_some_and(|s| s.starts_with("raw_imu"));
-        let u = |scale: f64| if raw && scale == 0.0 { Unit::Counts } else { Unit::Si };
-        Units { accel: u(self.raw_scale.accel), gyro: u(self.raw_scale.gyro), mag: u(self.raw_scale.mag) }
+        let raw = self
+            .locked
+            .as_deref()
+            .is_some_and(|s| s.starts_with("raw_imu"));
+        let u = |scale: f64| {
+            if raw && scale == 0.0 {
+                Unit::Counts
+            } else {
+                Unit::Si
+            }
+        };
+        Units {
+            accel: u(self.raw_scale.accel),
+            gyro: u(self.raw_scale.gyro),
+            mag: u(self.raw_scale.mag),
+        }
     }
 
     /// Convert one message; `time_us` is the receive time (tlog timestamp or clock) used when the
@@ -239,11 +277,19 @@ impl MessageConverter {
         let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
             MavMessage::VFR_HUD(d) => {
                 let th = d.throttle as f64 / 100.0;
-                self.throttle = if th.is_finite() { Some(th.clamp(0.0, 1.5)) } else { None };
+                self.throttle = if th.is_finite() {
+                    Some(th.clamp(0.0, 1.5))
+                } else {
+                    None
+                };
                 return None;
             }
             MavMessage::HIGHRES_IMU(d) => {
-                let m = [d.xmag as f64 * 100.0, d.ymag as f64 * 100.0, d.zmag as f64 * 100.0];
+                let m = [
+                    d.xmag as f64 * 100.0,
+                    d.ymag as f64 * 100.0,
+                    d.zmag as f64 * 100.0,
+                ];
                 let has = m.iter().any(|v| *v != 0.0);
                 (
                     format!("highres_imu:{}", d.id),
@@ -255,19 +301,56 @@ impl MessageConverter {
                     has,
                 )
             }
-            MavMessage::SCALED_IMU(d) => scaled("scaled_imu", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
-            MavMessage::SCALED_IMU2(d) => scaled("scaled_imu2", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
-            MavMessage::SCALED_IMU3(d) => scaled("scaled_imu3", d.time_boot_ms, [d.xacc, d.yacc, d.zacc], [d.xgyro, d.ygyro, d.zgyro], [d.xmag, d.ymag, d.zmag], d.temperature),
+            MavMessage::SCALED_IMU(d) => scaled(
+                "scaled_imu",
+                d.time_boot_ms,
+                [d.xacc, d.yacc, d.zacc],
+                [d.xgyro, d.ygyro, d.zgyro],
+                [d.xmag, d.ymag, d.zmag],
+                d.temperature,
+            ),
+            MavMessage::SCALED_IMU2(d) => scaled(
+                "scaled_imu2",
+                d.time_boot_ms,
+                [d.xacc, d.yacc, d.zacc],
+                [d.xgyro, d.ygyro, d.zgyro],
+                [d.xmag, d.ymag, d.zmag],
+                d.temperature,
+            ),
+            MavMessage::SCALED_IMU3(d) => scaled(
+                "scaled_imu3",
+                d.time_boot_ms,
+                [d.xacc, d.yacc, d.zacc],
+                [d.xgyro, d.ygyro, d.zgyro],
+                [d.xmag, d.ymag, d.zmag],
+                d.temperature,
+            ),
             MavMessage::RAW_IMU(d) => {
                 let sc = |v: i16, s: f64| if s == 0.0 { v as f64 } else { v as f64 * s };
-                let m = [sc(d.xmag, self.raw_scale.mag), sc(d.ymag, self.raw_scale.mag), sc(d.zmag, self.raw_scale.mag)];
+                let m = [
+                    sc(d.xmag, self.raw_scale.mag),
+                    sc(d.ymag, self.raw_scale.mag),
+                    sc(d.zmag, self.raw_scale.mag),
+                ];
                 (
                     format!("raw_imu:{}", d.id),
                     d.time_usec,
-                    [sc(d.xacc, self.raw_scale.accel), sc(d.yacc, self.raw_scale.accel), sc(d.zacc, self.raw_scale.accel)],
-                    [sc(d.xgyro, self.raw_scale.gyro), sc(d.ygyro, self.raw_scale.gyro), sc(d.zgyro, self.raw_scale.gyro)],
+                    [
+                        sc(d.xacc, self.raw_scale.accel),
+                        sc(d.yacc, self.raw_scale.accel),
+                        sc(d.zacc, self.raw_scale.accel),
+                    ],
+                    [
+                        sc(d.xgyro, self.raw_scale.gyro),
+                        sc(d.ygyro, self.raw_scale.gyro),
+                        sc(d.zgyro, self.raw_scale.gyro),
+                    ],
                     m,
-                    if d.temperature != 0 { Some(d.temperature as f64 / 100.0) } else { None },
+                    if d.temperature != 0 {
+                        Some(d.temperature as f64 / 100.0)
+                    } else {
+                        None
+                    },
                     m.iter().any(|v| *v != 0.0),
                 )
             }
@@ -292,7 +375,11 @@ impl MessageConverter {
         let t = if t_us > 0 { t_us } else { time_us };
         let t0 = *self.t0_us.get_or_insert(t);
         let t_s = (t as f64 - t0 as f64) * 1e-6;
-        let mut s = Sample { t_s, throttle: self.throttle, ..Default::default() };
+        let mut s = Sample {
+            t_s,
+            throttle: self.throttle,
+            ..Default::default()
+        };
         let mut bad = false;
         let mut take = |v: Vec3| {
             let r = finite3(v);
@@ -312,7 +399,14 @@ impl MessageConverter {
     }
 }
 
-fn scaled(name: &str, t_ms: u32, a: [i16; 3], g: [i16; 3], m: [i16; 3], temp: i16) -> (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
+fn scaled(
+    name: &str,
+    t_ms: u32,
+    a: [i16; 3],
+    g: [i16; 3],
+    m: [i16; 3],
+    temp: i16,
+) -> (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
     let f = |v: [i16; 3], k: f64| [v[0] as f64 * k, v[1] as f64 * k, v[2] as f64 * k];
     (
         name.to_string(),
@@ -320,7 +414,11 @@ fn scaled(name: &str, t_ms: u32, a: [i16; 3], g: [i16; 3], m: [i16; 3], temp: i1
         f(a, MG_TO_MPS2),
         f(g, 1e-3),
         f(m, 0.1),
-        if temp != 0 { Some(temp as f64 / 100.0) } else { None },
+        if temp != 0 {
+            Some(temp as f64 / 100.0)
+        } else {
+            None
+        },
         m.iter().any(|v| *v != 0),
     )
 }
@@ -415,7 +513,10 @@ pub struct CsvMapping {
     pub scales: BTreeMap<String, f64>,
 }
 
-const FIELDS: [&str; 18] = ["t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current", "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving"];
+const FIELDS: [&str; 18] = [
+    "t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current",
+    "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving",
+];
 
 /// Decompress if gzip, else borrow.
 pub fn maybe_gunzip(bytes: &[u8]) -> std::io::Result<std::borrow::Cow<'_, [u8]>> {
@@ -437,7 +538,11 @@ pub fn maybe_gunzip(bytes: &[u8]) -> std::io::Result<std::borrow::Cow<'_, [u8]>>
 
 /// Decode CSV text (header row first). Columns may come in any order and subset; empty cells mean
 /// "no reading". Rows with the wrong number of cells or unparsable numbers are counted and skipped.
-pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> Result<Vec<Sample>, String> {
+pub fn decode_csv(
+    text: &str,
+    mapping: &CsvMapping,
+    stats: &mut DecodeStats,
+) -> Result<Vec<Sample>, String> {
     let mut lines = text.lines();
     let header = loop {
         match lines.next() {
@@ -446,7 +551,10 @@ pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> 
             None => return Err("empty file: no header row".into()),
         }
     };
-    let cols: Vec<String> = header.split(',').map(|c| c.trim().trim_matches('"').to_string()).collect();
+    let cols: Vec<String> = header
+        .split(',')
+        .map(|c| c.trim().trim_matches('"').to_string())
+        .collect();
     // field index -> column index
     let mut idx = [usize::MAX; FIELDS.len()];
     for (fi, f) in FIELDS.iter().enumerate() {
@@ -457,10 +565,16 @@ pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> 
     }
     for (f, c) in &mapping.columns {
         if !FIELDS.contains(&f.as_str()) {
-            return Err(format!("column mapping names unknown field `{f}` (known: {})", FIELDS.join(", ")));
+            return Err(format!(
+                "column mapping names unknown field `{f}` (known: {})",
+                FIELDS.join(", ")
+            ));
         }
         if !cols.iter().any(|h| h == c) {
-            return Err(format!("column `{c}` (mapped to `{f}`) is not in the header: {}", cols.join(",")));
+            return Err(format!(
+                "column `{c}` (mapped to `{f}`) is not in the header: {}",
+                cols.join(",")
+            ));
         }
     }
     let has = |f: &str| idx[FIELDS.iter().position(|x| *x == f).expect("field")] != usize::MAX;
@@ -469,7 +583,10 @@ pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> 
             "no sensor columns found in header `{header}`: expected ax/ay/az, gx/gy/gz or mx/my/mz, or a [input.csv] columns mapping"
         ));
     }
-    let scale: Vec<f64> = FIELDS.iter().map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0)).collect();
+    let scale: Vec<f64> = FIELDS
+        .iter()
+        .map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0))
+        .collect();
     let mut out = Vec::new();
     let mut row_no = 0u64;
     let mut cells: Vec<&str> = Vec::with_capacity(cols.len());
@@ -531,7 +648,11 @@ pub fn decode_csv(text: &str, mapping: &CsvMapping, stats: &mut DecodeStats) -> 
             throttle: vals[11].filter(|v| v.is_finite()),
             current_a: vals[12].filter(|v| v.is_finite()),
             ref_q: match (vals[13], vals[14], vals[15], vals[16]) {
-                (Some(w), Some(x), Some(y), Some(z)) if [w, x, y, z].iter().all(|q| q.is_finite()) => Some([w, x, y, z]),
+                (Some(w), Some(x), Some(y), Some(z))
+                    if [w, x, y, z].iter().all(|q| q.is_finite()) =>
+                {
+                    Some([w, x, y, z])
+                }
                 _ => None,
             },
             moving: vals[17].map(|v| v > 0.5),
@@ -582,8 +703,14 @@ pub fn detect_format(bytes: &[u8]) -> Option<Format> {
     }
     let head = &bytes[..bytes.len().min(4096)];
     let text = String::from_utf8_lossy(head);
-    let first = text.lines().find(|l| !l.trim().is_empty() && !l.starts_with('#'))?;
-    if first.contains(',') && first.chars().all(|c| !c.is_control() || c == '\t' || c == '\r') {
+    let first = text
+        .lines()
+        .find(|l| !l.trim().is_empty() && !l.starts_with('#'))?;
+    if first.contains(',')
+        && first
+            .chars()
+            .all(|c| !c.is_control() || c == '\t' || c == '\r')
+    {
         return Some(Format::Csv);
     }
     None
@@ -595,7 +722,11 @@ mod tests {
 
     fn frame_bytes(msg: &MavMessage, v: MavlinkVersion) -> Vec<u8> {
         let mut out = Vec::new();
-        let h = mavlink::MavHeader { system_id: 1, component_id: 1, sequence: 0 };
+        let h = mavlink::MavHeader {
+            system_id: 1,
+            component_id: 1,
+            sequence: 0,
+        };
         mavlink::write_versioned_msg(&mut out, v, h, msg).unwrap();
         out
     }
@@ -628,7 +759,10 @@ mod tests {
             let k = bad.len() - 4;
             bad[k] ^= 0x55;
             assert!(matches!(parse_frame(&bad), FrameParse::Skip(_, "bad_crc")));
-            assert!(matches!(parse_frame(&b[..b.len() - 1]), FrameParse::Incomplete));
+            assert!(matches!(
+                parse_frame(&b[..b.len() - 1]),
+                FrameParse::Incomplete
+            ));
         }
     }
 
@@ -667,7 +801,8 @@ mod tests {
 
     #[test]
     fn csv_any_order_subset_and_empty_cells() {
-        let text = "mz,t,mx,my,ax,ay,az\n3,0.0,1,2,,,\n6,0.1,4,5,0,0,-9.8\nbad,row\n9,0.2,7,8,0,NaN,1\n";
+        let text =
+            "mz,t,mx,my,ax,ay,az\n3,0.0,1,2,,,\n6,0.1,4,5,0,0,-9.8\nbad,row\n9,0.2,7,8,0,NaN,1\n";
         let mut st = DecodeStats::default();
         let s = decode_csv(text, &CsvMapping::default(), &mut st).unwrap();
         assert_eq!(s.len(), 3);
@@ -683,7 +818,12 @@ mod tests {
     fn csv_user_mapping_with_scales() {
         let text = "time_ms,AccX,AccY,AccZ\n10,0,0,-1\n";
         let mut m = CsvMapping::default();
-        for (f, c) in [("t", "time_ms"), ("ax", "AccX"), ("ay", "AccY"), ("az", "AccZ")] {
+        for (f, c) in [
+            ("t", "time_ms"),
+            ("ax", "AccX"),
+            ("ay", "AccY"),
+            ("az", "AccZ"),
+        ] {
             m.columns.insert(f.into(), c.into());
         }
         m.scales.insert("t".into(), 0.001);

@@ -20,14 +20,21 @@ pub type Param = (String, f64);
 fn representability(cal: &Calibration, allow_offdiag: bool) -> Vec<String> {
     let m = cal.matrix;
     let mut w = vec![];
-    let asym = (m[0][1] - m[1][0]).abs().max((m[0][2] - m[2][0]).abs()).max((m[1][2] - m[2][1]).abs());
+    let asym = (m[0][1] - m[1][0])
+        .abs()
+        .max((m[0][2] - m[2][0]).abs())
+        .max((m[1][2] - m[2][1]).abs());
     if asym > 1e-6 {
-        w.push(format!("matrix is not symmetric (max asymmetry {asym:.2e}); its symmetric part is exported"));
+        w.push(format!(
+            "matrix is not symmetric (max asymmetry {asym:.2e}); its symmetric part is exported"
+        ));
     }
     if !allow_offdiag {
         let off = m[0][1].abs().max(m[0][2].abs()).max(m[1][2].abs());
         if off > 1e-3 {
-            w.push(format!("off-diagonal terms up to {off:.4} cannot be stored by this target and are dropped"));
+            w.push(format!(
+                "off-diagonal terms up to {off:.4} cannot be stored by this target and are dropped"
+            ));
         }
     }
     w
@@ -109,8 +116,12 @@ pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
 
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
 pub fn ardupilot_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
-    let mut out = String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
-    for (params, warns) in [mag.map(|c| ardupilot_mag(c, 0)), accel.map(ardupilot_accel)].into_iter().flatten() {
+    let mut out =
+        String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
+    for (params, warns) in [mag.map(|c| ardupilot_mag(c, 0)), accel.map(ardupilot_accel)]
+        .into_iter()
+        .flatten()
+    {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
@@ -124,7 +135,10 @@ pub fn ardupilot_file(mag: Option<&Calibration>, accel: Option<&Calibration>) ->
 /// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
 pub fn px4_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
     let mut out = String::from("# imucald calibration for PX4 (QGroundControl parameter file)\n# Vehicle-Id\tComponent-Id\tName\tValue\tType\n");
-    for (params, warns) in [mag.map(px4_mag), accel.map(px4_accel)].into_iter().flatten() {
+    for (params, warns) in [mag.map(px4_mag), accel.map(px4_accel)]
+        .into_iter()
+        .flatten()
+    {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
@@ -150,9 +164,15 @@ pub fn fusion_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> St
         out += &format!("const FusionVector hardIronOffset = {};\n", vec(c.offset));
     }
     if let Some(c) = accel {
-        out += &format!("const FusionMatrix accelerometerMisalignment = {};\n", mat(&c.matrix));
+        out += &format!(
+            "const FusionMatrix accelerometerMisalignment = {};\n",
+            mat(&c.matrix)
+        );
         out += "const FusionVector accelerometerSensitivity = {1.0f, 1.0f, 1.0f};\n";
-        out += &format!("const FusionVector accelerometerOffset = {};\n", vec(c.offset.map(|o| o / STANDARD_GRAVITY_MPS2)));
+        out += &format!(
+            "const FusionVector accelerometerOffset = {};\n",
+            vec(c.offset.map(|o| o / STANDARD_GRAVITY_MPS2))
+        );
     }
     out
 }
@@ -163,11 +183,18 @@ mod tests {
     use crate::model::ModelKind;
 
     fn cal() -> Calibration {
-        Calibration { model: ModelKind::Sym9, offset: [12.0, -30.0, 45.0], matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]] }
+        Calibration {
+            model: ModelKind::Sym9,
+            offset: [12.0, -30.0, 45.0],
+            matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]],
+        }
     }
 
     fn get(p: &[Param], n: &str) -> f64 {
-        p.iter().find(|(k, _)| k == n).unwrap_or_else(|| panic!("{n} missing")).1
+        p.iter()
+            .find(|(k, _)| k == n)
+            .unwrap_or_else(|| panic!("{n} missing"))
+            .1
     }
 
     #[test]
@@ -182,17 +209,36 @@ mod tests {
             m[k] += get(&p, &format!("COMPASS_OFS_{a}"));
         }
         let s = [
-            [get(&p, "COMPASS_DIA_X"), get(&p, "COMPASS_ODI_X"), get(&p, "COMPASS_ODI_Y")],
-            [get(&p, "COMPASS_ODI_X"), get(&p, "COMPASS_DIA_Y"), get(&p, "COMPASS_ODI_Z")],
-            [get(&p, "COMPASS_ODI_Y"), get(&p, "COMPASS_ODI_Z"), get(&p, "COMPASS_DIA_Z")],
+            [
+                get(&p, "COMPASS_DIA_X"),
+                get(&p, "COMPASS_ODI_X"),
+                get(&p, "COMPASS_ODI_Y"),
+            ],
+            [
+                get(&p, "COMPASS_ODI_X"),
+                get(&p, "COMPASS_DIA_Y"),
+                get(&p, "COMPASS_ODI_Z"),
+            ],
+            [
+                get(&p, "COMPASS_ODI_Y"),
+                get(&p, "COMPASS_ODI_Z"),
+                get(&p, "COMPASS_DIA_Z"),
+            ],
         ];
         let ours = c.apply(&raw_ut);
         for i in 0..3 {
             let ap = s[i][0] * m[0] + s[i][1] * m[1] + s[i][2] * m[2];
-            assert!((ap - ours[i] * 10.0).abs() < 1e-9, "axis {i}: {ap} vs {}", ours[i] * 10.0);
+            assert!(
+                (ap - ours[i] * 10.0).abs() < 1e-9,
+                "axis {i}: {ap} vs {}",
+                ours[i] * 10.0
+            );
         }
         let (p2, _) = ardupilot_mag(&c, 1);
-        assert!(p2.iter().any(|(n, _)| n == "COMPASS_OFS2_X") && p2.iter().any(|(n, _)| n == "COMPASS_DIA2_Z"));
+        assert!(
+            p2.iter().any(|(n, _)| n == "COMPASS_OFS2_X")
+                && p2.iter().any(|(n, _)| n == "COMPASS_DIA2_Z")
+        );
     }
 
     #[test]
@@ -200,12 +246,28 @@ mod tests {
         let c = cal();
         let (p, _) = px4_mag(&c);
         let raw_g = [0.40, 0.05, -0.20];
-        let off = [get(&p, "CAL_MAG0_XOFF"), get(&p, "CAL_MAG0_YOFF"), get(&p, "CAL_MAG0_ZOFF")];
+        let off = [
+            get(&p, "CAL_MAG0_XOFF"),
+            get(&p, "CAL_MAG0_YOFF"),
+            get(&p, "CAL_MAG0_ZOFF"),
+        ];
         let d = [raw_g[0] - off[0], raw_g[1] - off[1], raw_g[2] - off[2]];
         let s = [
-            [get(&p, "CAL_MAG0_XSCALE"), get(&p, "CAL_MAG0_XODIAG"), get(&p, "CAL_MAG0_YODIAG")],
-            [get(&p, "CAL_MAG0_XODIAG"), get(&p, "CAL_MAG0_YSCALE"), get(&p, "CAL_MAG0_ZODIAG")],
-            [get(&p, "CAL_MAG0_YODIAG"), get(&p, "CAL_MAG0_ZODIAG"), get(&p, "CAL_MAG0_ZSCALE")],
+            [
+                get(&p, "CAL_MAG0_XSCALE"),
+                get(&p, "CAL_MAG0_XODIAG"),
+                get(&p, "CAL_MAG0_YODIAG"),
+            ],
+            [
+                get(&p, "CAL_MAG0_XODIAG"),
+                get(&p, "CAL_MAG0_YSCALE"),
+                get(&p, "CAL_MAG0_ZODIAG"),
+            ],
+            [
+                get(&p, "CAL_MAG0_YODIAG"),
+                get(&p, "CAL_MAG0_ZODIAG"),
+                get(&p, "CAL_MAG0_ZSCALE"),
+            ],
         ];
         let ours = c.apply(&raw_g.map(|v| v * 100.0));
         for i in 0..3 {
@@ -216,14 +278,36 @@ mod tests {
 
     #[test]
     fn accel_exports_subtract_offsets_then_scale_and_warn_on_cross_axis() {
-        let c = Calibration { model: ModelKind::Diag6, offset: [0.1, -0.2, 0.3], matrix: [[1.01, 0.0, 0.0], [0.0, 0.99, 0.0], [0.0, 0.0, 1.02]] };
+        let c = Calibration {
+            model: ModelKind::Diag6,
+            offset: [0.1, -0.2, 0.3],
+            matrix: [[1.01, 0.0, 0.0], [0.0, 0.99, 0.0], [0.0, 0.0, 1.02]],
+        };
         let raw = [0.5, -9.0, 1.0];
         let ours = c.apply(&raw);
         for (params, _) in [ardupilot_accel(&c), px4_accel(&c)] {
             let (o, s): (Vec<f64>, Vec<f64>) = if params[0].0.starts_with("INS") {
-                (["X", "Y", "Z"].iter().map(|a| get(&params, &format!("INS_ACCOFFS_{a}"))).collect(), ["X", "Y", "Z"].iter().map(|a| get(&params, &format!("INS_ACCSCAL_{a}"))).collect())
+                (
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("INS_ACCOFFS_{a}")))
+                        .collect(),
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("INS_ACCSCAL_{a}")))
+                        .collect(),
+                )
             } else {
-                (["X", "Y", "Z"].iter().map(|a| get(&params, &format!("CAL_ACC0_{a}OFF"))).collect(), ["X", "Y", "Z"].iter().map(|a| get(&params, &format!("CAL_ACC0_{a}SCALE"))).collect())
+                (
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("CAL_ACC0_{a}OFF")))
+                        .collect(),
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("CAL_ACC0_{a}SCALE")))
+                        .collect(),
+                )
             };
             for i in 0..3 {
                 assert!(((raw[i] - o[i]) * s[i] - ours[i]).abs() < 1e-12);
@@ -235,7 +319,10 @@ mod tests {
     #[test]
     fn fusion_snippet_is_row_major_with_offset_subtracted() {
         let t = fusion_file(Some(&cal()), None);
-        assert!(t.contains("softIronMatrix = {1.050000000f, 0.020000000f, -0.010000000f, 0.020000000f"), "{t}");
+        assert!(
+            t.contains("softIronMatrix = {1.050000000f, 0.020000000f, -0.010000000f, 0.020000000f"),
+            "{t}"
+        );
         assert!(t.contains("hardIronOffset = {12.000000000f, -30.000000000f, 45.000000000f}"));
     }
 }

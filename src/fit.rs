@@ -5,7 +5,10 @@
 //! The scalar (norm) residual of seeds 000 and 002: for each point `r_i = |A (x_i - p)| - 1` on data
 //! normalised by the starting centre and radius, so the same tolerances hold for counts, uT or m/s^2.
 
-use crate::model::{a_from_params, mat_to_rows, n_norm_params, norm_residual_grad, params_from_a, Calibration, ModelKind};
+use crate::model::{
+    a_from_params, mat_to_rows, n_norm_params, norm_residual_grad, params_from_a, Calibration,
+    ModelKind,
+};
 use crate::types::Vec3;
 use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
@@ -138,7 +141,13 @@ pub fn levenberg_marquardt<const N: usize>(
             }
         }
     }
-    LmOutcome { params: x, ssr, iterations: it, jtj, converged }
+    LmOutcome {
+        params: x,
+        ssr,
+        iterations: it,
+        jtj,
+        converged,
+    }
 }
 
 /// A starting point: centre `p` and symmetric positive-definite shape `A` with |A (x - p)| ~ 1.
@@ -168,7 +177,10 @@ pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
     if !(r2 > 0.0) || !r2.is_finite() {
         return None;
     }
-    Some(Start { centre: c, shape: Matrix3::identity() / r2.sqrt() })
+    Some(Start {
+        centre: c,
+        shape: Matrix3::identity() / r2.sqrt(),
+    })
 }
 
 /// Algebraic ellipsoid fit: the general quadric x^T Q x + 2 g.x = 1, solved linearly; returns `None`
@@ -182,7 +194,17 @@ pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
     let mut atb = DVector::<f64>::zeros(9);
     for p in points {
         let (x, y, z) = (p[0], p[1], p[2]);
-        let row = DVector::from_column_slice(&[x * x, y * y, z * z, 2.0 * x * y, 2.0 * x * z, 2.0 * y * z, 2.0 * x, 2.0 * y, 2.0 * z]);
+        let row = DVector::from_column_slice(&[
+            x * x,
+            y * y,
+            z * z,
+            2.0 * x * y,
+            2.0 * x * z,
+            2.0 * y * z,
+            2.0 * x,
+            2.0 * y,
+            2.0 * z,
+        ]);
         ata += &row * row.transpose();
         atb += row;
     }
@@ -199,11 +221,20 @@ pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
     // k < 0 when the origin lies outside the ellipsoid (Q then came out negative definite).
     let qn = q / k;
     let eig = qn.symmetric_eigen();
-    if eig.eigenvalues.iter().any(|&l| !(l > 0.0) || !l.is_finite()) {
+    if eig
+        .eigenvalues
+        .iter()
+        .any(|&l| !(l > 0.0) || !l.is_finite())
+    {
         return None;
     }
-    let sq = eig.eigenvectors * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.sqrt())) * eig.eigenvectors.transpose();
-    Some(Start { centre: c, shape: sq })
+    let sq = eig.eigenvectors
+        * Matrix3::from_diagonal(&eig.eigenvalues.map(|l| l.sqrt()))
+        * eig.eigenvectors.transpose();
+    Some(Start {
+        centre: c,
+        shape: sq,
+    })
 }
 
 /// Options for a norm fit.
@@ -217,7 +248,10 @@ pub struct NormFitOptions {
 
 impl Default for NormFitOptions {
     fn default() -> Self {
-        NormFitOptions { target_norm: None, max_iterations: 200 }
+        NormFitOptions {
+            target_norm: None,
+            max_iterations: 200,
+        }
     }
 }
 
@@ -243,17 +277,38 @@ pub struct NormFit {
     pub condition: f64,
 }
 
-fn solve_norm<const N: usize>(kind: ModelKind, xs: &[Vec3], x0: &[f64], max_iter: usize) -> (Vec<f64>, f64, usize, bool, DMatrix<f64>) {
+fn solve_norm<const N: usize>(
+    kind: ModelKind,
+    xs: &[Vec3],
+    x0: &[f64],
+    max_iter: usize,
+) -> (Vec<f64>, f64, usize, bool, DMatrix<f64>) {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
-    let out = levenberg_marquardt::<N>(x0v, xs.len(), max_iter, |p, i, g| norm_residual_grad(kind, p.as_slice(), &xs[i], g.as_mut_slice()));
+    let out = levenberg_marquardt::<N>(x0v, xs.len(), max_iter, |p, i, g| {
+        norm_residual_grad(kind, p.as_slice(), &xs[i], g.as_mut_slice())
+    });
     let jtj = DMatrix::from_column_slice(N, N, out.jtj.as_slice());
-    (out.params.as_slice().to_vec(), out.ssr, out.iterations, out.converged, jtj)
+    (
+        out.params.as_slice().to_vec(),
+        out.ssr,
+        out.iterations,
+        out.converged,
+        jtj,
+    )
 }
 
 /// Fit a norm-only model (`sphere`, `diag6`, `sym9`, `full12` upper-triangular) to points in raw units.
-pub fn fit_norm(points: &[Vec3], kind: ModelKind, opts: &NormFitOptions) -> Result<NormFit, FitFailure> {
+pub fn fit_norm(
+    points: &[Vec3],
+    kind: ModelKind,
+    opts: &NormFitOptions,
+) -> Result<NormFit, FitFailure> {
     let np = n_norm_params(kind);
-    let pts: Vec<Vec3> = points.iter().copied().filter(|p| p.iter().all(|v| v.is_finite())).collect();
+    let pts: Vec<Vec3> = points
+        .iter()
+        .copied()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .collect();
     if pts.len() < np + 3 {
         return Err(FitFailure::NotEnoughSamples);
     }
@@ -261,17 +316,34 @@ pub fn fit_norm(points: &[Vec3], kind: ModelKind, opts: &NormFitOptions) -> Resu
     let sph = sphere_start(&pts).ok_or(FitFailure::NotIdentifiable)?;
     let c0 = sph.centre;
     let s0 = 1.0 / sph.shape[(0, 0)];
-    let xs: Vec<Vec3> = pts.iter().map(|p| [(p[0] - c0[0]) / s0, (p[1] - c0[1]) / s0, (p[2] - c0[2]) / s0]).collect();
+    let xs: Vec<Vec3> = pts
+        .iter()
+        .map(|p| {
+            [
+                (p[0] - c0[0]) / s0,
+                (p[1] - c0[1]) / s0,
+                (p[2] - c0[2]) / s0,
+            ]
+        })
+        .collect();
     let start = match kind {
-        ModelKind::Sphere => Start { centre: Vector3::zeros(), shape: Matrix3::identity() },
+        ModelKind::Sphere => Start {
+            centre: Vector3::zeros(),
+            shape: Matrix3::identity(),
+        },
         _ => ellipsoid_start(&xs)
             .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
-            .unwrap_or(Start { centre: Vector3::zeros(), shape: Matrix3::identity() }),
+            .unwrap_or(Start {
+                centre: Vector3::zeros(),
+                shape: Matrix3::identity(),
+            }),
     };
     let shape0 = if kind == ModelKind::Full12 {
         // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
         let s2 = start.shape.transpose() * start.shape;
-        s2.cholesky().map(|c| c.l().transpose()).unwrap_or(Matrix3::identity())
+        s2.cholesky()
+            .map(|c| c.l().transpose())
+            .unwrap_or(Matrix3::identity())
     } else {
         start.shape
     };
@@ -309,18 +381,32 @@ pub fn fit_norm(points: &[Vec3], kind: ModelKind, opts: &NormFitOptions) -> Resu
         lmin = lmin.min(l);
         lmax = lmax.max(l);
     }
-    let condition = if lmin > 0.0 { lmax / lmin } else { f64::INFINITY };
+    let condition = if lmin > 0.0 {
+        lmax / lmin
+    } else {
+        f64::INFINITY
+    };
     let cov = jtj.try_inverse().map(|inv| inv * s2);
     let (offset_sigma, matrix_sigma_max) = match &cov {
         Some(c) => {
-            let os = [s0 * c[(0, 0)].max(0.0).sqrt(), s0 * c[(1, 1)].max(0.0).sqrt(), s0 * c[(2, 2)].max(0.0).sqrt()];
-            let ms = (3..np).map(|k| c[(k, k)].max(0.0).sqrt()).fold(0.0, f64::max);
+            let os = [
+                s0 * c[(0, 0)].max(0.0).sqrt(),
+                s0 * c[(1, 1)].max(0.0).sqrt(),
+                s0 * c[(2, 2)].max(0.0).sqrt(),
+            ];
+            let ms = (3..np)
+                .map(|k| c[(k, k)].max(0.0).sqrt())
+                .fold(0.0, f64::max);
             (os, ms)
         }
         None => ([f64::INFINITY; 3], f64::INFINITY),
     };
     Ok(NormFit {
-        calibration: Calibration { model: kind, offset, matrix: mat_to_rows(&m) },
+        calibration: Calibration {
+            model: kind,
+            offset,
+            matrix: mat_to_rows(&m),
+        },
         radius,
         raw_radius,
         rms_residual: (ssr / n as f64).sqrt() * radius,
@@ -345,7 +431,13 @@ pub fn chi2_quantile_999(df: usize) -> f64 {
 
 /// Is the more complex nested fit a significant improvement? F-test in its chi-square form, plus a
 /// floor on the relative improvement so that numerically tiny gains on huge samples do not count.
-pub fn significantly_better(simple_ssr: f64, complex_ssr: f64, extra_params: usize, n: usize, complex_params: usize) -> bool {
+pub fn significantly_better(
+    simple_ssr: f64,
+    complex_ssr: f64,
+    extra_params: usize,
+    n: usize,
+    complex_params: usize,
+) -> bool {
     if complex_ssr >= simple_ssr || n <= complex_params {
         return false;
     }
@@ -415,20 +507,33 @@ pub fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<C
         b[j] = s[3];
     }
     let m = k.try_inverse()?;
-    Some(Calibration { model: ModelKind::Full12, offset: [b[0], b[1], b[2]], matrix: mat_to_rows(&m) })
+    Some(Calibration {
+        model: ModelKind::Full12,
+        offset: [b[0], b[1], b[2]],
+        matrix: mat_to_rows(&m),
+    })
 }
 
 /// Rotation between the magnetometer and accelerometer frames from the gravity-field angle: at each
 /// static pose the angle between calibrated gravity direction `g_i` (unit, down) and calibrated field
 /// `m_i` (unit) is the same (the dip). Finds the rotation `R` (applied to the field) and the dip that
 /// make `g_i . (R m_i) = sin(dip)` hold best. Returns (R, dip_rad, rms, condition).
-pub fn fit_dip_rotation(gravity_dirs: &[Vec3], field_dirs: &[Vec3]) -> Option<(Matrix3<f64>, f64, f64, f64)> {
+pub fn fit_dip_rotation(
+    gravity_dirs: &[Vec3],
+    field_dirs: &[Vec3],
+) -> Option<(Matrix3<f64>, f64, f64, f64)> {
     let n = gravity_dirs.len().min(field_dirs.len());
     if n < 6 {
         return None;
     }
-    let g: Vec<Vector3<f64>> = gravity_dirs[..n].iter().map(|v| Vector3::new(v[0], v[1], v[2]).normalize()).collect();
-    let m: Vec<Vector3<f64>> = field_dirs[..n].iter().map(|v| Vector3::new(v[0], v[1], v[2]).normalize()).collect();
+    let g: Vec<Vector3<f64>> = gravity_dirs[..n]
+        .iter()
+        .map(|v| Vector3::new(v[0], v[1], v[2]).normalize())
+        .collect();
+    let m: Vec<Vector3<f64>> = field_dirs[..n]
+        .iter()
+        .map(|v| Vector3::new(v[0], v[1], v[2]).normalize())
+        .collect();
     let mean_dot = g.iter().zip(&m).map(|(a, b)| a.dot(b)).sum::<f64>() / n as f64;
     let x0 = SVector::<f64, 4>::new(0.0, 0.0, 0.0, mean_dot);
     let out = levenberg_marquardt::<4>(x0, n, 100, |p, i, grad| {
@@ -445,10 +550,23 @@ pub fn fit_dip_rotation(gravity_dirs: &[Vec3], field_dirs: &[Vec3]) -> Option<(M
     });
     let w = Vector3::new(out.params[0], out.params[1], out.params[2]);
     let eig = out.jtj.symmetric_eigen();
-    let lmin = eig.eigenvalues.iter().cloned().fold(f64::INFINITY, f64::min);
+    let lmin = eig
+        .eigenvalues
+        .iter()
+        .cloned()
+        .fold(f64::INFINITY, f64::min);
     let lmax = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
-    let cond = if lmin > 0.0 { lmax / lmin } else { f64::INFINITY };
-    Some((crate::model::rotation_from_vector(&w), out.params[3].clamp(-1.0, 1.0).asin(), (out.ssr / n as f64).sqrt(), cond))
+    let cond = if lmin > 0.0 {
+        lmax / lmin
+    } else {
+        f64::INFINITY
+    };
+    Some((
+        crate::model::rotation_from_vector(&w),
+        out.params[3].clamp(-1.0, 1.0).asin(),
+        (out.ssr / n as f64).sqrt(),
+        cond,
+    ))
 }
 
 #[cfg(test)]
@@ -460,7 +578,11 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         (0..n)
             .map(|_| loop {
-                let v = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+                let v = Vector3::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                );
                 let l = v.norm();
                 if l > 0.1 && l < 1.0 {
                     break v / l;
@@ -475,13 +597,20 @@ mod tests {
         let o = Vector3::new(12.0, -30.0, 45.0);
         let radius = 48.0;
         let minv = m_true.try_inverse().unwrap();
-        let raw: Vec<Vec3> = sphere_points(400, 1).iter().map(|u| {
-            let r = minv * (u * radius) + o;
-            [r[0], r[1], r[2]]
-        }).collect();
+        let raw: Vec<Vec3> = sphere_points(400, 1)
+            .iter()
+            .map(|u| {
+                let r = minv * (u * radius) + o;
+                [r[0], r[1], r[2]]
+            })
+            .collect();
         let fit = fit_norm(&raw, ModelKind::Sym9, &NormFitOptions::default()).unwrap();
         for k in 0..3 {
-            assert!((fit.calibration.offset[k] - o[k]).abs() < 1e-6, "offset {:?}", fit.calibration.offset);
+            assert!(
+                (fit.calibration.offset[k] - o[k]).abs() < 1e-6,
+                "offset {:?}",
+                fit.calibration.offset
+            );
         }
         let mn = fit.calibration.normalised_matrix();
         let tn = m_true / m_true.determinant().cbrt();
@@ -491,7 +620,10 @@ mod tests {
 
     #[test]
     fn ellipsoid_start_matches_truth() {
-        let pts: Vec<Vec3> = sphere_points(200, 2).iter().map(|u| [u[0] * 2.0 + 1.0, u[1] * 1.0 - 1.0, u[2] * 0.5]).collect();
+        let pts: Vec<Vec3> = sphere_points(200, 2)
+            .iter()
+            .map(|u| [u[0] * 2.0 + 1.0, u[1] * 1.0 - 1.0, u[2] * 0.5])
+            .collect();
         let s = ellipsoid_start(&pts).unwrap();
         assert!((s.centre - Vector3::new(1.0, -1.0, 0.0)).norm() < 1e-9);
         assert!((s.shape[(0, 0)] - 0.5).abs() < 1e-9 && (s.shape[(2, 2)] - 2.0).abs() < 1e-9);

@@ -19,7 +19,13 @@ pub struct ScalarKalman {
 impl ScalarKalman {
     /// Seed 000's values: Q = 1e-4, R = 1, P0 = 1; the state starts at the first measurement.
     pub fn new(q: f64, r: f64) -> Self {
-        ScalarKalman { x: 0.0, p: 1.0, q, r, started: false }
+        ScalarKalman {
+            x: 0.0,
+            p: 1.0,
+            q,
+            r,
+            started: false,
+        }
     }
     pub fn update(&mut self, z: f64) -> f64 {
         if !self.started {
@@ -44,7 +50,11 @@ impl Prefilter3 {
         Prefilter3([ScalarKalman::new(q, r); 3])
     }
     pub fn update(&mut self, v: &Vec3) -> Vec3 {
-        [self.0[0].update(v[0]), self.0[1].update(v[1]), self.0[2].update(v[2])]
+        [
+            self.0[0].update(v[0]),
+            self.0[1].update(v[1]),
+            self.0[2].update(v[2]),
+        ]
     }
 }
 
@@ -64,7 +74,12 @@ pub struct GateConfig {
 
 impl Default for GateConfig {
     fn default() -> Self {
-        GateConfig { window_s: 1.0, threshold: None, threshold_factor: 8.0, min_pose_s: 1.0 }
+        GateConfig {
+            window_s: 1.0,
+            threshold: None,
+            threshold_factor: 8.0,
+            min_pose_s: 1.0,
+        }
     }
 }
 
@@ -139,7 +154,9 @@ impl Acc {
             [v[0] / c, v[1] / c, v[2] / c]
         };
         let a = mean(&self.a, self.n);
-        let var: f64 = (0..3).map(|k| (self.a2[k] / n - a[k] * a[k]).max(0.0)).sum();
+        let var: f64 = (0..3)
+            .map(|k| (self.a2[k] / n - a[k] * a[k]).max(0.0))
+            .sum();
         Pose {
             t_start: self.t_start,
             t_end: self.t_end,
@@ -167,11 +184,16 @@ const HIST_BINS: usize = 500;
 
 impl LogHistogram {
     fn new() -> Self {
-        LogHistogram { bins: vec![0; HIST_BINS], total: 0 }
+        LogHistogram {
+            bins: vec![0; HIST_BINS],
+            total: 0,
+        }
     }
     fn add(&mut self, v: f64) {
         let l = if v > 0.0 { v.log10() } else { HIST_MIN_LOG10 };
-        let i = ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE).floor().clamp(0.0, (HIST_BINS - 1) as f64) as usize;
+        let i = ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
+            .floor()
+            .clamp(0.0, (HIST_BINS - 1) as f64) as usize;
         self.bins[i] += 1;
         self.total += 1;
     }
@@ -242,7 +264,9 @@ impl StaticDetector {
                 s2[k] += d * d;
             }
         }
-        (0..3).map(|k| (s2[k] / n - (s[k] / n).powi(2)).max(0.0)).sum()
+        (0..3)
+            .map(|k| (s2[k] / n - (s[k] / n).powi(2)).max(0.0))
+            .sum()
     }
 
     /// Feed one sample (accel = the prefiltered accel vector to judge). Returns a pose when one ends.
@@ -328,21 +352,38 @@ mod tests {
         for p in 0..10 {
             let still = [0.0, (p as f64).sin() * 9.8, (p as f64).cos() * 9.8];
             for _ in 0..300 {
-                let a = [still[0] + noise.sample(&mut rng), still[1] + noise.sample(&mut rng), still[2] + noise.sample(&mut rng)];
-                let s = Sample { t_s: t, accel_mps2: Some(a), ..Default::default() };
+                let a = [
+                    still[0] + noise.sample(&mut rng),
+                    still[1] + noise.sample(&mut rng),
+                    still[2] + noise.sample(&mut rng),
+                ];
+                let s = Sample {
+                    t_s: t,
+                    accel_mps2: Some(a),
+                    ..Default::default()
+                };
                 poses.extend(det.push(&s, &a));
                 t += 1.0 / rate;
             }
             for i in 0..150 {
                 let w = i as f64 * 0.1;
                 let a = [3.0 * w.sin(), 9.8 * w.cos(), 2.0];
-                let s = Sample { t_s: t, accel_mps2: Some(a), ..Default::default() };
+                let s = Sample {
+                    t_s: t,
+                    accel_mps2: Some(a),
+                    ..Default::default()
+                };
                 poses.extend(det.push(&s, &a));
                 t += 1.0 / rate;
             }
         }
         poses.extend(det.finish());
-        assert_eq!(poses.len(), 10, "{:?}", poses.iter().map(|p| p.t_start).collect::<Vec<_>>());
+        assert_eq!(
+            poses.len(),
+            10,
+            "{:?}",
+            poses.iter().map(|p| p.t_start).collect::<Vec<_>>()
+        );
         assert!(poses[3].samples > 150);
         assert!((poses[3].accel[1] - 3f64.sin() * 9.8).abs() < 0.01);
     }

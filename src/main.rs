@@ -7,7 +7,11 @@ use imucald::decode::Format;
 use std::path::PathBuf;
 
 #[derive(Parser)]
-#[command(name = "imucald", version, about = "Calibrate accelerometer, magnetometer and gyroscope; publish heading")]
+#[command(
+    name = "imucald",
+    version,
+    about = "Calibrate accelerometer, magnetometer and gyroscope; publish heading"
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -38,6 +42,26 @@ enum Cmd {
         #[arg(long)]
         export: Option<PathBuf>,
     },
+    /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
+    Simulate {
+        /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
+        #[arg(long, default_value = "tumble")]
+        scenario: String,
+        /// Output log; the format follows the extension.
+        #[arg(long)]
+        out: PathBuf,
+        /// Write the true parameters and poses here (JSON).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// IMU message in a .tlog: highres_imu or scaled_imu.
+        #[arg(long, default_value = "highres_imu")]
+        message: String,
+        /// MAVLink version of the frames in a .tlog (1 or 2).
+        #[arg(long, default_value_t = 2)]
+        mavlink_version: u8,
+    },
 }
 
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {
@@ -48,19 +72,47 @@ fn load_config(path: Option<&PathBuf>) -> Result<Config> {
 }
 
 fn main() -> Result<()> {
-    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into())).with_writer(std::io::stderr).init();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let cli = Cli::parse();
     match cli.cmd {
-        Cmd::Replay { log, config, format, report, calibrated_out, plot, export } => {
+        Cmd::Replay {
+            log,
+            config,
+            format,
+            report,
+            calibrated_out,
+            plot,
+            export,
+        } => {
             let cfg = load_config(config.as_ref())?;
             let format = match format.as_deref() {
                 None => None,
-                Some(f) => Some(Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?),
+                Some(f) => Some(
+                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
+                ),
             };
-            let log = log.unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog")));
-            let opts = imucald::replay::ReplayOptions { format, report, calibrated_out, plot_dir: plot, export_dir: export };
+            let log = log.unwrap_or_else(|| {
+                PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
+            });
+            let opts = imucald::replay::ReplayOptions {
+                format,
+                report,
+                calibrated_out,
+                plot_dir: plot,
+                export_dir: export,
+            };
             let bar = indicatif::ProgressBar::new(0);
-            bar.set_style(indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} samples {per_sec} eta {eta}").expect("template"));
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{bar:40} {pos}/{len} samples {per_sec} eta {eta}",
+                )
+                .expect("template"),
+            );
             let out = imucald::replay::replay(&log, &cfg, &opts, &mut |done, total| {
                 bar.set_length(total);
                 bar.set_position(done);
@@ -70,6 +122,64 @@ fn main() -> Result<()> {
             print!("{}", imucald::replay::summary(&out.report));
             for p in &out.written {
                 println!("wrote {}", p.display());
+            }
+        }
+        Cmd::Simulate {
+            scenario,
+            out,
+            truth,
+            seed,
+            message,
+            mavlink_version,
+        } => {
+            use imucald::sim::{
+                simulate, write_csv, write_tlog, ImuMessage, Scenario, TlogWriteOptions,
+            };
+            let sc = match Scenario::named(&scenario) {
+                Some(s) => s,
+                None => {
+                    let text = std::fs::read_to_string(&scenario)
+                        .with_context(|| format!("--scenario `{scenario}` is neither a built-in ({}) nor a readable file", Scenario::names().join(", ")))?;
+                    Scenario::from_toml_str(&text)
+                        .with_context(|| format!("scenario file {scenario}"))?
+                }
+            };
+            let sim = simulate(&sc, seed);
+            let name = out.to_string_lossy().to_lowercase();
+            if name.ends_with(".tlog") {
+                let message = match message.as_str() {
+                    "highres_imu" => ImuMessage::HighresImu,
+                    "scaled_imu" => ImuMessage::ScaledImu,
+                    m => anyhow::bail!("--message `{m}`: use highres_imu or scaled_imu"),
+                };
+                anyhow::ensure!(
+                    mavlink_version == 1 || mavlink_version == 2,
+                    "--mavlink-version must be 1 or 2"
+                );
+                write_tlog(
+                    &out,
+                    &sim.samples,
+                    &TlogWriteOptions {
+                        message,
+                        mavlink_version,
+                        ..Default::default()
+                    },
+                )?;
+            } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
+                write_csv(&out, &sim.samples)?;
+            } else {
+                anyhow::bail!("--out {}: use a .tlog, .csv or .csv.gz name", out.display());
+            }
+            println!(
+                "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",
+                out.display(),
+                sim.samples.len(),
+                sim.samples.last().map_or(0.0, |s| s.t_s),
+                sc.name
+            );
+            if let Some(t) = truth {
+                imucald::publish::write_json(&t, &sim.truth)?;
+                println!("wrote {}", t.display());
             }
         }
     }

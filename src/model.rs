@@ -71,14 +71,22 @@ pub struct Calibration {
 impl Calibration {
     /// The identity calibration (no correction).
     pub fn identity() -> Self {
-        Calibration { model: ModelKind::Sphere, offset: [0.0; 3], matrix: mat_to_rows(&Matrix3::identity()) }
+        Calibration {
+            model: ModelKind::Sphere,
+            offset: [0.0; 3],
+            matrix: mat_to_rows(&Matrix3::identity()),
+        }
     }
 
     /// Apply to one raw vector.
     #[inline]
     pub fn apply(&self, raw: &Vec3) -> Vec3 {
         let m = &self.matrix;
-        let v = [raw[0] - self.offset[0], raw[1] - self.offset[1], raw[2] - self.offset[2]];
+        let v = [
+            raw[0] - self.offset[0],
+            raw[1] - self.offset[1],
+            raw[2] - self.offset[2],
+        ];
         [
             m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
             m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
@@ -99,11 +107,17 @@ impl Calibration {
 }
 
 pub fn rows_to_mat(r: &[[f64; 3]; 3]) -> Matrix3<f64> {
-    Matrix3::new(r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2])
+    Matrix3::new(
+        r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2],
+    )
 }
 
 pub fn mat_to_rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
-    [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]]
+    [
+        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+    ]
 }
 
 /// Parameter vector layout used by the fitter for norm-only models:
@@ -133,7 +147,14 @@ pub fn params_from_a(kind: ModelKind, m: &Matrix3<f64>) -> Vec<f64> {
             0.5 * (m[(0, 2)] + m[(2, 0)]),
             0.5 * (m[(1, 2)] + m[(2, 1)]),
         ],
-        ModelKind::Full12 => vec![m[(0, 0)], m[(1, 1)], m[(2, 2)], m[(0, 1)], m[(0, 2)], m[(1, 2)]],
+        ModelKind::Full12 => vec![
+            m[(0, 0)],
+            m[(1, 1)],
+            m[(2, 2)],
+            m[(0, 1)],
+            m[(0, 2)],
+            m[(1, 2)],
+        ],
     }
 }
 
@@ -216,7 +237,12 @@ mod tests {
                 let rp = norm_residual_grad(kind, &pp, x, &mut scratch);
                 let rm = norm_residual_grad(kind, &pm, x, &mut scratch);
                 let num = (rp - rm) / (2.0 * h);
-                assert!((num - g[i]).abs() < 1e-7, "{kind:?} param {i}: analytic {} numeric {}", g[i], num);
+                assert!(
+                    (num - g[i]).abs() < 1e-7,
+                    "{kind:?} param {i}: analytic {} numeric {}",
+                    g[i],
+                    num
+                );
             }
         }
     }
@@ -240,7 +266,11 @@ mod tests {
 
     #[test]
     fn apply_is_matrix_times_raw_minus_offset() {
-        let c = Calibration { model: ModelKind::Sym9, offset: [1.0, 2.0, 3.0], matrix: [[2.0, 0.0, 0.0], [0.0, 1.0, 0.5], [0.0, 0.5, 1.0]] };
+        let c = Calibration {
+            model: ModelKind::Sym9,
+            offset: [1.0, 2.0, 3.0],
+            matrix: [[2.0, 0.0, 0.0], [0.0, 1.0, 0.5], [0.0, 0.5, 1.0]],
+        };
         assert_eq!(c.apply(&[2.0, 2.0, 5.0]), [2.0, 1.0, 2.0]);
     }
 }

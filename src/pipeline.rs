@@ -75,9 +75,16 @@ const MAG_BUFFER_MAX: usize = 4000;
 
 impl Pipeline {
     pub fn new(cfg: &Config) -> Result<Self, crate::error::Error> {
-        let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor)
-            .map_err(|m| crate::error::Error::Config { key: "orientation.sensor".into(), message: m })?;
-        let pf = cfg.fit.prefilter.then(|| Prefilter3::new(cfg.fit.prefilter_q, cfg.fit.prefilter_r));
+        let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor).map_err(|m| {
+            crate::error::Error::Config {
+                key: "orientation.sensor".into(),
+                message: m,
+            }
+        })?;
+        let pf = cfg
+            .fit
+            .prefilter
+            .then(|| Prefilter3::new(cfg.fit.prefilter_q, cfg.fit.prefilter_r));
         Ok(Pipeline {
             cfg: cfg.clone(),
             rot,
@@ -110,7 +117,12 @@ impl Pipeline {
     /// Rotate a sample's vectors from sensor to body axes.
     pub fn to_body(&self, s: &Sample) -> Sample {
         let r = |v: Option<Vec3>| v.map(|v| crate::attitude::rotate(&self.rot, &v));
-        Sample { accel_mps2: r(s.accel_mps2), gyro_rad_s: r(s.gyro_rad_s), mag_ut: r(s.mag_ut), ..*s }
+        Sample {
+            accel_mps2: r(s.accel_mps2),
+            gyro_rad_s: r(s.gyro_rad_s),
+            mag_ut: r(s.mag_ut),
+            ..*s
+        }
     }
 
     /// Feed one sample. Returns true when a refit is due (every `fit.refit_every_s` of data).
@@ -167,11 +179,15 @@ impl Pipeline {
 
     /// Start direction binning once the buffered field vectors span enough of a sphere to place its centre.
     fn try_start_bins(&mut self) {
-        let Some(st) = crate::fit::sphere_start(&self.mag_buffer) else { return };
+        let Some(st) = crate::fit::sphere_start(&self.mag_buffer) else {
+            return;
+        };
         let r = 1.0 / st.shape[(0, 0)];
         // The smallest spread of the points must be a fair part of the radius (not a small cap).
         let n = self.mag_buffer.len() as f64;
-        let mean = self.mag_buffer.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
+        let mean = self.mag_buffer.iter().fold([0.0; 3], |a, p| {
+            [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
+        });
         let mut cov = Matrix3::zeros();
         for p in &self.mag_buffer {
             let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
@@ -200,7 +216,13 @@ impl Pipeline {
             Some(b) => b.points(),
             None => self.mag_buffer.clone(),
         };
-        FitInput { mag_points, poses, mag_units: self.mag_units, gyro_units: self.gyro_units, accel_units: self.cfg.input.accel_units.clone() }
+        FitInput {
+            mag_points,
+            poses,
+            mag_units: self.mag_units,
+            gyro_units: self.gyro_units,
+            accel_units: self.cfg.input.accel_units.clone(),
+        }
     }
 
     /// Take in results computed from a snapshot: record them, and re-centre the direction bins on the
@@ -217,7 +239,11 @@ impl Pipeline {
             });
         }
         if let (Some(b), Some(c)) = (self.mag_bins.as_mut(), results.mag.calibration.as_ref()) {
-            let d = norm(&[b.centre[0] - c.offset[0], b.centre[1] - c.offset[1], b.centre[2] - c.offset[2]]);
+            let d = norm(&[
+                b.centre[0] - c.offset[0],
+                b.centre[1] - c.offset[1],
+                b.centre[2] - c.offset[2],
+            ]);
             if d > 1e-3 * results.mag.report.radius.max(1e-9) {
                 b.recentre(c.offset);
             }
@@ -274,20 +300,42 @@ struct SensorSpec<'a> {
 
 fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
     let c = coverage(points.iter(), &[0.0; 3]);
-    SensorResult { report, calibration: None, coverage_before: c.clone(), coverage_after: c, dirs_before: vec![], dirs_after: vec![], residuals: vec![] }
+    SensorResult {
+        report,
+        calibration: None,
+        coverage_before: c.clone(),
+        coverage_after: c,
+        dirs_before: vec![],
+        dirs_after: vec![],
+        residuals: vec![],
+    }
 }
 
 /// Fit one sensor: candidate models, automatic choice, acceptance checks.
 fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
-    let opts = NormFitOptions { target_norm: spec.target_norm, ..Default::default() };
+    let opts = NormFitOptions {
+        target_norm: spec.target_norm,
+        ..Default::default()
+    };
     let kinds: Vec<ModelKind> = match spec.model {
         "auto" => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
         "six_position" => vec![],
         m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
     };
     // Centre for the "before" coverage: the plain sphere fit.
-    let raw_centre = crate::fit::sphere_start(points).map(|s| [s.centre[0], s.centre[1], s.centre[2]]).unwrap_or([0.0; 3]);
-    let dirs_before: Vec<Vec3> = points.iter().map(|p| [p[0] - raw_centre[0], p[1] - raw_centre[1], p[2] - raw_centre[2]]).collect();
+    let raw_centre = crate::fit::sphere_start(points)
+        .map(|s| [s.centre[0], s.centre[1], s.centre[2]])
+        .unwrap_or([0.0; 3]);
+    let dirs_before: Vec<Vec3> = points
+        .iter()
+        .map(|p| {
+            [
+                p[0] - raw_centre[0],
+                p[1] - raw_centre[1],
+                p[2] - raw_centre[2],
+            ]
+        })
+        .collect();
     let cov_before = coverage(dirs_before.iter(), &[0.0; 3]);
 
     let mut fits = Vec::new();
@@ -298,29 +346,55 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     }
     // Six-position accel when asked, or when the log holds only a handful of poses near the axes.
     let mut six = None;
-    if spec.is_accel && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12)) {
-        six = six_position(points, spec.target_norm.unwrap_or(crate::types::STANDARD_GRAVITY_MPS2), 15.0);
+    if spec.is_accel
+        && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12))
+    {
+        six = six_position(
+            points,
+            spec.target_norm
+                .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2),
+            15.0,
+        );
     }
     let n = points.len();
     let mut candidates: Vec<Candidate> = fits
         .iter()
-        .map(|f| Candidate { model: f.calibration.model.name().into(), rms_residual: f.rms_residual, params: f.calibration.model.n_params(), chosen: false })
+        .map(|f| Candidate {
+            model: f.calibration.model.name().into(),
+            rms_residual: f.rms_residual,
+            params: f.calibration.model.n_params(),
+            chosen: false,
+        })
         .collect();
     // Simplest model that a richer one does not beat significantly.
     let mut chosen: Option<usize> = if fits.is_empty() { None } else { Some(0) };
     for i in 1..fits.len() {
         let c = chosen.expect("set");
         let (a, b) = (&fits[c], &fits[i]);
-        let extra = crate::model::n_norm_params(b.calibration.model) - crate::model::n_norm_params(a.calibration.model);
-        if significantly_better(a.ssr_normalised, b.ssr_normalised, extra, n, crate::model::n_norm_params(b.calibration.model)) {
+        let extra = crate::model::n_norm_params(b.calibration.model)
+            - crate::model::n_norm_params(a.calibration.model);
+        if significantly_better(
+            a.ssr_normalised,
+            b.ssr_normalised,
+            extra,
+            n,
+            crate::model::n_norm_params(b.calibration.model),
+        ) {
             chosen = Some(i);
         }
     }
     let (cal, mut report) = if let Some(cal) = six {
-        let g = spec.target_norm.unwrap_or(crate::types::STANDARD_GRAVITY_MPS2);
+        let g = spec
+            .target_norm
+            .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2);
         let res: Vec<f64> = points.iter().map(|p| norm(&cal.apply(p)) - g).collect();
         let rms = (res.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
-        candidates.push(Candidate { model: "six_position".into(), rms_residual: rms, params: 12, chosen: true });
+        candidates.push(Candidate {
+            model: "six_position".into(),
+            rms_residual: rms,
+            params: 12,
+            chosen: true,
+        });
         let rep = SensorCalibration {
             status: "ok".into(),
             failure: None,
@@ -340,11 +414,25 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     } else {
         let Some(ci) = chosen else {
             let (why, detail) = if n >= 7 && cov_before.filled < spec.limits.min_filled_regions {
-                (FitFailure::Coverage, format!("{} of 100 sphere regions filled, need {}", cov_before.filled, spec.limits.min_filled_regions))
+                (
+                    FitFailure::Coverage,
+                    format!(
+                        "{} of 100 sphere regions filled, need {}",
+                        cov_before.filled, spec.limits.min_filled_regions
+                    ),
+                )
             } else if n < 7 {
-                (FitFailure::NotEnoughSamples, format!("{n} points; need at least 7 (more for richer models)"))
+                (
+                    FitFailure::NotEnoughSamples,
+                    format!("{n} points; need at least 7 (more for richer models)"),
+                )
             } else {
-                (FitFailure::NotIdentifiable, format!("no model could be fitted to {n} points (all on a plane or a small cap?)"))
+                (
+                    FitFailure::NotIdentifiable,
+                    format!(
+                        "no model could be fitted to {n} points (all on a plane or a small cap?)"
+                    ),
+                )
             };
             return empty_result(failed(spec.model, spec.units, why, detail), points);
         };
@@ -368,8 +456,15 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         // Identifiability and convergence come from the fit itself.
         let mut rep = rep;
         if !f.converged {
-            set_fail(&mut rep, FitFailure::DidNotConverge, format!("no convergence in {} iterations", f.iterations));
-        } else if !f.condition.is_finite() || f.condition > 1e12 || f.offset_sigma.iter().any(|s| !(*s <= 0.05 * f.raw_radius)) {
+            set_fail(
+                &mut rep,
+                FitFailure::DidNotConverge,
+                format!("no convergence in {} iterations", f.iterations),
+            );
+        } else if !f.condition.is_finite()
+            || f.condition > 1e12
+            || f.offset_sigma.iter().any(|s| !(*s <= 0.05 * f.raw_radius))
+        {
             set_fail(
                 &mut rep,
                 FitFailure::NotIdentifiable,
@@ -386,13 +481,27 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     }
     // A fit that failed for numerical reasons on data that covers too little of the sphere failed
     // because of the coverage: say so, since that is what the user can fix.
-    let numeric = matches!(report.failure.as_deref(), Some("did_not_converge") | Some("not_identifiable"));
+    let numeric = matches!(
+        report.failure.as_deref(),
+        Some("did_not_converge") | Some("not_identifiable")
+    );
     if numeric && cov_before.filled < spec.limits.min_filled_regions {
-        let d = format!("{} of 100 sphere regions filled, need {}: rotate through the missing directions", cov_before.filled, spec.limits.min_filled_regions);
+        let d = format!(
+            "{} of 100 sphere regions filled, need {}: rotate through the missing directions",
+            cov_before.filled, spec.limits.min_filled_regions
+        );
         set_fail(&mut report, FitFailure::Coverage, d);
     }
     let calibration = (report.status == "ok").then_some(cal);
-    SensorResult { report, calibration, coverage_before: cov_before, coverage_after: cov_after, dirs_before, dirs_after, residuals }
+    SensorResult {
+        report,
+        calibration,
+        coverage_before: cov_before,
+        coverage_after: cov_after,
+        dirs_before,
+        dirs_after,
+        residuals,
+    }
 }
 
 fn set_fail(rep: &mut SensorCalibration, why: FitFailure, detail: String) {
@@ -405,30 +514,76 @@ fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, 
     let l = spec.limits;
     let nm = cal.normalised_matrix();
     if cov.filled < l.min_filled_regions {
-        return set_fail(rep, FitFailure::Coverage, format!("{} of 100 sphere regions filled, need {}: rotate through the missing directions", cov.filled, l.min_filled_regions));
+        return set_fail(
+            rep,
+            FitFailure::Coverage,
+            format!(
+                "{} of 100 sphere regions filled, need {}: rotate through the missing directions",
+                cov.filled, l.min_filled_regions
+            ),
+        );
     }
     if spec.units_known {
         // For accel the raw radius is the norm of the raw data (before scaling to g).
-        let raw_radius = if spec.is_accel { rep.radius / cal.matrix3().determinant().abs().cbrt() } else { rep.radius };
+        let raw_radius = if spec.is_accel {
+            rep.radius / cal.matrix3().determinant().abs().cbrt()
+        } else {
+            rep.radius
+        };
         if raw_radius < l.min_radius || raw_radius > l.max_radius {
-            return set_fail(rep, FitFailure::Radius, format!("field magnitude {raw_radius:.3} outside [{}, {}]", l.min_radius, l.max_radius));
+            return set_fail(
+                rep,
+                FitFailure::Radius,
+                format!(
+                    "field magnitude {raw_radius:.3} outside [{}, {}]",
+                    l.min_radius, l.max_radius
+                ),
+            );
         }
         if rep.offset.iter().any(|o| o.abs() > l.max_offset) {
-            return set_fail(rep, FitFailure::Offsets, format!("offset {:?} beyond +-{}", rep.offset, l.max_offset));
+            return set_fail(
+                rep,
+                FitFailure::Offsets,
+                format!("offset {:?} beyond +-{}", rep.offset, l.max_offset),
+            );
         }
     }
     for i in 0..3 {
         if nm[(i, i)] < l.min_diag || nm[(i, i)] > l.max_diag {
-            return set_fail(rep, FitFailure::DiagonalScaling, format!("normalised diagonal {:.4} outside ({}, {})", nm[(i, i)], l.min_diag, l.max_diag));
+            return set_fail(
+                rep,
+                FitFailure::DiagonalScaling,
+                format!(
+                    "normalised diagonal {:.4} outside ({}, {})",
+                    nm[(i, i)],
+                    l.min_diag,
+                    l.max_diag
+                ),
+            );
         }
         for j in 0..3 {
             if i != j && nm[(i, j)].abs() > l.max_offdiag {
-                return set_fail(rep, FitFailure::DiagonalScaling, format!("normalised off-diagonal {:.4} beyond +-{}", nm[(i, j)], l.max_offdiag));
+                return set_fail(
+                    rep,
+                    FitFailure::DiagonalScaling,
+                    format!(
+                        "normalised off-diagonal {:.4} beyond +-{}",
+                        nm[(i, j)],
+                        l.max_offdiag
+                    ),
+                );
             }
         }
     }
     if rep.rms_residual > l.max_rms_ratio * rep.radius {
-        set_fail(rep, FitFailure::Residuals, format!("RMS residual {:.4} above {} x radius {:.4}", rep.rms_residual, l.max_rms_ratio, rep.radius))
+        set_fail(
+            rep,
+            FitFailure::Residuals,
+            format!(
+                "RMS residual {:.4} above {} x radius {:.4}",
+                rep.rms_residual, l.max_rms_ratio, rep.radius
+            ),
+        )
     }
 }
 
@@ -441,7 +596,14 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
     let counts = units == Unit::Counts || norms.get(norms.len() / 2).is_some_and(|m| *m > 35.0);
     let units = if counts { "counts" } else { "rad/s" }.to_string();
     if g.len() < 2 {
-        return GyroCalibration { status: "failed".into(), failure: Some("not_enough_samples".into()), units, bias: [0.0; 3], bias_sigma: [0.0; 3], poses_used: g.len() };
+        return GyroCalibration {
+            status: "failed".into(),
+            failure: Some("not_enough_samples".into()),
+            units,
+            bias: [0.0; 3],
+            bias_sigma: [0.0; 3],
+            poses_used: g.len(),
+        };
     }
     let n = g.len() as f64;
     let mut mean = [0.0; 3];
@@ -456,7 +618,14 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
             sd[k] += (v[k] - mean[k]).powi(2) / (n - 1.0);
         }
     }
-    GyroCalibration { status: "ok".into(), failure: None, units, bias: mean, bias_sigma: sd.map(|v| (v / n).sqrt()), poses_used: g.len() }
+    GyroCalibration {
+        status: "ok".into(),
+        failure: None,
+        units,
+        bias: mean,
+        bias_sigma: sd.map(|v| (v / n).sqrt()),
+        poses_used: g.len(),
+    }
 }
 
 /// Detect accelerometer units from the static norms: near g means m/s^2, otherwise counts.
@@ -487,9 +656,17 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
     let mut mag = fit_sensor(
         &input.mag_points,
         &SensorSpec {
-            model: if mag_full12 { "sym9" } else { &cfg.fit.mag_model },
+            model: if mag_full12 {
+                "sym9"
+            } else {
+                &cfg.fit.mag_model
+            },
             target_norm: None,
-            units: if input.mag_units == Unit::Si { "uT" } else { "counts" },
+            units: if input.mag_units == Unit::Si {
+                "uT"
+            } else {
+                "counts"
+            },
             units_known: input.mag_units == Unit::Si,
             limits: &cfg.accept.mag,
             is_accel: false,
@@ -564,13 +741,20 @@ impl Calibrator {
         if m.is_some() {
             self.last_mag = m;
         }
-        let mut out = Calibrated { t_s: s.t_s, accel_mps2: a, gyro_rad_s: g, mag_ut: m, ..Default::default() };
+        let mut out = Calibrated {
+            t_s: s.t_s,
+            accel_mps2: a,
+            gyro_rad_s: g,
+            mag_ut: m,
+            ..Default::default()
+        };
         if let Some(f) = self.last_accel {
             let (r, p) = crate::attitude::roll_pitch_deg(&f);
             out.roll_deg = Some(r);
             out.pitch_deg = Some(p);
             if let Some(mv) = self.last_mag {
-                let h = crate::attitude::heading_deg(&mv, r, p) + self.declination_deg.unwrap_or(0.0);
+                let h =
+                    crate::attitude::heading_deg(&mv, r, p) + self.declination_deg.unwrap_or(0.0);
                 out.heading_deg = Some(crate::attitude::wrap360(h));
             }
         }

@@ -26,7 +26,12 @@ pub struct ReplayOutcome {
 }
 
 /// Run a log through the pipeline. `progress(done, total)` is called now and then.
-pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dyn FnMut(u64, u64)) -> Result<ReplayOutcome, Error> {
+pub fn replay(
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<ReplayOutcome, Error> {
     let log = crate::sources::read_log(path, opts.format, cfg)?;
     let mut pipe = Pipeline::new(cfg)?;
     pipe.mag_units = log.units.mag;
@@ -43,7 +48,14 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
     let results = pipe.finish().clone();
     progress(total, total);
     let declination = match &cfg.place {
-        Some(p) => Some(crate::attitude::earth_field(p).map_err(|m| Error::Config { key: "place".into(), message: m })?.declination_deg),
+        Some(p) => Some(
+            crate::attitude::earth_field(p)
+                .map_err(|m| Error::Config {
+                    key: "place".into(),
+                    message: m,
+                })?
+                .declination_deg,
+        ),
         None => None,
     };
     let duration = match (log.samples.first(), log.samples.last()) {
@@ -52,10 +64,24 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
     };
     let report = Report {
         schema: SCHEMA.into(),
-        input: InputReport::new(log.format.name(), Some(path.display().to_string()), log.instance.clone(), &log.stats, total, duration),
+        input: InputReport::new(
+            log.format.name(),
+            Some(path.display().to_string()),
+            log.instance.clone(),
+            &log.stats,
+            total,
+            duration,
+        ),
         static_poses: pipe.poses().iter().map(PoseReport::from).collect(),
-        coverage: CoverageReport { mag: shown_coverage(&results.mag), accel: shown_coverage(&results.accel) },
-        calibration: CalibrationReport { mag: results.mag.report.clone(), accel: results.accel.report.clone(), gyro: results.gyro.clone() },
+        coverage: CoverageReport {
+            mag: shown_coverage(&results.mag),
+            accel: shown_coverage(&results.accel),
+        },
+        calibration: CalibrationReport {
+            mag: results.mag.report.clone(),
+            accel: results.accel.report.clone(),
+            gyro: results.gyro.clone(),
+        },
         declination_deg: declination,
         refits: pipe.refits.clone(),
     };
@@ -76,8 +102,18 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
         written.push(p.clone());
     }
     if let Some(dir) = &opts.export_dir {
-        std::fs::create_dir_all(dir).map_err(|source| Error::Write { path: dir.clone(), source })?;
-        let (m, a) = (results.mag.calibration.as_ref().filter(|_| report.calibration.mag.units == "uT"), results.accel.calibration.as_ref());
+        std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+            path: dir.clone(),
+            source,
+        })?;
+        let (m, a) = (
+            results
+                .mag
+                .calibration
+                .as_ref()
+                .filter(|_| report.calibration.mag.units == "uT"),
+            results.accel.calibration.as_ref(),
+        );
         for (name, text) in [
             ("ardupilot.parm", crate::export::ardupilot_file(m, a)),
             ("px4.params", crate::export::px4_file(m, a)),
@@ -91,12 +127,24 @@ pub fn replay(path: &Path, cfg: &Config, opts: &ReplayOptions, progress: &mut dy
     if let Some(dir) = &opts.plot_dir {
         written.extend(write_plots(dir, &pipe, &log.samples, &results)?);
     }
-    Ok(ReplayOutcome { report, results, written })
+    Ok(ReplayOutcome {
+        report,
+        results,
+        written,
+    })
 }
 
 /// Coverage maps (seed 002's (theta, phi) projection, before and after) and residual plots.
-fn write_plots(dir: &Path, pipe: &Pipeline, samples: &[crate::types::Sample], r: &FitResults) -> Result<Vec<PathBuf>, Error> {
-    std::fs::create_dir_all(dir).map_err(|source| Error::Write { path: dir.to_path_buf(), source })?;
+fn write_plots(
+    dir: &Path,
+    pipe: &Pipeline,
+    samples: &[crate::types::Sample],
+    r: &FitResults,
+) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
     let mut out = vec![];
     for (name, s) in [("mag", &r.mag), ("accel", &r.accel)] {
         if s.dirs_before.is_empty() {
@@ -104,8 +152,18 @@ fn write_plots(dir: &Path, pipe: &Pipeline, samples: &[crate::types::Sample], r:
         }
         for ext in ["png", "svg"] {
             let p = dir.join(format!("{name}_coverage.{ext}"));
-            let title = format!("{name} coverage: {} ({}), before and after calibration", s.report.model, s.report.status);
-            crate::plot::coverage_map(&p, &title, &s.dirs_before, &s.dirs_after, &s.coverage_before.filled_mask, &s.coverage_after.filled_mask)?;
+            let title = format!(
+                "{name} coverage: {} ({}), before and after calibration",
+                s.report.model, s.report.status
+            );
+            crate::plot::coverage_map(
+                &p,
+                &title,
+                &s.dirs_before,
+                &s.dirs_after,
+                &s.coverage_before.filled_mask,
+                &s.coverage_after.filled_mask,
+            )?;
             out.push(p);
         }
     }
@@ -126,15 +184,27 @@ fn write_plots(dir: &Path, pipe: &Pipeline, samples: &[crate::types::Sample], r:
             ra.push(crate::types::norm(&c.apply(&p.accel)) - r.accel.report.radius);
         }
     }
-    for (name, t, res, unit) in [("mag", &tm, &rm, r.mag.report.units.as_str()), ("accel", &ta, &ra, "m/s^2")] {
+    for (name, t, res, unit) in [
+        ("mag", &tm, &rm, r.mag.report.units.as_str()),
+        ("accel", &ta, &ra, "m/s^2"),
+    ] {
         if t.is_empty() {
             continue;
         }
         for ext in ["png", "svg"] {
             let p = dir.join(format!("{name}_residuals.{ext}"));
             let label = format!("|calibrated| - radius ({unit})");
-            let series_name = if name == "mag" { "every sample" } else { "static poses" };
-            crate::plot::residuals(&p, &format!("{name} norm residual after calibration"), &label, &[(series_name, t.as_slice(), res.as_slice())])?;
+            let series_name = if name == "mag" {
+                "every sample"
+            } else {
+                "static poses"
+            };
+            crate::plot::residuals(
+                &p,
+                &format!("{name} norm residual after calibration"),
+                &label,
+                &[(series_name, t.as_slice(), res.as_slice())],
+            )?;
             out.push(p);
         }
     }
@@ -178,12 +248,37 @@ fn write_row(out: &mut String, c: &Calibrated) {
 /// A terminal summary of a report.
 pub fn summary(r: &Report) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "input: {} ({}), {} samples over {:.1} s{}", r.input.path.as_deref().unwrap_or("-"), r.input.format, r.input.samples, r.input.duration_s, r.input.instance.as_ref().map(|i| format!(", instance {i}")).unwrap_or_default());
+    let _ = writeln!(
+        s,
+        "input: {} ({}), {} samples over {:.1} s{}",
+        r.input.path.as_deref().unwrap_or("-"),
+        r.input.format,
+        r.input.samples,
+        r.input.duration_s,
+        r.input
+            .instance
+            .as_ref()
+            .map(|i| format!(", instance {i}"))
+            .unwrap_or_default()
+    );
     if !r.input.skipped.is_empty() {
-        let _ = writeln!(s, "skipped: {}", r.input.skipped.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "));
+        let _ = writeln!(
+            s,
+            "skipped: {}",
+            r.input
+                .skipped
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
     }
     let _ = writeln!(s, "static poses: {}", r.static_poses.len());
-    let _ = writeln!(s, "coverage: mag {}/100 regions, accel {}/100", r.coverage.mag.filled, r.coverage.accel.filled);
+    let _ = writeln!(
+        s,
+        "coverage: mag {}/100 regions, accel {}/100",
+        r.coverage.mag.filled, r.coverage.accel.filled
+    );
     for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
         if c.status == "ok" {
             let _ = writeln!(
@@ -192,12 +287,21 @@ pub fn summary(r: &Report) -> String {
                 c.model, c.offset[0], c.offset[1], c.offset[2], c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
             );
         } else {
-            let _ = writeln!(s, "{name:5}: FAILED ({}): {}", c.failure.as_deref().unwrap_or("?"), c.detail.as_deref().unwrap_or(""));
+            let _ = writeln!(
+                s,
+                "{name:5}: FAILED ({}): {}",
+                c.failure.as_deref().unwrap_or("?"),
+                c.detail.as_deref().unwrap_or("")
+            );
         }
     }
     let g = &r.calibration.gyro;
     if g.status == "ok" {
-        let _ = writeln!(s, "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses", g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used);
+        let _ = writeln!(
+            s,
+            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",
+            g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used
+        );
     }
     s
 }

@@ -34,8 +34,23 @@ pub struct InputReport {
 }
 
 impl InputReport {
-    pub fn new(format: &str, path: Option<String>, instance: Option<String>, stats: &DecodeStats, samples: u64, duration_s: f64) -> Self {
-        InputReport { format: format.into(), path, instance, samples, counts: stats.counts.clone(), skipped: stats.skipped.clone(), duration_s }
+    pub fn new(
+        format: &str,
+        path: Option<String>,
+        instance: Option<String>,
+        stats: &DecodeStats,
+        samples: u64,
+        duration_s: f64,
+    ) -> Self {
+        InputReport {
+            format: format.into(),
+            path,
+            instance,
+            samples,
+            counts: stats.counts.clone(),
+            skipped: stats.skipped.clone(),
+            duration_s,
+        }
     }
 }
 
@@ -51,7 +66,14 @@ pub struct PoseReport {
 
 impl From<&Pose> for PoseReport {
     fn from(p: &Pose) -> Self {
-        PoseReport { t_start: p.t_start, t_end: p.t_end, samples: p.samples, accel: p.accel, mag: p.mag, gyro: p.gyro }
+        PoseReport {
+            t_start: p.t_start,
+            t_end: p.t_end,
+            samples: p.samples,
+            accel: p.accel,
+            mag: p.mag,
+            gyro: p.gyro,
+        }
     }
 }
 

@@ -26,7 +26,11 @@ pub struct SensorTruth {
 impl SensorTruth {
     /// A sensor with no error and no noise.
     pub fn ideal() -> Self {
-        SensorTruth { offset: [0.0; 3], matrix: mat_to_rows(&Matrix3::identity()), noise_sd: 0.0 }
+        SensorTruth {
+            offset: [0.0; 3],
+            matrix: mat_to_rows(&Matrix3::identity()),
+            noise_sd: 0.0,
+        }
     }
 
     /// The raw reading (without noise) of a true vector: `matrix^-1 * v + offset`.
@@ -34,7 +38,11 @@ impl SensorTruth {
         let m = rows_to_mat(&self.matrix);
         let inv = m.try_inverse().unwrap_or_else(Matrix3::identity);
         let r = inv * Vector3::new(v[0], v[1], v[2]);
-        [r[0] + self.offset[0], r[1] + self.offset[1], r[2] + self.offset[2]]
+        [
+            r[0] + self.offset[0],
+            r[1] + self.offset[1],
+            r[2] + self.offset[2],
+        ]
     }
 
     /// The smallest model that represents this truth exactly (diagonal -> diag6, symmetric -> sym9).
@@ -56,11 +64,20 @@ impl SensorTruth {
 
     /// The true calibration as a [`Calibration`].
     pub fn calibration(&self) -> Calibration {
-        Calibration { model: self.model_kind(), offset: self.offset, matrix: self.matrix }
+        Calibration {
+            model: self.model_kind(),
+            offset: self.offset,
+            matrix: self.matrix,
+        }
     }
 
     fn validate(&self, key: &str) -> Result<(), Error> {
-        let bad = |message: String| Err(Error::Config { key: key.to_string(), message });
+        let bad = |message: String| {
+            Err(Error::Config {
+                key: key.to_string(),
+                message,
+            })
+        };
         if !self.offset.iter().all(|x| x.is_finite()) {
             return bad("offset must be finite".into());
         }
@@ -91,7 +108,10 @@ pub struct World {
 impl Default for World {
     /// 48 uT, inclination 60 deg, declination 0; standard gravity.
     fn default() -> Self {
-        World { field_ned_ut: [24.0, 0.0, 41.57], gravity_mps2: STANDARD_GRAVITY_MPS2 }
+        World {
+            field_ned_ut: [24.0, 0.0, 41.57],
+            gravity_mps2: STANDARD_GRAVITY_MPS2,
+        }
     }
 }
 
@@ -106,7 +126,9 @@ impl World {
     }
     /// Declination, degrees, east positive.
     pub fn declination_deg(&self) -> f64 {
-        self.field_ned_ut[1].atan2(self.field_ned_ut[0]).to_degrees()
+        self.field_ned_ut[1]
+            .atan2(self.field_ned_ut[0])
+            .to_degrees()
     }
 }
 
@@ -209,7 +231,11 @@ fn g() -> f64 {
 fn default_accel() -> SensorTruth {
     SensorTruth {
         offset: [0.08, -0.05, 0.12],
-        matrix: [[1.006, 0.003, -0.002], [0.003, 0.993, 0.004], [-0.002, 0.004, 1.008]],
+        matrix: [
+            [1.006, 0.003, -0.002],
+            [0.003, 0.993, 0.004],
+            [-0.002, 0.004, 1.008],
+        ],
         noise_sd: 0.02,
     }
 }
@@ -217,13 +243,21 @@ fn default_accel() -> SensorTruth {
 fn default_mag() -> SensorTruth {
     SensorTruth {
         offset: [12.0, -25.0, 40.0],
-        matrix: [[1.03, 0.02, -0.015], [0.02, 0.97, 0.025], [-0.015, 0.025, 1.01]],
+        matrix: [
+            [1.03, 0.02, -0.015],
+            [0.02, 0.97, 0.025],
+            [-0.015, 0.025, 1.01],
+        ],
         noise_sd: 0.15,
     }
 }
 
 fn default_gyro() -> SensorTruth {
-    SensorTruth { offset: [0.01, -0.02, 0.005], matrix: [[1.004, 0.0, 0.0], [0.0, 0.997, 0.0], [0.0, 0.0, 1.002]], noise_sd: 0.002 }
+    SensorTruth {
+        offset: [0.01, -0.02, 0.005],
+        matrix: [[1.004, 0.0, 0.0], [0.0, 0.997, 0.0], [0.0, 0.0, 1.002]],
+        noise_sd: 0.002,
+    }
 }
 
 impl Scenario {
@@ -359,11 +393,18 @@ impl Scenario {
         let f: ScenarioFile = toml::from_str(s).map_err(|e| {
             let message = e.message().to_string();
             let key = key_in_message(&message).unwrap_or_else(|| "scenario".to_string());
-            Error::Config { key, message: e.to_string().trim().to_string() }
+            Error::Config {
+                key,
+                message: e.to_string().trim().to_string(),
+            }
         })?;
         let mut sc = Scenario::named(&f.name).ok_or_else(|| Error::Config {
             key: "name".into(),
-            message: format!("unknown scenario `{}`; expected one of {}", f.name, SCENARIO_NAMES.join(", ")),
+            message: format!(
+                "unknown scenario `{}`; expected one of {}",
+                f.name,
+                SCENARIO_NAMES.join(", ")
+            ),
         })?;
         if let Some(r) = f.rate_hz {
             sc.truth.rate_hz = r;
@@ -418,7 +459,12 @@ impl Scenario {
 
     /// Check the parameters are usable.
     pub fn validate(&self) -> Result<(), Error> {
-        let bad = |key: &str, message: String| Err(Error::Config { key: key.to_string(), message });
+        let bad = |key: &str, message: String| {
+            Err(Error::Config {
+                key: key.to_string(),
+                message,
+            })
+        };
         self.truth.accel.validate("accel")?;
         self.truth.mag.validate("mag")?;
         self.truth.gyro.validate("gyro")?;
@@ -432,28 +478,54 @@ impl Scenario {
             }
         }
         for (key, rg) in [("pause_s", self.pause_s), ("slew_s", self.slew_s)] {
-            if !(rg[0].is_finite() && rg[1].is_finite() && rg[0] > 0.0 && rg[0] <= rg[1] && rg[1] <= 3600.0) {
-                return bad(key, format!("must be [min, max] with 0 < min <= max <= 3600, got {rg:?}"));
+            if !(rg[0].is_finite()
+                && rg[1].is_finite()
+                && rg[0] > 0.0
+                && rg[0] <= rg[1]
+                && rg[1] <= 3600.0)
+            {
+                return bad(
+                    key,
+                    format!("must be [min, max] with 0 < min <= max <= 3600, got {rg:?}"),
+                );
             }
         }
-        if self.kind == TrajectoryKind::Tumble && self.attitudes.is_none() && !(1..=10_000).contains(&self.pauses) {
-            return bad("pauses", format!("must be in 1..=10000, got {}", self.pauses));
+        if self.kind == TrajectoryKind::Tumble
+            && self.attitudes.is_none()
+            && !(1..=10_000).contains(&self.pauses)
+        {
+            return bad(
+                "pauses",
+                format!("must be in 1..=10000, got {}", self.pauses),
+            );
         }
         if !(1..=10_000_000).contains(&self.samples_per_pose) {
-            return bad("samples_per_pose", format!("must be in 1..=10000000, got {}", self.samples_per_pose));
+            return bad(
+                "samples_per_pose",
+                format!("must be in 1..=10000000, got {}", self.samples_per_pose),
+            );
         }
         if !(self.tremor_deg.is_finite() && (0.0..=10.0).contains(&self.tremor_deg)) {
-            return bad("tremor_deg", format!("must be in [0, 10], got {}", self.tremor_deg));
+            return bad(
+                "tremor_deg",
+                format!("must be in [0, 10], got {}", self.tremor_deg),
+            );
         }
         if !self.temp_c.is_finite() || !self.temp_drift_c.is_finite() {
             return bad("temp_c", "must be finite".into());
         }
         let w = &self.truth.world;
         if !w.field_ned_ut.iter().all(|x| x.is_finite()) || w.field_strength_ut() <= 0.0 {
-            return bad("world.field_ned_ut", format!("must be a finite non-zero vector, got {:?}", w.field_ned_ut));
+            return bad(
+                "world.field_ned_ut",
+                format!("must be a finite non-zero vector, got {:?}", w.field_ned_ut),
+            );
         }
         if !(w.gravity_mps2.is_finite() && w.gravity_mps2 > 0.0) {
-            return bad("world.gravity_mps2", format!("must be > 0, got {}", w.gravity_mps2));
+            return bad(
+                "world.gravity_mps2",
+                format!("must be > 0, got {}", w.gravity_mps2),
+            );
         }
         if let Some(a) = &self.attitudes {
             if a.is_empty() {
@@ -490,7 +562,11 @@ pub fn euler_deg_from_quat(q: &UnitQuaternion<f64>) -> [f64; 3] {
         // R = Rz(yaw) Ry(+-90) with roll 0: R01 = -sin(yaw), R11 = cos(yaw).
         (0.0, (-r[(0, 1)]).atan2(r[(1, 1)]))
     };
-    [roll.to_degrees(), pitch.to_degrees(), wrap360(yaw.to_degrees())]
+    [
+        roll.to_degrees(),
+        pitch.to_degrees(),
+        wrap360(yaw.to_degrees()),
+    ]
 }
 
 fn wrap360(d: f64) -> f64 {
@@ -511,9 +587,17 @@ fn min_jerk(u: f64) -> f64 {
 /// Piece of an attitude timeline: a hold or a rotation about a fixed body axis.
 #[derive(Debug, Clone)]
 enum Segment {
-    Hold { t1: f64, q: Quat },
+    Hold {
+        t1: f64,
+        q: Quat,
+    },
     /// From `q0` by the rotation vector `v` (body axes of `q0`), min-jerk in time.
-    Slew { t0: f64, t1: f64, q0: Quat, v: Vector3<f64> },
+    Slew {
+        t0: f64,
+        t1: f64,
+        q0: Quat,
+        v: Vector3<f64>,
+    },
 }
 
 impl Segment {
@@ -579,7 +663,9 @@ struct FlightPlan {
 }
 
 fn sines(c: &[(f64, f64, f64)], t: f64) -> f64 {
-    c.iter().map(|&(a, f, ph)| a * (std::f64::consts::TAU * f * t + ph).sin()).sum()
+    c.iter()
+        .map(|&(a, f, ph)| a * (std::f64::consts::TAU * f * t + ph).sin())
+        .sum()
 }
 
 impl FlightPlan {
@@ -600,9 +686,20 @@ impl FlightPlan {
             alt_m: 5.0,
             ground_rp_deg: [rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)],
             yaw0_deg,
-            turns: vec![(h0 + 0.10 * hl, h0 + 0.45 * hl, 360.0), (h0 + 0.55 * hl, h0 + 0.90 * hl, -360.0)],
-            roll: vec![(6.0, 0.13, ph(rng)), (3.0, 0.31, ph(rng)), (1.5, 0.7, ph(rng))],
-            pitch: vec![(6.0, 0.11, ph(rng)), (3.0, 0.27, ph(rng)), (1.5, 0.6, ph(rng))],
+            turns: vec![
+                (h0 + 0.10 * hl, h0 + 0.45 * hl, 360.0),
+                (h0 + 0.55 * hl, h0 + 0.90 * hl, -360.0),
+            ],
+            roll: vec![
+                (6.0, 0.13, ph(rng)),
+                (3.0, 0.31, ph(rng)),
+                (1.5, 0.7, ph(rng)),
+            ],
+            pitch: vec![
+                (6.0, 0.11, ph(rng)),
+                (3.0, 0.27, ph(rng)),
+                (1.5, 0.6, ph(rng)),
+            ],
             north: (2.0, 0.05, ph(rng)),
             east: (1.5, 0.08, ph(rng)),
             hover_throttle: 0.5,
@@ -622,13 +719,22 @@ impl FlightPlan {
         let e = self.airborne(t);
         let roll = (1.0 - e) * self.ground_rp_deg[0] + e * sines(&self.roll, t);
         let pitch = (1.0 - e) * self.ground_rp_deg[1] + e * sines(&self.pitch, t);
-        let yaw = self.yaw0_deg + self.turns.iter().map(|&(t0, t1, d)| d * min_jerk((t - t0) / (t1 - t0))).sum::<f64>();
+        let yaw = self.yaw0_deg
+            + self
+                .turns
+                .iter()
+                .map(|&(t0, t1, d)| d * min_jerk((t - t0) / (t1 - t0)))
+                .sum::<f64>();
         quat_from_euler_deg(roll, pitch, yaw)
     }
 
     fn position_ned(&self, t: f64) -> Vector3<f64> {
         let e = self.airborne(t);
-        Vector3::new(e * sines(&[self.north], t), e * sines(&[self.east], t), -self.alt_m * e)
+        Vector3::new(
+            e * sines(&[self.north], t),
+            e * sines(&[self.east], t),
+            -self.alt_m * e,
+        )
     }
 
     /// Throttle before noise: proportional to the thrust needed, spooled up 1 s before lift-off.
@@ -646,7 +752,10 @@ impl FlightPlan {
 
 #[derive(Debug, Clone)]
 enum Motion {
-    Segments { segs: Vec<Segment>, tremor: Option<Tremor> },
+    Segments {
+        segs: Vec<Segment>,
+        tremor: Option<Tremor>,
+    },
     Flight(FlightPlan),
 }
 
@@ -661,7 +770,9 @@ impl Motion {
     fn attitude(&self, t: f64) -> Quat {
         match self {
             Motion::Segments { segs, tremor } => {
-                let i = segs.partition_point(|s| s.t1() <= t).min(segs.len().saturating_sub(1));
+                let i = segs
+                    .partition_point(|s| s.t1() <= t)
+                    .min(segs.len().saturating_sub(1));
                 let base = match segs.get(i) {
                     None => Quat::identity(),
                     Some(Segment::Hold { q, .. }) => *q,
@@ -721,7 +832,10 @@ fn build_segments<R: rand::Rng>(
     for (k, p) in poses.iter().enumerate() {
         let q = quat_from_euler_deg(p[0], p[1], p[2]);
         let d = ticks(hold_s(rng), rate);
-        segs.push(Segment::Hold { t1: at(tick + d), q });
+        segs.push(Segment::Hold {
+            t1: at(tick + d),
+            q,
+        });
         truths.push(PoseTruth {
             t_start: at(tick),
             t_end: at(tick + d),
@@ -732,9 +846,21 @@ fn build_segments<R: rand::Rng>(
         tick += d;
         if let Some(n) = poses.get(k + 1) {
             let q1 = quat_from_euler_deg(n[0], n[1], n[2]);
-            let d = ticks(if slew_s[1] > slew_s[0] { rng.random_range(slew_s[0]..slew_s[1]) } else { slew_s[0] }, rate);
+            let d = ticks(
+                if slew_s[1] > slew_s[0] {
+                    rng.random_range(slew_s[0]..slew_s[1])
+                } else {
+                    slew_s[0]
+                },
+                rate,
+            );
             let v = (q.inverse() * q1).scaled_axis();
-            segs.push(Segment::Slew { t0: at(tick), t1: at(tick + d), q0: q, v });
+            segs.push(Segment::Slew {
+                t0: at(tick),
+                t1: at(tick + d),
+                q0: q,
+                v,
+            });
             tick += d;
         }
     }
@@ -768,7 +894,10 @@ pub fn turntable_attitudes() -> Vec<[f64; 3]> {
     v.push([20.0, 15.0, 0.0]);
     v.push([-20.0, 15.0, 45.0]);
     // Greedy nearest-neighbour order from the level pose.
-    let start = v.iter().position(|p| p[0] == 0.0 && p[1] == 0.0).unwrap_or(0);
+    let start = v
+        .iter()
+        .position(|p| p[0] == 0.0 && p[1] == 0.0)
+        .unwrap_or(0);
     let mut order = vec![v.swap_remove(start)];
     while !v.is_empty() {
         let last = order.last().copied().unwrap_or([0.0; 3]);
@@ -838,7 +967,11 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
     noise_rng.set_stream(1);
 
     let mut truth = scenario.truth.clone();
-    let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 { truth.rate_hz } else { 100.0 };
+    let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 {
+        truth.rate_hz
+    } else {
+        100.0
+    };
     let motion = match scenario.kind {
         TrajectoryKind::Turntable | TrajectoryKind::Tumble => {
             let turntable = scenario.kind == TrajectoryKind::Turntable;
@@ -858,17 +991,26 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
                     pr[0]
                 }
             };
-            let (segs, pose_truth) = build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            let (segs, pose_truth) =
+                build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
             truth.poses = pose_truth;
-            let tremor = if scenario.tremor_deg > 0.0 { Some(Tremor::new(scenario.tremor_deg, &mut rng)) } else { None };
+            let tremor = if scenario.tremor_deg > 0.0 {
+                Some(Tremor::new(scenario.tremor_deg, &mut rng))
+            } else {
+                None
+            };
             Motion::Segments { segs, tremor }
         }
         TrajectoryKind::Flight => {
             let p = FlightPlan::new(scenario.duration_s.unwrap_or(80.0), &mut rng);
             let q0 = euler_deg_from_quat(&p.attitude(0.0));
-            truth.poses = vec![
-                PoseTruth { t_start: 0.0, t_end: p.t_up - 1.0, roll_deg: q0[0], pitch_deg: q0[1], yaw_deg: q0[2] },
-            ];
+            truth.poses = vec![PoseTruth {
+                t_start: 0.0,
+                t_end: p.t_up - 1.0,
+                roll_deg: q0[0],
+                pitch_deg: q0[1],
+                yaw_deg: q0[2],
+            }];
             let qe = euler_deg_from_quat(&p.attitude(p.t_total));
             truth.poses.push(PoseTruth {
                 t_start: p.t_down + p.t_climb + 1.0,
@@ -911,7 +1053,11 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             use rand_distr::Distribution;
             let z: f64 = rand_distr::StandardNormal.sample(&mut noise_rng);
             let th = p.throttle(t, &a_ned, truth.world.gravity_mps2);
-            let th = if th > 0.0 { (th + 0.005 * z).clamp(0.0, 1.0) } else { 0.0 };
+            let th = if th > 0.0 {
+                (th + 0.005 * z).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             s.throttle = Some(th);
             s.current_a = Some(0.3 + 30.0 * th.powf(1.5));
         }
@@ -923,7 +1069,11 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
         p.t_end = p.t_end.min(end);
     }
     truth.rate_hz = rate;
-    SimOutput { samples, truth, true_attitude: att }
+    SimOutput {
+        samples,
+        truth,
+        true_attitude: att,
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -936,18 +1086,32 @@ fn write_atomic<F>(path: &std::path::Path, body: F) -> Result<(), Error>
 where
     F: FnOnce(std::fs::File) -> std::io::Result<std::fs::File>,
 {
-    let werr = |source: std::io::Error| Error::Write { path: path.to_path_buf(), source };
-    let name = path
-        .file_name()
-        .ok_or_else(|| werr(std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path")))?;
+    let werr = |source: std::io::Error| Error::Write {
+        path: path.to_path_buf(),
+        source,
+    };
+    let name = path.file_name().ok_or_else(|| {
+        werr(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "not a file path",
+        ))
+    })?;
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => std::path::PathBuf::from("."),
     };
     let n = TMP_COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = dir.join(format!(".{}.tmp-{}-{}", name.to_string_lossy(), std::process::id(), n));
+    let tmp = dir.join(format!(
+        ".{}.tmp-{}-{}",
+        name.to_string_lossy(),
+        std::process::id(),
+        n
+    ));
     let result = (|| -> std::io::Result<()> {
-        let file = std::fs::OpenOptions::new().write(true).create_new(true).open(&tmp)?;
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)?;
         let file = body(file)?;
         file.sync_all()?;
         drop(file);
@@ -1031,7 +1195,12 @@ pub struct TlogWriteOptions {
 
 impl Default for TlogWriteOptions {
     fn default() -> Self {
-        TlogWriteOptions { message: ImuMessage::HighresImu, system_id: 1, component_id: 1, mavlink_version: 2 }
+        TlogWriteOptions {
+            message: ImuMessage::HighresImu,
+            system_id: 1,
+            component_id: 1,
+            mavlink_version: 2,
+        }
     }
 }
 
@@ -1048,16 +1217,32 @@ fn sat_i16(x: f64) -> i16 {
     }
 }
 
-fn tlog_records<W: std::io::Write>(w: &mut W, samples: &[Sample], opts: &TlogWriteOptions) -> std::io::Result<()> {
+// `default()` + assignments: the extension fields (HIGHRES_IMU.id, SCALED_IMU.temperature) exist only
+// with the `mav2-message-extensions` feature.
+#[allow(clippy::field_reassign_with_default)]
+fn tlog_records<W: std::io::Write>(
+    w: &mut W,
+    samples: &[Sample],
+    opts: &TlogWriteOptions,
+) -> std::io::Result<()> {
     use mavlink::dialects::ardupilotmega as apm;
-    let version = if opts.mavlink_version == 1 { mavlink::MavlinkVersion::V1 } else { mavlink::MavlinkVersion::V2 };
+    let version = if opts.mavlink_version == 1 {
+        mavlink::MavlinkVersion::V1
+    } else {
+        mavlink::MavlinkVersion::V2
+    };
     let mut seq: u8 = 0;
     let mut put = |w: &mut W, time_us: u64, msg: &apm::MavMessage| -> std::io::Result<()> {
-        let header = mavlink::MavHeader { system_id: opts.system_id as u32, component_id: opts.component_id, sequence: seq };
+        let header = mavlink::MavHeader {
+            system_id: opts.system_id as u32,
+            component_id: opts.component_id,
+            sequence: seq,
+        };
         seq = seq.wrapping_add(1);
         let mut frame = Vec::with_capacity(64);
-        mavlink::write_versioned_msg(&mut frame, version, header, msg)
-            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("mavlink: {e:?}")))?;
+        mavlink::write_versioned_msg(&mut frame, version, header, msg).map_err(|e| {
+            std::io::Error::new(std::io::ErrorKind::InvalidData, format!("mavlink: {e:?}"))
+        })?;
         w.write_all(&time_us.to_be_bytes())?;
         w.write_all(&frame)
     };
@@ -1078,14 +1263,21 @@ fn tlog_records<W: std::io::Write>(w: &mut W, samples: &[Sample], opts: &TlogWri
         let stamp = TLOG_EPOCH_US + t_us;
         if s.t_s >= next_heartbeat_s {
             put(w, stamp, &heartbeat)?;
-            next_heartbeat_s = if next_heartbeat_s.is_finite() { next_heartbeat_s + 1.0 } else { s.t_s + 1.0 };
+            next_heartbeat_s = if next_heartbeat_s.is_finite() {
+                next_heartbeat_s + 1.0
+            } else {
+                s.t_s + 1.0
+            };
             while next_heartbeat_s <= s.t_s {
                 next_heartbeat_s += 1.0;
             }
         }
         if let Some(th) = s.throttle.filter(|x| x.is_finite()) {
             // Before the IMU message so a reader applies it to this sample.
-            let hud = apm::VFR_HUD_DATA { throttle: (th * 100.0).round().clamp(0.0, 100.0) as u16, ..Default::default() };
+            let hud = apm::VFR_HUD_DATA {
+                throttle: (th * 100.0).round().clamp(0.0, 100.0) as u16,
+                ..Default::default()
+            };
             put(w, stamp, &apm::MavMessage::VFR_HUD(hud))?;
         }
         let a = s.accel_mps2.unwrap_or([0.0; 3]);
@@ -1153,7 +1345,11 @@ fn tlog_records<W: std::io::Write>(w: &mut W, samples: &[Sample], opts: &TlogWri
 /// Write samples as a `.tlog`: per record a big-endian u64 Unix time in microseconds
 /// ([`TLOG_EPOCH_US`] + t_s) then one raw MAVLink frame. A HEARTBEAT (quadrotor, PX4) every second,
 /// a VFR_HUD before each sample that has a throttle, and the IMU message of `opts`. Atomic.
-pub fn write_tlog(path: &std::path::Path, samples: &[Sample], opts: &TlogWriteOptions) -> Result<(), Error> {
+pub fn write_tlog(
+    path: &std::path::Path,
+    samples: &[Sample],
+    opts: &TlogWriteOptions,
+) -> Result<(), Error> {
     if opts.mavlink_version != 1 && opts.mavlink_version != 2 {
         return Err(Error::Config {
             key: "mavlink_version".into(),
@@ -1214,7 +1410,11 @@ mod tests {
         let out = simulate(&sc, 1);
         assert_eq!(out.truth.poses.len(), 32);
         for p in &out.truth.poses {
-            let n = out.samples.iter().filter(|s| s.t_s >= p.t_start && s.t_s < p.t_end - 1e-9).count();
+            let n = out
+                .samples
+                .iter()
+                .filter(|s| s.t_s >= p.t_start && s.t_s < p.t_end - 1e-9)
+                .count();
             assert_eq!(n, 1000, "{p:?}");
         }
         // Full coverage of the accelerometer: every body axis sees both +g and -g.
@@ -1222,7 +1422,9 @@ mod tests {
             .truth
             .poses
             .iter()
-            .map(|p| quat_from_euler_deg(p.roll_deg, p.pitch_deg, p.yaw_deg).inverse() * Vector3::z())
+            .map(|p| {
+                quat_from_euler_deg(p.roll_deg, p.pitch_deg, p.yaw_deg).inverse() * Vector3::z()
+            })
             .collect();
         for axis in 0..3 {
             assert!(dirs.iter().any(|d| d[axis] > 0.85), "axis {axis} +");
@@ -1241,7 +1443,11 @@ mod tests {
             sc.duration_s = Some(60.0);
             let out = simulate(&sc, 9);
             let t = &out.truth;
-            let (ca, cm, cg) = (t.accel.calibration(), t.mag.calibration(), t.gyro.calibration());
+            let (ca, cm, cg) = (
+                t.accel.calibration(),
+                t.mag.calibration(),
+                t.gyro.calibration(),
+            );
             let field = t.world.field_strength_ut();
             let mut checked = 0;
             for p in &t.poses {
@@ -1284,7 +1490,10 @@ mod tests {
         sc.truth.accel = SensorTruth::ideal();
         let out = simulate(&sc, 3);
         let a = out.samples[10].accel_mps2.unwrap();
-        assert!(a[0].abs() < 1e-12 && a[1].abs() < 1e-12 && (a[2] + 9.80665).abs() < 1e-12, "{a:?}");
+        assert!(
+            a[0].abs() < 1e-12 && a[1].abs() < 1e-12 && (a[2] + 9.80665).abs() < 1e-12,
+            "{a:?}"
+        );
         let last = out.samples.last().unwrap().accel_mps2.unwrap();
         assert!((last[2] + 9.80665).abs() < 1e-12);
         // Nose up 90 deg: x forward points up, the reaction to gravity is +g along x.
@@ -1314,7 +1523,9 @@ mod tests {
                 q *= UnitQuaternion::from_scaled_axis(w * dt);
             }
             let e = out.true_attitude.last().unwrap();
-            let err = q.angle_to(&quat_from_euler_deg(e[0], e[1], e[2])).to_degrees();
+            let err = q
+                .angle_to(&quat_from_euler_deg(e[0], e[1], e[2]))
+                .to_degrees();
             assert!(err < 1.0, "{name}: integrated attitude off by {err} deg");
         }
     }
@@ -1339,7 +1550,11 @@ mod tests {
             .iter()
             .zip(&out.samples)
             .filter(|(_, s)| s.t_s >= p.t_start && s.t_s < p.t_end)
-            .map(|(a, _)| quat_from_euler_deg(a[0], a[1], a[2]).angle_to(&q).to_degrees())
+            .map(|(a, _)| {
+                quat_from_euler_deg(a[0], a[1], a[2])
+                    .angle_to(&q)
+                    .to_degrees()
+            })
             .collect();
         let max = dev.iter().cloned().fold(0.0, f64::max);
         assert!(max > 0.01 && max < 0.5, "tremor {max}");
@@ -1394,12 +1609,19 @@ mod tests {
 
         let e = Scenario::from_toml_str("name = \"tumble\"\nbogus_key = 1\n").unwrap_err();
         assert!(e.to_string().contains("bogus_key"), "{e}");
-        assert!(matches!(&e, Error::Config { key, .. } if key == "bogus_key"), "{e:?}");
-        let e = Scenario::from_toml_str("name = \"tumble\"\n[mag]\nofset = [1.0, 2.0, 3.0]\n").unwrap_err();
+        assert!(
+            matches!(&e, Error::Config { key, .. } if key == "bogus_key"),
+            "{e:?}"
+        );
+        let e = Scenario::from_toml_str("name = \"tumble\"\n[mag]\nofset = [1.0, 2.0, 3.0]\n")
+            .unwrap_err();
         assert!(e.to_string().contains("ofset"), "{e}");
         let e = Scenario::from_toml_str("name = \"nope\"\n").unwrap_err();
         assert!(e.to_string().contains("nope"), "{e}");
-        let e = Scenario::from_toml_str("name = \"tumble\"\n[accel]\nmatrix = [[0,0,0],[0,0,0],[0,0,0]]\n").unwrap_err();
+        let e = Scenario::from_toml_str(
+            "name = \"tumble\"\n[accel]\nmatrix = [[0,0,0],[0,0,0],[0,0,0]]\n",
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("singular"), "{e}");
         // Truth round-trips through JSON (truth.json).
         let j = serde_json::to_string(&out.truth).unwrap();
@@ -1426,8 +1648,16 @@ mod tests {
         write_csv(&p, &samples).unwrap();
         let text = std::fs::read_to_string(&p).unwrap();
         let mut lines = text.lines();
-        assert_eq!(lines.next().unwrap(), "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle");
-        let first: Vec<f64> = lines.next().unwrap().split(',').map(|c| c.parse().unwrap()).collect();
+        assert_eq!(
+            lines.next().unwrap(),
+            "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle"
+        );
+        let first: Vec<f64> = lines
+            .next()
+            .unwrap()
+            .split(',')
+            .map(|c| c.parse().unwrap())
+            .collect();
         assert_eq!(first.len(), 12);
         assert_eq!(first[1], samples[0].accel_mps2.unwrap()[0]);
         assert_eq!(text.lines().count(), samples.len() + 1);
@@ -1439,12 +1669,30 @@ mod tests {
         std::io::Read::read_to_string(&mut dec, &mut s).unwrap();
         assert_eq!(s, text);
         // No temporary files left behind.
-        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(names.len(), 2, "{names:?}");
         // Absent fields are empty cells.
         let p2 = dir.path().join("sparse.csv");
-        write_csv(&p2, &[Sample { t_s: 0.5, mag_ut: Some([1.0, 2.0, 3.0]), ..Default::default() }]).unwrap();
-        assert_eq!(std::fs::read_to_string(&p2).unwrap().lines().nth(1).unwrap(), "0.5,,,,,,,1,2,3,,");
+        write_csv(
+            &p2,
+            &[Sample {
+                t_s: 0.5,
+                mag_ut: Some([1.0, 2.0, 3.0]),
+                ..Default::default()
+            }],
+        )
+        .unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&p2)
+                .unwrap()
+                .lines()
+                .nth(1)
+                .unwrap(),
+            "0.5,,,,,,,1,2,3,,"
+        );
     }
 
     /// Split a tlog into (timestamp, frame) records by hand, checking each frame's framing.
@@ -1500,7 +1748,9 @@ mod tests {
         let s = samples[100];
         let (ts, frame) = imu[100];
         assert_eq!(*ts, TLOG_EPOCH_US + (s.t_s * 1e6).round() as u64);
-        let (h, msg) = mavlink::MavlinkReader::new(*frame).read_any_message::<MavMessage>().unwrap();
+        let (h, msg) = mavlink::MavlinkReader::new(*frame)
+            .read_any_message::<MavMessage>()
+            .unwrap();
         assert_eq!((h.system_id, h.component_id), (1, 1));
         match msg {
             MavMessage::HIGHRES_IMU(d) => {
@@ -1508,15 +1758,28 @@ mod tests {
                 assert!((d.zmag as f64 * 100.0 - s.mag_ut.unwrap()[2]).abs() < 1e-4);
                 assert!((d.temperature as f64 - s.temp_c.unwrap()).abs() < 1e-4);
                 assert_eq!(d.fields_updated.bits(), 0x11FF);
-                assert_eq!(d.time_usec, TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64);
+                assert_eq!(
+                    d.time_usec,
+                    TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64
+                );
             }
             m => panic!("{m:?}"),
         }
         let hb = recs.iter().find(|(_, f)| msg_id(f) == 0).unwrap().1;
-        match mavlink::MavlinkReader::new(hb).read_any_message::<MavMessage>().unwrap().1 {
+        match mavlink::MavlinkReader::new(hb)
+            .read_any_message::<MavMessage>()
+            .unwrap()
+            .1
+        {
             MavMessage::HEARTBEAT(d) => {
-                assert_eq!(d.autopilot, mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_PX4);
-                assert_eq!(d.mavtype, mavlink::dialects::ardupilotmega::MavType::MAV_TYPE_QUADROTOR);
+                assert_eq!(
+                    d.autopilot,
+                    mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_PX4
+                );
+                assert_eq!(
+                    d.mavtype,
+                    mavlink::dialects::ardupilotmega::MavType::MAV_TYPE_QUADROTOR
+                );
             }
             m => panic!("{m:?}"),
         }
@@ -1528,7 +1791,12 @@ mod tests {
         let dir = tmpdir();
         let samples = short_samples();
         let p = dir.path().join("sim1.tlog");
-        let opts = TlogWriteOptions { message: ImuMessage::ScaledImu, system_id: 7, component_id: 3, mavlink_version: 1 };
+        let opts = TlogWriteOptions {
+            message: ImuMessage::ScaledImu,
+            system_id: 7,
+            component_id: 3,
+            mavlink_version: 1,
+        };
         write_tlog(&p, &samples, &opts).unwrap();
         let bytes = std::fs::read(&p).unwrap();
         let recs = split_tlog(&bytes);
@@ -1536,7 +1804,9 @@ mod tests {
         let imu: Vec<_> = recs.iter().filter(|(_, f)| msg_id(f) == 26).collect();
         assert_eq!(imu.len(), samples.len());
         let s = samples[50];
-        let (h, msg) = mavlink::MavlinkReader::new(imu[50].1).read_any_message::<MavMessage>().unwrap();
+        let (h, msg) = mavlink::MavlinkReader::new(imu[50].1)
+            .read_any_message::<MavMessage>()
+            .unwrap();
         assert_eq!((h.system_id, h.component_id), (7, 3));
         match msg {
             MavMessage::SCALED_IMU(d) => {
@@ -1547,12 +1817,26 @@ mod tests {
             }
             m => panic!("{m:?}"),
         }
-        assert!(write_tlog(&p, &samples, &TlogWriteOptions { mavlink_version: 3, ..Default::default() }).is_err());
+        assert!(write_tlog(
+            &p,
+            &samples,
+            &TlogWriteOptions {
+                mavlink_version: 3,
+                ..Default::default()
+            }
+        )
+        .is_err());
     }
 
     #[test]
     fn euler_round_trip_including_gimbal_lock() {
-        for e in [[10.0, 20.0, 30.0], [-170.0, -80.0, 359.0], [0.0, 90.0, 145.0], [30.0, -90.0, 10.0], [180.0, 0.0, 0.0]] {
+        for e in [
+            [10.0, 20.0, 30.0],
+            [-170.0, -80.0, 359.0],
+            [0.0, 90.0, 145.0],
+            [30.0, -90.0, 10.0],
+            [180.0, 0.0, 0.0],
+        ] {
             let q = quat_from_euler_deg(e[0], e[1], e[2]);
             let back = euler_deg_from_quat(&q);
             let q2 = quat_from_euler_deg(back[0], back[1], back[2]);
@@ -1560,6 +1844,8 @@ mod tests {
             assert!((0.0..360.0).contains(&back[2]));
         }
         let b = euler_deg_from_quat(&quat_from_euler_deg(10.0, 20.0, 30.0));
-        assert!((b[0] - 10.0).abs() < 1e-9 && (b[1] - 20.0).abs() < 1e-9 && (b[2] - 30.0).abs() < 1e-9);
+        assert!(
+            (b[0] - 10.0).abs() < 1e-9 && (b[1] - 20.0).abs() < 1e-9 && (b[2] - 30.0).abs() < 1e-9
+        );
     }
 }

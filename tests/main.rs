@@ -1,4 +1,5 @@
 //! The one integration-test binary: real recordings, simulated logs with known truth, the CLI.
+#![allow(clippy::needless_range_loop)]
 
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
@@ -10,7 +11,10 @@ fn shared_data() -> Option<PathBuf> {
     if p.is_dir() {
         Some(p)
     } else {
-        eprintln!("SKIPPED: {} is absent; real-data tests need the shared recordings beside the checkout", p.display());
+        eprintln!(
+            "SKIPPED: {} is absent; real-data tests need the shared recordings beside the checkout",
+            p.display()
+        );
         None
     }
 }
@@ -26,7 +30,8 @@ macro_rules! require_data {
 }
 
 fn run(path: &Path, cfg: &Config) -> imucald::replay::ReplayOutcome {
-    replay(path, cfg, &ReplayOptions::default(), &mut |_, _| {}).unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
+    replay(path, cfg, &ReplayOptions::default(), &mut |_, _| {})
+        .unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
 }
 
 mod real_data {
@@ -36,20 +41,30 @@ mod real_data {
         let text = std::fs::read_to_string(path).unwrap();
         let v: serde_json::Value = serde_json::from_str(&text).unwrap();
         let a = v["os_hard_iron_uT_median"].as_array().unwrap();
-        [a[0].as_f64().unwrap(), a[1].as_f64().unwrap(), a[2].as_f64().unwrap()]
+        [
+            a[0].as_f64().unwrap(),
+            a[1].as_f64().unwrap(),
+            a[2].as_f64().unwrap(),
+        ]
     }
 
     #[test]
     fn tyrex_hard_iron_within_3_ut_of_the_phone() {
         let data = require_data!();
         for set in ["calib_mag_Nexus5_d1", "calib_mag_Nexus5_d3"] {
-            let out = run(&data.join(format!("tyrex/{set}.csv.gz")), &Config::default());
+            let out = run(
+                &data.join(format!("tyrex/{set}.csv.gz")),
+                &Config::default(),
+            );
             let m = &out.report.calibration.mag;
             assert_eq!(m.status, "ok", "{set}: {:?} {:?}", m.failure, m.detail);
             let r = reference_hard_iron(&data.join(format!("tyrex/{set}.reference.json")));
             for k in 0..3 {
                 let d = (m.offset[k] - r[k]).abs();
-                eprintln!("{set} axis {k}: ours {:.3} phone {:.3} diff {d:.3} uT", m.offset[k], r[k]);
+                eprintln!(
+                    "{set} axis {k}: ours {:.3} phone {:.3} diff {d:.3} uT",
+                    m.offset[k], r[k]
+                );
                 assert!(d < 3.0, "{set} axis {k}: {} vs {}", m.offset[k], r[k]);
             }
             assert!(out.report.coverage.mag.filled >= 80);
@@ -59,10 +74,16 @@ mod real_data {
     #[test]
     fn imu_tk_poses_and_gravity_norm_residual() {
         let data = require_data!();
-        let out = run(&data.join("imu_tk/xsens_raw_counts.csv.gz"), &Config::default());
+        let out = run(
+            &data.join("imu_tk/xsens_raw_counts.csv.gz"),
+            &Config::default(),
+        );
         let poses = out.report.static_poses.len();
         let a = &out.report.calibration.accel;
-        eprintln!("imu_tk: {poses} poses, accel model {} rms {:.5} m/s^2", a.model, a.rms_residual);
+        eprintln!(
+            "imu_tk: {poses} poses, accel model {} rms {:.5} m/s^2",
+            a.model, a.rms_residual
+        );
         assert!(poses >= 34, "{poses} static poses");
         assert_eq!(a.status, "ok", "{:?}", a.detail);
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
@@ -73,8 +94,14 @@ mod real_data {
     #[test]
     fn tyrex_accel_log_without_mag_tumble_says_coverage() {
         let data = require_data!();
-        let out = run(&data.join("tyrex/calib_acc_Nexus5_d1.csv.gz"), &Config::default());
-        assert_eq!(out.report.calibration.mag.failure.as_deref(), Some("coverage"));
+        let out = run(
+            &data.join("tyrex/calib_acc_Nexus5_d1.csv.gz"),
+            &Config::default(),
+        );
+        assert_eq!(
+            out.report.calibration.mag.failure.as_deref(),
+            Some("coverage")
+        );
         assert_eq!(out.report.calibration.accel.status, "ok");
     }
 }
@@ -87,10 +114,268 @@ mod config_files {
         for e in std::fs::read_dir(dir).unwrap() {
             let p = e.unwrap().path();
             if p.extension().is_some_and(|x| x == "toml") {
-                imucald::config::Config::load(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                imucald::config::Config::load(&p)
+                    .unwrap_or_else(|e| panic!("{}: {e}", p.display()));
                 n += 1;
             }
         }
         assert!(n >= 1);
+    }
+}
+
+mod simulated {
+    use super::*;
+    use imucald::attitude::{angle_diff_deg, attitude_deg};
+    use imucald::model::Calibration;
+    use imucald::report::SensorCalibration;
+    use imucald::sim::{simulate, write_csv, write_tlog, Scenario, SensorTruth, TlogWriteOptions};
+
+    fn normalised(m: &[[f64; 3]; 3]) -> nalgebra::Matrix3<f64> {
+        Calibration {
+            model: imucald::model::ModelKind::Sym9,
+            offset: [0.0; 3],
+            matrix: *m,
+        }
+        .normalised_matrix()
+    }
+
+    /// Offset error and largest normalised-matrix element error of a fit against the truth.
+    fn errors(fit: &SensorCalibration, truth: &SensorTruth) -> (f64, f64) {
+        let off = (0..3)
+            .map(|k| (fit.offset[k] - truth.offset[k]).abs())
+            .fold(0.0, f64::max);
+        let mat = (normalised(&fit.matrix) - normalised(&truth.matrix))
+            .abs()
+            .max();
+        (off, mat)
+    }
+
+    fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
+        let out = run(path, &Config::default());
+        let (m, a) = (&out.report.calibration.mag, &out.report.calibration.accel);
+        assert_eq!(m.status, "ok", "{what} mag: {:?}", m.detail);
+        assert_eq!(a.status, "ok", "{what} accel: {:?}", a.detail);
+        let (mo, mm) = errors(m, &truth.mag);
+        let (ao, am) = errors(a, &truth.accel);
+        eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
+        assert!(mo < 0.1, "{what}: mag offset error {mo} uT");
+        assert!(mm < 0.002, "{what}: mag matrix error {mm}");
+        assert!(ao < 0.01, "{what}: accel offset error {ao} m/s^2");
+        assert!(am < 0.001, "{what}: accel matrix error {am}");
+    }
+
+    #[test]
+    fn recovers_known_parameters_from_tlog_and_csv() {
+        let dir = tempfile::tempdir().unwrap();
+        for seed in [1u64, 2] {
+            let sim = simulate(&Scenario::named("tumble").unwrap(), seed);
+            let tlog = dir.path().join(format!("tumble{seed}.tlog"));
+            write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
+            check_recovery(&tlog, &sim.truth, &format!("tlog seed {seed}"));
+            let csv = dir.path().join(format!("tumble{seed}.csv.gz"));
+            write_csv(&csv, &sim.samples).unwrap();
+            check_recovery(&csv, &sim.truth, &format!("csv seed {seed}"));
+        }
+    }
+
+    #[test]
+    fn turntable_roll_and_heading_after_calibration() {
+        let dir = tempfile::tempdir().unwrap();
+        let sim = simulate(&Scenario::named("turntable").unwrap(), 3);
+        let tlog = dir.path().join("turntable.tlog");
+        write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
+        let out = run(&tlog, &Config::default());
+        let (mc, ac) = (
+            out.results.mag.calibration.expect("mag ok"),
+            out.results.accel.calibration.expect("accel ok"),
+        );
+        let decl = sim.truth.world.declination_deg();
+        let mut roll_err: f64 = 0.0;
+        let (mut hmin, mut hmax) = (f64::INFINITY, f64::NEG_INFINITY);
+        let mut matched = 0;
+        for tp in &sim.truth.poses {
+            // The detected pose that lies inside this true pose.
+            let Some(p) = out
+                .report
+                .static_poses
+                .iter()
+                .find(|p| p.t_start >= tp.t_start - 0.5 && p.t_end <= tp.t_end + 0.5)
+            else {
+                continue;
+            };
+            matched += 1;
+            let (r, pi, h) =
+                attitude_deg(&ac.apply(&p.accel), &mc.apply(&p.mag.unwrap()), Some(decl));
+            // Roll is undefined at pitch +-90 deg: judge it where it is defined.
+            if tp.pitch_deg.abs() < 80.0 {
+                roll_err = roll_err.max(angle_diff_deg(r, tp.roll_deg).abs());
+            }
+            assert!(
+                (pi - tp.pitch_deg).abs() < 0.2,
+                "pitch {pi} vs {}",
+                tp.pitch_deg
+            );
+            if tp.pitch_deg.abs() < 80.0 {
+                let e = angle_diff_deg(h, tp.yaw_deg);
+                hmin = hmin.min(e);
+                hmax = hmax.max(e);
+            }
+        }
+        eprintln!("turntable: {matched}/{} poses, max roll error {roll_err:.3} deg, heading error spread {:.3}..{:.3} deg", sim.truth.poses.len(), hmin, hmax);
+        assert!(matched >= 30, "{matched} poses matched");
+        assert!(roll_err < 0.2, "roll error {roll_err}");
+        assert!((hmax - hmin) / 2.0 < 1.0, "heading spread {hmin}..{hmax}");
+    }
+}
+
+mod fixtures {
+    use super::*;
+
+    fn fixture(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("fixtures")
+            .join(name)
+    }
+
+    #[test]
+    fn golden_tumble_fixture_matches_its_truth() {
+        let truth: imucald::sim::Truth =
+            serde_json::from_str(&std::fs::read_to_string(fixture("tumble.truth.json")).unwrap())
+                .unwrap();
+        let out = run(&fixture("tumble.tlog"), &Config::default());
+        let r = &out.report;
+        assert_eq!(r.schema, "imucald.report/1");
+        assert_eq!(r.input.format, "tlog");
+        assert_eq!(r.static_poses.len(), truth.poses.len());
+        for (fit, t) in [
+            (&r.calibration.mag, &truth.mag),
+            (&r.calibration.accel, &truth.accel),
+        ] {
+            assert_eq!(fit.status, "ok");
+            assert_eq!(fit.model, "sym9");
+            for k in 0..3 {
+                assert!(
+                    (fit.offset[k] - t.offset[k]).abs() < 4.0 * fit.offset_sigma[k] + 1e-3,
+                    "{:?} vs {:?} (sigma {:?})",
+                    fit.offset,
+                    t.offset,
+                    fit.offset_sigma
+                );
+            }
+        }
+        let g = &r.calibration.gyro;
+        for k in 0..3 {
+            assert!(
+                (g.bias[k] - truth.gyro.offset[k]).abs() < 0.002,
+                "gyro bias {:?} vs {:?}",
+                g.bias,
+                truth.gyro.offset
+            );
+        }
+    }
+
+    #[test]
+    fn cli_replay_writes_report_csv_exports_and_plots() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args([
+                "replay",
+                fixture("tumble.tlog").to_str().unwrap(),
+                "--report",
+            ])
+            .arg(d.join("r.json"))
+            .arg("--calibrated-out")
+            .arg(d.join("cal.csv"))
+            .arg("--export")
+            .arg(d.join("export"))
+            .arg("--plot")
+            .arg(d.join("plots"))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(stdout.contains("mag  : ok, model sym9"), "{stdout}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("r.json")).unwrap()).unwrap();
+        for key in ["schema", "input", "static_poses", "coverage", "calibration"] {
+            assert!(v.get(key).is_some(), "report lacks {key}");
+        }
+        for key in [
+            "status",
+            "failure",
+            "model",
+            "units",
+            "offset",
+            "matrix",
+            "radius",
+            "rms_residual",
+            "offset_sigma",
+            "samples_used",
+            "iterations",
+        ] {
+            assert!(
+                v["calibration"]["mag"].get(key).is_some(),
+                "calibration.mag lacks {key}"
+            );
+        }
+        assert_eq!(v["coverage"]["mag"]["regions"], 100);
+        let csv = std::fs::read_to_string(d.join("cal.csv")).unwrap();
+        let mut lines = csv.lines();
+        assert_eq!(
+            lines.next().unwrap(),
+            "t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg"
+        );
+        // The first pose of the tumble is level: roll and pitch near zero.
+        let row: Vec<f64> = lines
+            .nth(50)
+            .unwrap()
+            .split(',')
+            .map(|c| c.parse().unwrap())
+            .collect();
+        assert!(row[10].abs() < 1.0 && row[11].abs() < 1.0, "{row:?}");
+        for f in ["ardupilot.parm", "px4.params", "fusion.h"] {
+            assert!(d.join("export").join(f).metadata().unwrap().len() > 50);
+        }
+        for f in [
+            "mag_coverage.png",
+            "mag_coverage.svg",
+            "accel_coverage.png",
+            "mag_residuals.png",
+            "accel_residuals.svg",
+        ] {
+            assert!(
+                d.join("plots").join(f).metadata().unwrap().len() > 1000,
+                "{f}"
+            );
+        }
+    }
+
+    #[test]
+    fn cli_errors_say_what_to_fix() {
+        let dir = tempfile::tempdir().unwrap();
+        let junk = dir.path().join("junk.bin");
+        std::fs::write(&junk, [0u8, 1, 2, 3, 255, 254]).unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["replay", junk.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        assert!(String::from_utf8_lossy(&out.stderr).contains("--format"));
+        let cfg = dir.path().join("bad.toml");
+        std::fs::write(&cfg, "[fit]\nmag_model = \"ellipse\"\n").unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["replay", "--config", cfg.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("fit.mag_model"),
+            "{err}"
+        );
     }
 }
