@@ -10,7 +10,7 @@ use crate::model::{
     ModelKind,
 };
 use crate::types::Vec3;
-use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, Vector3};
+use nalgebra::{DMatrix, Matrix3, SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Why a fit was refused. The names are the report's `failure` strings.
@@ -87,15 +87,6 @@ pub fn levenberg_marquardt<const N: usize>(
         }
         (ssr, jtj, jtr)
     };
-    let ssr_only = |x: &SVector<f64, N>| {
-        let mut g = SVector::<f64, N>::zeros();
-        let mut s = 0.0;
-        for i in 0..n_points {
-            let r = resid(x, i, &mut g);
-            s += r * r;
-        }
-        s
-    };
     let mut x = x0;
     let (mut ssr, mut jtj, mut jtr) = eval(&x);
     let mut lambda = 1e-3;
@@ -118,15 +109,14 @@ pub fn levenberg_marquardt<const N: usize>(
             }
         };
         let x_new = x + step;
-        let ssr_new = ssr_only(&x_new);
+        let (ssr_new, jtj_new, jtr_new) = eval(&x_new);
         if ssr_new.is_finite() && ssr_new <= ssr {
             let small_step = step.norm() <= 1e-12 * (x.norm() + 1e-12);
             let small_gain = ssr - ssr_new <= 1e-14 * ssr.max(1e-300);
             x = x_new;
-            let e = eval(&x);
-            ssr = e.0;
-            jtj = e.1;
-            jtr = e.2;
+            ssr = ssr_new;
+            jtj = jtj_new;
+            jtr = jtr_new;
             lambda = (lambda * 0.1).max(1e-15);
             if small_step || small_gain || ssr == 0.0 {
                 converged = true;
@@ -190,11 +180,11 @@ pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
     if n < 9 {
         return None;
     }
-    let mut ata = DMatrix::<f64>::zeros(9, 9);
-    let mut atb = DVector::<f64>::zeros(9);
+    let mut ata = SMatrix::<f64, 9, 9>::zeros();
+    let mut atb = SVector::<f64, 9>::zeros();
     for p in points {
         let (x, y, z) = (p[0], p[1], p[2]);
-        let row = DVector::from_column_slice(&[
+        let row = SVector::<f64, 9>::from([
             x * x,
             y * y,
             z * z,
@@ -205,8 +195,17 @@ pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
             2.0 * y,
             2.0 * z,
         ]);
-        ata += &row * row.transpose();
+        for c in 0..9 {
+            for r in 0..=c {
+                ata[(r, c)] += row[r] * row[c];
+            }
+        }
         atb += row;
+    }
+    for c in 0..9 {
+        for r in 0..c {
+            ata[(c, r)] = ata[(r, c)];
+        }
     }
     let s = ata.cholesky()?.solve(&atb);
     let q = Matrix3::new(s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]);

@@ -62,6 +62,8 @@ pub struct Pipeline {
     mag_seen: usize,
     mag_bins: Option<DirectionBins>,
     last_refit_t: Option<f64>,
+    /// Fit inputs (kept mag points, poses) added since the last refit.
+    new_inputs: usize,
     pub last_t: f64,
     pub samples: u64,
     pub mag_units: Unit,
@@ -97,6 +99,7 @@ impl Pipeline {
             mag_seen: 0,
             mag_bins: None,
             last_refit_t: None,
+            new_inputs: 0,
             last_t: 0.0,
             samples: 0,
             mag_units: Unit::Si,
@@ -139,6 +142,7 @@ impl Pipeline {
         if let Some(a) = s.accel_mps2 {
             if let Some(p) = self.detector.push(&s, &a) {
                 self.poses.push(p);
+                self.new_inputs += 1;
             }
         }
         if let Some(m) = s.mag_ut {
@@ -149,7 +153,8 @@ impl Pipeline {
                 self.last_refit_t = Some(s.t_s);
                 false
             }
-            Some(t) => s.t_s - t >= self.cfg.fit.refit_every_s,
+            // Nothing new to fit: no refit (a vehicle sitting still costs nothing).
+            Some(t) => s.t_s - t >= self.cfg.fit.refit_every_s && self.new_inputs > 0,
         };
         if due {
             self.last_refit_t = Some(s.t_s);
@@ -159,12 +164,15 @@ impl Pipeline {
 
     fn add_mag(&mut self, m: Vec3) {
         if let Some(b) = self.mag_bins.as_mut() {
-            b.add(&m);
+            if b.add(&m) {
+                self.new_inputs += 1;
+            }
             return;
         }
         self.mag_seen += 1;
         if self.mag_seen % self.mag_stride == 0 {
             self.mag_buffer.push(m);
+            self.new_inputs += 1;
         }
         if self.mag_buffer.len() >= MAG_BUFFER_MAX {
             // Bounded memory before a centre is known: keep every other point, sample half as often.
@@ -228,6 +236,7 @@ impl Pipeline {
     /// Take in results computed from a snapshot: record them, and re-centre the direction bins on the
     /// new hard-iron estimate.
     pub fn install(&mut self, t_s: f64, results: FitResults) {
+        self.new_inputs = 0;
         for (name, r) in [("mag", &results.mag), ("accel", &results.accel)] {
             self.refits.push(RefitReport {
                 t_s,
