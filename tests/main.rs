@@ -379,3 +379,36 @@ mod fixtures {
         );
     }
 }
+
+mod full12 {
+    use super::*;
+    use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
+
+    /// A magnetometer rotated against the accelerometer (a misaligned mount): norms cannot see the
+    /// rotation, the dip angle at static poses can.
+    #[test]
+    fn mag_full12_recovers_rotation_from_dip() {
+        let mut sc = Scenario::named("tumble").unwrap();
+        let s = imucald::model::rows_to_mat(&sc.truth.mag.matrix);
+        let r = imucald::model::rotation_from_vector(&nalgebra::Vector3::new(0.03, -0.02, 0.04));
+        sc.truth.mag.matrix = imucald::model::mat_to_rows(&(r * s));
+        let sim = simulate(&sc, 5);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("rot.tlog");
+        write_tlog(&p, &sim.samples, &TlogWriteOptions::default()).unwrap();
+        let mut cfg = Config::default();
+        cfg.fit.mag_model = "full12".into();
+        let out = run(&p, &cfg);
+        let m = &out.report.calibration.mag;
+        assert_eq!((m.status.as_str(), m.model.as_str()), ("ok", "full12"), "{:?}", m.detail);
+        let got = out.results.mag.calibration.unwrap().normalised_matrix();
+        let want = imucald::model::Calibration { matrix: sc.truth.mag.matrix, ..out.results.mag.calibration.unwrap() }.normalised_matrix();
+        let err = (got - want).abs().max();
+        eprintln!("full12 matrix error {err:.5}");
+        assert!(err < 0.002, "full12 matrix error {err}: {got} vs {want}");
+        // sym9 alone cannot see the rotation: its error is the rotation's size.
+        cfg.fit.mag_model = "sym9".into();
+        let sym = run(&p, &cfg).results.mag.calibration.unwrap().normalised_matrix();
+        assert!((sym - want).abs().max() > 0.02);
+    }
+}
