@@ -17,6 +17,94 @@ pub struct Config {
     /// Where and when: enables true heading (declination) and the expected field strength.
     pub place: Option<Place>,
     pub orientation: OrientationConfig,
+    /// The live service (`imucald run`).
+    pub daemon: DaemonConfig,
+}
+
+/// One input of the live service.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SourceConfig {
+    /// `udpin:IP:PORT`, `udpout:IP:PORT`, `tcpout:HOST:PORT`, `tcpin:IP:PORT`, `serial:/dev/ttyX:BAUD`,
+    /// `file:PATH[?speed=N]`, `sim:SCENARIO[?seed=N&speed=N]`.
+    pub address: String,
+    /// What the bytes are: "mavlink" (default), "motioncal" (`Raw:` lines), "csv" (lines of `fields`).
+    #[serde(default = "default_payload")]
+    pub payload: String,
+    /// For "csv": field names in column order (t, ax, ay, az, gx, gy, gz, mx, my, mz, temp, ...).
+    #[serde(default)]
+    pub fields: Vec<String>,
+    /// For "csv": unit factors per field.
+    #[serde(default)]
+    pub scales: std::collections::BTreeMap<String, f64>,
+}
+
+fn default_payload() -> String {
+    "mavlink".into()
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct DaemonConfig {
+    /// Inputs. Empty: the embedded default, a simulated IMU tumbling with pauses (`sim:tumble`).
+    pub sources: Vec<SourceConfig>,
+    /// JSON-lines consumers: "stdout", "udp:IP:PORT", "tcp:IP:PORT" (schema imucald.live/1).
+    pub publish: Vec<String>,
+    /// Where calibration files go (JSON + ArduPilot/PX4/Fusion exports); loaded at start.
+    pub calibration_dir: String,
+    /// Keep the latest report (imucald.report/1) here.
+    pub report: Option<String>,
+    /// Heading and calibrated vectors, per second.
+    pub heading_rate_hz: f64,
+    /// MAG_CAL_PROGRESS and JSON progress, per second.
+    pub progress_rate_hz: f64,
+    /// "named_value_float" (NAMED_VALUE_FLOAT "HEADING"), "attitude" (ATTITUDE) or "none".
+    pub heading_message: String,
+    /// Send calibrated vectors as DEBUG_VECT ("MAG_UT", "ACC_MPS2").
+    pub debug_vect: bool,
+    /// Coverage regions (of 100) that count as 100% complete in MAG_CAL_PROGRESS.
+    pub progress_full_regions: usize,
+    /// Send accepted parameters to the flight controller with PARAM_SET (off unless set).
+    pub write_params: bool,
+    /// Flight-stack convention of the parameters written: "ardupilot" or "px4".
+    pub param_target: String,
+    pub target_system: u8,
+    pub target_component: u8,
+    /// Our own MAVLink ids.
+    pub system_id: u8,
+    pub component_id: u8,
+    /// ArduPilot sends magnetometer data with its calibration applied: "undo" it (reading COMPASS_*
+    /// parameters) or "refuse" to fit such data.
+    pub ardupilot_corrected_mag: String,
+    /// Capacity of the sample queue from the links to the pipeline.
+    pub queue_capacity: usize,
+    /// A link with no bytes for this long is reported silent.
+    pub silent_after_s: f64,
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        DaemonConfig {
+            sources: vec![],
+            publish: vec![],
+            calibration_dir: "calibration".into(),
+            report: None,
+            heading_rate_hz: 5.0,
+            progress_rate_hz: 1.0,
+            heading_message: "named_value_float".into(),
+            debug_vect: true,
+            progress_full_regions: 80,
+            write_params: false,
+            param_target: "ardupilot".into(),
+            target_system: 1,
+            target_component: 1,
+            system_id: 1,
+            component_id: 191,
+            ardupilot_corrected_mag: "undo".into(),
+            queue_capacity: 4096,
+            silent_after_s: 3.0,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -324,6 +412,43 @@ impl Config {
                     "there are only 100 regions",
                 ));
             }
+        }
+        let d = &self.daemon;
+        for (i, src) in d.sources.iter().enumerate() {
+            let known = ["udpin:", "udpout:", "tcpout:", "tcpin:", "serial:", "file:", "sim:"];
+            if !known.iter().any(|k| src.address.starts_with(k)) {
+                return Err(err(&format!("daemon.sources[{i}].address"), format!("`{}` does not start with one of {}", src.address, known.join(" "))));
+            }
+            if !["mavlink", "motioncal", "csv"].contains(&src.payload.as_str()) {
+                return Err(err(&format!("daemon.sources[{i}].payload"), format!("`{}` is not mavlink, motioncal or csv", src.payload)));
+            }
+            if src.payload == "csv" && src.fields.is_empty() {
+                return Err(err(&format!("daemon.sources[{i}].fields"), "a csv source needs its column order, e.g. fields = [\"ax\", \"ay\", \"az\", \"mx\", \"my\", \"mz\"]"));
+            }
+        }
+        for (i, p) in d.publish.iter().enumerate() {
+            let ok = p == "stdout" || p.strip_prefix("udp:").or(p.strip_prefix("tcp:")).is_some_and(|a| a.parse::<std::net::SocketAddr>().is_ok());
+            if !ok {
+                return Err(err(&format!("daemon.publish[{i}]"), format!("`{p}` is not stdout, udp:IP:PORT or tcp:IP:PORT")));
+            }
+        }
+        pos("daemon.heading_rate_hz", d.heading_rate_hz)?;
+        pos("daemon.progress_rate_hz", d.progress_rate_hz)?;
+        pos("daemon.silent_after_s", d.silent_after_s)?;
+        if !["named_value_float", "attitude", "none"].contains(&d.heading_message.as_str()) {
+            return Err(err("daemon.heading_message", format!("`{}` is not named_value_float, attitude or none", d.heading_message)));
+        }
+        if !["ardupilot", "px4"].contains(&d.param_target.as_str()) {
+            return Err(err("daemon.param_target", format!("`{}` is not ardupilot or px4", d.param_target)));
+        }
+        if !["undo", "refuse"].contains(&d.ardupilot_corrected_mag.as_str()) {
+            return Err(err("daemon.ardupilot_corrected_mag", format!("`{}` is not undo or refuse", d.ardupilot_corrected_mag)));
+        }
+        if d.queue_capacity == 0 || d.progress_full_regions == 0 || d.progress_full_regions > 100 {
+            return Err(err("daemon.queue_capacity", "queue_capacity must be > 0 and progress_full_regions in 1..=100"));
+        }
+        if d.calibration_dir.is_empty() {
+            return Err(err("daemon.calibration_dir", "must name a directory"));
         }
         crate::attitude::sensor_rotation(&self.orientation.sensor)
             .map_err(|m| err("orientation.sensor", m))?;

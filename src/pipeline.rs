@@ -220,12 +220,8 @@ impl Pipeline {
         if let Some(p) = det.finish() {
             poses.push(p);
         }
-        let mag_points = match &self.mag_bins {
-            Some(b) => b.points(),
-            None => self.mag_buffer.clone(),
-        };
         FitInput {
-            mag_points,
+            mag_points: self.mag_points(),
             poses,
             mag_units: self.mag_units,
             gyro_units: self.gyro_units,
@@ -271,10 +267,23 @@ impl Pipeline {
 
     /// End of input: close the last pose and refit.
     pub fn finish(&mut self) -> &FitResults {
+        self.finish_poses();
+        self.refit()
+    }
+
+    /// Close a still run at the end of input.
+    pub fn finish_poses(&mut self) {
         if let Some(p) = self.detector.finish() {
             self.poses.push(p);
         }
-        self.refit()
+    }
+
+    /// The magnetometer points kept so far (raw units, body axes).
+    pub fn mag_points(&self) -> Vec<Vec3> {
+        match &self.mag_bins {
+            Some(b) => b.points(),
+            None => self.mag_buffer.clone(),
+        }
     }
 }
 
@@ -725,6 +734,11 @@ pub struct Calibrated {
 }
 
 impl Calibrator {
+    /// No calibration yet: samples pass through raw.
+    pub fn empty(declination_deg: Option<f64>) -> Self {
+        Calibrator { accel: None, mag: None, gyro_bias: None, declination_deg, last_accel: None, last_mag: None }
+    }
+
     pub fn new(results: &FitResults, declination_deg: Option<f64>) -> Self {
         Calibrator {
             accel: results.accel.calibration,
