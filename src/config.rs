@@ -415,10 +415,7 @@ impl Config {
         }
         let d = &self.daemon;
         for (i, src) in d.sources.iter().enumerate() {
-            let known = ["udpin:", "udpout:", "tcpout:", "tcpin:", "serial:", "file:", "sim:"];
-            if !known.iter().any(|k| src.address.starts_with(k)) {
-                return Err(err(&format!("daemon.sources[{i}].address"), format!("`{}` does not start with one of {}", src.address, known.join(" "))));
-            }
+            crate::link::Address::parse(&src.address).map_err(|e| err(&format!("daemon.sources[{i}].address"), e.to_string()))?;
             if !["mavlink", "motioncal", "csv"].contains(&src.payload.as_str()) {
                 return Err(err(&format!("daemon.sources[{i}].payload"), format!("`{}` is not mavlink, motioncal or csv", src.payload)));
             }

@@ -16,6 +16,8 @@ pub mod error;
 pub mod export;
 pub mod fit;
 pub mod gate;
+pub mod link;
+pub mod mavout;
 pub mod model;
 pub mod pipeline;
 pub mod plot;
