@@ -415,34 +415,59 @@ impl Config {
         }
         let d = &self.daemon;
         for (i, src) in d.sources.iter().enumerate() {
-            crate::link::Address::parse(&src.address).map_err(|e| err(&format!("daemon.sources[{i}].address"), e.to_string()))?;
+            crate::link::Address::parse(&src.address)
+                .map_err(|e| err(&format!("daemon.sources[{i}].address"), e.to_string()))?;
             if !["mavlink", "motioncal", "csv"].contains(&src.payload.as_str()) {
-                return Err(err(&format!("daemon.sources[{i}].payload"), format!("`{}` is not mavlink, motioncal or csv", src.payload)));
+                return Err(err(
+                    &format!("daemon.sources[{i}].payload"),
+                    format!("`{}` is not mavlink, motioncal or csv", src.payload),
+                ));
             }
             if src.payload == "csv" && src.fields.is_empty() {
                 return Err(err(&format!("daemon.sources[{i}].fields"), "a csv source needs its column order, e.g. fields = [\"ax\", \"ay\", \"az\", \"mx\", \"my\", \"mz\"]"));
             }
         }
         for (i, p) in d.publish.iter().enumerate() {
-            let ok = p == "stdout" || p.strip_prefix("udp:").or(p.strip_prefix("tcp:")).is_some_and(|a| a.parse::<std::net::SocketAddr>().is_ok());
+            let ok = p == "stdout"
+                || p.strip_prefix("udp:")
+                    .or(p.strip_prefix("tcp:"))
+                    .is_some_and(|a| a.parse::<std::net::SocketAddr>().is_ok());
             if !ok {
-                return Err(err(&format!("daemon.publish[{i}]"), format!("`{p}` is not stdout, udp:IP:PORT or tcp:IP:PORT")));
+                return Err(err(
+                    &format!("daemon.publish[{i}]"),
+                    format!("`{p}` is not stdout, udp:IP:PORT or tcp:IP:PORT"),
+                ));
             }
         }
         pos("daemon.heading_rate_hz", d.heading_rate_hz)?;
         pos("daemon.progress_rate_hz", d.progress_rate_hz)?;
         pos("daemon.silent_after_s", d.silent_after_s)?;
         if !["named_value_float", "attitude", "none"].contains(&d.heading_message.as_str()) {
-            return Err(err("daemon.heading_message", format!("`{}` is not named_value_float, attitude or none", d.heading_message)));
+            return Err(err(
+                "daemon.heading_message",
+                format!(
+                    "`{}` is not named_value_float, attitude or none",
+                    d.heading_message
+                ),
+            ));
         }
         if !["ardupilot", "px4"].contains(&d.param_target.as_str()) {
-            return Err(err("daemon.param_target", format!("`{}` is not ardupilot or px4", d.param_target)));
+            return Err(err(
+                "daemon.param_target",
+                format!("`{}` is not ardupilot or px4", d.param_target),
+            ));
         }
         if !["undo", "refuse"].contains(&d.ardupilot_corrected_mag.as_str()) {
-            return Err(err("daemon.ardupilot_corrected_mag", format!("`{}` is not undo or refuse", d.ardupilot_corrected_mag)));
+            return Err(err(
+                "daemon.ardupilot_corrected_mag",
+                format!("`{}` is not undo or refuse", d.ardupilot_corrected_mag),
+            ));
         }
         if d.queue_capacity == 0 || d.progress_full_regions == 0 || d.progress_full_regions > 100 {
-            return Err(err("daemon.queue_capacity", "queue_capacity must be > 0 and progress_full_regions in 1..=100"));
+            return Err(err(
+                "daemon.queue_capacity",
+                "queue_capacity must be > 0 and progress_full_regions in 1..=100",
+            ));
         }
         if d.calibration_dir.is_empty() {
             return Err(err("daemon.calibration_dir", "must name a directory"));

@@ -42,6 +42,23 @@ enum Cmd {
         #[arg(long)]
         export: Option<PathBuf>,
     },
+    /// Run the live service: read IMU data from links, calibrate online, publish heading and calibrations.
+    /// With no config: the embedded default, a simulated IMU tumbling with pauses.
+    Run {
+        /// TOML configuration (see config/).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Source address, overriding the config's (repeatable): udpin:IP:PORT, udpout:IP:PORT,
+        /// tcpout:HOST:PORT, tcpin:IP:PORT, serial:/dev/ttyX:BAUD, file:LOG[?speed=N], sim:SCENARIO.
+        #[arg(long = "source")]
+        sources: Vec<String>,
+        /// JSON-lines consumer, overriding the config's (repeatable): stdout, udp:IP:PORT, tcp:IP:PORT.
+        #[arg(long = "publish")]
+        publish: Vec<String>,
+        /// Keep the latest report (imucald.report/1) in this file.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
     Simulate {
         /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
@@ -68,6 +85,29 @@ fn load_config(path: Option<&PathBuf>) -> Result<Config> {
     match path {
         Some(p) => Ok(Config::load(p)?),
         None => Ok(Config::default()),
+    }
+}
+
+/// SIGINT or SIGTERM.
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(t) => t,
+                Err(_) => {
+                    let _ = tokio::signal::ctrl_c().await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
     }
 }
 
@@ -123,6 +163,52 @@ fn main() -> Result<()> {
             for p in &out.written {
                 println!("wrote {}", p.display());
             }
+        }
+        Cmd::Run {
+            config,
+            sources,
+            publish,
+            report,
+        } => {
+            let mut cfg = load_config(config.as_ref())?;
+            if !sources.is_empty() {
+                cfg.daemon.sources = sources
+                    .into_iter()
+                    .map(|address| imucald::config::SourceConfig {
+                        address,
+                        payload: "mavlink".into(),
+                        fields: vec![],
+                        scales: Default::default(),
+                    })
+                    .collect();
+            }
+            if !publish.is_empty() {
+                cfg.daemon.publish = publish;
+            }
+            if let Some(r) = report {
+                cfg.daemon.report = Some(r.display().to_string());
+            }
+            if cfg.daemon.sources.is_empty() && cfg.daemon.publish.is_empty() {
+                // The embedded default shows its output on the terminal.
+                cfg.daemon.publish = vec!["stdout".into()];
+                cfg.daemon.heading_rate_hz = 1.0;
+                eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
+            }
+            cfg.validate()?;
+            let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+            let summary = rt.block_on(async move {
+                let (tx, rx) = tokio::sync::watch::channel(false);
+                tokio::spawn(async move {
+                    wait_for_signal().await;
+                    let _ = tx.send(true);
+                });
+                imucald::daemon::run(cfg, rx).await
+            })?;
+            rt.shutdown_timeout(std::time::Duration::from_millis(200));
+            eprintln!(
+                "imucald run: {} samples, {} calibrations accepted, {} samples dropped",
+                summary.samples, summary.accepted, summary.inbound_dropped
+            );
         }
         Cmd::Simulate {
             scenario,

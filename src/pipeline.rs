@@ -736,7 +736,14 @@ pub struct Calibrated {
 impl Calibrator {
     /// No calibration yet: samples pass through raw.
     pub fn empty(declination_deg: Option<f64>) -> Self {
-        Calibrator { accel: None, mag: None, gyro_bias: None, declination_deg, last_accel: None, last_mag: None }
+        Calibrator {
+            accel: None,
+            mag: None,
+            gyro_bias: None,
+            declination_deg,
+            last_accel: None,
+            last_mag: None,
+        }
     }
 
     pub fn new(results: &FitResults, declination_deg: Option<f64>) -> Self {

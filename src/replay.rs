@@ -62,7 +62,14 @@ pub fn replay(
         (Some(a), Some(b)) => b.t_s - a.t_s,
         _ => 0.0,
     };
-    let input = InputReport::new(log.format.name(), Some(path.display().to_string()), log.instance.clone(), &log.stats, total, duration);
+    let input = InputReport::new(
+        log.format.name(),
+        Some(path.display().to_string()),
+        log.instance.clone(),
+        &log.stats,
+        total,
+        duration,
+    );
     let report = make_report(input, &pipe, &results, declination);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -114,13 +121,25 @@ pub fn replay(
 }
 
 /// The report for a pipeline's current state.
-pub fn make_report(input: InputReport, pipe: &Pipeline, results: &FitResults, declination_deg: Option<f64>) -> Report {
+pub fn make_report(
+    input: InputReport,
+    pipe: &Pipeline,
+    results: &FitResults,
+    declination_deg: Option<f64>,
+) -> Report {
     Report {
         schema: SCHEMA.into(),
         input,
         static_poses: pipe.poses().iter().map(PoseReport::from).collect(),
-        coverage: CoverageReport { mag: shown_coverage(&results.mag), accel: shown_coverage(&results.accel) },
-        calibration: CalibrationReport { mag: results.mag.report.clone(), accel: results.accel.report.clone(), gyro: results.gyro.clone() },
+        coverage: CoverageReport {
+            mag: shown_coverage(&results.mag),
+            accel: shown_coverage(&results.accel),
+        },
+        calibration: CalibrationReport {
+            mag: results.mag.report.clone(),
+            accel: results.accel.report.clone(),
+            gyro: results.gyro.clone(),
+        },
         declination_deg,
         refits: pipe.refits.clone(),
     }

@@ -400,15 +400,318 @@ mod full12 {
         cfg.fit.mag_model = "full12".into();
         let out = run(&p, &cfg);
         let m = &out.report.calibration.mag;
-        assert_eq!((m.status.as_str(), m.model.as_str()), ("ok", "full12"), "{:?}", m.detail);
+        assert_eq!(
+            (m.status.as_str(), m.model.as_str()),
+            ("ok", "full12"),
+            "{:?}",
+            m.detail
+        );
         let got = out.results.mag.calibration.unwrap().normalised_matrix();
-        let want = imucald::model::Calibration { matrix: sc.truth.mag.matrix, ..out.results.mag.calibration.unwrap() }.normalised_matrix();
+        let want = imucald::model::Calibration {
+            matrix: sc.truth.mag.matrix,
+            ..out.results.mag.calibration.unwrap()
+        }
+        .normalised_matrix();
         let err = (got - want).abs().max();
         eprintln!("full12 matrix error {err:.5}");
         assert!(err < 0.002, "full12 matrix error {err}: {got} vs {want}");
         // sym9 alone cannot see the rotation: its error is the rotation's size.
         cfg.fit.mag_model = "sym9".into();
-        let sym = run(&p, &cfg).results.mag.calibration.unwrap().normalised_matrix();
+        let sym = run(&p, &cfg)
+            .results
+            .mag
+            .calibration
+            .unwrap()
+            .normalised_matrix();
         assert!((sym - want).abs().max() > 0.02);
+    }
+}
+
+/// Live-service tests: a real MAVLink peer (pymavlink), a serial pseudo-terminal, kill -9 during writes.
+mod live {
+    use super::*;
+    use std::process::{Command, Stdio};
+    use std::time::{Duration, Instant};
+
+    fn bin() -> &'static str {
+        env!("CARGO_BIN_EXE_imucald")
+    }
+
+    /// The Python with pymavlink that scripts/test installs (.venv), or IMUCALD_PYTHON.
+    fn python() -> String {
+        let p = std::env::var("IMUCALD_PYTHON").unwrap_or_else(|_| {
+            concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string()
+        });
+        let ok = Command::new(&p)
+            .args(["-c", "import pymavlink"])
+            .output()
+            .map(|o| o.status.success())
+            .unwrap_or(false);
+        assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
+        p
+    }
+
+    fn free_udp_port() -> u16 {
+        std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    fn sigterm(pid: u32) {
+        Command::new("kill")
+            .args(["-TERM", &pid.to_string()])
+            .status()
+            .unwrap();
+    }
+
+    fn wait_exit(
+        child: &mut std::process::Child,
+        limit: Duration,
+    ) -> Option<std::process::ExitStatus> {
+        let t0 = Instant::now();
+        while t0.elapsed() < limit {
+            if let Some(s) = child.try_wait().unwrap() {
+                return Some(s);
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        None
+    }
+
+    #[test]
+    fn interop_pymavlink_streams_a_tumble_over_udp() {
+        let py = python();
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 1);
+        imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
+        imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        let port = free_udp_port();
+        let cfg = format!(
+            "[fit]\nrefit_every_s = 5.0\n[daemon]\ncalibration_dir = \"{}\"\nheading_rate_hz = 50.0\nprogress_rate_hz = 5.0\nsources = [{{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
+            d.join("cal").display()
+        );
+        std::fs::write(d.join("live.toml"), cfg).unwrap();
+        let mut child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(d.join("live.toml"))
+            .arg("--report")
+            .arg(d.join("report.json"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        let peer = Command::new(&py)
+            .arg(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/interop/pymavlink_peer.py"
+            ))
+            .arg(port.to_string())
+            .arg(d.join("tumble.csv"))
+            .arg(d.join("truth.json"))
+            .arg("10")
+            .output()
+            .unwrap();
+        let t_term = Instant::now();
+        sigterm(child.id());
+        let status = wait_exit(&mut child, Duration::from_secs(5));
+        let stop_s = t_term.elapsed().as_secs_f64();
+        let mut err = String::new();
+        use std::io::Read;
+        child
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut err)
+            .unwrap();
+        let seen = String::from_utf8_lossy(&peer.stdout);
+        eprintln!(
+            "peer: {seen}\npeer stderr: {}\nimucald stopped {stop_s:.2} s after SIGTERM",
+            String::from_utf8_lossy(&peer.stderr)
+        );
+        assert!(
+            peer.status.success(),
+            "pymavlink peer checks failed: {seen}\nimucald stderr:\n{err}"
+        );
+        let status = status.expect("imucald did not exit after SIGTERM");
+        assert!(status.success(), "exit {status:?}: {err}");
+        assert!(stop_s < 1.0, "shutdown took {stop_s} s");
+        // The calibration was flushed and reloads.
+        let store = imucald::daemon::load_store(&d.join("cal"))
+            .unwrap()
+            .expect("calibration file");
+        assert_eq!(store.mag.unwrap().status, "ok");
+    }
+
+    #[test]
+    fn kill_9_during_calibration_writes_leaves_old_or_new_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let cal = d.join("cal");
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tumble.tlog");
+        let cfg = format!(
+            "[fit]\nrefit_every_s = 0.5\n[daemon]\ncalibration_dir = \"{}\"\nsources = [{{ address = \"file:{}?speed=40\" }}]\n",
+            cal.display(),
+            fixture.display()
+        );
+        std::fs::write(d.join("k.toml"), cfg).unwrap();
+        let mut checked = 0;
+        for (i, delay_ms) in [700u64, 1300, 1900, 2300, 2900, 3400].iter().enumerate() {
+            let mut child = Command::new(bin())
+                .args(["run", "--config"])
+                .arg(d.join("k.toml"))
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap();
+            std::thread::sleep(Duration::from_millis(*delay_ms));
+            let _ = child.kill(); // SIGKILL
+            let _ = child.wait();
+            let p = cal.join("calibration.json");
+            if p.exists() {
+                let text = std::fs::read_to_string(&p).unwrap();
+                let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| {
+                    panic!("run {i}: partial calibration.json after kill -9: {e}\n{text}")
+                });
+                assert_eq!(v["schema"], "imucald.calibration/1");
+                checked += 1;
+            }
+            for f in ["ardupilot.parm", "px4.params", "fusion.h"] {
+                let p = cal.join(f);
+                if p.exists() {
+                    let t = std::fs::read_to_string(&p).unwrap();
+                    assert!(t.ends_with('\n'), "run {i}: {f} is cut short");
+                }
+            }
+        }
+        assert!(
+            checked >= 3,
+            "only {checked} runs had written a calibration before the kill"
+        );
+        // A restart resumes from the file that is there.
+        assert!(imucald::daemon::load_store(&cal).unwrap().is_some());
+    }
+}
+
+mod live_serial {
+    use super::*;
+    use std::time::Duration;
+    use tokio::io::AsyncWriteExt;
+
+    /// MotionCal `Raw:` line for a sample (int16; 8192 counts/g, 16 counts per deg/s, 10 counts/uT).
+    fn raw_line(s: &imucald::types::Sample) -> String {
+        let g = imucald::types::STANDARD_GRAVITY_MPS2;
+        let a = s.accel_mps2.unwrap();
+        let w = s.gyro_rad_s.unwrap();
+        let m = s.mag_ut.unwrap();
+        let c = |v: f64| v.round().clamp(-32768.0, 32767.0) as i64;
+        format!(
+            "Raw:{},{},{},{},{},{},{},{},{}\r\n",
+            c(a[0] / g * 8192.0),
+            c(a[1] / g * 8192.0),
+            c(a[2] / g * 8192.0),
+            c(w[0].to_degrees() * 16.0),
+            c(w[1].to_degrees() * 16.0),
+            c(w[2].to_degrees() * 16.0),
+            c(m[0] * 10.0),
+            c(m[1] * 10.0),
+            c(m[2] * 10.0)
+        )
+    }
+
+    /// A new pseudo-terminal pair whose far end is reachable through the symlink `link`.
+    fn plug(link: &Path) -> tokio_serial::SerialStream {
+        let (master, slave) = tokio_serial::SerialStream::pair().expect("pseudo-terminal pair");
+        let name = tokio_serial::SerialPort::name(&slave).expect("pty name");
+        drop(slave);
+        let tmp = link.with_extension("new");
+        let _ = std::fs::remove_file(&tmp);
+        std::os::unix::fs::symlink(&name, &tmp).unwrap();
+        std::fs::rename(&tmp, link).unwrap();
+        master
+    }
+
+    async fn stream(
+        master: &mut tokio_serial::SerialStream,
+        samples: &[imucald::types::Sample],
+        speed: f64,
+    ) {
+        let t0 = tokio::time::Instant::now();
+        for chunk in samples.chunks(20) {
+            let text: String = chunk.iter().map(raw_line).collect();
+            if master.write_all(text.as_bytes()).await.is_err() {
+                return;
+            }
+            let due = Duration::from_secs_f64((chunk.last().unwrap().t_s - samples[0].t_s) / speed);
+            tokio::time::sleep_until(t0 + due).await;
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn serial_motioncal_over_pty_unplug_reconnects_and_keeps_calibration() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let link = d.join("ttyIMU");
+        let mut master = plug(&link);
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 4);
+        let mut cfg = Config::default();
+        cfg.daemon.sources = vec![imucald::config::SourceConfig {
+            address: format!("serial:{}:115200", link.display()),
+            payload: "motioncal".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }];
+        cfg.daemon.calibration_dir = d.join("cal").display().to_string();
+        cfg.daemon.report = Some(d.join("report.json").display().to_string());
+        cfg.fit.refit_every_s = 1.0;
+        // Lines are stamped on arrival and arrive 10x faster than recorded: scale the still window.
+        cfg.gate.window_s = 0.1;
+        cfg.gate.min_pose_s = 0.1;
+        cfg.validate().unwrap();
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        stream(&mut master, &sim.samples, 10.0).await;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let store = imucald::daemon::load_store(&d.join("cal"))
+            .unwrap()
+            .expect("calibrated before the unplug");
+        let before = store.mag.clone().unwrap();
+        assert_eq!(before.status, "ok");
+        // Unplug, wait, plug a new device at the same path, stream a little more.
+        drop(master);
+        tokio::time::sleep(Duration::from_millis(700)).await;
+        let mut master = plug(&link);
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        stream(&mut master, &sim.samples[..1500], 10.0).await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        stop_tx.send(true).unwrap();
+        let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
+            .await
+            .expect("stops")
+            .unwrap()
+            .unwrap();
+        assert!(
+            summary.samples as usize >= sim.samples.len() + 1000,
+            "samples after the replug arrived: {}",
+            summary.samples
+        );
+        let after = imucald::daemon::load_store(&d.join("cal"))
+            .unwrap()
+            .unwrap()
+            .mag
+            .unwrap();
+        assert_eq!(after.status, "ok");
+        for k in 0..3 {
+            assert!(
+                (after.offset[k] - sim.truth.mag.offset[k]).abs() < 0.5,
+                "{:?} vs {:?}",
+                after.offset,
+                sim.truth.mag.offset
+            );
+        }
     }
 }

@@ -1,0 +1,901 @@
+//! The live service (`imucald run`): links in, the shared pipeline, fits off the async executor,
+//! heading/progress/reports published back. Thin glue: every decision lives in a pure module.
+//!
+//! ```text
+//! link tasks ──(bounded mpsc, drops counted)──> run loop ──> Pipeline::push
+//!                                                  │  refit due: snapshot ─> spawn_blocking(fit_all)
+//!                                                  │  result: accept if checks pass and not worse on recent data
+//!                                                  ├─> MAVLink back to the links (progress, report, heading)
+//!                                                  ├─> JSON lines to consumers
+//!                                                  └─> calibration files (atomic), report
+//! ```
+
+use crate::config::{Config, SourceConfig};
+use crate::decode::{InstanceChoice, MessageConverter};
+use crate::error::Error;
+use crate::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
+use crate::mavout::{self, ApCompassParams, LiveEvent, MavEncoder, ParamWriter};
+use crate::model::Calibration;
+use crate::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
+use crate::report::{GyroCalibration, SensorCalibration};
+use crate::types::{norm, Sample, Vec3};
+use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use tokio::sync::{mpsc, watch};
+
+/// What is kept on disk between runs (`calibration.json`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StoredCalibration {
+    pub schema: String,
+    pub mag: Option<SensorCalibration>,
+    pub accel: Option<SensorCalibration>,
+    pub gyro: Option<GyroCalibration>,
+}
+
+pub const STORE_SCHEMA: &str = "imucald.calibration/1";
+pub const STORE_FILE: &str = "calibration.json";
+
+impl StoredCalibration {
+    fn empty() -> Self {
+        StoredCalibration {
+            schema: STORE_SCHEMA.into(),
+            mag: None,
+            accel: None,
+            gyro: None,
+        }
+    }
+    fn cal(s: &Option<SensorCalibration>) -> Option<Calibration> {
+        let s = s.as_ref().filter(|s| s.status == "ok")?;
+        let model =
+            crate::model::ModelKind::parse(&s.model).unwrap_or(crate::model::ModelKind::Full12);
+        Some(Calibration {
+            model,
+            offset: s.offset,
+            matrix: s.matrix,
+        })
+    }
+    pub fn mag_cal(&self) -> Option<Calibration> {
+        Self::cal(&self.mag)
+    }
+    pub fn accel_cal(&self) -> Option<Calibration> {
+        Self::cal(&self.accel)
+    }
+}
+
+/// Load the last good calibration; a missing file is no calibration, a damaged one is an error that
+/// says which file.
+pub fn load_store(dir: &Path) -> Result<Option<StoredCalibration>, Error> {
+    let p = dir.join(STORE_FILE);
+    match std::fs::read_to_string(&p) {
+        Ok(text) => serde_json::from_str(&text)
+            .map(Some)
+            .map_err(|e| Error::Format {
+                path: p,
+                message: format!("not a calibration file ({e}); move it away to start fresh"),
+            }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(Error::Read { path: p, source }),
+    }
+}
+
+/// Write the calibration and its exports atomically into `dir`.
+pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let (m, a) = (store.mag_cal(), store.accel_cal());
+    let m_ut = m.filter(|_| store.mag.as_ref().is_some_and(|s| s.units == "uT"));
+    crate::publish::write_atomic(
+        &dir.join("ardupilot.parm"),
+        crate::export::ardupilot_file(m_ut.as_ref(), a.as_ref()).as_bytes(),
+    )?;
+    crate::publish::write_atomic(
+        &dir.join("px4.params"),
+        crate::export::px4_file(m_ut.as_ref(), a.as_ref()).as_bytes(),
+    )?;
+    crate::publish::write_atomic(
+        &dir.join("fusion.h"),
+        crate::export::fusion_file(m.as_ref(), a.as_ref()).as_bytes(),
+    )?;
+    // The JSON last: it is what a restart loads.
+    crate::publish::write_json(&dir.join(STORE_FILE), store)
+}
+
+/// RMS of |calibrated| - radius over points (calibrated units).
+fn rms_on(cal: &Calibration, radius: f64, pts: &[Vec3]) -> f64 {
+    if pts.is_empty() {
+        return f64::INFINITY;
+    }
+    (pts.iter()
+        .map(|p| (norm(&cal.apply(p)) - radius).powi(2))
+        .sum::<f64>()
+        / pts.len() as f64)
+        .sqrt()
+}
+
+/// Accept a new fit when it passed its checks and is not worse than the current one on the same
+/// recent data. Returns the reason when it is not accepted.
+pub fn accept(
+    new: &SensorResult,
+    current: Option<&SensorCalibration>,
+    recent: &[Vec3],
+) -> Result<(), String> {
+    let Some(nc) = new.calibration else {
+        return Err(format!(
+            "failed {}: {}",
+            new.report.failure.as_deref().unwrap_or("?"),
+            new.report.detail.as_deref().unwrap_or("")
+        ));
+    };
+    if let Some(cur) = current.filter(|c| c.status == "ok") {
+        if let Some(cc) = StoredCalibration::cal(&Some(cur.clone())) {
+            let (rn, rc) = (
+                rms_on(&nc, new.report.radius, recent),
+                rms_on(&cc, cur.radius, recent),
+            );
+            if rn > rc * 1.02 + 1e-12 {
+                return Err(format!(
+                    "worse on recent data than the current calibration (rms {rn:.4} vs {rc:.4})"
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+fn payload_of(s: &SourceConfig) -> Payload {
+    match s.payload.as_str() {
+        "motioncal" => Payload::MotionCal,
+        "csv" => Payload::Csv {
+            fields: s.fields.clone(),
+            scales: s.scales.clone(),
+        },
+        _ => Payload::Mavlink,
+    }
+}
+
+/// A JSON-lines consumer.
+enum Sink {
+    Stdout,
+    Udp(tokio::net::UdpSocket, std::net::SocketAddr),
+    Tcp(std::net::SocketAddr, Option<tokio::net::TcpStream>),
+}
+
+impl Sink {
+    async fn open(spec: &str) -> Result<Sink, Error> {
+        if spec == "stdout" {
+            return Ok(Sink::Stdout);
+        }
+        let bad = || Error::Config {
+            key: "publish".into(),
+            message: format!("`{spec}` is not stdout, udp:IP:PORT or tcp:IP:PORT"),
+        };
+        if let Some(a) = spec.strip_prefix("udp:") {
+            let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
+            let bind = if addr.is_ipv4() {
+                "127.0.0.1:0"
+            } else {
+                "[::1]:0"
+            };
+            let bind = if addr.ip().is_loopback() {
+                bind.to_string()
+            } else if addr.is_ipv4() {
+                "0.0.0.0:0".into()
+            } else {
+                "[::]:0".into()
+            };
+            let sock = tokio::net::UdpSocket::bind(&bind)
+                .await
+                .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
+            return Ok(Sink::Udp(sock, addr));
+        }
+        if let Some(a) = spec.strip_prefix("tcp:") {
+            return Ok(Sink::Tcp(a.parse().map_err(|_| bad())?, None));
+        }
+        Err(bad())
+    }
+
+    /// Best effort: a consumer that is away loses lines, the service goes on.
+    async fn send(&mut self, line: &str) {
+        use tokio::io::AsyncWriteExt;
+        match self {
+            Sink::Stdout => {
+                let mut out = tokio::io::stdout();
+                let _ = out.write_all(line.as_bytes()).await;
+                let _ = out.flush().await;
+            }
+            Sink::Udp(s, a) => {
+                let _ = s.send_to(line.as_bytes(), *a).await;
+            }
+            Sink::Tcp(a, conn) => {
+                if conn.is_none() {
+                    *conn = tokio::time::timeout(
+                        Duration::from_millis(50),
+                        tokio::net::TcpStream::connect(*a),
+                    )
+                    .await
+                    .ok()
+                    .and_then(|r| r.ok());
+                }
+                if let Some(c) = conn {
+                    if c.write_all(line.as_bytes()).await.is_err() {
+                        *conn = None;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// What `run` did, for the caller's last words.
+#[derive(Debug, Clone, Default)]
+pub struct RunSummary {
+    pub samples: u64,
+    pub accepted: usize,
+    pub inbound_dropped: u64,
+}
+
+struct LinkEntry {
+    handle: LinkHandle,
+    mavlink: bool,
+    ended: bool,
+    replay: bool,
+    label: String,
+}
+
+struct State {
+    cfg: Config,
+    pipe: Pipeline,
+    conv: MessageConverter,
+    store: StoredCalibration,
+    calibrator: Calibrator,
+    latest: Option<Calibrated>,
+    enc: MavEncoder,
+    links: Vec<LinkEntry>,
+    sinks: Vec<Sink>,
+    ardupilot: bool,
+    ap_params: ApCompassParams,
+    writer: Option<ParamWriter>,
+    accepted: usize,
+    cal_dir: PathBuf,
+    report: Option<PathBuf>,
+    start: tokio::time::Instant,
+    declination: Option<f64>,
+    last_results: Option<FitResults>,
+    progress_pct: u8,
+    mag_awaiting_params: u64,
+    /// Calibrated vectors since the last heading publication.
+    window: Averager,
+    /// The last magnetometer calibration sent in MAG_CAL_REPORT (reports only when it moved).
+    reported_mag: Option<SensorCalibration>,
+}
+
+impl State {
+    fn calibrator_from_store(store: &StoredCalibration, declination: Option<f64>) -> Calibrator {
+        let mut c = Calibrator::empty(declination);
+        c.mag = store.mag_cal();
+        c.accel = store.accel_cal();
+        c.gyro_bias = store
+            .gyro
+            .as_ref()
+            .filter(|g| g.status == "ok")
+            .map(|g| g.bias);
+        c
+    }
+
+    fn now_s(&self) -> f64 {
+        self.start.elapsed().as_secs_f64()
+    }
+
+    async fn send_mav(&mut self, msgs: &[MavMessage]) {
+        for m in msgs {
+            let bytes = self.enc.encode(m);
+            for l in self.links.iter().filter(|l| l.mavlink && !l.replay) {
+                if l.handle.outbound.try_send(bytes.clone()).is_err() {
+                    l.handle
+                        .counters
+                        .outbound_dropped
+                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+            }
+        }
+    }
+
+    async fn send_json(&mut self, ev: &LiveEvent) {
+        if self.sinks.is_empty() {
+            return;
+        }
+        let line = mavout::json_line(ev);
+        for s in self.sinks.iter_mut() {
+            s.send(&line).await;
+        }
+    }
+
+    async fn status(&mut self, severity: u8, text: String) {
+        tracing::info!("{text}");
+        let msgs = mavout::statustext(severity, &text);
+        self.send_mav(&msgs).await;
+        self.send_json(&LiveEvent::Status {
+            level: severity_name(severity).into(),
+            text,
+        })
+        .await;
+    }
+
+    fn on_sample(&mut self, s: Sample) -> bool {
+        let due = self.pipe.push(&s);
+        let c = self.calibrator.apply(&self.pipe.to_body(&s));
+        self.window.add(&c);
+        self.latest = Some(c);
+        due
+    }
+
+    /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
+    async fn on_frame(&mut self, link: usize, frame: crate::decode::Frame, time_us: u64) -> bool {
+        match &frame.message {
+            MavMessage::HEARTBEAT(h) => {
+                if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
+                    && !self.ardupilot
+                    && frame.component_id != 191
+                {
+                    self.ardupilot = true;
+                    if self.cfg.daemon.ardupilot_corrected_mag == "undo" {
+                        self.status(6, "ArduPilot link: reading COMPASS_* to undo its calibration before fitting".into()).await;
+                        let reqs = mavout::param_request_reads(frame.system_id, frame.component_id);
+                        self.send_mav(&reqs).await;
+                    } else {
+                        self.status(4, "ArduPilot link: its magnetometer data is already calibrated; set daemon.ardupilot_corrected_mag = \"undo\" to fit it".into()).await;
+                    }
+                }
+                false
+            }
+            MavMessage::PARAM_VALUE(_) => {
+                self.ap_params.absorb(&frame.message);
+                if let Some(w) = self.writer.as_mut() {
+                    w.absorb(&frame.message);
+                }
+                false
+            }
+            _ => {
+                let _ = link;
+                let Some(mut s) = self.conv.convert(&frame.message, time_us) else {
+                    return false;
+                };
+                if self.ardupilot {
+                    if let Some(m) = s.mag_ut {
+                        s.mag_ut = if self.cfg.daemon.ardupilot_corrected_mag == "undo" {
+                            self.ap_params.undo(m)
+                        } else {
+                            None
+                        };
+                        if s.mag_ut.is_none() {
+                            self.mag_awaiting_params += 1;
+                        }
+                    }
+                }
+                self.on_sample(s)
+            }
+        }
+    }
+
+    async fn publish_heading(&mut self) {
+        // The mean of the calibrated vectors since the last publication (decimation with averaging).
+        let Some(mut c) = self.latest else { return };
+        if let Some(m) = self.window.take(self.declination) {
+            c = Calibrated { t_s: c.t_s, ..m };
+        }
+        let t_ms = (self.now_s() * 1000.0) as u32;
+        let mut msgs = vec![];
+        if let (Some(r), Some(p)) = (c.roll_deg, c.pitch_deg) {
+            match (self.cfg.daemon.heading_message.as_str(), c.heading_deg) {
+                ("named_value_float", Some(h)) => {
+                    msgs.push(mavout::named_float("HEADING", t_ms, h as f32))
+                }
+                ("attitude", Some(h)) => msgs.push(mavout::attitude(t_ms, r, p, h)),
+                _ => {}
+            }
+        }
+        if self.cfg.daemon.debug_vect {
+            let f = |v: Vec3| [v[0] as f32, v[1] as f32, v[2] as f32];
+            if let Some(m) = c.mag_ut {
+                msgs.push(mavout::debug_vect(
+                    "MAG_UT",
+                    (self.now_s() * 1e6) as u64,
+                    f(m),
+                ));
+            }
+            if let Some(a) = c.accel_mps2 {
+                msgs.push(mavout::debug_vect(
+                    "ACC_MPS2",
+                    (self.now_s() * 1e6) as u64,
+                    f(a),
+                ));
+            }
+        }
+        self.send_mav(&msgs).await;
+        if let (Some(r), Some(p), Some(h)) = (c.roll_deg, c.pitch_deg, c.heading_deg) {
+            let ev = LiveEvent::Heading {
+                t: c.t_s,
+                roll_deg: r,
+                pitch_deg: p,
+                heading_deg: h,
+                true_heading: self.declination.is_some(),
+            };
+            self.send_json(&ev).await;
+        }
+        let ev = LiveEvent::Calibrated {
+            t: c.t_s,
+            accel_mps2: c.accel_mps2,
+            gyro_rad_s: c.gyro_rad_s,
+            mag_ut: c.mag_ut,
+        };
+        self.send_json(&ev).await;
+    }
+
+    async fn publish_progress(&mut self) {
+        let pts = self.pipe.mag_points();
+        let centre = self.calibrator.mag.map(|c| c.offset).or_else(|| {
+            crate::fit::sphere_start(&pts).map(|s| [s.centre[0], s.centre[1], s.centre[2]])
+        });
+        let Some(c) = centre else { return };
+        let dirs: Vec<Vec3> = pts
+            .iter()
+            .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
+            .collect();
+        let cov = crate::coverage::coverage(dirs.iter(), &[0.0; 3]);
+        let (mask, _) = mavout::completion_mask(dirs.iter().copied());
+        let pct = ((100 * cov.filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
+        self.progress_pct = self.progress_pct.max(pct);
+        let last = pts.last().copied().unwrap_or([0.0; 3]);
+        let dir = [
+            (last[0] - c[0]) as f32,
+            (last[1] - c[1]) as f32,
+            (last[2] - c[2]) as f32,
+        ];
+        let msg = mavout::mag_cal_progress(0, self.progress_pct, mask, dir, 1);
+        self.send_mav(&[msg]).await;
+        let ev = LiveEvent::Progress {
+            sensor: "mag".into(),
+            completion_pct: self.progress_pct as f64,
+            filled_regions: cov.filled,
+        };
+        self.send_json(&ev).await;
+    }
+
+    /// A refit came back: decide, store, publish.
+    async fn on_fit(
+        &mut self,
+        input_mag: Vec<Vec3>,
+        input_accel: Vec<Vec3>,
+        t: f64,
+        results: FitResults,
+    ) {
+        let mut changed = false;
+        for (name, res, recent) in [
+            ("mag", &results.mag, &input_mag),
+            ("accel", &results.accel, &input_accel),
+        ] {
+            let current = if name == "mag" {
+                self.store.mag.clone()
+            } else {
+                self.store.accel.clone()
+            };
+            match accept(res, current.as_ref(), recent) {
+                Ok(()) => {
+                    tracing::info!(sensor = name, model = %res.report.model, rms = res.report.rms_residual, "calibration accepted");
+                    if name == "mag" {
+                        self.store.mag = Some(res.report.clone());
+                        self.calibrator.mag = res.calibration;
+                    } else {
+                        self.store.accel = Some(res.report.clone());
+                        self.calibrator.accel = res.calibration;
+                    }
+                    changed = true;
+                }
+                Err(why) => tracing::info!(sensor = name, "calibration not replaced: {why}"),
+            }
+        }
+        if results.gyro.status == "ok" {
+            self.store.gyro = Some(results.gyro.clone());
+            self.calibrator.gyro_bias = Some(results.gyro.bias);
+        }
+        // Report the magnetometer like ArduPilot's calibrator: success when accepted, failure once the
+        // data covered the sphere and the fit still failed (not while still collecting).
+        let mag = &results.mag.report;
+        let collecting = matches!(
+            mag.failure.as_deref(),
+            Some("coverage") | Some("not_enough_samples")
+        );
+        let moved = match &self.reported_mag {
+            None => true,
+            Some(prev) => {
+                prev.model != mag.model
+                    || (0..3).any(|k| (prev.offset[k] - mag.offset[k]).abs() > 0.05)
+            }
+        };
+        if changed && self.store.mag.as_ref() == Some(mag) && moved {
+            self.reported_mag = Some(mag.clone());
+            let msg = mavout::mag_cal_report(0, mag);
+            self.send_mav(&[msg]).await;
+            self.status(
+                6,
+                format!(
+                    "mag calibrated: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
+                    mag.model, mag.offset[0], mag.offset[1], mag.offset[2], mag.rms_residual
+                ),
+            )
+            .await;
+            if self.cfg.daemon.write_params {
+                self.start_param_write();
+            }
+        } else if mag.status != "ok" && !collecting && self.progress_pct >= 100 {
+            let msg = mavout::mag_cal_report(0, mag);
+            self.send_mav(&[msg]).await;
+        }
+        for (name, r) in [
+            ("mag", &results.mag.report),
+            ("accel", &results.accel.report),
+        ] {
+            let ev = LiveEvent::Calibration {
+                sensor: name.into(),
+                status: r.status.clone(),
+                failure: r.failure.clone(),
+                model: r.model.clone(),
+                offset: r.offset,
+                matrix: r.matrix,
+                rms_residual: r.rms_residual,
+            };
+            self.send_json(&ev).await;
+        }
+        self.pipe.install(t, results.clone());
+        self.last_results = Some(results);
+        if changed {
+            self.accepted += 1;
+            self.save().await;
+        }
+        self.write_report().await;
+    }
+
+    fn start_param_write(&mut self) {
+        let Some(m) = self
+            .store
+            .mag_cal()
+            .filter(|_| self.store.mag.as_ref().is_some_and(|s| s.units == "uT"))
+        else {
+            return;
+        };
+        let params = if self.cfg.daemon.param_target == "px4" {
+            crate::export::px4_mag(&m).0
+        } else {
+            crate::export::ardupilot_mag(&m, 0).0
+        };
+        self.writer = Some(ParamWriter::new(
+            params,
+            self.cfg.daemon.target_system,
+            self.cfg.daemon.target_component,
+        ));
+    }
+
+    async fn save(&mut self) {
+        let dir = self.cal_dir.clone();
+        let store = self.store.clone();
+        match tokio::task::spawn_blocking(move || save_store(&dir, &store)).await {
+            Ok(Ok(())) => tracing::info!("calibration written to {}", self.cal_dir.display()),
+            Ok(Err(e)) => {
+                self.status(
+                    3,
+                    format!("calibration not written (the previous file is kept): {e}"),
+                )
+                .await
+            }
+            Err(e) => tracing::error!("calibration write task failed: {e}"),
+        }
+    }
+
+    async fn write_report(&mut self) {
+        let (Some(path), Some(results)) = (self.report.clone(), self.last_results.clone()) else {
+            return;
+        };
+        let mut stats = self.conv.stats.clone();
+        for l in &self.links {
+            if let Ok(d) = l.handle.decode_stats.lock() {
+                for (k, v) in &d.skipped {
+                    *stats.skipped.entry(k.clone()).or_insert(0) += v;
+                }
+            }
+            let dropped = l
+                .handle
+                .counters
+                .inbound_dropped
+                .load(std::sync::atomic::Ordering::Relaxed);
+            stats.skip_n("queue_full", dropped);
+        }
+        stats.skip_n("mag_awaiting_params", self.mag_awaiting_params);
+        let label = self
+            .links
+            .iter()
+            .map(|l| l.label.clone())
+            .collect::<Vec<_>>()
+            .join(",");
+        let input = crate::report::InputReport::new(
+            "live",
+            Some(label),
+            self.conv.instance().map(String::from),
+            &stats,
+            self.pipe.samples,
+            self.pipe.last_t,
+        );
+        let report = crate::replay::make_report(input, &self.pipe, &results, self.declination);
+        if let Err(e) = crate::publish::write_json(&path, &report) {
+            tracing::warn!("report not written: {e}");
+        }
+    }
+}
+
+/// Running means of calibrated vectors between publications.
+#[derive(Debug, Default)]
+struct Averager {
+    a: [f64; 3],
+    na: usize,
+    g: [f64; 3],
+    ng: usize,
+    m: [f64; 3],
+    nm: usize,
+}
+
+impl Averager {
+    fn add(&mut self, c: &Calibrated) {
+        let acc = |s: &mut [f64; 3], n: &mut usize, v: Option<Vec3>| {
+            if let Some(v) = v {
+                for k in 0..3 {
+                    s[k] += v[k];
+                }
+                *n += 1;
+            }
+        };
+        acc(&mut self.a, &mut self.na, c.accel_mps2);
+        acc(&mut self.g, &mut self.ng, c.gyro_rad_s);
+        acc(&mut self.m, &mut self.nm, c.mag_ut);
+    }
+
+    /// Means and the attitude from them; resets. None when nothing arrived.
+    fn take(&mut self, declination: Option<f64>) -> Option<Calibrated> {
+        let mean = |s: [f64; 3], n: usize| (n > 0).then(|| s.map(|v| v / n as f64));
+        let out = Calibrated {
+            accel_mps2: mean(self.a, self.na),
+            gyro_rad_s: mean(self.g, self.ng),
+            mag_ut: mean(self.m, self.nm),
+            ..Default::default()
+        };
+        *self = Averager::default();
+        if out.accel_mps2.is_none() && out.mag_ut.is_none() {
+            return None;
+        }
+        let mut out = out;
+        if let Some(f) = out.accel_mps2 {
+            let (r, p) = crate::attitude::roll_pitch_deg(&f);
+            out.roll_deg = Some(r);
+            out.pitch_deg = Some(p);
+            if let Some(m) = out.mag_ut {
+                out.heading_deg = Some(crate::attitude::wrap360(
+                    crate::attitude::heading_deg(&m, r, p) + declination.unwrap_or(0.0),
+                ));
+            }
+        }
+        Some(out)
+    }
+}
+
+fn severity_name(s: u8) -> &'static str {
+    match s {
+        0..=3 => "error",
+        4 => "warning",
+        5 | 6 => "info",
+        _ => "debug",
+    }
+}
+
+/// Run the service until `shutdown` turns true, or until every replay/sim source has ended.
+pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<RunSummary, Error> {
+    let d = cfg.daemon.clone();
+    let sources = if d.sources.is_empty() {
+        vec![SourceConfig {
+            address: "sim:tumble".into(),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }]
+    } else {
+        d.sources.clone()
+    };
+    let cal_dir = PathBuf::from(&d.calibration_dir);
+    let store = load_store(&cal_dir)?.unwrap_or_else(StoredCalibration::empty);
+    if store.mag.is_some() || store.accel.is_some() {
+        tracing::info!(
+            "resuming from the calibration in {}",
+            cal_dir.join(STORE_FILE).display()
+        );
+    }
+    let declination = match &cfg.place {
+        Some(p) => Some(
+            crate::attitude::earth_field(p)
+                .map_err(|m| Error::Config {
+                    key: "place".into(),
+                    message: m,
+                })?
+                .declination_deg,
+        ),
+        None => None,
+    };
+    let mut sinks = vec![];
+    for p in &d.publish {
+        sinks.push(Sink::open(p).await?);
+    }
+    let (tx, mut rx) = mpsc::channel::<Inbound>(d.queue_capacity);
+    let (link_stop_tx, link_stop_rx) = watch::channel(false);
+    let mut links = vec![];
+    for (i, s) in sources.iter().enumerate() {
+        let addr = Address::parse(&s.address)?;
+        let replay = matches!(addr, Address::File { .. } | Address::Sim { .. });
+        let payload = payload_of(s);
+        let mavlink = matches!(payload, Payload::Mavlink) && !matches!(addr, Address::Sim { .. });
+        let opts = LinkOptions {
+            silent_after_s: d.silent_after_s,
+            ..LinkOptions::default()
+        };
+        let handle = spawn_link(i, addr, payload, tx.clone(), link_stop_rx.clone(), opts);
+        links.push(LinkEntry {
+            handle,
+            mavlink,
+            ended: false,
+            replay,
+            label: s.address.clone(),
+        });
+    }
+    drop(tx);
+    let choice = if cfg.input.instance == "auto" {
+        InstanceChoice::Auto
+    } else {
+        InstanceChoice::Named(cfg.input.instance.clone())
+    };
+    let mut st = State {
+        pipe: Pipeline::new(&cfg)?,
+        conv: MessageConverter::new(choice, cfg.input.raw_imu_scale),
+        calibrator: State::calibrator_from_store(&store, declination),
+        store,
+        latest: None,
+        enc: MavEncoder::new(d.system_id, d.component_id),
+        links,
+        sinks,
+        ardupilot: false,
+        ap_params: ApCompassParams::default(),
+        writer: None,
+        accepted: 0,
+        cal_dir,
+        report: d.report.as_ref().map(PathBuf::from),
+        start: tokio::time::Instant::now(),
+        declination,
+        last_results: None,
+        progress_pct: 0,
+        mag_awaiting_params: 0,
+        reported_mag: None,
+        window: Averager::default(),
+        cfg,
+    };
+    let mut heading_tick = tokio::time::interval(Duration::from_secs_f64(1.0 / d.heading_rate_hz));
+    let mut progress_tick =
+        tokio::time::interval(Duration::from_secs_f64(1.0 / d.progress_rate_hz));
+    heading_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    progress_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
+    let mut fit_job: Option<FitJob> = None;
+    let mut refit_wanted = false;
+    loop {
+        if refit_wanted && fit_job.is_none() {
+            refit_wanted = false;
+            let input = st.pipe.snapshot();
+            let cfg2 = st.cfg.clone();
+            let t = st.pipe.last_t;
+            fit_job = Some(tokio::task::spawn_blocking(move || {
+                let r = fit_all(&input, &cfg2);
+                let accel_pts = input.poses.iter().map(|p| p.accel).collect();
+                (input.mag_points, accel_pts, t, r)
+            }));
+        }
+        tokio::select! {
+            _ = shutdown.changed() => {
+                if *shutdown.borrow() { break; }
+            }
+            ev = rx.recv() => match ev {
+                None => break,
+                Some(Inbound::Sample { sample, .. }) => {
+                    st.conv.stats.records += 1;
+                    st.conv.stats.count_sample(&sample);
+                    refit_wanted |= st.on_sample(sample);
+                }
+                Some(Inbound::Frame { link, frame, time_us }) => { refit_wanted |= st.on_frame(link, frame, time_us).await; }
+                Some(Inbound::Status { link, status }) => {
+                    let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
+                    match status {
+                        LinkStatus::Connected(s) => st.status(6, format!("{label}: connected {s}")).await,
+                        LinkStatus::Lost(s) => st.status(4, format!("{label}: lost ({s}); reconnecting, calibration kept")).await,
+                        LinkStatus::Silent { for_s } => st.status(4, format!("{label}: silent for {for_s:.1} s")).await,
+                        LinkStatus::Ended => {
+                            if let Some(l) = st.links.get_mut(link) { l.ended = true; }
+                            if st.links.iter().all(|l| l.replay && l.ended) {
+                                // Every source was a replay and all have ended: final fit, then stop.
+                                if let Some(j) = fit_job.take() { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
+                                st.pipe.finish_poses();
+                                let input = st.pipe.snapshot();
+                                let cfg2 = st.cfg.clone();
+                                let t = st.pipe.last_t;
+                                if let Ok((m, a, r)) = tokio::task::spawn_blocking(move || { let r = fit_all(&input, &cfg2); (input.mag_points.clone(), input.poses.iter().map(|p| p.accel).collect(), r) }).await {
+                                    st.on_fit(m, a, t, r).await;
+                                }
+                                break;
+                            }
+                        }
+                    }
+                }
+            },
+            r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
+                fit_job = None;
+                match r {
+                    Ok((m, a, t, res)) => st.on_fit(m, a, t, res).await,
+                    Err(e) => tracing::error!("fit task failed: {e}"),
+                }
+            }
+            _ = heading_tick.tick() => {
+                st.publish_heading().await;
+                if let Some(w) = st.writer.as_mut() {
+                    let now = st.start.elapsed().as_secs_f64();
+                    let msgs = w.next_messages(now);
+                    let done = w.done();
+                    let failed = w.failed();
+                    st.send_mav(&msgs).await;
+                    if done {
+                        st.writer = None;
+                        if failed.is_empty() {
+                            st.status(6, "parameters written and confirmed by the flight controller".into()).await;
+                        } else {
+                            st.status(3, format!("parameters not confirmed: {}", failed.join(", "))).await;
+                        }
+                    }
+                }
+            }
+            _ = progress_tick.tick() => { st.publish_progress().await; }
+        }
+    }
+    // Shutdown: stop the links, keep the last good calibration on disk, write the report.
+    let _ = link_stop_tx.send(true);
+    if let Some(j) = fit_job.take() {
+        if let Ok(Ok((m, a, t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
+            st.on_fit(m, a, t, r).await;
+        }
+    }
+    if st.store.mag.is_some() || st.store.accel.is_some() {
+        st.save().await;
+    }
+    st.write_report().await;
+    let inbound_dropped = st
+        .links
+        .iter()
+        .map(|l| {
+            l.handle
+                .counters
+                .inbound_dropped
+                .load(std::sync::atomic::Ordering::Relaxed)
+        })
+        .sum();
+    for l in &st.links {
+        l.handle.task.abort();
+    }
+    Ok(RunSummary {
+        samples: st.pipe.samples,
+        accepted: st.accepted,
+        inbound_dropped,
+    })
+}
