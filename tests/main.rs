@@ -715,3 +715,182 @@ mod live_serial {
         }
     }
 }
+
+/// A fake ArduPilot flight controller over UDP: it applies its own compass calibration to the data it
+/// streams (as ArduPilot does), answers PARAM_REQUEST_READ and echoes PARAM_SET.
+mod live_ardupilot {
+    use super::*;
+    use imucald::decode::FrameDecoder;
+    use imucald::mavout::MavEncoder;
+    use mavlink::dialects::ardupilotmega::*;
+    use mavlink::types::CharArray;
+    use std::collections::BTreeMap;
+    use std::time::Duration;
+
+    fn name_of(a: &CharArray<16>) -> String {
+        let b: &[u8; 16] = a;
+        let end = b.iter().position(|&c| c == 0).unwrap_or(16);
+        String::from_utf8_lossy(&b[..end]).into_owned()
+    }
+
+    fn value_msg(name: &str, v: f32) -> MavMessage {
+        MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+            param_value: v,
+            param_id: CharArray::from(name),
+            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+            param_count: 10,
+            param_index: 0,
+        })
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn undoes_ardupilot_correction_and_writes_params_with_echo_check() {
+        let dir = tempfile::tempdir().unwrap();
+        let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut cfg = Config::default();
+        cfg.daemon.sources = vec![imucald::config::SourceConfig {
+            address: format!("udpin:127.0.0.1:{port}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }];
+        cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+        cfg.daemon.write_params = true;
+        cfg.fit.refit_every_s = 5.0;
+        cfg.validate().unwrap();
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(200)).await;
+
+        // The FC's current calibration, in ArduPilot's convention (mGauss, added).
+        let mut params: BTreeMap<String, f32> = BTreeMap::new();
+        for (n, v) in [
+            ("COMPASS_OFS_X", 100.0),
+            ("COMPASS_OFS_Y", -200.0),
+            ("COMPASS_OFS_Z", 50.0),
+            ("COMPASS_DIA_X", 1.02),
+            ("COMPASS_DIA_Y", 0.99),
+            ("COMPASS_DIA_Z", 1.0),
+            ("COMPASS_ODI_X", 0.01),
+            ("COMPASS_ODI_Y", 0.0),
+            ("COMPASS_ODI_Z", -0.01),
+            ("COMPASS_SCALE", 0.0),
+        ] {
+            params.insert(n.into(), v);
+        }
+        let mut ap = imucald::mavout::ApCompassParams::default();
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 6);
+        let mut enc = MavEncoder::new(1, 1);
+        let mut dec = FrameDecoder::new();
+        let target = format!("127.0.0.1:{port}");
+        let heartbeat = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavtype: MavType::MAV_TYPE_QUADROTOR,
+            ..Default::default()
+        });
+        let mut sets: BTreeMap<String, f32> = BTreeMap::new();
+        let mut buf = vec![0u8; 2048];
+        let speed = 20.0;
+        let t0 = tokio::time::Instant::now();
+        let total = sim.samples.len();
+        for (i, s) in sim
+            .samples
+            .iter()
+            .chain(sim.samples.iter().take(3000))
+            .enumerate()
+        {
+            let t = if i < total {
+                s.t_s
+            } else {
+                s.t_s + sim.samples[total - 1].t_s
+            };
+            if i % 100 == 0 {
+                fc.send_to(&enc.encode(&heartbeat), &target).await.unwrap();
+                for (n, v) in &params {
+                    ap.set(n, *v);
+                }
+            }
+            // ArduPilot streams its corrected field: S (raw + OFS), in gauss in HIGHRES_IMU.
+            let corrected = ap.correct(s.mag_ut.unwrap()).unwrap();
+            let a = s.accel_mps2.unwrap();
+            let g = s.gyro_rad_s.unwrap();
+            let msg = MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: (1e7 + t * 1e6) as u64,
+                xacc: a[0] as f32,
+                yacc: a[1] as f32,
+                zacc: a[2] as f32,
+                xgyro: g[0] as f32,
+                ygyro: g[1] as f32,
+                zgyro: g[2] as f32,
+                xmag: (corrected[0] / 100.0) as f32,
+                ymag: (corrected[1] / 100.0) as f32,
+                zmag: (corrected[2] / 100.0) as f32,
+                ..Default::default()
+            });
+            fc.send_to(&enc.encode(&msg), &target).await.unwrap();
+            // Answer what the daemon asked.
+            while let Ok(Ok((n, _))) =
+                tokio::time::timeout(Duration::from_micros(1), fc.recv_from(&mut buf)).await
+            {
+                for f in dec.push(&buf[..n]) {
+                    match f.message {
+                        MavMessage::PARAM_REQUEST_READ(r) => {
+                            let name = name_of(&r.param_id);
+                            let v = *params.get(&name).unwrap_or(&0.0);
+                            fc.send_to(&enc.encode(&value_msg(&name, v)), &target)
+                                .await
+                                .unwrap();
+                        }
+                        MavMessage::PARAM_SET(p) => {
+                            let name = name_of(&p.param_id);
+                            params.insert(name.clone(), p.param_value);
+                            sets.insert(name.clone(), p.param_value);
+                            fc.send_to(&enc.encode(&value_msg(&name, p.param_value)), &target)
+                                .await
+                                .unwrap();
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            if i % 50 == 0 {
+                tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        stop_tx.send(true).unwrap();
+        tokio::time::timeout(Duration::from_secs(2), daemon)
+            .await
+            .expect("stops")
+            .unwrap()
+            .unwrap();
+        // The daemon fitted the raw field (undoing the FC's correction) and wrote COMPASS_OFS = -hard iron.
+        let truth = sim.truth.mag.offset;
+        for (k, axis) in ["X", "Y", "Z"].iter().enumerate() {
+            let v = *sets
+                .get(&format!("COMPASS_OFS_{axis}"))
+                .unwrap_or_else(|| panic!("no PARAM_SET COMPASS_OFS_{axis}; sets: {sets:?}"));
+            assert!(
+                (v as f64 + truth[k] * 10.0).abs() < 2.0,
+                "COMPASS_OFS_{axis} = {v} mG, truth hard iron {} uT",
+                truth[k]
+            );
+        }
+        // And said so on the JSON sink.
+        let mut confirmed = false;
+        while let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+        {
+            confirmed |=
+                String::from_utf8_lossy(&buf[..n]).contains("confirmed by the flight controller");
+        }
+        assert!(confirmed, "no confirmation status line");
+    }
+}
