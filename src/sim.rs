@@ -175,6 +175,11 @@ pub enum TrajectoryKind {
     Tumble,
     /// A short flight: ground, take-off, hover with small tilts and full yaw turns, landing.
     Flight,
+    /// A test bench: the vehicle clamped in random static attitudes (as a tumble, no tremor); at each
+    /// attitude the motors step through throttle levels in random order while the temperature swings
+    /// slowly (a half sine over the run), so throttle-, temperature- and time-driven effects can be told
+    /// apart from pose means.
+    Bench,
 }
 
 impl TrajectoryKind {
@@ -183,6 +188,7 @@ impl TrajectoryKind {
             TrajectoryKind::Turntable => "turntable",
             TrajectoryKind::Tumble => "tumble",
             TrajectoryKind::Flight => "flight",
+            TrajectoryKind::Bench => "bench",
         }
     }
     pub fn parse(s: &str) -> Option<TrajectoryKind> {
@@ -190,12 +196,13 @@ impl TrajectoryKind {
             "turntable" => Some(TrajectoryKind::Turntable),
             "tumble" => Some(TrajectoryKind::Tumble),
             "flight" => Some(TrajectoryKind::Flight),
+            "bench" => Some(TrajectoryKind::Bench),
             _ => None,
         }
     }
 }
 
-const SCENARIO_NAMES: [&str; 3] = ["turntable", "tumble", "flight"];
+const SCENARIO_NAMES: [&str; 4] = ["turntable", "tumble", "flight", "bench"];
 
 /// A named simulation scenario: truth parameters plus the trajectory and its knobs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -221,6 +228,174 @@ pub struct Scenario {
     pub temp_drift_c: f64,
     /// Explicit static attitudes `[roll, pitch, yaw]` deg, replacing the scenario's own (turntable, tumble).
     pub attitudes: Option<Vec<[f64; 3]>>,
+    /// Hidden effects beyond the calibration model (default: none, the plain forward model).
+    #[serde(default)]
+    pub effects: Effects,
+    /// Emit a reference attitude (`ref_q`, sensor -> ENU, like optical motion capture) with this much
+    /// white rotation noise per sample, degrees. `None`: no reference.
+    #[serde(default)]
+    pub reference_noise_deg: Option<f64>,
+    /// Knobs of the `bench` trajectory.
+    #[serde(default)]
+    pub bench: BenchSettings,
+}
+
+/// Settings of the `bench` trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BenchSettings {
+    /// Throttle levels (0..1) held at every static attitude, in a random order per attitude.
+    pub levels: Vec<f64>,
+    /// How long each level is held, s.
+    pub level_s: f64,
+    /// Peak of the temperature swing above `temp_c`: T = temp_c + swing * sin(pi t / T_end), deg C.
+    pub temp_swing_c: f64,
+    /// Log a battery current (A) derived from the throttle: 0.3 + 30 throttle^1.5 (+ 0.05 A noise).
+    pub log_current: bool,
+}
+
+impl Default for BenchSettings {
+    fn default() -> Self {
+        BenchSettings {
+            levels: vec![0.0, 0.3, 0.6, 0.9],
+            level_s: 1.0,
+            temp_swing_c: 15.0,
+            log_current: false,
+        }
+    }
+}
+
+/// What drives the motor interference field.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MotorDriver {
+    /// The field is `k * throttle` (0..1).
+    #[default]
+    Throttle,
+    /// The field is `k * current` (A); the current is the bench's `0.3 + 30 throttle^1.5`.
+    Current,
+}
+
+/// Sensor biases linear in temperature: `raw += coeff * (T - ref_temp_c)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TemperatureBias {
+    /// Magnetometer, uT per deg C (raw axes).
+    #[serde(default)]
+    pub mag_ut_per_c: [f64; 3],
+    /// Accelerometer, m/s^2 per deg C.
+    #[serde(default)]
+    pub accel_mps2_per_c: [f64; 3],
+    #[serde(default = "default_ref_temp")]
+    pub ref_temp_c: f64,
+}
+
+fn default_ref_temp() -> f64 {
+    25.0
+}
+
+/// Per-axis cubic scale nonlinearity: the sensed vector is `v + k * v^3 / |nominal|^2` per axis
+/// (nominal = the world field strength for the magnetometer, g for the accelerometer), before the
+/// calibration errors.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct ScaleCubic {
+    pub mag: [f64; 3],
+    pub accel: [f64; 3],
+}
+
+/// Gyro bias changing linearly in time and temperature: `raw += per_s * t + per_c * (T - ref_temp_c)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GyroBiasDrift {
+    #[serde(default)]
+    pub rad_s_per_s: [f64; 3],
+    #[serde(default)]
+    pub rad_s_per_c: [f64; 3],
+    #[serde(default = "default_ref_temp")]
+    pub ref_temp_c: f64,
+}
+
+/// A magnetometer bias wandering sinusoidally in time (not explained by any named effect; used to
+/// check that a diagnosis says "unexplained"): `raw += amplitude * sin(2 pi t / period_s)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BiasWander {
+    pub amplitude_ut: [f64; 3],
+    pub period_s: f64,
+}
+
+/// Hidden effects of the forward model, each off by default. With all off, [`simulate`] gives
+/// exactly what it gives without effects (no random numbers are drawn for them).
+/// Cross-axis sensitivity needs no switch here: it is the off-diagonal part of a sensor's `matrix`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct Effects {
+    /// Mag and/or accel bias linear in temperature.
+    pub temperature_bias: Option<TemperatureBias>,
+    /// Motor field added to the raw magnetometer reading, `raw += k * driver`, uT per unit of the
+    /// driver (as ArduPilot's compassmot; its COMPASS_MOT is the negative of this).
+    pub motor_interference: Option<[f64; 3]>,
+    pub motor_driver: MotorDriver,
+    /// Rotation of the magnetometer frame against the accelerometer (body) frame: rotation vector in
+    /// degrees, `v_body = R v_mag`.
+    pub mag_accel_rotation_deg: Option<[f64; 3]>,
+    /// Mounting yaw of the IMU against the reference attitude, degrees (sensor heading minus the
+    /// reference's heading); seen only through `ref_q`.
+    pub heading_offset_deg: Option<f64>,
+    pub scale_cubic: Option<ScaleCubic>,
+    pub gyro_bias_drift: Option<GyroBiasDrift>,
+    pub mag_bias_wander: Option<BiasWander>,
+}
+
+impl Effects {
+    /// True when no effect is switched on.
+    pub fn is_none(&self) -> bool {
+        *self == Effects::default()
+    }
+
+    fn validate(&self) -> Result<(), Error> {
+        let bad = |key: &str| {
+            Err(Error::Config {
+                key: format!("effects.{key}"),
+                message: "must be finite".into(),
+            })
+        };
+        let fin = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        if let Some(t) = &self.temperature_bias {
+            if !(fin(&t.mag_ut_per_c) && fin(&t.accel_mps2_per_c) && t.ref_temp_c.is_finite()) {
+                return bad("temperature_bias");
+            }
+        }
+        if self.motor_interference.is_some_and(|k| !fin(&k)) {
+            return bad("motor_interference");
+        }
+        if self.mag_accel_rotation_deg.is_some_and(|k| !fin(&k)) {
+            return bad("mag_accel_rotation_deg");
+        }
+        if self.heading_offset_deg.is_some_and(|k| !k.is_finite()) {
+            return bad("heading_offset_deg");
+        }
+        if let Some(c) = &self.scale_cubic {
+            if !(fin(&c.mag) && fin(&c.accel)) {
+                return bad("scale_cubic");
+            }
+        }
+        if let Some(d) = &self.gyro_bias_drift {
+            if !(fin(&d.rad_s_per_s) && fin(&d.rad_s_per_c) && d.ref_temp_c.is_finite()) {
+                return bad("gyro_bias_drift");
+            }
+        }
+        if let Some(w) = &self.mag_bias_wander {
+            if !(fin(&w.amplitude_ut) && w.period_s.is_finite() && w.period_s > 0.0) {
+                return Err(Error::Config {
+                    key: "effects.mag_bias_wander".into(),
+                    message: "amplitude must be finite and period_s > 0".into(),
+                });
+            }
+        }
+        Ok(())
+    }
 }
 
 fn g() -> f64 {
@@ -290,6 +465,9 @@ impl Scenario {
             temp_c: 25.0,
             temp_drift_c: 3.0,
             attitudes: None,
+            effects: Effects::default(),
+            reference_noise_deg: None,
+            bench: BenchSettings::default(),
         };
         match kind {
             TrajectoryKind::Turntable => {
@@ -313,6 +491,13 @@ impl Scenario {
             TrajectoryKind::Flight => {
                 sc.tremor_deg = 0.0;
                 sc.duration_s = Some(80.0);
+            }
+            TrajectoryKind::Bench => {
+                // Clamped: no tremor; 24 attitudes of 4 throttle levels x 1 s.
+                sc.tremor_deg = 0.0;
+                sc.pauses = 24;
+                sc.slew_s = [1.0, 1.5];
+                sc.temp_drift_c = 0.0;
             }
         }
         sc.truth = truth;
@@ -373,6 +558,9 @@ struct ScenarioFile {
     mag: Option<SensorOverride>,
     gyro: Option<SensorOverride>,
     world: Option<WorldOverride>,
+    effects: Option<Effects>,
+    reference_noise_deg: Option<f64>,
+    bench: Option<BenchSettings>,
 }
 
 /// The key a toml/serde error message names (`unknown field `x``), if any.
@@ -452,6 +640,15 @@ impl Scenario {
             if let Some(v) = w.gravity_mps2 {
                 sc.truth.world.gravity_mps2 = v;
             }
+        }
+        if let Some(e) = f.effects {
+            sc.effects = e;
+        }
+        if f.reference_noise_deg.is_some() {
+            sc.reference_noise_deg = f.reference_noise_deg;
+        }
+        if let Some(b) = f.bench {
+            sc.bench = b;
         }
         sc.validate()?;
         Ok(sc)
@@ -533,6 +730,44 @@ impl Scenario {
             }
             if !a.iter().flatten().all(|x| x.is_finite()) {
                 return bad("attitudes", "must be finite".into());
+            }
+        }
+        self.effects.validate()?;
+        if let Some(n) = self.reference_noise_deg {
+            if !(n.is_finite() && (0.0..=10.0).contains(&n)) {
+                return bad(
+                    "reference_noise_deg",
+                    format!("must be in [0, 10], got {n}"),
+                );
+            }
+        }
+        let b = &self.bench;
+        if self.kind == TrajectoryKind::Bench {
+            if b.levels.is_empty()
+                || !b
+                    .levels
+                    .iter()
+                    .all(|x| x.is_finite() && (0.0..=1.0).contains(x))
+            {
+                return bad(
+                    "bench.levels",
+                    format!("must be non-empty, each in [0, 1], got {:?}", b.levels),
+                );
+            }
+            if !(b.level_s.is_finite() && b.level_s > 0.0 && b.level_s <= 3600.0) {
+                return bad(
+                    "bench.level_s",
+                    format!("must be in (0, 3600], got {}", b.level_s),
+                );
+            }
+            if !b.temp_swing_c.is_finite() {
+                return bad("bench.temp_swing_c", "must be finite".into());
+            }
+            if self.attitudes.is_none() && !(1..=10_000).contains(&self.pauses) {
+                return bad(
+                    "pauses",
+                    format!("must be in 1..=10000, got {}", self.pauses),
+                );
             }
         }
         Ok(())
@@ -965,6 +1200,12 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut noise_rng = ChaCha8Rng::seed_from_u64(seed);
     noise_rng.set_stream(1);
+    // Stream 2: the reference attitude's noise and the bench's current noise (drawn only when used,
+    // so scenarios without them see exactly the same numbers as before).
+    let mut extra_rng = ChaCha8Rng::seed_from_u64(seed);
+    extra_rng.set_stream(2);
+    // Bench: per static attitude, (t_start, t_end, throttle levels in the order they are held).
+    let mut bench_schedule: Vec<(f64, f64, Vec<f64>)> = Vec::new();
 
     let mut truth = scenario.truth.clone();
     let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 {
@@ -993,6 +1234,37 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             };
             let (segs, pose_truth) =
                 build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            truth.poses = pose_truth;
+            let tremor = if scenario.tremor_deg > 0.0 {
+                Some(Tremor::new(scenario.tremor_deg, &mut rng))
+            } else {
+                None
+            };
+            Motion::Segments { segs, tremor }
+        }
+        TrajectoryKind::Bench => {
+            let poses = match &scenario.attitudes {
+                Some(a) => a.clone(),
+                None => tumble_attitudes(scenario.pauses.max(1), &mut rng),
+            };
+            let levels = if scenario.bench.levels.is_empty() {
+                vec![0.0]
+            } else {
+                scenario.bench.levels.clone()
+            };
+            let hold_s = levels.len() as f64 * scenario.bench.level_s.max(1e-3);
+            let mut hold = |_: &mut ChaCha8Rng| -> f64 { hold_s };
+            let (segs, pose_truth) =
+                build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            for p in &pose_truth {
+                // Fisher-Yates shuffle of the levels for this attitude.
+                let mut order = levels.clone();
+                for i in (1..order.len()).rev() {
+                    let j = rng.random_range(0..=i);
+                    order.swap(i, j);
+                }
+                bench_schedule.push((p.t_start, p.t_end, order));
+            }
             truth.poses = pose_truth;
             let tremor = if scenario.tremor_deg > 0.0 {
                 Some(Tremor::new(scenario.tremor_deg, &mut rng))
@@ -1032,23 +1304,67 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
     let field = Vector3::new(f[0], f[1], f[2]);
     let mut samples = Vec::with_capacity(n);
     let mut att = Vec::with_capacity(n);
+    let fx = &scenario.effects;
+    let bench = scenario.kind == TrajectoryKind::Bench;
+    let mag_rot = fx.mag_accel_rotation_deg.map(|w| {
+        crate::model::rotation_from_vector(&Vector3::new(
+            w[0].to_radians(),
+            w[1].to_radians(),
+            w[2].to_radians(),
+        ))
+    });
+    let field_strength = truth.world.field_strength_ut();
+    let gravity = truth.world.gravity_mps2;
     for i in 0..n {
         let t = i as f64 / rate;
         let q = motion.attitude(t);
         let qi = q.inverse();
         let a_ned = motion.accel_ned(t);
-        let acc = qi * (a_ned - g_ned);
-        let mag = qi * field;
+        let mut acc = qi * (a_ned - g_ned);
+        let mut mag = qi * field;
         let gyr = motion.body_rate(t);
+        let temp = if bench {
+            scenario.temp_c
+                + scenario.bench.temp_swing_c * (std::f64::consts::PI * t / end.max(1e-9)).sin()
+        } else {
+            scenario.temp_c + scenario.temp_drift_c * (1.0 - (-t / 120.0).exp())
+        };
+        let bench_throttle = if bench {
+            let k = bench_schedule.partition_point(|(_, t1, _)| *t1 <= t);
+            match bench_schedule.get(k) {
+                Some((t0, t1, lv)) if t >= *t0 => {
+                    let j = (((t - t0) / (t1 - t0)) * lv.len() as f64).floor() as usize;
+                    lv[j.min(lv.len() - 1)]
+                }
+                _ => 0.0,
+            }
+        } else {
+            0.0
+        };
+        // Effects acting on the sensed vector before the calibration errors.
+        if let Some(r) = &mag_rot {
+            mag = r.transpose() * mag;
+        }
+        if let Some(c) = &fx.scale_cubic {
+            for k in 0..3 {
+                mag[k] += c.mag[k] * mag[k].powi(3) / (field_strength * field_strength);
+                acc[k] += c.accel[k] * acc[k].powi(3) / (gravity * gravity);
+            }
+        }
         let mut s = Sample {
             t_s: t,
             accel_mps2: Some(raw_with_noise(&truth.accel, &acc, &mut noise_rng)),
             gyro_rad_s: Some(raw_with_noise(&truth.gyro, &gyr, &mut noise_rng)),
             mag_ut: Some(raw_with_noise(&truth.mag, &mag, &mut noise_rng)),
-            temp_c: Some(scenario.temp_c + scenario.temp_drift_c * (1.0 - (-t / 120.0).exp())),
-            throttle: Some(0.0),
+            temp_c: Some(temp),
+            throttle: Some(bench_throttle),
             ..Default::default()
         };
+        if bench && scenario.bench.log_current {
+            use rand_distr::Distribution;
+            let z: f64 = rand_distr::StandardNormal.sample(&mut extra_rng);
+            s.current_a = Some(0.3 + 30.0 * bench_throttle.powf(1.5) + 0.05 * z);
+        }
         if let Motion::Flight(p) = &motion {
             use rand_distr::Distribution;
             let z: f64 = rand_distr::StandardNormal.sample(&mut noise_rng);
@@ -1060,6 +1376,25 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             };
             s.throttle = Some(th);
             s.current_a = Some(0.3 + 30.0 * th.powf(1.5));
+        }
+        // Effects added to the raw readings.
+        if !fx.is_none() {
+            apply_raw_effects(fx, &mut s, t, temp);
+        }
+        if let Some(sd) = scenario.reference_noise_deg {
+            use rand_distr::Distribution;
+            let mut w = Vector3::zeros();
+            for k in 0..3 {
+                let z: f64 = rand_distr::StandardNormal.sample(&mut extra_rng);
+                w[k] = sd.to_radians() * z;
+            }
+            let psi = fx.heading_offset_deg.unwrap_or(0.0).to_radians();
+            // The reference sees a body yawed by -psi from the sensor (sensor heading = reference + psi).
+            let q_ref = q
+                * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), -psi)
+                * UnitQuaternion::from_scaled_axis(w);
+            let q_enu = ned_to_enu() * q_ref;
+            s.ref_q = Some([q_enu.w, q_enu.i, q_enu.j, q_enu.k]);
         }
         samples.push(s);
         att.push(euler_deg_from_quat(&q));
@@ -1073,6 +1408,48 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
         samples,
         truth,
         true_attitude: att,
+    }
+}
+
+/// The rotation taking NED vectors to ENU (180 deg about (1, 1, 0)/sqrt 2; CONVENTIONS.md).
+pub fn ned_to_enu() -> UnitQuaternion<f64> {
+    UnitQuaternion::from_axis_angle(
+        &nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0)),
+        std::f64::consts::PI,
+    )
+}
+
+/// Additive raw-reading effects (motor field, temperature biases, gyro drift, bias wander).
+fn apply_raw_effects(fx: &Effects, s: &mut Sample, t: f64, temp: f64) {
+    let add = |v: &mut Option<Vec3>, d: [f64; 3], x: f64| {
+        if let Some(v) = v.as_mut() {
+            for k in 0..3 {
+                v[k] += d[k] * x;
+            }
+        }
+    };
+    if let Some(k) = fx.motor_interference {
+        let thr = s.throttle.unwrap_or(0.0);
+        let x = match fx.motor_driver {
+            MotorDriver::Throttle => thr,
+            MotorDriver::Current => s.current_a.unwrap_or(0.3 + 30.0 * thr.powf(1.5)),
+        };
+        add(&mut s.mag_ut, k, x);
+    }
+    if let Some(tb) = &fx.temperature_bias {
+        add(&mut s.mag_ut, tb.mag_ut_per_c, temp - tb.ref_temp_c);
+        add(&mut s.accel_mps2, tb.accel_mps2_per_c, temp - tb.ref_temp_c);
+    }
+    if let Some(d) = &fx.gyro_bias_drift {
+        add(&mut s.gyro_rad_s, d.rad_s_per_s, t);
+        add(&mut s.gyro_rad_s, d.rad_s_per_c, temp - d.ref_temp_c);
+    }
+    if let Some(w) = &fx.mag_bias_wander {
+        add(
+            &mut s.mag_ut,
+            w.amplitude_ut,
+            (std::f64::consts::TAU * t / w.period_s).sin(),
+        );
     }
 }
 

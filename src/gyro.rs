@@ -1,0 +1,527 @@
+//! Gyroscope calibration from static poses and the rotations between them. Pure math, no I/O.
+//!
+//! * **Bias** from static poses: the mean gyro reading of each still pose is the bias at that pose's
+//!   temperature. With temperatures that vary (spread >= `min_temp_span_c` over >= 3 poses), a weighted
+//!   linear fit `bias(T) = b0 + k (T - T_ref)` per axis gives the drift; otherwise the weighted mean.
+//! * **Scale and misalignment** (seed 004's 12-parameter model `omega = K (raw - b)`: a general 3x3 `K`
+//!   plus the bias, the same `calibrated = M (raw - o)` convention as the other sensors): between two
+//!   static poses the calibrated gyro is integrated and the rotation it gives must carry the gravity
+//!   direction measured at the first pose onto the one measured at the next (the method of imu_tk:
+//!   Tedaldi, Pretto, Menegatti, ICRA 2014). The bias comes from the poses; `K` (9 parameters) is the
+//!   Levenberg-Marquardt least-squares solution over all pose pairs. The gravity directions tie `K` to
+//!   the accelerometer's axes, so all 9 entries are determined when the rotations between poses
+//!   turn about varied axes; with too few or too similar rotations the fit reports failure.
+//!
+//! The accelerometer readings should be calibrated first (the directions matter, not the norm): pass
+//! the accelerometer calibration, or identity when the readings are already calibrated.
+
+use crate::gate::{GateConfig, Pose, StaticDetector};
+use crate::model::Calibration;
+use crate::types::{Sample, Vec3};
+use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Gyro bias, possibly temperature dependent.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GyroBias {
+    /// Bias at `temp_ref_c` (or the mean over the poses), rad/s (raw units).
+    pub bias: Vec3,
+    /// Drift per deg C, when fitted.
+    pub temp_coeff: Option<Vec3>,
+    /// Reference temperature of `bias`, deg C (the weighted mean pose temperature).
+    pub temp_ref_c: Option<f64>,
+    /// 1-sigma of `bias` per axis from the scatter of the poses, rad/s.
+    pub bias_sigma: Vec3,
+    /// Poses used.
+    pub poses: usize,
+}
+
+impl GyroBias {
+    /// The bias at a temperature (the constant bias when no drift was fitted or no temperature given).
+    pub fn at(&self, temp_c: Option<f64>) -> Vec3 {
+        match (self.temp_coeff, self.temp_ref_c, temp_c) {
+            (Some(k), Some(t0), Some(t)) => [
+                self.bias[0] + k[0] * (t - t0),
+                self.bias[1] + k[1] * (t - t0),
+                self.bias[2] + k[2] * (t - t0),
+            ],
+            _ => self.bias,
+        }
+    }
+}
+
+/// Settings of [`bias_from_poses`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BiasOptions {
+    /// Smallest temperature spread over the poses that allows a drift fit, deg C.
+    pub min_temp_span_c: f64,
+    /// Smallest number of poses with a temperature for a drift fit.
+    pub min_temp_poses: usize,
+}
+
+impl Default for BiasOptions {
+    fn default() -> Self {
+        BiasOptions {
+            min_temp_span_c: 1.0,
+            min_temp_poses: 3,
+        }
+    }
+}
+
+/// Bias (and its temperature drift when temperatures vary) from the static poses' mean gyro readings,
+/// each weighted by its sample count. `None` without a pose that has gyro data.
+pub fn bias_from_poses(poses: &[Pose], opt: &BiasOptions) -> Option<GyroBias> {
+    let pts: Vec<(Vec3, f64, Option<f64>)> = poses
+        .iter()
+        .filter_map(|p| p.gyro.map(|g| (g, p.samples.max(1) as f64, p.temp_c)))
+        .filter(|(g, _, _)| crate::types::is_finite3(g))
+        .collect();
+    if pts.is_empty() {
+        return None;
+    }
+    let wsum: f64 = pts.iter().map(|p| p.1).sum();
+    let mean = |k: usize| pts.iter().map(|p| p.0[k] * p.1).sum::<f64>() / wsum;
+    let m = [mean(0), mean(1), mean(2)];
+    let temps: Vec<(f64, f64)> = pts
+        .iter()
+        .filter_map(|p| p.2.filter(|t| t.is_finite()).map(|t| (t, p.1)))
+        .collect();
+    let span = temps.iter().map(|t| t.0).fold(f64::NEG_INFINITY, f64::max)
+        - temps.iter().map(|t| t.0).fold(f64::INFINITY, f64::min);
+    let n = pts.len() as f64;
+    if temps.len() == pts.len() && temps.len() >= opt.min_temp_poses && span >= opt.min_temp_span_c
+    {
+        // Weighted linear regression per axis on (T - T_ref).
+        let t0 = temps.iter().map(|t| t.0 * t.1).sum::<f64>() / wsum;
+        let stt: f64 = pts.iter().map(|p| p.1 * (p.2.unwrap() - t0).powi(2)).sum();
+        let mut b = [0.0; 3];
+        let mut k = [0.0; 3];
+        let mut sig = [0.0; 3];
+        for ax in 0..3 {
+            let sgt: f64 = pts
+                .iter()
+                .map(|p| p.1 * (p.2.unwrap() - t0) * (p.0[ax] - m[ax]))
+                .sum();
+            k[ax] = sgt / stt;
+            b[ax] = m[ax];
+            let res: f64 = pts
+                .iter()
+                .map(|p| p.1 * (p.0[ax] - b[ax] - k[ax] * (p.2.unwrap() - t0)).powi(2))
+                .sum::<f64>()
+                / wsum;
+            sig[ax] = (res / (n - 2.0).max(1.0)).sqrt();
+        }
+        return Some(GyroBias {
+            bias: b,
+            temp_coeff: Some(k),
+            temp_ref_c: Some(t0),
+            bias_sigma: sig,
+            poses: pts.len(),
+        });
+    }
+    let mut sig = [0.0; 3];
+    for ax in 0..3 {
+        let var = pts
+            .iter()
+            .map(|p| p.1 * (p.0[ax] - m[ax]).powi(2))
+            .sum::<f64>()
+            / wsum;
+        sig[ax] = (var / (n - 1.0).max(1.0)).sqrt();
+    }
+    Some(GyroBias {
+        bias: m,
+        temp_coeff: None,
+        temp_ref_c: temps.first().map(|t| t.0),
+        bias_sigma: sig,
+        poses: pts.len(),
+    })
+}
+
+/// Static poses of a log by the project's static detector on the accelerometer.
+pub fn static_poses(samples: &[Sample], cfg: &GateConfig) -> Vec<Pose> {
+    let mut det = StaticDetector::new(*cfg);
+    let mut poses = Vec::new();
+    for s in samples {
+        if let Some(a) = s.accel_mps2 {
+            poses.extend(det.push(s, &a));
+        }
+    }
+    poses.extend(det.finish());
+    poses
+}
+
+/// The 12-parameter gyro calibration `omega = matrix (raw - bias)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GyroFit {
+    /// Row-major scale/misalignment matrix `K`.
+    pub matrix: [[f64; 3]; 3],
+    /// The bias used (from the poses), raw units.
+    pub bias: GyroBias,
+    /// RMS angle between predicted and measured gravity directions, before and after, degrees.
+    pub rms_before_deg: f64,
+    pub rms_after_deg: f64,
+    /// Pose pairs (rotations) used.
+    pub segments: usize,
+    /// Smallest singular value of the normal matrix relative to the largest: how well the
+    /// rotations determine all 9 entries (near 0: badly).
+    pub conditioning: f64,
+}
+
+impl GyroFit {
+    /// The fit as a [`Calibration`] (offset = constant bias, model full12).
+    pub fn calibration(&self) -> Calibration {
+        Calibration {
+            model: crate::model::ModelKind::Full12,
+            offset: self.bias.bias,
+            matrix: self.matrix,
+        }
+    }
+
+    /// Apply to a raw reading at a temperature.
+    pub fn apply(&self, raw: &Vec3, temp_c: Option<f64>) -> Vec3 {
+        let b = self.bias.at(temp_c);
+        let k = crate::model::rows_to_mat(&self.matrix);
+        let w = k * Vector3::new(raw[0] - b[0], raw[1] - b[1], raw[2] - b[2]);
+        [w.x, w.y, w.z]
+    }
+}
+
+/// Settings of [`fit_scale`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScaleOptions {
+    /// Fewest pose pairs.
+    pub min_segments: usize,
+    /// Smallest rotation between two poses that is used, degrees (smaller ones carry little scale
+    /// information).
+    pub min_rotation_deg: f64,
+    /// Longest motion between two poses, s (longer gaps are likely missing data).
+    pub max_gap_s: f64,
+    /// Largest accepted relative conditioning of the normal matrix.
+    pub min_conditioning: f64,
+}
+
+impl Default for ScaleOptions {
+    fn default() -> Self {
+        ScaleOptions {
+            min_segments: 6,
+            min_rotation_deg: 20.0,
+            max_gap_s: 30.0,
+            min_conditioning: 1e-4,
+        }
+    }
+}
+
+/// One rotation between two static poses: raw gyro samples (with their time steps) and the gravity
+/// directions at both ends.
+struct Segment {
+    steps: Vec<(Vec3, f64)>,
+    up0: Vector3<f64>,
+    up1: Vector3<f64>,
+}
+
+fn unit(v: &Vec3) -> Option<Vector3<f64>> {
+    let u = Vector3::new(v[0], v[1], v[2]);
+    let n = u.norm();
+    (n > 0.0 && n.is_finite()).then(|| u / n)
+}
+
+/// Integrate `K (raw - bias)` over a segment: the rotation from the end sensor frame to the start one.
+fn integrate(seg: &Segment, k: &Matrix3<f64>) -> UnitQuaternion<f64> {
+    let mut q = UnitQuaternion::identity();
+    for (w, dt) in &seg.steps {
+        let w = k * Vector3::new(w[0], w[1], w[2]);
+        q *= UnitQuaternion::from_scaled_axis(w * *dt);
+    }
+    q
+}
+
+/// Residual of one segment: measured end direction minus the start direction carried by the rotation.
+fn residual(seg: &Segment, k: &Matrix3<f64>) -> Vector3<f64> {
+    let q = integrate(seg, k);
+    // A world-fixed vector: v_end = q^-1 v_start.
+    let pred = q.inverse() * seg.up0;
+    seg.up1 - pred
+}
+
+fn k_from(p: &SVector<f64, 9>) -> Matrix3<f64> {
+    Matrix3::new(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8])
+}
+
+/// Scale and misalignment from the rotations between consecutive static poses (`poses` in time order,
+/// from [`static_poses`] or the pipeline), with the bias from [`bias_from_poses`] and the accelerometer
+/// calibration that makes the pose means into directions.
+pub fn fit_scale(
+    samples: &[Sample],
+    poses: &[Pose],
+    bias: &GyroBias,
+    accel: &Calibration,
+    opt: &ScaleOptions,
+) -> Result<GyroFit, String> {
+    let mut segs = Vec::new();
+    for pair in poses.windows(2) {
+        let (p0, p1) = (&pair[0], &pair[1]);
+        if p1.t_start - p0.t_end > opt.max_gap_s {
+            continue;
+        }
+        let (Some(up0), Some(up1)) = (unit(&accel.apply(&p0.accel)), unit(&accel.apply(&p1.accel)))
+        else {
+            continue;
+        };
+        if up0.angle(&up1).to_degrees() < opt.min_rotation_deg {
+            continue;
+        }
+        // From the middle of one pose to the middle of the next.
+        let ta = 0.5 * (p0.t_start + p0.t_end);
+        let tb = 0.5 * (p1.t_start + p1.t_end);
+        let i0 = samples.partition_point(|s| s.t_s < ta);
+        let i1 = samples.partition_point(|s| s.t_s < tb);
+        let mut steps = Vec::with_capacity(i1.saturating_sub(i0));
+        let mut prev: Option<(Vec3, f64)> = None;
+        for s in &samples[i0..i1.min(samples.len())] {
+            let Some(g) = s.gyro_rad_s else { continue };
+            let b = bias.at(s.temp_c);
+            let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
+            if let Some((wp, tp)) = prev {
+                let dt = s.t_s - tp;
+                if dt > 0.0 && dt < 1.0 {
+                    // Midpoint rate over the step.
+                    let m = [
+                        0.5 * (w[0] + wp[0]),
+                        0.5 * (w[1] + wp[1]),
+                        0.5 * (w[2] + wp[2]),
+                    ];
+                    steps.push((m, dt));
+                }
+            }
+            prev = Some((w, s.t_s));
+        }
+        if steps.is_empty() {
+            continue;
+        }
+        segs.push(Segment { steps, up0, up1 });
+    }
+    if segs.len() < opt.min_segments {
+        return Err(format!(
+            "{} rotations of at least {} deg between static poses; {} needed",
+            segs.len(),
+            opt.min_rotation_deg,
+            opt.min_segments
+        ));
+    }
+    let cost = |p: &SVector<f64, 9>| -> f64 {
+        let k = k_from(p);
+        segs.iter().map(|s| residual(s, &k).norm_squared()).sum()
+    };
+    let rms_deg = |p: &SVector<f64, 9>| -> f64 {
+        let k = k_from(p);
+        let s: f64 = segs
+            .iter()
+            .map(|s| {
+                let q = integrate(s, &k);
+                (q.inverse() * s.up0).angle(&s.up1).powi(2)
+            })
+            .sum();
+        (s / segs.len() as f64).sqrt().to_degrees()
+    };
+    let mut p =
+        SVector::<f64, 9>::from_column_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+    let rms_before = rms_deg(&p);
+    let mut lambda = 1e-3;
+    let mut c = cost(&p);
+    let mut conditioning = 0.0;
+    for _ in 0..50 {
+        // Jacobian by central differences.
+        let h = 1e-6;
+        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
+        let mut jtr = SVector::<f64, 9>::zeros();
+        let k0 = k_from(&p);
+        let r0: Vec<Vector3<f64>> = segs.iter().map(|s| residual(s, &k0)).collect();
+        let mut cols: Vec<Vec<Vector3<f64>>> = Vec::with_capacity(9);
+        for j in 0..9 {
+            let mut pp = p;
+            let mut pm = p;
+            pp[j] += h;
+            pm[j] -= h;
+            let (kp, km) = (k_from(&pp), k_from(&pm));
+            cols.push(
+                segs.iter()
+                    .map(|s| (residual(s, &kp) - residual(s, &km)) / (2.0 * h))
+                    .collect(),
+            );
+        }
+        for (si, r) in r0.iter().enumerate() {
+            for a in 0..9 {
+                jtr[a] += cols[a][si].dot(r);
+                for b in 0..9 {
+                    jtj[(a, b)] += cols[a][si].dot(&cols[b][si]);
+                }
+            }
+        }
+        let sv = jtj.singular_values();
+        let (smax, smin) = (sv.max(), sv.min());
+        conditioning = if smax > 0.0 { smin / smax } else { 0.0 };
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut a = jtj;
+            for d in 0..9 {
+                a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
+            }
+            let Some(step) = a.lu().solve(&(-jtr)) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let pn = p + step;
+            let cn = cost(&pn);
+            if cn < c {
+                let rel = (c - cn) / c.max(1e-300);
+                p = pn;
+                c = cn;
+                lambda = (lambda * 0.3).max(1e-9);
+                improved = rel > 1e-12;
+                break;
+            }
+            lambda *= 10.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    if conditioning < opt.min_conditioning {
+        return Err(format!(
+            "the rotations between poses do not determine all 9 scale/misalignment terms (conditioning {conditioning:.1e}); turn about more varied axes"
+        ));
+    }
+    let k = k_from(&p);
+    Ok(GyroFit {
+        matrix: crate::model::mat_to_rows(&k),
+        bias: *bias,
+        rms_before_deg: rms_before,
+        rms_after_deg: rms_deg(&p),
+        segments: segs.len(),
+        conditioning,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::{simulate, Scenario};
+
+    fn tumble(seed: u64) -> (Vec<Sample>, crate::sim::Truth) {
+        tumble_with(seed, |_| {})
+    }
+
+    fn tumble_with(seed: u64, f: impl Fn(&mut Scenario)) -> (Vec<Sample>, crate::sim::Truth) {
+        let mut sc = Scenario::named("tumble").unwrap();
+        f(&mut sc);
+        sc.pauses = 24;
+        // A gyro with misalignment as well as scale.
+        sc.truth.gyro.matrix = [
+            [1.004, 0.003, -0.002],
+            [-0.001, 0.997, 0.004],
+            [0.002, -0.003, 1.002],
+        ];
+        let out = simulate(&sc, seed);
+        (out.samples, out.truth)
+    }
+
+    #[test]
+    fn bias_and_scale_from_a_simulated_tumble() {
+        let (samples, truth) = tumble(11);
+        let poses = static_poses(&samples, &GateConfig::default());
+        assert!(poses.len() >= 15, "{} poses", poses.len());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        for k in 0..3 {
+            assert!(
+                (bias.bias[k] - truth.gyro.offset[k]).abs() < 0.002,
+                "bias {:?} vs {:?}",
+                bias.bias,
+                truth.gyro.offset
+            );
+        }
+        let fit = fit_scale(
+            &samples,
+            &poses,
+            &bias,
+            &truth.accel.calibration(),
+            &ScaleOptions::default(),
+        )
+        .unwrap();
+        eprintln!(
+            "gyro fit: {} segments, rms {:.3} -> {:.4} deg, K {:?}",
+            fit.segments, fit.rms_before_deg, fit.rms_after_deg, fit.matrix
+        );
+        for i in 0..3 {
+            let s = fit.matrix[i][i];
+            let t = truth.gyro.matrix[i][i];
+            assert!((s / t - 1.0).abs() < 0.002, "scale {i}: {s} vs {t}");
+            for j in 0..3 {
+                assert!(
+                    (fit.matrix[i][j] - truth.gyro.matrix[i][j]).abs() < 0.002,
+                    "K[{i}][{j}] {} vs {}",
+                    fit.matrix[i][j],
+                    truth.gyro.matrix[i][j]
+                );
+            }
+        }
+        assert!(fit.rms_after_deg < fit.rms_before_deg / 3.0);
+    }
+
+    #[test]
+    fn bias_drift_with_temperature_is_fitted() {
+        // A warming sensor (10 deg C over the run) held still between poses.
+        let (mut samples, truth) = tumble_with(12, |sc| {
+            sc.temp_drift_c = 10.0;
+            sc.tremor_deg = 0.0;
+        });
+        // Drift of (0.001, -0.0005, 0.0002) rad/s per deg C about 25 deg C.
+        let k = [0.001, -0.0005, 0.0002];
+        for s in samples.iter_mut() {
+            let t = s.temp_c.unwrap();
+            if let Some(g) = s.gyro_rad_s.as_mut() {
+                for a in 0..3 {
+                    g[a] += k[a] * (t - 25.0);
+                }
+            }
+        }
+        let poses = static_poses(&samples, &GateConfig::default());
+        let b = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        let kf = b.temp_coeff.expect("a drift fit");
+        for a in 0..3 {
+            assert!((kf[a] - k[a]).abs() < 2e-4, "drift {kf:?} vs {k:?}");
+            let at25 = b.at(Some(25.0));
+            assert!(
+                (at25[a] - truth.gyro.offset[a]).abs() < 0.002,
+                "{at25:?} vs {:?}",
+                truth.gyro.offset
+            );
+        }
+        // Constant temperature: no drift fit, the mean.
+        let flat: Vec<Pose> = poses
+            .iter()
+            .map(|p| Pose {
+                temp_c: Some(25.0),
+                ..*p
+            })
+            .collect();
+        assert!(bias_from_poses(&flat, &BiasOptions::default())
+            .unwrap()
+            .temp_coeff
+            .is_none());
+    }
+
+    #[test]
+    fn too_few_rotations_is_an_error() {
+        let (samples, truth) = tumble(13);
+        let poses = static_poses(&samples, &GateConfig::default());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        let e = fit_scale(
+            &samples,
+            &poses[..3],
+            &bias,
+            &truth.accel.calibration(),
+            &ScaleOptions::default(),
+        );
+        assert!(e.is_err());
+    }
+}
