@@ -323,6 +323,18 @@ impl Config {
         })
     }
 
+    /// Declination (deg, east positive) of the configured place, or `None` without a place.
+    pub fn declination_deg(&self) -> Result<Option<f64>, Error> {
+        match &self.place {
+            Some(p) => Ok(Some(
+                crate::attitude::earth_field(p)
+                    .map_err(|m| err("place", m))?
+                    .declination_deg,
+            )),
+            None => Ok(None),
+        }
+    }
+
     /// Range and name checks; each error names the key and the fix.
     pub fn validate(&self) -> Result<(), Error> {
         if !["auto", "tlog", "csv"].contains(&self.input.format.as_str()) {

@@ -719,17 +719,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             cal_dir.join(STORE_FILE).display()
         );
     }
-    let declination = match &cfg.place {
-        Some(p) => Some(
-            crate::attitude::earth_field(p)
-                .map_err(|m| Error::Config {
-                    key: "place".into(),
-                    message: m,
-                })?
-                .declination_deg,
-        ),
-        None => None,
-    };
+    let declination = cfg.declination_deg()?;
     let mut sinks = vec![];
     for p in &d.publish {
         sinks.push(Sink::open(p).await?);

@@ -513,7 +513,8 @@ pub struct CsvMapping {
     pub scales: BTreeMap<String, f64>,
 }
 
-const FIELDS: [&str; 18] = [
+/// Field names of CSV input, in the order [`sample_from_fields`] indexes them.
+pub const FIELDS: [&str; 18] = [
     "t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current",
     "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving",
 ];
@@ -621,42 +622,7 @@ pub fn decode_csv(
             stats.skip("bad_row");
             continue;
         }
-        let v3 = |a: usize, stats: &mut DecodeStats| -> Option<Vec3> {
-            match (vals[a], vals[a + 1], vals[a + 2]) {
-                (Some(x), Some(y), Some(z)) => {
-                    let v = [x, y, z];
-                    if v.iter().all(|q| q.is_finite()) {
-                        Some(v)
-                    } else {
-                        stats.skip("non_finite");
-                        None
-                    }
-                }
-                (None, None, None) => None,
-                _ => {
-                    stats.skip("partial_vector");
-                    None
-                }
-            }
-        };
-        let s = Sample {
-            t_s: vals[0].unwrap_or(row_no as f64),
-            accel_mps2: v3(1, stats),
-            gyro_rad_s: v3(4, stats),
-            mag_ut: v3(7, stats),
-            temp_c: vals[10].filter(|v| v.is_finite()),
-            throttle: vals[11].filter(|v| v.is_finite()),
-            current_a: vals[12].filter(|v| v.is_finite()),
-            ref_q: match (vals[13], vals[14], vals[15], vals[16]) {
-                (Some(w), Some(x), Some(y), Some(z))
-                    if [w, x, y, z].iter().all(|q| q.is_finite()) =>
-                {
-                    Some([w, x, y, z])
-                }
-                _ => None,
-            },
-            moving: vals[17].map(|v| v > 0.5),
-        };
+        let s = sample_from_fields(vals[0].unwrap_or(row_no as f64), &vals, Some(stats));
         if !s.t_s.is_finite() {
             stats.skip("non_finite");
             continue;
@@ -669,6 +635,56 @@ pub fn decode_csv(
         out.push(s);
     }
     Ok(out)
+}
+
+/// A sample from per-field values indexed like [`FIELDS`] (already scaled). A vector needs all three
+/// components finite; a partial or non-finite one is dropped and, with `stats`, counted
+/// (`partial_vector`, `non_finite`).
+pub fn sample_from_fields(
+    t_s: f64,
+    vals: &[Option<f64>; FIELDS.len()],
+    mut stats: Option<&mut DecodeStats>,
+) -> Sample {
+    let mut v3 = |a: usize| -> Option<Vec3> {
+        match (vals[a], vals[a + 1], vals[a + 2]) {
+            (Some(x), Some(y), Some(z)) => {
+                let v = [x, y, z];
+                if v.iter().all(|q| q.is_finite()) {
+                    Some(v)
+                } else {
+                    if let Some(st) = stats.as_deref_mut() {
+                        st.skip("non_finite");
+                    }
+                    None
+                }
+            }
+            (None, None, None) => None,
+            _ => {
+                if let Some(st) = stats.as_deref_mut() {
+                    st.skip("partial_vector");
+                }
+                None
+            }
+        }
+    };
+    let (accel_mps2, gyro_rad_s, mag_ut) = (v3(1), v3(4), v3(7));
+    let fin = |x: Option<f64>| x.filter(|v| v.is_finite());
+    Sample {
+        t_s,
+        accel_mps2,
+        gyro_rad_s,
+        mag_ut,
+        temp_c: fin(vals[10]),
+        throttle: fin(vals[11]),
+        current_a: fin(vals[12]),
+        ref_q: match (vals[13], vals[14], vals[15], vals[16]) {
+            (Some(w), Some(x), Some(y), Some(z)) if [w, x, y, z].iter().all(|q| q.is_finite()) => {
+                Some([w, x, y, z])
+            }
+            _ => None,
+        },
+        moving: vals[17].map(|v| v > 0.5),
+    }
 }
 
 /// Input formats.

@@ -18,7 +18,7 @@
 
 use crate::decode::{self, DecodeStats, Frame, FrameDecoder, FrameParse};
 use crate::error::Error;
-use crate::types::{Sample, Vec3, STANDARD_GRAVITY_MPS2};
+use crate::types::{Sample, STANDARD_GRAVITY_MPS2};
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -278,10 +278,7 @@ pub enum Payload {
 }
 
 /// The field names a [`Payload::Csv`] line may carry (those of `decode`'s CSV reader).
-pub const CSV_FIELDS: [&str; 18] = [
-    "t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current",
-    "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving",
-];
+pub const CSV_FIELDS: [&str; 18] = crate::decode::FIELDS;
 
 impl Payload {
     /// Check a CSV payload's field names and scales (the others are always valid).
@@ -530,35 +527,11 @@ impl CsvLineParser {
         if n != self.columns.len() {
             return None;
         }
-        let v3 = |a: usize| match (vals[a], vals[a + 1], vals[a + 2]) {
-            (Some(x), Some(y), Some(z)) if x.is_finite() && y.is_finite() && z.is_finite() => {
-                Some([x, y, z] as Vec3)
-            }
-            _ => None,
-        };
         let t_s = if self.has_t { vals[0]? } else { arrival_s };
         if !t_s.is_finite() {
             return None;
         }
-        let fin = |x: Option<f64>| x.filter(|v| v.is_finite());
-        let s = Sample {
-            t_s,
-            accel_mps2: v3(1),
-            gyro_rad_s: v3(4),
-            mag_ut: v3(7),
-            temp_c: fin(vals[10]),
-            throttle: fin(vals[11]),
-            current_a: fin(vals[12]),
-            ref_q: match (vals[13], vals[14], vals[15], vals[16]) {
-                (Some(w), Some(x), Some(y), Some(z))
-                    if [w, x, y, z].iter().all(|q| q.is_finite()) =>
-                {
-                    Some([w, x, y, z])
-                }
-                _ => None,
-            },
-            moving: vals[17].map(|v| v > 0.5),
-        };
+        let s = crate::decode::sample_from_fields(t_s, &vals, None);
         (!s.is_empty()).then_some(s)
     }
 }

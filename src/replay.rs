@@ -47,17 +47,7 @@ pub fn replay(
     }
     let results = pipe.finish().clone();
     progress(total, total);
-    let declination = match &cfg.place {
-        Some(p) => Some(
-            crate::attitude::earth_field(p)
-                .map_err(|m| Error::Config {
-                    key: "place".into(),
-                    message: m,
-                })?
-                .declination_deg,
-        ),
-        None => None,
-    };
+    let declination = cfg.declination_deg()?;
     let duration = match (log.samples.first(), log.samples.last()) {
         (Some(a), Some(b)) => b.t_s - a.t_s,
         _ => 0.0,
