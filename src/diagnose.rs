@@ -6,36 +6,48 @@
 //! # Evidence
 //! The unit of evidence is the mean of a static segment, not a single sample (time series residuals are
 //! autocorrelated and each sample's noise is not what the model is about):
-//! * **static units**: the pipeline's static poses ([`crate::gate`]), each split where the motor driver
-//!   (current when the log has it, else throttle) steps, so a bench run that steps the throttle at each
-//!   attitude gives one unit per (attitude, level). Per unit the means of accel, mag, gyro, temperature,
-//!   driver and reference attitude, and the within-unit scatter of every residual channel.
+//! * **static units**: the pipeline's static poses ([`crate::gate`]) that are really still (accel
+//!   direction spread <= [`MAX_STILL_SPREAD_DEG`], gyro scatter <= [`MAX_STILL_GYRO_RAD_S`]; the
+//!   detector's automatic threshold, learned on a continuous tumble, passes slow rotations), each split
+//!   where the motor driver (current when the log has it, else throttle) steps, so a bench run that steps
+//!   the throttle at each attitude gives one unit per (attitude, level). Per unit the means of accel,
+//!   mag, gyro, temperature, driver and reference attitude, and the within-unit scatter of every channel.
 //! * **moving windows** (only when fewer than [`MIN_STATIC_MAG_UNITS`] static units carry the
-//!   magnetometer, e.g. a continuous hand tumble): 0.5 s windows of the magnetometer samples outside static
-//!   poses; the unit's residual is the window mean of the per-sample field-magnitude residual (a rotation
-//!   invariant, so motion does not matter), each sample keeping its own driver and temperature. Windows
-//!   are grouped in blocks of [`WINDOW_BLOCK`] for the held-out split, and the nested-model test is
-//!   deflated by the residuals' lag-1 autocorrelation.
+//!   magnetometer, e.g. a continuous hand tumble such as the tyrex phone recordings): [`WINDOW_S`]
+//!   windows of the magnetometer samples outside static units; the unit's residual is the window mean of
+//!   the per-sample field-magnitude residual (a rotation invariant, so motion does not matter), each
+//!   sample keeping its own driver and temperature. Windows are grouped in blocks of [`WINDOW_BLOCK`]
+//!   for the held-out split (neighbouring windows are not independent).
 //!
 //! # Residual channels (what the model predicts each unit should have read)
 //! `mag_norm` |calibrated field| - F (uT); `accel_norm` |calibrated accel| - g; `dip` the gravity-field
 //! angle, g.m - sin(dip); `vector_accel`/`vector_mag` the calibrated vectors turned into ENU by the
 //! reference attitude against up and the fitted earth-field direction (only with `ref_q`); `gyro` the
-//! static gyro mean minus the bias.
+//! static gyro mean minus the bias. The base model (diag6 or sym9 mag and accel, dip, field direction,
+//! gyro bias) is fitted jointly to all channels, starting from the pipeline's fits.
 //!
 //! # Decisions (per round)
 //! The current model (base + effects found so far) is fitted on the fit units; channel weights are the
-//! channels' residual RMS, so every channel counts as noise of variance 1 under the current model. Each
-//! catalogue effect is a switchable term with its own regressors: they are ranked by a linearised nested
-//! test at the current fit (projecting out the current parameters), then refitted jointly in that order.
-//! An effect is **named** when (1) the nested F-test on unit means has p < alpha / m (Bonferroni over the
-//! m identifiable candidates of the round), (2) it holds on held-out groups (paired one-sided t-test of
-//! the per-group squared-residual drop, p < 0.05), (3) its fitted parameters are physically plausible,
-//! (4) the joint fit is well conditioned and no other significant candidate explains the same structure.
-//! Otherwise the round says **not_identifiable** (two significant candidates explain the same structure, or
-//! the joint fit is degenerate), **unexplained** (some channel's residual variance is more than
+//! channels' residual RMS (units within a channel weighted by sqrt of their sample count), so every
+//! channel counts as noise of variance 1 under the current model. Each catalogue effect is a switchable
+//! term with its own regressors: they are ranked by a linearised nested test at the current fit
+//! (projecting out the current parameters; a regressor that does not vary or that the current model
+//! absorbs makes the candidate not identifiable), then refitted jointly in that order. An effect is
+//! **named** when
+//! 1. the nested F-test on unit means has p < alpha / m (Bonferroni over the m identifiable candidates
+//!    of the round); F and its denominator degrees of freedom are deflated by (1 - rho) / (1 + rho), rho
+//!    the lag-1 autocorrelation (time order) of the refitted residuals in the channels the effect improves;
+//! 2. it holds on held-out groups: the held-out drop in squared residual exceeds 3 sd of what a spurious
+//!    fit of the same size gives, or a paired one-sided t-test over groups has p < 0.05;
+//! 3. its fitted parameters are physically plausible (and the base calibration stays sane);
+//! 4. the joint fit is well conditioned and no other significant candidate explains the same structure.
+//!
+//! Otherwise the round says **not_identifiable** (two significant candidates explain the same structure,
+//! or the joint fit is degenerate), **unexplained** (some channel's residual variance is more than
 //! [`EXCESS_RATIO`] x the noise expected from within-unit scatter, and no candidate explains it) or
-//! **none**. Rounds repeat while an effect is named.
+//! **none**. Rounds repeat while an effect is named. `rms_before`/`rms_after` are the held-out RMS of
+//! all residual components in units of their expected noise, for the base model and the final model
+//! (both fitted on the fit units); the parameters in `effects` come from a final fit on all units.
 
 use crate::config::Config;
 use crate::model::{a_from_params, params_from_a, rotation_from_vector, Calibration, ModelKind};
@@ -1928,13 +1940,12 @@ pub fn diagnose(samples: &[Sample], cfg: &Config, opts: &DiagnoseOptions) -> Dia
     let acc_cal = {
         let r = &acc_res.report;
         let m = crate::model::rows_to_mat(&r.matrix);
-        (r.radius > 0.0 && m.determinant() > 0.0 && r.offset.iter().all(|x| x.is_finite())).then(
-            || Calibration {
+        (r.radius > 0.0 && m.determinant() > 0.0 && r.offset.iter().all(|x| x.is_finite()))
+            .then_some(Calibration {
                 model: base,
                 offset: r.offset,
                 matrix: r.matrix,
-            },
-        )
+            })
     };
     let acc_free = n_static_acc >= 12 && acc_cal.is_some() && acc_res.report.status == "ok";
     let mut ch = [false; NCH];

@@ -11,6 +11,7 @@
 pub mod attitude;
 pub mod config;
 pub mod coverage;
+pub mod diagnose;
 pub mod daemon;
 pub mod decode;
 pub mod error;

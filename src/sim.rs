@@ -2225,4 +2225,153 @@ mod tests {
             (b[0] - 10.0).abs() < 1e-9 && (b[1] - 20.0).abs() < 1e-9 && (b[2] - 30.0).abs() < 1e-9
         );
     }
+
+    #[test]
+    fn bench_steps_throttle_and_swings_temperature() {
+        let mut sc = Scenario::named("bench").unwrap();
+        sc.truth.rate_hz = 50.0;
+        sc.pauses = 6;
+        let out = simulate(&sc, 3);
+        assert_eq!(out.truth.poses.len(), 6);
+        assert_eq!(sc.tremor_deg, 0.0);
+        for p in &out.truth.poses {
+            // Each level held for level_s inside the pose.
+            let mut seen: Vec<f64> = out
+                .samples
+                .iter()
+                .filter(|s| s.t_s >= p.t_start && s.t_s < p.t_end - 1e-9)
+                .map(|s| s.throttle.unwrap())
+                .collect();
+            assert_eq!(seen.len(), 200);
+            seen.dedup();
+            let mut lv = seen.clone();
+            lv.sort_by(|a, b| a.total_cmp(b));
+            assert_eq!(lv, vec![0.0, 0.3, 0.6, 0.9], "{seen:?}");
+        }
+        // Throttle is 0 between poses; the temperature rises then falls by the swing.
+        let end = out.samples.last().unwrap().t_s;
+        let temps: Vec<f64> = out.samples.iter().map(|s| s.temp_c.unwrap()).collect();
+        let max = temps.iter().cloned().fold(f64::MIN, f64::max);
+        assert!((max - (sc.temp_c + 15.0)).abs() < 0.05, "{max}");
+        assert!(
+            (temps[0] - sc.temp_c).abs() < 1e-9 && (temps.last().unwrap() - sc.temp_c).abs() < 0.5
+        );
+        let mid = out.samples.iter().position(|s| s.t_s >= end / 2.0).unwrap();
+        assert!(temps[mid] > max - 0.05);
+        assert!(out
+            .samples
+            .iter()
+            .all(|s| s.ref_q.is_none() && s.current_a.is_none()));
+    }
+
+    #[test]
+    fn effects_off_change_nothing_and_raw_effects_add_exactly() {
+        let sc = Scenario::named("tumble").unwrap();
+        let mut sc2 = sc.clone();
+        sc2.effects = Effects::default();
+        sc2.reference_noise_deg = None;
+        assert_eq!(simulate(&sc, 4).samples, simulate(&sc2, 4).samples);
+        assert!(sc.effects.is_none());
+
+        let mut b = Scenario::named("bench").unwrap();
+        b.truth.rate_hz = 50.0;
+        b.pauses = 4;
+        b.bench.log_current = true;
+        let plain = simulate(&b, 9);
+        let mut fx = b.clone();
+        fx.effects = Effects {
+            motor_interference: Some([1.0, -2.0, 3.0]),
+            motor_driver: MotorDriver::Current,
+            temperature_bias: Some(TemperatureBias {
+                mag_ut_per_c: [0.1, 0.0, -0.1],
+                accel_mps2_per_c: [0.0, 0.01, 0.0],
+                ref_temp_c: 20.0,
+            }),
+            gyro_bias_drift: Some(GyroBiasDrift {
+                rad_s_per_s: [1e-4, 0.0, 0.0],
+                rad_s_per_c: [0.0, 0.0, 2e-4],
+                ref_temp_c: 20.0,
+            }),
+            ..Default::default()
+        };
+        let with = simulate(&fx, 9);
+        for (a, p) in with.samples.iter().zip(&plain.samples) {
+            assert_eq!(a.current_a, p.current_a);
+            let (cur, dt) = (p.current_a.unwrap(), p.temp_c.unwrap() - 20.0);
+            let (ma, mp) = (a.mag_ut.unwrap(), p.mag_ut.unwrap());
+            let want = [1.0 * cur + 0.1 * dt, -2.0 * cur, 3.0 * cur - 0.1 * dt];
+            for k in 0..3 {
+                assert!((ma[k] - mp[k] - want[k]).abs() < 1e-9);
+            }
+            let (aa, ap) = (a.accel_mps2.unwrap(), p.accel_mps2.unwrap());
+            assert!((aa[1] - ap[1] - 0.01 * dt).abs() < 1e-12 && aa[0] == ap[0]);
+            let (ga, gp) = (a.gyro_rad_s.unwrap(), p.gyro_rad_s.unwrap());
+            assert!((ga[0] - gp[0] - 1e-4 * a.t_s).abs() < 1e-12);
+            assert!((ga[2] - gp[2] - 2e-4 * dt).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn reference_attitude_heading_offset_rotation_and_cubic() {
+        let mut b = noise_free(Scenario::named("bench").unwrap());
+        b.truth.rate_hz = 20.0;
+        b.pauses = 5;
+        b.truth.mag = SensorTruth::ideal();
+        b.truth.accel = SensorTruth::ideal();
+        b.reference_noise_deg = Some(0.0);
+        b.effects.heading_offset_deg = Some(2.0);
+        b.effects.mag_accel_rotation_deg = Some([1.0, -2.0, 0.5]);
+        let out = simulate(&b, 5);
+        let rm = crate::model::rotation_from_vector(&Vector3::new(
+            1f64.to_radians(),
+            -2f64.to_radians(),
+            0.5f64.to_radians(),
+        ));
+        let dip = b.truth.world.inclination_deg().to_radians();
+        for (s, att) in out.samples.iter().zip(&out.true_attitude) {
+            // ref_q (sensor -> ENU) x Rz(psi) is the true attitude turned into ENU.
+            let r = s.ref_q.unwrap();
+            let qr =
+                UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(r[0], r[1], r[2], r[3]));
+            let want = ned_to_enu() * quat_from_euler_deg(att[0], att[1], att[2]);
+            let got = qr * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 2f64.to_radians());
+            assert!(got.angle_to(&want) < 1e-9);
+            // The magnetometer frame is rotated: R m makes the true gravity-field angle again.
+            let m = Vector3::from(s.mag_ut.unwrap());
+            let f = Vector3::from(s.accel_mps2.unwrap());
+            let d = (-f.normalize()).dot(&(rm * m).normalize());
+            assert!((d - dip.sin()).abs() < 1e-9, "{d}");
+        }
+        // Cubic: a level pose reads z + c z^3 / F^2 on the mag z axis.
+        let mut c = noise_free(Scenario::named("tumble").unwrap());
+        c.truth.mag = SensorTruth::ideal();
+        c.tremor_deg = 0.0;
+        c.attitudes = Some(vec![[0.0, 0.0, 0.0]]);
+        c.effects.scale_cubic = Some(ScaleCubic {
+            mag: [0.0, 0.0, 0.02],
+            accel: [0.0; 3],
+        });
+        let m = simulate(&c, 1).samples[0].mag_ut.unwrap();
+        let z = c.truth.world.field_ned_ut[2];
+        let f = c.truth.world.field_strength_ut();
+        assert!((m[2] - (z + 0.02 * z.powi(3) / (f * f))).abs() < 1e-9);
+    }
+
+    #[test]
+    fn toml_effects_and_bench() {
+        let sc = Scenario::from_toml_str(
+            "name = \"bench\"\npauses = 3\nreference_noise_deg = 0.1\n[bench]\nlevels = [0.0, 0.5]\nlog_current = true\n[effects]\nmotor_interference = [1.0, 2.0, 3.0]\nmotor_driver = \"current\"\nheading_offset_deg = 1.5\n",
+        )
+        .unwrap();
+        assert_eq!(sc.kind, TrajectoryKind::Bench);
+        assert_eq!(sc.bench.levels, vec![0.0, 0.5]);
+        assert_eq!(sc.effects.motor_interference, Some([1.0, 2.0, 3.0]));
+        assert_eq!(sc.effects.motor_driver, MotorDriver::Current);
+        assert_eq!(sc.reference_noise_deg, Some(0.1));
+        let e = Scenario::from_toml_str("name = \"bench\"\n[effects]\nmotor = [1.0, 2.0, 3.0]\n")
+            .unwrap_err();
+        assert!(e.to_string().contains("motor"), "{e}");
+        let e = Scenario::from_toml_str("name = \"bench\"\n[bench]\nlevels = [2.0]\n").unwrap_err();
+        assert!(e.to_string().contains("levels"), "{e}");
+    }
 }
