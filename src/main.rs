@@ -59,6 +59,33 @@ enum Cmd {
         #[arg(long)]
         report: Option<PathBuf>,
     },
+    /// Find where the fitted model and the measured data disagree: name the missing effect (from a
+    /// catalogue), add it to the model and show how far the residual shrinks on held-out poses.
+    Diagnose {
+        /// The log file (.tlog, CSV or .csv.gz).
+        log: PathBuf,
+        /// TOML configuration (see config/).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override format detection: tlog or csv.
+        #[arg(long)]
+        format: Option<String>,
+        /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
+        #[arg(long, default_value = "diag6")]
+        base_model: String,
+        /// Family-wise significance level of each round.
+        #[arg(long, default_value_t = 0.01)]
+        alpha: f64,
+        /// Seed of the held-out split.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Write the JSON report (imucald.diagnosis/1) here.
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Write residual-versus-regressor plots (before and after) into this directory.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
     Simulate {
         /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
@@ -209,6 +236,61 @@ fn main() -> Result<()> {
                 "imucald run: {} samples, {} calibrations accepted, {} samples dropped",
                 summary.samples, summary.accepted, summary.inbound_dropped
             );
+        }
+        Cmd::Diagnose {
+            log,
+            config,
+            format,
+            base_model,
+            alpha,
+            seed,
+            report,
+            plot,
+        } => {
+            let cfg = load_config(config.as_ref())?;
+            let format = match format.as_deref() {
+                None => None,
+                Some(f) => Some(
+                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
+                ),
+            };
+            let base = match imucald::model::ModelKind::parse(&base_model) {
+                Some(m @ (imucald::model::ModelKind::Diag6 | imucald::model::ModelKind::Sym9)) => m,
+                _ => anyhow::bail!("--base-model `{base_model}`: use diag6 or sym9"),
+            };
+            anyhow::ensure!(
+                alpha > 0.0 && alpha < 1.0,
+                "--alpha {alpha}: must be between 0 and 1"
+            );
+            let input = imucald::sources::read_log(&log, format, &cfg)
+                .with_context(|| format!("reading {}", log.display()))?;
+            let spinner = indicatif::ProgressBar::new_spinner();
+            spinner.set_message(format!(
+                "diagnosing {} samples of {}",
+                input.samples.len(),
+                log.display()
+            ));
+            spinner.enable_steady_tick(std::time::Duration::from_millis(120));
+            let opts = imucald::diagnose::DiagnoseOptions {
+                base_model: base,
+                alpha,
+                seed,
+                ..Default::default()
+            };
+            let r = imucald::diagnose::diagnose(&input.samples, &cfg, &opts);
+            spinner.finish_and_clear();
+            print!("{}", imucald::diagnose::summary_table(&r));
+            if let Some(path) = report {
+                imucald::publish::write_json(&path, &r)?;
+                println!("wrote {}", path.display());
+            }
+            if let Some(dir) = plot {
+                for p in imucald::plot::diagnosis(&dir, &r)
+                    .with_context(|| format!("plots into {}", dir.display()))?
+                {
+                    println!("wrote {}", p.display());
+                }
+            }
         }
         Cmd::Simulate {
             scenario,

@@ -72,6 +72,18 @@ pub fn residuals(
     y_label: &str,
     series: &[(&str, &[f64], &[f64])],
 ) -> Result<(), Error> {
+    residuals_vs(path, title, "time (s)", y_label, series)
+}
+
+/// Residual plot against any regressor: as [`residuals`], with `x_label` (naming the regressor and
+/// its unit) on the x axis instead of time.
+pub fn residuals_vs(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(&str, &[f64], &[f64])],
+) -> Result<(), Error> {
     for (label, t, r) in series {
         if t.len() != r.len() {
             return Err(Error::Other(format!(
@@ -85,10 +97,54 @@ pub fn residuals(
         path,
         &ResidualFigure {
             title,
+            x_label,
             y_label,
             series,
         },
     )
+}
+
+/// The plots of a diagnosis (`imucald diagnose --plot DIR`): per effect found, its residual channel
+/// against its regressor before (base model) and after (with the effect), as
+/// `diagnose_<effect>.png` and `.svg` in `dir` (created if missing), and the same against the
+/// residual the effect's fitted term predicts (`diagnose_<effect>_term.*`: before lies on the
+/// diagonal when the effect is what was missing). Returns the files written.
+pub fn diagnosis(
+    dir: &Path,
+    report: &crate::diagnose::DiagnosisReport,
+) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let mut written = vec![];
+    for s in &report.residual_plots {
+        let title = format!(
+            "{}: {} residual before and after adding the effect",
+            s.effect, s.channel
+        );
+        let y = format!("{} residual ({})", s.channel, s.unit);
+        let series: [(&str, &[f64], &[f64]); 2] = [
+            ("before (base model)", &s.x, &s.before),
+            ("after (with the effect)", &s.x, &s.after),
+        ];
+        let term_x = format!("{} predicted by the {} term ({})", s.channel, s.effect, s.unit);
+        let term: [(&str, &[f64], &[f64]); 2] = [
+            ("before (base model)", &s.predicted, &s.before),
+            ("after (with the effect)", &s.predicted, &s.after),
+        ];
+        for ext in ["png", "svg"] {
+            let path = dir.join(format!("diagnose_{}.{ext}", s.effect));
+            residuals_vs(&path, &title, &s.regressor, &y, &series)?;
+            written.push(path);
+            if s.predicted.len() == s.before.len() && !s.regressor.contains("predicted") {
+                let path = dir.join(format!("diagnose_{}_term.{ext}", s.effect));
+                residuals_vs(&path, &title, &term_x, &y, &term)?;
+                written.push(path);
+            }
+        }
+    }
+    Ok(written)
 }
 
 /// Outline of MotionCal coverage region `index` (0..100) as
@@ -789,6 +845,7 @@ const SERIES_COLORS: [RGBColor; 8] = [
 
 struct ResidualFigure<'a> {
     title: &'a str,
+    x_label: &'a str,
     y_label: &'a str,
     series: &'a [(&'a str, &'a [f64], &'a [f64])],
 }
@@ -906,7 +963,7 @@ impl Figure for ResidualFigure<'_> {
             (y_lo, y_hi),
             &xt,
             &yt,
-            "time (s)",
+            self.x_label,
             self.y_label,
         )?;
 
