@@ -1505,7 +1505,17 @@ where
 pub const CSV_HEADER: &str = "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle";
 
 fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result<()> {
-    writeln!(w, "{CSV_HEADER}")?;
+    // Battery current and the reference attitude only when some sample carries them.
+    let current = samples.iter().any(|s| s.current_a.is_some());
+    let reference = samples.iter().any(|s| s.ref_q.is_some());
+    let mut header = CSV_HEADER.to_string();
+    if current {
+        header.push_str(",current");
+    }
+    if reference {
+        header.push_str(",ref_qw,ref_qx,ref_qy,ref_qz");
+    }
+    writeln!(w, "{header}")?;
     let mut line = String::with_capacity(256);
     for s in samples {
         use std::fmt::Write as _;
@@ -1525,14 +1535,29 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
                 let _ = write!(line, "{x}");
             }
         }
+        if current {
+            line.push(',');
+            if let Some(x) = s.current_a {
+                let _ = write!(line, "{x}");
+            }
+        }
+        if reference {
+            match s.ref_q {
+                Some(q) => {
+                    let _ = write!(line, ",{},{},{},{}", q[0], q[1], q[2], q[3]);
+                }
+                None => line.push_str(",,,,"),
+            }
+        }
         line.push('\n');
         w.write_all(line.as_bytes())?;
     }
     Ok(())
 }
 
-/// Write samples as CSV (`t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle`; SI units: s, m/s^2, rad/s, uT,
-/// deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
+/// Write samples as CSV (`t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle`, then `current` (A) and
+/// `ref_qw,ref_qx,ref_qy,ref_qz` (sensor -> ENU) when some sample has them; SI units: s, m/s^2, rad/s,
+/// uT, deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
 pub fn write_csv(path: &std::path::Path, samples: &[Sample]) -> Result<(), Error> {
     let gz = path.to_string_lossy().to_ascii_lowercase().ends_with(".gz");
     write_atomic(path, |file| {
