@@ -2050,9 +2050,11 @@ mod tests {
         write_csv(&p, &samples).unwrap();
         let text = std::fs::read_to_string(&p).unwrap();
         let mut lines = text.lines();
+        // The fixed columns, then `current` because this scenario logs the battery current.
+        assert!(samples.iter().all(|s| s.current_a.is_some() && s.ref_q.is_none()));
         assert_eq!(
             lines.next().unwrap(),
-            "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle"
+            "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle,current"
         );
         let first: Vec<f64> = lines
             .next()
@@ -2060,7 +2062,8 @@ mod tests {
             .split(',')
             .map(|c| c.parse().unwrap())
             .collect();
-        assert_eq!(first.len(), 12);
+        assert_eq!(first.len(), 13);
+        assert_eq!(first[12], samples[0].current_a.unwrap());
         assert_eq!(first[1], samples[0].accel_mps2.unwrap()[0]);
         assert_eq!(text.lines().count(), samples.len() + 1);
 
