@@ -1687,33 +1687,7 @@ fn tlog_records<W: std::io::Write>(
         let m = s.mag_ut.unwrap_or([0.0; 3]);
         let msg = match opts.message {
             ImuMessage::HighresImu => {
-                let mut bits: u16 = 0;
-                if s.accel_mps2.is_some() {
-                    bits |= 0x7;
-                }
-                if s.gyro_rad_s.is_some() {
-                    bits |= 0x38;
-                }
-                if s.mag_ut.is_some() {
-                    bits |= 0x1C0;
-                }
-                if s.temp_c.is_some() {
-                    bits |= 0x1000;
-                }
-                let mut d = apm::HIGHRES_IMU_DATA::default();
-                d.time_usec = TLOG_BOOT_OFFSET_US + t_us;
-                d.xacc = a[0] as f32;
-                d.yacc = a[1] as f32;
-                d.zacc = a[2] as f32;
-                d.xgyro = gy[0] as f32;
-                d.ygyro = gy[1] as f32;
-                d.zgyro = gy[2] as f32;
-                d.xmag = (m[0] / 100.0) as f32;
-                d.ymag = (m[1] / 100.0) as f32;
-                d.zmag = (m[2] / 100.0) as f32;
-                d.temperature = s.temp_c.unwrap_or(0.0) as f32;
-                d.fields_updated = apm::HighresImuUpdatedFlags::from_bits_truncate(bits);
-                apm::MavMessage::HIGHRES_IMU(d)
+                highres_imu(s, TLOG_BOOT_OFFSET_US + t_us)
             }
             ImuMessage::ScaledImu => {
                 let k_acc = 1000.0 / STANDARD_GRAVITY_MPS2;
@@ -1742,6 +1716,43 @@ fn tlog_records<W: std::io::Write>(
         put(w, stamp, &msg)?;
     }
     Ok(())
+}
+
+/// One HIGHRES_IMU message for a sample (m/s^2, rad/s, gauss, degC; `fields_updated` says which
+/// vectors are present), stamped `time_usec`.
+#[allow(clippy::field_reassign_with_default)]
+pub fn highres_imu(s: &Sample, time_usec: u64) -> mavlink::dialects::ardupilotmega::MavMessage {
+    use mavlink::dialects::ardupilotmega as apm;
+    let a = s.accel_mps2.unwrap_or([0.0; 3]);
+    let gy = s.gyro_rad_s.unwrap_or([0.0; 3]);
+    let m = s.mag_ut.unwrap_or([0.0; 3]);
+    let mut bits: u16 = 0;
+    if s.accel_mps2.is_some() {
+        bits |= 0x7;
+    }
+    if s.gyro_rad_s.is_some() {
+        bits |= 0x38;
+    }
+    if s.mag_ut.is_some() {
+        bits |= 0x1C0;
+    }
+    if s.temp_c.is_some() {
+        bits |= 0x1000;
+    }
+    let mut d = apm::HIGHRES_IMU_DATA::default();
+    d.time_usec = time_usec;
+    d.xacc = a[0] as f32;
+    d.yacc = a[1] as f32;
+    d.zacc = a[2] as f32;
+    d.xgyro = gy[0] as f32;
+    d.ygyro = gy[1] as f32;
+    d.zgyro = gy[2] as f32;
+    d.xmag = (m[0] / 100.0) as f32;
+    d.ymag = (m[1] / 100.0) as f32;
+    d.zmag = (m[2] / 100.0) as f32;
+    d.temperature = s.temp_c.unwrap_or(0.0) as f32;
+    d.fields_updated = apm::HighresImuUpdatedFlags::from_bits_truncate(bits);
+    apm::MavMessage::HIGHRES_IMU(d)
 }
 
 /// Write samples as a `.tlog`: per record a big-endian u64 Unix time in microseconds

@@ -1,0 +1,310 @@
+//! `cargo bench --bench live`: the live daemon (`imucald run`, a separate process) fed HIGHRES_IMU
+//! frames over loopback UDP by this process. Figures, not assertions:
+//!
+//! 1. **CPU at 1 kHz**: frames paced at 1 kHz in real time for `IMUCALD_BENCH_CPU_S` seconds
+//!    (default 60); the daemon's CPU time (utime + stime from /proc) over that time, as % of one core.
+//! 2. **Memory**: `IMUCALD_BENCH_MINUTES` (default 60) minutes of a 1 kHz simulated stream, sent
+//!    time-compressed at `IMUCALD_BENCH_RATE` frames/s (default 40000); the daemon's VmRSS after each
+//!    simulated minute: first, max, last, and the growth from minute 5 to the end.
+//! 3. **Load**: 10 kHz of frames for `IMUCALD_BENCH_LOAD_S` seconds (default 60): frames sent, samples
+//!    the daemon took in, drops it counted at its bounded queue, and the kernel's UDP receive-buffer
+//!    errors over the same time (/proc/net/snmp), so a loss is either counted or the kernel's.
+//!
+//! Linux only (reads /proc). Samples come from the simulator (tumble with pauses, 1 kHz), one new
+//! seed per simulated minute, generated while streaming so this process holds one minute at a time.
+
+#![allow(dead_code)]
+
+use imucald::mavout::MavEncoder;
+use imucald::sim::{highres_imu, simulate, Scenario};
+use std::io::{BufRead, BufReader};
+use std::net::UdpSocket;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn env_f64(name: &str, default: f64) -> f64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// One simulated minute of a 1 kHz tumble, starting at `minute * 60` s.
+fn minute(minute: u64) -> Vec<imucald::types::Sample> {
+    let mut sc = Scenario::named("tumble").unwrap();
+    sc.truth.rate_hz = 1000.0;
+    sc.duration_s = Some(60.0);
+    let mut s = simulate(&sc, 1000 + minute).samples;
+    let t0 = minute as f64 * 60.0;
+    for x in s.iter_mut() {
+        x.t_s += t0;
+    }
+    s
+}
+
+struct Daemon {
+    child: Child,
+    port: u16,
+    /// Lines received on the JSON consumer socket.
+    lines: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl Daemon {
+    fn start() -> Daemon {
+        let port = free_udp_port();
+        let consumer = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let cport = consumer.local_addr().unwrap().port();
+        let lines = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let l2 = lines.clone();
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 65536];
+            while let Ok(n) = consumer.recv(&mut buf) {
+                let k = buf[..n].iter().filter(|&&b| b == b'\n').count().max(1);
+                l2.fetch_add(k as u64, std::sync::atomic::Ordering::Relaxed);
+            }
+        });
+        let child = Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args([
+                "run",
+                "--source",
+                &format!("udpin:127.0.0.1:{port}"),
+                "--publish",
+                &format!("udp:127.0.0.1:{cport}"),
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start imucald run");
+        std::thread::sleep(Duration::from_millis(500));
+        Daemon { child, port, lines }
+    }
+
+    fn stat(&self) -> String {
+        std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default()
+    }
+
+    /// CPU seconds (user + system) so far.
+    fn cpu_s(&self) -> f64 {
+        let s = self.stat();
+        // Fields after the ")" that closes the command name; utime and stime are fields 14 and 15.
+        let rest = match s.rfind(')') {
+            Some(i) => &s[i + 2..],
+            None => return f64::NAN,
+        };
+        let f: Vec<&str> = rest.split_whitespace().collect();
+        let ticks = clk_tck();
+        let u: f64 = f.get(11).and_then(|x| x.parse().ok()).unwrap_or(f64::NAN);
+        let st: f64 = f.get(12).and_then(|x| x.parse().ok()).unwrap_or(f64::NAN);
+        (u + st) / ticks
+    }
+
+    /// Resident memory, MB.
+    fn rss_mb(&self) -> f64 {
+        let s = std::fs::read_to_string(format!("/proc/{}/status", self.child.id()))
+            .unwrap_or_default();
+        s.lines()
+            .find(|l| l.starts_with("VmRSS:"))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|k| k.parse::<f64>().ok())
+            .map(|kb| kb / 1024.0)
+            .unwrap_or(f64::NAN)
+    }
+
+    /// SIGTERM, wait, and the daemon's closing line ("N samples, K calibrations accepted, D samples
+    /// dropped") as (samples, dropped).
+    fn stop(mut self) -> (u64, u64) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        let stderr = self.child.stderr.take().unwrap();
+        let mut last = (0, 0);
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.strip_prefix("imucald run: ") {
+                let nums: Vec<u64> = rest
+                    .split(|c: char| !c.is_ascii_digit())
+                    .filter_map(|x| x.parse().ok())
+                    .collect();
+                if nums.len() >= 3 {
+                    last = (nums[0], nums[2]);
+                }
+            }
+        }
+        let _ = self.child.wait();
+        last
+    }
+}
+
+fn clk_tck() -> f64 {
+    Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8_lossy(&o.stdout).trim().parse().ok())
+        .unwrap_or(100.0)
+}
+
+/// UDP receive-buffer errors of the whole host so far (/proc/net/snmp `Udp: ... RcvbufErrors`).
+fn udp_rcvbuf_errors() -> u64 {
+    let s = std::fs::read_to_string("/proc/net/snmp").unwrap_or_default();
+    let rows: Vec<&str> = s.lines().filter(|l| l.starts_with("Udp:")).collect();
+    if rows.len() < 2 {
+        return 0;
+    }
+    let names: Vec<&str> = rows[0].split_whitespace().collect();
+    let vals: Vec<&str> = rows[1].split_whitespace().collect();
+    names
+        .iter()
+        .position(|n| *n == "RcvbufErrors")
+        .and_then(|i| vals.get(i))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0)
+}
+
+/// Send `samples` as HIGHRES_IMU frames at `rate_hz` (paced against the wall clock).
+fn send_paced(
+    sock: &UdpSocket,
+    enc: &mut MavEncoder,
+    samples: &[imucald::types::Sample],
+    rate_hz: f64,
+) -> u64 {
+    let start = Instant::now();
+    let mut sent = 0u64;
+    for (i, s) in samples.iter().enumerate() {
+        let due = Duration::from_secs_f64(i as f64 / rate_hz);
+        loop {
+            let el = start.elapsed();
+            if el >= due {
+                break;
+            }
+            let wait = due - el;
+            if wait > Duration::from_micros(300) {
+                std::thread::sleep(wait - Duration::from_micros(200));
+            } else {
+                std::hint::spin_loop();
+            }
+        }
+        let frame = enc.encode(&highres_imu(s, (s.t_s * 1e6) as u64 + 1_000_000));
+        if sock.send(&frame).is_ok() {
+            sent += 1;
+        }
+    }
+    sent
+}
+
+fn cpu_at_1khz(seconds: f64) {
+    let d = Daemon::start();
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.connect(("127.0.0.1", d.port)).unwrap();
+    let mut enc = MavEncoder::default();
+    let minutes = (seconds / 60.0).ceil() as u64;
+    let mut sent = 0;
+    let (mut cpu0, mut t0) = (f64::NAN, Instant::now());
+    for m in 0..minutes {
+        let mut s = minute(m);
+        let keep = ((seconds - m as f64 * 60.0).min(60.0) * 1000.0) as usize;
+        s.truncate(keep);
+        if m == 0 {
+            // Start the clock after the first frames, so start-up is not counted.
+            sent += send_paced(&sock, &mut enc, &s[..1000.min(s.len())], 1000.0);
+            cpu0 = d.cpu_s();
+            t0 = Instant::now();
+            sent += send_paced(&sock, &mut enc, &s[1000.min(s.len())..], 1000.0);
+        } else {
+            sent += send_paced(&sock, &mut enc, &s, 1000.0);
+        }
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let cpu = d.cpu_s() - cpu0;
+    let rss = d.rss_mb();
+    let lines = d.lines.load(std::sync::atomic::Ordering::Relaxed);
+    let (taken, dropped) = d.stop();
+    println!(
+        "live CPU at 1 kHz: {:.3} CPU-s over {wall:.1} s wall = {:.2}% of one core (target < 1%); {:.1} us per sample; {sent} frames sent, {taken} samples taken, {dropped} dropped; RSS {rss:.1} MB; {lines} JSON lines out",
+        cpu,
+        100.0 * cpu / wall,
+        1e6 * cpu / (wall * 1000.0)
+    );
+}
+
+fn memory(minutes: u64, rate: f64) {
+    let d = Daemon::start();
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.connect(("127.0.0.1", d.port)).unwrap();
+    let mut enc = MavEncoder::default();
+    let mut rss = vec![];
+    let start = Instant::now();
+    let mut sent = 0;
+    for m in 0..minutes {
+        let s = minute(m);
+        sent += send_paced(&sock, &mut enc, &s, rate);
+        std::thread::sleep(Duration::from_millis(50));
+        rss.push(d.rss_mb());
+    }
+    let wall = start.elapsed().as_secs_f64();
+    let (taken, dropped) = d.stop();
+    let max = rss.iter().cloned().fold(f64::MIN, f64::max);
+    let from = rss.get(4).copied().unwrap_or(rss[0]);
+    let last = *rss.last().unwrap();
+    println!(
+        "memory over {minutes} simulated minutes at 1 kHz ({sent} frames in {wall:.0} s, {taken} taken, {dropped} dropped): RSS first {:.1} MB, max {max:.1} MB, last {last:.1} MB, growth minute 5 -> end {:+.2} MB (target < 30 MB, no growth)",
+        rss[0],
+        last - from
+    );
+    let per: Vec<String> = rss.iter().map(|r| format!("{r:.1}")).collect();
+    println!("  RSS per minute (MB): {}", per.join(" "));
+}
+
+fn load(seconds: f64) {
+    let d = Daemon::start();
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.connect(("127.0.0.1", d.port)).unwrap();
+    let mut enc = MavEncoder::default();
+    let k0 = udp_rcvbuf_errors();
+    let mut sent = 0;
+    let minutes = (seconds / 6.0).ceil() as u64;
+    // 10 kHz: each simulated minute of 1 kHz samples goes out in 6 s.
+    for m in 0..minutes {
+        let mut s = minute(m);
+        let keep = ((seconds - m as f64 * 6.0).min(6.0) * 10_000.0) as usize;
+        s.truncate(keep);
+        sent += send_paced(&sock, &mut enc, &s, 10_000.0);
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    let kernel = udp_rcvbuf_errors() - k0;
+    let (taken, dropped) = d.stop();
+    println!(
+        "load 10 kHz for {seconds:.0} s: {sent} frames sent, {taken} samples taken, {dropped} dropped and counted at the bounded queue, {kernel} lost in the kernel (UDP receive buffer); unaccounted {}",
+        sent as i64 - taken as i64 - dropped as i64 - kernel as i64
+    );
+}
+
+fn main() {
+    if std::env::args().any(|a| a == "--list") {
+        return;
+    }
+    if !std::path::Path::new("/proc/self/stat").exists() {
+        println!("live bench: needs Linux /proc; skipped");
+        return;
+    }
+    let only = std::env::var("IMUCALD_BENCH_ONLY").unwrap_or_default();
+    if only.is_empty() || only == "cpu" {
+        cpu_at_1khz(env_f64("IMUCALD_BENCH_CPU_S", 60.0));
+    }
+    if only.is_empty() || only == "memory" {
+        memory(
+            env_f64("IMUCALD_BENCH_MINUTES", 60.0) as u64,
+            env_f64("IMUCALD_BENCH_RATE", 40_000.0),
+        );
+    }
+    if only.is_empty() || only == "load" {
+        load(env_f64("IMUCALD_BENCH_LOAD_S", 60.0));
+    }
+}
