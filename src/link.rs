@@ -560,6 +560,9 @@ impl LineBuffer {
         while let Some(i) = rest.iter().position(|b| *b == b'\n') {
             if self.discarding {
                 self.discarding = false;
+            } else if self.buf.len() + i > MAX_LINE {
+                // Over-long even though its start fitted in an earlier read (found by fuzzing).
+                dropped += 1;
             } else {
                 self.buf.extend_from_slice(&rest[..i]);
                 lines.push(Self::text(&self.buf));
@@ -1906,6 +1909,18 @@ mod tests {
         assert_eq!(d, 1);
         let (l, d) = b.push(b"yyy\nok\n");
         assert_eq!((l, d), (vec!["ok".to_string()], 0));
+        // Also when its start fitted in an earlier read, and when one read holds all of it.
+        let (l, d) = b.push(&long[..MAX_LINE - 5]);
+        assert!(l.is_empty() && d == 0);
+        let (l, d) = b.push(b"123456\nok\n");
+        assert_eq!((l, d), (vec!["ok".to_string()], 1));
+        let mut one = long.clone();
+        one.extend(b"\nok\n");
+        assert_eq!(b.push(&one), (vec!["ok".to_string()], 1));
+        // A line of exactly MAX_LINE bytes is kept.
+        let mut max = vec![b'z'; MAX_LINE];
+        max.push(b'\n');
+        assert_eq!(b.push(&max).0[0].len(), MAX_LINE);
     }
 
     #[test]

@@ -26,7 +26,18 @@ pub fn read_log(path: &Path, format: Option<Format>, cfg: &Config) -> Result<Log
         path: path.to_path_buf(),
         source,
     })?;
-    let data = maybe_gunzip(&bytes).map_err(|e| Error::Format {
+    decode_log(&bytes, path, format, cfg)
+}
+
+/// Decode the bytes of a log file (gzip or not, tlog or CSV); `path` only names it in errors.
+/// Any bytes give a log or an error, never a panic (fuzzed: `fuzz/fuzz_targets/tlog.rs`).
+pub fn decode_log(
+    bytes: &[u8],
+    path: &Path,
+    format: Option<Format>,
+    cfg: &Config,
+) -> Result<Log, Error> {
+    let data = maybe_gunzip(bytes).map_err(|e| Error::Format {
         path: path.to_path_buf(),
         message: format!("gzip: {e}"),
     })?;

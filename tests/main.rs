@@ -1020,3 +1020,290 @@ mod live_ardupilot {
         assert!(confirmed, "no confirmation status line");
     }
 }
+
+mod fuzz_regressions {
+    //! Issue 6: inputs that once crashed a fuzz target (`fuzz/regressions/<target>/`) and hand-made
+    //! nasty inputs, through the fuzz targets' own entry points (`fuzz/entry.rs`, included here).
+    include!(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/entry.rs"));
+
+    use imucald::decode::Format;
+    use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA, RAW_IMU_DATA};
+    use mavlink::{MavHeader, MavlinkVersion};
+
+    const TARGETS: [&str; 5] = ["tlog", "mavlink_frames", "csv", "serial_lines", "config"];
+
+    fn regressions_dir() -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/regressions")
+    }
+
+    /// Run every file of `fuzz/regressions/<target>/` through `f`; fail naming each file that panics.
+    fn replay_regressions<T>(target: &str, f: fn(&[u8]) -> T) -> usize {
+        let Ok(dir) = std::fs::read_dir(regressions_dir().join(target)) else {
+            return 0;
+        };
+        let mut files: Vec<_> = dir.map(|e| e.unwrap().path()).filter(|p| p.is_file()).collect();
+        files.sort();
+        let failed: Vec<String> = files
+            .iter()
+            .filter(|p| {
+                let bytes = std::fs::read(p).unwrap();
+                std::panic::catch_unwind(|| f(&bytes)).is_err()
+            })
+            .map(|p| p.display().to_string())
+            .collect();
+        assert!(failed.is_empty(), "{target}: panics on {failed:?}");
+        files.len()
+    }
+
+    #[test]
+    fn regression_folders_name_targets() {
+        let Ok(dir) = std::fs::read_dir(regressions_dir()) else {
+            return;
+        };
+        for e in dir {
+            let p = e.unwrap().path();
+            let name = p.file_name().unwrap().to_string_lossy().to_string();
+            assert!(
+                p.is_dir() && TARGETS.contains(&name.as_str()),
+                "{}: fuzz/regressions/ holds one folder per target ({TARGETS:?})",
+                p.display()
+            );
+        }
+    }
+
+    fn frame(msg: &MavMessage, v: MavlinkVersion, seq: u8) -> Vec<u8> {
+        let mut out = Vec::new();
+        let h = MavHeader {
+            system_id: 1,
+            component_id: 1,
+            sequence: seq,
+        };
+        mavlink::write_versioned_msg(&mut out, v, h, msg).unwrap();
+        out
+    }
+
+    fn highres(i: usize) -> MavMessage {
+        MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+            time_usec: 1_000 + i as u64 * 10_000,
+            xacc: 0.1 * i as f32,
+            zacc: -9.8,
+            xmag: 0.2,
+            ymag: 0.01,
+            zmag: 0.4,
+            temperature: 30.0,
+            ..Default::default()
+        })
+    }
+
+    /// `n` tlog records of HIGHRES_IMU, 10 ms apart.
+    fn good_tlog(n: usize) -> Vec<u8> {
+        let mut log = Vec::new();
+        for i in 0..n {
+            log.extend((1_700_000_000_000_000u64 + i as u64 * 10_000).to_be_bytes());
+            log.extend(frame(&highres(i), MavlinkVersion::V2, i as u8));
+        }
+        log
+    }
+
+    fn auto_tlog(bytes: &[u8]) -> (Vec<Sample>, DecodeStats) {
+        let mut conv = MessageConverter::new(InstanceChoice::Auto, RawImuScale::default());
+        let s = decode_tlog(bytes, &mut conv);
+        (s, conv.stats)
+    }
+
+    #[test]
+    fn tlog_regressions_and_nasty_logs() {
+        replay_regressions("tlog", tlog);
+        let good = good_tlog(12);
+        let rec = good.len() / 12;
+        let (s, st) = auto_tlog(&good);
+        assert_eq!((s.len(), st.skipped.len()), (12, 0), "{st:?}");
+        tlog(&good);
+
+        // Truncated frame: the last record cut in its payload.
+        let cut = &good[..good.len() - rec / 2];
+        tlog(cut);
+        let (s, st) = auto_tlog(cut);
+        assert_eq!(s.len(), 11);
+        assert_eq!(st.skipped.get("truncated"), Some(&1));
+
+        // Huge length byte: a fake record claiming a 255-byte v2 payload, in the middle and at the end.
+        let ts = 1_700_000_000_050_000u64.to_be_bytes();
+        let mut fake = ts.to_vec();
+        fake.extend([0xFD, 0xFF, 0x00, 0x00, 0x01, 0x01, 0x01, 105, 0x00, 0x00]);
+        let mut mid = good[..6 * rec].to_vec();
+        mid.extend(&fake);
+        mid.extend(&good[6 * rec..]);
+        tlog(&mid);
+        let (s, st) = auto_tlog(&mid);
+        assert_eq!(s.len(), 12, "{st:?}");
+        let mut end = good.clone();
+        end.extend(&fake);
+        tlog(&end);
+        let (s, st) = auto_tlog(&end);
+        assert_eq!(s.len(), 12);
+        assert_eq!(st.skipped.get("truncated"), Some(&1));
+
+        // The file path: gzip (whole and cut), a bare gzip magic, all magic bytes, nothing.
+        let cfg = Config::default();
+        let read = |b: &[u8]| imucald::sources::decode_log(b, Path::new("nasty"), None, &cfg);
+        let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        std::io::Write::write_all(&mut gz, &good).unwrap();
+        let gz = gz.finish().unwrap();
+        tlog(&gz);
+        let log = read(&gz).unwrap();
+        assert_eq!((log.format, log.samples.len()), (Format::Tlog, 12));
+        tlog(&gz[..gz.len() * 2 / 3]);
+        let log = read(&gz[..gz.len() * 2 / 3]).unwrap();
+        assert!(!log.samples.is_empty() && log.samples.len() < 12);
+        for nasty in [&[0x1F, 0x8B][..], &[0xFD; 5000][..], &[0xFE; 9][..], &[][..]] {
+            tlog(nasty);
+            assert!(read(nasty).is_err(), "{:?}", &nasty[..nasty.len().min(4)]);
+        }
+    }
+
+    #[test]
+    fn mavlink_frame_regressions_and_nasty_streams() {
+        replay_regressions("mavlink_frames", mavlink_frames);
+        let mut frames = Vec::new();
+        for i in 0..10 {
+            let v = if i % 2 == 0 {
+                MavlinkVersion::V2
+            } else {
+                MavlinkVersion::V1
+            };
+            frames.push(frame(&highres(i), v, i as u8));
+        }
+        frames.push(frame(
+            &MavMessage::RAW_IMU(RAW_IMU_DATA {
+                xacc: i16::MIN,
+                zmag: i16::MAX,
+                ..Default::default()
+            }),
+            MavlinkVersion::V2,
+            10,
+        ));
+        let stream: Vec<u8> = frames.concat();
+        for k in [0u8, 1, 37, 255] {
+            let mut data = vec![k];
+            data.extend(&stream);
+            let (n, samples) = mavlink_frames(&data);
+            assert_eq!((n, samples.len()), (11, 10), "chunking byte {k}");
+
+            // Truncated frame at the end: the others still come out.
+            let (n, _) = mavlink_frames(&data[..data.len() - 3]);
+            assert_eq!(n, 10);
+
+            // Huge length byte before good frames: the fake header is skipped once enough bytes came.
+            let mut fake = vec![k, 0xFD, 0xFF, 0x00, 0x00, 0x01, 0x01, 0x01, 105, 0x00, 0x00];
+            fake.extend(&stream);
+            assert_eq!(mavlink_frames(&fake).0, 11);
+            let mut v1 = vec![k, 0xFE, 0xFF, 0x00, 0x01, 0x01, 27];
+            v1.extend(&stream);
+            assert_eq!(mavlink_frames(&v1).0, 11);
+        }
+        for nasty in [&[0xFD; 600][..], &[0xFE; 600][..], &[7, 0xFD][..], &[][..]] {
+            assert_eq!(mavlink_frames(nasty).0, 0);
+        }
+    }
+
+    #[test]
+    fn csv_regressions_and_nasty_cells() {
+        replay_regressions("csv", csv);
+        let text = "t,ax,ay,az,mx,my,mz\n\
+                    0,NaN,0,0,1,2,3\n\
+                    0.1,inf,-inf,1,4,5,6\n\
+                    0.2,1e309,0,0,7,8,9\n\
+                    NaN,0,0,1,1,1,1\n\
+                    0.4,0,0,-9.8,nan,infinity,1\n\
+                    0.5,0,0,-9.8,1,2\n\
+                    0.6,0,0,-9.8,1,2,x\n";
+        let (s, st) = csv(text.as_bytes()).unwrap();
+        assert_eq!(s.len(), 4, "{s:?}");
+        assert!(s[..3].iter().all(|x| x.accel_mps2.is_none() && x.mag_ut.is_some()));
+        assert_eq!((s[3].accel_mps2, s[3].mag_ut), (Some([0.0, 0.0, -9.8]), None));
+        assert_eq!(st.skipped.get("non_finite"), Some(&5), "{st:?}");
+        assert_eq!(st.skipped.get("bad_row"), Some(&2), "{st:?}");
+        assert!(csv(b"t,ax,ay,az\n").unwrap().0.is_empty());
+        for nasty in [&b""[..], b"\n\n#x\n", b"t,temp\n1,2\n", b"\xff\xfe,\x00\n1"] {
+            assert!(csv(nasty).is_err(), "{}", String::from_utf8_lossy(nasty));
+        }
+    }
+
+    #[test]
+    fn serial_line_regressions_and_nasty_lines() {
+        replay_regressions("serial_lines", serial_lines);
+        let good = "Raw:8192,-4096,0,16,-32,160,100,-25,0";
+        let mut data = vec![3u8];
+        for bad in [
+            "Raw:40000,0,0,0,0,0,0,0,0",
+            "Raw:NaN,0,0,0,0,0,0,0,0",
+            "Raw:1,2,3,4,5,6,7,8",
+            "Raw:1,2,3,4,5,6,7,8,9,10",
+            "Raw:-32769,0,0,0,0,0,0,0,0",
+            "inf,nan,1,2,3,4,5,6,7",
+        ] {
+            data.extend(bad.as_bytes());
+            data.extend(b"\r\n");
+        }
+        data.extend(good.as_bytes());
+        data.extend(b"\n");
+        data.extend(vec![b'7'; 5000]);
+        data.extend(b"\n");
+        data.extend(good.as_bytes());
+        let (lines, motioncal) = serial_lines(&data);
+        assert_eq!(motioncal, 2, "{lines:?}");
+        assert_eq!(lines.len(), 8, "the over-long line is dropped");
+    }
+
+    #[test]
+    fn config_regressions_and_every_kind_of_mistake() {
+        replay_regressions("config", config);
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            assert!(config(&std::fs::read(&p).unwrap()).is_ok(), "{}", p.display());
+        }
+        // (TOML, the key the error must name, a word of the message)
+        let mistakes = [
+            ("[fit]\nmag_modle = \"sym9\"\n", "toml", "mag_modle"),
+            ("[fit]\nrefit_every_s = \"ten\"\n", "toml", "line 2"),
+            ("[fit]\nrefit_every_s = nan\n", "fit.refit_every_s", "positive"),
+            ("[gate]\nwindow_s = inf\n", "gate.window_s", "positive"),
+            ("[gate]\nmin_pose_s = -nan\n", "gate.min_pose_s", "zero"),
+            ("[fit]\nmag_model = \"\u{e9}\u{1F600}\"\n", "fit.mag_model", "sym9"),
+            ("[accept.mag]\nmin_radius = 100.0\n", "accept.mag.min_radius", "max_radius"),
+            ("[accept.accel]\nmin_filled_regions = 101\n", "accept.accel.min_filled_regions", "100"),
+            ("[daemon]\nqueue_capacity = -1\n", "toml", "line 2"),
+            ("[daemon]\ntarget_system = 300\n", "toml", "line 2"),
+            ("[daemon]\nqueue_capacity = 0\n", "daemon.queue_capacity", "> 0"),
+            ("[daemon]\nsources = [{ address = \"bogus\" }]\n", "daemon.sources[0].address", "scheme"),
+            (
+                "[daemon]\nsources = [{ address = \"serial:/dev/ttyUSB0:115200\", payload = \"csv\" }]\n",
+                "daemon.sources[0].fields",
+                "column order",
+            ),
+            ("[daemon]\npublish = [\"udp:nowhere\"]\n", "daemon.publish[0]", "udp:IP:PORT"),
+            ("[place]\nlatitude_deg = 91.0\nlongitude_deg = 0.0\n", "place", "range"),
+            (
+                "[place]\nlatitude_deg = 45.0\nlongitude_deg = 7.0\ndate = \"2026-02-30\"\n",
+                "place",
+                "YYYY-MM-DD",
+            ),
+            ("[orientation]\nsensor = \"ROTATION_YAW_7\"\n", "orientation.sensor", "7"),
+            ("[input]\ninstance = \"raw_imu:256\"\n", "input.instance", "raw_imu:N"),
+            ("a = 1\na = 2\n", "toml", "line"),
+            ("[fit]\n[fit]\n", "toml", "line"),
+            ("[fit\nmag_model = 1\n", "toml", "line 1"),
+            ("\u{feff}[fit]\nprefilter = 2\n", "toml", "line 2"),
+        ];
+        for (text, key, word) in mistakes {
+            let (k, m) = config(text.as_bytes()).expect_err(text);
+            assert!(k == key && m.contains(word), "{text:?}: {k}: {m}");
+        }
+        // All of them at once: refused, naming a key.
+        let all: String = mistakes.iter().map(|m| m.0).collect();
+        assert!(config(all.as_bytes()).is_err());
+        assert!(config(b"\xff[fit]").is_err());
+    }
+}

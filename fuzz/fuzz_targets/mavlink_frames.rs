@@ -1,0 +1,10 @@
+//! Fuzz target `mavlink_frames`: see `fuzz/entry.rs` for what it calls and asserts.
+#![no_main]
+
+#[allow(dead_code)]
+#[path = "../entry.rs"]
+mod entry;
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    let _ = entry::mavlink_frames(data);
+});

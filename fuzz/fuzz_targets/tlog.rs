@@ -1,0 +1,10 @@
+//! Fuzz target `tlog`: see `fuzz/entry.rs` for what it calls and asserts.
+#![no_main]
+
+#[allow(dead_code)]
+#[path = "../entry.rs"]
+mod entry;
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    let _ = entry::tlog(data);
+});
