@@ -145,6 +145,15 @@ pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
         let deg: f64 = pair[1]
             .parse()
             .map_err(|_| format!("unknown sensor orientation `{name}`"))?;
+        // MAV_SENSOR_ORIENTATION names turn by multiples of 45 deg, except
+        // ROTATION_ROLL_90_PITCH_68_YAW_293.
+        if !(deg.fract() == 0.0 && (deg % 45.0 == 0.0 || deg == 68.0 || deg == 293.0))
+            || !(0.0..360.0).contains(&deg)
+        {
+            return Err(format!(
+                "unknown sensor orientation `{name}`: {deg} deg is not a MAV_SENSOR_ORIENTATION angle (multiples of 45 deg, as in ROTATION_YAW_90)"
+            ));
+        }
         match pair[0] {
             "ROLL" => r = deg,
             "PITCH" => p = deg,
@@ -224,6 +233,9 @@ mod tests {
         let v = rotate(&r, &[0.0, 0.0, 1.0]);
         assert!((v[2] + 1.0).abs() < 1e-12);
         assert!(sensor_rotation("ROTATION_SIDEWAYS").is_err());
+        assert!(sensor_rotation("ROTATION_YAW_7").is_err());
+        assert!(sensor_rotation("ROTATION_YAW_360").is_err());
+        assert!(sensor_rotation("ROTATION_ROLL_90_PITCH_68_YAW_293").is_ok());
         assert_eq!(sensor_rotation("NONE").unwrap(), Matrix3::identity());
     }
 }

@@ -165,6 +165,8 @@ pub struct GyroFit {
     /// Smallest singular value of the normal matrix relative to the largest: how well the
     /// rotations determine all 9 entries (near 0: badly).
     pub conditioning: f64,
+    /// Error on rotations held out of a second fit (when there were enough rotations).
+    pub held_out: Option<HeldOut>,
 }
 
 impl GyroFit {
@@ -198,6 +200,8 @@ pub struct ScaleOptions {
     pub max_gap_s: f64,
     /// Largest accepted relative conditioning of the normal matrix.
     pub min_conditioning: f64,
+    /// The gyro reads raw counts: start from the best isotropic scale instead of the identity.
+    pub raw_in_counts: bool,
 }
 
 impl Default for ScaleOptions {
@@ -207,12 +211,14 @@ impl Default for ScaleOptions {
             min_rotation_deg: 20.0,
             max_gap_s: 30.0,
             min_conditioning: 1e-4,
+            raw_in_counts: false,
         }
     }
 }
 
 /// One rotation between two static poses: raw gyro samples (with their time steps) and the gravity
 /// directions at both ends.
+#[derive(Clone)]
 struct Segment {
     steps: Vec<(Vec3, f64)>,
     up0: Vector3<f64>,
@@ -247,16 +253,31 @@ fn k_from(p: &SVector<f64, 9>) -> Matrix3<f64> {
     Matrix3::new(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8])
 }
 
-/// Scale and misalignment from the rotations between consecutive static poses (`poses` in time order,
-/// from [`static_poses`] or the pipeline), with the bias from [`bias_from_poses`] and the accelerometer
-/// calibration that makes the pose means into directions.
-pub fn fit_scale(
+
+/// RMS angle (deg) between the measured end gravity directions and the start directions carried by
+/// the integrated rotations.
+fn rms_deg(segs: &[Segment], k: &Matrix3<f64>) -> f64 {
+    if segs.is_empty() {
+        return f64::NAN;
+    }
+    let s: f64 = segs
+        .iter()
+        .map(|s| {
+            let q = integrate(s, k);
+            (q.inverse() * s.up0).angle(&s.up1).powi(2)
+        })
+        .sum();
+    (s / segs.len() as f64).sqrt().to_degrees()
+}
+
+/// The rotations between consecutive static poses, bias removed.
+fn segments(
     samples: &[Sample],
     poses: &[Pose],
     bias: &GyroBias,
     accel: &Calibration,
     opt: &ScaleOptions,
-) -> Result<GyroFit, String> {
+) -> Vec<Segment> {
     let mut segs = Vec::new();
     for pair in poses.windows(2) {
         let (p0, p1) = (&pair[0], &pair[1]);
@@ -279,6 +300,9 @@ pub fn fit_scale(
         let mut prev: Option<(Vec3, f64)> = None;
         for s in &samples[i0..i1.min(samples.len())] {
             let Some(g) = s.gyro_rad_s else { continue };
+            if !crate::types::is_finite3(&g) {
+                continue;
+            }
             let b = bias.at(s.temp_c);
             let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
             if let Some((wp, tp)) = prev {
@@ -295,43 +319,60 @@ pub fn fit_scale(
             }
             prev = Some((w, s.t_s));
         }
-        if steps.is_empty() {
-            continue;
+        if !steps.is_empty() {
+            segs.push(Segment { steps, up0, up1 });
         }
-        segs.push(Segment { steps, up0, up1 });
     }
-    if segs.len() < opt.min_segments {
-        return Err(format!(
-            "{} rotations of at least {} deg between static poses; {} needed",
-            segs.len(),
-            opt.min_rotation_deg,
-            opt.min_segments
-        ));
+    segs
+}
+
+/// The isotropic scale `s` (K = s I) that best carries the gravity directions: a log-spaced scan
+/// from 1e-6 to 10 (raw counts to rad/s included), then a golden-section refinement. The cost is
+/// multimodal in `s` (an over-scaled rotation wraps around), hence the scan first.
+fn isotropic_scale(segs: &[Segment]) -> f64 {
+    let cost = |s: f64| -> f64 {
+        let k = Matrix3::identity() * s;
+        segs.iter().map(|g| residual(g, &k).norm_squared()).sum()
+    };
+    let (lo, hi, n) = (1e-6f64.ln(), 10f64.ln(), 240);
+    let step = (hi - lo) / n as f64;
+    let mut best = (f64::INFINITY, lo);
+    for i in 0..=n {
+        let x = lo + step * i as f64;
+        let c = cost(x.exp());
+        if c < best.0 {
+            best = (c, x);
+        }
     }
+    // Golden section on [x - step, x + step].
+    let (mut a, mut b) = (best.1 - step, best.1 + step);
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    for _ in 0..40 {
+        let (c1, c2) = (b - g * (b - a), a + g * (b - a));
+        if cost(c1.exp()) < cost(c2.exp()) {
+            b = c2;
+        } else {
+            a = c1;
+        }
+    }
+    (0.5 * (a + b)).exp()
+}
+
+/// Levenberg-Marquardt on the 9 entries of `K` from `k0`. Returns `K` and the relative conditioning
+/// of the normal matrix.
+fn fit_k(segs: &[Segment], k0: &Matrix3<f64>) -> (Matrix3<f64>, f64) {
     let cost = |p: &SVector<f64, 9>| -> f64 {
         let k = k_from(p);
         segs.iter().map(|s| residual(s, &k).norm_squared()).sum()
     };
-    let rms_deg = |p: &SVector<f64, 9>| -> f64 {
-        let k = k_from(p);
-        let s: f64 = segs
-            .iter()
-            .map(|s| {
-                let q = integrate(s, &k);
-                (q.inverse() * s.up0).angle(&s.up1).powi(2)
-            })
-            .sum();
-        (s / segs.len() as f64).sqrt().to_degrees()
-    };
-    let mut p =
-        SVector::<f64, 9>::from_column_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-    let rms_before = rms_deg(&p);
+    let mut p = SVector::<f64, 9>::from_iterator(k0.transpose().iter().copied());
+    // Differentiation step relative to the scale of K.
+    let h = 1e-6 * k0.norm().max(1e-12) / 3f64.sqrt();
     let mut lambda = 1e-3;
     let mut c = cost(&p);
     let mut conditioning = 0.0;
     for _ in 0..50 {
         // Jacobian by central differences.
-        let h = 1e-6;
         let mut jtj = SMatrix::<f64, 9, 9>::zeros();
         let mut jtr = SVector::<f64, 9>::zeros();
         let k0 = k_from(&p);
@@ -364,7 +405,7 @@ pub fn fit_scale(
         for _ in 0..10 {
             let mut a = jtj;
             for d in 0..9 {
-                a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
+                a[(d, d)] += lambda * jtj[(d, d)].max(1e-300);
             }
             let Some(step) = a.lu().solve(&(-jtr)) else {
                 lambda *= 10.0;
@@ -386,19 +427,84 @@ pub fn fit_scale(
             break;
         }
     }
+    (k_from(&p), conditioning)
+}
+
+/// Gravity-direction error on rotations that the fit did not see.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeldOut {
+    /// Rotations held out (every other one, in time order).
+    pub segments: usize,
+    /// RMS angle with the bias-only model `K = s I` (`s` = 1 for a gyro in rad/s, otherwise the best
+    /// isotropic scale of the fitting half), degrees.
+    pub rms_before_deg: f64,
+    /// RMS angle with `K` fitted on the other half, degrees.
+    pub rms_after_deg: f64,
+}
+
+/// Scale and misalignment from the rotations between consecutive static poses (`poses` in time order,
+/// from [`static_poses`] or the pipeline), with the bias from [`bias_from_poses`] and the accelerometer
+/// calibration that makes the pose means into directions.
+///
+/// `K` starts from the identity when `raw_in_counts` is false, otherwise from the best isotropic
+/// scale (a raw-count gyro, e.g. imu_tk's Xsens at about 6258 counts per rad/s, needs no nominal
+/// sensitivity). "Before" figures use that same starting `K`. With at least `2 * min_segments`
+/// rotations, a second fit on every other rotation is scored on the rest ([`GyroFit::held_out`]).
+pub fn fit_scale(
+    samples: &[Sample],
+    poses: &[Pose],
+    bias: &GyroBias,
+    accel: &Calibration,
+    opt: &ScaleOptions,
+) -> Result<GyroFit, String> {
+    let segs = segments(samples, poses, bias, accel, opt);
+    if segs.len() < opt.min_segments {
+        return Err(format!(
+            "{} rotations of at least {} deg between static poses; {} needed",
+            segs.len(),
+            opt.min_rotation_deg,
+            opt.min_segments
+        ));
+    }
+    let start = |segs: &[Segment]| -> Matrix3<f64> {
+        if opt.raw_in_counts {
+            Matrix3::identity() * isotropic_scale(segs)
+        } else {
+            Matrix3::identity()
+        }
+    };
+    let k0 = start(&segs);
+    let (k, conditioning) = fit_k(&segs, &k0);
     if conditioning < opt.min_conditioning {
         return Err(format!(
             "the rotations between poses do not determine all 9 scale/misalignment terms (conditioning {conditioning:.1e}); turn about more varied axes"
         ));
     }
-    let k = k_from(&p);
+    let held_out = (segs.len() >= 2 * opt.min_segments).then(|| {
+        let (mut fit, mut test) = (Vec::new(), Vec::new());
+        for (i, s) in segs.iter().enumerate() {
+            if i % 2 == 0 {
+                fit.push(s.clone());
+            } else {
+                test.push(s.clone());
+            }
+        }
+        let k0 = start(&fit);
+        let (kf, _) = fit_k(&fit, &k0);
+        HeldOut {
+            segments: test.len(),
+            rms_before_deg: rms_deg(&test, &k0),
+            rms_after_deg: rms_deg(&test, &kf),
+        }
+    });
     Ok(GyroFit {
         matrix: crate::model::mat_to_rows(&k),
         bias: *bias,
-        rms_before_deg: rms_before,
-        rms_after_deg: rms_deg(&p),
+        rms_before_deg: rms_deg(&segs, &k0),
+        rms_after_deg: rms_deg(&segs, &k),
         segments: segs.len(),
         conditioning,
+        held_out,
     })
 }
 
@@ -508,6 +614,43 @@ mod tests {
             .unwrap()
             .temp_coeff
             .is_none());
+    }
+
+    #[test]
+    fn raw_counts_start_from_the_best_isotropic_scale() {
+        // The same tumble read in counts: 5000 counts per rad/s and an offset of 32768 counts.
+        let (mut samples, truth) = tumble(14);
+        let poses0 = static_poses(&samples, &GateConfig::default());
+        for s in samples.iter_mut() {
+            if let Some(g) = s.gyro_rad_s.as_mut() {
+                for v in g.iter_mut() {
+                    *v = *v * 5000.0 + 32768.0;
+                }
+            }
+        }
+        let poses = static_poses(&samples, &GateConfig::default());
+        assert_eq!(poses.len(), poses0.len());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        let opt = ScaleOptions {
+            raw_in_counts: true,
+            ..Default::default()
+        };
+        let fit = fit_scale(&samples, &poses, &bias, &truth.accel.calibration(), &opt).unwrap();
+        for i in 0..3 {
+            for j in 0..3 {
+                let k = fit.matrix[i][j] * 5000.0;
+                assert!(
+                    (k - truth.gyro.matrix[i][j]).abs() < 0.002,
+                    "K[{i}][{j}] {k} vs {}",
+                    truth.gyro.matrix[i][j]
+                );
+            }
+        }
+        // Starting from the identity instead, LM does not find its way to 1/5000.
+        let bad = fit_scale(&samples, &poses, &bias, &truth.accel.calibration(), &Default::default());
+        assert!(bad.map_or(true, |f| (f.matrix[0][0] * 5000.0 - 1.0).abs() > 0.01));
+        let h = fit.held_out.expect("24 poses give enough rotations");
+        assert!(h.rms_after_deg < h.rms_before_deg, "{h:?}");
     }
 
     #[test]

@@ -621,6 +621,8 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
             bias: [0.0; 3],
             bias_sigma: [0.0; 3],
             poses_used: g.len(),
+            scale: None,
+            scale_failure: None,
         };
     }
     let n = g.len() as f64;
@@ -643,6 +645,8 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
         bias: mean,
         bias_sigma: sd.map(|v| (v / n).sqrt()),
         poses_used: g.len(),
+        scale: None,
+        scale_failure: None,
     }
 }
 

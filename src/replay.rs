@@ -45,7 +45,10 @@ pub fn replay(
             progress(i as u64, total);
         }
     }
-    let results = pipe.finish().clone();
+    let mut results = pipe.finish().clone();
+    let (scale, failure) = gyro_scale(&log.samples, &pipe, &results);
+    results.gyro.scale = scale;
+    results.gyro.scale_failure = failure;
     progress(total, total);
     let declination = cfg.declination_deg()?;
     let duration = match (log.samples.first(), log.samples.last()) {
@@ -108,6 +111,46 @@ pub fn replay(
         results,
         written,
     })
+}
+
+/// Gyro scale and misalignment from the rotations between the log's static poses (see
+/// [`crate::gyro::fit_scale`]). `(None, None)` when the log has no gyro; a failure says why.
+fn gyro_scale(
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+) -> (Option<crate::report::GyroScaleReport>, Option<String>) {
+    if results.gyro.status != "ok" {
+        return (None, None);
+    }
+    let Some(accel) = results.accel.calibration.as_ref() else {
+        return (
+            None,
+            Some("needs an accelerometer calibration (the gravity directions of the poses)".into()),
+        );
+    };
+    let Some(bias) = crate::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
+        return (None, None);
+    };
+    let body: Vec<crate::types::Sample> = samples.iter().map(|s| pipe.to_body(s)).collect();
+    let opt = crate::gyro::ScaleOptions {
+        raw_in_counts: results.gyro.units == "counts",
+        ..Default::default()
+    };
+    match crate::gyro::fit_scale(&body, pipe.poses(), &bias, accel, &opt) {
+        Ok(f) => (
+            Some(crate::report::GyroScaleReport {
+                matrix: f.matrix,
+                segments: f.segments,
+                rms_before_deg: f.rms_before_deg,
+                rms_after_deg: f.rms_after_deg,
+                held_out: f.held_out,
+                conditioning: f.conditioning,
+            }),
+            None,
+        ),
+        Err(e) => (None, Some(e)),
+    }
 }
 
 /// The report for a pipeline's current state.
@@ -303,6 +346,23 @@ pub fn summary(r: &Report) -> String {
             "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",
             g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used
         );
+        if let Some(k) = &g.scale {
+            let _ = write!(
+                s,
+                "gyro : scale {:.6} {:.6} {:.6} (rad/s per {}), gravity direction between poses {:.2} -> {:.2} deg over {} rotations",
+                k.matrix[0][0], k.matrix[1][1], k.matrix[2][2], g.units, k.rms_before_deg, k.rms_after_deg, k.segments
+            );
+            if let Some(h) = &k.held_out {
+                let _ = write!(
+                    s,
+                    "; held out {:.2} -> {:.2} deg over {}",
+                    h.rms_before_deg, h.rms_after_deg, h.segments
+                );
+            }
+            s.push('\n');
+        } else if let Some(f) = &g.scale_failure {
+            let _ = writeln!(s, "gyro : no scale fit: {f}");
+        }
     }
     s
 }

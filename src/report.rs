@@ -134,6 +134,28 @@ pub struct GyroCalibration {
     pub bias: Vec3,
     pub bias_sigma: Vec3,
     pub poses_used: usize,
+    /// Scale and misalignment from the rotations between static poses (replay only: it needs the
+    /// whole log). `None` when not attempted; `Err`-like failures are in `scale_failure`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale: Option<GyroScaleReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale_failure: Option<String>,
+}
+
+/// The 12-parameter gyro calibration `omega_rad_s = matrix (raw - bias)` and how well it carries the
+/// gravity direction from one static pose to the next.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GyroScaleReport {
+    /// Row-major scale/misalignment matrix (rad/s per input unit).
+    pub matrix: [[f64; 3]; 3],
+    /// Rotations between poses used.
+    pub segments: usize,
+    /// RMS gravity-direction error over those rotations, bias-only model then fitted, degrees.
+    pub rms_before_deg: f64,
+    pub rms_after_deg: f64,
+    /// The same on every other rotation, left out of a second fit; absent with too few rotations.
+    pub held_out: Option<crate::gyro::HeldOut>,
+    pub conditioning: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

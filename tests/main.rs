@@ -89,6 +89,25 @@ mod real_data {
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
         assert_eq!(a.units, "m/s^2");
         assert_eq!(out.report.calibration.gyro.units, "counts");
+        // Issue 5: the gyro calibration (bias from the poses, scale and misalignment from the
+        // rotations between them) carries the gravity direction from pose to pose better than the
+        // bias with the best single scale, also on rotations it was not fitted on.
+        let g = &out.report.calibration.gyro;
+        let k = g.scale.as_ref().unwrap_or_else(|| panic!("{:?}", g.scale_failure));
+        let h = k.held_out.expect("enough rotations for a held-out check");
+        eprintln!(
+            "imu_tk gyro: K diag {:.3e} {:.3e} {:.3e} rad/s/count, {} rotations {:.2} -> {:.2} deg, held out {} {:.2} -> {:.2} deg",
+            k.matrix[0][0], k.matrix[1][1], k.matrix[2][2], k.segments, k.rms_before_deg,
+            k.rms_after_deg, h.segments, h.rms_before_deg, h.rms_after_deg
+        );
+        assert!(k.segments >= 30, "{} rotations", k.segments);
+        assert!(k.rms_after_deg < 0.5 * k.rms_before_deg, "{k:?}");
+        assert!(h.segments >= 15 && h.rms_after_deg < 0.7 * h.rms_before_deg, "{h:?}");
+        for i in 0..3 {
+            // Raw counts to rad/s: some 1e-4 rad/s per count (4000 to 7000 counts per rad/s).
+            let s = k.matrix[i][i];
+            assert!((1.0 / 7000.0..1.0 / 4000.0).contains(&s), "K[{i}][{i}] = {s}");
+        }
     }
 
     #[test]
