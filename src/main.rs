@@ -86,6 +86,29 @@ enum Cmd {
         #[arg(long)]
         plot: Option<PathBuf>,
     },
+    /// Score imucald's orientation filter (gyro + accel + mag) against the reference orientation a
+    /// log carries (ref_qw..ref_qz, sensor -> ENU, e.g. BROAD's optical motion capture): total,
+    /// heading and inclination RMSE over the movement phase, by BROAD's definitions.
+    Eval {
+        /// The log file (CSV or .csv.gz with ref_q columns).
+        log: PathBuf,
+        /// TOML configuration (see config/); only the input mapping is used.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override format detection: tlog or csv.
+        #[arg(long)]
+        format: Option<String>,
+        /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
+        /// heading, or heading-and-misalignment.
+        #[arg(long, default_value = "none")]
+        align: String,
+        /// Without the magnetometer (6D: heading from the gyro alone).
+        #[arg(long)]
+        no_mag: bool,
+        /// Write the figures as JSON here.
+        #[arg(long)]
+        report: Option<PathBuf>,
+    },
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
     Simulate {
         /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
@@ -290,6 +313,44 @@ fn main() -> Result<()> {
                 {
                     println!("wrote {}", p.display());
                 }
+            }
+        }
+        Cmd::Eval {
+            log,
+            config,
+            format,
+            align,
+            no_mag,
+            report,
+        } => {
+            let cfg = load_config(config.as_ref())?;
+            let format = match format.as_deref() {
+                None => None,
+                Some(f) => Some(
+                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
+                ),
+            };
+            let alignment = imucald::eval::Alignment::parse(&align).with_context(|| {
+                format!("--align `{align}`: use none, heading or heading-and-misalignment")
+            })?;
+            let input = imucald::sources::read_log(&log, format, &cfg)
+                .with_context(|| format!("reading {}", log.display()))?;
+            let fcfg = imucald::fusion::FusionConfig {
+                use_mag: !no_mag,
+                ..Default::default()
+            };
+            let r = imucald::eval::evaluate_filter(&input.samples, &fcfg, alignment)
+                .with_context(|| {
+                    format!(
+                        "{}: no sample has a reference orientation (ref_qw, ref_qx, ref_qy, ref_qz columns) \
+                         inside the movement phase (moving = 1, or all samples without a moving column)",
+                        log.display()
+                    )
+                })?;
+            print!("{}", r.to_text());
+            if let Some(path) = report {
+                imucald::publish::write_json(&path, &r)?;
+                println!("wrote {}", path.display());
             }
         }
         Cmd::Simulate {

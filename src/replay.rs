@@ -71,11 +71,41 @@ pub fn replay(
     }
     if let Some(p) = &opts.calibrated_out {
         let mut cal = Calibrator::new(&results, declination);
-        let mut text = String::with_capacity(log.samples.len() * 120);
-        text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg\n");
+        // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
+        // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
+        let gyro_k = match (&results.gyro.scale, results.gyro.units.as_str()) {
+            (Some(k), _) => Some(crate::model::rows_to_mat(&k.matrix)),
+            (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
+            _ => None,
+        };
+        let fcfg = crate::fusion::FusionConfig {
+            declination_deg: declination.unwrap_or(0.0),
+            ..Default::default()
+        };
+        let mut filter = gyro_k.map(|k| (k, crate::fusion::OrientationFilter::new(fcfg)));
+        let dt = crate::fusion::median_dt(&log.samples);
+        let mut text = String::with_capacity(log.samples.len() * 180);
+        text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,");
+        text.push_str("qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg\n");
         for s in &log.samples {
-            let c = cal.apply(&pipe.to_body(s));
-            write_row(&mut text, &c);
+            let mut c = cal.apply(&pipe.to_body(s));
+            let mut fused = None;
+            if let Some((k, f)) = filter.as_mut() {
+                c.gyro_rad_s = c.gyro_rad_s.map(|g| {
+                    let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
+                    [w.x, w.y, w.z]
+                });
+                let fs = crate::types::Sample {
+                    t_s: c.t_s,
+                    accel_mps2: c.accel_mps2,
+                    gyro_rad_s: c.gyro_rad_s,
+                    mag_ut: c.mag_ut,
+                    ..*s
+                };
+                f.update_sample(&fs, dt);
+                fused = f.initialized().then(|| f.orientation());
+            }
+            write_row(&mut text, &c, fused.as_ref());
         }
         crate::publish::write_atomic(p, text.as_bytes())?;
         written.push(p.clone());
@@ -273,7 +303,7 @@ fn opt3(out: &mut String, v: Option<[f64; 3]>) {
     }
 }
 
-fn write_row(out: &mut String, c: &Calibrated) {
+fn write_row(out: &mut String, c: &Calibrated, fused: Option<&crate::fusion::Orientation>) {
     let _ = write!(out, "{:.6}", c.t_s);
     opt3(out, c.accel_mps2);
     opt3(out, c.gyro_rad_s);
@@ -285,6 +315,17 @@ fn write_row(out: &mut String, c: &Calibrated) {
             }
             None => out.push(','),
         }
+    }
+    match fused {
+        Some(o) => {
+            let q = o.q.quaternion();
+            let _ = write!(
+                out,
+                ",{:.7},{:.7},{:.7},{:.7},{:.4},{:.4},{:.4}",
+                q.w, q.i, q.j, q.k, o.roll_deg, o.pitch_deg, o.heading_deg
+            );
+        }
+        None => out.push_str(",,,,,,,"),
     }
     out.push('\n');
 }

@@ -72,6 +72,41 @@ mod real_data {
     }
 
     #[test]
+    fn cli_eval_scores_the_filter_on_a_broad_trial() {
+        let data = require_data!();
+        let dir = tempfile::tempdir().unwrap();
+        let trial = data.join("broad/02_undisturbed_slow_rotation_B.csv.gz");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .arg("eval")
+            .arg(&trial)
+            .arg("--report")
+            .arg(dir.path().join("eval.json"))
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+        eprintln!("{stdout}");
+        let v: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("eval.json")).unwrap(),
+        )
+        .unwrap();
+        let m = &v["metrics"];
+        let total = m["total_rmse_deg"].as_f64().unwrap();
+        // VQF (default, 9D) scores 1.38 deg on this trial (benches/broad.rs measures both).
+        assert!(total < 1.6, "total RMSE {total}");
+        assert!(m["samples"].as_u64().unwrap() > 20_000);
+        assert!(stdout.contains("heading RMSE"), "{stdout}");
+        // 6D: heading drifts without the magnetometer, so it scores worse.
+        let out6 = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["eval", "--no-mag", "--align", "heading"])
+            .arg(&trial)
+            .output()
+            .unwrap();
+        assert!(out6.status.success());
+        assert!(String::from_utf8_lossy(&out6.stdout).contains("(6D)"));
+    }
+
+    #[test]
     fn imu_tk_poses_and_gravity_norm_residual() {
         let data = require_data!();
         let out = run(
@@ -167,6 +202,66 @@ mod simulated {
             .abs()
             .max();
         (off, mat)
+    }
+
+    #[test]
+    fn calibrated_out_carries_the_fused_attitude_of_a_moving_sensor() {
+        // Issue 5: `replay --calibrated-out` writes the gyro+accel+mag filter's quaternion (body ->
+        // NED) and angles; checked against the simulator's reference attitude through the motion.
+        let dir = tempfile::tempdir().unwrap();
+        let mut sc = Scenario::named("tumble").unwrap();
+        sc.reference_noise_deg = Some(0.0);
+        let sim = simulate(&sc, 5);
+        let log = dir.path().join("tumble.csv");
+        write_csv(&log, &sim.samples).unwrap();
+        let out_csv = dir.path().join("cal.csv");
+        let opts = ReplayOptions {
+            calibrated_out: Some(out_csv.clone()),
+            ..Default::default()
+        };
+        replay(&log, &Config::default(), &opts, &mut |_, _| {}).unwrap();
+        let text = std::fs::read_to_string(&out_csv).unwrap();
+        let mut lines = text.lines();
+        let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+        let col = |n: &str| header.iter().position(|h| *h == n).unwrap();
+        let (qw, fh) = (col("qw"), col("fused_heading_deg"));
+        let ned = imucald::fusion::enu_to_ned();
+        let (mut sq_tot, mut sq_head, mut n, mut moving) = (0.0, 0.0, 0usize, 0usize);
+        for (line, s) in lines.zip(&sim.samples) {
+            let c: Vec<&str> = line.split(',').collect();
+            if s.t_s < 10.0 || c[qw].is_empty() {
+                continue;
+            }
+            let v: Vec<f64> = c[qw..qw + 4].iter().map(|x| x.parse().unwrap()).collect();
+            let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                v[0], v[1], v[2], v[3],
+            ));
+            let r = s.ref_q.unwrap();
+            let q_ref = ned
+                * nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                    r[0], r[1], r[2], r[3],
+                ));
+            let (tot, head, _) = imucald::eval::errors(&q, &q_ref);
+            sq_tot += tot.powi(2);
+            sq_head += head.powi(2);
+            n += 1;
+            let w = s.gyro_rad_s.unwrap_or([0.0; 3]);
+            if (w[0].powi(2) + w[1].powi(2) + w[2].powi(2)).sqrt() > 0.5 {
+                moving += 1;
+            }
+            // The angles are those of the quaternion.
+            let h: f64 = c[fh].parse().unwrap();
+            let e = imucald::fusion::euler_ned_deg(&q);
+            assert!(angle_diff_deg(h, e[2]).abs() < 0.01, "{h} vs {e:?}");
+        }
+        let rms = |sq: f64| (sq / n as f64).sqrt().to_degrees();
+        eprintln!(
+            "fused vs reference over {n} samples ({moving} turning): total {:.2} deg, heading {:.2} deg",
+            rms(sq_tot),
+            rms(sq_head)
+        );
+        assert!(n > 10_000 && moving > 1000, "{n} samples, {moving} turning");
+        assert!(rms(sq_tot) < 2.0 && rms(sq_head) < 1.5);
     }
 
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
@@ -347,7 +442,8 @@ mod fixtures {
         let mut lines = csv.lines();
         assert_eq!(
             lines.next().unwrap(),
-            "t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg"
+            "t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,\
+             qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg"
         );
         // The first pose of the tumble is level: roll and pitch near zero.
         let row: Vec<f64> = lines
@@ -357,6 +453,8 @@ mod fixtures {
             .map(|c| c.parse().unwrap())
             .collect();
         assert!(row[10].abs() < 1.0 && row[11].abs() < 1.0, "{row:?}");
+        // The fused roll and pitch agree at rest.
+        assert!(row[17].abs() < 1.0 && row[18].abs() < 1.0, "{row:?}");
         for f in ["ardupilot.parm", "px4.params", "fusion.h"] {
             assert!(d.join("export").join(f).metadata().unwrap().len() > 50);
         }
@@ -396,6 +494,20 @@ mod fixtures {
             !out.status.success() && err.contains("fit.mag_model"),
             "{err}"
         );
+        // `eval` on a log without a reference orientation says which columns it needs.
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["eval", fixture("tumble.tlog").to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains("ref_qw"), "{err}");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["eval", "--align", "sideways"])
+            .arg(fixture("tumble.tlog"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains("--align"), "{err}");
     }
 }
 
