@@ -227,6 +227,12 @@ pub struct StaticDetector {
     rate_est: Option<f64>,
     first_t: Option<f64>,
     n_seen: usize,
+    /// Running sums of `accel - sum_ref` over the window (per axis), so the window variance costs
+    /// O(1) per sample; recomputed exactly every `len` samples so rounding cannot build up.
+    sum_ref: Vec3,
+    sum: Vec3,
+    sum2: Vec3,
+    since_exact: usize,
     /// Current threshold in use.
     pub threshold: f64,
 }
@@ -243,6 +249,10 @@ impl StaticDetector {
             rate_est: None,
             first_t: None,
             n_seen: 0,
+            sum_ref: [0.0; 3],
+            sum: [0.0; 3],
+            sum2: [0.0; 3],
+            since_exact: 0,
             threshold: cfg.threshold.unwrap_or(f64::INFINITY),
         }
     }
@@ -252,21 +262,36 @@ impl StaticDetector {
         self.hist.quantile(0.10)
     }
 
+    /// Summed per-axis variance of the window, from the running sums.
     fn window_variance(&self) -> f64 {
         let n = self.window.len() as f64;
-        let r = self.window[0].1;
-        let mut s = [0.0; 3];
-        let mut s2 = [0.0; 3];
+        (0..3)
+            .map(|k| (self.sum2[k] / n - (self.sum[k] / n).powi(2)).max(0.0))
+            .sum()
+    }
+
+    /// Recompute the running sums exactly, about the window's first sample.
+    fn resum(&mut self) {
+        let r = self.window.front().map_or([0.0; 3], |w| w.1);
+        self.sum_ref = r;
+        self.sum = [0.0; 3];
+        self.sum2 = [0.0; 3];
         for (_, a) in &self.window {
             for k in 0..3 {
                 let d = a[k] - r[k];
-                s[k] += d;
-                s2[k] += d * d;
+                self.sum[k] += d;
+                self.sum2[k] += d * d;
             }
         }
-        (0..3)
-            .map(|k| (s2[k] / n - (s[k] / n).powi(2)).max(0.0))
-            .sum()
+        self.since_exact = 0;
+    }
+
+    fn add_sums(&mut self, a: &Vec3, sign: f64) {
+        for k in 0..3 {
+            let d = a[k] - self.sum_ref[k];
+            self.sum[k] += sign * d;
+            self.sum2[k] += sign * d * d;
+        }
     }
 
     /// Feed one sample (accel = the prefiltered accel vector to judge). Returns a pose when one ends.
@@ -282,13 +307,24 @@ impl StaticDetector {
             self.half = self.len / 2;
         }
         self.window.push_back((*s, *accel));
+        if self.window.len() == 1 {
+            self.resum();
+        } else {
+            self.add_sums(accel, 1.0);
+        }
         if self.len == 0 {
             // Rate not known yet: keep the first samples (bounded) until it is.
             return None;
         }
         let mut out = None;
         while self.window.len() > self.len {
-            self.window.pop_front();
+            if let Some((_, a)) = self.window.pop_front() {
+                self.add_sums(&a, -1.0);
+            }
+        }
+        self.since_exact += 1;
+        if self.since_exact >= self.len {
+            self.resum();
         }
         if self.window.len() == self.len {
             let var = self.window_variance();
@@ -328,6 +364,43 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
+
+    #[test]
+    fn running_window_variance_matches_a_direct_sum() {
+        // Raw counts far from zero, noise, and steps: the O(1) running sums agree with a direct
+        // two-pass variance of the same window at every sample.
+        let mut det = StaticDetector::new(GateConfig::default());
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let noise = Normal::new(0.0, 3.0).unwrap();
+        for i in 0..20_000 {
+            let level = 33_000.0 + 4000.0 * ((i / 1500) % 3) as f64;
+            let a = [
+                level + noise.sample(&mut rng),
+                -level + noise.sample(&mut rng),
+                0.5 * level + noise.sample(&mut rng),
+            ];
+            let s = Sample {
+                t_s: i as f64 * 0.01,
+                ..Default::default()
+            };
+            det.push(&s, &a);
+            if det.len == 0 || det.window.len() != det.len {
+                continue;
+            }
+            let n = det.window.len() as f64;
+            let direct: f64 = (0..3)
+                .map(|k| {
+                    let m = det.window.iter().map(|w| w.1[k]).sum::<f64>() / n;
+                    det.window.iter().map(|w| (w.1[k] - m).powi(2)).sum::<f64>() / n
+                })
+                .sum();
+            let fast = det.window_variance();
+            assert!(
+                (fast - direct).abs() <= 1e-6 * direct.max(1.0),
+                "sample {i}: {fast} vs {direct}"
+            );
+        }
+    }
 
     #[test]
     fn kalman_prefilter_converges_and_smooths() {

@@ -245,7 +245,12 @@ fn main() -> Result<()> {
                 eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
             }
             cfg.validate()?;
-            let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+            // One thread: the per-sample work is small, and waking a second worker for every arriving frame
+            // costs more CPU than the work itself (benches/live.rs). Fits run on the blocking pool.
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .context("tokio runtime")?;
             let summary = rt.block_on(async move {
                 let (tx, rx) = tokio::sync::watch::channel(false);
                 tokio::spawn(async move {
