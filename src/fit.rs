@@ -25,6 +25,10 @@ pub enum FitFailure {
     DiagonalScaling,
     Residuals,
     DidNotConverge,
+    /// Too many points off the field's ellipsoid (magnetic disturbance while calibrating).
+    Disturbed,
+    /// An axis is saturated (clipped at one value) or stuck.
+    AxisFault,
 }
 
 impl FitFailure {
@@ -38,6 +42,8 @@ impl FitFailure {
             FitFailure::DiagonalScaling => "diagonal_scaling",
             FitFailure::Residuals => "residuals",
             FitFailure::DidNotConverge => "did_not_converge",
+            FitFailure::Disturbed => "disturbed",
+            FitFailure::AxisFault => "axis_fault",
         }
     }
 }

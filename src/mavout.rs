@@ -933,6 +933,7 @@ mod tests {
             samples_used: 500,
             iterations: 6,
             candidates: vec![],
+            outliers_rejected: 0,
         }
     }
 

@@ -302,6 +302,7 @@ fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> Sens
         samples_used: 0,
         iterations: 0,
         candidates: vec![],
+        outliers_rejected: 0,
     }
 }
 
@@ -330,7 +331,217 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
 }
 
 /// Fit one sensor: candidate models, automatic choice, acceptance checks.
+/// Largest share of magnetometer points that may be outliers before the fit is refused as disturbed.
+pub const MAX_OUTLIER_SHARE: f64 = 0.25;
+
+/// Fit one sensor. For the magnetometer, points off the field's ellipsoid (a magnet brought near the
+/// sensor, a motor running) are found first and left out: a `sym9` fit, residuals against it, and
+/// every point further than 4 robust sigmas (1.4826 MAD) from the median residual is an outlier;
+/// repeated (all points reclassified against each new fit) until the set stops changing, at most 4
+/// times. When more than [`MAX_OUTLIER_SHARE`] of the points are outliers, the fit is refused
+/// (`disturbed`): no single field explains the data.
 fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
+    if let Some(d) = axis_fault(points) {
+        return empty_result(failed(spec.model, spec.units, FitFailure::AxisFault, d), points);
+    }
+    if spec.is_accel || points.len() < 30 {
+        return fit_sensor_on(points, spec);
+    }
+    let (keep, rejected) = inliers(points, spec);
+    if rejected == 0 {
+        return fit_sensor_on(points, spec);
+    }
+    let share = rejected as f64 / points.len() as f64;
+    if share > MAX_OUTLIER_SHARE {
+        let mut r = fit_sensor_on(points, spec);
+        r.report.outliers_rejected = rejected;
+        let d = format!(
+            "{rejected} of {} points ({:.0}%) do not lie on one field ellipsoid: was a magnet, a motor or \
+             metal near the sensor? Keep them away and rotate again",
+            points.len(),
+            100.0 * share
+        );
+        set_fail(&mut r.report, FitFailure::Disturbed, d);
+        r.calibration = None;
+        return r;
+    }
+    let mut r = fit_sensor_on(&keep, spec);
+    r.report.outliers_rejected = rejected;
+    r
+}
+
+/// A stuck axis (no change while the others change) or a saturated one (at least 5 points and 3%
+/// of them at exactly the same extreme value: the reading is clipped at the sensor's range).
+pub fn axis_fault(points: &[Vec3]) -> Option<String> {
+    let n = points.len();
+    if n < 7 {
+        return None;
+    }
+    const AXIS: [&str; 3] = ["x", "y", "z"];
+    let range = |k: usize| {
+        let (lo, hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p[k]), hi.max(p[k]))
+        });
+        (lo, hi)
+    };
+    let ranges = [range(0), range(1), range(2)];
+    let widest = ranges.iter().map(|(lo, hi)| hi - lo).fold(0.0, f64::max);
+    for (k, (lo, hi)) in ranges.iter().enumerate() {
+        if widest > 0.0 && hi - lo <= 1e-6 * widest {
+            return Some(format!(
+                "axis {} reads {lo} in all {n} points while the others change: the axis is stuck or dead",
+                AXIS[k]
+            ));
+        }
+    }
+    // Stuck part of the time: one exact value in a fifth of the points.
+    for k in 0..3 {
+        let mut v: Vec<f64> = points.iter().map(|p| p[k]).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        let (mut best, mut run, mut val) = (0, 0, f64::NAN);
+        for i in 0..n {
+            run = if i > 0 && v[i] == v[i - 1] { run + 1 } else { 1 };
+            if run > best {
+                best = run;
+                val = v[i];
+            }
+        }
+        if best >= 5 && best as f64 >= 0.2 * n as f64 && val > ranges[k].0 && val < ranges[k].1 {
+            return Some(format!(
+                "axis {} reads exactly {val} in {best} of {n} points: the axis is stuck part of the time",
+                AXIS[k]
+            ));
+        }
+    }
+    let need = (0.03 * n as f64).ceil().max(5.0) as usize;
+    for (k, (lo, hi)) in ranges.iter().enumerate() {
+        for rail in [*lo, *hi] {
+            let at = points.iter().filter(|p| p[k] == rail).count();
+            if at >= need {
+                return Some(format!(
+                    "axis {} reads exactly {rail} in {at} of {n} points: saturated (the field or \
+                     acceleration exceeds the sensor's range, or the reading is clipped)",
+                    AXIS[k]
+                ));
+            }
+        }
+    }
+    None
+}
+
+/// The points within 4 robust sigmas of a `sym9` fit's median residual, and how many were not.
+fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
+    let opts = NormFitOptions {
+        target_norm: spec.target_norm,
+        ..Default::default()
+    };
+    let median = |v: &mut Vec<f64>| -> f64 {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    };
+    let mut mask = vec![true; points.len()];
+    // A quick look: on clean data the sym9 residuals are about Gaussian and 4 robust sigmas
+    // leave (almost) everything in. Otherwise start from a least-median-of-squares fit, which a
+    // cluster of disturbed points (up to about 40%) cannot pull over.
+    if let Ok(f) = fit_norm(points, ModelKind::Sym9, &opts) {
+        let mut r: Vec<f64> = points
+            .iter()
+            .map(|p| norm(&f.calibration.apply(p)) - f.radius)
+            .collect();
+        let med = median(&mut r.clone());
+        let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
+        let sigma = 1.4826 * median(&mut dev);
+        let out = r.iter().filter(|x| (**x - med).abs() > 4.0 * sigma).count();
+        if out as f64 > 0.005 * points.len() as f64 {
+            if let Some(m) = lmeds_inliers(points) {
+                mask = m;
+            }
+        }
+        r.clear();
+    }
+    for _ in 0..4 {
+        let keep: Vec<Vec3> = points
+            .iter()
+            .zip(&mask)
+            .filter(|(_, k)| **k)
+            .map(|(p, _)| *p)
+            .collect();
+        let Ok(f) = fit_norm(&keep, ModelKind::Sym9, &opts) else {
+            break;
+        };
+        let r: Vec<f64> = points
+            .iter()
+            .map(|p| norm(&f.calibration.apply(p)) - f.radius)
+            .collect();
+        let mut inl: Vec<f64> = r.iter().zip(&mask).filter(|(_, k)| **k).map(|(x, _)| *x).collect();
+        let med = median(&mut inl);
+        let mut dev: Vec<f64> = inl.iter().map(|x| (x - med).abs()).collect();
+        let sigma = 1.4826 * median(&mut dev);
+        let thr = (4.0 * sigma).max(1e-9 * f.radius.abs());
+        let new: Vec<bool> = r.iter().map(|x| (x - med).abs() <= thr).collect();
+        if new == mask || new.iter().filter(|k| **k).count() < 12 {
+            break;
+        }
+        mask = new;
+    }
+    let keep: Vec<Vec3> = points
+        .iter()
+        .zip(&mask)
+        .filter(|(_, k)| **k)
+        .map(|(p, _)| *p)
+        .collect();
+    let rejected = points.len() - keep.len();
+    (keep, rejected)
+}
+
+/// Least median of squares: algebraic ellipsoid fits to random 12-point subsets (seeded, so
+/// replays repeat), the one whose median squared norm residual over all points is smallest wins;
+/// its inliers are the points within 2.5 robust sigmas. `None` when no subset gave an ellipsoid.
+fn lmeds_inliers(points: &[Vec3]) -> Option<Vec<bool>> {
+    use rand::{Rng, SeedableRng};
+    let n = points.len();
+    // Centre the points for a well-conditioned algebraic fit.
+    let mut c = [0.0; 3];
+    for p in points {
+        for k in 0..3 {
+            c[k] += p[k] / n as f64;
+        }
+    }
+    let xs: Vec<Vec3> = points
+        .iter()
+        .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
+        .collect();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(n as u64);
+    let resid = |st: &crate::fit::Start, p: &Vec3| -> f64 {
+        (st.shape * (nalgebra::Vector3::new(p[0], p[1], p[2]) - st.centre)).norm() - 1.0
+    };
+    let mut best: Option<(f64, crate::fit::Start)> = None;
+    let mut sq = vec![0.0; n];
+    let mut subset = [[0.0; 3]; 12];
+    for _ in 0..300 {
+        for s in subset.iter_mut() {
+            *s = xs[rng.random_range(0..n)];
+        }
+        let Some(st) = crate::fit::ellipsoid_start(&subset) else {
+            continue;
+        };
+        for (q, p) in sq.iter_mut().zip(&xs) {
+            *q = resid(&st, p).powi(2);
+        }
+        let mid = n / 2;
+        let (_, m, _) = sq.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        let m = *m;
+        if m.is_finite() && best.as_ref().is_none_or(|b| m < b.0) {
+            best = Some((m, st));
+        }
+    }
+    let (med, st) = best?;
+    // Rousseeuw's robust scale for LMedS with p = 9 parameters.
+    let sigma = 1.4826 * (1.0 + 5.0 / (n as f64 - 9.0).max(1.0)) * med.sqrt();
+    Some(xs.iter().map(|p| resid(&st, p).abs() <= 2.5 * sigma).collect())
+}
+
+fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     let opts = NormFitOptions {
         target_norm: spec.target_norm,
         ..Default::default()
@@ -427,6 +638,7 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             samples_used: n,
             iterations: 1,
             candidates: candidates.clone(),
+            outliers_rejected: 0,
         };
         (cal, rep)
     } else {
@@ -470,6 +682,7 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             samples_used: f.samples_used,
             iterations: f.iterations,
             candidates: candidates.clone(),
+            outliers_rejected: 0,
         };
         // Identifiability and convergence come from the fit itself.
         let mut rep = rep;

@@ -114,6 +114,10 @@ pub struct SensorCalibration {
     pub iterations: usize,
     /// Every model tried, for `auto`.
     pub candidates: Vec<Candidate>,
+    /// Points left out as outliers before the final fit (magnetometer: readings that do not lie on
+    /// the field's ellipsoid, e.g. while a magnet or a motor was near).
+    #[serde(default)]
+    pub outliers_rejected: usize,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
