@@ -443,21 +443,27 @@ fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
     // A quick look: on clean data the sym9 residuals are about Gaussian and 4 robust sigmas
     // leave (almost) everything in. Otherwise start from a least-median-of-squares fit, which a
     // cluster of disturbed points (up to about 40%) cannot pull over.
-    if let Ok(f) = fit_norm(points, ModelKind::Sym9, &opts) {
-        let mut r: Vec<f64> = points
-            .iter()
-            .map(|p| norm(&f.calibration.apply(p)) - f.radius)
-            .collect();
-        let med = median(&mut r.clone());
-        let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
-        let sigma = 1.4826 * median(&mut dev);
-        let out = r.iter().filter(|x| (**x - med).abs() > 4.0 * sigma).count();
-        if out as f64 > 0.005 * points.len() as f64 {
-            if let Some(m) = lmeds_inliers(points) {
-                mask = m;
-            }
+    let Ok(f) = fit_norm(points, ModelKind::Sym9, &opts) else {
+        return (points.to_vec(), 0);
+    };
+    let r: Vec<f64> = points
+        .iter()
+        .map(|p| norm(&f.calibration.apply(p)) - f.radius)
+        .collect();
+    let med = median(&mut r.clone());
+    let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
+    let thr = (4.0 * 1.4826 * median(&mut dev)).max(1e-9 * f.radius.abs());
+    let first: Vec<bool> = r.iter().map(|x| (x - med).abs() <= thr).collect();
+    let out = first.iter().filter(|k| !**k).count();
+    if out == 0 {
+        return (points.to_vec(), 0);
+    }
+    if out as f64 > 0.005 * points.len() as f64 {
+        if let Some(m) = lmeds_inliers(points) {
+            mask = m;
         }
-        r.clear();
+    } else {
+        mask = first;
     }
     for _ in 0..4 {
         let keep: Vec<Vec3> = points
