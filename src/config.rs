@@ -60,6 +60,12 @@ pub struct DaemonConfig {
     pub progress_rate_hz: f64,
     /// "named_value_float" (NAMED_VALUE_FLOAT "HEADING"), "attitude" (ATTITUDE) or "none".
     pub heading_message: String,
+    /// Fused attitude (gyro + accel + mag orientation filter) per second: MAVLink per
+    /// `attitude_message` and JSON `attitude` lines. At most [`MAX_RATE_HZ`].
+    pub attitude_rate_hz: f64,
+    /// MAVLink message of the fused attitude: "attitude_quaternion" (ATTITUDE_QUATERNION),
+    /// "attitude" (ATTITUDE), "both" or "none" (JSON lines only).
+    pub attitude_message: String,
     /// Send calibrated vectors as DEBUG_VECT ("MAG_UT", "ACC_MPS2").
     pub debug_vect: bool,
     /// Coverage regions (of 100) that count as 100% complete in MAG_CAL_PROGRESS.
@@ -92,6 +98,8 @@ impl Default for DaemonConfig {
             heading_rate_hz: 5.0,
             progress_rate_hz: 1.0,
             heading_message: "named_value_float".into(),
+            attitude_rate_hz: 10.0,
+            attitude_message: "attitude_quaternion".into(),
             debug_vect: true,
             progress_full_regions: 80,
             write_params: false,
@@ -286,6 +294,12 @@ impl Default for OrientationConfig {
     }
 }
 
+/// Highest publication rate of the live service, per second (the timers need a non-zero period).
+pub const MAX_RATE_HZ: f64 = 1000.0;
+
+/// The values `daemon.attitude_message` takes.
+pub const ATTITUDE_MESSAGES: [&str; 4] = ["attitude_quaternion", "attitude", "both", "none"];
+
 fn err(key: &str, message: impl Into<String>) -> Error {
     Error::Config {
         key: key.to_string(),
@@ -451,8 +465,19 @@ impl Config {
                 ));
             }
         }
-        pos("daemon.heading_rate_hz", d.heading_rate_hz)?;
-        pos("daemon.progress_rate_hz", d.progress_rate_hz)?;
+        let rate = |key: &str, v: f64| {
+            if v > 0.0 && v <= MAX_RATE_HZ {
+                Ok(())
+            } else {
+                Err(err(
+                    key,
+                    format!("must be a rate above 0 and at most {MAX_RATE_HZ} per second, got {v}"),
+                ))
+            }
+        };
+        rate("daemon.heading_rate_hz", d.heading_rate_hz)?;
+        rate("daemon.progress_rate_hz", d.progress_rate_hz)?;
+        rate("daemon.attitude_rate_hz", d.attitude_rate_hz)?;
         pos("daemon.silent_after_s", d.silent_after_s)?;
         if !["named_value_float", "attitude", "none"].contains(&d.heading_message.as_str()) {
             return Err(err(
@@ -460,6 +485,27 @@ impl Config {
                 format!(
                     "`{}` is not named_value_float, attitude or none",
                     d.heading_message
+                ),
+            ));
+        }
+        if !ATTITUDE_MESSAGES.contains(&d.attitude_message.as_str()) {
+            return Err(err(
+                "daemon.attitude_message",
+                format!(
+                    "`{}` is not one of {}",
+                    d.attitude_message,
+                    ATTITUDE_MESSAGES.join(", ")
+                ),
+            ));
+        }
+        if d.heading_message == "attitude"
+            && ["attitude", "both"].contains(&d.attitude_message.as_str())
+        {
+            return Err(err(
+                "daemon.attitude_message",
+                format!(
+                    "`{}` sends ATTITUDE, which heading_message = \"attitude\" already sends: use attitude_quaternion or none here, or another heading_message",
+                    d.attitude_message
                 ),
             ));
         }
@@ -532,5 +578,58 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("place"), "{e}");
+    }
+
+    #[test]
+    fn attitude_keys_default_parse_and_validate() {
+        let d = DaemonConfig::default();
+        assert_eq!(d.attitude_rate_hz, 10.0);
+        assert_eq!(d.attitude_message, "attitude_quaternion");
+        for m in ATTITUDE_MESSAGES {
+            let c = Config::from_toml_str(&format!(
+                "[daemon]\nattitude_rate_hz = 25.0\nattitude_message = \"{m}\"\n"
+            ))
+            .unwrap();
+            assert_eq!(c.daemon.attitude_message, m);
+            assert_eq!(c.daemon.attitude_rate_hz, 25.0);
+        }
+        // A bad message names the key and the values allowed.
+        let e = Config::from_toml_str("[daemon]\nattitude_message = \"quaternion\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("daemon.attitude_message"), "{e}");
+        for m in ATTITUDE_MESSAGES {
+            assert!(e.contains(m), "{e} lacks {m}");
+        }
+        // Rates: positive, finite, at most MAX_RATE_HZ (a zero timer period would panic).
+        for bad in ["0.0", "-5.0", "nan", "inf", "1e12"] {
+            let e = Config::from_toml_str(&format!("[daemon]\nattitude_rate_hz = {bad}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("daemon.attitude_rate_hz"), "{bad}: {e}");
+        }
+        let e = Config::from_toml_str("[daemon]\nheading_rate_hz = 1e12\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("daemon.heading_rate_hz"), "{e}");
+        Config::from_toml_str("[daemon]\nattitude_rate_hz = 1000.0\n").unwrap();
+        // ATTITUDE from two publishers would clash: heading_message = "attitude" excludes it here.
+        for m in ["attitude", "both"] {
+            let e = Config::from_toml_str(&format!(
+                "[daemon]\nheading_message = \"attitude\"\nattitude_message = \"{m}\"\n"
+            ))
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("daemon.attitude_message"), "{e}");
+        }
+        Config::from_toml_str(
+            "[daemon]\nheading_message = \"attitude\"\nattitude_message = \"attitude_quaternion\"\n",
+        )
+        .unwrap();
+        // Unknown keys stay errors.
+        let e = Config::from_toml_str("[daemon]\nattitude_hz = 5.0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("attitude_hz"), "{e}");
     }
 }

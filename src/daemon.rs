@@ -3,9 +3,11 @@
 //!
 //! ```text
 //! link tasks ──(bounded mpsc, drops counted)──> run loop ──> Pipeline::push
+//!                                                  │  Calibrator ─> OrientationFilter (fused attitude)
 //!                                                  │  refit due: snapshot ─> spawn_blocking(fit_all)
 //!                                                  │  result: accept if checks pass and not worse on recent data
-//!                                                  ├─> MAVLink back to the links (progress, report, heading)
+//!                                                  ├─> MAVLink back to the links (progress, report, heading,
+//!                                                  │   ATTITUDE_QUATERNION / ATTITUDE)
 //!                                                  ├─> JSON lines to consumers
 //!                                                  └─> calibration files (atomic), report
 //! ```
@@ -13,12 +15,13 @@
 use crate::config::{Config, SourceConfig};
 use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
+use crate::fusion::{FusionConfig, OrientationFilter, WorldFrame};
 use crate::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
 use crate::mavout::{self, ApCompassParams, LiveEvent, MavEncoder, ParamWriter};
 use crate::model::Calibration;
 use crate::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
 use crate::report::{GyroCalibration, SensorCalibration};
-use crate::types::{norm, Sample, Vec3};
+use crate::types::{norm, Sample, Unit, Vec3};
 use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -271,6 +274,70 @@ struct State {
     window: Averager,
     /// The last magnetometer calibration sent in MAG_CAL_REPORT (reports only when it moved).
     reported_mag: Option<SensorCalibration>,
+    /// Fused attitude (body FRD -> NED, true north when the place is known) from every calibrated sample.
+    fusion: OrientationFilter,
+    /// Calibrated gyro since the last attitude publication (the body rates sent with it).
+    attitude_rates: RateMean,
+    /// The latest magnetometer reading in body axes before calibration (to tell how far a new
+    /// calibration moves the field the filter sees).
+    last_body_mag: Option<Vec3>,
+}
+
+/// Time step of the orientation filter's first sample and of samples whose clock jumps, s.
+const FUSION_DEFAULT_DT_S: f64 = 0.01;
+
+/// The orientation filter's settings for the live service: world NED, declination from the place (true
+/// north) or none (magnetic north), gravity as the fit's.
+fn fusion_config(cfg: &Config, declination: Option<f64>) -> FusionConfig {
+    FusionConfig {
+        world: WorldFrame::Ned,
+        use_mag: true,
+        declination_deg: declination.unwrap_or(0.0),
+        gravity_mps2: cfg.fit.gravity_mps2,
+        ..FusionConfig::default()
+    }
+}
+
+/// Whether a new magnetometer calibration moves the calibrated field of `raw` (body axes, before
+/// calibration) by more than 2 % in norm or 2 degrees in direction: the orientation filter would take
+/// such a step for a magnetic disturbance (and distrust the field for a while), so it restarts instead.
+fn mag_cal_moved(old: Option<&Calibration>, new: Option<&Calibration>, raw: &Vec3) -> bool {
+    let f = |c: Option<&Calibration>| c.map_or(*raw, |c| c.apply(raw));
+    let (a, b) = (f(old), f(new));
+    let (na, nb) = (norm(&a), norm(&b));
+    if !(na > 0.0 && nb > 0.0 && na.is_finite() && nb.is_finite()) {
+        return false;
+    }
+    let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (na * nb);
+    (nb / na - 1.0).abs() > 0.02 || cos.clamp(-1.0, 1.0).acos().to_degrees() > 2.0
+}
+
+/// Mean of the calibrated body rates between two attitude publications; keeps the last mean when
+/// no gyro sample came in between.
+#[derive(Debug, Default, Clone, Copy)]
+struct RateMean {
+    sum: Vec3,
+    n: u32,
+    last: Option<Vec3>,
+}
+
+impl RateMean {
+    fn add(&mut self, g: &Vec3) {
+        for k in 0..3 {
+            self.sum[k] += g[k];
+        }
+        self.n += 1;
+    }
+
+    fn take(&mut self) -> Option<Vec3> {
+        if self.n > 0 {
+            let n = self.n as f64;
+            self.last = Some(self.sum.map(|v| v / n));
+            self.sum = [0.0; 3];
+            self.n = 0;
+        }
+        self.last
+    }
 }
 
 impl State {
@@ -327,10 +394,84 @@ impl State {
 
     fn on_sample(&mut self, s: Sample) -> bool {
         let due = self.pipe.push(&s);
-        let c = self.calibrator.apply(&self.pipe.to_body(&s));
+        let body = self.pipe.to_body(&s);
+        if body.mag_ut.is_some() {
+            self.last_body_mag = body.mag_ut;
+        }
+        let c = self.calibrator.apply(&body);
         self.window.add(&c);
+        self.fuse(&c);
         self.latest = Some(c);
         due
+    }
+
+    /// Feed a calibrated sample (body axes, stored gyro bias removed) to the orientation filter.
+    /// A gyro still in counts (no scale known) is left out: the filter then runs on accel and mag.
+    fn fuse(&mut self, c: &Calibrated) {
+        let gyro = c.gyro_rad_s.filter(|_| self.pipe.gyro_units == Unit::Si);
+        if c.accel_mps2.is_none() && gyro.is_none() && c.mag_ut.is_none() {
+            return;
+        }
+        let s = Sample {
+            t_s: c.t_s,
+            accel_mps2: c.accel_mps2,
+            gyro_rad_s: gyro,
+            mag_ut: c.mag_ut,
+            ..Default::default()
+        };
+        self.fusion.update_sample(&s, FUSION_DEFAULT_DT_S);
+        if let Some(g) = gyro.filter(crate::types::is_finite3) {
+            self.attitude_rates.add(&g);
+        }
+    }
+
+    /// The fused attitude as ATTITUDE_QUATERNION and/or ATTITUDE (per `daemon.attitude_message`) and a
+    /// JSON `attitude` line, once the filter has its tilt and its heading.
+    async fn publish_attitude(&mut self) {
+        let mean_rates = self.attitude_rates.take();
+        if !(self.fusion.initialized() && self.fusion.mag_reference().is_some()) {
+            return;
+        }
+        let o = self.fusion.orientation();
+        let q = [o.q.w, o.q.i, o.q.j, o.q.k];
+        if !q.iter().all(|c| c.is_finite()) {
+            return;
+        }
+        // Body rates: the calibrated gyro less the filter's residual bias estimate.
+        let residual_bias = self.fusion.bias();
+        let rates_rad_s = mean_rates.map_or([0.0; 3], |r| {
+            [
+                r[0] - residual_bias[0],
+                r[1] - residual_bias[1],
+                r[2] - residual_bias[2],
+            ]
+        });
+        let t_ms = (self.now_s() * 1000.0) as u32;
+        let mut msgs = vec![];
+        let which = self.cfg.daemon.attitude_message.as_str();
+        if which == "attitude_quaternion" || which == "both" {
+            msgs.extend(mavout::attitude_quaternion(t_ms, q, rates_rad_s));
+        }
+        if which == "attitude" || which == "both" {
+            msgs.extend(mavout::attitude_from_quaternion(t_ms, q, rates_rad_s));
+        }
+        self.send_mav(&msgs).await;
+        let stored_bias = self.calibrator.gyro_bias.unwrap_or([0.0; 3]);
+        let ev = LiveEvent::Attitude {
+            t: self.latest.map_or(self.pipe.last_t, |c| c.t_s),
+            q,
+            roll_deg: o.roll_deg,
+            pitch_deg: o.pitch_deg,
+            heading_deg: o.heading_deg,
+            true_heading: self.declination.is_some(),
+            gyro_bias_rad_s: [
+                stored_bias[0] + residual_bias[0],
+                stored_bias[1] + residual_bias[1],
+                stored_bias[2] + residual_bias[2],
+            ],
+            mag_disturbed: self.fusion.mag_disturbed(),
+        };
+        self.send_json(&ev).await;
     }
 
     /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
@@ -474,6 +615,7 @@ impl State {
         results: FitResults,
     ) {
         let mut changed = false;
+        let mag_before = self.calibrator.mag;
         for (name, res, recent) in [
             ("mag", &results.mag, &input_mag),
             ("accel", &results.accel, &input_accel),
@@ -501,6 +643,14 @@ impl State {
         if results.gyro.status == "ok" {
             self.store.gyro = Some(results.gyro.clone());
             self.calibrator.gyro_bias = Some(results.gyro.bias);
+        }
+        if let Some(m) = self.last_body_mag {
+            if mag_cal_moved(mag_before.as_ref(), self.calibrator.mag.as_ref(), &m) {
+                tracing::info!(
+                    "magnetometer calibration moved the field: orientation filter restarted"
+                );
+                self.fusion = OrientationFilter::new(*self.fusion.config());
+            }
         }
         // Report the magnetometer like ArduPilot's calibrator: success when accepted, failure once the
         // data covered the sphere and the fit still failed (not while still collecting).
@@ -700,6 +850,8 @@ fn severity_name(s: u8) -> &'static str {
 
 /// Run the service until `shutdown` turns true, or until every replay/sim source has ended.
 pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<RunSummary, Error> {
+    // Checked here too (callers may build the config in code): bad rates would stop the timers.
+    cfg.validate()?;
     let d = cfg.daemon.clone();
     let sources = if d.sources.is_empty() {
         vec![SourceConfig {
@@ -773,13 +925,19 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         mag_awaiting_params: 0,
         reported_mag: None,
         window: Averager::default(),
+        fusion: OrientationFilter::new(fusion_config(&cfg, declination)),
+        attitude_rates: RateMean::default(),
+        last_body_mag: None,
         cfg,
     };
     let mut heading_tick = tokio::time::interval(Duration::from_secs_f64(1.0 / d.heading_rate_hz));
     let mut progress_tick =
         tokio::time::interval(Duration::from_secs_f64(1.0 / d.progress_rate_hz));
+    let mut attitude_tick =
+        tokio::time::interval(Duration::from_secs_f64(1.0 / d.attitude_rate_hz));
     heading_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     progress_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    attitude_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
     let mut refit_wanted = false;
@@ -857,6 +1015,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 }
             }
             _ = progress_tick.tick() => { st.publish_progress().await; }
+            _ = attitude_tick.tick() => { st.publish_attitude().await; }
         }
     }
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
@@ -888,4 +1047,66 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         accepted: st.accepted,
         inbound_dropped,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cal(offset: Vec3, scale: f64) -> Calibration {
+        Calibration {
+            model: crate::model::ModelKind::Sphere,
+            offset,
+            matrix: [[scale, 0.0, 0.0], [0.0, scale, 0.0], [0.0, 0.0, scale]],
+        }
+    }
+
+    #[test]
+    fn daemon_restarts_fusion_only_when_the_mag_calibration_moves_the_field() {
+        let raw = [30.0, -10.0, 45.0];
+        let c = cal([10.0, -20.0, 30.0], 1.0);
+        // First calibration after raw data: the field the filter sees jumps.
+        assert!(mag_cal_moved(None, Some(&c), &raw));
+        // A refit that moves the offset by a fraction of a uT: the filter keeps going.
+        let near = cal([10.1, -20.05, 30.0], 1.005);
+        assert!(!mag_cal_moved(Some(&c), Some(&near), &raw));
+        assert!(!mag_cal_moved(Some(&c), Some(&c), &raw));
+        // Norm by 5 %, or direction by several degrees: restart.
+        assert!(mag_cal_moved(
+            Some(&c),
+            Some(&cal([10.0, -20.0, 30.0], 1.05)),
+            &raw
+        ));
+        assert!(mag_cal_moved(
+            Some(&c),
+            Some(&cal([10.0, -17.0, 30.0], 1.0)),
+            &raw
+        ));
+        // Degenerate or broken readings never restart it.
+        assert!(!mag_cal_moved(Some(&c), Some(&near), &[10.0, -20.0, 30.0]));
+        assert!(!mag_cal_moved(None, Some(&c), &[f64::NAN, 0.0, 0.0]));
+    }
+
+    #[test]
+    fn daemon_attitude_rates_are_means_between_publications() {
+        let mut r = RateMean::default();
+        assert_eq!(r.take(), None);
+        r.add(&[0.1, 0.2, 0.3]);
+        r.add(&[0.3, 0.0, -0.3]);
+        assert_eq!(r.take(), Some([0.2, 0.1, 0.0]));
+        // Nothing new: the last mean again.
+        assert_eq!(r.take(), Some([0.2, 0.1, 0.0]));
+        r.add(&[1.0, 1.0, 1.0]);
+        assert_eq!(r.take(), Some([1.0, 1.0, 1.0]));
+    }
+
+    #[test]
+    fn daemon_fusion_config_uses_declination_and_ned() {
+        let cfg = Config::default();
+        let f = fusion_config(&cfg, Some(12.5));
+        assert_eq!(f.world, WorldFrame::Ned);
+        assert_eq!(f.declination_deg, 12.5);
+        assert!(f.use_mag);
+        assert_eq!(fusion_config(&cfg, None).declination_deg, 0.0);
+    }
 }

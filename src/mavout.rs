@@ -5,6 +5,8 @@
 //! * Calibration progress and result in ArduPilot's messages: [`section80`], [`completion_mask`],
 //!   [`mag_cal_progress`] (MAG_CAL_PROGRESS, 191) and [`mag_cal_report`] (MAG_CAL_REPORT, 192).
 //! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
+//! * Fused attitude from a quaternion (body FRD -> NED): [`attitude_quaternion`]
+//!   (ATTITUDE_QUATERNION, 31) and [`attitude_from_quaternion`] (ATTITUDE, 30).
 //! * Undoing ArduPilot's own compass correction on streamed telemetry: [`ApCompassParams`].
 //! * Writing parameters with read-back verification: [`ParamWriter`].
 //! * JSON lines for other consumers: [`LiveEvent`], [`json_line`] (schema [`JSON_SCHEMA`]).
@@ -28,6 +30,7 @@
 //!
 //! | type          | fields |
 //! |---------------|--------|
+//! | `attitude`    | `t` (s), `q` ([w,x,y,z], body FRD -> NED, from the gyro+accel+mag orientation filter), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, ZYX angles of `q`), `true_heading` (as for `heading`), `gyro_bias_rad_s` ([x,y,z] body: the stored gyro calibration plus the filter's residual estimate), `mag_disturbed` (bool: the field's norm or dip is off its reference, so the heading runs on the gyro) |
 //! | `heading`     | `t` (s), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, clockwise from north), `true_heading` (bool: true when the declination was added, i.e. from true north; false: magnetic north) |
 //! | `calibrated`  | `t` (s), `accel_mps2` ([x,y,z] m/s^2 or null), `gyro_rad_s` ([x,y,z] rad/s or null), `mag_ut` ([x,y,z] uT or null): the latest sample after calibration |
 //! | `progress`    | `sensor` ("mag"), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100) |
@@ -37,6 +40,7 @@
 //! Example lines:
 //! ```text
 //! {"schema":"imucald.live/1","type":"heading","t":12.5,"roll_deg":1.2,"pitch_deg":-0.4,"heading_deg":273.9,"true_heading":true}
+//! {"schema":"imucald.live/1","type":"attitude","t":12.5,"q":[0.259,0.0,0.0,0.966],"roll_deg":0.0,"pitch_deg":0.0,"heading_deg":150.0,"true_heading":false,"gyro_bias_rad_s":[0.001,0.0,-0.002],"mag_disturbed":false}
 //! {"schema":"imucald.live/1","type":"progress","sensor":"mag","completion_pct":45.0,"filled_regions":45}
 //! {"schema":"imucald.live/1","type":"status","level":"info","text":"mag calibrated"}
 //! ```
@@ -45,9 +49,9 @@ use crate::model::{rows_to_mat, Calibration, ModelKind};
 use crate::report::SensorCalibration;
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
-    MagCalStatus, MavMessage, MavParamType, MavSeverity, ATTITUDE_DATA, DEBUG_VECT_DATA,
-    MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA, NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA,
-    PARAM_SET_DATA, STATUSTEXT_DATA,
+    MagCalStatus, MavMessage, MavParamType, MavSeverity, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA,
+    DEBUG_VECT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA, NAMED_VALUE_FLOAT_DATA,
+    PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
 };
 use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
@@ -532,6 +536,66 @@ pub fn attitude(t_boot_ms: u32, roll_deg: f64, pitch_deg: f64, yaw_deg: f64) -> 
     })
 }
 
+/// A quaternion `[w, x, y, z]` scaled to unit length; `None` when it cannot be (not finite, or zero).
+fn unit_wxyz(q: [f64; 4]) -> Option<[f64; 4]> {
+    let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+    (n.is_finite() && n > 1e-9).then(|| q.map(|c| c / n))
+}
+
+/// Roll, pitch, yaw in radians (ZYX) of a body FRD -> NED quaternion `[w, x, y, z]`: roll and yaw in
+/// (-pi, pi], pitch in [-pi/2, pi/2]. `None` for a quaternion that is not finite or zero.
+pub fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
+    let [w, x, y, z] = unit_wxyz(q_wxyz)?;
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    Some([wrap_pi(roll), pitch, wrap_pi(yaw)])
+}
+
+/// ATTITUDE_QUATERNION: `q1..q4` = w, x, y, z of the body FRD -> NED rotation (normalised; the sign
+/// is chosen with w >= 0), body rates in rad/s; `repr_offset_q` is left at zero ("not supported").
+/// `None` for a quaternion that is not finite or zero.
+pub fn attitude_quaternion(
+    t_boot_ms: u32,
+    q_wxyz: [f64; 4],
+    rates_rad_s: Vec3,
+) -> Option<MavMessage> {
+    let q = unit_wxyz(q_wxyz)?;
+    let q = if q[0] < 0.0 { q.map(|c| -c) } else { q };
+    let r = rates_rad_s.map(|v| if v.is_finite() { v as f32 } else { 0.0 });
+    Some(MavMessage::ATTITUDE_QUATERNION(ATTITUDE_QUATERNION_DATA {
+        time_boot_ms: t_boot_ms,
+        q1: q[0] as f32,
+        q2: q[1] as f32,
+        q3: q[2] as f32,
+        q4: q[3] as f32,
+        rollspeed: r[0],
+        pitchspeed: r[1],
+        yawspeed: r[2],
+        ..Default::default()
+    }))
+}
+
+/// ATTITUDE from a body FRD -> NED quaternion `[w, x, y, z]`: roll, pitch, yaw radians (ZYX; yaw in
+/// (-pi, pi]) and body rates in rad/s. `None` for a quaternion that is not finite or zero.
+pub fn attitude_from_quaternion(
+    t_boot_ms: u32,
+    q_wxyz: [f64; 4],
+    rates_rad_s: Vec3,
+) -> Option<MavMessage> {
+    let [roll, pitch, yaw] = euler_from_quaternion(q_wxyz)?;
+    let r = rates_rad_s.map(|v| if v.is_finite() { v as f32 } else { 0.0 });
+    Some(MavMessage::ATTITUDE(ATTITUDE_DATA {
+        time_boot_ms: t_boot_ms,
+        roll: roll as f32,
+        pitch: pitch as f32,
+        yaw: yaw as f32,
+        rollspeed: r[0],
+        pitchspeed: r[1],
+        yawspeed: r[2],
+    }))
+}
+
 // ---------------------------------------------------------------------------------------------
 // Undoing ArduPilot's correction
 
@@ -811,6 +875,18 @@ pub const JSON_SCHEMA: &str = "imucald.live/1";
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum LiveEvent {
+    /// The fused attitude of the orientation filter (see the module documentation).
+    Attitude {
+        t: f64,
+        /// Body FRD -> NED, `[w, x, y, z]`.
+        q: [f64; 4],
+        roll_deg: f64,
+        pitch_deg: f64,
+        heading_deg: f64,
+        true_heading: bool,
+        gyro_bias_rad_s: Vec3,
+        mag_disturbed: bool,
+    },
     Heading {
         t: f64,
         roll_deg: f64,
@@ -1499,8 +1575,25 @@ mod tests {
                 level: severity_name(6).into(),
                 text: "line\nbreak \"quoted\"".into(),
             },
+            LiveEvent::Attitude {
+                t: 3.25,
+                q: [0.5, -0.5, 0.5, 0.5],
+                roll_deg: -90.0,
+                pitch_deg: 0.0,
+                heading_deg: 90.0,
+                true_heading: false,
+                gyro_bias_rad_s: [0.001, 0.0, -0.002],
+                mag_disturbed: true,
+            },
         ];
-        let types = ["heading", "calibrated", "progress", "calibration", "status"];
+        let types = [
+            "heading",
+            "calibrated",
+            "progress",
+            "calibration",
+            "status",
+            "attitude",
+        ];
         for (ev, ty) in events.iter().zip(types) {
             let line = json_line(ev);
             assert!(line.ends_with('\n'));
@@ -1530,5 +1623,106 @@ mod tests {
         };
         let v: serde_json::Value = serde_json::from_str(&json_line(&nan)).unwrap();
         assert!(v["roll_deg"].is_null());
+        let v: serde_json::Value = serde_json::from_str(&json_line(&events[5])).unwrap();
+        assert_eq!(v["q"][1], -0.5);
+        assert_eq!(v["gyro_bias_rad_s"][2], -0.002);
+        assert_eq!(v["mag_disturbed"], true);
+    }
+
+    /// Body FRD -> NED quaternion `[w, x, y, z]` of ZYX angles in degrees.
+    fn q_of(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
+        let q = nalgebra::UnitQuaternion::from_euler_angles(
+            roll.to_radians(),
+            pitch.to_radians(),
+            yaw.to_radians(),
+        );
+        [q.w, q.i, q.j, q.k]
+    }
+
+    #[test]
+    fn euler_from_quaternion_is_zyx_with_yaw_wrapped() {
+        for (r, p, y) in [
+            (0.0, 0.0, 0.0),
+            (20.0, -10.0, 250.0),
+            (-170.0, 45.0, 90.0),
+            (5.0, 80.0, -30.0),
+            (179.0, -60.0, 181.0),
+        ] {
+            let e = euler_from_quaternion(q_of(r, p, y)).unwrap();
+            let want = [r, p, y].map(|d: f64| wrap_pi(d.to_radians()));
+            for k in 0..3 {
+                assert!(
+                    (e[k] - want[k]).abs() < 1e-9,
+                    "{r} {p} {y}: {e:?} vs {want:?}"
+                );
+            }
+            assert!(e[2] > -PI && e[2] <= PI);
+            // The same angles as the orientation filter's own conversion.
+            let q = q_of(r, p, y);
+            let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                q[0], q[1], q[2], q[3],
+            ));
+            let f = crate::fusion::euler_ned_deg(&uq);
+            assert!((f[0] - e[0].to_degrees()).abs() < 1e-6);
+            assert!((f[1] - e[1].to_degrees()).abs() < 1e-6);
+            assert!((f[2] - e[2].to_degrees().rem_euclid(360.0)).abs() < 1e-6);
+        }
+        // Scale does not matter; junk is refused, not turned into NaN angles.
+        let q = q_of(10.0, 20.0, 30.0).map(|c| 3.0 * c);
+        let e = euler_from_quaternion(q).unwrap();
+        assert!((e[2] - 30f64.to_radians()).abs() < 1e-9);
+        assert!(euler_from_quaternion([0.0; 4]).is_none());
+        assert!(euler_from_quaternion([f64::NAN, 0.0, 0.0, 1.0]).is_none());
+        assert!(euler_from_quaternion([f64::INFINITY, 0.0, 0.0, 1.0]).is_none());
+    }
+
+    #[test]
+    fn attitude_quaternion_and_attitude_from_one_quaternion() {
+        let q = q_of(20.0, -10.0, 250.0);
+        let rates = [0.1, -0.2, 0.3];
+        let MavMessage::ATTITUDE_QUATERNION(a) = attitude_quaternion(1234, q, rates).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!(a.time_boot_ms, 1234);
+        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+        for (got, want) in [a.q1, a.q2, a.q3, a.q4].iter().zip(q) {
+            assert!((*got as f64 - sign * want).abs() < 1e-6);
+        }
+        assert!(a.q1 >= 0.0);
+        assert_eq!([a.rollspeed, a.pitchspeed, a.yawspeed], [0.1, -0.2, 0.3]);
+        // -q is the same rotation: sent with w >= 0.
+        let MavMessage::ATTITUDE_QUATERNION(b) =
+            attitude_quaternion(0, q.map(|c| -c), rates).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!([a.q1, a.q2, a.q3, a.q4], [b.q1, b.q2, b.q3, b.q4]);
+        let MavMessage::ATTITUDE(e) = attitude_from_quaternion(1234, q, rates).unwrap() else {
+            panic!()
+        };
+        assert!((e.roll - 20f32.to_radians()).abs() < 1e-5);
+        assert!((e.pitch + 10f32.to_radians()).abs() < 1e-5);
+        assert!((e.yaw + 110f32.to_radians()).abs() < 1e-5, "{}", e.yaw);
+        assert_eq!([e.rollspeed, e.pitchspeed, e.yawspeed], [0.1, -0.2, 0.3]);
+        // Non-finite rates go out as 0, a broken quaternion not at all.
+        let MavMessage::ATTITUDE(e) =
+            attitude_from_quaternion(0, q, [f64::NAN, 1.0, f64::INFINITY]).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!([e.rollspeed, e.pitchspeed, e.yawspeed], [0.0, 1.0, 0.0]);
+        assert!(attitude_quaternion(0, [f64::NAN; 4], rates).is_none());
+        assert!(attitude_from_quaternion(0, [0.0; 4], rates).is_none());
+        // Both encode to frames that decode back (ids 31 and 30).
+        let mut enc = MavEncoder::new(1, 191);
+        for (m, id) in [
+            (attitude_quaternion(5, q, rates).unwrap(), 31u32),
+            (attitude_from_quaternion(5, q, rates).unwrap(), 30),
+        ] {
+            let message = decode(&enc.encode(&m)).message;
+            assert_eq!(mavlink::Message::message_id(&message), id);
+            assert_eq!(message, m);
+        }
     }
 }

@@ -1636,3 +1636,267 @@ mod fuzz_regressions {
         assert!(config(b"\xff[fit]").is_err());
     }
 }
+
+/// The fused attitude of the live service: a vehicle held still at a known attitude, streamed as a
+/// `.tlog` of HIGHRES_IMU (with the default sensor errors of the simulator), the true calibration
+/// stored, a place with a large declination. The run is on tokio's paused clock, so the publication
+/// times are exact.
+mod live_attitude {
+    use super::*;
+    use imucald::daemon::{save_store, StoredCalibration, STORE_SCHEMA};
+    use imucald::decode::FrameDecoder;
+    use imucald::report::{GyroCalibration, SensorCalibration};
+    use imucald::sim::SensorTruth;
+    use mavlink::dialects::ardupilotmega::MavMessage;
+    use nalgebra::Vector3;
+    use rand::SeedableRng;
+    use rand_distr::Distribution;
+    use std::time::Duration;
+
+    fn stored(t: &SensorTruth, units: &str, radius: f64) -> SensorCalibration {
+        SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: None,
+            model: "sym9".into(),
+            units: units.into(),
+            offset: t.offset,
+            matrix: t.matrix,
+            radius,
+            rms_residual: 0.01 * radius,
+            offset_sigma: [0.01; 3],
+            samples_used: 1000,
+            iterations: 5,
+            candidates: vec![],
+        }
+    }
+
+    /// Degrees between two angles, wrapped to [0, 180].
+    fn ang_diff(a: f64, b: f64) -> f64 {
+        let d = (a - b).rem_euclid(360.0);
+        d.min(360.0 - d)
+    }
+
+    /// Receive on `sock` until it has been quiet for 2 s (virtual), keeping every datagram.
+    fn collect(sock: tokio::net::UdpSocket) -> tokio::task::JoinHandle<Vec<Vec<u8>>> {
+        tokio::spawn(async move {
+            let mut out = vec![];
+            let mut buf = vec![0u8; 65_536];
+            while let Ok(Ok((n, _))) =
+                tokio::time::timeout(Duration::from_secs(2), sock.recv_from(&mut buf)).await
+            {
+                out.push(buf[..n].to_vec());
+            }
+            out
+        })
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn daemon_publishes_fused_attitude_at_rate_with_true_heading() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        // Seattle: about 15 deg east, so a magnetic heading would miss the truth by far more than
+        // the tolerance below.
+        let mut cfg = Config {
+            place: Some(imucald::attitude::Place {
+                latitude_deg: 47.6,
+                longitude_deg: -122.3,
+                altitude_m: 0.0,
+                date: Some("2026-06-01".into()),
+            }),
+            ..Config::default()
+        };
+        let decl = cfg.declination_deg().unwrap().unwrap();
+        assert!(decl.abs() > 10.0, "declination {decl}");
+
+        // A vehicle held still at roll 12, pitch -7, true heading 250 deg, for 30 s at 100 Hz.
+        let (roll, pitch, yaw) = (12.0, -7.0, 250.0);
+        let sc = imucald::sim::Scenario::named("tumble").unwrap();
+        let truth = sc.truth.clone();
+        let g = truth.world.gravity_mps2;
+        let q_true = imucald::sim::quat_from_euler_deg(roll, pitch, yaw);
+        let to_body = q_true.inverse();
+        let f_body = to_body * Vector3::new(0.0, 0.0, -g);
+        let (h, z) = (24.0, 41.57);
+        let dr = decl.to_radians();
+        let m_body = to_body * Vector3::new(h * dr.cos(), h * dr.sin(), z);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut raw = |t: &SensorTruth, v: &Vector3<f64>| {
+            let mut r = t.forward(&[v[0], v[1], v[2]]);
+            for x in r.iter_mut() {
+                let n: f64 = rand_distr::StandardNormal.sample(&mut rng);
+                *x += t.noise_sd * n;
+            }
+            r
+        };
+        let samples: Vec<imucald::types::Sample> = (0..3000)
+            .map(|i| imucald::types::Sample {
+                t_s: i as f64 * 0.01,
+                accel_mps2: Some(raw(&truth.accel, &f_body)),
+                gyro_rad_s: Some(raw(&truth.gyro, &Vector3::zeros())),
+                mag_ut: Some(raw(&truth.mag, &m_body)),
+                temp_c: Some(25.0),
+                ..Default::default()
+            })
+            .collect();
+        let log = d.join("still.tlog");
+        imucald::sim::write_tlog(&log, &samples, &Default::default()).unwrap();
+
+        // The true calibration is what the daemon resumes from.
+        let cal_dir = d.join("cal");
+        let store = StoredCalibration {
+            schema: STORE_SCHEMA.into(),
+            mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
+            accel: Some(stored(&truth.accel, "m/s^2", g)),
+            gyro: Some(GyroCalibration {
+                status: "ok".into(),
+                failure: None,
+                units: "rad/s".into(),
+                bias: truth.gyro.offset,
+                bias_sigma: [1e-4; 3],
+                poses_used: 6,
+            }),
+        };
+        save_store(&cal_dir, &store).unwrap();
+
+        let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let rate_hz = 20.0;
+        cfg.daemon.sources = vec![
+            imucald::config::SourceConfig {
+                address: format!("file:{}", log.display()),
+                payload: "mavlink".into(),
+                fields: vec![],
+                scales: Default::default(),
+            },
+            // The link the attitude goes back on.
+            imucald::config::SourceConfig {
+                address: format!("udpout:{}", fc.local_addr().unwrap()),
+                payload: "mavlink".into(),
+                fields: vec![],
+                scales: Default::default(),
+            },
+        ];
+        cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
+        cfg.daemon.calibration_dir = cal_dir.display().to_string();
+        cfg.daemon.attitude_rate_hz = rate_hz;
+        cfg.daemon.attitude_message = "both".into();
+        cfg.daemon.silent_after_s = 100.0;
+        cfg.validate().unwrap();
+        let fc_rx = collect(fc);
+        let json_rx = collect(json);
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_secs(31)).await;
+        stop_tx.send(true).unwrap();
+        let summary = daemon.await.unwrap().unwrap();
+        assert_eq!(summary.samples, 3000);
+
+        // MAVLink: ATTITUDE_QUATERNION and ATTITUDE at the rate, both at the true attitude.
+        let mut dec = FrameDecoder::new();
+        let (mut quats, mut atts) = (vec![], vec![]);
+        for dgram in fc_rx.await.unwrap() {
+            for f in dec.push(&dgram) {
+                match f.message {
+                    MavMessage::ATTITUDE_QUATERNION(a) => quats.push(a),
+                    MavMessage::ATTITUDE(a) => atts.push(a),
+                    _ => {}
+                }
+            }
+        }
+        // In [5 s, 25 s): exactly rate x 20 s publications, evenly spaced.
+        let window = |t: u32| (5_000..25_000).contains(&t);
+        let n_q = quats.iter().filter(|a| window(a.time_boot_ms)).count();
+        let n_a = atts.iter().filter(|a| window(a.time_boot_ms)).count();
+        let want = (rate_hz * 20.0) as usize;
+        assert!(
+            n_q.abs_diff(want) <= 1,
+            "{n_q} ATTITUDE_QUATERNION in 20 s, want {want}"
+        );
+        assert!(
+            n_a.abs_diff(want) <= 1,
+            "{n_a} ATTITUDE in 20 s, want {want}"
+        );
+        let period_ms = 1000.0 / rate_hz;
+        for w in quats.windows(2) {
+            let dt = w[1].time_boot_ms as f64 - w[0].time_boot_ms as f64;
+            assert!((dt - period_ms).abs() <= 2.0, "spacing {dt} ms");
+        }
+        let mut checked = 0;
+        for a in quats.iter().filter(|a| a.time_boot_ms >= 1_000) {
+            let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                a.q1 as f64,
+                a.q2 as f64,
+                a.q3 as f64,
+                a.q4 as f64,
+            ));
+            let err = q.angle_to(&q_true).to_degrees();
+            let e = imucald::sim::euler_deg_from_quat(&q);
+            assert!(
+                err < 2.0,
+                "t {} ms: attitude off by {err:.2} deg: roll {:.2} pitch {:.2} heading {:.2}",
+                a.time_boot_ms,
+                e[0],
+                e[1],
+                e[2]
+            );
+            assert!(
+                (e[0] - roll).abs() < 2.0 && (e[1] - pitch).abs() < 2.0,
+                "{e:?}"
+            );
+            assert!(ang_diff(e[2], yaw) < 2.0, "heading {:.2} vs {yaw}", e[2]);
+            // Body rates with the gyro bias removed (the raw y axis reads -0.02 rad/s).
+            for r in [a.rollspeed, a.pitchspeed, a.yawspeed] {
+                assert!(r.abs() < 0.005, "rate {r} rad/s");
+            }
+            checked += 1;
+        }
+        assert!(checked >= 500, "{checked} attitudes checked");
+        for a in atts.iter().filter(|a| a.time_boot_ms >= 1_000) {
+            assert!((a.roll as f64 - roll.to_radians()).abs() < 2f64.to_radians());
+            assert!((a.pitch as f64 - pitch.to_radians()).abs() < 2f64.to_radians());
+            // 250 deg is sent as -110 deg.
+            let want_yaw = (yaw - 360.0f64).to_radians();
+            assert!(
+                (a.yaw as f64 - want_yaw).abs() < 2f64.to_radians(),
+                "yaw {}",
+                a.yaw
+            );
+        }
+
+        // JSON: `attitude` lines with the same attitude, true heading, the total gyro bias.
+        let lines: Vec<serde_json::Value> = json_rx
+            .await
+            .unwrap()
+            .iter()
+            .filter_map(|d| serde_json::from_slice(d).ok())
+            .filter(|v: &serde_json::Value| v["type"] == "attitude")
+            .collect();
+        let late: Vec<&serde_json::Value> = lines
+            .iter()
+            .filter(|v| v["t"].as_f64().is_some_and(|t| t >= 1.0))
+            .collect();
+        assert!(late.len() >= 500, "{} attitude lines", late.len());
+        for v in late {
+            assert_eq!(v["schema"], "imucald.live/1");
+            assert_eq!(v["true_heading"], true);
+            assert_eq!(v["mag_disturbed"], false);
+            let f = |k: &str| v[k].as_f64().unwrap();
+            assert!((f("roll_deg") - roll).abs() < 2.0, "{v}");
+            assert!((f("pitch_deg") - pitch).abs() < 2.0, "{v}");
+            assert!(ang_diff(f("heading_deg"), yaw) < 2.0, "{v}");
+            let q: Vec<f64> = (0..4).map(|k| v["q"][k].as_f64().unwrap()).collect();
+            let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                q[0], q[1], q[2], q[3],
+            ));
+            assert!(q.angle_to(&q_true).to_degrees() < 2.0, "{v}");
+            for k in 0..3 {
+                let b = v["gyro_bias_rad_s"][k].as_f64().unwrap();
+                // The filter's residual estimate settles once it has seen the vehicle at rest.
+                if f("t") >= 3.0 {
+                    assert!((b - truth.gyro.offset[k]).abs() < 0.002, "{v}");
+                }
+            }
+        }
+    }
+}
