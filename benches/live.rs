@@ -10,6 +10,9 @@
 //!    the daemon took in, drops it counted at its bounded queue, and the kernel's UDP receive-buffer
 //!    errors over the same time (/proc/net/snmp), so a loss is either counted or the kernel's.
 //!
+//! 4. **Latency**: sample-in to fused-attitude-out round trip at 1 kHz for `IMUCALD_BENCH_LATENCY_S`
+//!    seconds (default 30), with `daemon.attitude_every_samples = 1`: p50/p90/p99/p99.9/max.
+//!
 //! Linux only (reads /proc). Samples come from the simulator (tumble with pauses, 1 kHz), one new
 //! seed per simulated minute, generated while streaming so this process holds one minute at a time.
 
@@ -59,6 +62,11 @@ struct Daemon {
 
 impl Daemon {
     fn start() -> Daemon {
+        Daemon::start_with("")
+    }
+
+    /// Start with extra TOML (written to a temp file and passed with --config).
+    fn start_with(toml: &str) -> Daemon {
         let port = free_udp_port();
         let consumer = UdpSocket::bind("127.0.0.1:0").unwrap();
         let cport = consumer.local_addr().unwrap().port();
@@ -71,9 +79,13 @@ impl Daemon {
                 l2.fetch_add(k as u64, std::sync::atomic::Ordering::Relaxed);
             }
         });
+        let cfg = std::env::temp_dir().join(format!("imucald-bench-{port}.toml"));
+        std::fs::write(&cfg, toml).expect("bench config");
         let child = Command::new(env!("CARGO_BIN_EXE_imucald"))
             .args([
                 "run",
+                "--config",
+                cfg.to_str().unwrap(),
                 "--source",
                 &format!("udpin:127.0.0.1:{port}"),
                 "--publish",
@@ -309,6 +321,98 @@ fn load(seconds: f64) {
     );
 }
 
+/// Sample-in to attitude-out on loopback: the daemon publishes the fused attitude after every
+/// sample (`daemon.attitude_every_samples = 1`) back to the sender (udpin answers the last peer).
+/// Frames go out at 1 kHz; the time from each send to the ATTITUDE_QUATERNION that answers it is a
+/// round trip (two loopback hops and this process's wake-up included), so an upper bound.
+fn latency(seconds: f64) {
+    // The timer's own attitude messages off (its first tick comes before any data).
+    let d = Daemon::start_with("[daemon]\nattitude_every_samples = 1\nattitude_rate_hz = 0.001\n");
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.connect(("127.0.0.1", d.port)).unwrap();
+    sock.set_read_timeout(Some(Duration::from_millis(20)))
+        .unwrap();
+    let mut enc = MavEncoder::default();
+    let n = (seconds * 1000.0) as usize + 3000;
+    let mut samples = Vec::new();
+    let mut m = 0;
+    while samples.len() < n {
+        samples.extend(minute(m));
+        m += 1;
+    }
+    samples.truncate(n);
+    let is_attitude_q = |b: &[u8]| -> bool {
+        match b.first() {
+            Some(0xFD) if b.len() > 9 => (b[7] as u32 | (b[8] as u32) << 8 | (b[9] as u32) << 16) == 31,
+            Some(0xFE) if b.len() > 5 => b[5] == 31,
+            _ => false,
+        }
+    };
+    let mut buf = [0u8; 2048];
+    let mut rtt_us = Vec::with_capacity(n);
+    let (mut missing, mut answered) = (0u64, 0u64);
+    let start = Instant::now();
+    for (i, s) in samples.iter().enumerate() {
+        let due = Duration::from_secs_f64(i as f64 / 1000.0);
+        loop {
+            let Some(wait) = due.checked_sub(start.elapsed()) else {
+                break;
+            };
+            if wait > Duration::from_micros(300) {
+                std::thread::sleep(wait - Duration::from_micros(200));
+            } else {
+                std::hint::spin_loop();
+            }
+        }
+        let frame = enc.encode(&highres_imu(s, (s.t_s * 1e6) as u64 + 1_000_000));
+        // Nothing stale may be taken for this sample's answer: drain first.
+        sock.set_nonblocking(true).unwrap();
+        while sock.recv(&mut buf).is_ok() {}
+        sock.set_nonblocking(false).unwrap();
+        let t0 = Instant::now();
+        if sock.send(&frame).is_err() {
+            continue;
+        }
+        // The filter needs its tilt and a field reference before it answers: skip 3 s.
+        let measured = i >= 3000;
+        loop {
+            match sock.recv(&mut buf) {
+                Ok(k) if is_attitude_q(&buf[..k]) => {
+                    answered += 1;
+                    if measured {
+                        rtt_us.push(t0.elapsed().as_secs_f64() * 1e6);
+                    }
+                    break;
+                }
+                Ok(_) => continue,
+                Err(_) => {
+                    if measured {
+                        missing += 1;
+                    }
+                    break;
+                }
+            }
+        }
+    }
+    let (taken, dropped) = d.stop();
+    rtt_us.sort_by(|a, b| a.total_cmp(b));
+    let q = |p: f64| {
+        rtt_us
+            .get(((rtt_us.len() as f64 * p) as usize).min(rtt_us.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    println!(
+        "latency sample-in -> ATTITUDE_QUATERNION-out (round trip on loopback, 1 kHz, {} measured): p50 {:.0} us, p90 {:.0} us, p99 {:.0} us (target < 1000 us), p99.9 {:.0} us, max {:.0} us; {missing} unanswered within 20 ms; {answered} answers, {taken} samples taken, {dropped} dropped",
+        rtt_us.len(),
+        q(0.5),
+        q(0.9),
+        q(0.99),
+        q(0.999),
+        rtt_us.last().copied().unwrap_or(f64::NAN)
+    );
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
@@ -320,6 +424,9 @@ fn main() {
     let only = std::env::var("IMUCALD_BENCH_ONLY").unwrap_or_default();
     if only.is_empty() || only == "cpu" {
         cpu_at_1khz(env_f64("IMUCALD_BENCH_CPU_S", 60.0));
+    }
+    if only.is_empty() || only == "latency" {
+        latency(env_f64("IMUCALD_BENCH_LATENCY_S", 30.0));
     }
     if only.is_empty() || only == "memory" {
         memory(

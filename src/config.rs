@@ -66,6 +66,9 @@ pub struct DaemonConfig {
     /// MAVLink message of the fused attitude: "attitude_quaternion" (ATTITUDE_QUATERNION),
     /// "attitude" (ATTITUDE), "both" or "none" (JSON lines only).
     pub attitude_message: String,
+    /// Also publish the fused attitude right after every N-th sample (0: off, the timer alone).
+    /// For consumers that steer by it: sample-in to attitude-out is then the processing time only.
+    pub attitude_every_samples: u32,
     /// Send calibrated vectors as DEBUG_VECT ("MAG_UT", "ACC_MPS2").
     pub debug_vect: bool,
     /// Coverage regions (of 100) that count as 100% complete in MAG_CAL_PROGRESS.
@@ -100,6 +103,7 @@ impl Default for DaemonConfig {
             heading_message: "named_value_float".into(),
             attitude_rate_hz: 10.0,
             attitude_message: "attitude_quaternion".into(),
+            attitude_every_samples: 0,
             debug_vect: true,
             progress_full_regions: 80,
             write_params: false,

@@ -278,6 +278,9 @@ struct State {
     fusion: OrientationFilter,
     /// Calibrated gyro since the last attitude publication (the body rates sent with it).
     attitude_rates: RateMean,
+    /// `daemon.attitude_every_samples`: samples since the last attitude, and whether one is due now.
+    samples_since_attitude: u32,
+    attitude_due: bool,
     /// The latest magnetometer reading in body axes before calibration (to tell how far a new
     /// calibration moves the field the filter sees).
     last_body_mag: Option<Vec3>,
@@ -402,6 +405,14 @@ impl State {
         self.window.add(&c);
         self.fuse(&c);
         self.latest = Some(c);
+        let every = self.cfg.daemon.attitude_every_samples;
+        if every > 0 {
+            self.samples_since_attitude += 1;
+            if self.samples_since_attitude >= every {
+                self.samples_since_attitude = 0;
+                self.attitude_due = true;
+            }
+        }
         due
     }
 
@@ -927,6 +938,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         window: Averager::default(),
         fusion: OrientationFilter::new(fusion_config(&cfg, declination)),
         attitude_rates: RateMean::default(),
+        samples_since_attitude: 0,
+        attitude_due: false,
         last_body_mag: None,
         cfg,
     };
@@ -963,8 +976,18 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     st.conv.stats.records += 1;
                     st.conv.stats.count_sample(&sample);
                     refit_wanted |= st.on_sample(sample);
+                    if st.attitude_due {
+                        st.attitude_due = false;
+                        st.publish_attitude().await;
+                    }
                 }
-                Some(Inbound::Frame { link, frame, time_us }) => { refit_wanted |= st.on_frame(link, frame, time_us).await; }
+                Some(Inbound::Frame { link, frame, time_us }) => {
+                    refit_wanted |= st.on_frame(link, frame, time_us).await;
+                    if st.attitude_due {
+                        st.attitude_due = false;
+                        st.publish_attitude().await;
+                    }
+                }
                 Some(Inbound::Status { link, status }) => {
                     let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
                     match status {

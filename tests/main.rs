@@ -1668,6 +1668,7 @@ mod live_attitude {
             samples_used: 1000,
             iterations: 5,
             candidates: vec![],
+            outliers_rejected: 0,
         }
     }
 
@@ -1755,6 +1756,8 @@ mod live_attitude {
                 bias: truth.gyro.offset,
                 bias_sigma: [1e-4; 3],
                 poses_used: 6,
+                scale: None,
+                scale_failure: None,
             }),
         };
         save_store(&cal_dir, &store).unwrap();
