@@ -354,10 +354,7 @@ fn latency(seconds: f64) {
     let start = Instant::now();
     for (i, s) in samples.iter().enumerate() {
         let due = Duration::from_secs_f64(i as f64 / 1000.0);
-        loop {
-            let Some(wait) = due.checked_sub(start.elapsed()) else {
-                break;
-            };
+        while let Some(wait) = due.checked_sub(start.elapsed()) {
             if wait > Duration::from_micros(300) {
                 std::thread::sleep(wait - Duration::from_micros(200));
             } else {
