@@ -6,7 +6,7 @@
 //! normalised by the starting centre and radius, so the same tolerances hold for counts, uT or m/s^2.
 
 use crate::model::{
-    a_from_params, mat_to_rows, n_norm_params, norm_residual_grad, params_from_a, Calibration,
+    a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration,
     ModelKind,
 };
 use crate::types::Vec3;
@@ -69,13 +69,27 @@ pub fn levenberg_marquardt<const N: usize>(
     max_iter: usize,
     resid: impl Fn(&SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
 ) -> LmOutcome<N> {
+    levenberg_marquardt_prepared(x0, n_points, max_iter, |_| (), |_, x, i, g| resid(x, i, g))
+}
+
+/// As [`levenberg_marquardt`], with `prepare(p)` run once per parameter vector and its result handed
+/// to every `resid(prepared, p, i, grad)` call (a matrix built from the parameters, say), so work
+/// that does not depend on the point is not repeated per point.
+pub fn levenberg_marquardt_prepared<const N: usize, P>(
+    x0: SVector<f64, N>,
+    n_points: usize,
+    max_iter: usize,
+    prepare: impl Fn(&SVector<f64, N>) -> P,
+    resid: impl Fn(&P, &SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
+) -> LmOutcome<N> {
     let eval = |x: &SVector<f64, N>| {
         let mut jtj = SMatrix::<f64, N, N>::zeros();
         let mut jtr = SVector::<f64, N>::zeros();
         let mut g = SVector::<f64, N>::zeros();
         let mut ssr = 0.0;
+        let prep = prepare(x);
         for i in 0..n_points {
-            let r = resid(x, i, &mut g);
+            let r = resid(&prep, x, i, &mut g);
             ssr += r * r;
             jtr += g * r;
             // Symmetric rank-1 update, upper triangle only.
@@ -289,9 +303,16 @@ fn solve_norm<const N: usize>(
     max_iter: usize,
 ) -> (Vec<f64>, f64, usize, bool, DMatrix<f64>) {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
-    let out = levenberg_marquardt::<N>(x0v, xs.len(), max_iter, |p, i, g| {
-        norm_residual_grad(kind, p.as_slice(), &xs[i], g.as_mut_slice())
-    });
+    let out = levenberg_marquardt_prepared::<N, _>(
+        x0v,
+        xs.len(),
+        max_iter,
+        |p| {
+            let a = a_from_params(kind, &p.as_slice()[3..]);
+            (a, a.transpose())
+        },
+        |(a, at), p, i, g| crate::model::norm_residual_grad_with(kind, a, at, p.as_slice(), &xs[i], g.as_mut_slice()),
+    );
     let jtj = DMatrix::from_column_slice(N, N, out.jtj.as_slice());
     (
         out.params.as_slice().to_vec(),
@@ -541,9 +562,12 @@ pub fn fit_dip_rotation(
         .collect();
     let mean_dot = g.iter().zip(&m).map(|(a, b)| a.dot(b)).sum::<f64>() / n as f64;
     let x0 = SVector::<f64, 4>::new(0.0, 0.0, 0.0, mean_dot);
-    let out = levenberg_marquardt::<4>(x0, n, 100, |p, i, grad| {
-        let w = Vector3::new(p[0], p[1], p[2]);
-        let r = crate::model::rotation_from_vector(&w);
+    let out = levenberg_marquardt_prepared::<4, _>(
+        x0,
+        n,
+        100,
+        |p| crate::model::rotation_from_vector(&Vector3::new(p[0], p[1], p[2])),
+        |r, p, i, grad| {
         let rm = r * m[i];
         // Small-angle derivative about the current rotation: d(R m)/dw ~ -[R m]x
         let dw = rm.cross(&g[i]);
@@ -552,7 +576,8 @@ pub fn fit_dip_rotation(
         grad[2] = dw[2];
         grad[3] = -1.0;
         g[i].dot(&rm) - p[3]
-    });
+    },
+    );
     let w = Vector3::new(out.params[0], out.params[1], out.params[2]);
     let eig = out.jtj.symmetric_eigen();
     let lmin = eig

@@ -172,17 +172,31 @@ pub fn n_norm_params(kind: ModelKind) -> usize {
 #[inline]
 pub fn norm_residual_grad(kind: ModelKind, params: &[f64], x: &Vec3, grad: &mut [f64]) -> f64 {
     let a = a_from_params(kind, &params[3..]);
+    norm_residual_grad_with(kind, &a, &a.transpose(), params, x, grad)
+}
+
+/// [`norm_residual_grad`] with `A` (from `params`) and its transpose already built.
+#[inline]
+pub fn norm_residual_grad_with(
+    kind: ModelKind,
+    a: &Matrix3<f64>,
+    at: &Matrix3<f64>,
+    params: &[f64],
+    x: &Vec3,
+    grad: &mut [f64],
+) -> f64 {
     let v = Vector3::new(x[0] - params[0], x[1] - params[1], x[2] - params[2]);
     let u = a * v;
     let n = u.norm().max(1e-300);
-    let gp = -(a.transpose() * u) / n;
+    let inv = 1.0 / n;
+    let gp = -(at * u) * inv;
     grad[0] = gp[0];
     grad[1] = gp[1];
     grad[2] = gp[2];
     // d|u|/dA_jk = u_j v_k / n
-    let d = |j: usize, k: usize| u[j] * v[k] / n;
+    let d = |j: usize, k: usize| u[j] * v[k] * inv;
     match kind {
-        ModelKind::Sphere => grad[3] = (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]) / n,
+        ModelKind::Sphere => grad[3] = (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]) * inv,
         ModelKind::Diag6 => {
             grad[3] = d(0, 0);
             grad[4] = d(1, 1);

@@ -344,16 +344,24 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     if let Some(d) = axis_fault(points) {
         return empty_result(failed(spec.model, spec.units, FitFailure::AxisFault, d), points);
     }
-    if spec.is_accel || points.len() < 30 {
-        return fit_sensor_on(points, spec);
+    let plain = fit_sensor_on(points, spec);
+    // A plain fit that failed on its residuals or numerically may have been pulled apart by a
+    // disturbed cluster: look for outliers then too.
+    let suspicious = has_outliers(&plain.residuals)
+        || matches!(
+            plain.report.failure.as_deref(),
+            Some("residuals") | Some("did_not_converge") | Some("not_identifiable") | Some("radius")
+        );
+    if spec.is_accel || points.len() < 30 || !suspicious {
+        return plain;
     }
     let (keep, rejected) = inliers(points, spec);
     if rejected == 0 {
-        return fit_sensor_on(points, spec);
+        return plain;
     }
     let share = rejected as f64 / points.len() as f64;
     if share > MAX_OUTLIER_SHARE {
-        let mut r = fit_sensor_on(points, spec);
+        let mut r = plain;
         r.report.outliers_rejected = rejected;
         let d = format!(
             "{rejected} of {} points ({:.0}%) do not lie on one field ellipsoid: was a magnet, a motor or \
@@ -427,6 +435,21 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
         }
     }
     None
+}
+
+/// Whether any residual (of the plain fit, over all points) lies further than 4 robust sigmas
+/// (1.4826 MAD) from their median: on clean data there are none and the plain fit stands.
+fn has_outliers(residuals: &[f64]) -> bool {
+    if residuals.len() < 30 {
+        return false;
+    }
+    let mut r = residuals.to_vec();
+    r.sort_by(|a, b| a.total_cmp(b));
+    let med = r[r.len() / 2];
+    let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
+    dev.sort_by(|a, b| a.total_cmp(b));
+    let thr = 4.0 * 1.4826 * dev[dev.len() / 2];
+    r.iter().any(|x| (x - med).abs() > thr)
 }
 
 /// The points within 4 robust sigmas of a `sym9` fit's median residual, and how many were not.
