@@ -167,6 +167,16 @@ impl Daemon {
     }
 }
 
+/// A bench that panics must not leave its daemon running (it would load the next measurements).
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
 fn clk_tck() -> f64 {
     Command::new("getconf")
         .arg("CLK_TCK")
