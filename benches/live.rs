@@ -297,11 +297,13 @@ fn memory(minutes: u64, rate: f64) {
     let (taken, dropped) = d.stop();
     let max = rss.iter().cloned().fold(f64::MIN, f64::max);
     let from = rss.get(4).copied().unwrap_or(rss[0]);
+    let from_half = rss[rss.len() / 2];
     let last = *rss.last().unwrap();
     println!(
-        "memory over {minutes} simulated minutes at 1 kHz ({sent} frames in {wall:.0} s, {taken} taken, {dropped} dropped): RSS first {:.1} MB, max {max:.1} MB, last {last:.1} MB, growth minute 5 -> end {:+.2} MB (target < 30 MB, no growth)",
+        "memory over {minutes} simulated minutes at 1 kHz ({sent} frames in {wall:.0} s, {taken} taken, {dropped} dropped): RSS first {:.1} MB, max {max:.1} MB, last {last:.1} MB, growth minute 5 -> end {:+.2} MB, second half {:+.2} MB (target < 30 MB, no growth)",
         rss[0],
-        last - from
+        last - from,
+        last - from_half
     );
     let per: Vec<String> = rss.iter().map(|r| format!("{r:.1}")).collect();
     println!("  RSS per minute (MB): {}", per.join(" "));

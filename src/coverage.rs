@@ -73,6 +73,9 @@ pub fn coverage<'a>(points: impl IntoIterator<Item = &'a Vec3>, centre: &Vec3) -
     }
 }
 
+/// Most field vectors [`DirectionBins`] keeps (about 2 deg cells over the whole sphere).
+pub const MAX_BINNED: usize = 8000;
+
 /// Keeps fit points at least about a minimum angle apart: directions about a centre are binned on a
 /// grid of cells about `min_separation_deg` wide and each cell keeps the first raw vector that fell in
 /// it. Raw samples are kept as they are (no averaging: a mean of points on a sphere lies inside it and
@@ -115,8 +118,20 @@ impl DirectionBins {
         Some((row, col))
     }
 
-    /// Keep `raw` if its cell is still empty. Returns whether it was kept.
+    /// Keep `raw` if its cell is still empty. Returns whether it was kept. Past [`MAX_BINNED`] kept
+    /// vectors the cells widen by sqrt(2) (and the kept ones are binned again, about half stay), so
+    /// memory and fit time stay bounded however long the stream runs.
     pub fn add(&mut self, raw: &Vec3) -> bool {
+        let kept = self.insert(raw);
+        if kept && self.cells.len() > MAX_BINNED {
+            self.cell_rad *= std::f64::consts::SQRT_2;
+            let c = self.centre;
+            self.recentre(c);
+        }
+        kept
+    }
+
+    fn insert(&mut self, raw: &Vec3) -> bool {
         match self.key(raw) {
             Some(k) => match self.cells.entry(k) {
                 std::collections::hash_map::Entry::Vacant(e) => {
@@ -129,6 +144,12 @@ impl DirectionBins {
         }
     }
 
+    /// Current cell width, degrees.
+    pub fn cell_deg(&self) -> f64 {
+        self.cell_rad.to_degrees()
+    }
+
+
     /// Re-bin the kept vectors about a new centre (after a fit moved the hard-iron estimate).
     pub fn recentre(&mut self, centre: Vec3) {
         let mut old: Vec<Vec3> = std::mem::take(&mut self.cells).into_values().collect();
@@ -136,7 +157,7 @@ impl DirectionBins {
         old.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
         self.centre = centre;
         for p in old {
-            self.add(&p);
+            self.insert(&p);
         }
     }
 
@@ -158,6 +179,26 @@ impl DirectionBins {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn direction_bins_stay_bounded_and_spread() {
+        // A million directions (Fibonacci sphere, shuffled by a stride) about a centre.
+        let mut b = DirectionBins::new([10.0, -5.0, 3.0], 1.0);
+        let n = 1_000_000usize;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        for j in 0..n {
+            let i = (j * 7919) % n;
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - z * z).sqrt();
+            let phi = golden * i as f64;
+            b.add(&[10.0 + 50.0 * r * phi.cos(), -5.0 + 50.0 * r * phi.sin(), 3.0 + 50.0 * z]);
+            assert!(b.len() <= MAX_BINNED);
+        }
+        assert!(b.len() > MAX_BINNED / 3, "{} kept", b.len());
+        assert!(b.cell_deg() > 1.0);
+        // Still the whole sphere.
+        assert_eq!(coverage(b.points().iter(), &[10.0, -5.0, 3.0]).filled, REGIONS);
+    }
 
     #[test]
     fn regions_are_equal_area_and_numbered_0_to_99() {
