@@ -328,8 +328,10 @@ fn load(seconds: f64) {
     let kernel = udp_rcvbuf_errors() - k0;
     let (taken, dropped) = d.stop();
     println!(
-        "load 10 kHz for {seconds:.0} s: {sent} frames sent, {taken} samples taken, {dropped} dropped and counted at the bounded queue, {kernel} lost in the kernel (UDP receive buffer); unaccounted {}",
-        sent as i64 - taken as i64 - dropped as i64 - kernel as i64
+        "load 10 kHz for {seconds:.0} s: {sent} frames sent, {taken} samples taken, {dropped} dropped and counted at the bounded queue, {} not delivered by the kernel; UDP receive-buffer errors on this machine meanwhile (all sockets) {kernel}; lost after the kernel delivered and not counted: {}",
+        sent.saturating_sub(taken + dropped),
+        // Frames that went missing beyond what the kernel could have dropped.
+        (sent as i64 - taken as i64 - dropped as i64 - kernel as i64).max(0)
     );
 }
 
