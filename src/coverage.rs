@@ -73,8 +73,8 @@ pub fn coverage<'a>(points: impl IntoIterator<Item = &'a Vec3>, centre: &Vec3) -
     }
 }
 
-/// Most field vectors [`DirectionBins`] keeps (about 2 deg cells over the whole sphere).
-pub const MAX_BINNED: usize = 8000;
+/// Most field vectors [`DirectionBins`] keeps (about 3 deg cells over the whole sphere).
+pub const MAX_BINNED: usize = 4000;
 
 /// Keeps fit points at least about a minimum angle apart: directions about a centre are binned on a
 /// grid of cells about `min_separation_deg` wide and each cell keeps the first raw vector that fell in

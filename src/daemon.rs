@@ -897,6 +897,12 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         let mavlink = matches!(payload, Payload::Mavlink) && !matches!(addr, Address::Sim { .. });
         let opts = LinkOptions {
             silent_after_s: d.silent_after_s,
+            // A consumer of per-sample attitude wants each sample at once.
+            udp_poll_s: if d.attitude_every_samples > 0 {
+                0.0
+            } else {
+                d.udp_poll_ms / 1000.0
+            },
             ..LinkOptions::default()
         };
         let handle = spawn_link(i, addr, payload, tx.clone(), link_stop_rx.clone(), opts);

@@ -390,6 +390,10 @@ pub struct LinkOptions {
     pub backoff_max_s: f64,
     /// Capacity of the outbound channel.
     pub outbound_capacity: usize,
+    /// UDP: read the socket every this many seconds, taking everything queued, instead of waking
+    /// for each datagram (0). The socket is then not watched by the reactor at all, so arriving
+    /// datagrams wake nothing: fewer wake-ups for up to this much more latency.
+    pub udp_poll_s: f64,
 }
 
 impl Default for LinkOptions {
@@ -399,6 +403,7 @@ impl Default for LinkOptions {
             backoff_min_s: 0.2,
             backoff_max_s: 5.0,
             outbound_capacity: 256,
+            udp_poll_s: 0.0,
         }
     }
 }
@@ -416,6 +421,7 @@ fn secs(x: f64) -> Duration {
 #[derive(Debug, Clone)]
 struct Tuning {
     silent: Option<Duration>,
+    udp_poll: Option<Duration>,
     backoff_min: Duration,
     backoff_max: Duration,
 }
@@ -436,6 +442,8 @@ impl Tuning {
         };
         Tuning {
             silent,
+            udp_poll: (o.udp_poll_s.is_finite() && o.udp_poll_s > 0.0)
+                .then(|| secs(o.udp_poll_s.min(0.1)).max(Duration::from_millis(1))),
             backoff_min: min,
             backoff_max: max,
         }
@@ -1013,7 +1021,10 @@ async fn run_dialled(sh: &Shared, ctl: &mut Control, addr: &Address, payload: &P
                         if !sh.status(LinkStatus::Connected(desc)) {
                             return;
                         }
-                        serve_udp(sh, ctl, &sock, target, &mut rx).await
+                        match sh.tuning.udp_poll {
+                            Some(period) => serve_udp_polled(sh, ctl, sock, target, &mut rx, period).await,
+                            None => serve_udp(sh, ctl, &sock, target, &mut rx).await,
+                        }
                     }
                 };
                 match end {
@@ -1273,6 +1284,80 @@ async fn serve_udp(
                     return End::Stop;
                 }
             }
+        }
+    }
+}
+
+/// As [`serve_udp`], but the socket is taken off the reactor and read every `period`: whatever
+/// queued in the kernel meanwhile is taken in one go. Arriving datagrams wake nothing.
+async fn serve_udp_polled(
+    sh: &Shared,
+    ctl: &mut Control,
+    sock: UdpSocket,
+    target: Option<SocketAddr>,
+    rx: &mut Rx,
+    period: Duration,
+) -> End {
+    let sock = match sock.into_std() {
+        Ok(s) => s,
+        Err(e) => return End::Lost(format!("udp socket: {e}")),
+    };
+    let silent_after = sh.tuning.silent;
+    let mut peer: Option<SocketAddr> = None;
+    let mut buf = vec![0u8; 65_536];
+    let mut last = Instant::now();
+    let mut silent = false;
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            biased;
+            _ = wait_stop(&mut ctl.shutdown) => return End::Stop,
+            _ = tick.tick() => {
+                let mut got = false;
+                loop {
+                    match sock.recv_from(&mut buf) {
+                        Ok((n, from)) => {
+                            if target.is_none() && peer != Some(from) {
+                                tracing::debug!("link {}: udp peer {from}", sh.index);
+                                peer = Some(from);
+                            }
+                            got = true;
+                            if !rx.on_bytes(sh, &buf[..n], true) {
+                                return End::Stop;
+                            }
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                        Err(e) if transient_udp_error(&e) => break,
+                        Err(e) => return End::Lost(format!("udp receive failed: {e}")),
+                    }
+                }
+                if got {
+                    last = Instant::now();
+                    silent = false;
+                } else if let Some(after) = silent_after {
+                    if !silent && last.elapsed() >= after {
+                        silent = true;
+                        if !sh.status(LinkStatus::Silent { for_s: last.elapsed().as_secs_f64() }) {
+                            return End::Stop;
+                        }
+                    }
+                }
+            }
+            m = ctl.outbound.recv(), if ctl.outbound_open => match m {
+                None => ctl.outbound_open = false,
+                Some(bytes) => {
+                    let sent = match (target, peer) {
+                        (Some(_), _) => sock.send(&bytes).map(|_| ()),
+                        (None, Some(p)) => sock.send_to(&bytes, p).map(|_| ()),
+                        (None, None) => Err(std::io::Error::other("no peer has sent anything yet")),
+                    };
+                    if let Err(e) = sent {
+                        tracing::trace!("link {}: udp send dropped: {e}", sh.index);
+                        LinkCounters::add(&sh.counters.outbound_dropped, 1);
+                    }
+                }
+            },
         }
     }
 }
@@ -1979,6 +2064,45 @@ mod tests {
     }
 
     // --- udp -----------------------------------------------------------------------------------
+
+    #[tokio::test]
+    async fn udpin_polled_takes_a_burst_replies_reports_silence_and_stops() {
+        // `udp_poll_s`: the socket is read every 20 ms; a burst of 50 datagrams sent between two
+        // reads all arrive, in order; the reply goes to the sender; silence is reported once.
+        let port = free_udp_port();
+        let addr = Address::parse(&format!("udpin:127.0.0.1:{port}")).unwrap();
+        let opts = LinkOptions {
+            udp_poll_s: 0.02,
+            silent_after_s: 0.3,
+            ..fast_opts()
+        };
+        let mut rig = start(addr, Payload::Mavlink, opts, 256);
+        assert!(matches!(rig.status().await, LinkStatus::Connected(_)));
+        let client = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        for i in 0..50 {
+            let d = frame_bytes(&imu(i as f32), MavlinkVersion::V2);
+            client.send_to(&d, ("127.0.0.1", port)).await.unwrap();
+        }
+        for i in 0..50 {
+            match rig.frame().await.0.message {
+                apm::MavMessage::HIGHRES_IMU(a) => assert_eq!(a.xacc, i as f32),
+                other => panic!("{other:?}"),
+            }
+        }
+        let reply = frame_bytes(&heartbeat(), MavlinkVersion::V2);
+        rig.handle.outbound.send(reply.clone()).await.unwrap();
+        let mut buf = [0u8; 512];
+        let (n, _) = tokio::time::timeout(WAIT, client.recv_from(&mut buf))
+            .await
+            .expect("reply within 5 s")
+            .unwrap();
+        assert_eq!(&buf[..n], &reply[..]);
+        match rig.status().await {
+            LinkStatus::Silent { for_s } => assert!(for_s >= 0.29, "{for_s}"),
+            s => panic!("{s:?}"),
+        }
+        rig.stop().await;
+    }
 
     #[tokio::test]
     async fn udpin_frames_v1_v2_garbage_counted_and_reply_to_sender() {
