@@ -141,7 +141,7 @@ impl Pipeline {
         }
         if let Some(a) = s.accel_mps2 {
             if let Some(p) = self.detector.push(&s, &a) {
-                self.poses.push(p);
+                self.add_pose(p);
                 self.new_inputs += 1;
             }
         }
@@ -160,6 +160,16 @@ impl Pipeline {
             self.last_refit_t = Some(s.t_s);
         }
         due
+    }
+
+    /// Keep a pose; past [`MAX_POSES`] the oldest goes (memory and fit time stay bounded on a
+    /// stream that runs for days; the newest poses also say most about the gyro bias now).
+    fn add_pose(&mut self, p: Pose) {
+        self.poses.push(p);
+        if self.poses.len() > MAX_POSES {
+            let extra = self.poses.len() - MAX_POSES;
+            self.poses.drain(..extra);
+        }
     }
 
     fn add_mag(&mut self, m: Vec3) {
@@ -274,7 +284,7 @@ impl Pipeline {
     /// Close a still run at the end of input.
     pub fn finish_poses(&mut self) {
         if let Some(p) = self.detector.finish() {
-            self.poses.push(p);
+            self.add_pose(p);
         }
     }
 
@@ -331,6 +341,9 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
 }
 
 /// Fit one sensor: candidate models, automatic choice, acceptance checks.
+/// Most static poses the pipeline keeps (the oldest are dropped).
+pub const MAX_POSES: usize = 2000;
+
 /// Largest share of magnetometer points that may be outliers before the fit is refused as disturbed.
 pub const MAX_OUTLIER_SHARE: f64 = 0.25;
 
@@ -1068,5 +1081,31 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
             mag.dirs_after = mag.dirs_after.iter().map(|v| crate::attitude::rotate(&r, v)).collect();
         }
         _ => fail(mag, format!("full12: {} static poses with accel and mag do not fix the rotation (need 6+ in varied attitudes)", gs.len())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn poses_are_bounded_and_the_newest_kept() {
+        let mut p = Pipeline::new(&Config::default()).unwrap();
+        for i in 0..(MAX_POSES + 500) {
+            p.add_pose(Pose {
+                t_start: i as f64,
+                t_end: i as f64 + 0.5,
+                samples: 50,
+                accel: [0.0, 0.0, -9.8],
+                mag: None,
+                gyro: None,
+                temp_c: None,
+                throttle: None,
+                accel_var: 0.0,
+            });
+        }
+        assert_eq!(p.poses().len(), MAX_POSES);
+        assert_eq!(p.poses()[0].t_start, 500.0);
+        assert_eq!(p.poses().last().unwrap().t_start, (MAX_POSES + 499) as f64);
     }
 }
