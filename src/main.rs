@@ -242,6 +242,7 @@ fn main() -> Result<()> {
                 // The embedded default shows its output on the terminal.
                 cfg.daemon.publish = vec!["stdout".into()];
                 cfg.daemon.heading_rate_hz = 1.0;
+                cfg.daemon.attitude_rate_hz = 1.0;
                 eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
             }
             cfg.validate()?;
