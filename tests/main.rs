@@ -937,6 +937,25 @@ mod faults {
             eprintln!("SKIPPED read-only part: running as root without setpriv (util-linux)");
             return;
         }
+        if root {
+            // The unprivileged user must reach the binary, the fixture and the config (a checkout
+            // under a private home directory would not let it).
+            let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tumble.tlog");
+            let probe = Command::new("setpriv")
+                .args(&wrap[1..])
+                .args(["sh", "-c", "test -x \"$1\" && test -r \"$2\" && test -r \"$3\"", "sh"])
+                .arg(env!("CARGO_BIN_EXE_imucald"))
+                .arg(&fixture)
+                .arg(&cfg)
+                .status();
+            if !probe.is_ok_and(|s| s.success()) {
+                eprintln!(
+                    "SKIPPED read-only part: user nobody cannot reach the binary, fixture or config from this checkout"
+                );
+                std::fs::set_permissions(&cal, std::fs::Permissions::from_mode(0o755)).unwrap();
+                return;
+            }
+        }
         let (so, _) = run_with("true", &cfg, wrap);
         std::fs::set_permissions(&cal, std::fs::Permissions::from_mode(0o755)).unwrap();
         let st = not_written_status(&so).unwrap_or_else(|| panic!("no error reported:\n{so}"));
