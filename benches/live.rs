@@ -112,7 +112,9 @@ impl Daemon {
     /// runtime; fits and file writes go to the blocking pool's other threads).
     fn loop_cpu_s(&self) -> f64 {
         let id = self.child.id();
-        parse_cpu_s(&std::fs::read_to_string(format!("/proc/{id}/task/{id}/stat")).unwrap_or_default())
+        parse_cpu_s(
+            &std::fs::read_to_string(format!("/proc/{id}/task/{id}/stat")).unwrap_or_default(),
+        )
     }
 }
 
@@ -357,7 +359,9 @@ fn latency(seconds: f64) {
     samples.truncate(n);
     let is_attitude_q = |b: &[u8]| -> bool {
         match b.first() {
-            Some(0xFD) if b.len() > 9 => (b[7] as u32 | (b[8] as u32) << 8 | (b[9] as u32) << 16) == 31,
+            Some(0xFD) if b.len() > 9 => {
+                (b[7] as u32 | (b[8] as u32) << 8 | (b[9] as u32) << 16) == 31
+            }
             Some(0xFE) if b.len() > 5 => b[5] == 31,
             _ => false,
         }

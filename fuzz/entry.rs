@@ -115,7 +115,10 @@ pub fn mavlink_frames(data: &[u8]) -> (usize, Vec<Sample>) {
         mag: 0.1,
     };
     let mut auto_samples = Vec::new();
-    for choice in [InstanceChoice::Auto, InstanceChoice::Named("raw_imu:0".into())] {
+    for choice in [
+        InstanceChoice::Auto,
+        InstanceChoice::Named("raw_imu:0".into()),
+    ] {
         let auto = choice == InstanceChoice::Auto;
         let mut conv = MessageConverter::new(choice, scale);
         // Receive times as the daemon gives them: a clock that moves on.
@@ -222,7 +225,11 @@ pub fn serial_lines(data: &[u8]) -> (Vec<String>, usize) {
     let mut motioncal = 0;
     for (i, line) in lines.iter().enumerate() {
         // Over-long lines are dropped, never handed on.
-        assert!(line.chars().count() <= MAX_LINE, "line of {} chars", line.chars().count());
+        assert!(
+            line.chars().count() <= MAX_LINE,
+            "line of {} chars",
+            line.chars().count()
+        );
         let t = i as f64 * 0.01;
         if let Some(s) = parse_motioncal_line(line, t) {
             motioncal += 1;
@@ -258,7 +265,10 @@ pub fn config(data: &[u8]) -> Result<Config, (String, String)> {
             Ok(cfg)
         }
         Err(imucald::Error::Config { key, message }) => {
-            assert!(!key.is_empty() && !message.is_empty(), "{key:?}: {message:?}");
+            assert!(
+                !key.is_empty() && !message.is_empty(),
+                "{key:?}: {message:?}"
+            );
             Err((key, message))
         }
         Err(other) => panic!("not a config error: {other}"),

@@ -346,6 +346,18 @@ impl Config {
         })
     }
 
+    /// The orientation filter's settings for this configuration: world NED, the given declination
+    /// (true north) or none (magnetic north), gravity as the fit's. Used by `run` and `replay`.
+    pub fn fusion_config(&self, declination_deg: Option<f64>) -> crate::fusion::FusionConfig {
+        crate::fusion::FusionConfig {
+            world: crate::fusion::WorldFrame::Ned,
+            use_mag: true,
+            declination_deg: declination_deg.unwrap_or(0.0),
+            gravity_mps2: self.fit.gravity_mps2,
+            ..Default::default()
+        }
+    }
+
     /// Declination (deg, east positive) of the configured place, or `None` without a place.
     pub fn declination_deg(&self) -> Result<Option<f64>, Error> {
         match &self.place {
@@ -557,6 +569,18 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fusion_config_uses_declination_ned_and_the_fit_gravity() {
+        let mut cfg = Config::default();
+        cfg.fit.gravity_mps2 = 9.81;
+        let f = cfg.fusion_config(Some(12.5));
+        assert_eq!(f.world, crate::fusion::WorldFrame::Ned);
+        assert_eq!(f.declination_deg, 12.5);
+        assert_eq!(f.gravity_mps2, 9.81);
+        assert!(f.use_mag);
+        assert_eq!(cfg.fusion_config(None).declination_deg, 0.0);
+    }
 
     #[test]
     fn defaults_validate() {

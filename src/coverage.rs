@@ -149,7 +149,6 @@ impl DirectionBins {
         self.cell_rad.to_degrees()
     }
 
-
     /// Re-bin the kept vectors about a new centre (after a fit moved the hard-iron estimate).
     pub fn recentre(&mut self, centre: Vec3) {
         let mut old: Vec<Vec3> = std::mem::take(&mut self.cells).into_values().collect();
@@ -191,13 +190,20 @@ mod tests {
             let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
             let r = (1.0 - z * z).sqrt();
             let phi = golden * i as f64;
-            b.add(&[10.0 + 50.0 * r * phi.cos(), -5.0 + 50.0 * r * phi.sin(), 3.0 + 50.0 * z]);
+            b.add(&[
+                10.0 + 50.0 * r * phi.cos(),
+                -5.0 + 50.0 * r * phi.sin(),
+                3.0 + 50.0 * z,
+            ]);
             assert!(b.len() <= MAX_BINNED);
         }
         assert!(b.len() > MAX_BINNED / 3, "{} kept", b.len());
         assert!(b.cell_deg() > 1.0);
         // Still the whole sphere.
-        assert_eq!(coverage(b.points().iter(), &[10.0, -5.0, 3.0]).filled, REGIONS);
+        assert_eq!(
+            coverage(b.points().iter(), &[10.0, -5.0, 3.0]).filled,
+            REGIONS
+        );
     }
 
     #[test]

@@ -15,7 +15,7 @@
 use crate::config::{Config, SourceConfig};
 use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
-use crate::fusion::{FusionConfig, OrientationFilter, WorldFrame};
+use crate::fusion::OrientationFilter;
 use crate::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
 use crate::mavout::{self, ApCompassParams, LiveEvent, MavEncoder, ParamWriter};
 use crate::model::Calibration;
@@ -289,18 +289,6 @@ struct State {
 /// Time step of the orientation filter's first sample and of samples whose clock jumps, s.
 const FUSION_DEFAULT_DT_S: f64 = 0.01;
 
-/// The orientation filter's settings for the live service: world NED, declination from the place (true
-/// north) or none (magnetic north), gravity as the fit's.
-fn fusion_config(cfg: &Config, declination: Option<f64>) -> FusionConfig {
-    FusionConfig {
-        world: WorldFrame::Ned,
-        use_mag: true,
-        declination_deg: declination.unwrap_or(0.0),
-        gravity_mps2: cfg.fit.gravity_mps2,
-        ..FusionConfig::default()
-    }
-}
-
 /// Whether a new magnetometer calibration moves the calibrated field of `raw` (body axes, before
 /// calibration) by more than 2 % in norm or 2 degrees in direction: the orientation filter would take
 /// such a step for a magnetic disturbance (and distrust the field for a while), so it restarts instead.
@@ -424,11 +412,8 @@ impl State {
             return;
         }
         let s = Sample {
-            t_s: c.t_s,
-            accel_mps2: c.accel_mps2,
             gyro_rad_s: gyro,
-            mag_ut: c.mag_ut,
-            ..Default::default()
+            ..c.as_sample()
         };
         self.fusion.update_sample(&s, FUSION_DEFAULT_DT_S);
         if let Some(g) = gyro.filter(crate::types::is_finite3) {
@@ -942,7 +927,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         mag_awaiting_params: 0,
         reported_mag: None,
         window: Averager::default(),
-        fusion: OrientationFilter::new(fusion_config(&cfg, declination)),
+        fusion: OrientationFilter::new(cfg.fusion_config(declination)),
         attitude_rates: RateMean::default(),
         samples_since_attitude: 0,
         attitude_due: false,
@@ -961,6 +946,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     let mut fit_job: Option<FitJob> = None;
     let mut refit_wanted = false;
     loop {
+        // `daemon.attitude_every_samples`: the attitude right after the sample that made it due.
+        if st.attitude_due {
+            st.attitude_due = false;
+            st.publish_attitude().await;
+        }
         if refit_wanted && fit_job.is_none() {
             refit_wanted = false;
             let input = st.pipe.snapshot();
@@ -982,17 +972,9 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     st.conv.stats.records += 1;
                     st.conv.stats.count_sample(&sample);
                     refit_wanted |= st.on_sample(sample);
-                    if st.attitude_due {
-                        st.attitude_due = false;
-                        st.publish_attitude().await;
-                    }
                 }
                 Some(Inbound::Frame { link, frame, time_us }) => {
                     refit_wanted |= st.on_frame(link, frame, time_us).await;
-                    if st.attitude_due {
-                        st.attitude_due = false;
-                        st.publish_attitude().await;
-                    }
                 }
                 Some(Inbound::Status { link, status }) => {
                     let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
@@ -1127,15 +1109,5 @@ mod tests {
         assert_eq!(r.take(), Some([0.2, 0.1, 0.0]));
         r.add(&[1.0, 1.0, 1.0]);
         assert_eq!(r.take(), Some([1.0, 1.0, 1.0]));
-    }
-
-    #[test]
-    fn daemon_fusion_config_uses_declination_and_ned() {
-        let cfg = Config::default();
-        let f = fusion_config(&cfg, Some(12.5));
-        assert_eq!(f.world, WorldFrame::Ned);
-        assert_eq!(f.declination_deg, 12.5);
-        assert!(f.use_mag);
-        assert_eq!(fusion_config(&cfg, None).declination_deg, 0.0);
     }
 }

@@ -6,8 +6,7 @@
 //! normalised by the starting centre and radius, so the same tolerances hold for counts, uT or m/s^2.
 
 use crate::model::{
-    a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration,
-    ModelKind,
+    a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration, ModelKind,
 };
 use crate::types::Vec3;
 use nalgebra::{DMatrix, Matrix3, SMatrix, SVector, Vector3};
@@ -311,7 +310,16 @@ fn solve_norm<const N: usize>(
             let a = a_from_params(kind, &p.as_slice()[3..]);
             (a, a.transpose())
         },
-        |(a, at), p, i, g| crate::model::norm_residual_grad_with(kind, a, at, p.as_slice(), &xs[i], g.as_mut_slice()),
+        |(a, at), p, i, g| {
+            crate::model::norm_residual_grad_with(
+                kind,
+                a,
+                at,
+                p.as_slice(),
+                &xs[i],
+                g.as_mut_slice(),
+            )
+        },
     );
     let jtj = DMatrix::from_column_slice(N, N, out.jtj.as_slice());
     (
@@ -568,15 +576,15 @@ pub fn fit_dip_rotation(
         100,
         |p| crate::model::rotation_from_vector(&Vector3::new(p[0], p[1], p[2])),
         |r, p, i, grad| {
-        let rm = r * m[i];
-        // Small-angle derivative about the current rotation: d(R m)/dw ~ -[R m]x
-        let dw = rm.cross(&g[i]);
-        grad[0] = dw[0];
-        grad[1] = dw[1];
-        grad[2] = dw[2];
-        grad[3] = -1.0;
-        g[i].dot(&rm) - p[3]
-    },
+            let rm = r * m[i];
+            // Small-angle derivative about the current rotation: d(R m)/dw ~ -[R m]x
+            let dw = rm.cross(&g[i]);
+            grad[0] = dw[0];
+            grad[1] = dw[1];
+            grad[2] = dw[2];
+            grad[3] = -1.0;
+            g[i].dot(&rm) - p[3]
+        },
     );
     let w = Vector3::new(out.params[0], out.params[1], out.params[2]);
     let eig = out.jtj.symmetric_eigen();

@@ -265,7 +265,6 @@ fn k_from(p: &SVector<f64, 9>) -> Matrix3<f64> {
     Matrix3::new(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8])
 }
 
-
 /// RMS angle (deg) between the measured end gravity directions and the start directions carried by
 /// the integrated rotations.
 fn rms_deg(segs: &[Segment], k: &Matrix3<f64>) -> f64 {
@@ -659,7 +658,13 @@ mod tests {
             }
         }
         // Starting from the identity instead, LM does not find its way to 1/5000.
-        let bad = fit_scale(&samples, &poses, &bias, &truth.accel.calibration(), &Default::default());
+        let bad = fit_scale(
+            &samples,
+            &poses,
+            &bias,
+            &truth.accel.calibration(),
+            &Default::default(),
+        );
         assert!(bad.map_or(true, |f| (f.matrix[0][0] * 5000.0 - 1.0).abs() > 0.01));
         let h = fit.held_out.expect("24 poses give enough rotations");
         assert!(h.rms_after_deg < h.rms_before_deg, "{h:?}");

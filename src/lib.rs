@@ -11,9 +11,9 @@
 pub mod attitude;
 pub mod config;
 pub mod coverage;
-pub mod diagnose;
 pub mod daemon;
 pub mod decode;
+pub mod diagnose;
 pub mod error;
 pub mod eval;
 pub mod export;

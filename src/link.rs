@@ -1022,7 +1022,9 @@ async fn run_dialled(sh: &Shared, ctl: &mut Control, addr: &Address, payload: &P
                             return;
                         }
                         match sh.tuning.udp_poll {
-                            Some(period) => serve_udp_polled(sh, ctl, sock, target, &mut rx, period).await,
+                            Some(period) => {
+                                serve_udp_polled(sh, ctl, sock, target, &mut rx, period).await
+                            }
                             None => serve_udp(sh, ctl, &sock, target, &mut rx).await,
                         }
                     }

@@ -131,6 +131,12 @@ enum Cmd {
     },
 }
 
+/// `--format`: none (detect from the content), tlog or csv.
+fn parse_format(f: Option<&str>) -> Result<Option<Format>> {
+    f.map(|f| Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv")))
+        .transpose()
+}
+
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {
     match path {
         Some(p) => Ok(Config::load(p)?),
@@ -180,12 +186,7 @@ fn main() -> Result<()> {
             export,
         } => {
             let cfg = load_config(config.as_ref())?;
-            let format = match format.as_deref() {
-                None => None,
-                Some(f) => Some(
-                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
-                ),
-            };
+            let format = parse_format(format.as_deref())?;
             let log = log.unwrap_or_else(|| {
                 PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
             });
@@ -277,12 +278,7 @@ fn main() -> Result<()> {
             plot,
         } => {
             let cfg = load_config(config.as_ref())?;
-            let format = match format.as_deref() {
-                None => None,
-                Some(f) => Some(
-                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
-                ),
-            };
+            let format = parse_format(format.as_deref())?;
             let base = match imucald::model::ModelKind::parse(&base_model) {
                 Some(m @ (imucald::model::ModelKind::Diag6 | imucald::model::ModelKind::Sym9)) => m,
                 _ => anyhow::bail!("--base-model `{base_model}`: use diag6 or sym9"),
@@ -330,12 +326,7 @@ fn main() -> Result<()> {
             report,
         } => {
             let cfg = load_config(config.as_ref())?;
-            let format = match format.as_deref() {
-                None => None,
-                Some(f) => Some(
-                    Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv"))?,
-                ),
-            };
+            let format = parse_format(format.as_deref())?;
             let alignment = imucald::eval::Alignment::parse(&align).with_context(|| {
                 format!("--align `{align}`: use none, heading or heading-and-misalignment")
             })?;

@@ -340,22 +340,24 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
     }
 }
 
-/// Fit one sensor: candidate models, automatic choice, acceptance checks.
 /// Most static poses the pipeline keeps (the oldest are dropped).
 pub const MAX_POSES: usize = 2000;
 
 /// Largest share of magnetometer points that may be outliers before the fit is refused as disturbed.
 pub const MAX_OUTLIER_SHARE: f64 = 0.25;
 
-/// Fit one sensor. For the magnetometer, points off the field's ellipsoid (a magnet brought near the
-/// sensor, a motor running) are found first and left out: a `sym9` fit, residuals against it, and
-/// every point further than 4 robust sigmas (1.4826 MAD) from the median residual is an outlier;
-/// repeated (all points reclassified against each new fit) until the set stops changing, at most 4
-/// times. When more than [`MAX_OUTLIER_SHARE`] of the points are outliers, the fit is refused
-/// (`disturbed`): no single field explains the data.
+/// Fit one sensor: a saturated or stuck axis is refused first ([`axis_fault`]); then candidate
+/// models, automatic choice, acceptance checks ([`fit_sensor_on`]). When the magnetometer fit shows
+/// outliers or failed, points off the field's ellipsoid (a magnet brought near the sensor, a motor
+/// running) are found ([`inliers`]) and left out, and the fit is made again on the rest. When more
+/// than [`MAX_OUTLIER_SHARE`] of the points are outliers, the fit is refused (`disturbed`): no
+/// single field explains the data.
 fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     if let Some(d) = axis_fault(points) {
-        return empty_result(failed(spec.model, spec.units, FitFailure::AxisFault, d), points);
+        return empty_result(
+            failed(spec.model, spec.units, FitFailure::AxisFault, d),
+            points,
+        );
     }
     let plain = fit_sensor_on(points, spec);
     // A plain fit that failed on its residuals or numerically may have been pulled apart by a
@@ -363,7 +365,10 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     let suspicious = has_outliers(&plain.residuals)
         || matches!(
             plain.report.failure.as_deref(),
-            Some("residuals") | Some("did_not_converge") | Some("not_identifiable") | Some("radius")
+            Some("residuals")
+                | Some("did_not_converge")
+                | Some("not_identifiable")
+                | Some("radius")
         );
     if spec.is_accel || points.len() < 30 || !suspicious {
         return plain;
@@ -400,9 +405,11 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
     }
     const AXIS: [&str; 3] = ["x", "y", "z"];
     let range = |k: usize| {
-        let (lo, hi) = points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p[k]), hi.max(p[k]))
-        });
+        let (lo, hi) = points
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p[k]), hi.max(p[k]))
+            });
         (lo, hi)
     };
     let ranges = [range(0), range(1), range(2)];
@@ -421,7 +428,11 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
         v.sort_by(|a, b| a.total_cmp(b));
         let (mut best, mut run, mut val) = (0, 0, f64::NAN);
         for i in 0..n {
-            run = if i > 0 && v[i] == v[i - 1] { run + 1 } else { 1 };
+            run = if i > 0 && v[i] == v[i - 1] {
+                run + 1
+            } else {
+                1
+            };
             if run > best {
                 best = run;
                 val = v[i];
@@ -450,88 +461,86 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
     None
 }
 
-/// Whether any residual (of the plain fit, over all points) lies further than 4 robust sigmas
-/// (1.4826 MAD) from their median: on clean data there are none and the plain fit stands.
-fn has_outliers(residuals: &[f64]) -> bool {
-    if residuals.len() < 30 {
-        return false;
+/// Which residuals lie within 4 robust sigmas (1.4826 MAD, at least `floor`) of the median, the
+/// median and MAD taken over the residuals that `over` marks.
+fn robust_inliers(residuals: &[f64], over: &[bool], floor: f64) -> Vec<bool> {
+    let median = |mut v: Vec<f64>| -> f64 {
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    };
+    let sel: Vec<f64> = residuals
+        .iter()
+        .zip(over)
+        .filter(|(_, k)| **k)
+        .map(|(x, _)| *x)
+        .collect();
+    if sel.is_empty() {
+        return over.to_vec();
     }
-    let mut r = residuals.to_vec();
-    r.sort_by(|a, b| a.total_cmp(b));
-    let med = r[r.len() / 2];
-    let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
-    dev.sort_by(|a, b| a.total_cmp(b));
-    let thr = 4.0 * 1.4826 * dev[dev.len() / 2];
-    r.iter().any(|x| (x - med).abs() > thr)
+    let med = median(sel.clone());
+    let thr = (4.0 * 1.4826 * median(sel.iter().map(|x| (x - med).abs()).collect())).max(floor);
+    residuals.iter().map(|x| (x - med).abs() <= thr).collect()
 }
 
-/// The points within 4 robust sigmas of a `sym9` fit's median residual, and how many were not.
+/// Whether any residual of the plain fit lies outside 4 robust sigmas: on clean data none does and
+/// the plain fit stands.
+fn has_outliers(residuals: &[f64]) -> bool {
+    residuals.len() >= 30
+        && robust_inliers(residuals, &vec![true; residuals.len()], 0.0).contains(&false)
+}
+
+/// The points that `mask` marks.
+fn masked(points: &[Vec3], mask: &[bool]) -> Vec<Vec3> {
+    points
+        .iter()
+        .zip(mask)
+        .filter(|(_, k)| **k)
+        .map(|(p, _)| *p)
+        .collect()
+}
+
+/// A `sym9` fit to the points `mask` marks; all points classified against it ([`robust_inliers`]).
+fn sym9_inliers(points: &[Vec3], mask: &[bool], opts: &NormFitOptions) -> Option<Vec<bool>> {
+    let f = fit_norm(&masked(points, mask), ModelKind::Sym9, opts).ok()?;
+    let r: Vec<f64> = points
+        .iter()
+        .map(|p| norm(&f.calibration.apply(p)) - f.radius)
+        .collect();
+    Some(robust_inliers(&r, mask, 1e-9 * f.radius.abs()))
+}
+
+/// The points within 4 robust sigmas of a `sym9` fit, and how many were not. The first look is a
+/// fit to all points; when more than 0.5% fall outside, the start is a least-median-of-squares fit
+/// instead ([`lmeds_inliers`]), which a cluster of disturbed points (up to about 40%) cannot pull
+/// over. Then fit the inliers and reclassify all points, until the set stops changing (at most 4
+/// times).
 fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
     let opts = NormFitOptions {
         target_norm: spec.target_norm,
         ..Default::default()
     };
-    let median = |v: &mut Vec<f64>| -> f64 {
-        v.sort_by(|a, b| a.total_cmp(b));
-        v[v.len() / 2]
-    };
-    let mut mask = vec![true; points.len()];
-    // A quick look: on clean data the sym9 residuals are about Gaussian and 4 robust sigmas
-    // leave (almost) everything in. Otherwise start from a least-median-of-squares fit, which a
-    // cluster of disturbed points (up to about 40%) cannot pull over.
-    let Ok(f) = fit_norm(points, ModelKind::Sym9, &opts) else {
+    let Some(first) = sym9_inliers(points, &vec![true; points.len()], &opts) else {
         return (points.to_vec(), 0);
     };
-    let r: Vec<f64> = points
-        .iter()
-        .map(|p| norm(&f.calibration.apply(p)) - f.radius)
-        .collect();
-    let med = median(&mut r.clone());
-    let mut dev: Vec<f64> = r.iter().map(|x| (x - med).abs()).collect();
-    let thr = (4.0 * 1.4826 * median(&mut dev)).max(1e-9 * f.radius.abs());
-    let first: Vec<bool> = r.iter().map(|x| (x - med).abs() <= thr).collect();
     let out = first.iter().filter(|k| !**k).count();
     if out == 0 {
         return (points.to_vec(), 0);
     }
-    if out as f64 > 0.005 * points.len() as f64 {
-        if let Some(m) = lmeds_inliers(points) {
-            mask = m;
-        }
+    let mut mask = if out as f64 > 0.005 * points.len() as f64 {
+        lmeds_inliers(points).unwrap_or(first)
     } else {
-        mask = first;
-    }
+        first
+    };
     for _ in 0..4 {
-        let keep: Vec<Vec3> = points
-            .iter()
-            .zip(&mask)
-            .filter(|(_, k)| **k)
-            .map(|(p, _)| *p)
-            .collect();
-        let Ok(f) = fit_norm(&keep, ModelKind::Sym9, &opts) else {
+        let Some(new) = sym9_inliers(points, &mask, &opts) else {
             break;
         };
-        let r: Vec<f64> = points
-            .iter()
-            .map(|p| norm(&f.calibration.apply(p)) - f.radius)
-            .collect();
-        let mut inl: Vec<f64> = r.iter().zip(&mask).filter(|(_, k)| **k).map(|(x, _)| *x).collect();
-        let med = median(&mut inl);
-        let mut dev: Vec<f64> = inl.iter().map(|x| (x - med).abs()).collect();
-        let sigma = 1.4826 * median(&mut dev);
-        let thr = (4.0 * sigma).max(1e-9 * f.radius.abs());
-        let new: Vec<bool> = r.iter().map(|x| (x - med).abs() <= thr).collect();
         if new == mask || new.iter().filter(|k| **k).count() < 12 {
             break;
         }
         mask = new;
     }
-    let keep: Vec<Vec3> = points
-        .iter()
-        .zip(&mask)
-        .filter(|(_, k)| **k)
-        .map(|(p, _)| *p)
-        .collect();
+    let keep = masked(points, &mask);
     let rejected = points.len() - keep.len();
     (keep, rejected)
 }
@@ -580,9 +589,14 @@ fn lmeds_inliers(points: &[Vec3]) -> Option<Vec<bool>> {
     let (med, st) = best?;
     // Rousseeuw's robust scale for LMedS with p = 9 parameters.
     let sigma = 1.4826 * (1.0 + 5.0 / (n as f64 - 9.0).max(1.0)) * med.sqrt();
-    Some(xs.iter().map(|p| resid(&st, p).abs() <= 2.5 * sigma).collect())
+    Some(
+        xs.iter()
+            .map(|p| resid(&st, p).abs() <= 2.5 * sigma)
+            .collect(),
+    )
 }
 
+/// Candidate models, automatic choice, acceptance checks, on the points as given.
 fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     let opts = NormFitOptions {
         target_norm: spec.target_norm,
@@ -990,6 +1004,19 @@ pub struct Calibrated {
     pub roll_deg: Option<f64>,
     pub pitch_deg: Option<f64>,
     pub heading_deg: Option<f64>,
+}
+
+impl Calibrated {
+    /// The calibrated vectors as a sample (for the orientation filter); nothing else carried over.
+    pub fn as_sample(&self) -> Sample {
+        Sample {
+            t_s: self.t_s,
+            accel_mps2: self.accel_mps2,
+            gyro_rad_s: self.gyro_rad_s,
+            mag_ut: self.mag_ut,
+            ..Default::default()
+        }
+    }
 }
 
 impl Calibrator {

@@ -128,7 +128,10 @@ pub fn diagnosis(
             ("before (base model)", &s.x, &s.before),
             ("after (with the effect)", &s.x, &s.after),
         ];
-        let term_x = format!("{} predicted by the {} term ({})", s.channel, s.effect, s.unit);
+        let term_x = format!(
+            "{} predicted by the {} term ({})",
+            s.channel, s.effect, s.unit
+        );
         let term: [(&str, &[f64], &[f64]); 2] = [
             ("before (base model)", &s.predicted, &s.before),
             ("after (with the effect)", &s.predicted, &s.after),

@@ -78,10 +78,7 @@ pub fn replay(
             (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
             _ => None,
         };
-        let fcfg = crate::fusion::FusionConfig {
-            declination_deg: declination.unwrap_or(0.0),
-            ..Default::default()
-        };
+        let fcfg = cfg.fusion_config(declination);
         let mut filter = gyro_k.map(|k| (k, crate::fusion::OrientationFilter::new(fcfg)));
         let dt = crate::fusion::median_dt(&log.samples);
         let mut text = String::with_capacity(log.samples.len() * 180);
@@ -95,14 +92,7 @@ pub fn replay(
                     let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
                     [w.x, w.y, w.z]
                 });
-                let fs = crate::types::Sample {
-                    t_s: c.t_s,
-                    accel_mps2: c.accel_mps2,
-                    gyro_rad_s: c.gyro_rad_s,
-                    mag_ut: c.mag_ut,
-                    ..*s
-                };
-                f.update_sample(&fs, dt);
+                f.update_sample(&c.as_sample(), dt);
                 fused = f.initialized().then(|| f.orientation());
             }
             write_row(&mut text, &c, fused.as_ref());

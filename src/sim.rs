@@ -1686,9 +1686,7 @@ fn tlog_records<W: std::io::Write>(
         let gy = s.gyro_rad_s.unwrap_or([0.0; 3]);
         let m = s.mag_ut.unwrap_or([0.0; 3]);
         let msg = match opts.message {
-            ImuMessage::HighresImu => {
-                highres_imu(s, TLOG_BOOT_OFFSET_US + t_us)
-            }
+            ImuMessage::HighresImu => highres_imu(s, TLOG_BOOT_OFFSET_US + t_us),
             ImuMessage::ScaledImu => {
                 let k_acc = 1000.0 / STANDARD_GRAVITY_MPS2;
                 let mut d = apm::SCALED_IMU_DATA::default();
@@ -2062,7 +2060,9 @@ mod tests {
         let text = std::fs::read_to_string(&p).unwrap();
         let mut lines = text.lines();
         // The fixed columns, then `current` because this scenario logs the battery current.
-        assert!(samples.iter().all(|s| s.current_a.is_some() && s.ref_q.is_none()));
+        assert!(samples
+            .iter()
+            .all(|s| s.current_a.is_some() && s.ref_q.is_none()));
         assert_eq!(
             lines.next().unwrap(),
             "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle,current"

@@ -84,12 +84,15 @@ mod real_data {
             .output()
             .unwrap();
         let stdout = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{stdout}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         eprintln!("{stdout}");
-        let v: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(dir.path().join("eval.json")).unwrap(),
-        )
-        .unwrap();
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("eval.json")).unwrap())
+                .unwrap();
         let m = &v["metrics"];
         let total = m["total_rmse_deg"].as_f64().unwrap();
         // VQF (default, 9D) scores 1.38 deg on this trial (benches/broad.rs measures both).
@@ -128,7 +131,10 @@ mod real_data {
         // rotations between them) carries the gravity direction from pose to pose better than the
         // bias with the best single scale, also on rotations it was not fitted on.
         let g = &out.report.calibration.gyro;
-        let k = g.scale.as_ref().unwrap_or_else(|| panic!("{:?}", g.scale_failure));
+        let k = g
+            .scale
+            .as_ref()
+            .unwrap_or_else(|| panic!("{:?}", g.scale_failure));
         let h = k.held_out.expect("enough rotations for a held-out check");
         eprintln!(
             "imu_tk gyro: K diag {:.3e} {:.3e} {:.3e} rad/s/count, {} rotations {:.2} -> {:.2} deg, held out {} {:.2} -> {:.2} deg",
@@ -137,11 +143,17 @@ mod real_data {
         );
         assert!(k.segments >= 30, "{} rotations", k.segments);
         assert!(k.rms_after_deg < 0.5 * k.rms_before_deg, "{k:?}");
-        assert!(h.segments >= 15 && h.rms_after_deg < 0.7 * h.rms_before_deg, "{h:?}");
+        assert!(
+            h.segments >= 15 && h.rms_after_deg < 0.7 * h.rms_before_deg,
+            "{h:?}"
+        );
         for i in 0..3 {
             // Raw counts to rad/s: some 1e-4 rad/s per count (4000 to 7000 counts per rad/s).
             let s = k.matrix[i][i];
-            assert!((1.0 / 7000.0..1.0 / 4000.0).contains(&s), "K[{i}][{i}] = {s}");
+            assert!(
+                (1.0 / 7000.0..1.0 / 4000.0).contains(&s),
+                "K[{i}][{i}] = {s}"
+            );
         }
     }
 
@@ -542,7 +554,11 @@ mod diagnose_cli {
             "--seed",
             "3",
         ]);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let report = dir.path().join("diag.json");
         let plots = dir.path().join("plots");
         let out = imucald(&[
@@ -554,7 +570,11 @@ mod diagnose_cli {
             plots.to_str().unwrap(),
         ]);
         let text = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         assert!(text.contains("round 1: named motor_interference"), "{text}");
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
@@ -569,7 +589,10 @@ mod diagnose_cli {
         let k = &v["effects"]["motor_interference"];
         for (axis, want) in [("k_x", 4.0), ("k_y", -3.0), ("k_z", 6.0)] {
             let got = k[axis]["value"].as_f64().unwrap();
-            eprintln!("diagnose CLI: {axis} {got:.4} (true {want}) +- {:.4}", k[axis]["sigma"]);
+            eprintln!(
+                "diagnose CLI: {axis} {got:.4} (true {want}) +- {:.4}",
+                k[axis]["sigma"]
+            );
             assert!((got - want).abs() < 0.1, "{axis}: {got} vs {want}");
         }
         let (before, after) = (
@@ -593,7 +616,13 @@ mod diagnose_cli {
             "diagnose_motor_interference_term.png",
         ] {
             let p = plots.join(name);
-            assert!(std::fs::metadata(&p).map(|m| m.len() > 1000).unwrap_or(false), "{}", p.display());
+            assert!(
+                std::fs::metadata(&p)
+                    .map(|m| m.len() > 1000)
+                    .unwrap_or(false),
+                "{}",
+                p.display()
+            );
         }
         let svg = std::fs::read_to_string(plots.join("diagnose_motor_interference.svg")).unwrap();
         assert!(svg.contains("throttle") && svg.contains("after (with the effect)"));
@@ -603,11 +632,17 @@ mod diagnose_cli {
     fn cli_diagnose_errors_say_what_to_fix() {
         let out = imucald(&["diagnose", "/nonexistent/log.tlog"]);
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && err.contains("/nonexistent/log.tlog"), "{err}");
+        assert!(
+            !out.status.success() && err.contains("/nonexistent/log.tlog"),
+            "{err}"
+        );
         let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog");
         let out = imucald(&["diagnose", fixture, "--base-model", "sym10"]);
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && err.contains("--base-model") && err.contains("sym9"), "{err}");
+        assert!(
+            !out.status.success() && err.contains("--base-model") && err.contains("sym9"),
+            "{err}"
+        );
         let out = imucald(&["diagnose", fixture, "--alpha", "2"]);
         assert!(!out.status.success());
         assert!(String::from_utf8_lossy(&out.stderr).contains("--alpha"));
@@ -629,7 +664,11 @@ mod diagnose_cli {
             report.to_str().unwrap(),
         ]);
         let text = String::from_utf8_lossy(&out.stdout);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         eprintln!("{text}");
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
@@ -875,7 +914,9 @@ mod faults {
     fn run_with(prelude: &str, cfg: &Path, wrap: &[&str]) -> (String, String) {
         let script = format!("{prelude}; exec \"$@\"");
         let mut cmd = Command::new("sh");
-        cmd.args(["-c", &script, "sh"]).args(wrap).arg(env!("CARGO_BIN_EXE_imucald"));
+        cmd.args(["-c", &script, "sh"])
+            .args(wrap)
+            .arg(env!("CARGO_BIN_EXE_imucald"));
         let out = cmd.args(["run", "--config"]).arg(cfg).output().unwrap();
         let (so, se) = (
             String::from_utf8_lossy(&out.stdout).to_string(),
@@ -897,7 +938,15 @@ mod faults {
         std::fs::read_dir(cal)
             .unwrap()
             .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
-            .filter(|n| !["calibration.json", "ardupilot.parm", "px4.params", "fusion.h"].contains(&n.as_str()))
+            .filter(|n| {
+                ![
+                    "calibration.json",
+                    "ardupilot.parm",
+                    "px4.params",
+                    "fusion.h",
+                ]
+                .contains(&n.as_str())
+            })
             .collect()
     }
 
@@ -919,9 +968,20 @@ mod faults {
         let (so, _) = run_with("trap '' XFSZ; ulimit -f 2", &cfg, &[]);
         let st = not_written_status(&so).unwrap_or_else(|| panic!("no error reported:\n{so}"));
         eprintln!("disk full: {st}");
-        assert!(so.contains("\"type\":\"calibration\""), "it still calibrates in memory");
-        assert_eq!(std::fs::read(cal.join("calibration.json")).unwrap(), old, "old file changed");
-        assert!(leftovers(&cal).is_empty(), "temp files left: {:?}", leftovers(&cal));
+        assert!(
+            so.contains("\"type\":\"calibration\""),
+            "it still calibrates in memory"
+        );
+        assert_eq!(
+            std::fs::read(cal.join("calibration.json")).unwrap(),
+            old,
+            "old file changed"
+        );
+        assert!(
+            leftovers(&cal).is_empty(),
+            "temp files left: {:?}",
+            leftovers(&cal)
+        );
 
         // Read-only directory. Root ignores permissions, so as root run the daemon as nobody.
         use std::os::unix::fs::PermissionsExt;
@@ -929,7 +989,12 @@ mod faults {
         std::fs::set_permissions(&cal, std::fs::Permissions::from_mode(0o555)).unwrap();
         let root = effective_uid() == 0;
         let wrap: &[&str] = if root {
-            &["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+            &[
+                "setpriv",
+                "--reuid=65534",
+                "--regid=65534",
+                "--clear-groups",
+            ]
         } else {
             &[]
         };
@@ -943,7 +1008,12 @@ mod faults {
             let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/tumble.tlog");
             let probe = Command::new("setpriv")
                 .args(&wrap[1..])
-                .args(["sh", "-c", "test -x \"$1\" && test -r \"$2\" && test -r \"$3\"", "sh"])
+                .args([
+                    "sh",
+                    "-c",
+                    "test -x \"$1\" && test -r \"$2\" && test -r \"$3\"",
+                    "sh",
+                ])
                 .arg(env!("CARGO_BIN_EXE_imucald"))
                 .arg(&fixture)
                 .arg(&cfg)
@@ -960,7 +1030,10 @@ mod faults {
         std::fs::set_permissions(&cal, std::fs::Permissions::from_mode(0o755)).unwrap();
         let st = not_written_status(&so).unwrap_or_else(|| panic!("no error reported:\n{so}"));
         eprintln!("read-only: {st}");
-        assert!(st.contains("ermission denied") || st.contains("ead-only"), "{st}");
+        assert!(
+            st.contains("ermission denied") || st.contains("ead-only"),
+            "{st}"
+        );
         assert_eq!(std::fs::read(cal.join("calibration.json")).unwrap(), old);
         assert!(leftovers(&cal).is_empty());
     }
@@ -979,8 +1052,13 @@ mod faults {
         let dir = tempfile::tempdir().unwrap();
         let log = dir.path().join("log.csv");
         imucald::sim::write_csv(&log, &samples).unwrap();
-        let out = replay(&log, &Config::default(), &ReplayOptions::default(), &mut |_, _| {})
-            .unwrap();
+        let out = replay(
+            &log,
+            &Config::default(),
+            &ReplayOptions::default(),
+            &mut |_, _| {},
+        )
+        .unwrap();
         (out.report, sim.truth)
     }
 
@@ -989,7 +1067,12 @@ mod faults {
         // A magnet fixed near the sensor for part of the tumble shifts the field it reads by `d`:
         // those readings lie on another sphere. Up to a fifth of the run they are found and left
         // out (the calibration is the undisturbed one); half the run is refused, never accepted.
-        for (share, size_ut, seed) in [(0.1, 12.0, 21), (0.2, 6.0, 22), (0.2, 45.0, 23), (0.5, 12.0, 24)] {
+        for (share, size_ut, seed) in [
+            (0.1, 12.0, 21),
+            (0.2, 6.0, 22),
+            (0.2, 45.0, 23),
+            (0.5, 12.0, 24),
+        ] {
             let d = [0.6 * size_ut, -0.48 * size_ut, 0.64 * size_ut];
             let (r, truth) = replay_changed(seed, |s, x| {
                 if (0.4..0.4 + share).contains(&x) {
@@ -1003,16 +1086,27 @@ mod faults {
             let m = &r.calibration.mag;
             eprintln!(
                 "magnet {size_ut} uT for {:.0}% of the run: {} {:?}, offset {:?}, {} outliers",
-                share * 100.0, m.status, m.failure, m.offset, m.outliers_rejected
+                share * 100.0,
+                m.status,
+                m.failure,
+                m.offset,
+                m.outliers_rejected
             );
             if share <= 0.2 {
                 assert_eq!(m.status, "ok", "{:?}", m.detail);
                 assert!(m.outliers_rejected > 0);
                 for k in 0..3 {
-                    assert!((m.offset[k] - truth.mag.offset[k]).abs() < 0.1, "{:?}", m.offset);
+                    assert!(
+                        (m.offset[k] - truth.mag.offset[k]).abs() < 0.1,
+                        "{:?}",
+                        m.offset
+                    );
                 }
             } else {
-                assert_eq!(m.status, "failed", "a half-disturbed run was accepted: {m:?}");
+                assert_eq!(
+                    m.status, "failed",
+                    "a half-disturbed run was accepted: {m:?}"
+                );
             }
         }
     }
@@ -1021,37 +1115,69 @@ mod faults {
     fn saturated_and_stuck_axes_are_named_and_refused() {
         type Change = fn(&mut imucald::types::Sample, f64);
         let cases: [(&str, Change, &str, &str); 4] = [
-            ("mag y clipped at +-45 uT", |s, _| {
-                if let Some(m) = s.mag_ut.as_mut() {
-                    m[1] = m[1].clamp(-45.0, 45.0);
-                }
-            }, "mag", "axis y reads exactly"),
-            ("accel x clipped at +-7 m/s^2", |s, _| {
-                if let Some(a) = s.accel_mps2.as_mut() {
-                    a[0] = a[0].clamp(-7.0, 7.0);
-                }
-            }, "accel", "axis x reads exactly"),
-            ("accel z stuck", |s, _| {
-                if let Some(a) = s.accel_mps2.as_mut() {
-                    a[2] = -9.5;
-                }
-            }, "accel", "axis z reads -9.5 in all"),
-            ("mag y stuck from 30%", |s, x| {
-                if let Some(m) = s.mag_ut.as_mut() {
-                    if x > 0.3 {
-                        m[1] = -12.5;
+            (
+                "mag y clipped at +-45 uT",
+                |s, _| {
+                    if let Some(m) = s.mag_ut.as_mut() {
+                        m[1] = m[1].clamp(-45.0, 45.0);
                     }
-                }
-            }, "mag", "stuck part of the time"),
+                },
+                "mag",
+                "axis y reads exactly",
+            ),
+            (
+                "accel x clipped at +-7 m/s^2",
+                |s, _| {
+                    if let Some(a) = s.accel_mps2.as_mut() {
+                        a[0] = a[0].clamp(-7.0, 7.0);
+                    }
+                },
+                "accel",
+                "axis x reads exactly",
+            ),
+            (
+                "accel z stuck",
+                |s, _| {
+                    if let Some(a) = s.accel_mps2.as_mut() {
+                        a[2] = -9.5;
+                    }
+                },
+                "accel",
+                "axis z reads -9.5 in all",
+            ),
+            (
+                "mag y stuck from 30%",
+                |s, x| {
+                    if let Some(m) = s.mag_ut.as_mut() {
+                        if x > 0.3 {
+                            m[1] = -12.5;
+                        }
+                    }
+                },
+                "mag",
+                "stuck part of the time",
+            ),
         ];
         for (what, f, sensor, words) in cases {
             let (r, _) = replay_changed(31, f);
-            let c = if sensor == "mag" { &r.calibration.mag } else { &r.calibration.accel };
+            let c = if sensor == "mag" {
+                &r.calibration.mag
+            } else {
+                &r.calibration.accel
+            };
             eprintln!("{what}: {:?}: {:?}", c.failure, c.detail);
             assert_eq!(c.failure.as_deref(), Some("axis_fault"), "{what}: {c:?}");
-            assert!(c.detail.as_deref().unwrap_or("").contains(words), "{what}: {:?}", c.detail);
+            assert!(
+                c.detail.as_deref().unwrap_or("").contains(words),
+                "{what}: {:?}",
+                c.detail
+            );
             // The other sensor still calibrates.
-            let o = if sensor == "mag" { &r.calibration.accel } else { &r.calibration.mag };
+            let o = if sensor == "mag" {
+                &r.calibration.accel
+            } else {
+                &r.calibration.mag
+            };
             assert_eq!(o.status, "ok", "{what}");
         }
     }
@@ -1389,7 +1515,10 @@ mod fuzz_regressions {
         let Ok(dir) = std::fs::read_dir(regressions_dir().join(target)) else {
             return 0;
         };
-        let mut files: Vec<_> = dir.map(|e| e.unwrap().path()).filter(|p| p.is_file()).collect();
+        let mut files: Vec<_> = dir
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.is_file())
+            .collect();
         files.sort();
         let failed: Vec<String> = files
             .iter()
@@ -1504,7 +1633,12 @@ mod fuzz_regressions {
         tlog(&gz[..gz.len() * 2 / 3]);
         let log = read(&gz[..gz.len() * 2 / 3]).unwrap();
         assert!(!log.samples.is_empty() && log.samples.len() < 12);
-        for nasty in [&[0x1F, 0x8B][..], &[0xFD; 5000][..], &[0xFE; 9][..], &[][..]] {
+        for nasty in [
+            &[0x1F, 0x8B][..],
+            &[0xFD; 5000][..],
+            &[0xFE; 9][..],
+            &[][..],
+        ] {
             tlog(nasty);
             assert!(read(nasty).is_err(), "{:?}", &nasty[..nasty.len().min(4)]);
         }
@@ -1568,8 +1702,13 @@ mod fuzz_regressions {
                     0.6,0,0,-9.8,1,2,x\n";
         let (s, st) = csv(text.as_bytes()).unwrap();
         assert_eq!(s.len(), 4, "{s:?}");
-        assert!(s[..3].iter().all(|x| x.accel_mps2.is_none() && x.mag_ut.is_some()));
-        assert_eq!((s[3].accel_mps2, s[3].mag_ut), (Some([0.0, 0.0, -9.8]), None));
+        assert!(s[..3]
+            .iter()
+            .all(|x| x.accel_mps2.is_none() && x.mag_ut.is_some()));
+        assert_eq!(
+            (s[3].accel_mps2, s[3].mag_ut),
+            (Some([0.0, 0.0, -9.8]), None)
+        );
         assert_eq!(st.skipped.get("non_finite"), Some(&5), "{st:?}");
         assert_eq!(st.skipped.get("bad_row"), Some(&2), "{st:?}");
         assert!(csv(b"t,ax,ay,az\n").unwrap().0.is_empty());
@@ -1610,7 +1749,11 @@ mod fuzz_regressions {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
         for e in std::fs::read_dir(dir).unwrap() {
             let p = e.unwrap().path();
-            assert!(config(&std::fs::read(&p).unwrap()).is_ok(), "{}", p.display());
+            assert!(
+                config(&std::fs::read(&p).unwrap()).is_ok(),
+                "{}",
+                p.display()
+            );
         }
         // (TOML, the key the error must name, a word of the message)
         let mistakes = [
