@@ -9,7 +9,9 @@ use crate::model::{
     a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration, ModelKind,
 };
 use crate::types::Vec3;
-use nalgebra::{DMatrix, Matrix3, SMatrix, SVector, Vector3};
+use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
+
+mod kernel;
 use serde::{Deserialize, Serialize};
 
 /// Why a fit was refused. The names are the report's `failure` strings.
@@ -106,6 +108,16 @@ pub fn levenberg_marquardt_prepared<const N: usize, P>(
         }
         (ssr, jtj, jtr)
     };
+    levenberg_marquardt_batch(x0, max_iter, eval)
+}
+
+/// The Levenberg-Marquardt iteration on whole normal equations: `eval(p)` returns the sum of squared
+/// residuals, J^T J and J^T r at `p` (however it builds them).
+pub fn levenberg_marquardt_batch<const N: usize>(
+    x0: SVector<f64, N>,
+    max_iter: usize,
+    mut eval: impl FnMut(&SVector<f64, N>) -> (f64, SMatrix<f64, N, N>, SVector<f64, N>),
+) -> LmOutcome<N> {
     let mut x = x0;
     let (mut ssr, mut jtj, mut jtr) = eval(&x);
     let mut lambda = 1e-3;
@@ -127,6 +139,13 @@ pub fn levenberg_marquardt_prepared<const N: usize, P>(
                 continue;
             }
         };
+        // Reduction the linear model predicts for the step: when even that is below the tolerance,
+        // we are at the minimum to working precision and another evaluation would not move us.
+        let predicted = -(2.0 * step.dot(&jtr) + (jtj * step).dot(&step));
+        if predicted.abs() <= 1e-14 * ssr.max(1e-300) {
+            converged = true;
+            break;
+        }
         let x_new = x + step;
         let (ssr_new, jtj_new, jtr_new) = eval(&x_new);
         if ssr_new.is_finite() && ssr_new <= ssr {
@@ -168,19 +187,17 @@ pub struct Start {
 
 /// Linear least-squares sphere fit: |x|^2 = 2 c.x + k.
 pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
-    let n = points.len();
-    if n < 4 {
+    if points.len() < 4 {
         return None;
     }
-    let mut ata = nalgebra::Matrix4::<f64>::zeros();
-    let mut atb = nalgebra::Vector4::<f64>::zeros();
-    for p in points {
-        let row = nalgebra::Vector4::new(2.0 * p[0], 2.0 * p[1], 2.0 * p[2], 1.0);
-        let b = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
-        ata += row * row.transpose();
-        atb += row * b;
-    }
-    let sol = ata.cholesky()?.solve(&atb);
+    let soa = kernel::Soa::normalised(points, [0.0; 3], 1.0);
+    let mut scratch = kernel::Scratch::new(soa.padded);
+    let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
+    sphere_from_normal_equations(&ata, &atb)
+}
+
+fn sphere_from_normal_equations(ata: &SMatrix<f64, 4, 4>, atb: &SVector<f64, 4>) -> Option<Start> {
+    let sol = ata.cholesky()?.solve(atb);
     let c = Vector3::new(sol[0], sol[1], sol[2]);
     let r2 = sol[3] + c.norm_squared();
     if !(r2 > 0.0) || !r2.is_finite() {
@@ -195,38 +212,20 @@ pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
 /// Algebraic ellipsoid fit: the general quadric x^T Q x + 2 g.x = 1, solved linearly; returns `None`
 /// when the quadric is not an ellipsoid (poor coverage), so the caller falls back to a sphere.
 pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
-    let n = points.len();
-    if n < 9 {
+    if points.len() < 9 {
         return None;
     }
-    let mut ata = SMatrix::<f64, 9, 9>::zeros();
-    let mut atb = SVector::<f64, 9>::zeros();
-    for p in points {
-        let (x, y, z) = (p[0], p[1], p[2]);
-        let row = SVector::<f64, 9>::from([
-            x * x,
-            y * y,
-            z * z,
-            2.0 * x * y,
-            2.0 * x * z,
-            2.0 * y * z,
-            2.0 * x,
-            2.0 * y,
-            2.0 * z,
-        ]);
-        for c in 0..9 {
-            for r in 0..=c {
-                ata[(r, c)] += row[r] * row[c];
-            }
-        }
-        atb += row;
-    }
-    for c in 0..9 {
-        for r in 0..c {
-            ata[(c, r)] = ata[(r, c)];
-        }
-    }
-    let s = ata.cholesky()?.solve(&atb);
+    let soa = kernel::Soa::normalised(points, [0.0; 3], 1.0);
+    let mut scratch = kernel::Scratch::new(soa.padded);
+    let (_, ata, atb) = kernel::ellipsoid_normal_equations(&soa, &mut scratch);
+    ellipsoid_from_normal_equations(&ata, &atb)
+}
+
+fn ellipsoid_from_normal_equations(
+    ata: &SMatrix<f64, 9, 9>,
+    atb: &SVector<f64, 9>,
+) -> Option<Start> {
+    let s = ata.cholesky()?.solve(atb);
     let q = Matrix3::new(s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]);
     let g = Vector3::new(s[6], s[7], s[8]);
     let qi = q.try_inverse()?;
@@ -295,40 +294,81 @@ pub struct NormFit {
     pub condition: f64,
 }
 
-fn solve_norm<const N: usize>(
-    kind: ModelKind,
-    xs: &[Vec3],
+/// What the norm LM hands back: parameters, sum of squares, iterations, convergence, the condition
+/// number of J^T J and the diagonal of its inverse (unscaled covariance).
+struct NormSolution {
+    params: Vec<f64>,
+    ssr: f64,
+    iterations: usize,
+    converged: bool,
+    condition: f64,
+    cov_diag: Option<Vec<f64>>,
+}
+
+/// Largest eigenvalue of a symmetric positive semi-definite matrix by power iteration, as the
+/// Rayleigh quotient after `POWER_STEPS` steps: never above the true value and, from a start that
+/// is not nearly orthogonal to the top eigenvector, within a few per cent of it whatever the
+/// eigenvalue gap (the components that converge slowly are those whose eigenvalues are close to the
+/// largest, and they pull the quotient down little).
+fn largest_eigenvalue<const N: usize>(m: &SMatrix<f64, N, N>) -> f64 {
+    const POWER_STEPS: usize = 24;
+    // Start on the column with the largest diagonal entry (plus a little of every axis): it leans
+    // towards the largest eigenvector, which keeps the bound below honest.
+    let k = (0..N).fold(0, |b, i| if m[(i, i)] > m[(b, b)] { i } else { b });
+    let mut v = SVector::<f64, N>::from_fn(|i, _| m[(i, k)] + 1e-3 * m[(k, k)]);
+    v /= v.norm();
+    let mut lambda = 0.0;
+    for _ in 0..POWER_STEPS {
+        let w = m * v;
+        lambda = v.dot(&w);
+        let n = w.norm();
+        if !(n > 0.0) || !n.is_finite() {
+            return lambda;
+        }
+        v = w / n;
+    }
+    lambda
+}
+
+/// Condition number of J^T J (largest over smallest eigenvalue) from power iteration on it and on
+/// its inverse: an estimate from below, typically within a few per cent, which is all the
+/// identifiability check (1e12) and the report need, at a fraction of a full eigen-decomposition
+/// (checked against one in the tests).
+fn condition_number<const N: usize>(
+    jtj: &SMatrix<f64, N, N>,
+    inv: Option<&SMatrix<f64, N, N>>,
+) -> f64 {
+    let Some(inv) = inv else {
+        return f64::INFINITY;
+    };
+    let (lmax, inv_max) = (largest_eigenvalue(jtj), largest_eigenvalue(inv));
+    if lmax > 0.0 && inv_max > 0.0 && (lmax * inv_max).is_finite() {
+        (lmax * inv_max).max(1.0)
+    } else {
+        f64::INFINITY
+    }
+}
+
+fn solve_norm<const K: u8, const N: usize, const M: usize>(
+    pts: &kernel::Soa,
+    scratch: &mut kernel::Scratch,
     x0: &[f64],
     max_iter: usize,
-) -> (Vec<f64>, f64, usize, bool, DMatrix<f64>) {
+) -> NormSolution {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
-    let out = levenberg_marquardt_prepared::<N, _>(
-        x0v,
-        xs.len(),
-        max_iter,
-        |p| {
-            let a = a_from_params(kind, &p.as_slice()[3..]);
-            (a, a.transpose())
-        },
-        |(a, at), p, i, g| {
-            crate::model::norm_residual_grad_with(
-                kind,
-                a,
-                at,
-                p.as_slice(),
-                &xs[i],
-                g.as_mut_slice(),
-            )
-        },
-    );
-    let jtj = DMatrix::from_column_slice(N, N, out.jtj.as_slice());
-    (
-        out.params.as_slice().to_vec(),
-        out.ssr,
-        out.iterations,
-        out.converged,
-        jtj,
-    )
+    scratch.clear_from(N + 1, pts.padded);
+    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, |p| {
+        kernel::norm_normal_equations::<K, N, M>(p, pts, scratch)
+    });
+    let inv = out.jtj.cholesky().map(|c| c.inverse());
+    NormSolution {
+        params: out.params.as_slice().to_vec(),
+        ssr: out.ssr,
+        iterations: out.iterations,
+        converged: out.converged,
+        condition: condition_number(&out.jtj, inv.as_ref()),
+        cov_diag: inv.map(|m| (0..N).map(|k| m[(k, k)]).collect()),
+    }
 }
 
 /// Fit a norm-only model (`sphere`, `diag6`, `sym9`, `full12` upper-triangular) to points in raw units.
@@ -338,39 +378,37 @@ pub fn fit_norm(
     opts: &NormFitOptions,
 ) -> Result<NormFit, FitFailure> {
     let np = n_norm_params(kind);
-    let pts: Vec<Vec3> = points
-        .iter()
-        .copied()
-        .filter(|p| p.iter().all(|v| v.is_finite()))
-        .collect();
+    let finite = |p: &Vec3| p.iter().all(|v| v.is_finite());
+    let filtered: Vec<Vec3>;
+    let pts: &[Vec3] = if points.iter().all(finite) {
+        points
+    } else {
+        filtered = points.iter().copied().filter(finite).collect();
+        &filtered
+    };
     if pts.len() < np + 3 {
         return Err(FitFailure::NotEnoughSamples);
     }
     // Normalise: centre and scale from the sphere fit (always defined when the points are not coplanar).
-    let sph = sphere_start(&pts).ok_or(FitFailure::NotIdentifiable)?;
+    let mut soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
+    let mut scratch = kernel::Scratch::new(soa.padded);
+    let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
+    let sph = sphere_from_normal_equations(&ata, &atb).ok_or(FitFailure::NotIdentifiable)?;
     let c0 = sph.centre;
     let s0 = 1.0 / sph.shape[(0, 0)];
-    let xs: Vec<Vec3> = pts
-        .iter()
-        .map(|p| {
-            [
-                (p[0] - c0[0]) / s0,
-                (p[1] - c0[1]) / s0,
-                (p[2] - c0[2]) / s0,
-            ]
-        })
-        .collect();
+    soa.renormalise([c0[0], c0[1], c0[2]], s0);
+    let unit = Start {
+        centre: Vector3::zeros(),
+        shape: Matrix3::identity(),
+    };
     let start = match kind {
-        ModelKind::Sphere => Start {
-            centre: Vector3::zeros(),
-            shape: Matrix3::identity(),
-        },
-        _ => ellipsoid_start(&xs)
-            .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
-            .unwrap_or(Start {
-                centre: Vector3::zeros(),
-                shape: Matrix3::identity(),
-            }),
+        ModelKind::Sphere => unit,
+        _ => {
+            let (_, ata, atb) = kernel::ellipsoid_normal_equations(&soa, &mut scratch);
+            ellipsoid_from_normal_equations(&ata, &atb)
+                .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
+                .unwrap_or(unit)
+        }
     };
     let shape0 = if kind == ModelKind::Full12 {
         // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
@@ -383,12 +421,14 @@ pub fn fit_norm(
     };
     let mut x0 = vec![start.centre[0], start.centre[1], start.centre[2]];
     x0.extend(params_from_a(kind, &shape0));
-    let (p, ssr, iters, converged, jtj) = match np {
-        4 => solve_norm::<4>(kind, &xs, &x0, opts.max_iterations),
-        6 => solve_norm::<6>(kind, &xs, &x0, opts.max_iterations),
-        9 => solve_norm::<9>(kind, &xs, &x0, opts.max_iterations),
-        _ => unreachable!("norm models have 4, 6 or 9 parameters"),
+    let (sc, it) = (&mut scratch, opts.max_iterations);
+    let sol = match kind {
+        ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4, 6>(&soa, sc, &x0, it),
+        ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 9>(&soa, sc, &x0, it),
+        ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 12>(&soa, sc, &x0, it),
+        ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 12>(&soa, sc, &x0, it),
     };
+    let p = &sol.params;
     if p.iter().any(|v| !v.is_finite()) {
         return Err(FitFailure::DidNotConverge);
     }
@@ -406,30 +446,18 @@ pub fn fit_norm(
     if m.determinant() < 0.0 {
         m = -m;
     }
-    let n = xs.len();
+    let n = soa.n;
     let dof = (n - np).max(1) as f64;
-    let s2 = ssr / dof;
-    let eig = jtj.clone().symmetric_eigen();
-    let (mut lmin, mut lmax) = (f64::INFINITY, 0.0f64);
-    for &l in eig.eigenvalues.iter() {
-        lmin = lmin.min(l);
-        lmax = lmax.max(l);
-    }
-    let condition = if lmin > 0.0 {
-        lmax / lmin
-    } else {
-        f64::INFINITY
-    };
-    let cov = jtj.try_inverse().map(|inv| inv * s2);
-    let (offset_sigma, matrix_sigma_max) = match &cov {
+    let s2 = sol.ssr / dof;
+    let (offset_sigma, matrix_sigma_max) = match &sol.cov_diag {
         Some(c) => {
             let os = [
-                s0 * c[(0, 0)].max(0.0).sqrt(),
-                s0 * c[(1, 1)].max(0.0).sqrt(),
-                s0 * c[(2, 2)].max(0.0).sqrt(),
+                s0 * (c[0] * s2).max(0.0).sqrt(),
+                s0 * (c[1] * s2).max(0.0).sqrt(),
+                s0 * (c[2] * s2).max(0.0).sqrt(),
             ];
             let ms = (3..np)
-                .map(|k| c[(k, k)].max(0.0).sqrt())
+                .map(|k| (c[k] * s2).max(0.0).sqrt())
                 .fold(0.0, f64::max);
             (os, ms)
         }
@@ -443,14 +471,14 @@ pub fn fit_norm(
         },
         radius,
         raw_radius,
-        rms_residual: (ssr / n as f64).sqrt() * radius,
+        rms_residual: (sol.ssr / n as f64).sqrt() * radius,
         offset_sigma,
         matrix_sigma_max,
-        ssr_normalised: ssr,
+        ssr_normalised: sol.ssr,
         samples_used: n,
-        iterations: iters,
-        converged,
-        condition,
+        iterations: sol.iterations,
+        converged: sol.converged,
+        condition: sol.condition,
     })
 }
 
@@ -627,6 +655,46 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    #[test]
+    fn condition_estimate_is_close_to_the_eigenvalue_ratio() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for case in 0..200 {
+            // Random orthogonal basis and a spread of spectra: clustered, geometric, one tiny.
+            let q = nalgebra::SMatrix::<f64, 9, 9>::from_fn(|_, _| rng.random_range(-1.0..1.0))
+                .qr()
+                .q();
+            let spread = [1.0, 4.0, 1e3, 1e8, 1e13][case % 5];
+            let d = SVector::<f64, 9>::from_fn(|i, _| {
+                if case % 7 == 0 && i == 0 {
+                    1.0 / spread
+                } else {
+                    spread.powf(rng.random_range(0.0..1.0))
+                }
+            });
+            let m = q * SMatrix::<f64, 9, 9>::from_diagonal(&d) * q.transpose();
+            let m = (m + m.transpose()) * 0.5;
+            let exact = {
+                let e = m.symmetric_eigenvalues();
+                if e.min() > 0.0 {
+                    e.max() / e.min()
+                } else {
+                    f64::INFINITY
+                }
+            };
+            let inv = m.cholesky().map(|c| c.inverse());
+            let est = condition_number(&m, inv.as_ref());
+            if exact > 1e12 {
+                assert!(est > 1e11, "case {case}: {est:e} vs {exact:e}");
+                continue;
+            }
+            assert!(
+                // (The reference itself is only good to about eps * condition.)
+                est <= exact * (1.0 + 1e-14 * exact) && est >= 0.9 * exact,
+                "case {case}: {est:e} vs {exact:e}"
+            );
+        }
     }
 
     #[test]
