@@ -1,6 +1,7 @@
 //! `cargo bench --bench fit` (or `scripts/bench`, which also installs the Python peers): prints time per
 //! `sym9` fit on 300 and 3000 points against SciPy `least_squares` (LM) on the same points in the same
 //! run, and replay throughput against pymavlink parsing the same tlog. Figures, not assertions.
+//! `IMUCALD_BENCH_ONLY=fit` or `=replay` runs one of the two.
 
 use imucald::fit::{fit_norm, NormFitOptions};
 use imucald::model::ModelKind;
@@ -192,7 +193,13 @@ fn main() {
     if !std::env::args().any(|a| a == "--bench") {
         return;
     }
+    // IMUCALD_BENCH_ONLY=fit|replay runs one part (for profiling).
+    let only = std::env::var("IMUCALD_BENCH_ONLY").unwrap_or_default();
     let py = python();
-    bench_fit(py.as_deref());
-    bench_replay(py.as_deref());
+    if only.is_empty() || only == "fit" {
+        bench_fit(py.as_deref());
+    }
+    if only.is_empty() || only == "replay" {
+        bench_replay(py.as_deref());
+    }
 }

@@ -8,14 +8,16 @@ use serde::{Deserialize, Serialize};
 /// Number of regions.
 pub const REGIONS: usize = 100;
 
-/// Latitude band edges (deg) and the number of regions in each band, north to south.
-const BANDS: [(f64, f64, usize); 6] = [
-    (78.52, 90.0, 1),
-    (42.84, 78.52, 15),
-    (0.0, 42.84, 34),
-    (-42.84, 0.0, 34),
-    (-78.52, -42.84, 15),
-    (-90.0, -78.52, 1),
+/// Latitude bands north to south as (lowest z = sin(latitude), regions in the band). Equal areas
+/// on a sphere are equal spans of z, so with 100 regions the edges are z = 0.98, 0.68, 0, -0.68,
+/// -0.98 (latitudes 78.52, 42.84, 0, -42.84, -78.52 deg).
+const BANDS: [(f64, usize); 6] = [
+    (0.98, 1),
+    (0.68, 15),
+    (0.0, 34),
+    (-0.68, 34),
+    (-0.98, 15),
+    (-1.0, 1),
 ];
 
 /// Region index (0..100) of a direction (any length, not zero).
@@ -24,12 +26,16 @@ pub fn region(v: &Vec3) -> Option<usize> {
     if !(n > 0.0) || !n.is_finite() {
         return None;
     }
-    let lat = (v[2] / n).clamp(-1.0, 1.0).asin().to_degrees();
-    let phi = v[1].atan2(v[0]).to_degrees(); // -180..180
+    let z = (v[2] / n).clamp(-1.0, 1.0);
     let mut base = 0;
-    for &(lo, hi, count) in BANDS.iter() {
-        if lat >= lo && lat <= hi {
-            let k = (((phi + 180.0) / 360.0) * count as f64).floor() as usize;
+    for &(lo, count) in BANDS.iter() {
+        if z >= lo {
+            if count == 1 {
+                return Some(base);
+            }
+            let phi = v[1].atan2(v[0]); // -pi..pi
+            let k = (((phi + std::f64::consts::PI) / std::f64::consts::TAU) * count as f64).floor()
+                as usize;
             return Some(base + k.min(count - 1));
         }
         base += count;
@@ -56,15 +62,26 @@ pub struct Coverage {
     pub filled_mask: Vec<bool>,
 }
 
-/// Coverage of a set of directions about `centre`.
-pub fn coverage<'a>(points: impl IntoIterator<Item = &'a Vec3>, centre: &Vec3) -> Coverage {
+/// Coverage of a set of directions about `centre`. The points are visited interleaved (every 61st,
+/// then the next offset, ...) so that sorted input still reaches every part of the sphere early, and
+/// the scan stops once every region holds a point.
+pub fn coverage(points: &[Vec3], centre: &Vec3) -> Coverage {
+    const STRIDE: usize = 61;
     let mut mask = vec![false; REGIONS];
-    for p in points {
+    let mut filled = 0;
+    let interleaved =
+        (0..STRIDE.min(points.len())).flat_map(|s| points[s..].iter().step_by(STRIDE));
+    for p in interleaved {
         if let Some(r) = region(&[p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]]) {
-            mask[r] = true;
+            if !mask[r] {
+                mask[r] = true;
+                filled += 1;
+                if filled == REGIONS {
+                    break;
+                }
+            }
         }
     }
-    let filled = mask.iter().filter(|&&b| b).count();
     Coverage {
         regions: REGIONS,
         filled,
@@ -84,7 +101,8 @@ pub const MAX_BINNED: usize = 4000;
 pub struct DirectionBins {
     pub centre: Vec3,
     cell_rad: f64,
-    cells: std::collections::HashMap<(i32, i32), Vec3>,
+    /// Cells by (row, column); ordered, so the kept points come out in a fixed order with no sort.
+    cells: std::collections::BTreeMap<(i32, i32), Vec3>,
 }
 
 impl DirectionBins {
@@ -134,11 +152,11 @@ impl DirectionBins {
     fn insert(&mut self, raw: &Vec3) -> bool {
         match self.key(raw) {
             Some(k) => match self.cells.entry(k) {
-                std::collections::hash_map::Entry::Vacant(e) => {
+                std::collections::btree_map::Entry::Vacant(e) => {
                     e.insert(*raw);
                     true
                 }
-                std::collections::hash_map::Entry::Occupied(_) => false,
+                std::collections::btree_map::Entry::Occupied(_) => false,
             },
             None => false,
         }
@@ -162,9 +180,7 @@ impl DirectionBins {
 
     /// Kept raw vectors, in a deterministic order.
     pub fn points(&self) -> Vec<Vec3> {
-        let mut keys: Vec<&(i32, i32)> = self.cells.keys().collect();
-        keys.sort();
-        keys.into_iter().map(|k| self.cells[k]).collect()
+        self.cells.values().copied().collect()
     }
 
     pub fn len(&self) -> usize {
@@ -200,10 +216,7 @@ mod tests {
         assert!(b.len() > MAX_BINNED / 3, "{} kept", b.len());
         assert!(b.cell_deg() > 1.0);
         // Still the whole sphere.
-        assert_eq!(
-            coverage(b.points().iter(), &[10.0, -5.0, 3.0]).filled,
-            REGIONS
-        );
+        assert_eq!(coverage(&b.points(), &[10.0, -5.0, 3.0]).filled, REGIONS);
     }
 
     #[test]
@@ -229,7 +242,7 @@ mod tests {
     #[test]
     fn coverage_counts_filled_regions() {
         let c = coverage(
-            [[0.0, 0.0, 5.0], [0.0, 0.0, 6.0], [0.0, 0.0, -1.0]].iter(),
+            &[[0.0, 0.0, 5.0], [0.0, 0.0, 6.0], [0.0, 0.0, -1.0]],
             &[0.0, 0.0, 1.0],
         );
         assert_eq!(c.filled, 2);

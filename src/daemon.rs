@@ -582,7 +582,7 @@ impl State {
             .iter()
             .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
             .collect();
-        let cov = crate::coverage::coverage(dirs.iter(), &[0.0; 3]);
+        let cov = crate::coverage::coverage(&dirs, &[0.0; 3]);
         let (mask, _) = mavout::completion_mask(dirs.iter().copied());
         let pct = ((100 * cov.filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
         self.progress_pct = self.progress_pct.max(pct);

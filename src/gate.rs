@@ -171,11 +171,19 @@ impl Acc {
     }
 }
 
-/// Log-spaced histogram for a streaming quantile of window variances (bounded memory).
+/// Log-spaced histogram for a streaming quantile of window variances (bounded memory). The
+/// quantile `q` is tracked as values arrive (a cursor on the bins that moves a step or two per
+/// value), so reading it is O(1) instead of a scan of the bins per sample.
 #[derive(Debug, Clone)]
 struct LogHistogram {
     bins: Vec<u64>,
     total: u64,
+    q: f64,
+    /// Smallest bin whose cumulative count reaches `ceil(q * total)`, and the count below it.
+    cursor: usize,
+    below: u64,
+    /// Centre value of the cursor's bin (kept so a read needs no `powf`).
+    value: f64,
 }
 
 const HIST_MIN_LOG10: f64 = -14.0;
@@ -183,30 +191,70 @@ const HIST_BINS_PER_DECADE: f64 = 20.0;
 const HIST_BINS: usize = 500;
 
 impl LogHistogram {
-    fn new() -> Self {
+    fn new(q: f64) -> Self {
         LogHistogram {
             bins: vec![0; HIST_BINS],
             total: 0,
+            q,
+            cursor: 0,
+            below: 0,
+            value: Self::centre(0),
         }
     }
-    fn add(&mut self, v: f64) {
+
+    fn bin_of(v: f64) -> usize {
         let l = if v > 0.0 { v.log10() } else { HIST_MIN_LOG10 };
-        let i = ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
+        ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
             .floor()
-            .clamp(0.0, (HIST_BINS - 1) as f64) as usize;
+            .clamp(0.0, (HIST_BINS - 1) as f64) as usize
+    }
+
+    fn centre(bin: usize) -> f64 {
+        10f64.powf(HIST_MIN_LOG10 + (bin as f64 + 0.5) / HIST_BINS_PER_DECADE)
+    }
+
+    fn target(&self) -> u64 {
+        (self.q * self.total as f64).ceil().max(1.0) as u64
+    }
+
+    fn add(&mut self, v: f64) {
+        let i = Self::bin_of(v);
         self.bins[i] += 1;
         self.total += 1;
+        if i < self.cursor {
+            self.below += 1;
+        }
+        let (target, before) = (self.target(), self.cursor);
+        while self.cursor + 1 < HIST_BINS && self.below + self.bins[self.cursor] < target {
+            self.below += self.bins[self.cursor];
+            self.cursor += 1;
+        }
+        while self.cursor > 0 && self.below >= target {
+            self.cursor -= 1;
+            self.below -= self.bins[self.cursor];
+        }
+        if self.cursor != before {
+            self.value = Self::centre(self.cursor);
+        }
     }
-    fn quantile(&self, q: f64) -> Option<f64> {
+
+    /// Centre of the bin holding quantile `q`.
+    fn quantile(&self) -> Option<f64> {
+        (self.total > 0).then_some(self.value)
+    }
+
+    /// The same by a scan of the bins (the reference the tracked cursor is tested against).
+    #[cfg(test)]
+    fn quantile_by_scan(&self) -> Option<f64> {
         if self.total == 0 {
             return None;
         }
-        let target = (q * self.total as f64).ceil().max(1.0) as u64;
+        let target = self.target();
         let mut c = 0;
         for (i, &b) in self.bins.iter().enumerate() {
             c += b;
             if c >= target {
-                return Some(10f64.powf(HIST_MIN_LOG10 + (i as f64 + 0.5) / HIST_BINS_PER_DECADE));
+                return Some(Self::centre(i));
             }
         }
         None
@@ -244,7 +292,7 @@ impl StaticDetector {
             window: VecDeque::new(),
             half: 0,
             len: 0,
-            hist: LogHistogram::new(),
+            hist: LogHistogram::new(0.10),
             cur: Acc::default(),
             rate_est: None,
             first_t: None,
@@ -259,7 +307,7 @@ impl StaticDetector {
 
     /// The noise-floor variance estimate (10th percentile of window variances so far).
     pub fn noise_floor(&self) -> Option<f64> {
-        self.hist.quantile(0.10)
+        self.hist.quantile()
     }
 
     /// Summed per-axis variance of the window, from the running sums.
@@ -362,6 +410,31 @@ impl StaticDetector {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tracked_quantile_equals_a_scan_of_the_bins() {
+        let mut h = LogHistogram::new(0.10);
+        assert_eq!(h.quantile(), None);
+        let mut x = 0x9E37_79B9u32;
+        for i in 0..20_000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            // A noise floor that shifts: quiet, then loud, then quiet again, plus zeros.
+            let scale = if (5_000..12_000).contains(&i) {
+                1e-2
+            } else {
+                1e-6
+            };
+            let v = if x % 97 == 0 {
+                0.0
+            } else {
+                scale * (x as f64 / u32::MAX as f64)
+            };
+            h.add(v);
+            assert_eq!(h.quantile(), h.quantile_by_scan(), "after {} values", i + 1);
+        }
+    }
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
 

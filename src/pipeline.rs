@@ -328,7 +328,7 @@ struct SensorSpec<'a> {
 }
 
 fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
-    let c = coverage(points.iter(), &[0.0; 3]);
+    let c = coverage(points, &[0.0; 3]);
     SensorResult {
         report,
         calibration: None,
@@ -424,25 +424,13 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
     }
     // Stuck part of the time: one exact value in a fifth of the points.
     for k in 0..3 {
-        let mut v: Vec<f64> = points.iter().map(|p| p[k]).collect();
-        v.sort_by(|a, b| a.total_cmp(b));
-        let (mut best, mut run, mut val) = (0, 0, f64::NAN);
-        for i in 0..n {
-            run = if i > 0 && v[i] == v[i - 1] {
-                run + 1
-            } else {
-                1
-            };
-            if run > best {
-                best = run;
-                val = v[i];
+        if let Some((val, best)) = frequent_value(points.iter().map(|p| p[k]), 0.2) {
+            if best >= 5 && val > ranges[k].0 && val < ranges[k].1 {
+                return Some(format!(
+                    "axis {} reads exactly {val} in {best} of {n} points: the axis is stuck part of the time",
+                    AXIS[k]
+                ));
             }
-        }
-        if best >= 5 && best as f64 >= 0.2 * n as f64 && val > ranges[k].0 && val < ranges[k].1 {
-            return Some(format!(
-                "axis {} reads exactly {val} in {best} of {n} points: the axis is stuck part of the time",
-                AXIS[k]
-            ));
         }
     }
     let need = (0.03 * n as f64).ceil().max(5.0) as usize;
@@ -461,12 +449,57 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
     None
 }
 
+/// The value that occurs most often (the smallest of equally frequent ones) and its count, when it
+/// occurs in at least `min_share` of the values (`min_share` > 1/6). O(n): the Misra-Gries summary
+/// with five counters keeps every value more frequent than n/6, then one pass counts them exactly.
+fn frequent_value(
+    values: impl Iterator<Item = f64> + Clone,
+    min_share: f64,
+) -> Option<(f64, usize)> {
+    let mut cand: [(f64, usize); 5] = [(f64::NAN, 0); 5];
+    let mut n = 0usize;
+    for v in values.clone() {
+        n += 1;
+        if let Some(c) = cand.iter_mut().find(|c| c.1 > 0 && c.0 == v) {
+            c.1 += 1;
+        } else if let Some(c) = cand.iter_mut().find(|c| c.1 == 0) {
+            *c = (v, 1);
+        } else {
+            for c in cand.iter_mut() {
+                c.1 -= 1;
+            }
+        }
+    }
+    let mut counts = [0usize; 5];
+    for v in values {
+        for (i, c) in cand.iter().enumerate() {
+            if c.1 > 0 && c.0 == v {
+                counts[i] += 1;
+            }
+        }
+    }
+    let mut best: Option<(f64, usize)> = None;
+    for (i, c) in cand.iter().enumerate() {
+        if c.1 == 0 {
+            continue;
+        }
+        let better = match best {
+            None => true,
+            Some((bv, bc)) => counts[i] > bc || (counts[i] == bc && c.0 < bv),
+        };
+        if better {
+            best = Some((c.0, counts[i]));
+        }
+    }
+    best.filter(|&(_, c)| c as f64 >= min_share * n as f64)
+}
+
 /// Which residuals lie within 4 robust sigmas (1.4826 MAD, at least `floor`) of the median, the
 /// median and MAD taken over the residuals that `over` marks.
 fn robust_inliers(residuals: &[f64], over: &[bool], floor: f64) -> Vec<bool> {
     let median = |mut v: Vec<f64>| -> f64 {
-        v.sort_by(|a, b| a.total_cmp(b));
-        v[v.len() / 2]
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1
     };
     let sel: Vec<f64> = residuals
         .iter()
@@ -621,7 +654,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             ]
         })
         .collect();
-    let cov_before = coverage(dirs_before.iter(), &[0.0; 3]);
+    let cov_before = coverage(&dirs_before, &[0.0; 3]);
 
     let mut fits = Vec::new();
     for k in &kinds {
@@ -762,7 +795,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     };
     let dirs_after: Vec<Vec3> = points.iter().map(|p| cal.apply(p)).collect();
     let residuals: Vec<f64> = dirs_after.iter().map(|c| norm(c) - report.radius).collect();
-    let cov_after = coverage(dirs_after.iter(), &[0.0; 3]);
+    let cov_after = coverage(&dirs_after, &[0.0; 3]);
     if report.status == "ok" {
         check_limits(&mut report, &cal, &cov_after, spec);
     }
@@ -1114,6 +1147,43 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frequent_value_agrees_with_sorting_and_counting() {
+        let mut x = 0x2545_F491u32;
+        for case in 0..400 {
+            let n = 5 + case % 60;
+            let vals: Vec<f64> = (0..n)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 17;
+                    x ^= x << 5;
+                    // Few distinct values in some cases, many in others.
+                    (x % [3, 5, 8, 40][case % 4]) as f64 - 1.0
+                })
+                .collect();
+            let mut sorted = vals.clone();
+            sorted.sort_by(|a, b| a.total_cmp(b));
+            let (mut best, mut run, mut val) = (0, 0, f64::NAN);
+            for i in 0..n {
+                run = if i > 0 && sorted[i] == sorted[i - 1] {
+                    run + 1
+                } else {
+                    1
+                };
+                if run > best {
+                    best = run;
+                    val = sorted[i];
+                }
+            }
+            let expected = (best as f64 >= 0.2 * n as f64).then_some((val, best));
+            assert_eq!(
+                frequent_value(vals.iter().copied(), 0.2),
+                expected,
+                "case {case}: {vals:?}"
+            );
+        }
+    }
 
     #[test]
     fn poses_are_bounded_and_the_newest_kept() {
