@@ -128,7 +128,8 @@ impl DirectionBins {
         let z = (d[2] / n).clamp(-1.0, 1.0);
         let theta = z.acos();
         let row = (theta / self.cell_rad).floor() as i32;
-        let ring = (theta.sin() * std::f64::consts::TAU / self.cell_rad)
+        // sin(theta) from z directly (the same value, without a second transcendental call).
+        let ring = ((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / self.cell_rad)
             .ceil()
             .max(1.0);
         let phi = d[1].atan2(d[0]) + std::f64::consts::PI;

@@ -377,109 +377,152 @@ pub fn fit_norm(
     kind: ModelKind,
     opts: &NormFitOptions,
 ) -> Result<NormFit, FitFailure> {
-    let np = n_norm_params(kind);
-    let finite = |p: &Vec3| p.iter().all(|v| v.is_finite());
-    let filtered: Vec<Vec3>;
-    let pts: &[Vec3] = if points.iter().all(finite) {
-        points
-    } else {
-        filtered = points.iter().copied().filter(finite).collect();
-        &filtered
-    };
-    if pts.len() < np + 3 {
-        return Err(FitFailure::NotEnoughSamples);
-    }
-    // Normalise: centre and scale from the sphere fit (always defined when the points are not coplanar).
-    let mut soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
-    let mut scratch = kernel::Scratch::new(soa.padded);
-    let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
-    let sph = sphere_from_normal_equations(&ata, &atb).ok_or(FitFailure::NotIdentifiable)?;
-    let c0 = sph.centre;
-    let s0 = 1.0 / sph.shape[(0, 0)];
-    soa.renormalise([c0[0], c0[1], c0[2]], s0);
-    let unit = Start {
-        centre: Vector3::zeros(),
-        shape: Matrix3::identity(),
-    };
-    let start = match kind {
-        ModelKind::Sphere => unit,
-        _ => {
-            let (_, ata, atb) = kernel::ellipsoid_normal_equations(&soa, &mut scratch);
-            ellipsoid_from_normal_equations(&ata, &atb)
-                .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
-                .unwrap_or(unit)
+    NormFitter::new(points).fit(kind, opts)
+}
+
+/// Norm fits of several models to the same points, sharing the work they have in common: the
+/// points in fit layout, the normalising sphere fit and the algebraic ellipsoid start.
+pub struct NormFitter {
+    soa: kernel::Soa,
+    scratch: kernel::Scratch,
+    /// Normalising sphere fit (centre, radius), raw units; `None` if the points are not enough or
+    /// do not define a sphere.
+    sphere: Option<(Vector3<f64>, f64)>,
+    /// The ellipsoid start, computed when a model first needs it.
+    ellipsoid: Option<Option<Start>>,
+}
+
+impl NormFitter {
+    /// Points with a non-finite coordinate are left out.
+    pub fn new(points: &[Vec3]) -> NormFitter {
+        let finite = |p: &Vec3| p.iter().all(|v| v.is_finite());
+        let filtered: Vec<Vec3>;
+        let pts: &[Vec3] = if points.iter().all(finite) {
+            points
+        } else {
+            filtered = points.iter().copied().filter(finite).collect();
+            &filtered
+        };
+        let mut soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
+        let mut scratch = kernel::Scratch::new(soa.padded);
+        let mut sphere = None;
+        if pts.len() >= 4 {
+            // Normalise: centre and scale from the sphere fit (defined when the points are not coplanar).
+            let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
+            if let Some(sph) = sphere_from_normal_equations(&ata, &atb) {
+                let (c0, s0) = (sph.centre, 1.0 / sph.shape[(0, 0)]);
+                soa.renormalise([c0[0], c0[1], c0[2]], s0);
+                sphere = Some((c0, s0));
+            }
         }
-    };
-    let shape0 = if kind == ModelKind::Full12 {
-        // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
-        let s2 = start.shape.transpose() * start.shape;
-        s2.cholesky()
-            .map(|c| c.l().transpose())
-            .unwrap_or(Matrix3::identity())
-    } else {
-        start.shape
-    };
-    let mut x0 = vec![start.centre[0], start.centre[1], start.centre[2]];
-    x0.extend(params_from_a(kind, &shape0));
-    let (sc, it) = (&mut scratch, opts.max_iterations);
-    let sol = match kind {
-        ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4, 6>(&soa, sc, &x0, it),
-        ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 9>(&soa, sc, &x0, it),
-        ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 12>(&soa, sc, &x0, it),
-        ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 12>(&soa, sc, &x0, it),
-    };
-    let p = &sol.params;
-    if p.iter().any(|v| !v.is_finite()) {
-        return Err(FitFailure::DidNotConverge);
-    }
-    let a = a_from_params(kind, &p[3..]);
-    let offset = [c0[0] + s0 * p[0], c0[1] + s0 * p[1], c0[2] + s0 * p[2]];
-    let a_raw = a / s0;
-    let det = a_raw.determinant();
-    if !(det.abs() > 0.0) {
-        return Err(FitFailure::NotIdentifiable);
-    }
-    let raw_radius = 1.0 / det.abs().cbrt();
-    let radius = opts.target_norm.unwrap_or(raw_radius);
-    let mut m = a_raw * radius;
-    // Keep a proper (det > 0) matrix: a reflection cannot be told apart by norms.
-    if m.determinant() < 0.0 {
-        m = -m;
-    }
-    let n = soa.n;
-    let dof = (n - np).max(1) as f64;
-    let s2 = sol.ssr / dof;
-    let (offset_sigma, matrix_sigma_max) = match &sol.cov_diag {
-        Some(c) => {
-            let os = [
-                s0 * (c[0] * s2).max(0.0).sqrt(),
-                s0 * (c[1] * s2).max(0.0).sqrt(),
-                s0 * (c[2] * s2).max(0.0).sqrt(),
-            ];
-            let ms = (3..np)
-                .map(|k| (c[k] * s2).max(0.0).sqrt())
-                .fold(0.0, f64::max);
-            (os, ms)
+        NormFitter {
+            soa,
+            scratch,
+            sphere,
+            ellipsoid: None,
         }
-        None => ([f64::INFINITY; 3], f64::INFINITY),
-    };
-    Ok(NormFit {
-        calibration: Calibration {
-            model: kind,
-            offset,
-            matrix: mat_to_rows(&m),
-        },
-        radius,
-        raw_radius,
-        rms_residual: (sol.ssr / n as f64).sqrt() * radius,
-        offset_sigma,
-        matrix_sigma_max,
-        ssr_normalised: sol.ssr,
-        samples_used: n,
-        iterations: sol.iterations,
-        converged: sol.converged,
-        condition: sol.condition,
-    })
+    }
+
+    /// Centre of the plain sphere fit, raw units.
+    pub fn sphere_centre(&self) -> Option<Vec3> {
+        self.sphere.map(|(c, _)| [c[0], c[1], c[2]])
+    }
+
+    /// Fit one model.
+    pub fn fit(&mut self, kind: ModelKind, opts: &NormFitOptions) -> Result<NormFit, FitFailure> {
+        let np = n_norm_params(kind);
+        if self.soa.n < np + 3 {
+            return Err(FitFailure::NotEnoughSamples);
+        }
+        let (c0, s0) = self.sphere.ok_or(FitFailure::NotIdentifiable)?;
+        let unit = Start {
+            centre: Vector3::zeros(),
+            shape: Matrix3::identity(),
+        };
+        let start = match kind {
+            ModelKind::Sphere => unit,
+            _ => {
+                let (soa, scratch) = (&self.soa, &mut self.scratch);
+                let e = *self.ellipsoid.get_or_insert_with(|| {
+                    let (_, ata, atb) = kernel::ellipsoid_normal_equations(soa, scratch);
+                    ellipsoid_from_normal_equations(&ata, &atb)
+                        .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
+                });
+                e.unwrap_or(unit)
+            }
+        };
+        let (soa, scratch) = (&self.soa, &mut self.scratch);
+        let shape0 = if kind == ModelKind::Full12 {
+            // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
+            let s2 = start.shape.transpose() * start.shape;
+            s2.cholesky()
+                .map(|c| c.l().transpose())
+                .unwrap_or(Matrix3::identity())
+        } else {
+            start.shape
+        };
+        let mut x0 = vec![start.centre[0], start.centre[1], start.centre[2]];
+        x0.extend(params_from_a(kind, &shape0));
+        let (sc, it) = (scratch, opts.max_iterations);
+        let sol = match kind {
+            ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4, 6>(soa, sc, &x0, it),
+            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 9>(soa, sc, &x0, it),
+            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 12>(soa, sc, &x0, it),
+            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 12>(soa, sc, &x0, it),
+        };
+        let p = &sol.params;
+        if p.iter().any(|v| !v.is_finite()) {
+            return Err(FitFailure::DidNotConverge);
+        }
+        let a = a_from_params(kind, &p[3..]);
+        let offset = [c0[0] + s0 * p[0], c0[1] + s0 * p[1], c0[2] + s0 * p[2]];
+        let a_raw = a / s0;
+        let det = a_raw.determinant();
+        if !(det.abs() > 0.0) {
+            return Err(FitFailure::NotIdentifiable);
+        }
+        let raw_radius = 1.0 / det.abs().cbrt();
+        let radius = opts.target_norm.unwrap_or(raw_radius);
+        let mut m = a_raw * radius;
+        // Keep a proper (det > 0) matrix: a reflection cannot be told apart by norms.
+        if m.determinant() < 0.0 {
+            m = -m;
+        }
+        let n = soa.n;
+        let dof = (n - np).max(1) as f64;
+        let s2 = sol.ssr / dof;
+        let (offset_sigma, matrix_sigma_max) = match &sol.cov_diag {
+            Some(c) => {
+                let os = [
+                    s0 * (c[0] * s2).max(0.0).sqrt(),
+                    s0 * (c[1] * s2).max(0.0).sqrt(),
+                    s0 * (c[2] * s2).max(0.0).sqrt(),
+                ];
+                let ms = (3..np)
+                    .map(|k| (c[k] * s2).max(0.0).sqrt())
+                    .fold(0.0, f64::max);
+                (os, ms)
+            }
+            None => ([f64::INFINITY; 3], f64::INFINITY),
+        };
+        Ok(NormFit {
+            calibration: Calibration {
+                model: kind,
+                offset,
+                matrix: mat_to_rows(&m),
+            },
+            radius,
+            raw_radius,
+            rms_residual: (sol.ssr / n as f64).sqrt() * radius,
+            offset_sigma,
+            matrix_sigma_max,
+            ssr_normalised: sol.ssr,
+            samples_used: n,
+            iterations: sol.iterations,
+            converged: sol.converged,
+            condition: sol.condition,
+        })
+    }
 }
 
 /// Upper 0.999 quantile of chi-square with `df` degrees of freedom (Wilson-Hilferty), used for the

@@ -404,15 +404,12 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
         return None;
     }
     const AXIS: [&str; 3] = ["x", "y", "z"];
-    let range = |k: usize| {
-        let (lo, hi) = points
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-                (lo.min(p[k]), hi.max(p[k]))
-            });
-        (lo, hi)
-    };
-    let ranges = [range(0), range(1), range(2)];
+    let mut ranges = [(f64::INFINITY, f64::NEG_INFINITY); 3];
+    for p in points {
+        for (r, v) in ranges.iter_mut().zip(p) {
+            *r = (r.0.min(*v), r.1.max(*v));
+        }
+    }
     let widest = ranges.iter().map(|(lo, hi)| hi - lo).fold(0.0, f64::max);
     for (k, (lo, hi)) in ranges.iter().enumerate() {
         if widest > 0.0 && hi - lo <= 1e-6 * widest {
@@ -434,9 +431,17 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
         }
     }
     let need = (0.03 * n as f64).ceil().max(5.0) as usize;
+    // Points at each axis's low and high extreme, counted in one pass.
+    let mut at_rail = [[0usize; 2]; 3];
+    for p in points {
+        for k in 0..3 {
+            at_rail[k][0] += (p[k] == ranges[k].0) as usize;
+            at_rail[k][1] += (p[k] == ranges[k].1) as usize;
+        }
+    }
     for (k, (lo, hi)) in ranges.iter().enumerate() {
-        for rail in [*lo, *hi] {
-            let at = points.iter().filter(|p| p[k] == rail).count();
+        for (side, rail) in [*lo, *hi].into_iter().enumerate() {
+            let at = at_rail[k][side];
             if at >= need {
                 return Some(format!(
                     "axis {} reads exactly {rail} in {at} of {n} points: saturated (the field or \
@@ -640,10 +645,9 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         "six_position" => vec![],
         m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
     };
-    // Centre for the "before" coverage: the plain sphere fit.
-    let raw_centre = crate::fit::sphere_start(points)
-        .map(|s| [s.centre[0], s.centre[1], s.centre[2]])
-        .unwrap_or([0.0; 3]);
+    // The candidate fits share their set-up; its sphere fit is the centre for the "before" coverage.
+    let mut fitter = crate::fit::NormFitter::new(points);
+    let raw_centre = fitter.sphere_centre().unwrap_or([0.0; 3]);
     let dirs_before: Vec<Vec3> = points
         .iter()
         .map(|p| {
@@ -658,7 +662,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
 
     let mut fits = Vec::new();
     for k in &kinds {
-        if let Ok(f) = fit_norm(points, *k, &opts) {
+        if let Ok(f) = fitter.fit(*k, &opts) {
             fits.push(f);
         }
     }
