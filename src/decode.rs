@@ -498,6 +498,17 @@ fn scaled(
 /// Garbage between records, damaged frames and a truncated tail are counted and skipped.
 pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
     let mut out = Vec::new();
+    decode_tlog_with(bytes, conv, &mut |s, _, _| out.push(s));
+    out
+}
+
+/// As [`decode_tlog`], handing each sample to `emit(sample, bytes_read_so_far, converter)` as it is
+/// decoded.
+pub fn decode_tlog_with(
+    bytes: &[u8],
+    conv: &mut MessageConverter,
+    emit: &mut dyn FnMut(Sample, usize, &MessageConverter),
+) {
     let mut pos = 0usize;
     let mut last_ts: Option<u64> = None;
     let plausible = |ts: u64, last: Option<u64>| match last {
@@ -520,7 +531,7 @@ pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
                 last_ts = Some(ts);
                 pos += 8 + n;
                 if let Some(s) = conv.convert(&f.message, ts) {
-                    out.push(s);
+                    emit(s, pos, conv);
                 }
             }
             FrameParse::Incomplete => {
@@ -541,7 +552,6 @@ pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
     if pos < bytes.len() && pos + 8 >= bytes.len() && bytes.len() > pos {
         conv.stats.skip("truncated");
     }
-    out
 }
 
 fn next_record(bytes: &[u8], from: usize, last_ts: Option<u64>) -> usize {

@@ -200,7 +200,7 @@ fn main() -> Result<()> {
             let bar = indicatif::ProgressBar::new(0);
             bar.set_style(
                 indicatif::ProgressStyle::with_template(
-                    "{bar:40} {pos}/{len} samples {per_sec} eta {eta}",
+                    "{bar:40} {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
                 )
                 .expect("template"),
             );

@@ -25,31 +25,56 @@ pub struct ReplayOutcome {
     pub written: Vec<PathBuf>,
 }
 
-/// Run a log through the pipeline. `progress(done, total)` is called now and then.
+/// Run a log through the pipeline. `progress(bytes_done, bytes_total)` is called now and then.
 pub fn replay(
     path: &Path,
     cfg: &Config,
     opts: &ReplayOptions,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplayOutcome, Error> {
-    let log = crate::sources::read_log(path, opts.format, cfg)?;
+    let bytes = std::fs::read(path).map_err(|source| Error::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let mut pipe = Pipeline::new(cfg)?;
-    pipe.mag_units = log.units.mag;
-    pipe.gyro_units = log.units.gyro;
+    // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
+    // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
+    // the same order as from a whole-file decode, so the result is the same.
+    let mut samples = Vec::new();
+    let decoded = std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<crate::sources::Batch>(4);
+        let decoder = scope.spawn(move || {
+            crate::sources::decode_log_batched(&bytes, path, opts.format, cfg, &mut |b| {
+                // The receiver only goes away on a panic; nothing then to hand on to.
+                let _ = tx.send(b);
+            })
+        });
+        let mut first = true;
+        for batch in rx {
+            if first {
+                pipe.mag_units = batch.units.mag;
+                pipe.gyro_units = batch.units.gyro;
+                first = false;
+            }
+            for s in &batch.samples {
+                if pipe.push(s) {
+                    pipe.refit();
+                }
+            }
+            progress(batch.bytes_read as u64, batch.bytes_total as u64);
+            samples.extend_from_slice(&batch.samples);
+        }
+        decoder
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    });
+    let mut log = decoded?;
+    log.samples = samples;
     let total = log.samples.len() as u64;
-    for (i, s) in log.samples.iter().enumerate() {
-        if pipe.push(s) {
-            pipe.refit();
-        }
-        if i % 65_536 == 0 {
-            progress(i as u64, total);
-        }
-    }
     let mut results = pipe.finish().clone();
     let (scale, failure) = gyro_scale(&log.samples, &pipe, &results);
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
-    progress(total, total);
     let declination = cfg.declination_deg()?;
     let duration = match (log.samples.first(), log.samples.last()) {
         (Some(a), Some(b)) => b.t_s - a.t_s,

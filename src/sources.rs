@@ -3,7 +3,7 @@
 
 use crate::config::Config;
 use crate::decode::{
-    decode_csv, decode_tlog, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
+    decode_csv, decode_tlog_with, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
     MessageConverter,
 };
 use crate::error::Error;
@@ -37,6 +37,37 @@ pub fn decode_log(
     format: Option<Format>,
     cfg: &Config,
 ) -> Result<Log, Error> {
+    let mut samples = Vec::new();
+    let mut log = decode_log_batched(bytes, path, format, cfg, &mut |batch| {
+        samples.extend_from_slice(&batch.samples)
+    })?;
+    log.samples = samples;
+    Ok(log)
+}
+
+/// Samples handed on while a log is decoded, with what is known so far.
+pub struct Batch {
+    pub samples: Vec<Sample>,
+    /// Units of the samples (fixed once the first sample is decoded).
+    pub units: Units,
+    /// Bytes of the (decompressed) log read so far, and in all.
+    pub bytes_read: usize,
+    pub bytes_total: usize,
+}
+
+/// Samples per [`Batch`].
+pub const BATCH_SAMPLES: usize = 8192;
+
+/// As [`decode_log`], handing the samples on in batches of [`BATCH_SAMPLES`] as they are decoded
+/// (a tlog; a CSV comes as one batch), so a consumer can work while decoding goes on. The returned
+/// [`Log`] has everything but the samples.
+pub fn decode_log_batched(
+    bytes: &[u8],
+    path: &Path,
+    format: Option<Format>,
+    cfg: &Config,
+    sink: &mut dyn FnMut(Batch),
+) -> Result<Log, Error> {
     let data = maybe_gunzip(bytes).map_err(|e| Error::Format {
         path: path.to_path_buf(),
         message: format!("gzip: {e}"),
@@ -59,8 +90,32 @@ pub fn decode_log(
                 InstanceChoice::Named(cfg.input.instance.clone())
             };
             let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
-            let samples = decode_tlog(&data, &mut conv);
-            if samples.is_empty() {
+            let total = data.len();
+            let mut batch = Vec::with_capacity(BATCH_SAMPLES);
+            let mut any = false;
+            decode_tlog_with(&data, &mut conv, &mut |s, read, conv| {
+                batch.push(s);
+                if batch.len() == BATCH_SAMPLES {
+                    any = true;
+                    sink(Batch {
+                        samples: std::mem::replace(&mut batch, Vec::with_capacity(BATCH_SAMPLES)),
+                        // Fixed by the instance, which the first sample locked.
+                        units: conv.units(),
+                        bytes_read: read,
+                        bytes_total: total,
+                    });
+                }
+            });
+            if !batch.is_empty() {
+                any = true;
+                sink(Batch {
+                    samples: batch,
+                    units: conv.units(),
+                    bytes_read: total,
+                    bytes_total: total,
+                });
+            }
+            if !any {
                 let what = match &conv.choice {
                     InstanceChoice::Auto => {
                         "no IMU message with a magnetometer (HIGHRES_IMU, SCALED_IMU*, RAW_IMU)"
@@ -78,7 +133,7 @@ pub fn decode_log(
             let units = conv.units();
             Ok(Log {
                 format,
-                samples,
+                samples: Vec::new(),
                 instance: conv.instance().map(String::from),
                 stats: conv.stats,
                 units,
@@ -96,16 +151,23 @@ pub fn decode_log(
                 "counts" => Unit::Counts,
                 _ => Unit::Si,
             };
+            let units = Units {
+                accel: accel_units,
+                gyro: Unit::Si,
+                mag: Unit::Si,
+            };
+            sink(Batch {
+                samples,
+                units,
+                bytes_read: data.len(),
+                bytes_total: data.len(),
+            });
             Ok(Log {
                 format,
-                samples,
+                samples: Vec::new(),
                 stats,
                 instance: None,
-                units: Units {
-                    accel: accel_units,
-                    gyro: Unit::Si,
-                    mag: Unit::Si,
-                },
+                units,
             })
         }
     }
