@@ -53,6 +53,21 @@ fn minute(minute: u64) -> Vec<imucald::types::Sample> {
     s
 }
 
+/// Two TOML snippets as one document: the `[daemon]` keys of `extra` join those of `base`.
+fn merge_toml(base: &str, extra: &str) -> String {
+    let mut doc: toml::Table = base.parse().expect("bench TOML");
+    let more: toml::Table = extra.parse().expect("IMUCALD_BENCH_TOML is not valid TOML");
+    for (k, v) in more {
+        match (doc.get_mut(&k), v) {
+            (Some(toml::Value::Table(t)), toml::Value::Table(m)) => t.extend(m),
+            (_, v) => {
+                doc.insert(k, v);
+            }
+        }
+    }
+    toml::to_string(&doc).expect("TOML")
+}
+
 struct Daemon {
     child: Child,
     port: u16,
@@ -80,7 +95,10 @@ impl Daemon {
             }
         });
         let cfg = std::env::temp_dir().join(format!("imucald-bench-{port}.toml"));
-        std::fs::write(&cfg, toml).expect("bench config");
+        // IMUCALD_BENCH_TOML adds settings to every daemon the bench starts (e.g. to compare
+        // `daemon.udp_poll_ms` values); a table given both ways is merged by TOML rules or refused.
+        let extra = std::env::var("IMUCALD_BENCH_TOML").unwrap_or_default();
+        std::fs::write(&cfg, merge_toml(toml, &extra)).expect("bench config");
         let child = Command::new(env!("CARGO_BIN_EXE_imucald"))
             .args([
                 "run",
@@ -264,6 +282,8 @@ fn cpu_at_1khz(seconds: f64) {
     let lp = d.loop_cpu_s() - loop0;
     let rss = d.rss_mb();
     let lines = d.lines.load(std::sync::atomic::Ordering::Relaxed);
+    // The last datagrams wait in the kernel until the next read (`daemon.udp_poll_ms`).
+    std::thread::sleep(Duration::from_millis(100));
     let (taken, dropped) = d.stop();
     println!(
         "live CPU at 1 kHz: {:.3} CPU-s over {wall:.1} s wall = {:.2}% of one core; {:.1} us per sample; {sent} frames sent, {taken} samples taken, {dropped} dropped; RSS {rss:.1} MB; {lines} JSON lines out",

@@ -90,7 +90,8 @@ pub struct DaemonConfig {
     /// A link with no bytes for this long is reported silent.
     pub silent_after_s: f64,
     /// UDP sources: read the socket every this many ms, taking all that queued, instead of waking
-    /// for every datagram (at 1 kHz waking costs more CPU than the samples). 0 = wake per datagram;
+    /// for every datagram (at 1 kHz waking costs more CPU than the samples); more often, down to
+    /// 1 ms, while datagrams arrive fast enough to fill the kernel's buffer. 0 = wake per datagram;
     /// ignored (0) when `attitude_every_samples` is set. At most 50.
     pub udp_poll_ms: f64,
 }
@@ -119,7 +120,7 @@ impl Default for DaemonConfig {
             ardupilot_corrected_mag: "undo".into(),
             queue_capacity: 4096,
             silent_after_s: 3.0,
-            udp_poll_ms: 5.0,
+            udp_poll_ms: 10.0,
         }
     }
 }

@@ -1290,8 +1290,17 @@ async fn serve_udp(
     }
 }
 
-/// As [`serve_udp`], but the socket is taken off the reactor and read every `period`: whatever
-/// queued in the kernel meanwhile is taken in one go. Arriving datagrams wake nothing.
+/// Datagrams per poll above which the poll period halves, and below which it doubles back
+/// towards the configured one: a fast sender is read often enough that the kernel's receive buffer
+/// (about 160 small datagrams by default) never fills between reads.
+const POLL_SHRINK_ABOVE: usize = 48;
+const POLL_GROW_BELOW: usize = 12;
+/// Shortest poll period.
+const POLL_MIN: Duration = Duration::from_millis(1);
+
+/// As [`serve_udp`], but the socket is taken off the reactor and read every `period` (shorter while
+/// datagrams arrive fast, see [`POLL_SHRINK_ABOVE`]): whatever queued in the kernel meanwhile is
+/// taken in one go. Arriving datagrams wake nothing.
 async fn serve_udp_polled(
     sh: &Shared,
     ctl: &mut Control,
@@ -1309,14 +1318,15 @@ async fn serve_udp_polled(
     let mut buf = vec![0u8; 65_536];
     let mut last = Instant::now();
     let mut silent = false;
-    let mut tick = tokio::time::interval(period);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut every = period;
+    let next = tokio::time::sleep(Duration::ZERO);
+    tokio::pin!(next);
     loop {
         tokio::select! {
             biased;
             _ = wait_stop(&mut ctl.shutdown) => return End::Stop,
-            _ = tick.tick() => {
-                let mut got = false;
+            _ = &mut next => {
+                let mut taken = 0usize;
                 loop {
                     match sock.recv_from(&mut buf) {
                         Ok((n, from)) => {
@@ -1324,7 +1334,7 @@ async fn serve_udp_polled(
                                 tracing::debug!("link {}: udp peer {from}", sh.index);
                                 peer = Some(from);
                             }
-                            got = true;
+                            taken += 1;
                             if !rx.on_bytes(sh, &buf[..n], true) {
                                 return End::Stop;
                             }
@@ -1334,6 +1344,13 @@ async fn serve_udp_polled(
                         Err(e) => return End::Lost(format!("udp receive failed: {e}")),
                     }
                 }
+                if taken > POLL_SHRINK_ABOVE {
+                    every = (every / 2).max(POLL_MIN.min(period));
+                } else if taken < POLL_GROW_BELOW {
+                    every = (every * 2).min(period);
+                }
+                next.as_mut().reset(tokio::time::Instant::now() + every);
+                let got = taken > 0;
                 if got {
                     last = Instant::now();
                     silent = false;

@@ -370,7 +370,11 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
                 | Some("not_identifiable")
                 | Some("radius")
         );
-    if spec.is_accel || points.len() < 30 || !suspicious {
+    // Too little of the sphere even before calibration: leaving points out cannot add any, so the
+    // robust pass (several more fits, slow ones on a small cap) would only confirm the failure.
+    let raw_coverage_short = plain.report.failure.as_deref() == Some("coverage")
+        && plain.coverage_before.filled < spec.limits.min_filled_regions;
+    if spec.is_accel || points.len() < 30 || !suspicious || raw_coverage_short {
         return plain;
     }
     let (keep, rejected) = inliers(points, spec);
