@@ -17,6 +17,8 @@
 //! loop watches the shutdown flag.
 
 use crate::decode::{self, DecodeStats, Frame, FrameDecoder, FrameParse};
+
+mod udp_batch;
 use crate::error::Error;
 use crate::types::{Sample, STANDARD_GRAVITY_MPS2};
 use std::collections::BTreeMap;
@@ -1315,7 +1317,7 @@ async fn serve_udp_polled(
     };
     let silent_after = sh.tuning.silent;
     let mut peer: Option<SocketAddr> = None;
-    let mut buf = vec![0u8; 65_536];
+    let mut batch = udp_batch::UdpBatch::new();
     let mut last = Instant::now();
     let mut silent = false;
     let mut every = period;
@@ -1328,20 +1330,24 @@ async fn serve_udp_polled(
             _ = &mut next => {
                 let mut taken = 0usize;
                 loop {
-                    match sock.recv_from(&mut buf) {
-                        Ok((n, from)) => {
-                            if target.is_none() && peer != Some(from) {
-                                tracing::debug!("link {}: udp peer {from}", sh.index);
-                                peer = Some(from);
-                            }
-                            taken += 1;
-                            if !rx.on_bytes(sh, &buf[..n], true) {
-                                return End::Stop;
-                            }
-                        }
-                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                    let n = match batch.recv(&sock) {
+                        Ok(n) => n,
                         Err(e) if transient_udp_error(&e) => break,
                         Err(e) => return End::Lost(format!("udp receive failed: {e}")),
+                    };
+                    for i in 0..n {
+                        let (bytes, from) = batch.get(i);
+                        if let Some(from) = from.filter(|f| target.is_none() && peer != Some(*f)) {
+                            tracing::debug!("link {}: udp peer {from}", sh.index);
+                            peer = Some(from);
+                        }
+                        taken += 1;
+                        if !rx.on_bytes(sh, bytes, true) {
+                            return End::Stop;
+                        }
+                    }
+                    if n < udp_batch::BATCH {
+                        break;
                     }
                 }
                 if taken > POLL_SHRINK_ABOVE {
