@@ -1299,6 +1299,11 @@ const POLL_SHRINK_ABOVE: usize = 48;
 const POLL_GROW_BELOW: usize = 12;
 /// Shortest poll period.
 const POLL_MIN: Duration = Duration::from_millis(1);
+/// How long a shortened poll period is kept after the last busy read before it may grow again, so
+/// a sender that pauses briefly does not come back to a long period (and a full buffer).
+const POLL_HOLD: Duration = Duration::from_secs(2);
+/// Receive buffer asked for on a polled socket, bytes (the kernel caps it at `net.core.rmem_max`).
+const POLL_RECEIVE_BUFFER: usize = 1 << 20;
 
 /// As [`serve_udp`], but the socket is taken off the reactor and read every `period` (shorter while
 /// datagrams arrive fast, see [`POLL_SHRINK_ABOVE`]): whatever queued in the kernel meanwhile is
@@ -1318,6 +1323,10 @@ async fn serve_udp_polled(
     let silent_after = sh.tuning.silent;
     let mut peer: Option<SocketAddr> = None;
     let mut batch = udp_batch::UdpBatch::new();
+    if let Err(e) = udp_batch::grow_receive_buffer(&sock, POLL_RECEIVE_BUFFER) {
+        tracing::debug!("link {}: udp receive buffer left as it was: {e}", sh.index);
+    }
+    let mut fast_until = Instant::now();
     let mut last = Instant::now();
     let mut silent = false;
     let mut every = period;
@@ -1351,8 +1360,11 @@ async fn serve_udp_polled(
                     }
                 }
                 if taken > POLL_SHRINK_ABOVE {
-                    every = (every / 2).max(POLL_MIN.min(period));
-                } else if taken < POLL_GROW_BELOW {
+                    // Aim at about half the threshold per read at the rate just seen.
+                    let aim = (POLL_SHRINK_ABOVE / 2) as u32;
+                    every = (every * aim / taken as u32).max(POLL_MIN.min(period));
+                    fast_until = Instant::now() + POLL_HOLD;
+                } else if taken < POLL_GROW_BELOW && Instant::now() >= fast_until {
                     every = (every * 2).min(period);
                 }
                 next.as_mut().reset(tokio::time::Instant::now() + every);

@@ -253,6 +253,11 @@ impl Pipeline {
                 rms_residual: r.report.rms_residual,
             });
         }
+        // Bounded history: past a quarter over the limit, the oldest go (in one move, not one by one).
+        if self.refits.len() > MAX_REFIT_HISTORY + MAX_REFIT_HISTORY / 4 {
+            let extra = self.refits.len() - MAX_REFIT_HISTORY;
+            self.refits.drain(..extra);
+        }
         if let (Some(b), Some(c)) = (self.mag_bins.as_mut(), results.mag.calibration.as_ref()) {
             let d = norm(&[
                 b.centre[0] - c.offset[0],
@@ -339,6 +344,10 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
         residuals: vec![],
     }
 }
+
+/// Most refit records (one per sensor per refit) the pipeline keeps for its report: the newest
+/// 1000 to 1250 (a stream that runs for days refits every 10 s).
+pub const MAX_REFIT_HISTORY: usize = 1000;
 
 /// Most static poses the pipeline keeps (the oldest are dropped).
 pub const MAX_POSES: usize = 2000;
@@ -1191,6 +1200,19 @@ mod tests {
                 "case {case}: {vals:?}"
             );
         }
+    }
+
+    #[test]
+    fn refit_history_is_bounded_and_the_newest_kept() {
+        let mut p = Pipeline::new(&Config::default()).unwrap();
+        for i in 0..2000 {
+            let r = p.snapshot();
+            let res = fit_all(&r, &Config::default());
+            p.install(i as f64, res);
+            assert!(p.refits.len() <= MAX_REFIT_HISTORY + MAX_REFIT_HISTORY / 4);
+        }
+        assert!(p.refits.len() >= MAX_REFIT_HISTORY);
+        assert_eq!(p.refits.last().unwrap().t_s, 1999.0);
     }
 
     #[test]

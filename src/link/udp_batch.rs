@@ -101,6 +101,53 @@ impl UdpBatch {
     }
 }
 
+/// Ask for a receive buffer of `bytes` (SO_RCVBUF; the kernel caps it at `net.core.rmem_max`),
+/// so datagrams can wait longer between reads. Only ever grows the buffer.
+#[cfg(target_os = "linux")]
+pub fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<()> {
+    use std::os::fd::AsRawFd;
+    let fd = sock.as_raw_fd();
+    let mut cur: libc::c_int = 0;
+    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    // SAFETY: `cur` and `len` are live and sized for an int option.
+    let r = unsafe {
+        libc::getsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&mut cur as *mut libc::c_int).cast(),
+            &mut len,
+        )
+    };
+    if r != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    let want = libc::c_int::try_from(bytes).unwrap_or(libc::c_int::MAX);
+    if cur >= want {
+        return Ok(());
+    }
+    // SAFETY: `want` is a live int of the stated size.
+    let r = unsafe {
+        libc::setsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&want as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    if r != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+/// Elsewhere the buffer is left as the system made it.
+#[cfg(not(target_os = "linux"))]
+pub fn grow_receive_buffer(_sock: &UdpSocket, _bytes: usize) -> io::Result<()> {
+    Ok(())
+}
+
 /// The sender's address from what `recvmmsg` wrote.
 #[cfg(target_os = "linux")]
 fn socket_addr(s: &libc::sockaddr_storage, len: libc::socklen_t) -> Option<SocketAddr> {
