@@ -61,21 +61,11 @@ pub struct LmOutcome<const N: usize> {
     pub converged: bool,
 }
 
-/// Levenberg-Marquardt with Marquardt's diagonal scaling (seed 000 eq. 13). `resid(p, i, grad)` returns
-/// residual `i` and writes its gradient. Normal equations are accumulated point by point, so memory is
-/// O(N^2) whatever the number of points.
-pub fn levenberg_marquardt<const N: usize>(
-    x0: SVector<f64, N>,
-    n_points: usize,
-    max_iter: usize,
-    resid: impl Fn(&SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
-) -> LmOutcome<N> {
-    levenberg_marquardt_prepared(x0, n_points, max_iter, |_| (), |_, x, i, g| resid(x, i, g))
-}
-
-/// As [`levenberg_marquardt`], with `prepare(p)` run once per parameter vector and its result handed
-/// to every `resid(prepared, p, i, grad)` call (a matrix built from the parameters, say), so work
-/// that does not depend on the point is not repeated per point.
+/// Levenberg-Marquardt with Marquardt's diagonal scaling (seed 000 eq. 13) on residuals given point by
+/// point: `prepare(p)` runs once per parameter vector and its result is handed to every
+/// `resid(prepared, p, i, grad)` call (a matrix built from the parameters, say), which returns residual
+/// `i` and writes its gradient. Normal equations are accumulated point by point, so memory is O(N^2)
+/// whatever the number of points; the iteration itself is [`levenberg_marquardt_batch`].
 pub fn levenberg_marquardt_prepared<const N: usize, P>(
     x0: SVector<f64, N>,
     n_points: usize,

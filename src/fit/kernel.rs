@@ -5,6 +5,7 @@
 //!
 //! Pure math: no I/O.
 
+use crate::model::ModelKind;
 use crate::types::Vec3;
 use nalgebra::{Matrix3, SMatrix, SVector};
 
@@ -16,6 +17,16 @@ pub const SPHERE: u8 = 0;
 pub const DIAG6: u8 = 1;
 pub const SYM9: u8 = 2;
 pub const FULL12: u8 = 3;
+
+/// The model a tag stands for.
+pub const fn kind(tag: u8) -> ModelKind {
+    match tag {
+        SPHERE => ModelKind::Sphere,
+        DIAG6 => ModelKind::Diag6,
+        SYM9 => ModelKind::Sym9,
+        _ => ModelKind::Full12,
+    }
+}
 
 /// Points as three padded columns plus a weight column (1 for a point, 0 for padding).
 #[derive(Debug, Clone)]
@@ -171,12 +182,7 @@ fn norm_columns_body<const K: u8, const N: usize>(
     cols: &mut [f64],
 ) {
     let p = params;
-    let a: Matrix3<f64> = match K {
-        SPHERE => Matrix3::identity() * p[3],
-        DIAG6 => Matrix3::from_diagonal(&nalgebra::Vector3::new(p[3], p[4], p[5])),
-        SYM9 => Matrix3::new(p[3], p[6], p[7], p[6], p[4], p[8], p[7], p[8], p[5]),
-        _ => Matrix3::new(p[3], p[6], p[7], 0.0, p[4], p[8], 0.0, 0.0, p[5]),
-    };
+    let a: Matrix3<f64> = crate::model::a_from_params(kind(K), &p.as_slice()[3..]);
     let (c0, c1, c2) = (p[0], p[1], p[2]);
     let (a00, a01, a02, a10, a11, a12, a20, a21, a22) = (
         a[(0, 0)],
@@ -365,7 +371,6 @@ pub fn ellipsoid_normal_equations(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::ModelKind;
     use rand::{Rng, SeedableRng};
 
     fn random_points(n: usize, seed: u64) -> Vec<Vec3> {
@@ -406,37 +411,48 @@ mod tests {
         }
     }
 
-    #[test]
-    fn normal_equations_match_the_per_point_residual() {
+    /// The kernel's residuals and gradients against the per-point reference in `model` (whose
+    /// gradients are checked against numerical derivatives there).
+    fn check_against_reference<const K: u8, const N: usize, const M: usize>(params: &[f64]) {
         let pts = random_points(37, 5);
         let soa = Soa::normalised(&pts, [0.0; 3], 1.0);
         let mut s = Scratch::new(soa.padded);
-        s.clear_from(10, soa.padded);
-        let p = SVector::<f64, 9>::from([0.1, -0.2, 0.05, 1.1, 0.9, 1.05, 0.03, -0.02, 0.05]);
-        let (ssr, jtj, jtr) = norm_normal_equations::<SYM9, 9, 12>(&p, &soa, &mut s);
-        let a = crate::model::a_from_params(ModelKind::Sym9, &p.as_slice()[3..]);
+        s.clear_from(N + 1, soa.padded);
+        let p = SVector::<f64, N>::from_column_slice(params);
+        let (ssr, jtj, jtr) = norm_normal_equations::<K, N, M>(&p, &soa, &mut s);
+        let a = crate::model::a_from_params(kind(K), &params[3..]);
         let (mut ssr2, mut jtj2, mut jtr2) = (
             0.0,
-            SMatrix::<f64, 9, 9>::zeros(),
-            SVector::<f64, 9>::zeros(),
+            SMatrix::<f64, N, N>::zeros(),
+            SVector::<f64, N>::zeros(),
         );
         for x in &pts {
             let mut g = [0.0; 9];
             let r = crate::model::norm_residual_grad_with(
-                ModelKind::Sym9,
+                kind(K),
                 &a,
                 &a.transpose(),
-                p.as_slice(),
+                params,
                 x,
                 &mut g,
             );
-            let g = SVector::<f64, 9>::from(g);
+            let g = SVector::<f64, N>::from_column_slice(&g[..N]);
             ssr2 += r * r;
             jtr2 += g * r;
             jtj2 += g * g.transpose();
         }
-        assert!((ssr - ssr2).abs() < 1e-10 * ssr2);
-        assert!((jtr - jtr2).norm() < 1e-10 * (1.0 + jtr2.norm()));
-        assert!((jtj - jtj2).norm() < 1e-10 * jtj2.norm());
+        let what = format!("{:?}", kind(K));
+        assert!((ssr - ssr2).abs() < 1e-10 * ssr2, "{what}");
+        assert!((jtr - jtr2).norm() < 1e-10 * (1.0 + jtr2.norm()), "{what}");
+        assert!((jtj - jtj2).norm() < 1e-10 * jtj2.norm(), "{what}");
+    }
+
+    #[test]
+    fn normal_equations_match_the_per_point_residual() {
+        check_against_reference::<SPHERE, 4, 6>(&[0.1, -0.2, 0.05, 1.1]);
+        check_against_reference::<DIAG6, 6, 9>(&[0.1, -0.2, 0.05, 1.1, 0.9, 1.05]);
+        let nine = [0.1, -0.2, 0.05, 1.1, 0.9, 1.05, 0.03, -0.02, 0.05];
+        check_against_reference::<SYM9, 9, 12>(&nine);
+        check_against_reference::<FULL12, 9, 12>(&nine);
     }
 }
