@@ -1,6 +1,7 @@
 """Peer for the fit benchmark: SciPy least_squares (Levenberg-Marquardt) on the same sym9 norm residual.
 
-Usage: peer_fit.py POINTS.csv REPEATS   (prints JSON: seconds per fit, offset, iterations)
+Usage: peer_fit.py POINTS.csv REPEATS   (prints JSON: seconds per fit, best of 20 batches of
+REPEATS fits; offset; iterations)
 The residual and start mirror imucald's: data normalised by a linear sphere fit, r_i = |A (x_i - p)| - 1
 with A symmetric, analytic Jacobian, so SciPy gets its best chance.
 """
@@ -60,10 +61,13 @@ def main():
     raw = np.loadtxt(sys.argv[1], delimiter=",")
     reps = int(sys.argv[2])
     off, nfev = fit(raw)
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        fit(raw)
-    dt = (time.perf_counter() - t0) / reps
+    # Best of 20 batches of REPEATS fits (imucald's side does the same).
+    dt = float("inf")
+    for _ in range(20):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            fit(raw)
+        dt = min(dt, (time.perf_counter() - t0) / reps)
     print(json.dumps({"seconds_per_fit": dt, "offset": off.tolist(), "nfev": int(nfev), "scipy": __import__("scipy").__version__}))
 
 
