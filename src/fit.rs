@@ -98,14 +98,22 @@ pub fn levenberg_marquardt_prepared<const N: usize, P>(
         }
         (ssr, jtj, jtr)
     };
-    levenberg_marquardt_batch(x0, max_iter, eval)
+    levenberg_marquardt_batch(x0, max_iter, 0.0, eval)
 }
 
 /// The Levenberg-Marquardt iteration on whole normal equations: `eval(p)` returns the sum of squared
 /// residuals, J^T J and J^T r at `p` (however it builds them).
+///
+/// `last_step_tol`: when the reduction the linear model predicts for the next step is at most this
+/// fraction of the sum of squares, the step is taken without evaluating where it lands, and the
+/// sum of squares becomes the predicted one. Norm fits pass `1e-6 / dof`: the step is then at most
+/// a thousandth of a standard error long (`predicted / s^2 = step^T J^T J step / s^2`), where the
+/// quadratic model is exact to far below anything a fit can resolve, so the evaluation would only
+/// confirm it. 0 evaluates every step.
 pub fn levenberg_marquardt_batch<const N: usize>(
     x0: SVector<f64, N>,
     max_iter: usize,
+    last_step_tol: f64,
     mut eval: impl FnMut(&SVector<f64, N>) -> (f64, SMatrix<f64, N, N>, SVector<f64, N>),
 ) -> LmOutcome<N> {
     let mut x = x0;
@@ -133,6 +141,12 @@ pub fn levenberg_marquardt_batch<const N: usize>(
         // we are at the minimum to working precision and another evaluation would not move us.
         let predicted = -(2.0 * step.dot(&jtr) + (jtj * step).dot(&step));
         if predicted.abs() <= 1e-14 * ssr.max(1e-300) {
+            converged = true;
+            break;
+        }
+        if predicted >= 0.0 && predicted <= last_step_tol * ssr && lambda <= 1e-2 {
+            x += step;
+            ssr = (ssr - predicted).max(0.0);
             converged = true;
             break;
         }
@@ -373,7 +387,8 @@ fn solve_norm<const K: u8, const N: usize, const M: usize>(
 ) -> NormSolution {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
     scratch.clear_from(N + 1, pts.padded);
-    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, |p| {
+    let dof = pts.n.saturating_sub(N).max(1) as f64;
+    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, 1e-6 / dof, |p| {
         kernel::norm_normal_equations::<K, N, M>(p, pts, scratch)
     });
     let inv = out.jtj.cholesky().map(|c| c.inverse());
