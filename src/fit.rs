@@ -386,7 +386,7 @@ fn solve_norm<const K: u8, const N: usize, const M: usize>(
     max_iter: usize,
 ) -> NormSolution {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
-    scratch.clear_from(N + 1, pts.padded);
+    scratch.clear(N, M, pts.padded);
     let dof = pts.n.saturating_sub(N).max(1) as f64;
     let out = levenberg_marquardt_batch::<N>(x0v, max_iter, 1e-6 / dof, |p| {
         kernel::norm_normal_equations::<K, N, M>(p, pts, scratch)
@@ -497,9 +497,9 @@ impl NormFitter {
         let (sc, it) = (scratch, opts.max_iterations);
         let sol = match kind {
             ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4, 6>(soa, sc, &x0, it),
-            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 9>(soa, sc, &x0, it),
-            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 12>(soa, sc, &x0, it),
-            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 12>(soa, sc, &x0, it),
+            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 6>(soa, sc, &x0, it),
+            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 9>(soa, sc, &x0, it),
+            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 9>(soa, sc, &x0, it),
         };
         let p = &sol.params;
         if p.iter().any(|v| !v.is_finite()) {
