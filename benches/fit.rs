@@ -75,10 +75,10 @@ fn bench_fit(py: Option<&str>) {
         let pts = points(n, n as u64);
         let opts = NormFitOptions::default();
         let first = fit_norm(&pts, ModelKind::Sym9, &opts).expect("fit");
-        // Best of 20 batches (the peer does the same): the figure least disturbed by whatever
+        // Best of 100 batches (the peer does the same): the figure least disturbed by whatever
         // else the machine is doing, as Python's timeit recommends.
         let reps = if n <= 300 { 100 } else { 15 };
-        let ours = (0..20)
+        let ours = (0..100)
             .map(|_| {
                 let t0 = Instant::now();
                 for _ in 0..reps {
@@ -103,7 +103,8 @@ fn bench_fit(py: Option<&str>) {
                     .args([
                         script,
                         f.to_str().unwrap(),
-                        if n <= 300 { "10" } else { "3" },
+                        if n <= 300 { "3" } else { "1" },
+                        "100",
                     ])
                     .output()
                     .expect("python");

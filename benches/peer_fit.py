@@ -1,7 +1,7 @@
 """Peer for the fit benchmark: SciPy least_squares (Levenberg-Marquardt) on the same sym9 norm residual.
 
-Usage: peer_fit.py POINTS.csv REPEATS   (prints JSON: seconds per fit, best of 20 batches of
-REPEATS fits; offset; iterations)
+Usage: peer_fit.py POINTS.csv REPEATS [BATCHES]   (prints JSON: seconds per fit, the best of BATCHES
+(default 20) batches of REPEATS fits; offset; iterations)
 The residual and start mirror imucald's: data normalised by a linear sphere fit, r_i = |A (x_i - p)| - 1
 with A symmetric, analytic Jacobian, so SciPy gets its best chance.
 """
@@ -61,9 +61,10 @@ def main():
     raw = np.loadtxt(sys.argv[1], delimiter=",")
     reps = int(sys.argv[2])
     off, nfev = fit(raw)
-    # Best of 20 batches of REPEATS fits (imucald's side does the same).
+    # Best of BATCHES batches of REPEATS fits (imucald's side does the same).
+    batches = int(sys.argv[3]) if len(sys.argv) > 3 else 20
     dt = float("inf")
-    for _ in range(20):
+    for _ in range(batches):
         t0 = time.perf_counter()
         for _ in range(reps):
             fit(raw)
