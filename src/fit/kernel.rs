@@ -167,20 +167,37 @@ fn gram_avx2<const M: usize>(cols: &[f64], padded: usize) -> [[f64; M]; M] {
         for tb in (ta..M).step_by(TILE) {
             let mut acc = [[_mm256_setzero_pd(); TILE]; TILE];
             let mut base = 0;
-            while base < padded {
-                // SAFETY: (ta + i) * padded + base + 4 <= M * padded <= cols.len(), asserted above.
-                let load = |k: usize| unsafe { _mm256_loadu_pd(ptr.add(k * padded + base)) };
-                let av = [load(ta), load(ta + 1), load(ta + 2)];
-                let bv = [load(tb), load(tb + 1), load(tb + 2)];
-                for i in 0..TILE {
-                    for j in 0..TILE {
-                        acc[i][j] = _mm256_fmadd_pd(av[i], bv[j], acc[i][j]);
+            // SAFETY: (ta + i) * padded + base + 4 <= M * padded <= cols.len(), asserted above.
+            let load =
+                |k: usize, base: usize| unsafe { _mm256_loadu_pd(ptr.add(k * padded + base)) };
+            if ta == tb {
+                // A tile on the diagonal: three columns against themselves, upper triangle only.
+                while base < padded {
+                    let av = [load(ta, base), load(ta + 1, base), load(ta + 2, base)];
+                    for i in 0..TILE {
+                        for j in i..TILE {
+                            acc[i][j] = _mm256_fmadd_pd(av[i], av[j], acc[i][j]);
+                        }
                     }
+                    base += 4;
                 }
-                base += 4;
+            } else {
+                while base < padded {
+                    let av = [load(ta, base), load(ta + 1, base), load(ta + 2, base)];
+                    let bv = [load(tb, base), load(tb + 1, base), load(tb + 2, base)];
+                    for i in 0..TILE {
+                        for j in 0..TILE {
+                            acc[i][j] = _mm256_fmadd_pd(av[i], bv[j], acc[i][j]);
+                        }
+                    }
+                    base += 4;
+                }
             }
             for i in 0..TILE {
                 for j in 0..TILE {
+                    if ta == tb && j < i {
+                        continue;
+                    }
                     let mut lanes = [0.0f64; 4];
                     // SAFETY: `lanes` holds four f64.
                     unsafe { _mm256_storeu_pd(lanes.as_mut_ptr(), acc[i][j]) };
