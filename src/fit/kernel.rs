@@ -474,6 +474,7 @@ fn sym9_columns_avx2(params: &[f64], pts: &Soa, cols: &mut [f64]) -> (f64, [f64;
     let a = crate::model::a_from_params(ModelKind::Sym9, &params[3..]);
     let bc = _mm256_set1_pd;
     let m = [0, 1, 2].map(|i| [0, 1, 2].map(|j| bc(a[(i, j)])));
+    let neg = [0, 1, 2].map(|i| [0, 1, 2].map(|j| bc(-a[(i, j)])));
     let (c0, c1, c2) = (bc(params[0]), bc(params[1]), bc(params[2]));
     let (one, tiny) = (bc(1.0), bc(1e-300));
     let out = cols.as_mut_ptr();
@@ -499,19 +500,23 @@ fn sym9_columns_avx2(params: &[f64], pts: &Soa, cols: &mut [f64]) -> (f64, [f64;
             let n = _mm256_max_pd(_mm256_sqrt_pd(n2), tiny);
             let inv = _mm256_div_pd(w, n);
             let r = _mm256_mul_pd(w, _mm256_sub_pd(n, one));
-            let ninv = _mm256_sub_pd(_mm256_setzero_pd(), inv);
-            // d r / d p = -(A^T u) / n (A symmetric: its columns are its rows)
+            // e = w u / n: then d r / d p = -(A^T e) = (-A) e (A symmetric: its columns are its
+            // rows) and d r / d A_jk = e_j v_k, symmetric pairs together.
+            let (ex, ey, ez) = (
+                _mm256_mul_pd(ux, inv),
+                _mm256_mul_pd(uy, inv),
+                _mm256_mul_pd(uz, inv),
+            );
             let g = [
-                _mm256_mul_pd(row(&m[0], ux, uy, uz), ninv),
-                _mm256_mul_pd(row(&m[1], ux, uy, uz), ninv),
-                _mm256_mul_pd(row(&m[2], ux, uy, uz), ninv),
-                // d r / d A_jk = u_j v_k / n, symmetric pairs together
-                _mm256_mul_pd(_mm256_mul_pd(ux, vx), inv),
-                _mm256_mul_pd(_mm256_mul_pd(uy, vy), inv),
-                _mm256_mul_pd(_mm256_mul_pd(uz, vz), inv),
-                _mm256_mul_pd(_mm256_fmadd_pd(ux, vy, _mm256_mul_pd(uy, vx)), inv),
-                _mm256_mul_pd(_mm256_fmadd_pd(ux, vz, _mm256_mul_pd(uz, vx)), inv),
-                _mm256_mul_pd(_mm256_fmadd_pd(uy, vz, _mm256_mul_pd(uz, vy)), inv),
+                row(&neg[0], ex, ey, ez),
+                row(&neg[1], ex, ey, ez),
+                row(&neg[2], ex, ey, ez),
+                _mm256_mul_pd(ex, vx),
+                _mm256_mul_pd(ey, vy),
+                _mm256_mul_pd(ez, vz),
+                _mm256_fmadd_pd(ex, vy, _mm256_mul_pd(ey, vx)),
+                _mm256_fmadd_pd(ex, vz, _mm256_mul_pd(ez, vx)),
+                _mm256_fmadd_pd(ey, vz, _mm256_mul_pd(ez, vy)),
             ];
             for k in 0..9 {
                 _mm256_storeu_pd(out.add(k * p + i), g[k]);
