@@ -55,11 +55,12 @@ fn take_buffer(len: usize) -> Vec<f64> {
 }
 
 fn give_buffer(v: Vec<f64>) {
-    // At most 16 buffers of at most 4 MB each are kept per thread.
-    if v.capacity() > 0 && v.capacity() <= 1 << 19 {
+    // At most 8 buffers of at most 1 MB each are kept per thread (one fit of up to 14 000
+    // points uses five): a few MB at worst, held by the threads that fit.
+    if v.capacity() > 0 && v.capacity() <= 1 << 17 {
         POOL.with(|p| {
             let mut p = p.borrow_mut();
-            if p.len() < 16 {
+            if p.len() < 8 {
                 p.push(v);
             }
         });
