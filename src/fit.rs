@@ -771,6 +771,58 @@ mod tests {
         }
     }
 
+    /// Taking the last, tiny step unevaluated lands where evaluating every step does, with fewer
+    /// evaluations.
+    #[test]
+    fn unevaluated_last_step_lands_where_evaluating_would() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
+        for case in 0..20 {
+            let noise = [0.0, 1e-3, 5e-3, 2e-2][case % 4];
+            let pts: Vec<Vec3> = sphere_points(300, 100 + case as u64)
+                .iter()
+                .map(|u| {
+                    let x = m * u + Vector3::new(0.05, -0.03, 0.02);
+                    [0, 1, 2].map(|k| x[k] + noise * rng.random_range(-1.0..1.0))
+                })
+                .collect();
+            let soa = kernel::Soa::normalised(&pts, [0.0; 3], 1.0);
+            let mut scratch = kernel::Scratch::new(soa.padded);
+            let x0 = SVector::<f64, 9>::from_column_slice(&[
+                0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0,
+            ]);
+            let mut run = |tol: f64| {
+                let mut evals = 0;
+                let out = levenberg_marquardt_batch::<9>(x0, 200, tol, |p| {
+                    evals += 1;
+                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch)
+                });
+                (out, evals)
+            };
+            let (every, every_evals) = run(0.0);
+            let (last, last_evals) = run(1e-6 / (300.0 - 9.0));
+            assert!(every.converged && last.converged, "case {case}");
+            let d = (every.params - last.params).norm();
+            assert!(d < 1e-9, "case {case}: parameters differ by {d:e}");
+            assert!(
+                (every.ssr - last.ssr).abs() <= 1e-9 * every.ssr + 1e-24,
+                "case {case}: ssr {} vs {}",
+                every.ssr,
+                last.ssr
+            );
+            assert!(
+                last_evals <= every_evals,
+                "case {case}: {last_evals} vs {every_evals}"
+            );
+            if noise > 0.0 {
+                assert!(
+                    last_evals < every_evals,
+                    "case {case}: {last_evals} vs {every_evals}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn recovers_sym9_exactly_without_noise() {
         let m_true = Matrix3::new(1.05, 0.02, -0.01, 0.02, 0.97, 0.03, -0.01, 0.03, 1.01);
