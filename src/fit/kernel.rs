@@ -676,6 +676,90 @@ pub fn ellipsoid_normal_equations(
     (bb, gram::<9, 9>(&scratch.cols, pts.padded), ab)
 }
 
+/// Largest eigenvalue of the symmetric positive semi-definite `m` (`N` <= 12) in AVX2 and FMA: the
+/// same power iteration as [`crate::fit`]'s portable one, on rows held as three vectors of four
+/// (zero beyond `N`), so each product row is a run of broadcast multiply-adds instead of the
+/// register-starved scalar loops the baseline build makes of it. `None` where the portable one
+/// returns early (trace not positive and finite, or an iterate that vanishes).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub fn largest_eigenvalue_avx2<const N: usize>(m: &SMatrix<f64, N, N>) -> Option<f64> {
+    use std::arch::x86_64::*;
+    type Rows = [[f64; 12]; 12];
+    assert!(N <= 12);
+    // (Helpers rather than closures, so they are compiled for the same features and inlined.)
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn load(r: &[f64; 12], k: usize) -> __m256d {
+        let c: &[f64; 4] = r[4 * k..4 * k + 4].try_into().expect("four lanes");
+        // SAFETY: `c` holds four f64.
+        unsafe { _mm256_loadu_pd(c.as_ptr()) }
+    }
+    /// Row combination `sum_k c[k] a[k]` (for a symmetric `a`, `a` times `c`).
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn combine<const N: usize>(a: &Rows, c: &[f64; 12]) -> [f64; 12] {
+        let mut acc = [_mm256_setzero_pd(); 3];
+        for k in 0..N {
+            let b = _mm256_set1_pd(c[k]);
+            for (l, acc) in acc.iter_mut().enumerate().take(N.div_ceil(4)) {
+                *acc = _mm256_fmadd_pd(b, load(&a[k], l), *acc);
+            }
+        }
+        let mut out = [0.0f64; 12];
+        for (l, acc) in acc.iter().enumerate().take(N.div_ceil(4)) {
+            let c: &mut [f64; 4] = (&mut out[4 * l..4 * l + 4]).try_into().expect("four lanes");
+            // SAFETY: `c` holds four f64.
+            unsafe { _mm256_storeu_pd(c.as_mut_ptr(), *acc) }
+        }
+        out
+    }
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn square<const N: usize>(a: &Rows) -> Rows {
+        let mut out = [[0.0f64; 12]; 12];
+        for i in 0..N {
+            out[i] = combine::<N>(a, &a[i]);
+        }
+        out
+    }
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn dot<const N: usize>(a: &[f64; 12], b: &[f64; 12]) -> f64 {
+        let mut acc = _mm256_setzero_pd();
+        for l in 0..N.div_ceil(4) {
+            acc = _mm256_fmadd_pd(load(a, l), load(b, l), acc);
+        }
+        hsum(acc)
+    }
+    let trace: f64 = (0..N).map(|i| m[(i, i)]).sum();
+    if !(trace > 0.0) || !trace.is_finite() {
+        return None;
+    }
+    let inv_trace = 1.0 / trace;
+    let mut s: Rows = [[0.0f64; 12]; 12];
+    for (i, row) in s.iter_mut().enumerate().take(N) {
+        for (j, v) in row.iter_mut().enumerate().take(N) {
+            *v = m[(j, i)] * inv_trace;
+        }
+    }
+    let s4 = square::<N>(&square::<N>(&s));
+    let k = (0..N).fold(0, |b, i| if s[i][i] > s[b][b] { i } else { b });
+    let mut v = [0.0f64; 12];
+    for i in 0..N {
+        v[i] = s[k][i] + 1e-3 * s[k][k];
+    }
+    // (No normalising between products: see the portable version.)
+    for _ in 0..6 {
+        v = combine::<N>(&s4, &v);
+    }
+    let vv = dot::<N>(&v, &v);
+    if !(vv > 0.0) || !vv.is_finite() {
+        return None;
+    }
+    Some(trace * dot::<N>(&v, &combine::<N>(&s, &v)) / vv)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
