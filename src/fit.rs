@@ -213,6 +213,53 @@ fn sphere_from_normal_equations(ata: &SMatrix<f64, 4, 4>, atb: &SVector<f64, 4>)
     })
 }
 
+/// Mean of `points` and half the largest side of their bounding box (1 when that is not positive),
+/// for a first, well-scaled frame; `None` when a coordinate (or a sum of them) is not finite.
+fn mean_and_extent(points: &[Vec3]) -> Option<([f64; 3], f64)> {
+    if points.is_empty() {
+        return Some(([0.0; 3], 1.0));
+    }
+    let (mut sum, mut lo, mut hi) = ([0.0f64; 3], [f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in points {
+        for k in 0..3 {
+            sum[k] += p[k];
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    // A NaN or an infinity makes its axis' sum NaN or infinite.
+    if !sum.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let inv_n = 1.0 / points.len() as f64;
+    let half = (0..3).map(|k| 0.5 * (hi[k] - lo[k])).fold(0.0, f64::max);
+    Some((
+        sum.map(|v| v * inv_n),
+        if half > 0.0 && half.is_finite() { half } else { 1.0 },
+    ))
+}
+
+/// The linear sphere fit's normal equations, read from the ellipsoid fit's: with the ellipsoid
+/// design columns `d = [x^2, y^2, z^2, 2xy, 2xz, 2yz, 2x, 2y, 2z]`, the sphere's are
+/// `[d6, d7, d8, 1]` and its right-hand side `d0 + d1 + d2`, so every sum it needs is already an
+/// entry of the ellipsoid's `D^T D` (`g`), `D^T 1` (`ab`) or the point count `n`.
+fn sphere_from_ellipsoid_moments(
+    n: f64,
+    g: &SMatrix<f64, 9, 9>,
+    ab: &SVector<f64, 9>,
+) -> (SMatrix<f64, 4, 4>, SVector<f64, 4>) {
+    let ata = SMatrix::<f64, 4, 4>::from_fn(|i, j| match (i, j) {
+        (3, 3) => n,
+        (3, k) | (k, 3) => ab[6 + k],
+        (i, j) => g[(6 + i, 6 + j)],
+    });
+    let atb = SVector::<f64, 4>::from_fn(|i, _| match i {
+        3 => ab[0] + ab[1] + ab[2],
+        i => g[(6 + i, 0)] + g[(6 + i, 1)] + g[(6 + i, 2)],
+    });
+    (ata, atb)
+}
+
 /// Algebraic ellipsoid fit: the general quadric x^T Q x + 2 g.x = 1, solved linearly; returns `None`
 /// when the quadric is not an ellipsoid (poor coverage), so the caller falls back to a sphere.
 pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
@@ -430,8 +477,9 @@ pub struct NormFitter {
     /// Normalising sphere fit (centre, radius), raw units; `None` if the points are not enough or
     /// do not define a sphere.
     sphere: Option<(Vector3<f64>, f64)>,
-    /// The ellipsoid start, computed when a model first needs it.
-    ellipsoid: Option<Option<Start>>,
+    /// The ellipsoid start in the sphere's frame; `None` with too few points or when the quadric
+    /// is not a plausible ellipsoid (the fits then start from the sphere).
+    ellipsoid: Option<Start>,
 }
 
 impl NormFitter {
@@ -439,29 +487,54 @@ impl NormFitter {
     pub fn new(points: &[Vec3]) -> NormFitter {
         let finite = |p: &Vec3| p.iter().all(|v| v.is_finite());
         let filtered: Vec<Vec3>;
-        let pts: &[Vec3] = if points.iter().all(finite) {
-            points
-        } else {
-            filtered = points.iter().copied().filter(finite).collect();
-            &filtered
+        // A first frame, from the mean and the extent of the points, keeps the moments the linear
+        // fits sum well scaled; the fits then move everything to the frame of the sphere fit.
+        let (pts, (m1, s1)): (&[Vec3], _) = match mean_and_extent(points) {
+            Some(frame) => (points, frame),
+            None => {
+                filtered = points.iter().copied().filter(finite).collect();
+                (&filtered, mean_and_extent(&filtered).unwrap_or(([0.0; 3], 1.0)))
+            }
         };
-        let mut soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
+        let mut soa = kernel::Soa::normalised(pts, m1, s1);
         let mut scratch = kernel::Scratch::new(soa.padded);
         let mut sphere = None;
+        let mut ellipsoid = None;
         if pts.len() >= 4 {
-            // Normalise: centre and scale from the sphere fit (defined when the points are not coplanar).
-            let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
+            // Normalise: centre and scale from the sphere fit (defined when the points are not
+            // coplanar). With enough points for the ellipsoid start, its normal equations hold the
+            // sphere's, so one pass over the points serves both.
+            let with_ellipsoid = (pts.len() >= 9)
+                .then(|| kernel::ellipsoid_normal_equations(&soa, &mut scratch));
+            let (ata, atb) = match &with_ellipsoid {
+                Some((n, g, ab)) => sphere_from_ellipsoid_moments(*n, g, ab),
+                None => {
+                    let (_, ata, atb) = kernel::sphere_normal_equations(&soa, &mut scratch);
+                    (ata, atb)
+                }
+            };
             if let Some(sph) = sphere_from_normal_equations(&ata, &atb) {
-                let (c0, s0) = (sph.centre, 1.0 / sph.shape[(0, 0)]);
-                soa.renormalise([c0[0], c0[1], c0[2]], s0);
-                sphere = Some((c0, s0));
+                // The sphere in the first frame: centre c1, radius r1.
+                let (c1, r1) = (sph.centre, 1.0 / sph.shape[(0, 0)]);
+                soa.renormalise([c1[0], c1[1], c1[2]], r1);
+                let c0 = Vector3::from(m1) + c1 * s1;
+                sphere = Some((c0, r1 * s1));
+                // The ellipsoid start, moved to the sphere's frame (x1 = c1 + r1 x).
+                ellipsoid = with_ellipsoid.and_then(|(_, g, ab)| {
+                    ellipsoid_from_normal_equations(&g, &ab)
+                        .map(|e| Start {
+                            centre: (e.centre - c1) / r1,
+                            shape: e.shape * r1,
+                        })
+                        .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
+                });
             }
         }
         NormFitter {
             soa,
             scratch,
             sphere,
-            ellipsoid: None,
+            ellipsoid,
         }
     }
 
@@ -483,15 +556,7 @@ impl NormFitter {
         };
         let start = match kind {
             ModelKind::Sphere => unit,
-            _ => {
-                let (soa, scratch) = (&self.soa, &mut self.scratch);
-                let e = *self.ellipsoid.get_or_insert_with(|| {
-                    let (_, ata, atb) = kernel::ellipsoid_normal_equations(soa, scratch);
-                    ellipsoid_from_normal_equations(&ata, &atb)
-                        .filter(|s| s.centre.norm() < 1.0 && s.shape.iter().all(|v| v.abs() < 10.0))
-                });
-                e.unwrap_or(unit)
-            }
+            _ => self.ellipsoid.unwrap_or(unit),
         };
         let (soa, scratch) = (&self.soa, &mut self.scratch);
         let shape0 = if kind == ModelKind::Full12 {
