@@ -56,7 +56,8 @@ pub struct LmOutcome<const N: usize> {
     /// Sum of squared residuals at the solution.
     pub ssr: f64,
     pub iterations: usize,
-    /// J^T J at the solution (for uncertainties).
+    /// J^T J at the solution (for uncertainties), or with [`LmShortcuts`] at a point within
+    /// `reuse_jtj` plus the last, unevaluated step of it.
     pub jtj: SMatrix<f64, N, N>,
     pub converged: bool,
 }
@@ -74,6 +75,7 @@ pub fn levenberg_marquardt_prepared<const N: usize, P>(
     resid: impl Fn(&P, &SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
 ) -> LmOutcome<N> {
     let eval = |x: &SVector<f64, N>| {
+        // (J^T J is summed in the same loop as J^T r, so it is always formed.)
         let mut jtj = SMatrix::<f64, N, N>::zeros();
         let mut jtr = SVector::<f64, N>::zeros();
         let mut g = SVector::<f64, N>::zeros();
@@ -96,28 +98,47 @@ pub fn levenberg_marquardt_prepared<const N: usize, P>(
                 jtj[(c, rr)] = jtj[(rr, c)];
             }
         }
-        (ssr, jtj, jtr)
+        (ssr, Some(jtj), jtr)
     };
-    levenberg_marquardt_batch(x0, max_iter, 0.0, eval)
+    levenberg_marquardt_batch(x0, max_iter, LmShortcuts::default(), |x, _| eval(x))
 }
 
-/// The Levenberg-Marquardt iteration on whole normal equations: `eval(p)` returns the sum of squared
-/// residuals, J^T J and J^T r at `p` (however it builds them).
-///
-/// `last_step_tol`: when the reduction the linear model predicts for the next step is at most this
-/// fraction of the sum of squares, the step is taken without evaluating where it lands, and the
-/// sum of squares becomes the predicted one. Norm fits pass `1e-6 / dof`: the step is then at most
-/// a thousandth of a standard error long (`predicted / s^2 = step^T J^T J step / s^2`), where the
-/// quadratic model is exact to far below anything a fit can resolve, so the evaluation would only
-/// confirm it. 0 evaluates every step.
+/// Work a Levenberg-Marquardt run may skip near the solution, where it would only confirm what
+/// the linear model already says. Both 0 (the default) skip nothing.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LmShortcuts {
+    /// When the reduction the linear model predicts for the next step is at most this fraction of
+    /// the sum of squares, the step is taken without evaluating where it lands, and the sum of
+    /// squares becomes the predicted one. Norm fits pass `1e-6 / dof`: the step is then at most a
+    /// thousandth of a standard error long (`predicted / s^2 = step^T J^T J step / s^2`), where the
+    /// quadratic model is exact to far below anything a fit can resolve, so the evaluation would
+    /// only confirm it.
+    pub last_step: f64,
+    /// While the parameters are within this distance (largest component, summed over the steps
+    /// taken since) of the point where J^T J was last formed, evaluations form only the sum of
+    /// squares and J^T r, and the steps use that J^T J. The steps then still lead to the point where
+    /// J^T r = 0, the same minimum; J^T J, and so the covariance, comes from a point this close to
+    /// it, which for parameters of order 1 changes it by a relative amount of about this size.
+    pub reuse_jtj: f64,
+}
+
+/// The Levenberg-Marquardt iteration on whole normal equations: `eval(p, with_jtj)` returns the sum
+/// of squared residuals, J^T J and J^T r at `p` (however it builds them). J^T J is asked for
+/// (`with_jtj`) unless `shortcuts` lets the run keep an earlier one; `None` then keeps it.
 pub fn levenberg_marquardt_batch<const N: usize>(
     x0: SVector<f64, N>,
     max_iter: usize,
-    last_step_tol: f64,
-    mut eval: impl FnMut(&SVector<f64, N>) -> (f64, SMatrix<f64, N, N>, SVector<f64, N>),
+    shortcuts: LmShortcuts,
+    mut eval: impl FnMut(
+        &SVector<f64, N>,
+        bool,
+    ) -> (f64, Option<SMatrix<f64, N, N>>, SVector<f64, N>),
 ) -> LmOutcome<N> {
     let mut x = x0;
-    let (mut ssr, mut jtj, mut jtr) = eval(&x);
+    let (mut ssr, jtj0, mut jtr) = eval(&x, true);
+    let mut jtj = jtj0.unwrap_or_else(SMatrix::zeros);
+    // Distance walked since J^T J was formed.
+    let mut drift = 0.0;
     let mut lambda = 1e-3;
     let mut converged = false;
     let mut it = 0;
@@ -144,21 +165,28 @@ pub fn levenberg_marquardt_batch<const N: usize>(
             converged = true;
             break;
         }
-        if predicted >= 0.0 && predicted <= last_step_tol * ssr && lambda <= 1e-2 {
+        if predicted >= 0.0 && predicted <= shortcuts.last_step * ssr && lambda <= 1e-2 {
             x += step;
             ssr = (ssr - predicted).max(0.0);
             converged = true;
             break;
         }
         let x_new = x + step;
-        let (ssr_new, jtj_new, jtr_new) = eval(&x_new);
+        let reuse = drift + step.amax() <= shortcuts.reuse_jtj;
+        let (ssr_new, jtj_new, jtr_new) = eval(&x_new, !reuse);
         if ssr_new.is_finite() && ssr_new <= ssr {
             let small_step = step.norm() <= 1e-12 * (x.norm() + 1e-12);
             let small_gain = ssr - ssr_new <= 1e-14 * ssr.max(1e-300);
             x = x_new;
             ssr = ssr_new;
-            jtj = jtj_new;
             jtr = jtr_new;
+            match jtj_new {
+                Some(m) => {
+                    jtj = m;
+                    drift = 0.0;
+                }
+                None => drift += step.amax(),
+            }
             lambda = (lambda * 0.1).max(1e-15);
             if small_step || small_gain || ssr == 0.0 {
                 converged = true;
@@ -437,6 +465,11 @@ fn condition_number<const N: usize>(
     }
 }
 
+/// [`LmShortcuts::reuse_jtj`] for norm fits, in the sphere-normalised frame (centre in radii,
+/// matrix near the identity): J^T J, and so the reported uncertainties, from within 1e-4 of the
+/// solution. The ellipsoid start usually lands this close, so the last evaluation forms no J^T J.
+pub const NORM_REUSE_JTJ: f64 = 1e-4;
+
 fn solve_norm<const K: u8, const N: usize, const M: usize>(
     pts: &kernel::Soa,
     scratch: &mut kernel::Scratch,
@@ -446,8 +479,12 @@ fn solve_norm<const K: u8, const N: usize, const M: usize>(
     let x0v = SVector::<f64, N>::from_column_slice(x0);
     scratch.clear(N, M, pts.padded);
     let dof = pts.n.saturating_sub(N).max(1) as f64;
-    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, 1e-6 / dof, |p| {
-        kernel::norm_normal_equations::<K, N, M>(p, pts, scratch)
+    let shortcuts = LmShortcuts {
+        last_step: 1e-6 / dof,
+        reuse_jtj: NORM_REUSE_JTJ,
+    };
+    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, shortcuts, |p, with_jtj| {
+        kernel::norm_normal_equations::<K, N, M>(p, pts, scratch, with_jtj)
     });
     let inv = out.jtj.cholesky().map(|c| c.inverse());
     NormSolution {
@@ -899,9 +936,14 @@ mod tests {
             ]);
             let mut run = |tol: f64| {
                 let mut evals = 0;
-                let out = levenberg_marquardt_batch::<9>(x0, 200, tol, |p| {
+                let shortcuts = LmShortcuts {
+                    last_step: tol,
+                    reuse_jtj: 0.0,
+                };
+                let out = levenberg_marquardt_batch::<9>(x0, 200, shortcuts, |p, with_jtj| {
                     evals += 1;
-                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch)
+                    assert!(with_jtj);
+                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch, true)
                 });
                 (out, evals)
             };
@@ -927,6 +969,69 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Reusing J^T J near the solution lands on the same minimum, with J^T J (and so the
+    /// covariance) within about the reuse distance of the one at the solution, and forms fewer.
+    #[test]
+    fn reused_jtj_lands_where_forming_it_every_time_would() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
+        let mut reused_somewhere = false;
+        for case in 0..20 {
+            let noise = [0.0, 1e-3, 5e-3, 2e-2][case % 4];
+            let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
+            let pts: Vec<Vec3> = sphere_points(300, 300 + case as u64)
+                .iter()
+                .map(|u| {
+                    let x = m * u + Vector3::new(0.05, -0.03, 0.02);
+                    [0, 1, 2].map(|k| x[k] + noise * rng.random_range(-1.0..1.0))
+                })
+                .collect();
+            let soa = kernel::Soa::normalised(&pts, [0.0; 3], 1.0);
+            let mut scratch = kernel::Scratch::new(soa.padded);
+            // From the algebraic start, as the norm fits do (the first step is then short).
+            let fitter = NormFitter::new(&pts);
+            let start = fitter.ellipsoid.expect("ellipsoid start");
+            let (c, s) = fitter.sphere.expect("sphere");
+            let centre = Vector3::from(c) + start.centre * s;
+            let mut x0v = vec![centre[0], centre[1], centre[2]];
+            x0v.extend(params_from_a(ModelKind::Sym9, &(start.shape / s)));
+            let x0 = SVector::<f64, 9>::from_column_slice(&x0v);
+            let mut run = |reuse: f64| {
+                let mut formed = 0;
+                let shortcuts = LmShortcuts {
+                    last_step: 1e-6 / 291.0,
+                    reuse_jtj: reuse,
+                };
+                let out = levenberg_marquardt_batch::<9>(x0, 200, shortcuts, |p, with_jtj| {
+                    formed += usize::from(with_jtj);
+                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(
+                        p,
+                        &soa,
+                        &mut scratch,
+                        with_jtj,
+                    )
+                });
+                (out, formed)
+            };
+            let (every, every_formed) = run(0.0);
+            let reuse = 1e-2;
+            let (some, some_formed) = run(reuse);
+            assert!(every.converged && some.converged, "case {case}");
+            let d = (every.params - some.params).amax();
+            assert!(d < 1e-9, "case {case}: parameters differ by {d:e}");
+            assert!(
+                (every.ssr - some.ssr).abs() <= 1e-9 * every.ssr + 1e-24,
+                "case {case}: ssr {} vs {}",
+                every.ssr,
+                some.ssr
+            );
+            let rel = (every.jtj - some.jtj).amax() / every.jtj.amax();
+            assert!(rel <= 5.0 * reuse, "case {case}: J^T J differs by {rel:e}");
+            assert!(some_formed <= every_formed, "case {case}");
+            reused_somewhere |= some_formed < every_formed;
+        }
+        assert!(reused_somewhere, "no case reused J^T J");
     }
 
     #[test]

@@ -464,10 +464,15 @@ impl Drop for Scratch {
 }
 
 /// [`norm_columns_body`] for `sym9` (the model refits use most), in AVX2 and FMA four points at a
-/// time; `params` are the nine `sym9` parameters. Returns `(sum r^2, J^T r)`.
+/// time; `params` are the nine `sym9` parameters. Returns `(sum r^2, J^T r)`; writes the columns
+/// only when `STORE` (a pass that needs no J^T J skips the stores).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn sym9_columns_avx2(params: &[f64], pts: &Soa, cols: &mut [f64]) -> (f64, [f64; 9]) {
+fn sym9_columns_avx2<const STORE: bool>(
+    params: &[f64],
+    pts: &Soa,
+    cols: &mut [f64],
+) -> (f64, [f64; 9]) {
     use std::arch::x86_64::*;
     let p = pts.padded;
     assert!(params.len() == 9 && p % 4 == 0 && cols.len() >= 9 * p);
@@ -520,7 +525,9 @@ fn sym9_columns_avx2(params: &[f64], pts: &Soa, cols: &mut [f64]) -> (f64, [f64;
                 _mm256_fmadd_pd(ey, vz, _mm256_mul_pd(ez, vy)),
             ];
             for k in 0..9 {
-                _mm256_storeu_pd(out.add(k * p + i), g[k]);
+                if STORE {
+                    _mm256_storeu_pd(out.add(k * p + i), g[k]);
+                }
                 jtr[k] = _mm256_fmadd_pd(g[k], r, jtr[k]);
             }
             ssr = _mm256_fmadd_pd(r, r, ssr);
@@ -530,27 +537,37 @@ fn sym9_columns_avx2(params: &[f64], pts: &Soa, cols: &mut [f64]) -> (f64, [f64;
     (hsum(ssr), jtr.map(|v| hsum(v)))
 }
 
-/// Sum of squared residuals, J^T J and J^T r of the norm residual at `params`. `M` is `N` rounded
-/// up to a multiple of 3, and the scratch columns from `N` to `M` must be zero
-/// ([`Scratch::clear`]).
+/// Sum of squared residuals, J^T J and J^T r of the norm residual at `params`; J^T J only when
+/// `with_jtj` (without it, a pass costs the residuals and gradients alone). `M` is `N` rounded up to
+/// a multiple of 3, and the scratch columns from `N` to `M` must be zero ([`Scratch::clear`]).
 pub fn norm_normal_equations<const K: u8, const N: usize, const M: usize>(
     params: &SVector<f64, N>,
     pts: &Soa,
     scratch: &mut Scratch,
-) -> (f64, SMatrix<f64, N, N>, SVector<f64, N>) {
+    with_jtj: bool,
+) -> (f64, Option<SMatrix<f64, N, N>>, SVector<f64, N>) {
     #[cfg(target_arch = "x86_64")]
     if K == SYM9
         && N == 9
         && std::arch::is_x86_feature_detected!("avx2")
         && std::arch::is_x86_feature_detected!("fma")
     {
+        let (p, cols) = (params.as_slice(), &mut scratch.cols);
         // SAFETY: the CPU was just checked for the features the function was compiled for.
-        let (ssr, jtr) = unsafe { sym9_columns_avx2(params.as_slice(), pts, &mut scratch.cols) };
+        let (ssr, jtr) = unsafe {
+            if with_jtj {
+                sym9_columns_avx2::<true>(p, pts, cols)
+            } else {
+                sym9_columns_avx2::<false>(p, pts, cols)
+            }
+        };
         let jtr = SVector::<f64, N>::from_fn(|k, _| jtr[k]);
-        return (ssr, gram::<N, M>(&scratch.cols, pts.padded), jtr);
+        let jtj = with_jtj.then(|| gram::<N, M>(&scratch.cols, pts.padded));
+        return (ssr, jtj, jtr);
     }
     let (ssr, jtr) = norm_columns::<K, N>(params, pts, &mut scratch.cols);
-    (ssr, gram::<N, M>(&scratch.cols, pts.padded), jtr)
+    let jtj = with_jtj.then(|| gram::<N, M>(&scratch.cols, pts.padded));
+    (ssr, jtj, jtr)
 }
 
 /// Sum of the four lanes.
@@ -853,9 +870,13 @@ mod tests {
             let (mut s1, mut s2) = (Scratch::new(soa.padded), Scratch::new(soa.padded));
             let (ssr1, jtr1) = norm_columns_body::<SYM9, 9>(&pv, &soa, &mut s1.cols);
 
-            let (ssr2, _, jtr2) = norm_normal_equations::<SYM9, 9, 9>(&pv, &soa, &mut s2);
+            let mut s3 = Scratch::new(soa.padded);
+            let (ssr3, none, jtr3) = norm_normal_equations::<SYM9, 9, 9>(&pv, &soa, &mut s3, false);
+            let (ssr2, _, jtr2) = norm_normal_equations::<SYM9, 9, 9>(&pv, &soa, &mut s2, true);
             assert!((ssr1 - ssr2).abs() <= 1e-12 * (1.0 + ssr1), "n {n}");
             assert!((jtr1 - jtr2).norm() <= 1e-12 * (1.0 + jtr1.norm()), "n {n}");
+            // Without J^T J: the same sums, no matrix.
+            assert!(none.is_none() && ssr3 == ssr2 && jtr3 == jtr2, "n {n}");
             let p = soa.padded;
             for (k, (a, b)) in s1.cols[..9 * p].iter().zip(&s2.cols[..9 * p]).enumerate() {
                 assert!(
@@ -874,7 +895,8 @@ mod tests {
         let mut s = Scratch::new(soa.padded);
         s.clear(N, M, soa.padded);
         let p = SVector::<f64, N>::from_column_slice(params);
-        let (ssr, jtj, jtr) = norm_normal_equations::<K, N, M>(&p, &soa, &mut s);
+        let (ssr, jtj, jtr) = norm_normal_equations::<K, N, M>(&p, &soa, &mut s, true);
+        let jtj = jtj.expect("asked for J^T J");
         let a = crate::model::a_from_params(kind(K), &params[3..]);
         let (mut ssr2, mut jtj2, mut jtr2) = (
             0.0,
