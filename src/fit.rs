@@ -251,8 +251,9 @@ fn mean_and_extent(points: &[Vec3]) -> Option<([f64; 3], f64)> {
     for p in points {
         for k in 0..3 {
             sum[k] += p[k];
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
+            // (Plain comparisons: a NaN shows in the sum, so `min`'s NaN rules are not needed.)
+            lo[k] = if p[k] < lo[k] { p[k] } else { lo[k] };
+            hi[k] = if p[k] > hi[k] { p[k] } else { hi[k] };
         }
     }
     // A NaN or an infinity makes its axis' sum NaN or infinite.
