@@ -12,6 +12,7 @@ use crate::types::Vec3;
 use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 
 mod kernel;
+mod spd;
 use serde::{Deserialize, Serialize};
 
 /// Why a fit was refused. The names are the report's `failure` strings.
@@ -148,7 +149,7 @@ pub fn levenberg_marquardt_batch<const N: usize>(
         for k in 0..N {
             a[(k, k)] += lambda * jtj[(k, k)].max(1e-12);
         }
-        let step = match a.cholesky() {
+        let step = match spd::Cholesky::new(&a) {
             Some(ch) => ch.solve(&(-jtr)),
             None => {
                 lambda *= 10.0;
@@ -229,7 +230,7 @@ pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
 }
 
 fn sphere_from_normal_equations(ata: &SMatrix<f64, 4, 4>, atb: &SVector<f64, 4>) -> Option<Start> {
-    let sol = ata.cholesky()?.solve(atb);
+    let sol = spd::Cholesky::new(ata)?.solve(atb);
     let c = Vector3::new(sol[0], sol[1], sol[2]);
     let r2 = sol[3] + c.norm_squared();
     if !(r2 > 0.0) || !r2.is_finite() {
@@ -305,7 +306,7 @@ fn ellipsoid_from_normal_equations(
     ata: &SMatrix<f64, 9, 9>,
     atb: &SVector<f64, 9>,
 ) -> Option<Start> {
-    let s = ata.cholesky()?.solve(atb);
+    let s = spd::Cholesky::new(ata)?.solve(atb);
     let q = Matrix3::new(s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]);
     let g = Vector3::new(s[6], s[7], s[8]);
     let qi = q.try_inverse()?;
@@ -487,7 +488,7 @@ fn solve_norm<const K: u8, const N: usize, const M: usize>(
     let out = levenberg_marquardt_batch::<N>(x0v, max_iter, shortcuts, |p, with_jtj| {
         kernel::norm_normal_equations::<K, N, M>(p, pts, scratch, with_jtj)
     });
-    let inv = out.jtj.cholesky().map(|c| c.inverse());
+    let inv = spd::Cholesky::new(&out.jtj).map(|c| c.inverse());
     NormSolution {
         params: out.params.as_slice().to_vec(),
         ssr: out.ssr,
