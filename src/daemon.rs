@@ -518,6 +518,34 @@ impl State {
         }
     }
 
+    /// The heading cadence: the heading, and the next messages of a parameter write in progress.
+    async fn on_heading_tick(&mut self) {
+        self.publish_heading().await;
+        if let Some(w) = self.writer.as_mut() {
+            let now = self.start.elapsed().as_secs_f64();
+            let msgs = w.next_messages(now);
+            let done = w.done();
+            let failed = w.failed();
+            self.send_mav(&msgs).await;
+            if done {
+                self.writer = None;
+                if failed.is_empty() {
+                    self.status(
+                        6,
+                        "parameters written and confirmed by the flight controller".into(),
+                    )
+                    .await;
+                } else {
+                    self.status(
+                        3,
+                        format!("parameters not confirmed: {}", failed.join(", ")),
+                    )
+                    .await;
+                }
+            }
+        }
+    }
+
     async fn publish_heading(&mut self) {
         // The mean of the calibrated vectors since the last publication (decimation with averaging).
         let Some(mut c) = self.latest else { return };
@@ -873,6 +901,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         sinks.push(Sink::open(p).await?);
     }
     let (tx, mut rx) = mpsc::channel::<Inbound>(d.queue_capacity);
+    // The time grid the UDP polls and the periodic outputs share.
+    let epoch = tokio::time::Instant::now();
     let (link_stop_tx, link_stop_rx) = watch::channel(false);
     let mut links = vec![];
     for (i, s) in sources.iter().enumerate() {
@@ -888,6 +918,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             } else {
                 d.udp_poll_ms / 1000.0
             },
+            poll_epoch: Some(epoch),
             ..LinkOptions::default()
         };
         let handle = spawn_link(i, addr, payload, tx.clone(), link_stop_rx.clone(), opts);
@@ -934,18 +965,24 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         last_body_mag: None,
         cfg,
     };
-    let mut heading_tick = tokio::time::interval(Duration::from_secs_f64(1.0 / d.heading_rate_hz));
-    let mut progress_tick =
-        tokio::time::interval(Duration::from_secs_f64(1.0 / d.progress_rate_hz));
-    let mut attitude_tick =
-        tokio::time::interval(Duration::from_secs_f64(1.0 / d.attitude_rate_hz));
-    heading_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    progress_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    attitude_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    // The periodic outputs, on the same time grid as the links' UDP polls (`epoch`): a tick that
+    // falls due with a poll is served in the same wake-up.
+    let tick = |rate_hz: f64| {
+        let mut t = tokio::time::interval_at(epoch, Duration::from_secs_f64(1.0 / rate_hz));
+        t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        t
+    };
+    let mut heading_tick = tick(d.heading_rate_hz);
+    let mut progress_tick = tick(d.progress_rate_hz);
+    let mut attitude_tick = tick(d.attitude_rate_hz);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
     let mut refit_wanted = false;
-    loop {
+    // Whatever is queued is taken in one go (at most this many), so the select below runs once per
+    // batch of samples rather than once per sample.
+    const INBOX_BATCH: usize = 256;
+    let mut inbox: Vec<Inbound> = Vec::with_capacity(INBOX_BATCH);
+    'main: loop {
         // `daemon.attitude_every_samples`: the attitude right after the sample that made it due.
         if st.attitude_due {
             st.attitude_due = false;
@@ -966,40 +1003,50 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             _ = shutdown.changed() => {
                 if *shutdown.borrow() { break; }
             }
-            ev = rx.recv() => match ev {
-                None => break,
-                Some(Inbound::Sample { sample, .. }) => {
-                    st.conv.stats.records += 1;
-                    st.conv.stats.count_sample(&sample);
-                    refit_wanted |= st.on_sample(sample);
+            n = rx.recv_many(&mut inbox, INBOX_BATCH) => {
+                if n == 0 {
+                    break;
                 }
-                Some(Inbound::Frame { link, frame, time_us }) => {
-                    refit_wanted |= st.on_frame(link, frame, time_us).await;
-                }
-                Some(Inbound::Status { link, status }) => {
-                    let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
-                    match status {
-                        LinkStatus::Connected(s) => st.status(6, format!("{label}: connected {s}")).await,
-                        LinkStatus::Lost(s) => st.status(4, format!("{label}: lost ({s}); reconnecting, calibration kept")).await,
-                        LinkStatus::Silent { for_s } => st.status(4, format!("{label}: silent for {for_s:.1} s")).await,
-                        LinkStatus::Ended => {
-                            if let Some(l) = st.links.get_mut(link) { l.ended = true; }
-                            if st.links.iter().all(|l| l.replay && l.ended) {
-                                // Every source was a replay and all have ended: final fit, then stop.
-                                if let Some(j) = fit_job.take() { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
-                                st.pipe.finish_poses();
-                                let input = st.pipe.snapshot();
-                                let cfg2 = st.cfg.clone();
-                                let t = st.pipe.last_t;
-                                if let Ok((m, a, r)) = tokio::task::spawn_blocking(move || { let r = fit_all(&input, &cfg2); (input.mag_points.clone(), input.poses.iter().map(|p| p.accel).collect(), r) }).await {
-                                    st.on_fit(m, a, t, r).await;
+                for ev in inbox.drain(..) {
+                    if st.attitude_due {
+                        st.attitude_due = false;
+                        st.publish_attitude().await;
+                    }
+                    match ev {
+                        Inbound::Sample { sample, .. } => {
+                            st.conv.stats.records += 1;
+                            st.conv.stats.count_sample(&sample);
+                            refit_wanted |= st.on_sample(sample);
+                        }
+                        Inbound::Frame { link, frame, time_us } => {
+                            refit_wanted |= st.on_frame(link, frame, time_us).await;
+                        }
+                        Inbound::Status { link, status } => {
+                            let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
+                            match status {
+                                LinkStatus::Connected(s) => st.status(6, format!("{label}: connected {s}")).await,
+                                LinkStatus::Lost(s) => st.status(4, format!("{label}: lost ({s}); reconnecting, calibration kept")).await,
+                                LinkStatus::Silent { for_s } => st.status(4, format!("{label}: silent for {for_s:.1} s")).await,
+                                LinkStatus::Ended => {
+                                    if let Some(l) = st.links.get_mut(link) { l.ended = true; }
+                                    if st.links.iter().all(|l| l.replay && l.ended) {
+                                        // Every source was a replay and all have ended: final fit, then stop.
+                                        if let Some(j) = fit_job.take() { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
+                                        st.pipe.finish_poses();
+                                        let input = st.pipe.snapshot();
+                                        let cfg2 = st.cfg.clone();
+                                        let t = st.pipe.last_t;
+                                        if let Ok((m, a, r)) = tokio::task::spawn_blocking(move || { let r = fit_all(&input, &cfg2); (input.mag_points.clone(), input.poses.iter().map(|p| p.accel).collect(), r) }).await {
+                                            st.on_fit(m, a, t, r).await;
+                                        }
+                                        break 'main;
+                                    }
                                 }
-                                break;
                             }
                         }
                     }
                 }
-            },
+            }
             r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
                 fit_job = None;
                 match r {
@@ -1007,26 +1054,9 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     Err(e) => tracing::error!("fit task failed: {e}"),
                 }
             }
-            _ = heading_tick.tick() => {
-                st.publish_heading().await;
-                if let Some(w) = st.writer.as_mut() {
-                    let now = st.start.elapsed().as_secs_f64();
-                    let msgs = w.next_messages(now);
-                    let done = w.done();
-                    let failed = w.failed();
-                    st.send_mav(&msgs).await;
-                    if done {
-                        st.writer = None;
-                        if failed.is_empty() {
-                            st.status(6, "parameters written and confirmed by the flight controller".into()).await;
-                        } else {
-                            st.status(3, format!("parameters not confirmed: {}", failed.join(", "))).await;
-                        }
-                    }
-                }
-            }
-            _ = progress_tick.tick() => { st.publish_progress().await; }
-            _ = attitude_tick.tick() => { st.publish_attitude().await; }
+            _ = heading_tick.tick() => st.on_heading_tick().await,
+            _ = progress_tick.tick() => st.publish_progress().await,
+            _ = attitude_tick.tick() => st.publish_attitude().await,
         }
     }
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.

@@ -130,10 +130,7 @@ pub fn levenberg_marquardt_batch<const N: usize>(
     x0: SVector<f64, N>,
     max_iter: usize,
     shortcuts: LmShortcuts,
-    mut eval: impl FnMut(
-        &SVector<f64, N>,
-        bool,
-    ) -> (f64, Option<SMatrix<f64, N, N>>, SVector<f64, N>),
+    mut eval: impl FnMut(&SVector<f64, N>, bool) -> (f64, Option<SMatrix<f64, N, N>>, SVector<f64, N>),
 ) -> LmOutcome<N> {
     let mut x = x0;
     let (mut ssr, jtj0, mut jtr) = eval(&x, true);
@@ -265,7 +262,11 @@ fn mean_and_extent(points: &[Vec3]) -> Option<([f64; 3], f64)> {
     let half = (0..3).map(|k| 0.5 * (hi[k] - lo[k])).fold(0.0, f64::max);
     Some((
         sum.map(|v| v * inv_n),
-        if half > 0.0 && half.is_finite() { half } else { 1.0 },
+        if half > 0.0 && half.is_finite() {
+            half
+        } else {
+            1.0
+        },
     ))
 }
 
@@ -532,7 +533,10 @@ impl NormFitter {
             Some(frame) => (points, frame),
             None => {
                 filtered = points.iter().copied().filter(finite).collect();
-                (&filtered, mean_and_extent(&filtered).unwrap_or(([0.0; 3], 1.0)))
+                (
+                    &filtered,
+                    mean_and_extent(&filtered).unwrap_or(([0.0; 3], 1.0)),
+                )
             }
         };
         let mut soa = kernel::Soa::normalised(pts, m1, s1);
@@ -543,8 +547,8 @@ impl NormFitter {
             // Normalise: centre and scale from the sphere fit (defined when the points are not
             // coplanar). With enough points for the ellipsoid start, its normal equations hold the
             // sphere's, so one pass over the points serves both.
-            let with_ellipsoid = (pts.len() >= 9)
-                .then(|| kernel::ellipsoid_normal_equations(&soa, &mut scratch));
+            let with_ellipsoid =
+                (pts.len() >= 9).then(|| kernel::ellipsoid_normal_equations(&soa, &mut scratch));
             let (ata, atb) = match &with_ellipsoid {
                 Some((n, g, ab)) => sphere_from_ellipsoid_moments(*n, g, ab),
                 None => {
@@ -893,9 +897,10 @@ mod tests {
         fn check<const N: usize>(rng: &mut rand_chacha::ChaCha8Rng) {
             for case in 0..40 {
                 let spread: f64 = [1.0, 30.0, 1e6, 1e13][case % 4];
-                let qd = nalgebra::DMatrix::<f64>::from_fn(N, N, |_, _| rng.random_range(-1.0..1.0))
-                    .qr()
-                    .q();
+                let qd =
+                    nalgebra::DMatrix::<f64>::from_fn(N, N, |_, _| rng.random_range(-1.0..1.0))
+                        .qr()
+                        .q();
                 let q = SMatrix::<f64, N, N>::from_fn(|i, j| qd[(i, j)]);
                 let d = SVector::<f64, N>::from_fn(|_, _| spread.powf(rng.random_range(0.0..1.0)));
                 let m = q * SMatrix::<f64, N, N>::from_diagonal(&d) * q.transpose() * 1e3;
@@ -945,7 +950,12 @@ mod tests {
                 let out = levenberg_marquardt_batch::<9>(x0, 200, shortcuts, |p, with_jtj| {
                     evals += 1;
                     assert!(with_jtj);
-                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch, true)
+                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(
+                        p,
+                        &soa,
+                        &mut scratch,
+                        true,
+                    )
                 });
                 (out, evals)
             };

@@ -396,6 +396,10 @@ pub struct LinkOptions {
     /// for each datagram (0). The socket is then not watched by the reactor at all, so arriving
     /// datagrams wake nothing: fewer wake-ups for up to this much more latency.
     pub udp_poll_s: f64,
+    /// UDP polls fall on the grid `poll_epoch + k * period` (while the period is the configured
+    /// one), so that other timers on the same grid, like the service's periodic outputs, fire in
+    /// the same wake-up. `None`: the grid starts when the link does.
+    pub poll_epoch: Option<tokio::time::Instant>,
 }
 
 impl Default for LinkOptions {
@@ -406,6 +410,7 @@ impl Default for LinkOptions {
             backoff_max_s: 5.0,
             outbound_capacity: 256,
             udp_poll_s: 0.0,
+            poll_epoch: None,
         }
     }
 }
@@ -424,6 +429,7 @@ fn secs(x: f64) -> Duration {
 struct Tuning {
     silent: Option<Duration>,
     udp_poll: Option<Duration>,
+    poll_epoch: Option<tokio::time::Instant>,
     backoff_min: Duration,
     backoff_max: Duration,
 }
@@ -446,6 +452,7 @@ impl Tuning {
             silent,
             udp_poll: (o.udp_poll_s.is_finite() && o.udp_poll_s > 0.0)
                 .then(|| secs(o.udp_poll_s.min(0.1)).max(Duration::from_millis(1))),
+            poll_epoch: o.poll_epoch,
             backoff_min: min,
             backoff_max: max,
         }
@@ -1302,6 +1309,22 @@ const POLL_MIN: Duration = Duration::from_millis(1);
 /// How long a shortened poll period is kept after the last busy read before it may grow again, so
 /// a sender that pauses briefly does not come back to a long period (and a full buffer).
 const POLL_HOLD: Duration = Duration::from_secs(2);
+/// The first point of the grid `epoch + k * every` after `now` (`now + every` when `now` is before
+/// the epoch or `every` is zero).
+fn next_on_grid(
+    epoch: tokio::time::Instant,
+    every: Duration,
+    now: tokio::time::Instant,
+) -> tokio::time::Instant {
+    let (since, step) = (now.saturating_duration_since(epoch), every.as_nanos());
+    if now < epoch || step == 0 {
+        return now + every;
+    }
+    let k = since.as_nanos() / step + 1;
+    // (k * step is at most `since + every`, so it fits a Duration whenever `now + every` does.)
+    epoch + Duration::from_nanos(u64::try_from(k * step).unwrap_or(u64::MAX))
+}
+
 /// Receive buffer asked for on a polled socket, bytes (the kernel caps it at `net.core.rmem_max`).
 const POLL_RECEIVE_BUFFER: usize = 1 << 20;
 
@@ -1330,6 +1353,10 @@ async fn serve_udp_polled(
     let mut last = Instant::now();
     let mut silent = false;
     let mut every = period;
+    let epoch = sh
+        .tuning
+        .poll_epoch
+        .unwrap_or_else(tokio::time::Instant::now);
     let next = tokio::time::sleep(Duration::ZERO);
     tokio::pin!(next);
     loop {
@@ -1367,7 +1394,7 @@ async fn serve_udp_polled(
                 } else if taken < POLL_GROW_BELOW && Instant::now() >= fast_until {
                     every = (every * 2).min(period);
                 }
-                next.as_mut().reset(tokio::time::Instant::now() + every);
+                next.as_mut().reset(next_on_grid(epoch, every, tokio::time::Instant::now()));
                 let got = taken > 0;
                 if got {
                     last = Instant::now();
@@ -1781,6 +1808,24 @@ mod tests {
     use mavlink::dialects::ardupilotmega as apm;
     use mavlink::MavlinkVersion;
     use std::sync::atomic::Ordering::Relaxed;
+
+    /// Polls land on the shared grid, strictly after now, whatever the phase of `now`.
+    #[test]
+    fn polls_land_on_the_shared_grid() {
+        let epoch = tokio::time::Instant::now();
+        let ms = Duration::from_millis;
+        assert_eq!(next_on_grid(epoch, ms(10), epoch), epoch + ms(10));
+        assert_eq!(next_on_grid(epoch, ms(10), epoch + ms(3)), epoch + ms(10));
+        assert_eq!(next_on_grid(epoch, ms(10), epoch + ms(10)), epoch + ms(20));
+        assert_eq!(
+            next_on_grid(epoch, ms(10), epoch + ms(1234)),
+            epoch + ms(1240)
+        );
+        // Before the epoch, or no period: one period from now.
+        let later = epoch + ms(50);
+        assert_eq!(next_on_grid(later, ms(10), epoch), epoch + ms(10));
+        assert_eq!(next_on_grid(epoch, Duration::ZERO, later), later);
+    }
 
     const WAIT: Duration = Duration::from_secs(5);
 

@@ -101,7 +101,10 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    fn random_spd<const N: usize>(rng: &mut rand_chacha::ChaCha8Rng, spread: f64) -> SMatrix<f64, N, N> {
+    fn random_spd<const N: usize>(
+        rng: &mut rand_chacha::ChaCha8Rng,
+        spread: f64,
+    ) -> SMatrix<f64, N, N> {
         let b = SMatrix::<f64, N, N>::from_fn(|_, _| rng.random_range(-1.0..1.0));
         let d = SMatrix::<f64, N, N>::from_diagonal(&SVector::<f64, N>::from_fn(|_, _| {
             spread.powf(rng.random_range(0.0..1.0))
@@ -132,7 +135,10 @@ mod tests {
                 let (x, y) = (ours.solve(&b), theirs.solve(&b));
                 assert!((x - y).amax() <= tol * y.amax(), "N {N} case {case} solve");
                 let (p, q) = (ours.inverse(), theirs.inverse());
-                assert!((p - q).amax() <= tol * q.amax(), "N {N} case {case} inverse");
+                assert!(
+                    (p - q).amax() <= tol * q.amax(),
+                    "N {N} case {case} inverse"
+                );
                 assert!(((a * x) - b).amax() <= tol * b.amax() * 10.0);
             }
         }
