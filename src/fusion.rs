@@ -539,19 +539,31 @@ impl OrientationFilter {
         let w = self.last_gyro - self.bias;
         let r = self.q.to_rotation_matrix().into_inner();
         self.q *= UnitQuaternion::from_scaled_axis(w * dt);
-        // Error dynamics (world-frame attitude error): dtheta' = -R dbias.
-        let mut f = Matrix6::identity();
-        f.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-r * dt));
-        let mut q = Matrix6::zeros();
+        // Error dynamics (world-frame attitude error): dtheta' = -R dbias, so F = [[I, B], [0, I]]
+        // with B = -R dt. F P F^T by blocks (P = [[P11, P12], [P12^T, P22]]):
+        //   P11' = P11 + B P12^T + P12 B^T + B P22 B^T,  P12' = P12 + B P22,  P22' = P22,
+        // the same product at a fraction of the cost of the full 6 x 6 one.
+        let b = -r * dt;
+        let p11 = self.p.fixed_view::<3, 3>(0, 0).into_owned();
+        let p12 = self.p.fixed_view::<3, 3>(0, 3).into_owned();
+        let p22 = self.p.fixed_view::<3, 3>(3, 3).into_owned();
+        let bp22 = b * p22;
+        let bp12t = b * p12.transpose();
+        let n12 = p12 + bp22;
+        let n11 = p11 + bp12t + bp12t.transpose() + bp22 * b.transpose();
         let qa = (self.cfg.gyro_noise_density.powi(2)
             + self.cfg.gyro_rate_noise.powi(2) * self.rate_ms)
             * dt;
         let qb = self.cfg.bias_walk.powi(2) * dt;
+        self.p.fixed_view_mut::<3, 3>(0, 0).copy_from(&n11);
+        self.p.fixed_view_mut::<3, 3>(0, 3).copy_from(&n12);
+        self.p
+            .fixed_view_mut::<3, 3>(3, 0)
+            .copy_from(&n12.transpose());
         for i in 0..3 {
-            q[(i, i)] = qa;
-            q[(i + 3, i + 3)] = qb;
+            self.p[(i, i)] += qa;
+            self.p[(i + 3, i + 3)] += qb;
         }
-        self.p = f * self.p * f.transpose() + q;
     }
 
     /// Scalar Kalman update with measurement row `h`, innovation `y`, variance `r`; entries of the gain
@@ -563,8 +575,11 @@ impl OrientationFilter {
         for &i in frozen {
             k[i] = 0.0;
         }
-        let ikh = Matrix6::identity() - k * h;
-        self.p = ikh * self.p * ikh.transpose() + k * k.transpose() * r;
+        // Joseph form (I - K h) P (I - K h)^T + r K K^T, expanded with a = P h^T and
+        // s = h P h^T + r: P - K a^T - a K^T + s K K^T (exact for any K, so also with frozen
+        // entries; O(36) instead of two 6 x 6 products).
+        let ka = k * ph.transpose();
+        self.p += k * k.transpose() * s - ka - ka.transpose();
         let dx: Vector6<f64> = k * y;
         self.apply(&dx);
         s

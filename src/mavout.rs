@@ -227,6 +227,19 @@ fn mid(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
 /// Each face (a, b, c) is cut at its edge midpoints m_a = (a+b)/2, m_b = (b+c)/2, m_c = (c+a)/2 into
 /// W_0 = (m_a, m_b, m_c) (the middle), W_1 = (a, m_a, m_c), W_2 = (m_a, b, m_b), W_3 = (m_c, m_b, c),
 /// and the 80 flat triangles are projected from the centre onto the sphere (ArduPilot's numbering).
+/// For each icosahedron face (a, b, c): the rows `(b x c, c x a, a x b) / det(a, b, c)`, whose dot
+/// products with a direction are its barycentric coordinates in the face's plane (computed once).
+fn face_rows() -> &'static [[[f64; 3]; 3]; 20] {
+    static ROWS: std::sync::OnceLock<[[[f64; 3]; 3]; 20]> = std::sync::OnceLock::new();
+    ROWS.get_or_init(|| {
+        ICO_F.map(|f| {
+            let (a, b, c) = (&ICO_V[f[0]], &ICO_V[f[1]], &ICO_V[f[2]]);
+            let d = det3(a, b, c);
+            [cross(b, c), cross(c, a), cross(a, b)].map(|r| r.map(|x| x / d))
+        })
+    })
+}
+
 /// Write the ray through the face plane in barycentric coordinates (alpha, beta, gamma) of (a, b, c):
 /// the face holds the ray when all are >= 0, and the corner triangles are alpha >= 1/2, beta >= 1/2,
 /// gamma >= 1/2 respectively. On an edge the first face found wins.
@@ -238,14 +251,10 @@ pub fn section80(dir: &[f64; 3]) -> Option<usize> {
     // ray has it >= 0, so the search also closes any gap left by rounding on an edge.
     let mut best: Option<(usize, [f64; 3])> = None;
     let mut best_min = f64::NEG_INFINITY;
-    for (i, f) in ICO_F.iter().enumerate() {
-        let (a, b, c) = (&ICO_V[f[0]], &ICO_V[f[1]], &ICO_V[f[2]]);
-        let d = det3(a, b, c);
-        let w = [
-            det3(dir, b, c) / d,
-            det3(a, dir, c) / d,
-            det3(a, b, dir) / d,
-        ];
+    for (i, rows) in face_rows().iter().enumerate() {
+        // Cramer's rule with the face's determinants taken once: w_0 = det(dir, b, c) / det(a, b, c)
+        // = dir . (b x c) / det(a, b, c), and so on.
+        let w = rows.map(|r| dot(dir, &r));
         let s = w[0] + w[1] + w[2];
         if !(s > 0.0) {
             continue; // the ray meets this face's plane behind the centre
