@@ -921,42 +921,54 @@ mod tests {
         check::<9>(&mut rng);
     }
 
+    /// 300 points on a slightly sheared, shifted unit sphere with uniform noise of `noise`.
+    fn noisy_ellipsoid(seed: u64, noise: f64, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<Vec3> {
+        let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
+        sphere_points(300, seed)
+            .iter()
+            .map(|u| {
+                let x = m * u + Vector3::new(0.05, -0.03, 0.02);
+                [0, 1, 2].map(|k| x[k] + noise * rng.random_range(-1.0..1.0))
+            })
+            .collect()
+    }
+
+    /// A `sym9` LM run on `pts` (raw frame) from `x0`: the outcome, the evaluations, and how many
+    /// of them formed J^T J.
+    fn sym9_run(
+        pts: &[Vec3],
+        x0: &SVector<f64, 9>,
+        shortcuts: LmShortcuts,
+    ) -> (LmOutcome<9>, usize, usize) {
+        let soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
+        let mut scratch = kernel::Scratch::new(soa.padded);
+        let (mut evals, mut formed) = (0, 0);
+        let out = levenberg_marquardt_batch::<9>(*x0, 200, shortcuts, |p, with_jtj| {
+            evals += 1;
+            formed += usize::from(with_jtj);
+            kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch, with_jtj)
+        });
+        (out, evals, formed)
+    }
+
     /// Taking the last, tiny step unevaluated lands where evaluating every step does, with fewer
     /// evaluations.
     #[test]
     fn unevaluated_last_step_lands_where_evaluating_would() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
-        let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
         for case in 0..20 {
             let noise = [0.0, 1e-3, 5e-3, 2e-2][case % 4];
-            let pts: Vec<Vec3> = sphere_points(300, 100 + case as u64)
-                .iter()
-                .map(|u| {
-                    let x = m * u + Vector3::new(0.05, -0.03, 0.02);
-                    [0, 1, 2].map(|k| x[k] + noise * rng.random_range(-1.0..1.0))
-                })
-                .collect();
-            let soa = kernel::Soa::normalised(&pts, [0.0; 3], 1.0);
-            let mut scratch = kernel::Scratch::new(soa.padded);
+            let pts = noisy_ellipsoid(100 + case as u64, noise, &mut rng);
             let x0 = SVector::<f64, 9>::from_column_slice(&[
                 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0,
             ]);
-            let mut run = |tol: f64| {
-                let mut evals = 0;
+            let run = |tol: f64| {
                 let shortcuts = LmShortcuts {
                     last_step: tol,
                     reuse_jtj: 0.0,
                 };
-                let out = levenberg_marquardt_batch::<9>(x0, 200, shortcuts, |p, with_jtj| {
-                    evals += 1;
-                    assert!(with_jtj);
-                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(
-                        p,
-                        &soa,
-                        &mut scratch,
-                        true,
-                    )
-                });
+                let (out, evals, formed) = sym9_run(&pts, &x0, shortcuts);
+                assert_eq!(evals, formed, "J^T J is formed at every evaluation");
                 (out, evals)
             };
             let (every, every_evals) = run(0.0);
@@ -991,16 +1003,7 @@ mod tests {
         let mut reused_somewhere = false;
         for case in 0..20 {
             let noise = [0.0, 1e-3, 5e-3, 2e-2][case % 4];
-            let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
-            let pts: Vec<Vec3> = sphere_points(300, 300 + case as u64)
-                .iter()
-                .map(|u| {
-                    let x = m * u + Vector3::new(0.05, -0.03, 0.02);
-                    [0, 1, 2].map(|k| x[k] + noise * rng.random_range(-1.0..1.0))
-                })
-                .collect();
-            let soa = kernel::Soa::normalised(&pts, [0.0; 3], 1.0);
-            let mut scratch = kernel::Scratch::new(soa.padded);
+            let pts = noisy_ellipsoid(300 + case as u64, noise, &mut rng);
             // From the algebraic start, as the norm fits do (the first step is then short).
             let fitter = NormFitter::new(&pts);
             let start = fitter.ellipsoid.expect("ellipsoid start");
@@ -1009,21 +1012,12 @@ mod tests {
             let mut x0v = vec![centre[0], centre[1], centre[2]];
             x0v.extend(params_from_a(ModelKind::Sym9, &(start.shape / s)));
             let x0 = SVector::<f64, 9>::from_column_slice(&x0v);
-            let mut run = |reuse: f64| {
-                let mut formed = 0;
+            let run = |reuse: f64| {
                 let shortcuts = LmShortcuts {
                     last_step: 1e-6 / 291.0,
                     reuse_jtj: reuse,
                 };
-                let out = levenberg_marquardt_batch::<9>(x0, 200, shortcuts, |p, with_jtj| {
-                    formed += usize::from(with_jtj);
-                    kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(
-                        p,
-                        &soa,
-                        &mut scratch,
-                        with_jtj,
-                    )
-                });
+                let (out, _, formed) = sym9_run(&pts, &x0, shortcuts);
                 (out, formed)
             };
             let (every, every_formed) = run(0.0);
