@@ -163,7 +163,10 @@ fn payload_of(s: &SourceConfig) -> Payload {
 /// A JSON-lines consumer.
 enum Sink {
     Stdout,
-    Udp(tokio::net::UdpSocket, std::net::SocketAddr),
+    /// A plain non-blocking socket, not registered with tokio: a registered one reports write
+    /// readiness after every datagram sent, a wake-up that nothing waits for. A datagram the
+    /// kernel cannot take at once is dropped, as UDP may anyway.
+    Udp(std::net::UdpSocket, std::net::SocketAddr),
     Tcp(std::net::SocketAddr, Option<tokio::net::TcpStream>),
 }
 
@@ -190,8 +193,8 @@ impl Sink {
             } else {
                 "[::]:0".into()
             };
-            let sock = tokio::net::UdpSocket::bind(&bind)
-                .await
+            let sock = std::net::UdpSocket::bind(&bind)
+                .and_then(|s| s.set_nonblocking(true).map(|()| s))
                 .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
             return Ok(Sink::Udp(sock, addr));
         }
@@ -211,7 +214,7 @@ impl Sink {
                 let _ = out.flush().await;
             }
             Sink::Udp(s, a) => {
-                let _ = s.send_to(line.as_bytes(), *a).await;
+                let _ = s.send_to(line.as_bytes(), *a);
             }
             Sink::Tcp(a, conn) => {
                 if conn.is_none() {
@@ -233,6 +236,127 @@ impl Sink {
     }
 }
 
+/// Which parts of the sphere the kept magnetometer points cover, about a centre: the coverage
+/// regions ([`crate::coverage::region`]) and ArduPilot's 80 sections ([`mavout::section80`]). Built
+/// up point by point, so a progress report costs the points kept since the last one, not all.
+#[derive(Debug, Clone)]
+struct CoverageMap {
+    /// The centre, and the pipeline's magnetometer epoch the points came from.
+    basis: Option<(Vec3, u64)>,
+    regions: [bool; crate::coverage::REGIONS],
+    regions_filled: usize,
+    /// ArduPilot's completion mask.
+    mask: [u8; 10],
+    /// Direction of the last point added, about the centre.
+    last_dir: [f64; 3],
+}
+
+impl CoverageMap {
+    fn new(centre: Vec3, epoch: u64) -> CoverageMap {
+        CoverageMap {
+            basis: Some((centre, epoch)),
+            regions: [false; crate::coverage::REGIONS],
+            regions_filled: 0,
+            mask: [0; 10],
+            last_dir: [0.0; 3],
+        }
+    }
+
+    fn add(&mut self, points: &[Vec3]) {
+        let Some((c, _)) = self.basis else { return };
+        for p in points {
+            let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+            if let Some(r) = crate::coverage::region(&d) {
+                if !self.regions[r] {
+                    self.regions[r] = true;
+                    self.regions_filled += 1;
+                }
+            }
+            if let Some(s) = mavout::section80(&d) {
+                self.mask[s / 8] |= 1 << (s % 8);
+            }
+            self.last_dir = d;
+        }
+    }
+}
+
+/// A periodic output: served at the ticks of the run loop's clock when its period is a whole number
+/// of clock periods, else by a timer of its own. Both are on the time grid from `epoch`.
+struct Output {
+    cadence: Cadence,
+    own: Option<tokio::time::Interval>,
+}
+
+impl Output {
+    fn new(epoch: tokio::time::Instant, rate_hz: f64) -> Output {
+        Output {
+            cadence: Cadence::new(epoch, rate_hz),
+            own: None,
+        }
+    }
+
+    /// Keep to the clock of period `clock`, or take a timer of its own.
+    fn use_clock(&mut self, epoch: tokio::time::Instant, clock: Duration) {
+        let (p, c) = (self.cadence.period.as_nanos(), clock.as_nanos());
+        if c == 0 || p % c != 0 {
+            let mut t = tokio::time::interval_at(epoch, self.cadence.period);
+            t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+            self.own = Some(t);
+        }
+    }
+
+    /// Whether the output is due at clock tick `t` (never, when it has a timer of its own).
+    fn due_at_clock(&mut self, t: tokio::time::Instant) -> bool {
+        self.own.is_none() && self.cadence.due(t)
+    }
+
+    /// The next tick of its own timer (polled only when it has one).
+    async fn own_tick(&mut self) {
+        match self.own.as_mut() {
+            Some(t) => {
+                t.tick().await;
+            }
+            None => std::future::pending().await,
+        }
+    }
+}
+
+/// A periodic output on the shared time grid: due at `epoch + k * period`. Asked at the ticks of a
+/// clock on the same grid, at least as fast; ticks missed while busy are skipped, not made up.
+#[derive(Debug, Clone, Copy)]
+struct Cadence {
+    period: Duration,
+    next: tokio::time::Instant,
+}
+
+impl Cadence {
+    fn new(epoch: tokio::time::Instant, rate_hz: f64) -> Cadence {
+        Cadence {
+            // (Rates are validated: finite, positive and at most 1 kHz.)
+            period: Duration::from_secs_f64(1.0 / rate_hz).max(Duration::from_micros(1)),
+            next: epoch,
+        }
+    }
+
+    /// Whether the output is due at clock tick `t`; if so, the next time is set after `t`.
+    fn due(&mut self, t: tokio::time::Instant) -> bool {
+        if t < self.next {
+            return false;
+        }
+        let behind = (t - self.next).as_nanos() / self.period.as_nanos();
+        self.next = u32::try_from(behind + 1)
+            .ok()
+            .and_then(|k| self.period.checked_mul(k))
+            .and_then(|d| self.next.checked_add(d))
+            .unwrap_or(t + self.period);
+        true
+    }
+}
+
+/// Largest datagram of MAVLink frames sent to a link, bytes: under a 1500-byte Ethernet MTU less
+/// IP and UDP headers, so a datagram is never fragmented.
+const MAV_DATAGRAM_MAX: usize = 1400;
+
 /// What `run` did, for the caller's last words.
 #[derive(Debug, Clone, Default)]
 pub struct RunSummary {
@@ -244,6 +368,8 @@ pub struct RunSummary {
 struct LinkEntry {
     handle: LinkHandle,
     mavlink: bool,
+    /// A UDP link, read by polling on the time grid.
+    polled: bool,
     ended: bool,
     replay: bool,
     label: String,
@@ -257,6 +383,11 @@ struct State {
     calibrator: Calibrator,
     latest: Option<Calibrated>,
     enc: MavEncoder,
+    /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
+    /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
+    mav_out: Vec<u8>,
+    /// Coverage of the kept magnetometer points, for the progress reports.
+    coverage_map: CoverageMap,
     links: Vec<LinkEntry>,
     sinks: Vec<Sink>,
     ardupilot: bool,
@@ -348,18 +479,32 @@ impl State {
         self.start.elapsed().as_secs_f64()
     }
 
+    /// Queue MAVLink messages for the live links; [`State::flush_mav`] sends them.
     async fn send_mav(&mut self, msgs: &[MavMessage]) {
         for m in msgs {
             let bytes = self.enc.encode(m);
-            for l in self.links.iter().filter(|l| l.mavlink && !l.replay) {
-                if l.handle.outbound.try_send(bytes.clone()).is_err() {
-                    l.handle
-                        .counters
-                        .outbound_dropped
-                        .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                }
+            if !self.mav_out.is_empty() && self.mav_out.len() + bytes.len() > MAV_DATAGRAM_MAX {
+                self.flush_mav();
+            }
+            self.mav_out.extend_from_slice(&bytes);
+        }
+    }
+
+    /// Send the queued MAVLink frames to each live link as one datagram (or write). A link whose
+    /// queue is full loses it, counted in `outbound_dropped`.
+    fn flush_mav(&mut self) {
+        if self.mav_out.is_empty() {
+            return;
+        }
+        for l in self.links.iter().filter(|l| l.mavlink && !l.replay) {
+            if l.handle.outbound.try_send(self.mav_out.clone()).is_err() {
+                l.handle
+                    .counters
+                    .outbound_dropped
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             }
         }
+        self.mav_out.clear();
     }
 
     async fn send_json(&mut self, ev: &LiveEvent) {
@@ -389,7 +534,8 @@ impl State {
         if body.mag_ut.is_some() {
             self.last_body_mag = body.mag_ut;
         }
-        let c = self.calibrator.apply(&body);
+        // The angles are taken of the means at the heading rate (`publish_heading`), not per sample.
+        let c = self.calibrator.apply_vectors(&body);
         self.window.add(&c);
         self.fuse(&c);
         self.latest = Some(c);
@@ -549,8 +695,10 @@ impl State {
     async fn publish_heading(&mut self) {
         // The mean of the calibrated vectors since the last publication (decimation with averaging).
         let Some(mut c) = self.latest else { return };
-        if let Some(m) = self.window.take(self.declination) {
-            c = Calibrated { t_s: c.t_s, ..m };
+        match self.window.take(self.declination) {
+            Some(m) => c = Calibrated { t_s: c.t_s, ..m },
+            // Nothing new since the last time: the latest sample again, with its angles.
+            None => self.calibrator.add_attitude(&mut c),
         }
         let t_ms = (self.now_s() * 1000.0) as u32;
         let mut msgs = vec![];
@@ -601,31 +749,32 @@ impl State {
     }
 
     async fn publish_progress(&mut self) {
-        let pts = self.pipe.mag_points();
-        let centre = self.calibrator.mag.map(|c| c.offset).or_else(|| {
-            crate::fit::sphere_start(&pts).map(|s| [s.centre[0], s.centre[1], s.centre[2]])
-        });
+        let (epoch, fresh) = self.pipe.take_fresh_mag();
+        let centre = match self.calibrator.mag {
+            Some(c) => Some(c.offset),
+            None => crate::fit::sphere_start(&self.pipe.mag_points())
+                .map(|s| [s.centre[0], s.centre[1], s.centre[2]]),
+        };
         let Some(c) = centre else { return };
-        let dirs: Vec<Vec3> = pts
-            .iter()
-            .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
-            .collect();
-        let cov = crate::coverage::coverage(&dirs, &[0.0; 3]);
-        let (mask, _) = mavout::completion_mask(dirs.iter().copied());
-        let pct = ((100 * cov.filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
+        // Only the points kept since the last time, unless the centre moved or points were dropped.
+        if self.coverage_map.basis == Some((c, epoch)) {
+            self.coverage_map.add(&fresh);
+        } else {
+            self.coverage_map = CoverageMap::new(c, epoch);
+            self.coverage_map.add(&self.pipe.mag_points());
+        }
+        let map = &self.coverage_map;
+        let pct =
+            ((100 * map.regions_filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
         self.progress_pct = self.progress_pct.max(pct);
-        let last = pts.last().copied().unwrap_or([0.0; 3]);
-        let dir = [
-            (last[0] - c[0]) as f32,
-            (last[1] - c[1]) as f32,
-            (last[2] - c[2]) as f32,
-        ];
-        let msg = mavout::mag_cal_progress(0, self.progress_pct, mask, dir, 1);
+        let dir = map.last_dir.map(|v| v as f32);
+        let msg = mavout::mag_cal_progress(0, self.progress_pct, map.mask, dir, 1);
+        let filled_regions = map.regions_filled;
         self.send_mav(&[msg]).await;
         let ev = LiveEvent::Progress {
             sensor: "mag".into(),
             completion_pct: self.progress_pct as f64,
-            filled_regions: cov.filled,
+            filled_regions,
         };
         self.send_json(&ev).await;
     }
@@ -921,10 +1070,12 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             poll_epoch: Some(epoch),
             ..LinkOptions::default()
         };
+        let polled = matches!(addr, Address::UdpIn(_) | Address::UdpOut(_));
         let handle = spawn_link(i, addr, payload, tx.clone(), link_stop_rx.clone(), opts);
         links.push(LinkEntry {
             handle,
             mavlink,
+            polled,
             ended: false,
             replay,
             label: s.address.clone(),
@@ -943,6 +1094,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         store,
         latest: None,
         enc: MavEncoder::new(d.system_id, d.component_id),
+        mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
+        coverage_map: CoverageMap {
+            basis: None,
+            ..CoverageMap::new([0.0; 3], 0)
+        },
         links,
         sinks,
         ardupilot: false,
@@ -965,16 +1121,28 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         last_body_mag: None,
         cfg,
     };
-    // The periodic outputs, on the same time grid as the links' UDP polls (`epoch`): a tick that
-    // falls due with a poll is served in the same wake-up.
-    let tick = |rate_hz: f64| {
-        let mut t = tokio::time::interval_at(epoch, Duration::from_secs_f64(1.0 / rate_hz));
-        t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        t
-    };
-    let mut heading_tick = tick(d.heading_rate_hz);
-    let mut progress_tick = tick(d.progress_rate_hz);
-    let mut attitude_tick = tick(d.attitude_rate_hz);
+    // The periodic outputs, on the same time grid as the links' UDP polls (`epoch`). Those whose
+    // period is a whole number of clock periods are served at the ticks of one clock that ticks
+    // with the polls, in the wake-up a poll makes anyway (a timer of its own per output, set 100 ms
+    // or more ahead, would cost tokio's timer wheel a wake-up of its own to move it to its finest
+    // level). Any other keeps a timer of its own, so every output stays evenly spaced.
+    let polled = st.links.iter().any(|l| l.polled);
+    let poll = (polled && d.udp_poll_ms > 0.0 && d.attitude_every_samples == 0)
+        .then(|| Duration::from_secs_f64(d.udp_poll_ms / 1000.0));
+    let mut outputs = [
+        Output::new(epoch, d.heading_rate_hz),
+        Output::new(epoch, d.progress_rate_hz),
+        Output::new(epoch, d.attitude_rate_hz),
+    ];
+    let clock_period = poll
+        .or_else(|| outputs.iter().map(|o| o.cadence.period).min())
+        .unwrap_or(Duration::from_millis(100));
+    for o in outputs.iter_mut() {
+        o.use_clock(epoch, clock_period);
+    }
+    let [mut heading_out, mut progress_out, mut attitude_out] = outputs;
+    let mut clock = tokio::time::interval_at(epoch, clock_period);
+    clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
     let mut refit_wanted = false;
@@ -1054,11 +1222,24 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     Err(e) => tracing::error!("fit task failed: {e}"),
                 }
             }
-            _ = heading_tick.tick() => st.on_heading_tick().await,
-            _ = progress_tick.tick() => st.publish_progress().await,
-            _ = attitude_tick.tick() => st.publish_attitude().await,
+            t = clock.tick() => {
+                if heading_out.due_at_clock(t) {
+                    st.on_heading_tick().await;
+                }
+                if progress_out.due_at_clock(t) {
+                    st.publish_progress().await;
+                }
+                if attitude_out.due_at_clock(t) {
+                    st.publish_attitude().await;
+                }
+            }
+            _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
+            _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
+            _ = attitude_out.own_tick(), if attitude_out.own.is_some() => st.publish_attitude().await,
         }
+        st.flush_mav();
     }
+    st.flush_mav();
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
     let _ = link_stop_tx.send(true);
     if let Some(j) = fit_job.take() {
@@ -1139,5 +1320,63 @@ mod tests {
         assert_eq!(r.take(), Some([0.2, 0.1, 0.0]));
         r.add(&[1.0, 1.0, 1.0]);
         assert_eq!(r.take(), Some([1.0, 1.0, 1.0]));
+    }
+
+    #[test]
+    fn daemon_coverage_map_built_in_steps_matches_the_full_scan() {
+        // Points on a sphere of radius 40 about c, over about two thirds of the directions.
+        let c = [12.0, -7.0, 30.0];
+        let pts: Vec<Vec3> = (0..1500)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f64 + 0.5) / 1500.0;
+                let phi = i as f64 * 2.399_963;
+                let r = (1.0 - z * z).sqrt();
+                [40.0 * r * phi.cos(), 40.0 * r * phi.sin(), 40.0 * z]
+            })
+            .filter(|d| d[2] < 15.0)
+            .map(|d| [d[0] + c[0], d[1] + c[1], d[2] + c[2]])
+            .collect();
+        let mut stepped = CoverageMap::new(c, 3);
+        for chunk in pts.chunks(97) {
+            stepped.add(chunk);
+        }
+        let dirs: Vec<Vec3> = pts
+            .iter()
+            .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
+            .collect();
+        let full = crate::coverage::coverage(&dirs, &[0.0; 3]);
+        let (mask, sections) = mavout::completion_mask(dirs.iter().copied());
+        assert_eq!(stepped.regions_filled, full.filled);
+        assert!(full.filled > 30 && full.filled < 100, "{}", full.filled);
+        assert_eq!(stepped.mask, mask);
+        assert!(sections > 20 && sections < 80, "{sections}");
+        assert_eq!(stepped.last_dir, *dirs.last().unwrap());
+    }
+
+    #[test]
+    fn daemon_cadences_fire_on_their_grid_points_and_skip_what_was_missed() {
+        let epoch = tokio::time::Instant::now();
+        let ms = |n: u64| epoch + Duration::from_millis(n);
+        // 10 Hz asked by a 20 ms clock: every fifth tick, the first at the epoch.
+        let mut c = Cadence::new(epoch, 10.0);
+        let fired: Vec<u64> = (0..=25u64)
+            .map(|k| 20 * k)
+            .filter(|&t| c.due(ms(t)))
+            .collect();
+        assert_eq!(fired, [0, 100, 200, 300, 400, 500]);
+        // 30 Hz (33.3 ms) off the 20 ms grid: at the first tick at or after each due time, and the
+        // mean rate is kept (6 in 200 ms).
+        let mut c = Cadence::new(epoch, 30.0);
+        let fired: Vec<u64> = (0..10u64)
+            .map(|k| 20 * k)
+            .filter(|&t| c.due(ms(t)))
+            .collect();
+        assert_eq!(fired, [0, 40, 80, 100, 140, 180]);
+        // A stall of a second: one output, then back on the grid (no burst making up for it).
+        let mut c = Cadence::new(epoch, 10.0);
+        assert!(c.due(ms(0)));
+        assert!(c.due(ms(1030)));
+        assert!(!c.due(ms(1060)) && !c.due(ms(1080)));
+        assert!(c.due(ms(1100)));
     }
 }

@@ -16,8 +16,8 @@ use std::collections::BTreeMap;
 pub struct DecodeStats {
     /// Frames (or CSV rows) decoded.
     pub records: u64,
-    /// Samples carrying each sensor: "accel", "gyro", "mag", "temp", "throttle".
-    pub counts: BTreeMap<String, u64>,
+    /// Samples carrying each sensor.
+    pub counts: SensorCounts,
     /// Skipped items by reason.
     pub skipped: BTreeMap<String, u64>,
 }
@@ -32,16 +32,62 @@ impl DecodeStats {
         }
     }
     pub fn count_sample(&mut self, s: &Sample) {
-        let mut inc = |k: &str, present: bool| {
-            if present {
-                bump(&mut self.counts, k, 1);
-            }
-        };
-        inc("accel", s.accel_mps2.is_some());
-        inc("gyro", s.gyro_rad_s.is_some());
-        inc("mag", s.mag_ut.is_some());
-        inc("temp", s.temp_c.is_some());
-        inc("throttle", s.throttle.is_some());
+        let c = &mut self.counts;
+        c.accel += s.accel_mps2.is_some() as u64;
+        c.gyro += s.gyro_rad_s.is_some() as u64;
+        c.mag += s.mag_ut.is_some() as u64;
+        c.temp += s.temp_c.is_some() as u64;
+        c.throttle += s.throttle.is_some() as u64;
+    }
+}
+
+/// How many samples carried each sensor. Serialised as a map of the non-zero counts
+/// (`{"accel": 12, "mag": 12}`); counted once per sample, so plain fields rather than a map.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(default, deny_unknown_fields)]
+pub struct SensorCounts {
+    #[serde(skip_serializing_if = "is_zero")]
+    pub accel: u64,
+    #[serde(skip_serializing_if = "is_zero")]
+    pub gyro: u64,
+    #[serde(skip_serializing_if = "is_zero")]
+    pub mag: u64,
+    #[serde(skip_serializing_if = "is_zero")]
+    pub temp: u64,
+    #[serde(skip_serializing_if = "is_zero")]
+    pub throttle: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
+impl SensorCounts {
+    pub fn is_empty(&self) -> bool {
+        *self == SensorCounts::default()
+    }
+
+    pub fn add(&mut self, o: &SensorCounts) {
+        self.accel += o.accel;
+        self.gyro += o.gyro;
+        self.mag += o.mag;
+        self.temp += o.temp;
+        self.throttle += o.throttle;
+    }
+
+    /// The non-zero counts by sensor name.
+    pub fn to_map(&self) -> BTreeMap<String, u64> {
+        [
+            ("accel", self.accel),
+            ("gyro", self.gyro),
+            ("mag", self.mag),
+            ("temp", self.temp),
+            ("throttle", self.throttle),
+        ]
+        .into_iter()
+        .filter(|(_, n)| *n > 0)
+        .map(|(k, n)| (k.to_string(), n))
+        .collect()
     }
 }
 
@@ -280,12 +326,31 @@ impl Default for RawImuScale {
     }
 }
 
+/// An IMU instance of a message: its kind (`highres_imu`, `scaled_imu2`, ...) and, for kinds that
+/// carry one, its id. Compared as it is; the name (`highres_imu:1`) is built only for display and
+/// for [`InstanceChoice::Named`] before an instance is chosen, not once per sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Instance {
+    kind: &'static str,
+    id: Option<u8>,
+}
+
+impl Instance {
+    fn name(&self) -> String {
+        match self.id {
+            Some(id) => format!("{}:{id}", self.kind),
+            None => self.kind.to_string(),
+        }
+    }
+}
+
 /// Turns MAVLink messages into samples of one IMU instance, with throttle from VFR_HUD.
 #[derive(Debug, Clone)]
 pub struct MessageConverter {
     pub choice: InstanceChoice,
     pub raw_scale: RawImuScale,
-    locked: Option<String>,
+    /// The instance chosen, and its name.
+    locked: Option<(Instance, String)>,
     throttle: Option<f64>,
     t0_us: Option<u64>,
     pub stats: DecodeStats,
@@ -315,15 +380,15 @@ impl MessageConverter {
 
     /// The instance samples are taken from, once chosen.
     pub fn instance(&self) -> Option<&str> {
-        self.locked.as_deref()
+        self.locked.as_ref().map(|(_, n)| n.as_str())
     }
 
     /// Units of the samples produced (RAW_IMU without a scale gives counts).
     pub fn units(&self) -> Units {
         let raw = self
             .locked
-            .as_deref()
-            .is_some_and(|s| s.starts_with("raw_imu"));
+            .as_ref()
+            .is_some_and(|(i, _)| i.kind == "raw_imu");
         let u = |scale: f64| {
             if raw && scale == 0.0 {
                 Unit::Counts
@@ -341,7 +406,7 @@ impl MessageConverter {
     /// Convert one message; `time_us` is the receive time (tlog timestamp or clock) used when the
     /// message carries no time of its own.
     pub fn convert(&mut self, msg: &MavMessage, time_us: u64) -> Option<Sample> {
-        type Raw = (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool);
+        type Raw = (Instance, u64, Vec3, Vec3, Vec3, Option<f64>, bool);
         let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
             MavMessage::VFR_HUD(d) => {
                 let th = d.throttle as f64 / 100.0;
@@ -360,7 +425,10 @@ impl MessageConverter {
                 ];
                 let has = m.iter().any(|v| *v != 0.0);
                 (
-                    format!("highres_imu:{}", d.id),
+                    Instance {
+                        kind: "highres_imu",
+                        id: Some(d.id),
+                    },
                     d.time_usec,
                     [d.xacc as f64, d.yacc as f64, d.zacc as f64],
                     [d.xgyro as f64, d.ygyro as f64, d.zgyro as f64],
@@ -401,7 +469,10 @@ impl MessageConverter {
                     sc(d.zmag, self.raw_scale.mag),
                 ];
                 (
-                    format!("raw_imu:{}", d.id),
+                    Instance {
+                        kind: "raw_imu",
+                        id: Some(d.id),
+                    },
                     d.time_usec,
                     [
                         sc(d.xacc, self.raw_scale.accel),
@@ -425,11 +496,11 @@ impl MessageConverter {
             _ => return None,
         };
         match (&self.locked, &self.choice) {
-            (Some(l), _) if *l != name => {
+            (Some((l, _)), _) if *l != name => {
                 self.stats.skip("other_instance");
                 return None;
             }
-            (None, InstanceChoice::Named(want)) if *want != name => {
+            (None, InstanceChoice::Named(want)) if *want != name.name() => {
                 self.stats.skip("other_instance");
                 return None;
             }
@@ -437,7 +508,7 @@ impl MessageConverter {
                 self.stats.skip("other_instance");
                 return None;
             }
-            (None, _) => self.locked = Some(name.clone()),
+            (None, _) => self.locked = Some((name, name.name())),
             _ => {}
         }
         let t = if t_us > 0 { t_us } else { time_us };
@@ -468,16 +539,19 @@ impl MessageConverter {
 }
 
 fn scaled(
-    name: &str,
+    name: &'static str,
     t_ms: u32,
     a: [i16; 3],
     g: [i16; 3],
     m: [i16; 3],
     temp: i16,
-) -> (String, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
+) -> (Instance, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
     let f = |v: [i16; 3], k: f64| [v[0] as f64 * k, v[1] as f64 * k, v[2] as f64 * k];
     (
-        name.to_string(),
+        Instance {
+            kind: name,
+            id: None,
+        },
         t_ms as u64 * 1000,
         f(a, MG_TO_MPS2),
         f(g, 1e-3),

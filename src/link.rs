@@ -658,9 +658,7 @@ fn decode_datagram(buf: &[u8], stats: &mut DecodeStats) -> Vec<Frame> {
 
 fn merge_stats(dst: &mut DecodeStats, src: &DecodeStats) {
     dst.records += src.records;
-    for (k, v) in &src.counts {
-        *dst.counts.entry(k.clone()).or_insert(0) += v;
-    }
+    dst.counts.add(&src.counts);
     for (k, v) in &src.skipped {
         *dst.skipped.entry(k.clone()).or_insert(0) += v;
     }
@@ -1359,6 +1357,13 @@ async fn serve_udp_polled(
         .unwrap_or_else(tokio::time::Instant::now);
     let next = tokio::time::sleep(Duration::ZERO);
     tokio::pin!(next);
+    // A second timer, never awaited, kept one period past `next`. When `next` fires, the timer
+    // driver's next wake-up becomes the earliest timer left; without this one that is later than
+    // the next poll (or none), and re-arming `next` earlier than it makes tokio wake its driver
+    // (an eventfd write and one more epoll_wait per poll). With it, re-arming is never earlier, and
+    // moving `guard` later only extends a pending timer.
+    let guard = tokio::time::sleep_until(next_on_grid(epoch, every, tokio::time::Instant::now()));
+    tokio::pin!(guard);
     loop {
         tokio::select! {
             biased;
@@ -1394,7 +1399,9 @@ async fn serve_udp_polled(
                 } else if taken < POLL_GROW_BELOW && Instant::now() >= fast_until {
                     every = (every * 2).min(period);
                 }
-                next.as_mut().reset(next_on_grid(epoch, every, tokio::time::Instant::now()));
+                let due = next_on_grid(epoch, every, tokio::time::Instant::now());
+                next.as_mut().reset(due);
+                guard.as_mut().reset(due + every);
                 let got = taken > 0;
                 if got {
                     last = Instant::now();

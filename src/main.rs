@@ -269,7 +269,13 @@ fn main() -> Result<()> {
                     wait_for_signal().await;
                     let _ = tx.send(true);
                 });
-                imucald::daemon::run(cfg, rx).await
+                // The service runs as a task, not as the `block_on` future itself: waking that
+                // future goes through the I/O driver (an eventfd write and one more epoll_wait),
+                // while waking a task from another task on this thread only queues it.
+                let r = tokio::spawn(imucald::daemon::run(cfg, rx))
+                    .await
+                    .context("service task")?;
+                anyhow::Ok(r?)
             })?;
             rt.shutdown_timeout(std::time::Duration::from_millis(200));
             eprintln!(

@@ -64,6 +64,10 @@ pub struct Pipeline {
     last_refit_t: Option<f64>,
     /// Fit inputs (kept mag points, poses) added since the last refit.
     new_inputs: usize,
+    /// Bumped whenever kept magnetometer points are dropped or re-binned (not merely added).
+    mag_epoch: u64,
+    /// Magnetometer points kept since the last [`Pipeline::take_fresh_mag`] in this epoch.
+    fresh_mag: Vec<Vec3>,
     pub last_t: f64,
     pub samples: u64,
     pub mag_units: Unit,
@@ -100,6 +104,8 @@ impl Pipeline {
             mag_bins: None,
             last_refit_t: None,
             new_inputs: 0,
+            mag_epoch: 0,
+            fresh_mag: Vec::new(),
             last_t: 0.0,
             samples: 0,
             mag_units: Unit::Si,
@@ -174,8 +180,14 @@ impl Pipeline {
 
     fn add_mag(&mut self, m: Vec3) {
         if let Some(b) = self.mag_bins.as_mut() {
+            let cell = b.cell_deg();
             if b.add(&m) {
                 self.new_inputs += 1;
+                if b.cell_deg() == cell {
+                    self.note_fresh_mag(m);
+                } else {
+                    self.mag_points_changed(); // the cells widened: re-binned
+                }
             }
             return;
         }
@@ -183,12 +195,14 @@ impl Pipeline {
         if self.mag_seen % self.mag_stride == 0 {
             self.mag_buffer.push(m);
             self.new_inputs += 1;
+            self.note_fresh_mag(m);
         }
         if self.mag_buffer.len() >= MAG_BUFFER_MAX {
             // Bounded memory before a centre is known: keep every other point, sample half as often.
             let kept: Vec<Vec3> = self.mag_buffer.iter().step_by(2).copied().collect();
             self.mag_buffer = kept;
             self.mag_stride *= 2;
+            self.mag_points_changed();
         }
         if self.mag_buffer.len() >= 100 && self.mag_buffer.len() % 50 == 0 {
             self.try_start_bins();
@@ -219,6 +233,7 @@ impl Pipeline {
                 b.add(&p);
             }
             self.mag_bins = Some(b);
+            self.mag_points_changed();
         }
     }
 
@@ -266,6 +281,8 @@ impl Pipeline {
             ]);
             if d > 1e-3 * results.mag.report.radius.max(1e-9) {
                 b.recentre(c.offset);
+                self.mag_epoch += 1;
+                self.fresh_mag.clear();
             }
         }
         self.latest = Some(results);
@@ -291,6 +308,28 @@ impl Pipeline {
         if let Some(p) = self.detector.finish() {
             self.add_pose(p);
         }
+    }
+
+    fn note_fresh_mag(&mut self, m: Vec3) {
+        if self.fresh_mag.len() < MAX_FRESH_MAG {
+            self.fresh_mag.push(m);
+        } else {
+            // Nobody is taking them: start a new epoch rather than grow.
+            self.mag_points_changed();
+        }
+    }
+
+    fn mag_points_changed(&mut self) {
+        self.mag_epoch += 1;
+        self.fresh_mag.clear();
+    }
+
+    /// The magnetometer points kept since the last call, and the epoch of the kept set. While the
+    /// epoch stays the same, [`Pipeline::mag_points`] is the points of earlier calls plus these
+    /// (a consumer can update what it derived from them); a new epoch means points were dropped or
+    /// re-binned, so start again from [`Pipeline::mag_points`].
+    pub fn take_fresh_mag(&mut self) -> (u64, Vec<Vec3>) {
+        (self.mag_epoch, std::mem::take(&mut self.fresh_mag))
     }
 
     /// The magnetometer points kept so far (raw units, body axes).
@@ -969,6 +1008,9 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
     }
 }
 
+/// Most magnetometer points held for [`Pipeline::take_fresh_mag`] between two calls.
+const MAX_FRESH_MAG: usize = 4096;
+
 /// Detect accelerometer units from the static norms: near g means m/s^2, otherwise counts.
 pub fn accel_units(poses: &[Pose], setting: &str) -> Unit {
     match setting {
@@ -1094,7 +1136,17 @@ impl Calibrator {
     }
 
     /// Calibrate one body-frame sample. Sensors without an accepted calibration pass through raw.
+    /// Roll, pitch and heading come from the latest accelerometer and magnetometer seen.
     pub fn apply(&mut self, s: &Sample) -> Calibrated {
+        let mut out = self.apply_vectors(s);
+        self.add_attitude(&mut out);
+        out
+    }
+
+    /// [`Calibrator::apply`] without the roll, pitch and heading (left `None`): for a caller that
+    /// averages the vectors and takes the angles of the means, at its output rate, rather than
+    /// three arctangents per sample. [`Calibrator::add_attitude`] adds them later if wanted.
+    pub fn apply_vectors(&mut self, s: &Sample) -> Calibrated {
         let a = s.accel_mps2.map(|v| self.accel.map_or(v, |c| c.apply(&v)));
         let m = s.mag_ut.map(|v| self.mag.map_or(v, |c| c.apply(&v)));
         let g = s.gyro_rad_s.map(|v| match self.gyro_bias {
@@ -1107,13 +1159,18 @@ impl Calibrator {
         if m.is_some() {
             self.last_mag = m;
         }
-        let mut out = Calibrated {
+        Calibrated {
             t_s: s.t_s,
             accel_mps2: a,
             gyro_rad_s: g,
             mag_ut: m,
             ..Default::default()
-        };
+        }
+    }
+
+    /// Set `out`'s roll, pitch and heading from the latest calibrated accelerometer and
+    /// magnetometer seen by [`Calibrator::apply_vectors`] (none before an accelerometer reading).
+    pub fn add_attitude(&self, out: &mut Calibrated) {
         if let Some(f) = self.last_accel {
             let (r, p) = crate::attitude::roll_pitch_deg(&f);
             out.roll_deg = Some(r);
@@ -1124,7 +1181,6 @@ impl Calibrator {
                 out.heading_deg = Some(crate::attitude::wrap360(h));
             }
         }
-        out
     }
 }
 

@@ -47,7 +47,7 @@ impl InputReport {
             path,
             instance,
             samples,
-            counts: stats.counts.clone(),
+            counts: stats.counts.to_map(),
             skipped: stats.skipped.clone(),
             duration_s,
         }
