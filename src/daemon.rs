@@ -617,7 +617,7 @@ impl State {
     }
 
     /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
-    async fn on_frame(&mut self, link: usize, frame: crate::decode::Frame, time_us: u64) -> bool {
+    async fn on_frame(&mut self, link: usize, frame: &crate::decode::Frame, time_us: u64) -> bool {
         match &frame.message {
             MavMessage::HEARTBEAT(h) => {
                 if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -1187,7 +1187,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                             refit_wanted |= st.on_sample(sample);
                         }
                         Inbound::Frame { link, frame, time_us } => {
-                            refit_wanted |= st.on_frame(link, frame, time_us).await;
+                            refit_wanted |= st.on_frame(link, &frame, time_us).await;
                         }
                         Inbound::Status { link, status } => {
                             let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();

@@ -227,7 +227,7 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
     };
     let payload = &buf[header_len..header_len + len];
     let crc_got = u16::from_le_bytes([buf[header_len + len], buf[header_len + len + 1]]);
-    if MavMessage::default_message_from_id(msgid).is_none() {
+    if !known_message(msgid) {
         // The CRC cannot be checked without the message's extra CRC: skip the frame as unknown.
         return FrameParse::Skip(total, "unknown_message");
     }
@@ -246,6 +246,26 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
             total,
         ),
         Err(_) => FrameParse::Skip(total, "bad_payload"),
+    }
+}
+
+/// Whether the dialect knows message `id`. The dialect only answers by building a default
+/// message, a few hundred bytes, so the answers for ids below 65536 (all of ardupilotmega's) are
+/// kept in a bit set built on first use.
+fn known_message(id: u32) -> bool {
+    static KNOWN: std::sync::OnceLock<Vec<u64>> = std::sync::OnceLock::new();
+    let known = KNOWN.get_or_init(|| {
+        let mut bits = vec![0u64; 1 << 10];
+        for i in 0..1u32 << 16 {
+            if MavMessage::default_message_from_id(i).is_some() {
+                bits[(i >> 6) as usize] |= 1 << (i & 63);
+            }
+        }
+        bits
+    });
+    match known.get((id >> 6) as usize) {
+        Some(w) => w & (1 << (id & 63)) != 0,
+        None => MavMessage::default_message_from_id(id).is_some(),
     }
 }
 
@@ -887,6 +907,19 @@ pub fn detect_format(bytes: &[u8]) -> Option<Format> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn known_message_ids_are_the_dialects() {
+        let mut known = 0;
+        for id in (0..70_000u32).chain([1 << 20, (1 << 24) - 1, u32::MAX]) {
+            let want = MavMessage::default_message_from_id(id).is_some();
+            assert_eq!(known_message(id), want, "id {id}");
+            known += want as usize;
+        }
+        // HEARTBEAT, HIGHRES_IMU, ArduPilot's MAG_CAL_REPORT: and a few hundred in all.
+        assert!(known_message(0) && known_message(105) && known_message(192));
+        assert!(known > 200, "{known}");
+    }
 
     fn frame_bytes(msg: &MavMessage, v: MavlinkVersion) -> Vec<u8> {
         let mut out = Vec::new();

@@ -202,11 +202,38 @@ impl LogHistogram {
         }
     }
 
+    /// The bin of `v`: `floor((log10 v - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)`, clamped to the
+    /// bins (0 for v <= 0 or NaN). Found from the binary exponent and a table of the bin edges, not
+    /// a `log10` per window (this runs once per sample).
     fn bin_of(v: f64) -> usize {
-        let l = if v > 0.0 { v.log10() } else { HIST_MIN_LOG10 };
-        ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
+        static EDGES: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
+        let edges = EDGES.get_or_init(|| {
+            (0..=HIST_BINS)
+                .map(|i| 10f64.powf(HIST_MIN_LOG10 + i as f64 / HIST_BINS_PER_DECADE))
+                .collect()
+        });
+        if !(v >= edges[1]) {
+            return 0;
+        }
+        if v >= edges[HIST_BINS - 1] {
+            return HIST_BINS - 1;
+        }
+        // log2 v to within 0.09 from the exponent and a linear mantissa, so the estimate is off by
+        // at most one bin; the edges settle it.
+        let bits = v.to_bits();
+        let exp = ((bits >> 52) & 0x7ff) as f64 - 1023.0;
+        let mant = f64::from_bits((bits & ((1u64 << 52) - 1)) | (1023u64 << 52));
+        let log10 = (exp + mant - 1.0) * std::f64::consts::LOG10_2;
+        let mut i = ((log10 - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
             .floor()
-            .clamp(0.0, (HIST_BINS - 1) as f64) as usize
+            .clamp(1.0, (HIST_BINS - 2) as f64) as usize;
+        while v < edges[i] {
+            i -= 1;
+        }
+        while v >= edges[i + 1] {
+            i += 1;
+        }
+        i
     }
 
     fn centre(bin: usize) -> f64 {
@@ -410,6 +437,47 @@ impl StaticDetector {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn histogram_bins_match_the_log10_formula() {
+        let by_log = |v: f64| {
+            let l = if v > 0.0 { v.log10() } else { HIST_MIN_LOG10 };
+            ((l - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
+                .floor()
+                .clamp(0.0, (HIST_BINS - 1) as f64) as usize
+        };
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        let mut checked = 0;
+        for k in 0..200_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            // Log-uniform over 1e-16 .. 1e13, past both ends of the bins.
+            let v = 10f64.powf(-16.0 + 29.0 * (x >> 11) as f64 / (1u64 << 53) as f64);
+            let (got, want) = (LogHistogram::bin_of(v), by_log(v));
+            if got != want {
+                // Only within rounding of a bin edge.
+                let edge = 10f64.powf(HIST_MIN_LOG10 + got.max(want) as f64 / HIST_BINS_PER_DECADE);
+                assert!(
+                    (v / edge - 1.0).abs() < 1e-13,
+                    "{v:e}: {got} vs {want} ({k})"
+                );
+            }
+            checked += 1;
+        }
+        assert_eq!(checked, 200_000);
+        for v in [
+            0.0,
+            -1.0,
+            f64::NAN,
+            f64::MIN_POSITIVE,
+            5e-324,
+            f64::INFINITY,
+            1e300,
+        ] {
+            assert_eq!(LogHistogram::bin_of(v), by_log(v), "{v:e}");
+        }
+    }
 
     #[test]
     fn tracked_quantile_equals_a_scan_of_the_bins() {

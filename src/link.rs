@@ -326,7 +326,8 @@ pub enum Inbound {
     /// tlog timestamp.
     Frame {
         link: usize,
-        frame: Frame,
+        /// Boxed: a MAVLink message is a few hundred bytes, moved several times on its way.
+        frame: Box<Frame>,
         time_us: u64,
     },
     /// A sample from a text-line link, a CSV file or `sim:`.
@@ -628,14 +629,16 @@ enum LineParser {
 
 /// Frames of one UDP datagram. Unlike the stream decoder, a datagram's end is a frame boundary:
 /// an unfinished frame there is counted `truncated`; each run of garbage counts one `resync`.
-fn decode_datagram(buf: &[u8], stats: &mut DecodeStats) -> Vec<Frame> {
-    let mut out = Vec::new();
+/// Each frame goes to `emit` as it is found (boxed, as it will travel); returns how many.
+fn decode_datagram(buf: &[u8], stats: &mut DecodeStats, mut emit: impl FnMut(Box<Frame>)) -> u64 {
+    let mut n_frames = 0;
     let mut pos = 0;
     let mut in_garbage = false;
     while pos < buf.len() {
         match decode::parse_frame(&buf[pos..]) {
             FrameParse::Frame(f, n) => {
-                out.push(*f);
+                emit(f);
+                n_frames += 1;
                 pos += n;
                 in_garbage = false;
             }
@@ -653,7 +656,7 @@ fn decode_datagram(buf: &[u8], stats: &mut DecodeStats) -> Vec<Frame> {
             }
         }
     }
-    out
+    n_frames
 }
 
 fn merge_stats(dst: &mut DecodeStats, src: &DecodeStats) {
@@ -751,23 +754,25 @@ impl Rx {
         let mut open = true;
         match self {
             Rx::Mavlink(dec) => {
-                let frames = if datagram {
-                    decode_datagram(bytes, &mut local)
-                } else {
-                    let f = dec.push(bytes);
-                    local = std::mem::take(&mut dec.stats);
-                    f
-                };
-                local.records += frames.len() as u64;
-                LinkCounters::add(&sh.counters.frames_in, frames.len() as u64);
                 let time_us = now_us();
-                for frame in frames {
+                let mut offer = |frame: Box<Frame>| {
                     open &= sh.offer(Inbound::Frame {
                         link: sh.index,
                         frame,
                         time_us,
                     });
-                }
+                };
+                let n = if datagram {
+                    decode_datagram(bytes, &mut local, offer)
+                } else {
+                    let frames = dec.push(bytes);
+                    local = std::mem::take(&mut dec.stats);
+                    let n = frames.len() as u64;
+                    frames.into_iter().for_each(|f| offer(Box::new(f)));
+                    n
+                };
+                local.records += n;
+                LinkCounters::add(&sh.counters.frames_in, n);
             }
             Rx::Text { lines, parser } => {
                 let (mut got, overlong) = lines.push(bytes);
@@ -1729,7 +1734,7 @@ async fn replay_tlog(sh: &Shared, ctl: &mut Control, data: &[u8], speed: f64) ->
         LinkCounters::add(&sh.counters.frames_in, 1);
         let item = Inbound::Frame {
             link: sh.index,
-            frame,
+            frame: Box::new(frame),
             time_us: ts,
         };
         if !deliver(sh, ctl, item).await {
@@ -1911,7 +1916,7 @@ mod tests {
                     time_us,
                 } => {
                     assert_eq!(link, 7);
-                    (frame, time_us)
+                    (*frame, time_us)
                 }
                 other => panic!("expected a frame, got {other:?}"),
             }
@@ -2146,8 +2151,9 @@ mod tests {
         let whole = frame_bytes(&imu(2.0), MavlinkVersion::V2);
         d.extend(&whole[..whole.len() - 3]);
         let mut st = DecodeStats::default();
-        let frames = decode_datagram(&d, &mut st);
-        assert_eq!(frames.len(), 2);
+        let mut frames = vec![];
+        let n = decode_datagram(&d, &mut st, |f| frames.push(f));
+        assert_eq!((n, frames.len()), (2, 2));
         assert_eq!(st.skipped.get("resync"), Some(&1));
         assert_eq!(st.skipped.get("truncated"), Some(&1));
     }
