@@ -373,6 +373,8 @@ struct DelayEst {
     sxy: f64,
     sxx: f64,
     mean: Lp3,
+    /// The last step and its forgetting factor (steps repeat: one `exp` per new step, not per sample).
+    forget: (f64, f64),
 }
 
 const DELAY_FORGET_S: f64 = 60.0;
@@ -384,7 +386,10 @@ impl DelayEst {
         // weights fast rotations (where the latency matters) over slow ones.
         let y = m_w - self.mean.update(m_w, dt, DELAY_HP_TAU_S);
         let x = w_w.cross(m_w);
-        let f = (-dt / DELAY_FORGET_S).exp();
+        if !(self.forget.0 == dt && dt > 0.0) {
+            self.forget = (dt, (-dt / DELAY_FORGET_S).exp());
+        }
+        let f = self.forget.1;
         self.sxy = self.sxy * f + x.dot(&y);
         self.sxx = self.sxx * f + x.dot(&x);
     }
@@ -587,7 +592,10 @@ impl OrientationFilter {
 
     fn apply(&mut self, dx: &Vector6<f64>) {
         let dtheta = Vector3::new(dx[0], dx[1], dx[2]);
-        self.q = UnitQuaternion::from_scaled_axis(dtheta) * self.q;
+        // A bias-only update (attitude gains frozen) leaves the attitude exactly as it is.
+        if dtheta != Vector3::zeros() {
+            self.q = UnitQuaternion::from_scaled_axis(dtheta) * self.q;
+        }
         self.bias += Vector3::new(dx[3], dx[4], dx[5]);
         let c = self.cfg.bias_clip;
         self.bias = self.bias.map(|b| b.clamp(-c, c));
@@ -607,14 +615,18 @@ impl OrientationFilter {
         let r = (sigma / g).powi(2);
         // The accelerometer's timing against the gyro: rotate it with the attitude `acc_delay_s` ago
         // (a negative delay, an accelerometer ahead of the gyro, extrapolates with the current rate).
-        let shift = UnitQuaternion::from_scaled_axis(
-            (self.last_gyro - self.bias) * (-self.cfg.acc_delay_s),
-        );
+        // (No delay, the default: the reading as it is, not a rotation by zero.)
+        let a_shifted = if self.cfg.acc_delay_s == 0.0 {
+            *a
+        } else {
+            UnitQuaternion::from_scaled_axis((self.last_gyro - self.bias) * (-self.cfg.acc_delay_s))
+                * a
+        };
         for i in 0..2 {
             let mut h = RowVector6::zeros();
             h[i] = 1.0;
             // Recomputed after the first row's correction.
-            let aw = self.q * (shift * a);
+            let aw = self.q * a_shifted;
             let y = if i == 0 { aw.y / g } else { -aw.x / g };
             self.scalar_update(&h, y, r, &[2]);
         }
