@@ -377,14 +377,23 @@ fn latency(seconds: f64) {
         m += 1;
     }
     samples.truncate(n);
-    let is_attitude_q = |b: &[u8]| -> bool {
-        match b.first() {
-            Some(0xFD) if b.len() > 9 => {
-                (b[7] as u32 | (b[8] as u32) << 8 | (b[9] as u32) << 16) == 31
+    // Whether a datagram holds an ATTITUDE_QUATERNION (id 31): messages due together share one.
+    let has_attitude_q = |mut b: &[u8]| -> bool {
+        use imucald::decode::{parse_frame, FrameParse};
+        use mavlink::Message;
+        while !b.is_empty() {
+            match parse_frame(b) {
+                FrameParse::Frame(f, n) => {
+                    if f.message.message_id() == 31 {
+                        return true;
+                    }
+                    b = &b[n..];
+                }
+                FrameParse::Skip(n, _) => b = &b[n.max(1)..],
+                FrameParse::Incomplete => return false,
             }
-            Some(0xFE) if b.len() > 5 => b[5] == 31,
-            _ => false,
         }
+        false
     };
     let mut buf = [0u8; 2048];
     let mut rtt_us = Vec::with_capacity(n);
@@ -412,14 +421,17 @@ fn latency(seconds: f64) {
         let measured = i >= 3000;
         loop {
             match sock.recv(&mut buf) {
-                Ok(k) if is_attitude_q(&buf[..k]) => {
+                Ok(k) => {
+                    let rtt = t0.elapsed();
+                    if !has_attitude_q(&buf[..k]) {
+                        continue;
+                    }
                     answered += 1;
                     if measured {
-                        rtt_us.push(t0.elapsed().as_secs_f64() * 1e6);
+                        rtt_us.push(rtt.as_secs_f64() * 1e6);
                     }
                     break;
                 }
-                Ok(_) => continue,
                 Err(_) => {
                     if measured {
                         missing += 1;

@@ -1167,6 +1167,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 (input.mag_points, accel_pts, t, r)
             }));
         }
+        // Whatever this turn queued for the links goes out before the loop waits again.
+        st.flush_mav();
         tokio::select! {
             _ = shutdown.changed() => {
                 if *shutdown.borrow() { break; }
@@ -1237,7 +1239,6 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
             _ = attitude_out.own_tick(), if attitude_out.own.is_some() => st.publish_attitude().await,
         }
-        st.flush_mav();
     }
     st.flush_mav();
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.

@@ -1805,6 +1805,100 @@ mod fuzz_regressions {
 /// times are exact.
 mod live_attitude {
     use super::*;
+
+    /// `attitude_every_samples = 1`: each sample's attitude leaves before the service waits for the
+    /// next sample, not when something else next wakes it.
+    #[tokio::test]
+    async fn per_sample_attitude_leaves_before_the_next_sample_arrives() {
+        use imucald::mavout::MavEncoder;
+        use mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA;
+        let dir = tempfile::tempdir().unwrap();
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mut cfg = Config::default();
+        cfg.daemon.sources = vec![imucald::config::SourceConfig {
+            address: format!("udpin:127.0.0.1:{port}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }];
+        cfg.daemon.publish = vec![];
+        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+        cfg.daemon.attitude_every_samples = 1;
+        // The timed outputs 10 s or more apart: nothing else wakes the service between samples.
+        cfg.daemon.attitude_rate_hz = 0.001;
+        cfg.daemon.heading_rate_hz = 0.1;
+        cfg.daemon.progress_rate_hz = 0.1;
+        cfg.validate().unwrap();
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        fc.connect(("127.0.0.1", port)).await.unwrap();
+        let mut enc = MavEncoder::new(1, 1);
+        // Level, heading north-east: FRD, accel reads -g on z; field in gauss. `roll_rate` marks
+        // a sample: the attitude sent for it carries it back as its roll rate.
+        let frame = |enc: &mut MavEncoder, i: u64, roll_rate: f32| {
+            enc.encode(&MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: 1_000_000 + i * 1000,
+                xgyro: roll_rate,
+                xacc: 0.0,
+                yacc: 0.0,
+                zacc: -9.81,
+                xmag: 0.14,
+                ymag: -0.14,
+                zmag: 0.4,
+                ..Default::default()
+            }))
+        };
+        let roll_rates = |dec: &mut FrameDecoder, b: &[u8]| -> Vec<f32> {
+            dec.push(b)
+                .into_iter()
+                .filter_map(|f| match f.message {
+                    MavMessage::ATTITUDE_QUATERNION(a) => Some(a.rollspeed),
+                    _ => None,
+                })
+                .collect()
+        };
+        let mut dec = FrameDecoder::new();
+        let mut buf = vec![0u8; 65_536];
+        // Three seconds of data in bursts, so the filter has its tilt and field reference.
+        for i in 0..3000u64 {
+            fc.send(&frame(&mut enc, i, 0.0)).await.unwrap();
+            if i % 50 == 49 {
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+        }
+        let mut early = 0;
+        while let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(300), fc.recv(&mut buf)).await
+        {
+            early += roll_rates(&mut dec, &buf[..n]).len();
+        }
+        assert!(early > 0, "no attitude after 3 s of data");
+        // Then one sample at a time, marked by a roll rate of +-0.02 rad/s in turn: its own
+        // attitude (not the one before) must come with nothing more sent.
+        for i in 3000..3030u64 {
+            let mark = if i % 2 == 0 { 0.02 } else { -0.02 };
+            fc.send(&frame(&mut enc, i, mark)).await.unwrap();
+            let mut got = vec![];
+            while got.is_empty() {
+                match tokio::time::timeout(Duration::from_millis(500), fc.recv(&mut buf)).await {
+                    Ok(Ok(n)) => got = roll_rates(&mut dec, &buf[..n]),
+                    _ => panic!("sample {i}: no attitude within 500 ms"),
+                }
+            }
+            assert!(
+                got.len() == 1 && (got[0] - mark).abs() < 0.01,
+                "sample {i} (roll rate {mark}): attitude with roll rates {got:?}"
+            );
+        }
+        stop_tx.send(true).unwrap();
+        daemon.await.unwrap().unwrap();
+    }
     use imucald::daemon::{save_store, StoredCalibration, STORE_SCHEMA};
     use imucald::decode::FrameDecoder;
     use imucald::report::{GyroCalibration, SensorCalibration};
