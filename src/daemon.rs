@@ -388,6 +388,9 @@ struct State {
     mav_out: Vec<u8>,
     /// Coverage of the kept magnetometer points, for the progress reports.
     coverage_map: CoverageMap,
+    /// The calibration store and the report, written off the run loop.
+    store_writes: Writes,
+    report_writes: Writes,
     links: Vec<LinkEntry>,
     sinks: Vec<Sink>,
     ardupilot: bool,
@@ -877,9 +880,13 @@ impl State {
         self.last_results = Some(results);
         if changed {
             self.accepted += 1;
-            self.save().await;
+            let store = Box::new(self.store.clone());
+            self.store_writes
+                .want(WriteJob::Store(self.cal_dir.clone(), store));
         }
-        self.write_report().await;
+        if let Some(job) = self.report_job() {
+            self.report_writes.want(job);
+        }
     }
 
     fn start_param_write(&mut self) {
@@ -902,25 +909,48 @@ impl State {
         ));
     }
 
+    /// Write the calibration store now (at shutdown; while running, `store_writes` does it).
     async fn save(&mut self) {
-        let dir = self.cal_dir.clone();
-        let store = self.store.clone();
-        match tokio::task::spawn_blocking(move || save_store(&dir, &store)).await {
-            Ok(Ok(())) => tracing::info!("calibration written to {}", self.cal_dir.display()),
-            Ok(Err(e)) => {
+        let job = WriteJob::Store(self.cal_dir.clone(), Box::new(self.store.clone()));
+        let r = tokio::task::spawn_blocking(move || job.run()).await;
+        self.written(r).await;
+    }
+
+    /// Say what came of a background write: a calibration that could not be written is reported
+    /// (the previous file is kept: writes are atomic), a report only logged.
+    async fn written(
+        &mut self,
+        r: Result<(&'static str, Result<(), Error>), tokio::task::JoinError>,
+    ) {
+        match r {
+            Ok(("calibration", Ok(()))) => {
+                tracing::info!("calibration written to {}", self.cal_dir.display())
+            }
+            Ok(("calibration", Err(e))) => {
                 self.status(
                     3,
                     format!("calibration not written (the previous file is kept): {e}"),
                 )
                 .await
             }
-            Err(e) => tracing::error!("calibration write task failed: {e}"),
+            Ok((_, Ok(()))) => {}
+            Ok((what, Err(e))) => tracing::warn!("{what} not written: {e}"),
+            Err(e) => tracing::error!("file write task failed: {e}"),
         }
     }
 
+    /// Write the report now (at shutdown).
     async fn write_report(&mut self) {
+        if let Some(job) = self.report_job() {
+            let r = tokio::task::spawn_blocking(move || job.run()).await;
+            self.written(r).await;
+        }
+    }
+
+    /// The report as it stands, ready to be written (none without `--report` or before a fit).
+    fn report_job(&self) -> Option<WriteJob> {
         let (Some(path), Some(results)) = (self.report.clone(), self.last_results.clone()) else {
-            return;
+            return None;
         };
         let mut stats = self.conv.stats.clone();
         for l in &self.links {
@@ -952,8 +982,60 @@ impl State {
             self.pipe.last_t,
         );
         let report = crate::replay::make_report(input, &self.pipe, &results, self.declination);
-        if let Err(e) = crate::publish::write_json(&path, &report) {
-            tracing::warn!("report not written: {e}");
+        Some(WriteJob::Report(path, Box::new(report)))
+    }
+}
+
+/// A file the service writes: the calibration store, or the report.
+enum WriteJob {
+    Store(PathBuf, Box<StoredCalibration>),
+    Report(PathBuf, Box<crate::report::Report>),
+}
+
+impl WriteJob {
+    /// Write it (blocking: temp file, fsync, rename). Returns what it was, and how it went.
+    fn run(self) -> (&'static str, Result<(), Error>) {
+        match self {
+            WriteJob::Store(dir, store) => ("calibration", save_store(&dir, &store)),
+            WriteJob::Report(path, report) => {
+                ("report", crate::publish::write_json(&path, &report))
+            }
+        }
+    }
+}
+
+/// One file kept up to date off the run loop: at most one write in flight on the blocking pool;
+/// content asked for meanwhile waits, and newer content replaces it (only the latest is written).
+/// An fsync on a slow card can take a good part of a second; the live outputs must not wait for it.
+#[derive(Default)]
+struct Writes {
+    job: Option<tokio::task::JoinHandle<(&'static str, Result<(), Error>)>>,
+    next: Option<WriteJob>,
+}
+
+impl Writes {
+    fn want(&mut self, job: WriteJob) {
+        self.next = Some(job);
+    }
+
+    /// Start the waiting write if none is in flight.
+    fn start(&mut self) {
+        if self.job.is_none() {
+            if let Some(job) = self.next.take() {
+                self.job = Some(tokio::task::spawn_blocking(move || job.run()));
+            }
+        }
+    }
+
+    /// The write in flight (polled only when there is one).
+    async fn done(&mut self) -> Result<(&'static str, Result<(), Error>), tokio::task::JoinError> {
+        match self.job.as_mut() {
+            Some(j) => {
+                let r = j.await;
+                self.job = None;
+                r
+            }
+            None => std::future::pending().await,
         }
     }
 }
@@ -1099,6 +1181,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             basis: None,
             ..CoverageMap::new([0.0; 3], 0)
         },
+        store_writes: Writes::default(),
+        report_writes: Writes::default(),
         links,
         sinks,
         ardupilot: false,
@@ -1169,6 +1253,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         }
         // Whatever this turn queued for the links goes out before the loop waits again.
         st.flush_mav();
+        st.store_writes.start();
+        st.report_writes.start();
         tokio::select! {
             _ = shutdown.changed() => {
                 if *shutdown.borrow() { break; }
@@ -1238,6 +1324,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
             _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
             _ = attitude_out.own_tick(), if attitude_out.own.is_some() => st.publish_attitude().await,
+            r = st.store_writes.done(), if st.store_writes.job.is_some() => st.written(r).await,
+            r = st.report_writes.done(), if st.report_writes.job.is_some() => st.written(r).await,
         }
     }
     st.flush_mav();
@@ -1247,6 +1335,18 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         if let Ok(Ok((m, a, t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
             st.on_fit(m, a, t, r).await;
         }
+    }
+    // Writes in flight finish first, so an older file cannot land after the final one.
+    for w in [&mut st.store_writes, &mut st.report_writes] {
+        w.next = None;
+    }
+    if st.store_writes.job.is_some() {
+        let r = st.store_writes.done().await;
+        st.written(r).await;
+    }
+    if st.report_writes.job.is_some() {
+        let r = st.report_writes.done().await;
+        st.written(r).await;
     }
     if st.store.mag.is_some() || st.store.accel.is_some() {
         st.save().await;
