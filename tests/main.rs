@@ -1348,20 +1348,8 @@ mod live_ardupilot {
         let dir = tempfile::tempdir().unwrap();
         let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-        let port = std::net::UdpSocket::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
-        let mut cfg = Config::default();
-        cfg.daemon.sources = vec![imucald::config::SourceConfig {
-            address: format!("udpin:127.0.0.1:{port}"),
-            payload: "mavlink".into(),
-            fields: vec![],
-            scales: Default::default(),
-        }];
+        let (port, mut cfg) = udpin_config(dir.path());
         cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
-        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
         cfg.daemon.write_params = true;
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
@@ -1803,6 +1791,25 @@ mod fuzz_regressions {
 /// `.tlog` of HIGHRES_IMU (with the default sensor errors of the simulator), the true calibration
 /// stored, a place with a large declination. The run is on tokio's paused clock, so the publication
 /// times are exact.
+/// A service config with one `udpin:` MAVLink source on a free loopback port (returned) and its
+/// calibration directory under `dir`.
+fn udpin_config(dir: &Path) -> (u16, Config) {
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = Config::default();
+    cfg.daemon.sources = vec![imucald::config::SourceConfig {
+        address: format!("udpin:127.0.0.1:{port}"),
+        payload: "mavlink".into(),
+        fields: vec![],
+        scales: Default::default(),
+    }];
+    cfg.daemon.calibration_dir = dir.join("cal").display().to_string();
+    (port, cfg)
+}
+
 mod live_attitude {
     use super::*;
 
@@ -1813,20 +1820,8 @@ mod live_attitude {
         use imucald::mavout::MavEncoder;
         use mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA;
         let dir = tempfile::tempdir().unwrap();
-        let port = std::net::UdpSocket::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
-        let mut cfg = Config::default();
-        cfg.daemon.sources = vec![imucald::config::SourceConfig {
-            address: format!("udpin:127.0.0.1:{port}"),
-            payload: "mavlink".into(),
-            fields: vec![],
-            scales: Default::default(),
-        }];
+        let (port, mut cfg) = udpin_config(dir.path());
         cfg.daemon.publish = vec![];
-        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
         cfg.daemon.attitude_every_samples = 1;
         // The timed outputs 10 s or more apart: nothing else wakes the service between samples.
         cfg.daemon.attitude_rate_hz = 0.001;
