@@ -66,9 +66,12 @@ pub struct Coverage {
 /// then the next offset, ...) so that sorted input still reaches every part of the sphere early, and
 /// the scan stops once every region holds a point.
 pub fn coverage(points: &[Vec3], centre: &Vec3) -> Coverage {
+    const STRIDE: usize = 61;
     let mut mask = vec![false; REGIONS];
     let mut filled = 0;
-    for p in interleaved(points) {
+    let interleaved =
+        (0..STRIDE.min(points.len())).flat_map(|s| points[s..].iter().step_by(STRIDE));
+    for p in interleaved {
         if let Some(r) = region(&[p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]]) {
             if !mask[r] {
                 mask[r] = true;
@@ -85,13 +88,6 @@ pub fn coverage(points: &[Vec3], centre: &Vec3) -> Coverage {
         gaps_pct: 100.0 * (REGIONS - filled) as f64 / REGIONS as f64,
         filled_mask: mask,
     }
-}
-
-/// Every item once, interleaved: every 61st from the first, then from the second, and so on. A scan
-/// that may stop early (once every region is filled) then sees all parts of sorted input early.
-pub fn interleaved<T>(items: &[T]) -> impl Iterator<Item = &T> {
-    const STRIDE: usize = 61;
-    (0..STRIDE.min(items.len())).flat_map(move |s| items[s..].iter().step_by(STRIDE))
 }
 
 /// Most field vectors [`DirectionBins`] keeps (about 3 deg cells over the whole sphere).

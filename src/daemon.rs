@@ -242,7 +242,7 @@ impl Sink {
 #[derive(Debug, Clone)]
 struct CoverageMap {
     /// The centre, and the pipeline's magnetometer epoch the points came from.
-    basis: Option<(Vec3, u64)>,
+    basis: (Vec3, u64),
     regions: [bool; crate::coverage::REGIONS],
     regions_filled: usize,
     /// ArduPilot's completion mask.
@@ -254,7 +254,7 @@ struct CoverageMap {
 impl CoverageMap {
     fn new(centre: Vec3, epoch: u64) -> CoverageMap {
         CoverageMap {
-            basis: Some((centre, epoch)),
+            basis: (centre, epoch),
             regions: [false; crate::coverage::REGIONS],
             regions_filled: 0,
             mask: [0; 10],
@@ -263,7 +263,7 @@ impl CoverageMap {
     }
 
     fn add(&mut self, points: &[Vec3]) {
-        let Some((c, _)) = self.basis else { return };
+        let c = self.basis.0;
         for p in points {
             let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
             if let Some(r) = crate::coverage::region(&d) {
@@ -386,8 +386,8 @@ struct State {
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
-    /// Coverage of the kept magnetometer points, for the progress reports.
-    coverage_map: CoverageMap,
+    /// Coverage of the kept magnetometer points, for the progress reports (none before the first).
+    coverage_map: Option<CoverageMap>,
     /// The calibration store and the report, written off the run loop.
     store_writes: Writes,
     report_writes: Writes,
@@ -760,13 +760,17 @@ impl State {
         };
         let Some(c) = centre else { return };
         // Only the points kept since the last time, unless the centre moved or points were dropped.
-        if self.coverage_map.basis == Some((c, epoch)) {
-            self.coverage_map.add(&fresh);
-        } else {
-            self.coverage_map = CoverageMap::new(c, epoch);
-            self.coverage_map.add(&self.pipe.mag_points());
-        }
-        let map = &self.coverage_map;
+        let map = match &mut self.coverage_map {
+            Some(m) if m.basis == (c, epoch) => {
+                m.add(&fresh);
+                m
+            }
+            slot => {
+                let m = slot.insert(CoverageMap::new(c, epoch));
+                m.add(&self.pipe.mag_points());
+                m
+            }
+        };
         let pct =
             ((100 * map.regions_filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
         self.progress_pct = self.progress_pct.max(pct);
@@ -918,23 +922,20 @@ impl State {
 
     /// Say what came of a background write: a calibration that could not be written is reported
     /// (the previous file is kept: writes are atomic), a report only logged.
-    async fn written(
-        &mut self,
-        r: Result<(&'static str, Result<(), Error>), tokio::task::JoinError>,
-    ) {
+    async fn written(&mut self, r: Result<(Written, Result<(), Error>), tokio::task::JoinError>) {
         match r {
-            Ok(("calibration", Ok(()))) => {
+            Ok((Written::Calibration, Ok(()))) => {
                 tracing::info!("calibration written to {}", self.cal_dir.display())
             }
-            Ok(("calibration", Err(e))) => {
+            Ok((Written::Calibration, Err(e))) => {
                 self.status(
                     3,
                     format!("calibration not written (the previous file is kept): {e}"),
                 )
                 .await
             }
-            Ok((_, Ok(()))) => {}
-            Ok((what, Err(e))) => tracing::warn!("{what} not written: {e}"),
+            Ok((Written::Report, Ok(()))) => {}
+            Ok((Written::Report, Err(e))) => tracing::warn!("report not written: {e}"),
             Err(e) => tracing::error!("file write task failed: {e}"),
         }
     }
@@ -992,13 +993,20 @@ enum WriteJob {
     Report(PathBuf, Box<crate::report::Report>),
 }
 
+/// Which file a finished write was.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Written {
+    Calibration,
+    Report,
+}
+
 impl WriteJob {
-    /// Write it (blocking: temp file, fsync, rename). Returns what it was, and how it went.
-    fn run(self) -> (&'static str, Result<(), Error>) {
+    /// Write it (blocking: temp file, fsync, rename). Returns which file it was, and how it went.
+    fn run(self) -> (Written, Result<(), Error>) {
         match self {
-            WriteJob::Store(dir, store) => ("calibration", save_store(&dir, &store)),
+            WriteJob::Store(dir, store) => (Written::Calibration, save_store(&dir, &store)),
             WriteJob::Report(path, report) => {
-                ("report", crate::publish::write_json(&path, &report))
+                (Written::Report, crate::publish::write_json(&path, &report))
             }
         }
     }
@@ -1009,7 +1017,7 @@ impl WriteJob {
 /// An fsync on a slow card can take a good part of a second; the live outputs must not wait for it.
 #[derive(Default)]
 struct Writes {
-    job: Option<tokio::task::JoinHandle<(&'static str, Result<(), Error>)>>,
+    job: Option<tokio::task::JoinHandle<(Written, Result<(), Error>)>>,
     next: Option<WriteJob>,
 }
 
@@ -1028,7 +1036,7 @@ impl Writes {
     }
 
     /// The write in flight (polled only when there is one).
-    async fn done(&mut self) -> Result<(&'static str, Result<(), Error>), tokio::task::JoinError> {
+    async fn done(&mut self) -> Result<(Written, Result<(), Error>), tokio::task::JoinError> {
         match self.job.as_mut() {
             Some(j) => {
                 let r = j.await;
@@ -1177,10 +1185,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         latest: None,
         enc: MavEncoder::new(d.system_id, d.component_id),
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
-        coverage_map: CoverageMap {
-            basis: None,
-            ..CoverageMap::new([0.0; 3], 0)
-        },
+        coverage_map: None,
         store_writes: Writes::default(),
         report_writes: Writes::default(),
         links,

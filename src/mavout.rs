@@ -303,22 +303,14 @@ pub fn section80_triangle(section: usize) -> Option<[[f64; 3]; 3]> {
 /// ArduPilot's 80-bit completion mask (section `s` sets bit `s % 8` of byte `s / 8`) of a set of
 /// directions, and how many sections hold at least one. Give directions about the current hard-iron
 /// centre (and preferably corrected), as ArduPilot does; zero or non-finite ones are ignored.
-/// Stops reading `dirs` once every section is set.
 pub fn completion_mask(dirs: impl IntoIterator<Item = [f64; 3]>) -> ([u8; 10], usize) {
     let mut mask = [0u8; 10];
-    let mut filled = 0;
     for d in dirs {
         if let Some(s) = section80(&d) {
-            let (byte, bit) = (s / 8, 1 << (s % 8));
-            if mask[byte] & bit == 0 {
-                mask[byte] |= bit;
-                filled += 1;
-                if filled == SECTIONS {
-                    break;
-                }
-            }
+            mask[s / 8] |= 1 << (s % 8);
         }
     }
+    let filled = mask.iter().map(|b| b.count_ones() as usize).sum();
     (mask, filled)
 }
 

@@ -273,6 +273,7 @@ impl Pipeline {
             let extra = self.refits.len() - MAX_REFIT_HISTORY;
             self.refits.drain(..extra);
         }
+        let mut recentred = false;
         if let (Some(b), Some(c)) = (self.mag_bins.as_mut(), results.mag.calibration.as_ref()) {
             let d = norm(&[
                 b.centre[0] - c.offset[0],
@@ -281,9 +282,11 @@ impl Pipeline {
             ]);
             if d > 1e-3 * results.mag.report.radius.max(1e-9) {
                 b.recentre(c.offset);
-                self.mag_epoch += 1;
-                self.fresh_mag.clear();
+                recentred = true;
             }
+        }
+        if recentred {
+            self.mag_points_changed();
         }
         self.latest = Some(results);
     }
