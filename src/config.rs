@@ -120,7 +120,7 @@ impl Default for DaemonConfig {
             ardupilot_corrected_mag: "undo".into(),
             queue_capacity: 4096,
             silent_after_s: 3.0,
-            udp_poll_ms: 20.0,
+            udp_poll_ms: 50.0,
         }
     }
 }

@@ -1302,11 +1302,13 @@ async fn serve_udp(
     }
 }
 
-/// Datagrams per poll above which the poll period halves, and below which it doubles back
-/// towards the configured one: a fast sender is read often enough that the kernel's receive buffer
-/// (about 160 small datagrams by default) never fills between reads.
-const POLL_SHRINK_ABOVE: usize = 48;
-const POLL_GROW_BELOW: usize = 12;
+/// Datagrams per poll above which the poll period shrinks (aiming at half this many per read), and
+/// below which it doubles back towards the configured one: a fast sender is read often enough that
+/// the kernel's receive buffer never fills between reads. (A socket's buffer holds about 256 small
+/// datagrams at Linux's default `rmem_default`; we ask for more, up to `net.core.rmem_max`.) The
+/// grow threshold is under half the shrink one, so doubling the period never overshoots it.
+const POLL_SHRINK_ABOVE: usize = 96;
+const POLL_GROW_BELOW: usize = 40;
 /// Shortest poll period.
 const POLL_MIN: Duration = Duration::from_millis(1);
 /// How long a shortened poll period is kept after the last busy read before it may grow again, so

@@ -785,8 +785,12 @@ mod live {
         imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
         imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
         let port = free_udp_port();
+        // The peer streams at 10x and judges each heading by when it arrives, so the UDP poll
+        // period is a tenth of the default too (5 ms of wall clock is the default's 50 ms of
+        // recorded time): at 50 ms, data half a recorded second old would be judged against the
+        // pose it arrives in.
         let cfg = format!(
-            "[fit]\nrefit_every_s = 5.0\n[daemon]\ncalibration_dir = \"{}\"\nheading_rate_hz = 50.0\nprogress_rate_hz = 5.0\nsources = [{{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
+            "[fit]\nrefit_every_s = 5.0\n[daemon]\ncalibration_dir = \"{}\"\nheading_rate_hz = 50.0\nprogress_rate_hz = 5.0\nudp_poll_ms = 5.0\nsources = [{{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
             d.join("cal").display()
         );
         std::fs::write(d.join("live.toml"), cfg).unwrap();
