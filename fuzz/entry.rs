@@ -9,7 +9,8 @@ use imucald::decode::{
     decode_csv, decode_tlog, detect_format, maybe_gunzip, CsvMapping, DecodeStats, FrameDecoder,
     InstanceChoice, MessageConverter, RawImuScale,
 };
-use imucald::link::{parse_motioncal_line, CsvLineParser, LineBuffer, TlogRecords, MAX_LINE};
+use imucald::decode::TlogRecords;
+use imucald::link::{parse_motioncal_line, CsvLineParser, LineBuffer, MAX_LINE};
 use imucald::types::Sample;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -66,7 +67,7 @@ fn converter(kind: usize) -> MessageConverter {
 
 // Target `tlog`: the log-file readers on arbitrary bytes. `sources::decode_log` (gunzip, format
 // detection, tlog or CSV, as `imucald replay` reads a file), then `decode_tlog` forced on the
-// (gunzipped) bytes, checked against the replay link's reader `link::TlogRecords`.
+// (gunzipped) bytes, checked against the records of `decode::TlogRecords` converted one by one.
 // Returns the samples of the forced tlog decode and its stats.
 pub fn tlog(data: &[u8]) -> (Vec<Sample>, DecodeStats) {
     static CFG: OnceLock<Config> = OnceLock::new();

@@ -12,6 +12,7 @@
 //!                                                  └─> calibration files (atomic), report
 //! ```
 
+use crate::clock::{ClockSettings, SourceClock};
 use crate::config::{Config, SourceConfig};
 use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
@@ -379,6 +380,9 @@ struct State {
     cfg: Config,
     pipe: Pipeline,
     conv: MessageConverter,
+    /// Clocks of the links that deliver samples rather than MAVLink frames, by link index, with
+    /// the last sample of each (to tell a repeated line).
+    sample_clocks: Vec<(SourceClock, Option<Sample>)>,
     store: StoredCalibration,
     calibrator: Calibrator,
     latest: Option<Calibrated>,
@@ -551,6 +555,28 @@ impl State {
             }
         }
         due
+    }
+
+    /// A sample from a link that times its own samples (text lines: the time they were read, or
+    /// their own `t` column), through that link's clock, taken as a receive clock (lines read
+    /// together share a time); `None` for a repeated line.
+    fn stamp(&mut self, link: usize, mut s: Sample) -> Option<Sample> {
+        if self.links.get(link).is_some_and(|l| l.replay) {
+            // Already timed: a file's samples by its reader's clock; the simulator's are ours.
+            return Some(s);
+        }
+        if self.sample_clocks.len() <= link {
+            let fresh = (SourceClock::new(ClockSettings::default()), None);
+            self.sample_clocks.resize(link + 1, fresh);
+        }
+        let (clock, last) = &mut self.sample_clocks[link];
+        if last.replace(s) == Some(s) {
+            clock.duplicate();
+            return None;
+        }
+        let c = clock.stamp(None, Some(crate::clock::us_from_s(s.t_s)), None);
+        (s.t_s, s.segment) = (c.t_s, c.segment);
+        Some(s)
     }
 
     /// Feed a calibrated sample (body axes, stored gyro bias removed) to the orientation filter.
@@ -959,6 +985,7 @@ impl State {
                 for (k, v) in &d.skipped {
                     *stats.skipped.entry(k.clone()).or_insert(0) += v;
                 }
+                stats.time.add(&d.time);
             }
             let dropped = l
                 .handle
@@ -968,6 +995,9 @@ impl State {
             stats.skip_n("queue_full", dropped);
         }
         stats.skip_n("mag_awaiting_params", self.mag_awaiting_params);
+        for (c, _) in &self.sample_clocks {
+            stats.time.add(&c.stats);
+        }
         let label = self
             .links
             .iter()
@@ -1180,6 +1210,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     let mut st = State {
         pipe: Pipeline::new(&cfg)?,
         conv: MessageConverter::new(choice, cfg.input.raw_imu_scale),
+        sample_clocks: Vec::new(),
         calibrator: State::calibrator_from_store(&store, declination),
         store,
         latest: None,
@@ -1274,10 +1305,12 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                         st.publish_attitude().await;
                     }
                     match ev {
-                        Inbound::Sample { sample, .. } => {
-                            st.conv.stats.records += 1;
-                            st.conv.stats.count_sample(&sample);
-                            refit_wanted |= st.on_sample(sample);
+                        Inbound::Sample { link, sample } => {
+                            if let Some(sample) = st.stamp(link, sample) {
+                                st.conv.stats.records += 1;
+                                st.conv.stats.count_sample(&sample);
+                                refit_wanted |= st.on_sample(sample);
+                            }
                         }
                         Inbound::Frame { link, frame, time_us } => {
                             refit_wanted |= st.on_frame(link, &frame, time_us).await;

@@ -5,6 +5,7 @@
 //! `bad_crc`, `truncated`, `resync` (garbage bytes between frames), `unknown_message` (an id this
 //! dialect does not know), `bad_payload`, `non_finite`, `bad_row`, `other_instance`.
 
+use crate::clock::{ClockSettings, SourceClock, TimeStats};
 use crate::types::{Sample, Unit, Units, Vec3};
 use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{MavlinkVersion, Message};
@@ -20,6 +21,9 @@ pub struct DecodeStats {
     pub counts: SensorCounts,
     /// Skipped items by reason.
     pub skipped: BTreeMap<String, u64>,
+    /// What the source's clock did: its choice, time segments, faults by kind.
+    #[serde(default)]
+    pub time: TimeStats,
 }
 
 impl DecodeStats {
@@ -372,7 +376,11 @@ pub struct MessageConverter {
     /// The instance chosen, and its name.
     locked: Option<(Instance, String)>,
     throttle: Option<f64>,
-    t0_us: Option<u64>,
+    /// The instance's clock: message time, or receive/record time where that is unusable.
+    clock: SourceClock,
+    time_revision: u64,
+    /// The last frame's time and readings (to tell a repeated frame).
+    last_frame: Option<(MsgTime, Vec3, Vec3, Vec3)>,
     pub stats: DecodeStats,
 }
 
@@ -387,13 +395,23 @@ fn finite3(v: Vec3) -> Option<Vec3> {
 }
 
 impl MessageConverter {
+    /// Copy the clock's statistics into `stats.time` when they changed.
+    fn sync_time_stats(&mut self) {
+        if self.clock.revision() != self.time_revision {
+            self.time_revision = self.clock.revision();
+            self.stats.time = self.clock.stats.clone();
+        }
+    }
+
     pub fn new(choice: InstanceChoice, raw_scale: RawImuScale) -> Self {
         MessageConverter {
             choice,
             raw_scale,
             locked: None,
             throttle: None,
-            t0_us: None,
+            clock: SourceClock::new(ClockSettings::default()),
+            time_revision: u64::MAX,
+            last_frame: None,
             stats: DecodeStats::default(),
         }
     }
@@ -423,10 +441,12 @@ impl MessageConverter {
         }
     }
 
-    /// Convert one message; `time_us` is the receive time (tlog timestamp or clock) used when the
-    /// message carries no time of its own.
+    /// Convert one message; `time_us` is the receive time (tlog record time or the link's clock,
+    /// 0 when unknown), which the instance's [`SourceClock`] falls back on when the message's own
+    /// time is unusable. A repeated frame (same message time) gives `None`, counted in
+    /// `stats.time`.
     pub fn convert(&mut self, msg: &MavMessage, time_us: u64) -> Option<Sample> {
-        type Raw = (Instance, u64, Vec3, Vec3, Vec3, Option<f64>, bool);
+        type Raw = (Instance, MsgTime, Vec3, Vec3, Vec3, Option<f64>, bool);
         let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
             MavMessage::VFR_HUD(d) => {
                 let th = d.throttle as f64 / 100.0;
@@ -449,7 +469,7 @@ impl MessageConverter {
                         kind: "highres_imu",
                         id: Some(d.id),
                     },
-                    d.time_usec,
+                    MsgTime::Usec(d.time_usec),
                     [d.xacc as f64, d.yacc as f64, d.zacc as f64],
                     [d.xgyro as f64, d.ygyro as f64, d.zgyro as f64],
                     m,
@@ -493,7 +513,7 @@ impl MessageConverter {
                         kind: "raw_imu",
                         id: Some(d.id),
                     },
-                    d.time_usec,
+                    MsgTime::Usec(d.time_usec),
                     [
                         sc(d.xacc, self.raw_scale.accel),
                         sc(d.yacc, self.raw_scale.accel),
@@ -531,11 +551,24 @@ impl MessageConverter {
             (None, _) => self.locked = Some((name, name.name())),
             _ => {}
         }
-        let t = if t_us > 0 { t_us } else { time_us };
-        let t0 = *self.t0_us.get_or_insert(t);
-        let t_s = (t as f64 - t0 as f64) * 1e-6;
+        // A repeated frame (same time and readings, e.g. from two routes through a router) is
+        // dropped and counted; a repeated time with new readings is the clock's to judge.
+        let key = (t_us, acc, gyr, mag);
+        if self.last_frame.replace(key) == Some(key) {
+            self.clock.duplicate();
+            self.sync_time_stats();
+            return None;
+        }
+        let (msg_us, wrap_us) = match t_us {
+            MsgTime::Usec(t) => (crate::clock::us_from_u64(t), None),
+            MsgTime::BootMs(t) => (i64::from(t) * 1000, Some(MS32_WRAP_US)),
+        };
+        let recv_us = Some(crate::clock::us_from_u64(time_us)).filter(|t| *t > 0);
+        let stamp = self.clock.stamp(Some(msg_us), recv_us, wrap_us);
+        self.sync_time_stats();
         let mut s = Sample {
-            t_s,
+            t_s: stamp.t_s,
+            segment: stamp.segment,
             throttle: self.throttle,
             ..Default::default()
         };
@@ -558,6 +591,18 @@ impl MessageConverter {
     }
 }
 
+/// A message's own time field.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum MsgTime {
+    /// `time_usec`: microseconds (since boot or the Unix epoch).
+    Usec(u64),
+    /// `time_boot_ms`: milliseconds since boot, a u32 that wraps.
+    BootMs(u32),
+}
+
+/// The wrap period of a u32 millisecond time field, us.
+const MS32_WRAP_US: i64 = (1i64 << 32) * 1000;
+
 fn scaled(
     name: &'static str,
     t_ms: u32,
@@ -565,14 +610,14 @@ fn scaled(
     g: [i16; 3],
     m: [i16; 3],
     temp: i16,
-) -> (Instance, u64, Vec3, Vec3, Vec3, Option<f64>, bool) {
+) -> (Instance, MsgTime, Vec3, Vec3, Vec3, Option<f64>, bool) {
     let f = |v: [i16; 3], k: f64| [v[0] as f64 * k, v[1] as f64 * k, v[2] as f64 * k];
     (
         Instance {
             kind: name,
             id: None,
         },
-        t_ms as u64 * 1000,
+        MsgTime::BootMs(t_ms),
         f(a, MG_TO_MPS2),
         f(g, 1e-3),
         f(m, 0.1),
@@ -603,70 +648,132 @@ pub fn decode_tlog_with(
     conv: &mut MessageConverter,
     emit: &mut dyn FnMut(Sample, usize, &MessageConverter),
 ) {
-    let mut pos = 0usize;
-    let mut last_ts: Option<u64> = None;
-    let plausible = |ts: u64, last: Option<u64>| match last {
-        // Within a day of the previous record.
-        Some(l) => ts.abs_diff(l) < 86_400_000_000,
-        None => true,
-    };
-    while pos + 8 < bytes.len() {
-        let ts = u64::from_be_bytes(bytes[pos..pos + 8].try_into().expect("8 bytes"));
-        let rest = &bytes[pos + 8..];
-        let magic_ok = rest[0] == V1_MAGIC || rest[0] == V2_MAGIC;
-        if !magic_ok || !plausible(ts, last_ts) {
-            // Resynchronise: find the next offset that looks like timestamp + magic.
-            conv.stats.skip("resync");
-            pos = next_record(bytes, pos + 1, last_ts);
-            continue;
-        }
-        match parse_frame(rest) {
-            FrameParse::Frame(f, n) => {
-                last_ts = Some(ts);
-                pos += 8 + n;
-                if let Some(s) = conv.convert(&f.message, ts) {
-                    emit(s, pos, conv);
-                }
-            }
-            FrameParse::Incomplete => {
-                conv.stats.skip("truncated");
-                break;
-            }
-            FrameParse::Skip(n, why) => {
-                conv.stats.skip(why);
-                if why == "unknown_message" || why == "bad_payload" {
-                    last_ts = Some(ts);
-                    pos += 8 + n;
-                } else {
-                    pos = next_record(bytes, pos + 1, last_ts);
-                }
-            }
+    let mut records = TlogRecords::new(bytes);
+    while let Some((ts, f)) = records.next() {
+        if let Some(s) = conv.convert(&f.message, ts) {
+            emit(s, records.position(), conv);
         }
     }
-    if pos < bytes.len() && pos + 8 >= bytes.len() && bytes.len() > pos {
-        conv.stats.skip("truncated");
+    for (why, n) in &records.stats.skipped {
+        conv.stats.skip_n(why, *n);
     }
 }
 
-fn next_record(bytes: &[u8], from: usize, last_ts: Option<u64>) -> usize {
-    let mut p = from;
-    while p + 9 < bytes.len() {
-        let m = bytes[p + 8];
-        if m == V1_MAGIC || m == V2_MAGIC {
-            let ts = u64::from_be_bytes(bytes[p..p + 8].try_into().expect("8 bytes"));
-            let ok = match last_ts {
-                Some(l) => ts.abs_diff(l) < 86_400_000_000,
-                None => ts > 0,
-            };
-            if ok {
-                if let FrameParse::Frame(..) = parse_frame(&bytes[p + 8..]) {
-                    return p;
+/// The `.tlog` reader, for `replay` and the live `file:` link alike: records (record time in us,
+/// frame), each a big-endian u64 timestamp then one raw MAVLink frame. Garbage between records and
+/// damaged frames are skipped (resynchronising on the next good record) and a truncated tail
+/// ends the log, each counted in `stats.skipped`; `stats.records` counts frames.
+pub struct TlogRecords<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+    last_ts: Option<u64>,
+    pub stats: DecodeStats,
+}
+
+/// How far from the last record time a resynchronisation trusts a timestamp on its own, us.
+const RESYNC_NEAR_US: u64 = 86_400_000_000;
+
+impl<'a> TlogRecords<'a> {
+    pub fn new(bytes: &'a [u8]) -> Self {
+        TlogRecords {
+            bytes,
+            pos: 0,
+            last_ts: None,
+            stats: DecodeStats::default(),
+        }
+    }
+
+    /// Bytes read so far.
+    pub fn position(&self) -> usize {
+        self.pos
+    }
+
+    fn ts_at(&self, p: usize) -> u64 {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&self.bytes[p..p + 8]);
+        u64::from_be_bytes(b)
+    }
+
+    /// A whole record (timestamp and a frame that checks out) at `p`, and its length.
+    fn record_at(&self, p: usize) -> Option<usize> {
+        let rest = self.bytes.get(p + 8..).filter(|r| r.len() > 1)?;
+        match parse_frame(rest) {
+            FrameParse::Frame(_, n) if rest[0] == V1_MAGIC || rest[0] == V2_MAGIC => Some(8 + n),
+            _ => None,
+        }
+    }
+
+    /// The next offset from `from` that holds a good record: one whose timestamp is within a day
+    /// of the last, or (two logs joined, days apart) one followed by another good record. A
+    /// CRC-checked pair does not happen by chance in garbage.
+    fn resync(&self, from: usize) -> usize {
+        let n = self.bytes.len();
+        let mut p = from;
+        while p + 9 < n {
+            let m = self.bytes[p + 8];
+            if m == V1_MAGIC || m == V2_MAGIC {
+                if let Some(len) = self.record_at(p) {
+                    let ts = self.ts_at(p);
+                    let near = match self.last_ts {
+                        Some(l) => ts.abs_diff(l) < RESYNC_NEAR_US,
+                        None => ts > 0,
+                    };
+                    if near || self.record_at(p + len).is_some() {
+                        return p;
+                    }
+                }
+            }
+            p += 1;
+        }
+        n
+    }
+}
+
+impl Iterator for TlogRecords<'_> {
+    type Item = (u64, Box<Frame>);
+
+    fn next(&mut self) -> Option<(u64, Box<Frame>)> {
+        let n = self.bytes.len();
+        while self.pos + 8 < n {
+            let ts = self.ts_at(self.pos);
+            let rest = &self.bytes[self.pos + 8..];
+            // Where a record is expected, a magic byte and a frame that checks out are enough:
+            // its record time may be anything (logs joined with `cat` jump back by hours or
+            // days); the source's clock sorts that out.
+            if !(rest[0] == V1_MAGIC || rest[0] == V2_MAGIC) {
+                self.stats.skip("resync");
+                self.pos = self.resync(self.pos + 1);
+                continue;
+            }
+            match parse_frame(rest) {
+                FrameParse::Frame(f, len) => {
+                    self.last_ts = Some(ts);
+                    self.pos += 8 + len;
+                    self.stats.records += 1;
+                    return Some((ts, f));
+                }
+                FrameParse::Incomplete => {
+                    self.stats.skip("truncated");
+                    self.pos = n;
+                    return None;
+                }
+                FrameParse::Skip(len, why) => {
+                    self.stats.skip(why);
+                    if why == "unknown_message" || why == "bad_payload" {
+                        self.last_ts = Some(ts);
+                        self.pos += 8 + len;
+                    } else {
+                        self.pos = self.resync(self.pos + 1);
+                    }
                 }
             }
         }
-        p += 1;
+        if self.pos < n {
+            self.stats.skip("truncated");
+            self.pos = n;
+        }
+        None
     }
-    bytes.len()
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -761,6 +868,12 @@ pub fn decode_csv(
         .map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0))
         .collect();
     let mut out = Vec::new();
+    // The `t` column is the message clock, kept as the file has it; there is no receive clock.
+    let mut clock = SourceClock::new(ClockSettings {
+        keep_origin: true,
+        ..ClockSettings::default()
+    });
+    let mut last: Option<Sample> = None;
     let mut row_no = 0u64;
     let mut cells: Vec<&str> = Vec::with_capacity(cols.len());
     for line in lines {
@@ -794,7 +907,7 @@ pub fn decode_csv(
             stats.skip("bad_row");
             continue;
         }
-        let s = sample_from_fields(vals[0].unwrap_or(row_no as f64), &vals, Some(stats));
+        let mut s = sample_from_fields(vals[0].unwrap_or(row_no as f64), &vals, Some(stats));
         if !s.t_s.is_finite() {
             stats.skip("non_finite");
             continue;
@@ -802,10 +915,18 @@ pub fn decode_csv(
         if s.is_empty() {
             continue;
         }
+        if last.replace(s) == Some(s) {
+            // The same row again (time and readings): dropped and counted.
+            clock.duplicate();
+            continue;
+        }
+        let stamp = clock.stamp(Some(crate::clock::us_from_s(s.t_s)), None, None);
+        (s.t_s, s.segment) = (stamp.t_s, stamp.segment);
         stats.records += 1;
         stats.count_sample(&s);
         out.push(s);
     }
+    stats.time = clock.stats;
     Ok(out)
 }
 
@@ -843,6 +964,7 @@ pub fn sample_from_fields(
     let fin = |x: Option<f64>| x.filter(|v| v.is_finite());
     Sample {
         t_s,
+        segment: 0,
         accel_mps2,
         gyro_rad_s,
         mag_ut,

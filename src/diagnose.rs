@@ -509,7 +509,7 @@ fn build_evidence(
     let mut in_pose = vec![false; n];
     for (pi, p) in poses.iter().enumerate() {
         let a = times.partition_point(|t| *t < p.t_start);
-        let b = times.partition_point(|t| *t <= p.t_end);
+        let b = times.partition_point(|t| *t <= p.t_end).max(a);
         let mut segs: Vec<Vec<usize>> = vec![];
         let mut cur: Vec<usize> = vec![];
         let mut ref_x: Option<f64> = None;
@@ -567,7 +567,11 @@ fn build_evidence(
                 continue;
             }
             let t = times[i];
-            if !cur.is_empty() && (t - t0 >= WINDOW_S || t - last_t > 0.2) {
+            // A window never spans a gap or a break in the source's time.
+            let broke = cur
+                .last()
+                .is_some_and(|&j| body[j].segment != body[i].segment);
+            if !cur.is_empty() && (broke || t - t0 >= WINDOW_S || t - last_t > 0.2) {
                 flush(&mut cur, &mut w, &mut raw_units);
             }
             if cur.is_empty() {

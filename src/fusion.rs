@@ -419,7 +419,8 @@ pub struct OrientationFilter {
     delay: DelayEst,
     /// Recent (time, attitude) for the magnetometer latency.
     history: VecDeque<(f64, UnitQuaternion<f64>)>,
-    last_t: Option<f64>,
+    /// Time and time segment of the last sample.
+    last_t: Option<(f64, u32)>,
     last_gyro: Vector3<f64>,
     t: f64,
     mag_used: bool,
@@ -459,14 +460,16 @@ impl OrientationFilter {
         &self.cfg
     }
 
-    /// Feed one sample: the time step is taken from `t_s` (the first sample and steps outside
-    /// (0, 1] s use `default_dt`).
+    /// Feed one sample: the time step is taken from `t_s` (the first sample, the first of a new
+    /// time segment and steps outside (0, 1] s use `default_dt`).
     pub fn update_sample(&mut self, s: &Sample, default_dt: f64) {
         let dt = match self.last_t {
-            Some(t0) if s.t_s - t0 > 0.0 && s.t_s - t0 <= 1.0 => s.t_s - t0,
+            Some((t0, seg)) if seg == s.segment && s.t_s - t0 > 0.0 && s.t_s - t0 <= 1.0 => {
+                s.t_s - t0
+            }
             _ => default_dt,
         };
-        self.last_t = Some(s.t_s);
+        self.last_t = Some((s.t_s, s.segment));
         self.update(
             dt,
             s.gyro_rad_s.as_ref(),

@@ -88,6 +88,9 @@ impl Default for GateConfig {
 pub struct Pose {
     pub t_start: f64,
     pub t_end: f64,
+    /// Time segment of its samples (a pose never spans a break in the source's time).
+    #[serde(default)]
+    pub segment: u32,
     pub samples: usize,
     pub accel: Vec3,
     pub mag: Option<Vec3>,
@@ -102,6 +105,7 @@ pub struct Pose {
 struct Acc {
     t_start: f64,
     t_end: f64,
+    segment: u32,
     n: usize,
     a: [f64; 3],
     a2: [f64; 3],
@@ -119,6 +123,7 @@ impl Acc {
     fn add(&mut self, s: &Sample, a: &Vec3) {
         if self.n == 0 {
             self.t_start = s.t_s;
+            self.segment = s.segment;
         }
         self.t_end = s.t_s;
         self.n += 1;
@@ -160,6 +165,7 @@ impl Acc {
         Pose {
             t_start: self.t_start,
             t_end: self.t_end,
+            segment: self.segment,
             samples: self.n,
             accel: a,
             mag: (self.nm > 0).then(|| mean(&self.m, self.nm)),
@@ -371,6 +377,19 @@ impl StaticDetector {
 
     /// Feed one sample (accel = the prefiltered accel vector to judge). Returns a pose when one ends.
     pub fn push(&mut self, s: &Sample, accel: &Vec3) -> Option<Pose> {
+        // A break in the source's time ends the pose and the window: nothing spans it.
+        let ended = match self.window.back() {
+            Some((last, _)) if last.segment != s.segment => {
+                self.window.clear();
+                self.close()
+            }
+            _ => None,
+        };
+        let next = self.push_in_segment(s, accel);
+        ended.or(next)
+    }
+
+    fn push_in_segment(&mut self, s: &Sample, accel: &Vec3) -> Option<Pose> {
         // The window length in samples is fixed from the rate seen in the first 50 samples.
         self.n_seen += 1;
         let t0 = *self.first_t.get_or_insert(s.t_s);

@@ -292,7 +292,8 @@ fn segments(
     let mut segs = Vec::new();
     for pair in poses.windows(2) {
         let (p0, p1) = (&pair[0], &pair[1]);
-        if p1.t_start - p0.t_end > opt.max_gap_s {
+        // No rotation is integrated across a break in the source's time.
+        if p0.segment != p1.segment || p1.t_start - p0.t_end > opt.max_gap_s {
             continue;
         }
         let (Some(up0), Some(up1)) = (unit(&accel.apply(&p0.accel)), unit(&accel.apply(&p1.accel)))
@@ -305,11 +306,17 @@ fn segments(
         // From the middle of one pose to the middle of the next.
         let ta = 0.5 * (p0.t_start + p0.t_end);
         let tb = 0.5 * (p1.t_start + p1.t_end);
+        // Sample times never decrease (`crate::clock`), so the span is found by bisection; a
+        // caller's unsorted samples give an empty span, never a bad slice.
         let i0 = samples.partition_point(|s| s.t_s < ta);
-        let i1 = samples.partition_point(|s| s.t_s < tb);
-        let mut steps = Vec::with_capacity(i1.saturating_sub(i0));
+        let i1 = samples.partition_point(|s| s.t_s < tb).max(i0);
+        let mut steps = Vec::with_capacity(i1 - i0);
         let mut prev: Option<(Vec3, f64)> = None;
-        for s in &samples[i0..i1.min(samples.len())] {
+        for s in &samples[i0..i1] {
+            if s.segment != p0.segment {
+                prev = None;
+                continue;
+            }
             let Some(g) = s.gyro_rad_s else { continue };
             if !crate::types::is_finite3(&g) {
                 continue;

@@ -9,6 +9,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 pub mod attitude;
+pub mod clock;
 pub mod config;
 pub mod coverage;
 pub mod daemon;

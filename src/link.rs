@@ -16,7 +16,7 @@
 //! ([`LinkStatus::Connected`]). Nothing here panics on bad input or a vanished peer, and every
 //! loop watches the shutdown flag.
 
-use crate::decode::{self, DecodeStats, Frame, FrameDecoder, FrameParse};
+use crate::decode::{self, DecodeStats, Frame, FrameDecoder, FrameParse, TlogRecords};
 
 mod udp_batch;
 use crate::error::Error;
@@ -665,6 +665,7 @@ fn merge_stats(dst: &mut DecodeStats, src: &DecodeStats) {
     for (k, v) in &src.skipped {
         *dst.skipped.entry(k.clone()).or_insert(0) += v;
     }
+    dst.time.add(&src.time);
 }
 
 /// Microseconds since the Unix epoch.
@@ -710,7 +711,11 @@ impl Shared {
     }
 
     fn merge(&self, local: &DecodeStats) {
-        if local.records == 0 && local.skipped.is_empty() && local.counts.is_empty() {
+        if local.records == 0
+            && local.skipped.is_empty()
+            && local.counts.is_empty()
+            && local.time.segments == 0
+        {
             return;
         }
         if let Ok(mut s) = self.stats.lock() {
@@ -1515,111 +1520,6 @@ async fn blocking<T: Send + 'static>(
     }
 }
 
-/// Records of a .tlog: (timestamp us, frame), resynchronising over damage like
-/// [`decode::decode_tlog`]; skips are counted in `stats`.
-pub struct TlogRecords<'a> {
-    bytes: &'a [u8],
-    pos: usize,
-    last_ts: Option<u64>,
-    pub stats: DecodeStats,
-}
-
-const DAY_US: u64 = 86_400_000_000;
-
-fn is_magic(b: u8) -> bool {
-    b == 0xFE || b == 0xFD
-}
-
-impl<'a> TlogRecords<'a> {
-    pub fn new(bytes: &'a [u8]) -> Self {
-        TlogRecords {
-            bytes,
-            pos: 0,
-            last_ts: None,
-            stats: DecodeStats::default(),
-        }
-    }
-
-    fn ts_at(&self, p: usize) -> u64 {
-        let mut b = [0u8; 8];
-        b.copy_from_slice(&self.bytes[p..p + 8]);
-        u64::from_be_bytes(b)
-    }
-
-    fn plausible(&self, ts: u64) -> bool {
-        self.last_ts.is_none_or(|l| ts.abs_diff(l) < DAY_US)
-    }
-
-    /// The next offset from `from` that holds a plausible timestamp and a good frame.
-    fn resync(&self, from: usize) -> usize {
-        let n = self.bytes.len();
-        let mut p = from;
-        while p + 9 < n {
-            if is_magic(self.bytes[p + 8]) {
-                let ts = self.ts_at(p);
-                let ok = match self.last_ts {
-                    Some(_) => self.plausible(ts),
-                    None => ts > 0,
-                };
-                if ok
-                    && matches!(
-                        decode::parse_frame(&self.bytes[p + 8..]),
-                        FrameParse::Frame(..)
-                    )
-                {
-                    return p;
-                }
-            }
-            p += 1;
-        }
-        n
-    }
-}
-
-impl Iterator for TlogRecords<'_> {
-    type Item = (u64, Frame);
-
-    fn next(&mut self) -> Option<(u64, Frame)> {
-        let n = self.bytes.len();
-        while self.pos + 8 < n {
-            let ts = self.ts_at(self.pos);
-            let rest = &self.bytes[self.pos + 8..];
-            if !is_magic(rest[0]) || !self.plausible(ts) {
-                self.stats.skip("resync");
-                self.pos = self.resync(self.pos + 1);
-                continue;
-            }
-            match decode::parse_frame(rest) {
-                FrameParse::Frame(f, len) => {
-                    self.last_ts = Some(ts);
-                    self.pos += 8 + len;
-                    self.stats.records += 1;
-                    return Some((ts, *f));
-                }
-                FrameParse::Incomplete => {
-                    self.stats.skip("truncated");
-                    self.pos = n;
-                    return None;
-                }
-                FrameParse::Skip(len, why) => {
-                    self.stats.skip(why);
-                    if why == "unknown_message" || why == "bad_payload" {
-                        self.last_ts = Some(ts);
-                        self.pos += 8 + len;
-                    } else {
-                        self.pos = self.resync(self.pos + 1);
-                    }
-                }
-            }
-        }
-        if self.pos < n {
-            self.stats.skip("truncated");
-            self.pos = n;
-        }
-        None
-    }
-}
-
 /// True when a CSV payload's file has no header row (its first line starts with a number).
 fn headerless(text: &str) -> bool {
     text.lines()
@@ -1736,7 +1636,7 @@ async fn replay_tlog(sh: &Shared, ctl: &mut Control, data: &[u8], speed: f64) ->
         LinkCounters::add(&sh.counters.frames_in, 1);
         let item = Inbound::Frame {
             link: sh.index,
-            frame: Box::new(frame),
+            frame,
             time_us: ts,
         };
         if !deliver(sh, ctl, item).await {

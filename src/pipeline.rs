@@ -55,6 +55,8 @@ pub struct Pipeline {
     rot: Matrix3<f64>,
     pre_a: Option<Prefilter3>,
     pre_m: Option<Prefilter3>,
+    /// The prefilters as new, and the time segment they are running in (reset at a break).
+    pre_new: (Option<Prefilter3>, u32),
     detector: StaticDetector,
     poses: Vec<Pose>,
     mag_buffer: Vec<Vec3>,
@@ -96,6 +98,7 @@ impl Pipeline {
             rot,
             pre_a: pf,
             pre_m: pf,
+            pre_new: (pf, 0),
             detector: StaticDetector::new(cfg.gate),
             poses: Vec::new(),
             mag_buffer: Vec::new(),
@@ -139,6 +142,11 @@ impl Pipeline {
         let mut s = self.to_body(raw);
         self.samples += 1;
         self.last_t = s.t_s;
+        if s.segment != self.pre_new.1 {
+            // A break in time: the prefilters start again (the gate ends its pose itself).
+            self.pre_new.1 = s.segment;
+            (self.pre_a, self.pre_m) = (self.pre_new.0, self.pre_new.0);
+        }
         if let (Some(pf), Some(a)) = (self.pre_a.as_mut(), s.accel_mps2) {
             s.accel_mps2 = Some(pf.update(&a));
         }
@@ -1093,6 +1101,8 @@ pub struct Calibrator {
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Calibrated {
     pub t_s: f64,
+    /// The sample's time segment.
+    pub segment: u32,
     pub accel_mps2: Option<Vec3>,
     pub gyro_rad_s: Option<Vec3>,
     pub mag_ut: Option<Vec3>,
@@ -1106,6 +1116,7 @@ impl Calibrated {
     pub fn as_sample(&self) -> Sample {
         Sample {
             t_s: self.t_s,
+            segment: self.segment,
             accel_mps2: self.accel_mps2,
             gyro_rad_s: self.gyro_rad_s,
             mag_ut: self.mag_ut,
@@ -1164,6 +1175,7 @@ impl Calibrator {
         }
         Calibrated {
             t_s: s.t_s,
+            segment: s.segment,
             accel_mps2: a,
             gyro_rad_s: g,
             mag_ut: m,
@@ -1281,6 +1293,7 @@ mod tests {
             p.add_pose(Pose {
                 t_start: i as f64,
                 t_end: i as f64 + 0.5,
+                segment: 0,
                 samples: 50,
                 accel: [0.0, 0.0, -9.8],
                 mag: None,

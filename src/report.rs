@@ -31,6 +31,9 @@ pub struct InputReport {
     pub counts: std::collections::BTreeMap<String, u64>,
     pub skipped: std::collections::BTreeMap<String, u64>,
     pub duration_s: f64,
+    /// The source's clock: which one (`message` or `receive`), time segments, faults by kind.
+    #[serde(default)]
+    pub time: crate::clock::TimeStats,
 }
 
 impl InputReport {
@@ -50,6 +53,7 @@ impl InputReport {
             counts: stats.counts.to_map(),
             skipped: stats.skipped.clone(),
             duration_s,
+            time: stats.time.clone(),
         }
     }
 }

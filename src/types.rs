@@ -11,8 +11,11 @@ pub type Vec3 = [f64; 3];
 /// A `None` field means "no new reading at this instant" (sensors run at different rates).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
-    /// Time since the start of the recording, seconds.
+    /// Time since the start of the recording, seconds; never decreases along a stream.
     pub t_s: f64,
+    /// Time segment ([`crate::clock`]): a new one starts wherever the source's time broke (a
+    /// reboot, logs joined, a gap). Nothing integrates over time across a change.
+    pub segment: u32,
     /// Specific force, m/s^2 (FRD sensor axes), or counts when `Units::accel` says so.
     pub accel_mps2: Option<Vec3>,
     /// Angular rate, rad/s, or counts.
