@@ -130,8 +130,9 @@ impl Default for DaemonConfig {
 pub struct InputConfig {
     /// "auto" (from content), "tlog" or "csv".
     pub format: String,
-    /// IMU instance in MAVLink logs: "auto" (first with a magnetometer), "highres_imu:0", "scaled_imu",
-    /// "scaled_imu2", "scaled_imu3", "raw_imu:0".
+    /// IMU instance in MAVLink logs: "auto" (default: every instance, each calibrated on its own in
+    /// `replay`, the first with a magnetometer primary; the live service takes the primary), or one
+    /// instance only: "highres_imu:0", "scaled_imu", "scaled_imu2", "scaled_imu3", "raw_imu:0".
     pub instance: String,
     /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them).
     pub raw_imu_scale: RawImuScale,

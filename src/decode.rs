@@ -360,6 +360,16 @@ struct Instance {
 }
 
 impl Instance {
+    /// The compass number a ground station knows the instance by.
+    fn compass_id(&self) -> u8 {
+        match (self.kind, self.id) {
+            (_, Some(id)) => id,
+            ("scaled_imu2", None) => 1,
+            ("scaled_imu3", None) => 2,
+            _ => 0,
+        }
+    }
+
     fn name(&self) -> String {
         match self.id {
             Some(id) => format!("{}:{id}", self.kind),
@@ -368,20 +378,51 @@ impl Instance {
     }
 }
 
-/// Turns MAVLink messages into samples of one IMU instance, with throttle from VFR_HUD.
+/// Turns MAVLink messages into samples of one IMU instance (the primary, which `choice` picks),
+/// or of every instance ([`MessageConverter::with_other_instances`]), with throttle from VFR_HUD.
+/// Each instance has its own clock.
 #[derive(Debug, Clone)]
 pub struct MessageConverter {
     pub choice: InstanceChoice,
     pub raw_scale: RawImuScale,
-    /// The instance chosen, and its name.
-    locked: Option<(Instance, String)>,
+    /// Every instance taken so far, at most [`MAX_INSTANCES`].
+    tracks: Vec<Track>,
+    /// The index in `tracks` of the primary instance, once chosen.
+    primary: Option<usize>,
+    /// Take the other instances too.
+    others: bool,
     throttle: Option<f64>,
-    /// The instance's clock: message time, or receive/record time where that is unusable.
-    clock: SourceClock,
     time_revision: u64,
+    /// The primary instance's counts; `stats.time` is its clock's.
+    pub stats: DecodeStats,
+}
+
+/// Instances of one stream a converter keeps apart; more are skipped (`too_many_instances`).
+pub const MAX_INSTANCES: usize = 8;
+
+/// One instance's state in a converter.
+#[derive(Debug, Clone)]
+struct Track {
+    instance: Instance,
+    name: String,
+    /// Message time, or receive/record time where that is unusable.
+    clock: SourceClock,
     /// The last frame's time and readings (to tell a repeated frame).
     last_frame: Option<(MsgTime, Vec3, Vec3, Vec3)>,
-    pub stats: DecodeStats,
+    samples: u64,
+}
+
+/// An IMU instance a converter took samples from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InstanceInfo {
+    /// `highres_imu:1`, `scaled_imu2`, ...
+    pub name: String,
+    /// The compass number a ground station knows it by (MAG_CAL_* `compass_id`): a HIGHRES_IMU or
+    /// RAW_IMU `id`, or 0, 1, 2 for SCALED_IMU, SCALED_IMU2, SCALED_IMU3.
+    pub compass_id: u8,
+    pub samples: u64,
+    pub units: Units,
+    pub time: TimeStats,
 }
 
 const MG_TO_MPS2: f64 = crate::types::STANDARD_GRAVITY_MPS2 / 1000.0;
@@ -395,11 +436,14 @@ fn finite3(v: Vec3) -> Option<Vec3> {
 }
 
 impl MessageConverter {
-    /// Copy the clock's statistics into `stats.time` when they changed.
+    /// Copy the primary clock's statistics into `stats.time` when they changed.
     fn sync_time_stats(&mut self) {
-        if self.clock.revision() != self.time_revision {
-            self.time_revision = self.clock.revision();
-            self.stats.time = self.clock.stats.clone();
+        let Some(t) = self.primary.map(|k| &self.tracks[k]) else {
+            return;
+        };
+        if t.clock.revision() != self.time_revision {
+            self.time_revision = t.clock.revision();
+            self.stats.time = t.clock.stats.clone();
         }
     }
 
@@ -407,26 +451,55 @@ impl MessageConverter {
         MessageConverter {
             choice,
             raw_scale,
-            locked: None,
+            tracks: Vec::new(),
+            primary: None,
+            others: false,
             throttle: None,
-            clock: SourceClock::new(ClockSettings::default()),
             time_revision: u64::MAX,
-            last_frame: None,
             stats: DecodeStats::default(),
         }
     }
 
-    /// The instance samples are taken from, once chosen.
-    pub fn instance(&self) -> Option<&str> {
-        self.locked.as_ref().map(|(_, n)| n.as_str())
+    /// Take every instance, not only the primary: [`MessageConverter::convert_any`] gives them.
+    pub fn with_other_instances(mut self) -> Self {
+        self.others = true;
+        self
     }
 
-    /// Units of the samples produced (RAW_IMU without a scale gives counts).
+    /// The instance samples are taken from, once chosen.
+    pub fn instance(&self) -> Option<&str> {
+        self.primary.map(|k| self.tracks[k].name.as_str())
+    }
+
+    /// The index of the primary instance among [`MessageConverter::instances`], once chosen.
+    pub fn primary_index(&self) -> Option<usize> {
+        self.primary
+    }
+
+    /// Every instance taken so far, in the order first seen.
+    pub fn instances(&self) -> Vec<InstanceInfo> {
+        self.tracks
+            .iter()
+            .map(|t| InstanceInfo {
+                name: t.name.clone(),
+                compass_id: t.instance.compass_id(),
+                samples: t.samples,
+                units: self.units_of(&t.instance),
+                time: t.clock.stats.clone(),
+            })
+            .collect()
+    }
+
+    /// Units of the primary instance's samples (RAW_IMU without a scale gives counts).
     pub fn units(&self) -> Units {
-        let raw = self
-            .locked
-            .as_ref()
-            .is_some_and(|(i, _)| i.kind == "raw_imu");
+        match self.primary {
+            Some(k) => self.units_of(&self.tracks[k].instance),
+            None => self.units_of(&Instance { kind: "", id: None }),
+        }
+    }
+
+    fn units_of(&self, i: &Instance) -> Units {
+        let raw = i.kind == "raw_imu";
         let u = |scale: f64| {
             if raw && scale == 0.0 {
                 Unit::Counts
@@ -441,11 +514,58 @@ impl MessageConverter {
         }
     }
 
-    /// Convert one message; `time_us` is the receive time (tlog record time or the link's clock,
-    /// 0 when unknown), which the instance's [`SourceClock`] falls back on when the message's own
-    /// time is unusable. A repeated frame (same message time) gives `None`, counted in
-    /// `stats.time`.
+    /// The track of an instance, taken on when `choice` (or taking every instance) admits it;
+    /// `None` (counted) when it is not wanted.
+    fn track_for(&mut self, inst: Instance, has_mag: bool) -> Option<usize> {
+        if let Some(k) = self.tracks.iter().position(|t| t.instance == inst) {
+            if Some(k) == self.primary || self.others {
+                return Some(k);
+            }
+            self.stats.skip("other_instance");
+            return None;
+        }
+        let primary = self.primary.is_none()
+            && match &self.choice {
+                InstanceChoice::Named(want) => *want == inst.name(),
+                InstanceChoice::Auto => has_mag,
+            };
+        let other = self.others && matches!(self.choice, InstanceChoice::Auto);
+        if !(primary || other) {
+            self.stats.skip("other_instance");
+            return None;
+        }
+        if self.tracks.len() >= MAX_INSTANCES {
+            self.stats.skip("too_many_instances");
+            return None;
+        }
+        self.tracks.push(Track {
+            instance: inst,
+            name: inst.name(),
+            clock: SourceClock::new(ClockSettings::default()),
+            last_frame: None,
+            samples: 0,
+        });
+        let k = self.tracks.len() - 1;
+        if primary {
+            self.primary = Some(k);
+        }
+        Some(k)
+    }
+
+    /// Convert one message of the primary instance (see [`MessageConverter::convert_any`]).
     pub fn convert(&mut self, msg: &MavMessage, time_us: u64) -> Option<Sample> {
+        match self.convert_any(msg, time_us)? {
+            (k, s) if Some(k) == self.primary => Some(s),
+            _ => None,
+        }
+    }
+
+    /// Convert one message: the instance's index among [`MessageConverter::instances`] and the
+    /// sample. `time_us` is the receive time (tlog record time or the link's clock, 0 when
+    /// unknown), which the instance's [`SourceClock`] falls back on when the message's own time is
+    /// unusable. A repeated frame (same time and readings) gives `None`, counted in its clock's
+    /// statistics.
+    pub fn convert_any(&mut self, msg: &MavMessage, time_us: u64) -> Option<(usize, Sample)> {
         type Raw = (Instance, MsgTime, Vec3, Vec3, Vec3, Option<f64>, bool);
         let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
             MavMessage::VFR_HUD(d) => {
@@ -535,27 +655,14 @@ impl MessageConverter {
             }
             _ => return None,
         };
-        match (&self.locked, &self.choice) {
-            (Some((l, _)), _) if *l != name => {
-                self.stats.skip("other_instance");
-                return None;
-            }
-            (None, InstanceChoice::Named(want)) if *want != name.name() => {
-                self.stats.skip("other_instance");
-                return None;
-            }
-            (None, InstanceChoice::Auto) if !has_mag => {
-                self.stats.skip("other_instance");
-                return None;
-            }
-            (None, _) => self.locked = Some((name, name.name())),
-            _ => {}
-        }
+        let k = self.track_for(name, has_mag)?;
+        let throttle = self.throttle;
+        let t = &mut self.tracks[k];
         // A repeated frame (same time and readings, e.g. from two routes through a router) is
         // dropped and counted; a repeated time with new readings is the clock's to judge.
         let key = (t_us, acc, gyr, mag);
-        if self.last_frame.replace(key) == Some(key) {
-            self.clock.duplicate();
+        if t.last_frame.replace(key) == Some(key) {
+            t.clock.duplicate();
             self.sync_time_stats();
             return None;
         }
@@ -564,12 +671,13 @@ impl MessageConverter {
             MsgTime::BootMs(t) => (i64::from(t) * 1000, Some(MS32_WRAP_US)),
         };
         let recv_us = Some(crate::clock::us_from_u64(time_us)).filter(|t| *t > 0);
-        let stamp = self.clock.stamp(Some(msg_us), recv_us, wrap_us);
+        let stamp = t.clock.stamp(Some(msg_us), recv_us, wrap_us);
+        t.samples += 1;
         self.sync_time_stats();
         let mut s = Sample {
             t_s: stamp.t_s,
             segment: stamp.segment,
-            throttle: self.throttle,
+            throttle,
             ..Default::default()
         };
         let mut bad = false;
@@ -582,12 +690,14 @@ impl MessageConverter {
         s.gyro_rad_s = take(gyr);
         s.mag_ut = if has_mag { take(mag) } else { None };
         s.temp_c = temp.filter(|x| x.is_finite());
-        if bad {
-            self.stats.skip("non_finite");
+        if Some(k) == self.primary {
+            if bad {
+                self.stats.skip("non_finite");
+            }
+            self.stats.records += 1;
+            self.stats.count_sample(&s);
         }
-        self.stats.records += 1;
-        self.stats.count_sample(&s);
-        Some(s)
+        Some((k, s))
     }
 }
 
@@ -637,21 +747,25 @@ fn scaled(
 /// Garbage between records, damaged frames and a truncated tail are counted and skipped.
 pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
     let mut out = Vec::new();
-    decode_tlog_with(bytes, conv, &mut |s, _, _| out.push(s));
+    decode_tlog_with(bytes, conv, &mut |k, s, _, conv| {
+        if Some(k) == conv.primary_index() {
+            out.push(s)
+        }
+    });
     out
 }
 
-/// As [`decode_tlog`], handing each sample to `emit(sample, bytes_read_so_far, converter)` as it is
-/// decoded.
+/// As [`decode_tlog`], handing each sample of every instance the converter takes to
+/// `emit(instance_index, sample, bytes_read_so_far, converter)` as it is decoded.
 pub fn decode_tlog_with(
     bytes: &[u8],
     conv: &mut MessageConverter,
-    emit: &mut dyn FnMut(Sample, usize, &MessageConverter),
+    emit: &mut dyn FnMut(usize, Sample, usize, &MessageConverter),
 ) {
     let mut records = TlogRecords::new(bytes);
     while let Some((ts, f)) = records.next() {
-        if let Some(s) = conv.convert(&f.message, ts) {
-            emit(s, records.position(), conv);
+        if let Some((k, s)) = conv.convert_any(&f.message, ts) {
+            emit(k, s, records.position(), conv);
         }
     }
     for (why, n) in &records.stats.skipped {

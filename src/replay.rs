@@ -41,6 +41,8 @@ pub fn replay(
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
     // the same order as from a whole-file decode, so the result is the same.
     let mut samples = Vec::new();
+    // The other IMU instances of a MAVLink log, each through a pipeline of its own.
+    let mut others: Vec<Option<Pipeline>> = Vec::new();
     let decoded = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::sources::Batch>(4);
         let decoder = scope.spawn(move || {
@@ -59,6 +61,13 @@ pub fn replay(
             for s in &batch.samples {
                 if pipe.push(s) {
                     pipe.refit();
+                }
+            }
+            for &(k, ref s) in &batch.others {
+                if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
+                    if p.push(s) {
+                        p.refit();
+                    }
                 }
             }
             progress(batch.bytes_read as u64, batch.bytes_total as u64);
@@ -88,7 +97,8 @@ pub fn replay(
         total,
         duration,
     );
-    let report = make_report(input, &pipe, &results, declination);
+    let mut report = make_report(input, &pipe, &results, declination);
+    report.instances = instance_reports(&log, &report, &mut others);
     let mut written = vec![];
     if let Some(p) = &opts.report {
         crate::publish::write_json(p, &report)?;
@@ -198,6 +208,66 @@ fn gyro_scale(
     }
 }
 
+/// The pipeline of instance `k` (not the primary), made on its first sample with the instance's
+/// units; `None` when it cannot be (a configuration the primary's pipeline took, so not here).
+fn other_pipeline<'a>(
+    pipes: &'a mut Vec<Option<Pipeline>>,
+    k: usize,
+    batch: &crate::sources::Batch,
+    cfg: &Config,
+) -> Option<&'a mut Pipeline> {
+    if pipes.len() <= k {
+        pipes.resize_with(k + 1, || None);
+    }
+    if pipes[k].is_none() {
+        let mut p = Pipeline::new(cfg).ok()?;
+        if let Some(i) = batch.instances.get(k) {
+            p.mag_units = i.units.mag;
+            p.gyro_units = i.units.gyro;
+        }
+        pipes[k] = Some(p);
+    }
+    pipes[k].as_mut()
+}
+
+/// A block per IMU instance of the log: the primary's is the report's own calibration, the
+/// others' come from their pipelines. Empty when the log has one instance or none.
+fn instance_reports(
+    log: &crate::sources::Log,
+    report: &Report,
+    others: &mut [Option<Pipeline>],
+) -> Vec<crate::report::InstanceReport> {
+    if log.instances.len() < 2 {
+        return Vec::new();
+    }
+    let primary = log.instance.as_deref();
+    log.instances
+        .iter()
+        .enumerate()
+        .filter_map(|(k, i)| {
+            let is_primary = primary == Some(i.name.as_str());
+            let calibration = if is_primary {
+                report.calibration.clone()
+            } else {
+                let r = others.get_mut(k)?.as_mut()?.finish();
+                CalibrationReport {
+                    mag: r.mag.report.clone(),
+                    accel: r.accel.report.clone(),
+                    gyro: r.gyro.clone(),
+                }
+            };
+            Some(crate::report::InstanceReport {
+                instance: i.name.clone(),
+                compass_id: i.compass_id,
+                primary: is_primary,
+                samples: i.samples,
+                time: i.time.clone(),
+                calibration,
+            })
+        })
+        .collect()
+}
+
 /// The report for a pipeline's current state.
 pub fn make_report(
     input: InputReport,
@@ -220,6 +290,7 @@ pub fn make_report(
         },
         declination_deg,
         refits: pipe.refits.clone(),
+        instances: Vec::new(),
     }
 }
 
@@ -371,6 +442,31 @@ pub fn summary(r: &Report) -> String {
                 .map(|(k, v)| format!("{k} {v}"))
                 .collect::<Vec<_>>()
                 .join(", ")
+        );
+    }
+    let t = &r.input.time;
+    if t.segments > 1 || !t.faults.is_empty() {
+        let faults: Vec<String> = t.faults.iter().map(|(k, n)| format!("{k:?} {n}")).collect();
+        let _ = writeln!(
+            s,
+            "time: {} segments ({})",
+            t.segments,
+            faults.join(", ").to_lowercase()
+        );
+    }
+    for i in r.instances.iter().filter(|i| !i.primary) {
+        let m = &i.calibration.mag;
+        let what = match m.status.as_str() {
+            "ok" => format!(
+                "offset [{:.4}, {:.4}, {:.4}] {}, rms residual {:.4}",
+                m.offset[0], m.offset[1], m.offset[2], m.units, m.rms_residual
+            ),
+            _ => format!("FAILED ({})", m.failure.as_deref().unwrap_or("?")),
+        };
+        let _ = writeln!(
+            s,
+            "instance {} (compass {}): {} samples, mag {what}; accel {}",
+            i.instance, i.compass_id, i.samples, i.calibration.accel.status
         );
     }
     let _ = writeln!(s, "static poses: {}", r.static_poses.len());

@@ -19,6 +19,25 @@ pub struct Report {
     pub declination_deg: Option<f64>,
     /// Refits done while the data came in (time of data, model, status).
     pub refits: Vec<RefitReport>,
+    /// Every IMU instance of a MAVLink log, each calibrated on its own (the primary's calibration
+    /// is also `calibration`); empty for other inputs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub instances: Vec<InstanceReport>,
+}
+
+/// One IMU instance of the input and its calibration.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct InstanceReport {
+    /// `highres_imu:1`, `scaled_imu2`, ...
+    pub instance: String,
+    /// MAG_CAL_* `compass_id`: the message's `id`, or 0, 1, 2 for SCALED_IMU, SCALED_IMU2, SCALED_IMU3.
+    pub compass_id: u8,
+    /// The instance `calibration` and the rest of the report describe.
+    pub primary: bool,
+    pub samples: u64,
+    /// Its clock ([`InputReport::time`]).
+    pub time: crate::clock::TimeStats,
+    pub calibration: CalibrationReport,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

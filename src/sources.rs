@@ -4,7 +4,7 @@
 use crate::config::Config;
 use crate::decode::{
     decode_csv, decode_tlog_with, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
-    MessageConverter,
+    InstanceInfo, MessageConverter,
 };
 use crate::error::Error;
 use crate::types::{Sample, Unit, Units};
@@ -18,6 +18,8 @@ pub struct Log {
     pub stats: DecodeStats,
     pub instance: Option<String>,
     pub units: Units,
+    /// Every IMU instance read (MAVLink logs), the primary among them.
+    pub instances: Vec<InstanceInfo>,
 }
 
 /// Read and decode a log file (`.tlog`, `.csv`, `.csv.gz`). `format` overrides detection.
@@ -47,7 +49,13 @@ pub fn decode_log(
 
 /// Samples handed on while a log is decoded, with what is known so far.
 pub struct Batch {
+    /// Samples of the primary instance.
     pub samples: Vec<Sample>,
+    /// Samples of the other instances (MAVLink logs with `input.instance = "auto"`), with their
+    /// index among [`Log::instances`].
+    pub others: Vec<(usize, Sample)>,
+    /// The instances read so far (names, units), indexed as in `others`.
+    pub instances: Vec<InstanceInfo>,
     /// Units of the samples (fixed once the first sample is decoded).
     pub units: Units,
     /// Bytes of the (decompressed) log read so far, and in all.
@@ -90,15 +98,25 @@ pub fn decode_log_batched(
                 InstanceChoice::Named(cfg.input.instance.clone())
             };
             let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
+            if conv.choice == InstanceChoice::Auto {
+                conv = conv.with_other_instances();
+            }
             let total = data.len();
             let mut batch = Vec::with_capacity(BATCH_SAMPLES);
+            let mut others = Vec::new();
             let mut any = false;
-            decode_tlog_with(&data, &mut conv, &mut |s, read, conv| {
-                batch.push(s);
-                if batch.len() == BATCH_SAMPLES {
-                    any = true;
+            decode_tlog_with(&data, &mut conv, &mut |k, s, read, conv| {
+                if Some(k) == conv.primary_index() {
+                    batch.push(s);
+                } else {
+                    others.push((k, s));
+                }
+                if batch.len() + others.len() >= BATCH_SAMPLES {
+                    any |= !batch.is_empty();
                     sink(Batch {
                         samples: std::mem::replace(&mut batch, Vec::with_capacity(BATCH_SAMPLES)),
+                        others: std::mem::take(&mut others),
+                        instances: conv.instances(),
                         // Fixed by the instance, which the first sample locked.
                         units: conv.units(),
                         bytes_read: read,
@@ -106,10 +124,12 @@ pub fn decode_log_batched(
                     });
                 }
             });
-            if !batch.is_empty() {
-                any = true;
+            if !batch.is_empty() || !others.is_empty() {
+                any |= !batch.is_empty();
                 sink(Batch {
                     samples: batch,
+                    others,
+                    instances: conv.instances(),
                     units: conv.units(),
                     bytes_read: total,
                     bytes_total: total,
@@ -135,6 +155,7 @@ pub fn decode_log_batched(
                 format,
                 samples: Vec::new(),
                 instance: conv.instance().map(String::from),
+                instances: conv.instances(),
                 stats: conv.stats,
                 units,
             })
@@ -158,6 +179,8 @@ pub fn decode_log_batched(
             };
             sink(Batch {
                 samples,
+                others: Vec::new(),
+                instances: Vec::new(),
                 units,
                 bytes_read: data.len(),
                 bytes_total: data.len(),
@@ -167,6 +190,7 @@ pub fn decode_log_batched(
                 samples: Vec::new(),
                 stats,
                 instance: None,
+                instances: Vec::new(),
                 units,
             })
         }
