@@ -220,6 +220,7 @@ pub fn make_report(
         },
         declination_deg,
         refits: pipe.refits.clone(),
+        outputs: None,
     }
 }
 

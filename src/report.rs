@@ -19,6 +19,36 @@ pub struct Report {
     pub declination_deg: Option<f64>,
     /// Refits done while the data came in (time of data, model, status).
     pub refits: Vec<RefitReport>,
+    /// The live service only: what its outputs delivered and dropped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outputs: Option<OutputsReport>,
+}
+
+/// The live service's outputs: what each JSON consumer and MAVLink link could not take.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct OutputsReport {
+    pub json_sinks: Vec<SinkReport>,
+    pub links: Vec<LinkOutputReport>,
+}
+
+/// One JSON-lines consumer (`publish`): lines handed to it, and lines lost.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SinkReport {
+    /// As configured: "stdout", "udp:IP:PORT", "tcp:IP:PORT".
+    pub sink: String,
+    pub sent: u64,
+    /// Dropped because its queue was full (the consumer was not taking lines).
+    pub queue_full: u64,
+    /// Taken from the queue but not delivered (not connected, refused by the socket).
+    pub not_delivered: u64,
+}
+
+/// One link's outbound MAVLink.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LinkOutputReport {
+    pub link: String,
+    /// Datagrams (or writes) of frames dropped: its outbound queue was full or it was not writable.
+    pub outbound_dropped: u64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
