@@ -524,8 +524,11 @@ struct LinkEntry {
     ended: bool,
     replay: bool,
     label: String,
-    /// `outbound_dropped` when it was last reported.
-    outbound_dropped_reported: u64,
+    /// Datagrams of MAVLink frames dropped because its outbound queue was full (also in the link's
+    /// `outbound_dropped`, with those it could not send: no peer yet, link down).
+    outbound_queue_full: u64,
+    /// `outbound_queue_full` when it was last reported.
+    queue_full_reported: u64,
 }
 
 struct State {
@@ -536,6 +539,10 @@ struct State {
     calibrator: Calibrator,
     latest: Option<Calibrated>,
     enc: MavEncoder,
+    /// Our MAVLink ids: inbound frames carrying them are our own echo.
+    own: mavout::OwnIds,
+    /// Inbound frames dropped as our own echo.
+    own_echo: u64,
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
@@ -652,8 +659,9 @@ impl State {
         if self.mav_out.is_empty() {
             return;
         }
-        for l in self.links.iter().filter(|l| l.mavlink && !l.replay) {
+        for l in self.links.iter_mut().filter(|l| l.mavlink && !l.replay) {
             if l.handle.outbound.try_send(self.mav_out.clone()).is_err() {
+                l.outbound_queue_full += 1;
                 l.handle
                     .counters
                     .outbound_dropped
@@ -661,6 +669,13 @@ impl State {
             }
         }
         self.mav_out.clear();
+    }
+
+    /// Our HEARTBEAT on every live MAVLink link.
+    async fn send_heartbeat(&mut self) {
+        if self.links.iter().any(|l| l.mavlink && !l.replay) {
+            self.send_mav(&[mavout::heartbeat()]).await;
+        }
     }
 
     /// Queue a JSON line for every consumer (never waits: a full queue drops it, counted).
@@ -675,7 +690,8 @@ impl State {
     }
 
     /// A JSON `status` line (and a log line) for each consumer that lost lines since the last
-    /// time, and for each link whose outbound queue dropped MAVLink datagrams.
+    /// time, and for each link whose outbound queue was full (not for datagrams a link could not
+    /// send: a udpin link has no peer until one sends, and the HEARTBEAT goes out regardless).
     async fn report_drops(&mut self) {
         let mut said = vec![];
         for s in self.sinks.iter_mut() {
@@ -695,19 +711,15 @@ impl State {
             }
         }
         for l in self.links.iter_mut() {
-            let n = l
-                .handle
-                .counters
-                .outbound_dropped
-                .load(std::sync::atomic::Ordering::Relaxed);
-            if n > l.outbound_dropped_reported {
+            let n = l.outbound_queue_full;
+            if n > l.queue_full_reported {
                 said.push(format!(
-                    "{}: {} MAVLink datagrams not sent since the last report ({} in all)",
+                    "{}: {} MAVLink datagrams dropped with its outbound queue full since the last report ({} in all)",
                     l.label,
-                    n - l.outbound_dropped_reported,
+                    n - l.queue_full_reported,
                     n
                 ));
-                l.outbound_dropped_reported = n;
+                l.queue_full_reported = n;
             }
         }
         for text in said {
@@ -734,6 +746,7 @@ impl State {
                         .counters
                         .outbound_dropped
                         .load(std::sync::atomic::Ordering::Relaxed),
+                    outbound_queue_full: l.outbound_queue_full,
                 })
                 .collect(),
         }
@@ -839,7 +852,12 @@ impl State {
     }
 
     /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
+    /// Our own frames echoed back (a router, a looped link) are dropped and counted.
     async fn on_frame(&mut self, link: usize, frame: &crate::decode::Frame, time_us: u64) -> bool {
+        if self.own.is_own(frame.system_id, frame.component_id) {
+            self.own_echo += 1;
+            return false;
+        }
         match &frame.message {
             MavMessage::HEARTBEAT(h) => {
                 if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -1187,6 +1205,7 @@ impl State {
             stats.skip_n("queue_full", dropped);
         }
         stats.skip_n("mag_awaiting_params", self.mag_awaiting_params);
+        stats.skip_n("own_echo", self.own_echo);
         let label = self
             .links
             .iter()
@@ -1389,7 +1408,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             ended: false,
             replay,
             label: s.address.clone(),
-            outbound_dropped_reported: 0,
+            outbound_queue_full: 0,
+            queue_full_reported: 0,
         });
     }
     drop(tx);
@@ -1405,6 +1425,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         store,
         latest: None,
         enc: MavEncoder::new(d.system_id, d.component_id),
+        own: mavout::OwnIds {
+            system_id: d.system_id,
+            component_id: d.component_id,
+        },
+        own_echo: 0,
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
         coverage_map: None,
         store_writes: Writes::default(),
@@ -1453,6 +1478,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     let [mut heading_out, mut progress_out, mut attitude_out] = outputs;
     let mut drops_out = Output::new(epoch, 1.0 / DROPS_REPORT_S);
     drops_out.use_clock(epoch, clock_period);
+    let mut heartbeat_out = (d.heartbeat_rate_hz > 0.0).then(|| {
+        let mut o = Output::new(epoch, d.heartbeat_rate_hz);
+        o.use_clock(epoch, clock_period);
+        o
+    });
     let mut clock = tokio::time::interval_at(epoch, clock_period);
     clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
@@ -1551,11 +1581,16 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 if drops_out.due_at_clock(t) {
                     st.report_drops().await;
                 }
+                if heartbeat_out.as_mut().is_some_and(|o| o.due_at_clock(t)) {
+                    st.send_heartbeat().await;
+                }
             }
             _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
             _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
             _ = attitude_out.own_tick(), if attitude_out.own.is_some() => st.publish_attitude().await,
             _ = drops_out.own_tick(), if drops_out.own.is_some() => st.report_drops().await,
+            _ = async { heartbeat_out.as_mut().expect("guarded").own_tick().await },
+                if heartbeat_out.as_ref().is_some_and(|o| o.own.is_some()) => st.send_heartbeat().await,
             r = st.store_writes.done(), if st.store_writes.job.is_some() => st.written(r).await,
             r = st.report_writes.done(), if st.report_writes.job.is_some() => st.written(r).await,
         }
@@ -1730,6 +1765,111 @@ mod tests {
         // Measured: queueing ~0.15 s (mostly the sleeps), closing 0.10 s (the deadline).
         assert!(queued_s < 2.0 && closed_s < 0.5, "{queued_s} {closed_s}");
         drop(held);
+    }
+
+    /// Our own frames echoed back (same system and component id) are dropped and counted, never
+    /// samples and never a vehicle's HEARTBEAT; our HEARTBEAT goes out on the link.
+    #[tokio::test]
+    async fn daemon_drops_its_own_echo_and_sends_heartbeats() {
+        use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
+        let dir = tempfile::tempdir().unwrap();
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let mut cfg = Config::default();
+        cfg.daemon.sources = vec![SourceConfig {
+            address: format!("udpin:127.0.0.1:{port}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }];
+        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+        cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
+        cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
+        // Not 191: the ArduPilot detection already passes over component 191, whoever sends it.
+        cfg.daemon.system_id = 1;
+        cfg.daemon.component_id = 190;
+        cfg.fit.refit_every_s = 0.1;
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let daemon = tokio::spawn(run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        peer.connect(("127.0.0.1", port)).await.unwrap();
+        let imu = |i: u64| {
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: 1_000_000 + i * 10_000,
+                zacc: -9.81,
+                xmag: 0.2,
+                zmag: 0.4,
+                ..Default::default()
+            })
+        };
+        let (mut echo, mut fc) = (MavEncoder::new(1, 190), MavEncoder::new(1, 1));
+        // Our own id on an ArduPilot HEARTBEAT and on IMU frames: none of it is taken.
+        let ap = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavtype: MavType::MAV_TYPE_QUADROTOR,
+            ..Default::default()
+        });
+        peer.send(&echo.encode(&ap)).await.unwrap();
+        for i in 0..40 {
+            peer.send(&echo.encode(&imu(i))).await.unwrap();
+        }
+        for i in 0..30 {
+            peer.send(&fc.encode(&imu(100 + i))).await.unwrap();
+        }
+        let mut dec = crate::decode::FrameDecoder::new();
+        let mut heartbeats = vec![];
+        let mut buf = vec![0u8; 65_536];
+        let until = tokio::time::Instant::now() + Duration::from_millis(2300);
+        while let Ok(Ok(n)) = tokio::time::timeout_at(until, peer.recv(&mut buf)).await {
+            for f in dec.push(&buf[..n]) {
+                if let MavMessage::HEARTBEAT(h) = f.message {
+                    heartbeats.push((f.system_id, f.component_id, h.mavtype, h.autopilot));
+                }
+            }
+        }
+        stop_tx.send(true).unwrap();
+        let summary = daemon.await.unwrap().unwrap();
+        assert_eq!(summary.samples, 30);
+        // At 1 s and 2 s (the one at the start went nowhere: no peer had sent anything yet).
+        assert!((2..=3).contains(&heartbeats.len()), "{heartbeats:?}");
+        for h in &heartbeats {
+            assert_eq!(
+                *h,
+                (
+                    1,
+                    190,
+                    MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                    MavAutopilot::MAV_AUTOPILOT_INVALID
+                )
+            );
+        }
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+                .unwrap();
+        assert_eq!(
+            report["input"]["skipped"]["own_echo"], 41,
+            "{}",
+            report["input"]
+        );
+        assert!(report["input"]["skipped"]
+            .get("mag_awaiting_params")
+            .is_none());
+        let mut lines = vec![];
+        while let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(50), json.recv(&mut buf)).await
+        {
+            lines.push(String::from_utf8_lossy(&buf[..n]).to_string());
+        }
+        assert!(!lines.is_empty());
+        assert!(
+            lines.iter().all(|l| !l.contains("ArduPilot")),
+            "our own HEARTBEAT was taken for a vehicle's: {lines:?}"
+        );
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! state machines (no sockets, no tokio): the caller moves the bytes.
 //!
 //! * [`MavEncoder`]: one complete MAVLink frame per message, with its own sequence counter.
+//! * Being a MAVLink component: [`heartbeat`], and [`OwnIds`] to tell our own frames echoed back.
 //! * Calibration progress and result in ArduPilot's messages: [`section80`], [`completion_mask`],
 //!   [`mag_cal_progress`] (MAG_CAL_PROGRESS, 191) and [`mag_cal_report`] (MAG_CAL_REPORT, 192).
 //! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
@@ -49,9 +50,10 @@ use crate::model::{rows_to_mat, Calibration, ModelKind};
 use crate::report::SensorCalibration;
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
-    MagCalStatus, MavMessage, MavParamType, MavSeverity, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA,
-    DEBUG_VECT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA, NAMED_VALUE_FLOAT_DATA,
-    PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
+    MagCalStatus, MavAutopilot, MavMessage, MavModeFlag, MavParamType, MavSeverity, MavState,
+    MavType, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA, DEBUG_VECT_DATA, HEARTBEAT_DATA,
+    MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA, NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA,
+    PARAM_SET_DATA, STATUSTEXT_DATA,
 };
 use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
@@ -112,6 +114,36 @@ impl MavEncoder {
         self.seq = self.seq.wrapping_add(1);
         out
     }
+}
+
+/// Our own MAVLink ids. A frame that carries both came from us: a router or a link that loops our
+/// output back. It is not a vehicle's, and is never taken as input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OwnIds {
+    pub system_id: u8,
+    pub component_id: u8,
+}
+
+impl OwnIds {
+    /// Whether a frame from `system_id`/`component_id` is our own (both must match: a flight
+    /// controller shares our system id on the same vehicle).
+    pub fn is_own(&self, system_id: u8, component_id: u8) -> bool {
+        system_id == self.system_id && component_id == self.component_id
+    }
+}
+
+/// Our HEARTBEAT: an onboard controller with no autopilot of its own, active. Sent at
+/// `daemon.heartbeat_rate_hz` (1 Hz) on every MAVLink link, so ground stations and routers
+/// (MAVProxy, mavlink-router, QGroundControl) list the component and route messages to it.
+pub fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
 }
 
 /// Copy `s` into a fixed MAVLink char array, cut at a UTF-8 character boundary so that at most `N`
@@ -984,6 +1016,33 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn mavout_heartbeat_says_onboard_controller_without_autopilot_with_our_ids() {
+        let mut enc = MavEncoder::new(42, 191);
+        let f = decode(&enc.encode(&heartbeat()));
+        assert_eq!((f.system_id, f.component_id), (42, 191));
+        let MavMessage::HEARTBEAT(h) = f.message else {
+            panic!("{:?}", f.message)
+        };
+        assert_eq!(h.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
+        assert_eq!(h.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        assert_eq!(h.system_status, MavState::MAV_STATE_ACTIVE);
+        assert_eq!(h.mavlink_version, 3);
+    }
+
+    #[test]
+    fn mavout_own_ids_match_only_both_ids() {
+        let own = OwnIds {
+            system_id: 1,
+            component_id: 191,
+        };
+        assert!(own.is_own(1, 191));
+        // The flight controller of the same vehicle, another computer, a ground station.
+        assert!(!own.is_own(1, 1));
+        assert!(!own.is_own(2, 191));
+        assert!(!own.is_own(255, 190));
     }
 
     fn fib_sphere(n: usize) -> impl Iterator<Item = [f64; 3]> {

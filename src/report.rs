@@ -47,8 +47,12 @@ pub struct SinkReport {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct LinkOutputReport {
     pub link: String,
-    /// Datagrams (or writes) of frames dropped: its outbound queue was full or it was not writable.
+    /// Datagrams (or writes) of frames not sent: its outbound queue was full, no peer yet (udpin),
+    /// link down.
     pub outbound_dropped: u64,
+    /// Of those, dropped because its outbound queue was full.
+    #[serde(default)]
+    pub outbound_queue_full: u64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -1831,6 +1831,7 @@ mod live_attitude {
         cfg.daemon.attitude_rate_hz = 0.001;
         cfg.daemon.heading_rate_hz = 0.1;
         cfg.daemon.progress_rate_hz = 0.1;
+        cfg.daemon.heartbeat_rate_hz = 0.0;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
@@ -2439,6 +2440,27 @@ mod live_consumers {
         for (i, (_, stop_s, _)) in measured.iter().enumerate() {
             let s = stop_s.unwrap_or_else(|| panic!("run {i}: not stopped 5 s after SIGTERM"));
             assert!(s < 1.0, "run {i}: stopped {s:.2} s after SIGTERM");
+        }
+        // The service is a MAVLink component: its HEARTBEAT at 1 Hz, with its ids and kind.
+        // Measured: 8 in each run, 0.999-1.001 s apart (the first one, before the peer's first
+        // datagram, has nowhere to go on a udpin link).
+        for (i, (seen, _, _)) in measured.iter().enumerate() {
+            let hb = &seen.heartbeats_s;
+            assert!(
+                seen.heartbeat_kind_ok,
+                "run {i}: a HEARTBEAT not ours or not an onboard controller"
+            );
+            assert!(hb.len() >= 6, "run {i}: {} HEARTBEATs in 8.5 s", hb.len());
+            let gaps: Vec<f64> = hb.windows(2).map(|w| w[1] - w[0]).collect();
+            let mean = (hb[hb.len() - 1] - hb[0]) / gaps.len() as f64;
+            assert!(
+                (mean - 1.0).abs() < 0.05,
+                "run {i}: mean period {mean:.3} s"
+            );
+            assert!(
+                gaps.iter().all(|g| (0.7..1.3).contains(g)),
+                "run {i}: gaps {gaps:?}"
+            );
         }
         // The drops are said, naming the sink.
         let said = lines
