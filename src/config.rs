@@ -87,6 +87,11 @@ pub struct DaemonConfig {
     /// link, so ground stations and routers see the component; 1 by default, 0 = none. At most
     /// [`MAX_RATE_HZ`].
     pub heartbeat_rate_hz: f64,
+    /// Magnetometer calibration without a ground-station command: "continuous" (passing fits are
+    /// installed and written as they come, the default) or "on_command" (only a run started by
+    /// MAV_CMD_DO_START_MAG_CAL calibrates). Either way the commands DO_START/ACCEPT/CANCEL_MAG_CAL
+    /// addressed to our ids (or broadcast) start, accept and cancel a run.
+    pub mag_cal: String,
     /// ArduPilot sends magnetometer data with its calibration applied: "undo" it (reading COMPASS_*
     /// parameters) or "refuse" to fit such data.
     pub ardupilot_corrected_mag: String,
@@ -123,6 +128,7 @@ impl Default for DaemonConfig {
             system_id: 1,
             component_id: 191,
             heartbeat_rate_hz: 1.0,
+            mag_cal: "continuous".into(),
             ardupilot_corrected_mag: "undo".into(),
             queue_capacity: 4096,
             silent_after_s: 3.0,
@@ -509,6 +515,12 @@ impl Config {
         if d.heartbeat_rate_hz != 0.0 {
             rate("daemon.heartbeat_rate_hz", d.heartbeat_rate_hz)?;
         }
+        if !["continuous", "on_command"].contains(&d.mag_cal.as_str()) {
+            return Err(err(
+                "daemon.mag_cal",
+                format!("`{}` is not continuous or on_command", d.mag_cal),
+            ));
+        }
         for (key, id) in [
             ("daemon.system_id", d.system_id),
             ("daemon.component_id", d.component_id),
@@ -661,6 +673,14 @@ mod tests {
                 "{e}"
             );
         }
+        assert_eq!(d.mag_cal, "continuous");
+        let e = Config::from_toml_str("[daemon]\nmag_cal = \"manual\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("daemon.mag_cal") && e.contains("on_command"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -18,12 +18,16 @@ use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
 use crate::fusion::OrientationFilter;
 use crate::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
-use crate::mavout::{self, ApCompassParams, LiveEvent, MavEncoder, ParamWriter};
+use crate::mavout::{
+    self, ApCompassParams, LiveEvent, MagCalEffect, MagCalEvent, MagCalRun, MavEncoder, ParamWriter,
+};
 use crate::model::Calibration;
 use crate::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Unit, Vec3};
-use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
+use mavlink::dialects::ardupilotmega::{
+    MavAutopilot, MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -543,6 +547,12 @@ struct State {
     own: mavout::OwnIds,
     /// Inbound frames dropped as our own echo.
     own_echo: u64,
+    /// The magnetometer calibration run (ground-station commands, continuous calibration).
+    mag_run: MagCalRun,
+    /// The failed magnetometer fit to report, while its event is handled.
+    mag_failed: Option<SensorCalibration>,
+    /// Counts calibration-run restarts: a fit started before the latest one is disregarded.
+    pipe_generation: u64,
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
@@ -875,6 +885,10 @@ impl State {
                 }
                 false
             }
+            MavMessage::COMMAND_LONG(c) => {
+                self.on_command(frame, c).await;
+                false
+            }
             MavMessage::PARAM_VALUE(_) => {
                 self.ap_params.absorb(&frame.message);
                 if let Some(w) = self.writer.as_mut() {
@@ -989,6 +1003,12 @@ impl State {
     }
 
     async fn publish_progress(&mut self) {
+        if !self
+            .mag_run
+            .reports_progress(self.cfg.daemon.mag_cal == "continuous")
+        {
+            return;
+        }
         let (epoch, fresh) = self.pipe.take_fresh_mag();
         let centre = match self.calibrator.mag {
             Some(c) => Some(c.offset),
@@ -1032,7 +1052,7 @@ impl State {
         results: FitResults,
     ) {
         let mut changed = false;
-        let mag_before = self.calibrator.mag;
+        let mut mag_passed = false;
         for (name, res, recent) in [
             ("mag", &results.mag, &input_mag),
             ("accel", &results.accel, &input_accel),
@@ -1043,15 +1063,13 @@ impl State {
                 self.store.accel.clone()
             };
             match accept(res, current.as_ref(), recent) {
+                // The magnetometer's goes to the calibration run (`mag_event`), which installs it
+                // or holds it for the ground station.
+                Ok(()) if name == "mag" => mag_passed = true,
                 Ok(()) => {
                     tracing::info!(sensor = name, model = %res.report.model, rms = res.report.rms_residual, "calibration accepted");
-                    if name == "mag" {
-                        self.store.mag = Some(res.report.clone());
-                        self.calibrator.mag = res.calibration;
-                    } else {
-                        self.store.accel = Some(res.report.clone());
-                        self.calibrator.accel = res.calibration;
-                    }
+                    self.store.accel = Some(res.report.clone());
+                    self.calibrator.accel = res.calibration;
                     changed = true;
                 }
                 Err(why) => tracing::info!(sensor = name, "calibration not replaced: {why}"),
@@ -1061,46 +1079,22 @@ impl State {
             self.store.gyro = Some(results.gyro.clone());
             self.calibrator.gyro_bias = Some(results.gyro.bias);
         }
-        if let Some(m) = self.last_body_mag {
-            if mag_cal_moved(mag_before.as_ref(), self.calibrator.mag.as_ref(), &m) {
-                tracing::info!(
-                    "magnetometer calibration moved the field: orientation filter restarted"
-                );
-                self.fusion = OrientationFilter::new(*self.fusion.config());
-            }
-        }
-        // Report the magnetometer like ArduPilot's calibrator: success when accepted, failure once the
+        // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
         // data covered the sphere and the fit still failed (not while still collecting).
         let mag = &results.mag.report;
         let collecting = matches!(
             mag.failure.as_deref(),
             Some("coverage") | Some("not_enough_samples")
         );
-        let moved = match &self.reported_mag {
-            None => true,
-            Some(prev) => {
-                prev.model != mag.model
-                    || (0..3).any(|k| (prev.offset[k] - mag.offset[k]).abs() > 0.05)
-            }
-        };
-        if changed && self.store.mag.as_ref() == Some(mag) && moved {
-            self.reported_mag = Some(mag.clone());
-            let msg = mavout::mag_cal_report(0, mag);
-            self.send_mav(&[msg]).await;
-            self.status(
-                6,
-                format!(
-                    "mag calibrated: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
-                    mag.model, mag.offset[0], mag.offset[1], mag.offset[2], mag.rms_residual
-                ),
-            )
-            .await;
-            if self.cfg.daemon.write_params {
-                self.start_param_write();
-            }
+        if mag_passed {
+            let ev = MagCalEvent::FitPassed {
+                cal: Box::new(mag.clone()),
+                complete: self.progress_pct >= 100,
+            };
+            changed |= self.mag_event(ev, None).await;
         } else if mag.status != "ok" && !collecting && self.progress_pct >= 100 {
-            let msg = mavout::mag_cal_report(0, mag);
-            self.send_mav(&[msg]).await;
+            self.mag_failed = Some(mag.clone());
+            self.mag_event(MagCalEvent::FitFailed, None).await;
         }
         for (name, r) in [
             ("mag", &results.mag.report),
@@ -1120,13 +1114,161 @@ impl State {
         self.pipe.install(t, results.clone());
         self.last_results = Some(results);
         if changed {
-            self.accepted += 1;
-            let store = Box::new(self.store.clone());
-            self.store_writes
-                .want(WriteJob::Store(self.cal_dir.clone(), store));
+            self.store_changed();
         }
         if let Some(job) = self.report_job() {
             self.report_writes.want(job);
+        }
+    }
+
+    /// A new calibration in the store: counted, and written off the run loop.
+    fn store_changed(&mut self) {
+        self.accepted += 1;
+        let store = Box::new(self.store.clone());
+        self.store_writes
+            .want(WriteJob::Store(self.cal_dir.clone(), store));
+    }
+
+    /// Feed the magnetometer calibration run an event and carry out what its transition says.
+    /// `ack_to`: the command and its sender, for COMMAND_ACK. Returns whether a calibration was
+    /// installed (the caller has the store written).
+    async fn mag_event(&mut self, ev: MagCalEvent, ack_to: Option<(MavCmd, u8, u8)>) -> bool {
+        let accepting = matches!(ev, MagCalEvent::Accept { .. });
+        let continuous = self.cfg.daemon.mag_cal == "continuous";
+        let run = std::mem::replace(&mut self.mag_run, MagCalRun::Idle);
+        let (next, effects) = run.on(ev, continuous);
+        self.mag_run = next;
+        let (mut installed, mut reported) = (false, false);
+        for fx in effects {
+            match fx {
+                MagCalEffect::Ack(result) => {
+                    if let Some((cmd, sys, comp)) = ack_to {
+                        self.send_mav(&[mavout::command_ack(cmd, result, sys, comp)])
+                            .await;
+                    }
+                }
+                MagCalEffect::Restart => self.restart_mag_run().await,
+                MagCalEffect::Install(cal) => {
+                    self.install_mag(*cal);
+                    installed = true;
+                }
+                MagCalEffect::ReportSuccess {
+                    cal,
+                    autosaved,
+                    commanded,
+                } => {
+                    let moved = self.reported_mag.as_ref().is_none_or(|prev| {
+                        prev.model != cal.model
+                            || (0..3).any(|k| (prev.offset[k] - cal.offset[k]).abs() > 0.05)
+                    });
+                    if commanded || moved {
+                        reported = autosaved;
+                        let msg = mavout::mag_cal_report_autosaved(0, &cal, autosaved);
+                        self.send_mav(&[msg]).await;
+                        let what = if autosaved {
+                            "mag calibrated"
+                        } else {
+                            "mag calibration ready (accept to install it, cancel to discard it)"
+                        };
+                        self.status(
+                            6,
+                            format!(
+                                "{what}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
+                                cal.model,
+                                cal.offset[0],
+                                cal.offset[1],
+                                cal.offset[2],
+                                cal.rms_residual
+                            ),
+                        )
+                        .await;
+                        self.reported_mag = Some(*cal);
+                    }
+                }
+                MagCalEffect::ReportFailure => {
+                    if let Some(mag) = self.mag_failed.take() {
+                        self.send_mav(&[mavout::mag_cal_report(0, &mag)]).await;
+                    }
+                }
+            }
+        }
+        if installed && (reported || accepting) && self.cfg.daemon.write_params {
+            self.start_param_write();
+        }
+        installed
+    }
+
+    /// A magnetometer calibration in use from now on (the store is written by the caller).
+    fn install_mag(&mut self, cal: SensorCalibration) {
+        tracing::info!(sensor = "mag", model = %cal.model, rms = cal.rms_residual, "calibration accepted");
+        let before = self.calibrator.mag;
+        self.store.mag = Some(cal);
+        self.calibrator.mag = self.store.mag_cal();
+        if let Some(m) = self.last_body_mag {
+            if mag_cal_moved(before.as_ref(), self.calibrator.mag.as_ref(), &m) {
+                tracing::info!(
+                    "magnetometer calibration moved the field: orientation filter restarted"
+                );
+                self.fusion = OrientationFilter::new(*self.fusion.config());
+            }
+        }
+    }
+
+    /// A new calibration run from zero coverage: what was collected goes, a fit in flight is
+    /// disregarded (it saw the old data); the calibration in use stays.
+    async fn restart_mag_run(&mut self) {
+        match Pipeline::new(&self.cfg) {
+            Ok(p) => self.pipe = p,
+            Err(e) => tracing::error!("calibration run not restarted: {e}"),
+        }
+        self.pipe_generation += 1;
+        self.coverage_map = None;
+        self.progress_pct = 0;
+        self.status(6, "mag calibration run started".into()).await;
+    }
+
+    /// COMMAND_LONG: the ground station's calibration commands when addressed to us (or to all).
+    async fn on_command(&mut self, frame: &crate::decode::Frame, c: &COMMAND_LONG_DATA) {
+        let to_us = |target: u8, own: u8| target == 0 || target == own;
+        if !(to_us(c.target_system, self.own.system_id)
+            && to_us(c.target_component, self.own.component_id))
+        {
+            return;
+        }
+        let ev = match c.command {
+            MavCmd::MAV_CMD_DO_START_MAG_CAL => MagCalEvent::Start {
+                opts: mavout::MagCalStart::from_command(c),
+                now_s: self.now_s(),
+            },
+            MavCmd::MAV_CMD_DO_ACCEPT_MAG_CAL => MagCalEvent::Accept {
+                mask: mavout::mask_param(c.param1),
+            },
+            MavCmd::MAV_CMD_DO_CANCEL_MAG_CAL => MagCalEvent::Cancel {
+                mask: mavout::mask_param(c.param1),
+            },
+            other => {
+                // Another command meant for us alone gets an answer; broadcast ones are for others.
+                if c.target_system != 0 && c.target_component != 0 {
+                    let ack = mavout::command_ack(
+                        other,
+                        MavResult::MAV_RESULT_UNSUPPORTED,
+                        frame.system_id,
+                        frame.component_id,
+                    );
+                    self.send_mav(&[ack]).await;
+                }
+                return;
+            }
+        };
+        tracing::info!(
+            "{:?} from {}/{}",
+            c.command,
+            frame.system_id,
+            frame.component_id
+        );
+        let ack_to = Some((c.command, frame.system_id, frame.component_id));
+        if self.mag_event(ev, ack_to).await {
+            self.store_changed();
         }
     }
 
@@ -1430,6 +1572,9 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             component_id: d.component_id,
         },
         own_echo: 0,
+        mag_run: MagCalRun::Idle,
+        mag_failed: None,
+        pipe_generation: 0,
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
         coverage_map: None,
         store_writes: Writes::default(),
@@ -1487,6 +1632,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
+    // The calibration run the fit in flight belongs to (`State::pipe_generation`).
+    let mut fit_gen = 0u64;
     let mut refit_wanted = false;
     // Whatever is queued is taken in one go (at most this many), so the select below runs once per
     // batch of samples rather than once per sample.
@@ -1503,6 +1650,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             let input = st.pipe.snapshot();
             let cfg2 = st.cfg.clone();
             let t = st.pipe.last_t;
+            fit_gen = st.pipe_generation;
             fit_job = Some(tokio::task::spawn_blocking(move || {
                 let r = fit_all(&input, &cfg2);
                 let accel_pts = input.poses.iter().map(|p| p.accel).collect();
@@ -1545,7 +1693,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                                     if let Some(l) = st.links.get_mut(link) { l.ended = true; }
                                     if st.links.iter().all(|l| l.replay && l.ended) {
                                         // Every source was a replay and all have ended: final fit, then stop.
-                                        if let Some(j) = fit_job.take() { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
+                                        if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
                                         st.pipe.finish_poses();
                                         let input = st.pipe.snapshot();
                                         let cfg2 = st.cfg.clone();
@@ -1564,7 +1712,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
                 fit_job = None;
                 match r {
-                    Ok((m, a, t, res)) => st.on_fit(m, a, t, res).await,
+                    Ok((m, a, t, res)) if fit_gen == st.pipe_generation => st.on_fit(m, a, t, res).await,
+                    Ok(_) => tracing::info!("a fit from before the calibration run restarted: disregarded"),
                     Err(e) => tracing::error!("fit task failed: {e}"),
                 }
             }
@@ -1584,6 +1733,10 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 if heartbeat_out.as_mut().is_some_and(|o| o.due_at_clock(t)) {
                     st.send_heartbeat().await;
                 }
+                if matches!(st.mag_run, MagCalRun::Waiting { .. }) {
+                    let now_s = st.now_s();
+                    st.mag_event(MagCalEvent::Tick { now_s }, None).await;
+                }
             }
             _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
             _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
@@ -1598,7 +1751,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     st.flush_mav();
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
     let _ = link_stop_tx.send(true);
-    if let Some(j) = fit_job.take() {
+    if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) {
         if let Ok(Ok((m, a, t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
             st.on_fit(m, a, t, r).await;
         }
