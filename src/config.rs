@@ -79,9 +79,19 @@ pub struct DaemonConfig {
     pub param_target: String,
     pub target_system: u8,
     pub target_component: u8,
-    /// Our own MAVLink ids.
+    /// Our own MAVLink ids (1..=255 each; 0 is broadcast): every message we send carries them, and
+    /// an inbound frame that carries both is our own echoed back, dropped (counted as `own_echo`).
     pub system_id: u8,
     pub component_id: u8,
+    /// HEARTBEAT (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID) per second on every MAVLink
+    /// link, so ground stations and routers see the component; 1 by default, 0 = none. At most
+    /// [`MAX_RATE_HZ`].
+    pub heartbeat_rate_hz: f64,
+    /// Magnetometer calibration without a ground-station command: "continuous" (passing fits are
+    /// installed and written as they come, the default) or "on_command" (only a run started by
+    /// MAV_CMD_DO_START_MAG_CAL calibrates). Either way the commands DO_START/ACCEPT/CANCEL_MAG_CAL
+    /// addressed to our ids (or broadcast) start, accept and cancel a run.
+    pub mag_cal: String,
     /// ArduPilot sends magnetometer data with its calibration applied: "undo" it (reading COMPASS_*
     /// parameters) or "refuse" to fit such data.
     pub ardupilot_corrected_mag: String,
@@ -117,6 +127,8 @@ impl Default for DaemonConfig {
             target_component: 1,
             system_id: 1,
             component_id: 191,
+            heartbeat_rate_hz: 1.0,
+            mag_cal: "continuous".into(),
             ardupilot_corrected_mag: "undo".into(),
             queue_capacity: 4096,
             silent_after_s: 3.0,
@@ -501,6 +513,23 @@ impl Config {
         rate("daemon.heading_rate_hz", d.heading_rate_hz)?;
         rate("daemon.progress_rate_hz", d.progress_rate_hz)?;
         rate("daemon.attitude_rate_hz", d.attitude_rate_hz)?;
+        if d.heartbeat_rate_hz != 0.0 {
+            rate("daemon.heartbeat_rate_hz", d.heartbeat_rate_hz)?;
+        }
+        if !["continuous", "on_command"].contains(&d.mag_cal.as_str()) {
+            return Err(err(
+                "daemon.mag_cal",
+                format!("`{}` is not continuous or on_command", d.mag_cal),
+            ));
+        }
+        for (key, id) in [
+            ("daemon.system_id", d.system_id),
+            ("daemon.component_id", d.component_id),
+        ] {
+            if id == 0 {
+                return Err(err(key, "0 is the broadcast id: use 1..=255"));
+            }
+        }
         pos("daemon.silent_after_s", d.silent_after_s)?;
         if !(d.udp_poll_ms.is_finite() && (0.0..=50.0).contains(&d.udp_poll_ms)) {
             return Err(err(
@@ -619,6 +648,40 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("place"), "{e}");
+    }
+
+    #[test]
+    fn heartbeat_rate_and_own_ids_validate() {
+        let d = DaemonConfig::default();
+        assert_eq!(
+            (d.system_id, d.component_id, d.heartbeat_rate_hz),
+            (1, 191, 1.0)
+        );
+        let c = Config::from_toml_str("[daemon]\nheartbeat_rate_hz = 0.0\n").unwrap();
+        assert_eq!(c.daemon.heartbeat_rate_hz, 0.0);
+        for bad in ["-1.0", "nan", "1e12"] {
+            let e = Config::from_toml_str(&format!("[daemon]\nheartbeat_rate_hz = {bad}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("daemon.heartbeat_rate_hz"), "{bad}: {e}");
+        }
+        for key in ["system_id", "component_id"] {
+            let e = Config::from_toml_str(&format!("[daemon]\n{key} = 0\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!("daemon.{key}")) && e.contains("broadcast"),
+                "{e}"
+            );
+        }
+        assert_eq!(d.mag_cal, "continuous");
+        let e = Config::from_toml_str("[daemon]\nmag_cal = \"manual\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("daemon.mag_cal") && e.contains("on_command"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -8,7 +8,8 @@
 //!                                                  │  result: accept if checks pass and not worse on recent data
 //!                                                  ├─> MAVLink back to the links (progress, report, heading,
 //!                                                  │   ATTITUDE_QUATERNION / ATTITUDE)
-//!                                                  ├─> JSON lines to consumers
+//!                                                  ├─> JSON lines: a bounded queue per consumer
+//!                                                  │   (try_send, drops counted) -> its writer
 //!                                                  └─> calibration files (atomic), report
 //! ```
 
@@ -18,12 +19,16 @@ use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
 use crate::fusion::OrientationFilter;
 use crate::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
-use crate::mavout::{self, ApCompassParams, LiveEvent, MavEncoder, ParamWriter};
+use crate::mavout::{
+    self, ApCompassParams, LiveEvent, MagCalEffect, MagCalEvent, MagCalRun, MavEncoder, ParamWriter,
+};
 use crate::model::Calibration;
 use crate::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Unit, Vec3};
-use mavlink::dialects::ardupilotmega::{MavAutopilot, MavMessage};
+use mavlink::dialects::ardupilotmega::{
+    MavAutopilot, MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -161,78 +166,228 @@ fn payload_of(s: &SourceConfig) -> Payload {
     }
 }
 
-/// A JSON-lines consumer.
-enum Sink {
-    Stdout,
-    /// A plain non-blocking socket, not registered with tokio: a registered one reports write
-    /// readiness after every datagram sent, a wake-up that nothing waits for. A datagram the
-    /// kernel cannot take at once is dropped, as UDP may anyway.
-    Udp(std::net::UdpSocket, std::net::SocketAddr),
-    Tcp(std::net::SocketAddr, Option<tokio::net::TcpStream>),
+/// Lines a JSON consumer's queue holds; more while it is not taking them are dropped and counted.
+const SINK_QUEUE_LINES: usize = 1024;
+/// How long the JSON writers get at shutdown to pass on what is queued, before they are dropped.
+const SINK_DRAIN_AT_EXIT: Duration = Duration::from_millis(150);
+/// A TCP JSON consumer that refused or did not answer is tried again after this long.
+const SINK_TCP_RETRY: Duration = Duration::from_secs(1);
+/// Lost JSON lines and MAVLink datagrams are reported (JSON `status`, log) at most this often, s.
+const DROPS_REPORT_S: f64 = 5.0;
+/// Lines a writer takes from its queue per wake-up.
+const SINK_BATCH: usize = 64;
+
+/// What became of the lines for one JSON consumer (shared with its writer).
+#[derive(Debug, Default)]
+struct SinkCounters {
+    /// Handed to the consumer (written to stdout or the socket).
+    sent: std::sync::atomic::AtomicU64,
+    /// Dropped by the run loop: the consumer's queue was full (it is not taking lines).
+    queue_full: std::sync::atomic::AtomicU64,
+    /// Taken by the writer but not delivered: no connection, the socket refused it.
+    not_delivered: std::sync::atomic::AtomicU64,
+}
+
+impl SinkCounters {
+    fn add(c: &std::sync::atomic::AtomicU64, n: u64) {
+        c.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+    }
+    fn get(c: &std::sync::atomic::AtomicU64) -> u64 {
+        c.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+/// Where a JSON consumer's writer runs.
+enum SinkWriter {
+    /// A tokio task (UDP, TCP): aborted at shutdown when it has not finished.
+    Task(tokio::task::JoinHandle<()>),
+    /// A thread of its own (stdout, whose writes block): the receiver resolves when it ends; a
+    /// thread still blocked at shutdown is left behind (it ends with the process).
+    Thread(tokio::sync::oneshot::Receiver<()>),
+}
+
+/// A JSON-lines consumer: a writer of its own fed through a bounded queue, so that a consumer that
+/// stops reading (a full pipe, a TCP peer that does not read) loses lines, counted, and never holds
+/// the run loop.
+struct Sink {
+    /// The address as configured (`stdout`, `udp:IP:PORT`, `tcp:IP:PORT`).
+    label: String,
+    tx: Option<mpsc::Sender<std::sync::Arc<str>>>,
+    counters: std::sync::Arc<SinkCounters>,
+    writer: Option<SinkWriter>,
+    /// Lines lost (queue full + not delivered) when they were last reported.
+    lost_reported: u64,
 }
 
 impl Sink {
-    async fn open(spec: &str) -> Result<Sink, Error> {
-        if spec == "stdout" {
-            return Ok(Sink::Stdout);
-        }
+    fn open(spec: &str) -> Result<Sink, Error> {
         let bad = || Error::Config {
             key: "publish".into(),
             message: format!("`{spec}` is not stdout, udp:IP:PORT or tcp:IP:PORT"),
         };
-        if let Some(a) = spec.strip_prefix("udp:") {
+        let (tx, rx) = mpsc::channel::<std::sync::Arc<str>>(SINK_QUEUE_LINES);
+        let counters = std::sync::Arc::new(SinkCounters::default());
+        let c = counters.clone();
+        let writer = if spec == "stdout" {
+            let (done_tx, done_rx) = tokio::sync::oneshot::channel();
+            std::thread::Builder::new()
+                .name("imucald-stdout".into())
+                .spawn(move || {
+                    stdout_writer(rx, &c);
+                    let _ = done_tx.send(());
+                })
+                .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
+            SinkWriter::Thread(done_rx)
+        } else if let Some(a) = spec.strip_prefix("udp:") {
             let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
-            let bind = if addr.is_ipv4() {
-                "127.0.0.1:0"
-            } else {
-                "[::1]:0"
+            let bind = match (addr.ip().is_loopback(), addr.is_ipv4()) {
+                (true, true) => "127.0.0.1:0",
+                (true, false) => "[::1]:0",
+                (false, true) => "0.0.0.0:0",
+                (false, false) => "[::]:0",
             };
-            let bind = if addr.ip().is_loopback() {
-                bind.to_string()
-            } else if addr.is_ipv4() {
-                "0.0.0.0:0".into()
-            } else {
-                "[::]:0".into()
-            };
-            let sock = std::net::UdpSocket::bind(&bind)
+            let sock = std::net::UdpSocket::bind(bind)
                 .and_then(|s| s.set_nonblocking(true).map(|()| s))
                 .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
-            return Ok(Sink::Udp(sock, addr));
-        }
-        if let Some(a) = spec.strip_prefix("tcp:") {
-            return Ok(Sink::Tcp(a.parse().map_err(|_| bad())?, None));
-        }
-        Err(bad())
+            SinkWriter::Task(tokio::spawn(udp_writer(sock, addr, rx, c)))
+        } else if let Some(a) = spec.strip_prefix("tcp:") {
+            let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
+            SinkWriter::Task(tokio::spawn(tcp_writer(addr, rx, c)))
+        } else {
+            return Err(bad());
+        };
+        Ok(Sink {
+            label: spec.to_string(),
+            tx: Some(tx),
+            counters,
+            writer: Some(writer),
+            lost_reported: 0,
+        })
     }
 
-    /// Best effort: a consumer that is away loses lines, the service goes on.
-    async fn send(&mut self, line: &str) {
-        use tokio::io::AsyncWriteExt;
-        match self {
-            Sink::Stdout => {
-                let mut out = tokio::io::stdout();
-                let _ = out.write_all(line.as_bytes()).await;
-                let _ = out.flush().await;
+    /// Queue a line; never waits. A full queue drops it (counted).
+    fn send(&self, line: &std::sync::Arc<str>) {
+        if let Some(tx) = &self.tx {
+            if tx.try_send(line.clone()).is_err() {
+                SinkCounters::add(&self.counters.queue_full, 1);
             }
-            Sink::Udp(s, a) => {
-                let _ = s.send_to(line.as_bytes(), *a);
-            }
-            Sink::Tcp(a, conn) => {
-                if conn.is_none() {
-                    *conn = tokio::time::timeout(
-                        Duration::from_millis(50),
-                        tokio::net::TcpStream::connect(*a),
-                    )
-                    .await
-                    .ok()
-                    .and_then(|r| r.ok());
+        }
+    }
+
+    /// Lines that did not reach the consumer so far.
+    fn lost(&self) -> u64 {
+        SinkCounters::get(&self.counters.queue_full)
+            + SinkCounters::get(&self.counters.not_delivered)
+    }
+
+    fn report(&self) -> crate::report::SinkReport {
+        crate::report::SinkReport {
+            sink: self.label.clone(),
+            sent: SinkCounters::get(&self.counters.sent),
+            queue_full: SinkCounters::get(&self.counters.queue_full),
+            not_delivered: SinkCounters::get(&self.counters.not_delivered),
+        }
+    }
+}
+
+/// Close the queues and give the writers until `deadline` to pass on what is queued; then stop
+/// those still writing (a consumer that does not read cannot hold the exit).
+async fn close_sinks(sinks: &mut [Sink], deadline: tokio::time::Instant) {
+    for s in sinks.iter_mut() {
+        s.tx = None;
+    }
+    for s in sinks.iter_mut() {
+        match s.writer.take() {
+            Some(SinkWriter::Task(mut h)) => {
+                let finished = tokio::time::timeout_at(deadline, &mut h).await.is_ok();
+                if !finished {
+                    h.abort();
                 }
-                if let Some(c) = conn {
-                    if c.write_all(line.as_bytes()).await.is_err() {
-                        *conn = None;
-                    }
-                }
             }
+            Some(SinkWriter::Thread(done)) => {
+                let _ = tokio::time::timeout_at(deadline, done).await;
+            }
+            None => {}
+        }
+    }
+}
+
+/// The stdout consumer's thread: blocking writes (a full pipe blocks this thread only).
+fn stdout_writer(mut rx: mpsc::Receiver<std::sync::Arc<str>>, c: &SinkCounters) {
+    use std::io::Write;
+    let mut batch = Vec::with_capacity(SINK_BATCH);
+    while rx.blocking_recv_many(&mut batch, SINK_BATCH) > 0 {
+        let mut out = std::io::stdout().lock();
+        for line in batch.drain(..) {
+            match out.write_all(line.as_bytes()) {
+                Ok(()) => SinkCounters::add(&c.sent, 1),
+                Err(_) => SinkCounters::add(&c.not_delivered, 1),
+            }
+        }
+        let _ = out.flush();
+    }
+}
+
+/// A UDP consumer's writer: one datagram per line on a plain non-blocking socket, not registered
+/// with tokio (a registered one reports write readiness after every datagram sent, a wake-up that
+/// nothing waits for). A datagram the kernel cannot take at once is dropped, as UDP may anyway.
+async fn udp_writer(
+    sock: std::net::UdpSocket,
+    addr: std::net::SocketAddr,
+    mut rx: mpsc::Receiver<std::sync::Arc<str>>,
+    c: std::sync::Arc<SinkCounters>,
+) {
+    let mut batch = Vec::with_capacity(SINK_BATCH);
+    while rx.recv_many(&mut batch, SINK_BATCH).await > 0 {
+        for line in batch.drain(..) {
+            match sock.send_to(line.as_bytes(), addr) {
+                Ok(_) => SinkCounters::add(&c.sent, 1),
+                Err(_) => SinkCounters::add(&c.not_delivered, 1),
+            }
+        }
+    }
+}
+
+/// A TCP consumer's writer: connects when there is something to send (again after
+/// [`SINK_TCP_RETRY`] when that failed), writes what is queued in one go; a consumer that stops
+/// reading blocks this task only, and its queue fills.
+async fn tcp_writer(
+    addr: std::net::SocketAddr,
+    mut rx: mpsc::Receiver<std::sync::Arc<str>>,
+    c: std::sync::Arc<SinkCounters>,
+) {
+    use tokio::io::AsyncWriteExt;
+    let mut conn: Option<tokio::net::TcpStream> = None;
+    let mut retry_at = tokio::time::Instant::now();
+    let mut batch = Vec::with_capacity(SINK_BATCH);
+    let mut buf = String::new();
+    loop {
+        let n = rx.recv_many(&mut batch, SINK_BATCH).await;
+        if n == 0 {
+            break;
+        }
+        if conn.is_none() && tokio::time::Instant::now() >= retry_at {
+            conn = tokio::time::timeout(SINK_TCP_RETRY, tokio::net::TcpStream::connect(addr))
+                .await
+                .ok()
+                .and_then(|r| r.ok());
+            if conn.is_none() {
+                retry_at = tokio::time::Instant::now() + SINK_TCP_RETRY;
+            }
+        }
+        buf.clear();
+        for line in batch.drain(..) {
+            buf.push_str(&line);
+        }
+        let delivered = match conn.as_mut() {
+            Some(s) => s.write_all(buf.as_bytes()).await.is_ok(),
+            None => false,
+        };
+        if delivered {
+            SinkCounters::add(&c.sent, n as u64);
+        } else {
+            conn = None;
+            SinkCounters::add(&c.not_delivered, n as u64);
         }
     }
 }
@@ -374,6 +529,11 @@ struct LinkEntry {
     ended: bool,
     replay: bool,
     label: String,
+    /// Datagrams of MAVLink frames dropped because its outbound queue was full (also in the link's
+    /// `outbound_dropped`, with those it could not send: no peer yet, link down).
+    outbound_queue_full: u64,
+    /// `outbound_queue_full` when it was last reported.
+    queue_full_reported: u64,
 }
 
 struct State {
@@ -387,6 +547,16 @@ struct State {
     calibrator: Calibrator,
     latest: Option<Calibrated>,
     enc: MavEncoder,
+    /// Our MAVLink ids: inbound frames carrying them are our own echo.
+    own: mavout::OwnIds,
+    /// Inbound frames dropped as our own echo.
+    own_echo: u64,
+    /// The magnetometer calibration run (ground-station commands, continuous calibration).
+    mag_run: MagCalRun,
+    /// The failed magnetometer fit to report, while its event is handled.
+    mag_failed: Option<SensorCalibration>,
+    /// Counts calibration-run restarts: a fit started before the latest one is disregarded.
+    pipe_generation: u64,
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
@@ -503,8 +673,9 @@ impl State {
         if self.mav_out.is_empty() {
             return;
         }
-        for l in self.links.iter().filter(|l| l.mavlink && !l.replay) {
+        for l in self.links.iter_mut().filter(|l| l.mavlink && !l.replay) {
             if l.handle.outbound.try_send(self.mav_out.clone()).is_err() {
+                l.outbound_queue_full += 1;
                 l.handle
                     .counters
                     .outbound_dropped
@@ -514,13 +685,84 @@ impl State {
         self.mav_out.clear();
     }
 
+    /// Our HEARTBEAT on every live MAVLink link.
+    async fn send_heartbeat(&mut self) {
+        if self.links.iter().any(|l| l.mavlink && !l.replay) {
+            self.send_mav(&[mavout::heartbeat()]).await;
+        }
+    }
+
+    /// Queue a JSON line for every consumer (never waits: a full queue drops it, counted).
     async fn send_json(&mut self, ev: &LiveEvent) {
         if self.sinks.is_empty() {
             return;
         }
-        let line = mavout::json_line(ev);
+        let line: std::sync::Arc<str> = mavout::json_line(ev).into();
+        for s in &self.sinks {
+            s.send(&line);
+        }
+    }
+
+    /// A JSON `status` line (and a log line) for each consumer that lost lines since the last
+    /// time, and for each link whose outbound queue was full (not for datagrams a link could not
+    /// send: a udpin link has no peer until one sends, and the HEARTBEAT goes out regardless).
+    async fn report_drops(&mut self) {
+        let mut said = vec![];
         for s in self.sinks.iter_mut() {
-            s.send(&line).await;
+            let lost = s.lost();
+            if lost > s.lost_reported {
+                let r = s.report();
+                said.push(format!(
+                    "JSON consumer {}: {} lines dropped since the last report, {} in all ({} with its queue full, {} not delivered), {} sent",
+                    s.label,
+                    lost - s.lost_reported,
+                    lost,
+                    r.queue_full,
+                    r.not_delivered,
+                    r.sent
+                ));
+                s.lost_reported = lost;
+            }
+        }
+        for l in self.links.iter_mut() {
+            let n = l.outbound_queue_full;
+            if n > l.queue_full_reported {
+                said.push(format!(
+                    "{}: {} MAVLink datagrams dropped with its outbound queue full since the last report ({} in all)",
+                    l.label,
+                    n - l.queue_full_reported,
+                    n
+                ));
+                l.queue_full_reported = n;
+            }
+        }
+        for text in said {
+            tracing::warn!("{text}");
+            self.send_json(&LiveEvent::Status {
+                level: severity_name(4).into(),
+                text,
+            })
+            .await;
+        }
+    }
+
+    /// What the outputs could not deliver, for the report.
+    fn outputs_report(&self) -> crate::report::OutputsReport {
+        crate::report::OutputsReport {
+            json_sinks: self.sinks.iter().map(Sink::report).collect(),
+            links: self
+                .links
+                .iter()
+                .map(|l| crate::report::LinkOutputReport {
+                    link: l.label.clone(),
+                    outbound_dropped: l
+                        .handle
+                        .counters
+                        .outbound_dropped
+                        .load(std::sync::atomic::Ordering::Relaxed),
+                    outbound_queue_full: l.outbound_queue_full,
+                })
+                .collect(),
         }
     }
 
@@ -646,7 +888,12 @@ impl State {
     }
 
     /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
+    /// Our own frames echoed back (a router, a looped link) are dropped and counted.
     async fn on_frame(&mut self, link: usize, frame: &crate::decode::Frame, time_us: u64) -> bool {
+        if self.own.is_own(frame.system_id, frame.component_id) {
+            self.own_echo += 1;
+            return false;
+        }
         match &frame.message {
             MavMessage::HEARTBEAT(h) => {
                 if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -662,6 +909,10 @@ impl State {
                         self.status(4, "ArduPilot link: its magnetometer data is already calibrated; set daemon.ardupilot_corrected_mag = \"undo\" to fit it".into()).await;
                     }
                 }
+                false
+            }
+            MavMessage::COMMAND_LONG(c) => {
+                self.on_command(frame, c).await;
                 false
             }
             MavMessage::PARAM_VALUE(_) => {
@@ -778,6 +1029,12 @@ impl State {
     }
 
     async fn publish_progress(&mut self) {
+        if !self
+            .mag_run
+            .reports_progress(self.cfg.daemon.mag_cal == "continuous")
+        {
+            return;
+        }
         let (epoch, fresh) = self.pipe.take_fresh_mag();
         let centre = match self.calibrator.mag {
             Some(c) => Some(c.offset),
@@ -821,7 +1078,7 @@ impl State {
         results: FitResults,
     ) {
         let mut changed = false;
-        let mag_before = self.calibrator.mag;
+        let mut mag_passed = false;
         for (name, res, recent) in [
             ("mag", &results.mag, &input_mag),
             ("accel", &results.accel, &input_accel),
@@ -832,15 +1089,13 @@ impl State {
                 self.store.accel.clone()
             };
             match accept(res, current.as_ref(), recent) {
+                // The magnetometer's goes to the calibration run (`mag_event`), which installs it
+                // or holds it for the ground station.
+                Ok(()) if name == "mag" => mag_passed = true,
                 Ok(()) => {
                     tracing::info!(sensor = name, model = %res.report.model, rms = res.report.rms_residual, "calibration accepted");
-                    if name == "mag" {
-                        self.store.mag = Some(res.report.clone());
-                        self.calibrator.mag = res.calibration;
-                    } else {
-                        self.store.accel = Some(res.report.clone());
-                        self.calibrator.accel = res.calibration;
-                    }
+                    self.store.accel = Some(res.report.clone());
+                    self.calibrator.accel = res.calibration;
                     changed = true;
                 }
                 Err(why) => tracing::info!(sensor = name, "calibration not replaced: {why}"),
@@ -850,46 +1105,22 @@ impl State {
             self.store.gyro = Some(results.gyro.clone());
             self.calibrator.gyro_bias = Some(results.gyro.bias);
         }
-        if let Some(m) = self.last_body_mag {
-            if mag_cal_moved(mag_before.as_ref(), self.calibrator.mag.as_ref(), &m) {
-                tracing::info!(
-                    "magnetometer calibration moved the field: orientation filter restarted"
-                );
-                self.fusion = OrientationFilter::new(*self.fusion.config());
-            }
-        }
-        // Report the magnetometer like ArduPilot's calibrator: success when accepted, failure once the
+        // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
         // data covered the sphere and the fit still failed (not while still collecting).
         let mag = &results.mag.report;
         let collecting = matches!(
             mag.failure.as_deref(),
             Some("coverage") | Some("not_enough_samples")
         );
-        let moved = match &self.reported_mag {
-            None => true,
-            Some(prev) => {
-                prev.model != mag.model
-                    || (0..3).any(|k| (prev.offset[k] - mag.offset[k]).abs() > 0.05)
-            }
-        };
-        if changed && self.store.mag.as_ref() == Some(mag) && moved {
-            self.reported_mag = Some(mag.clone());
-            let msg = mavout::mag_cal_report(0, mag);
-            self.send_mav(&[msg]).await;
-            self.status(
-                6,
-                format!(
-                    "mag calibrated: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
-                    mag.model, mag.offset[0], mag.offset[1], mag.offset[2], mag.rms_residual
-                ),
-            )
-            .await;
-            if self.cfg.daemon.write_params {
-                self.start_param_write();
-            }
+        if mag_passed {
+            let ev = MagCalEvent::FitPassed {
+                cal: Box::new(mag.clone()),
+                complete: self.progress_pct >= 100,
+            };
+            changed |= self.mag_event(ev, None).await;
         } else if mag.status != "ok" && !collecting && self.progress_pct >= 100 {
-            let msg = mavout::mag_cal_report(0, mag);
-            self.send_mav(&[msg]).await;
+            self.mag_failed = Some(mag.clone());
+            self.mag_event(MagCalEvent::FitFailed, None).await;
         }
         for (name, r) in [
             ("mag", &results.mag.report),
@@ -909,13 +1140,161 @@ impl State {
         self.pipe.install(t, results.clone());
         self.last_results = Some(results);
         if changed {
-            self.accepted += 1;
-            let store = Box::new(self.store.clone());
-            self.store_writes
-                .want(WriteJob::Store(self.cal_dir.clone(), store));
+            self.store_changed();
         }
         if let Some(job) = self.report_job() {
             self.report_writes.want(job);
+        }
+    }
+
+    /// A new calibration in the store: counted, and written off the run loop.
+    fn store_changed(&mut self) {
+        self.accepted += 1;
+        let store = Box::new(self.store.clone());
+        self.store_writes
+            .want(WriteJob::Store(self.cal_dir.clone(), store));
+    }
+
+    /// Feed the magnetometer calibration run an event and carry out what its transition says.
+    /// `ack_to`: the command and its sender, for COMMAND_ACK. Returns whether a calibration was
+    /// installed (the caller has the store written).
+    async fn mag_event(&mut self, ev: MagCalEvent, ack_to: Option<(MavCmd, u8, u8)>) -> bool {
+        let accepting = matches!(ev, MagCalEvent::Accept { .. });
+        let continuous = self.cfg.daemon.mag_cal == "continuous";
+        let run = std::mem::replace(&mut self.mag_run, MagCalRun::Idle);
+        let (next, effects) = run.on(ev, continuous);
+        self.mag_run = next;
+        let (mut installed, mut reported) = (false, false);
+        for fx in effects {
+            match fx {
+                MagCalEffect::Ack(result) => {
+                    if let Some((cmd, sys, comp)) = ack_to {
+                        self.send_mav(&[mavout::command_ack(cmd, result, sys, comp)])
+                            .await;
+                    }
+                }
+                MagCalEffect::Restart => self.restart_mag_run().await,
+                MagCalEffect::Install(cal) => {
+                    self.install_mag(*cal);
+                    installed = true;
+                }
+                MagCalEffect::ReportSuccess {
+                    cal,
+                    autosaved,
+                    commanded,
+                } => {
+                    let moved = self.reported_mag.as_ref().is_none_or(|prev| {
+                        prev.model != cal.model
+                            || (0..3).any(|k| (prev.offset[k] - cal.offset[k]).abs() > 0.05)
+                    });
+                    if commanded || moved {
+                        reported = autosaved;
+                        let msg = mavout::mag_cal_report_autosaved(0, &cal, autosaved);
+                        self.send_mav(&[msg]).await;
+                        let what = if autosaved {
+                            "mag calibrated"
+                        } else {
+                            "mag calibration ready (accept to install it, cancel to discard it)"
+                        };
+                        self.status(
+                            6,
+                            format!(
+                                "{what}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
+                                cal.model,
+                                cal.offset[0],
+                                cal.offset[1],
+                                cal.offset[2],
+                                cal.rms_residual
+                            ),
+                        )
+                        .await;
+                        self.reported_mag = Some(*cal);
+                    }
+                }
+                MagCalEffect::ReportFailure => {
+                    if let Some(mag) = self.mag_failed.take() {
+                        self.send_mav(&[mavout::mag_cal_report(0, &mag)]).await;
+                    }
+                }
+            }
+        }
+        if installed && (reported || accepting) && self.cfg.daemon.write_params {
+            self.start_param_write();
+        }
+        installed
+    }
+
+    /// A magnetometer calibration in use from now on (the store is written by the caller).
+    fn install_mag(&mut self, cal: SensorCalibration) {
+        tracing::info!(sensor = "mag", model = %cal.model, rms = cal.rms_residual, "calibration accepted");
+        let before = self.calibrator.mag;
+        self.store.mag = Some(cal);
+        self.calibrator.mag = self.store.mag_cal();
+        if let Some(m) = self.last_body_mag {
+            if mag_cal_moved(before.as_ref(), self.calibrator.mag.as_ref(), &m) {
+                tracing::info!(
+                    "magnetometer calibration moved the field: orientation filter restarted"
+                );
+                self.fusion = OrientationFilter::new(*self.fusion.config());
+            }
+        }
+    }
+
+    /// A new calibration run from zero coverage: what was collected goes, a fit in flight is
+    /// disregarded (it saw the old data); the calibration in use stays.
+    async fn restart_mag_run(&mut self) {
+        match Pipeline::new(&self.cfg) {
+            Ok(p) => self.pipe = p,
+            Err(e) => tracing::error!("calibration run not restarted: {e}"),
+        }
+        self.pipe_generation += 1;
+        self.coverage_map = None;
+        self.progress_pct = 0;
+        self.status(6, "mag calibration run started".into()).await;
+    }
+
+    /// COMMAND_LONG: the ground station's calibration commands when addressed to us (or to all).
+    async fn on_command(&mut self, frame: &crate::decode::Frame, c: &COMMAND_LONG_DATA) {
+        let to_us = |target: u8, own: u8| target == 0 || target == own;
+        if !(to_us(c.target_system, self.own.system_id)
+            && to_us(c.target_component, self.own.component_id))
+        {
+            return;
+        }
+        let ev = match c.command {
+            MavCmd::MAV_CMD_DO_START_MAG_CAL => MagCalEvent::Start {
+                opts: mavout::MagCalStart::from_command(c),
+                now_s: self.now_s(),
+            },
+            MavCmd::MAV_CMD_DO_ACCEPT_MAG_CAL => MagCalEvent::Accept {
+                mask: mavout::mask_param(c.param1),
+            },
+            MavCmd::MAV_CMD_DO_CANCEL_MAG_CAL => MagCalEvent::Cancel {
+                mask: mavout::mask_param(c.param1),
+            },
+            other => {
+                // Another command meant for us alone gets an answer; broadcast ones are for others.
+                if c.target_system != 0 && c.target_component != 0 {
+                    let ack = mavout::command_ack(
+                        other,
+                        MavResult::MAV_RESULT_UNSUPPORTED,
+                        frame.system_id,
+                        frame.component_id,
+                    );
+                    self.send_mav(&[ack]).await;
+                }
+                return;
+            }
+        };
+        tracing::info!(
+            "{:?} from {}/{}",
+            c.command,
+            frame.system_id,
+            frame.component_id
+        );
+        let ack_to = Some((c.command, frame.system_id, frame.component_id));
+        if self.mag_event(ev, ack_to).await {
+            self.store_changed();
         }
     }
 
@@ -998,6 +1377,7 @@ impl State {
         for (c, _) in &self.sample_clocks {
             stats.time.add(&c.stats);
         }
+        stats.skip_n("own_echo", self.own_echo);
         let label = self
             .links
             .iter()
@@ -1012,7 +1392,8 @@ impl State {
             self.pipe.samples,
             self.pipe.last_t,
         );
-        let report = crate::replay::make_report(input, &self.pipe, &results, self.declination);
+        let mut report = crate::replay::make_report(input, &self.pipe, &results, self.declination);
+        report.outputs = Some(self.outputs_report());
         Some(WriteJob::Report(path, Box::new(report)))
     }
 }
@@ -1167,7 +1548,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     let declination = cfg.declination_deg()?;
     let mut sinks = vec![];
     for p in &d.publish {
-        sinks.push(Sink::open(p).await?);
+        sinks.push(Sink::open(p)?);
     }
     let (tx, mut rx) = mpsc::channel::<Inbound>(d.queue_capacity);
     // The time grid the UDP polls and the periodic outputs share.
@@ -1199,6 +1580,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             ended: false,
             replay,
             label: s.address.clone(),
+            outbound_queue_full: 0,
+            queue_full_reported: 0,
         });
     }
     drop(tx);
@@ -1215,6 +1598,14 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         store,
         latest: None,
         enc: MavEncoder::new(d.system_id, d.component_id),
+        own: mavout::OwnIds {
+            system_id: d.system_id,
+            component_id: d.component_id,
+        },
+        own_echo: 0,
+        mag_run: MagCalRun::Idle,
+        mag_failed: None,
+        pipe_generation: 0,
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
         coverage_map: None,
         store_writes: Writes::default(),
@@ -1261,10 +1652,19 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         o.use_clock(epoch, clock_period);
     }
     let [mut heading_out, mut progress_out, mut attitude_out] = outputs;
+    let mut drops_out = Output::new(epoch, 1.0 / DROPS_REPORT_S);
+    drops_out.use_clock(epoch, clock_period);
+    let mut heartbeat_out = (d.heartbeat_rate_hz > 0.0).then(|| {
+        let mut o = Output::new(epoch, d.heartbeat_rate_hz);
+        o.use_clock(epoch, clock_period);
+        o
+    });
     let mut clock = tokio::time::interval_at(epoch, clock_period);
     clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
+    // The calibration run the fit in flight belongs to (`State::pipe_generation`).
+    let mut fit_gen = 0u64;
     let mut refit_wanted = false;
     // Whatever is queued is taken in one go (at most this many), so the select below runs once per
     // batch of samples rather than once per sample.
@@ -1281,6 +1681,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             let input = st.pipe.snapshot();
             let cfg2 = st.cfg.clone();
             let t = st.pipe.last_t;
+            fit_gen = st.pipe_generation;
             fit_job = Some(tokio::task::spawn_blocking(move || {
                 let r = fit_all(&input, &cfg2);
                 let accel_pts = input.poses.iter().map(|p| p.accel).collect();
@@ -1325,7 +1726,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                                     if let Some(l) = st.links.get_mut(link) { l.ended = true; }
                                     if st.links.iter().all(|l| l.replay && l.ended) {
                                         // Every source was a replay and all have ended: final fit, then stop.
-                                        if let Some(j) = fit_job.take() { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
+                                        if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
                                         st.pipe.finish_poses();
                                         let input = st.pipe.snapshot();
                                         let cfg2 = st.cfg.clone();
@@ -1344,7 +1745,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
                 fit_job = None;
                 match r {
-                    Ok((m, a, t, res)) => st.on_fit(m, a, t, res).await,
+                    Ok((m, a, t, res)) if fit_gen == st.pipe_generation => st.on_fit(m, a, t, res).await,
+                    Ok(_) => tracing::info!("a fit from before the calibration run restarted: disregarded"),
                     Err(e) => tracing::error!("fit task failed: {e}"),
                 }
             }
@@ -1358,10 +1760,23 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 if attitude_out.due_at_clock(t) {
                     st.publish_attitude().await;
                 }
+                if drops_out.due_at_clock(t) {
+                    st.report_drops().await;
+                }
+                if heartbeat_out.as_mut().is_some_and(|o| o.due_at_clock(t)) {
+                    st.send_heartbeat().await;
+                }
+                if matches!(st.mag_run, MagCalRun::Waiting { .. }) {
+                    let now_s = st.now_s();
+                    st.mag_event(MagCalEvent::Tick { now_s }, None).await;
+                }
             }
             _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
             _ = progress_out.own_tick(), if progress_out.own.is_some() => st.publish_progress().await,
             _ = attitude_out.own_tick(), if attitude_out.own.is_some() => st.publish_attitude().await,
+            _ = drops_out.own_tick(), if drops_out.own.is_some() => st.report_drops().await,
+            _ = async { heartbeat_out.as_mut().expect("guarded").own_tick().await },
+                if heartbeat_out.as_ref().is_some_and(|o| o.own.is_some()) => st.send_heartbeat().await,
             r = st.store_writes.done(), if st.store_writes.job.is_some() => st.written(r).await,
             r = st.report_writes.done(), if st.report_writes.job.is_some() => st.written(r).await,
         }
@@ -1369,7 +1784,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     st.flush_mav();
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
     let _ = link_stop_tx.send(true);
-    if let Some(j) = fit_job.take() {
+    if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) {
         if let Ok(Ok((m, a, t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
             st.on_fit(m, a, t, r).await;
         }
@@ -1390,6 +1805,14 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         st.save().await;
     }
     st.write_report().await;
+    // What is queued for the JSON consumers goes out, briefly: one that does not read cannot hold
+    // the exit.
+    st.report_drops().await;
+    close_sinks(
+        &mut st.sinks,
+        tokio::time::Instant::now() + SINK_DRAIN_AT_EXIT,
+    )
+    .await;
     let inbound_dropped = st
         .links
         .iter()
@@ -1490,6 +1913,157 @@ mod tests {
         assert_eq!(stepped.mask, mask);
         assert!(sections > 20 && sections < 80, "{sections}");
         assert_eq!(stepped.last_dir, *dirs.last().unwrap());
+    }
+
+    /// A TCP consumer that accepts and never reads: queueing lines for it never waits, what its
+    /// queue cannot hold is counted, and closing it is bounded by the deadline.
+    #[tokio::test]
+    async fn daemon_json_sink_for_a_stuck_consumer_drops_counts_and_closes_in_time() {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = l.local_addr().unwrap();
+        let held = std::thread::spawn(move || l.accept().map(|(c, _)| c));
+        let mut sinks = vec![Sink::open(&format!("tcp:{addr}")).unwrap()];
+        // 20 000 lines of 1 kB: far more than the socket buffers and the queue hold.
+        let line: std::sync::Arc<str> = format!("{}\n", "x".repeat(1023)).into();
+        let t0 = std::time::Instant::now();
+        for i in 0..20_000 {
+            sinks[0].send(&line);
+            if i % 256 == 0 {
+                // Let the writer run (connect, fill the socket, block).
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
+        let queued_s = t0.elapsed().as_secs_f64();
+        let r = sinks[0].report();
+        // Measured: 3841 sent, 15071 dropped with the queue full.
+        assert!(r.queue_full > 5_000, "{r:?}");
+        // Every line is accounted for: sent, dropped, or still queued / in the writer's hands.
+        let in_flight = (SINK_QUEUE_LINES + SINK_BATCH) as u64;
+        assert!(
+            r.sent + r.queue_full + r.not_delivered + in_flight >= 20_000,
+            "{r:?}"
+        );
+        assert_eq!(sinks[0].lost(), r.queue_full + r.not_delivered);
+        let t1 = tokio::time::Instant::now();
+        close_sinks(&mut sinks, t1 + Duration::from_millis(100)).await;
+        let closed_s = t1.elapsed().as_secs_f64();
+        eprintln!("{r:?}: queued in {queued_s:.3} s, closed in {closed_s:.3} s");
+        // Measured: queueing ~0.15 s (mostly the sleeps), closing 0.10 s (the deadline).
+        assert!(queued_s < 2.0 && closed_s < 0.5, "{queued_s} {closed_s}");
+        drop(held);
+    }
+
+    /// Our own frames echoed back (same system and component id) are dropped and counted, never
+    /// samples and never a vehicle's HEARTBEAT; our HEARTBEAT goes out on the link.
+    #[tokio::test]
+    async fn daemon_drops_its_own_echo_and_sends_heartbeats() {
+        use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
+        let dir = tempfile::tempdir().unwrap();
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let mut cfg = Config::default();
+        cfg.daemon.sources = vec![SourceConfig {
+            address: format!("udpin:127.0.0.1:{port}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        }];
+        cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+        cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
+        cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
+        // Not 191: the ArduPilot detection already passes over component 191, whoever sends it.
+        cfg.daemon.system_id = 1;
+        cfg.daemon.component_id = 190;
+        cfg.fit.refit_every_s = 0.1;
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let daemon = tokio::spawn(run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        peer.connect(("127.0.0.1", port)).await.unwrap();
+        let imu = |i: u64| {
+            MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: 1_000_000 + i * 10_000,
+                zacc: -9.81,
+                xmag: 0.2,
+                zmag: 0.4,
+                ..Default::default()
+            })
+        };
+        let (mut echo, mut fc) = (MavEncoder::new(1, 190), MavEncoder::new(1, 1));
+        // Our own id on an ArduPilot HEARTBEAT and on IMU frames: none of it is taken.
+        let ap = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavtype: MavType::MAV_TYPE_QUADROTOR,
+            ..Default::default()
+        });
+        peer.send(&echo.encode(&ap)).await.unwrap();
+        for i in 0..40 {
+            peer.send(&echo.encode(&imu(i))).await.unwrap();
+        }
+        for i in 0..30 {
+            peer.send(&fc.encode(&imu(100 + i))).await.unwrap();
+        }
+        let mut dec = crate::decode::FrameDecoder::new();
+        let mut heartbeats = vec![];
+        let mut buf = vec![0u8; 65_536];
+        let until = tokio::time::Instant::now() + Duration::from_millis(2300);
+        while let Ok(Ok(n)) = tokio::time::timeout_at(until, peer.recv(&mut buf)).await {
+            for f in dec.push(&buf[..n]) {
+                if let MavMessage::HEARTBEAT(h) = f.message {
+                    heartbeats.push((f.system_id, f.component_id, h.mavtype, h.autopilot));
+                }
+            }
+        }
+        stop_tx.send(true).unwrap();
+        let summary = daemon.await.unwrap().unwrap();
+        assert_eq!(summary.samples, 30);
+        // At 1 s and 2 s (the one at the start went nowhere: no peer had sent anything yet).
+        assert!((2..=3).contains(&heartbeats.len()), "{heartbeats:?}");
+        for h in &heartbeats {
+            assert_eq!(
+                *h,
+                (
+                    1,
+                    190,
+                    MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                    MavAutopilot::MAV_AUTOPILOT_INVALID
+                )
+            );
+        }
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+                .unwrap();
+        assert_eq!(
+            report["input"]["skipped"]["own_echo"], 41,
+            "{}",
+            report["input"]
+        );
+        assert!(report["input"]["skipped"]
+            .get("mag_awaiting_params")
+            .is_none());
+        let mut lines = vec![];
+        while let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(50), json.recv(&mut buf)).await
+        {
+            lines.push(String::from_utf8_lossy(&buf[..n]).to_string());
+        }
+        assert!(!lines.is_empty());
+        assert!(
+            lines.iter().all(|l| !l.contains("ArduPilot")),
+            "our own HEARTBEAT was taken for a vehicle's: {lines:?}"
+        );
+    }
+
+    #[test]
+    fn daemon_json_sink_addresses_are_checked() {
+        for bad in ["udp:nowhere", "tcp:1.2.3.4", "file:/tmp/x", ""] {
+            let e = Sink::open(bad).err().expect(bad).to_string();
+            assert!(e.contains("publish"), "{e}");
+        }
     }
 
     #[test]

@@ -2,6 +2,9 @@
 //! state machines (no sockets, no tokio): the caller moves the bytes.
 //!
 //! * [`MavEncoder`]: one complete MAVLink frame per message, with its own sequence counter.
+//! * Being a MAVLink component: [`heartbeat`], and [`OwnIds`] to tell our own frames echoed back.
+//! * The ground station's calibration commands (ArduPilot's DO_START/ACCEPT/CANCEL_MAG_CAL): the
+//!   run's status [`MagCalRun`] with its one transition function [`MagCalRun::on`], [`command_ack`].
 //! * Calibration progress and result in ArduPilot's messages: [`section80`], [`completion_mask`],
 //!   [`mag_cal_progress`] (MAG_CAL_PROGRESS, 191) and [`mag_cal_report`] (MAG_CAL_REPORT, 192).
 //! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
@@ -49,9 +52,10 @@ use crate::model::{rows_to_mat, Calibration, ModelKind};
 use crate::report::SensorCalibration;
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
-    MagCalStatus, MavMessage, MavParamType, MavSeverity, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA,
-    DEBUG_VECT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA, NAMED_VALUE_FLOAT_DATA,
-    PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
+    MagCalStatus, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavParamType, MavResult,
+    MavSeverity, MavState, MavType, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA,
+    COMMAND_LONG_DATA, DEBUG_VECT_DATA, HEARTBEAT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA,
+    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
 };
 use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
@@ -112,6 +116,36 @@ impl MavEncoder {
         self.seq = self.seq.wrapping_add(1);
         out
     }
+}
+
+/// Our own MAVLink ids. A frame that carries both came from us: a router or a link that loops our
+/// output back. It is not a vehicle's, and is never taken as input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OwnIds {
+    pub system_id: u8,
+    pub component_id: u8,
+}
+
+impl OwnIds {
+    /// Whether a frame from `system_id`/`component_id` is our own (both must match: a flight
+    /// controller shares our system id on the same vehicle).
+    pub fn is_own(&self, system_id: u8, component_id: u8) -> bool {
+        system_id == self.system_id && component_id == self.component_id
+    }
+}
+
+/// Our HEARTBEAT: an onboard controller with no autopilot of its own, active. Sent at
+/// `daemon.heartbeat_rate_hz` (1 Hz) on every MAVLink link, so ground stations and routers
+/// (MAVProxy, mavlink-router, QGroundControl) list the component and route messages to it.
+pub fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
 }
 
 /// Copy `s` into a fixed MAVLink char array, cut at a UTF-8 character boundary so that at most `N`
@@ -348,6 +382,225 @@ pub fn mag_cal_progress(
         direction_x: direction[0],
         direction_y: direction[1],
         direction_z: direction[2],
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Ground-station magnetometer calibration (MAV_CMD_DO_START/ACCEPT/CANCEL_MAG_CAL)
+
+/// MAV_CMD_DO_START_MAG_CAL's parameters, as ArduPilot reads them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MagCalStart {
+    /// p1: compasses to calibrate (bit i: compass i; 0: all).
+    pub mask: u8,
+    /// p2: after a failed fit, start again from zero coverage.
+    pub retry: bool,
+    /// p3: install and write a passing result at once; otherwise hold it for DO_ACCEPT_MAG_CAL.
+    pub autosave: bool,
+    /// p4: wait this long before collecting, s.
+    pub delay_s: f64,
+    /// p5: reboot after saving (taken, but there is nothing to reboot: the service installs live).
+    pub autoreboot: bool,
+}
+
+impl MagCalStart {
+    pub fn from_command(c: &COMMAND_LONG_DATA) -> MagCalStart {
+        MagCalStart {
+            mask: mask_param(c.param1),
+            retry: c.param2 != 0.0,
+            autosave: c.param3 != 0.0,
+            delay_s: if c.param4.is_finite() {
+                f64::from(c.param4).clamp(0.0, 3600.0)
+            } else {
+                0.0
+            },
+            autoreboot: c.param5 != 0.0,
+        }
+    }
+}
+
+/// A compass mask sent as a float parameter (0..255; anything else reads as 0, all compasses).
+pub fn mask_param(p: f32) -> u8 {
+    if p.is_finite() && (0.0..=255.0).contains(&p) {
+        p as u8
+    } else {
+        0
+    }
+}
+
+/// Whether a compass mask selects our compass (instance 0): 0 means all.
+fn selects_ours(mask: u8) -> bool {
+    mask == 0 || mask & 1 != 0
+}
+
+/// Where the magnetometer calibration stands, in the manner of ArduPilot's compass calibrator:
+/// one status, changed only by [`MagCalRun::on`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalRun {
+    /// No commanded run: passing fits are installed as they come when the service calibrates
+    /// continuously (`daemon.mag_cal = "continuous"`), and not at all otherwise.
+    Idle,
+    /// Started with a delay: collecting from zero coverage begins at `start_at_s`.
+    Waiting { start_at_s: f64, opts: MagCalStart },
+    /// Collecting from zero coverage; the next passing fit ends the run.
+    Running { opts: MagCalStart },
+    /// Passed with autosave off: the result waits for DO_ACCEPT_MAG_CAL (not installed, not written).
+    Held { cal: Box<SensorCalibration> },
+    /// Failed with retry off; stays so until a new start or a cancel.
+    Failed,
+}
+
+/// What happens to a calibration run.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalEvent {
+    Start {
+        opts: MagCalStart,
+        now_s: f64,
+    },
+    Accept {
+        mask: u8,
+    },
+    Cancel {
+        mask: u8,
+    },
+    /// Time passes (for the start delay).
+    Tick {
+        now_s: f64,
+    },
+    /// A fit passed its checks (and is no worse than the calibration in use); `complete`: the data
+    /// covered the sphere (progress 100 %). A commanded run ends only on a complete one, as
+    /// ArduPilot's fits only once its sections are filled.
+    FitPassed {
+        cal: Box<SensorCalibration>,
+        complete: bool,
+    },
+    /// A fit failed after the data covered the sphere.
+    FitFailed,
+}
+
+/// What the service does on a transition.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalEffect {
+    /// COMMAND_ACK with this result to the command's sender.
+    Ack(MavResult),
+    /// Drop what was collected: a new run from zero coverage.
+    Restart,
+    /// Install the calibration and write it.
+    Install(Box<SensorCalibration>),
+    /// MAG_CAL_REPORT of a passing fit; `commanded`: it ends a commanded run (always reported).
+    ReportSuccess {
+        cal: Box<SensorCalibration>,
+        autosaved: bool,
+        commanded: bool,
+    },
+    /// MAG_CAL_REPORT of the failed fit.
+    ReportFailure,
+}
+
+impl MagCalRun {
+    /// The transition function: the next status and what to do, given whether the service
+    /// calibrates without a command (`continuous`).
+    pub fn on(self, ev: MagCalEvent, continuous: bool) -> (MagCalRun, Vec<MagCalEffect>) {
+        use MagCalEffect as E;
+        use MagCalEvent as V;
+        use MagCalRun as R;
+        let ack = E::Ack;
+        match (self, ev) {
+            (s, V::Start { opts, .. }) if !selects_ours(opts.mask) => {
+                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            (_, V::Start { opts, now_s }) if opts.delay_s > 0.0 => (
+                R::Waiting {
+                    start_at_s: now_s + opts.delay_s,
+                    opts,
+                },
+                vec![ack(MavResult::MAV_RESULT_ACCEPTED)],
+            ),
+            (_, V::Start { opts, .. }) => (
+                R::Running { opts },
+                vec![ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart],
+            ),
+            (R::Waiting { start_at_s, opts }, V::Tick { now_s }) if now_s >= start_at_s => {
+                (R::Running { opts }, vec![E::Restart])
+            }
+            (
+                R::Running { opts },
+                V::FitPassed {
+                    complete: false, ..
+                },
+            ) => (R::Running { opts }, vec![]),
+            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => (
+                R::Idle,
+                vec![
+                    E::Install(cal.clone()),
+                    E::ReportSuccess {
+                        cal,
+                        autosaved: true,
+                        commanded: true,
+                    },
+                ],
+            ),
+            (R::Running { .. }, V::FitPassed { cal, .. }) => (
+                R::Held { cal: cal.clone() },
+                vec![E::ReportSuccess {
+                    cal,
+                    autosaved: false,
+                    commanded: true,
+                }],
+            ),
+            (R::Idle, V::FitPassed { cal, .. }) if continuous => (
+                R::Idle,
+                vec![
+                    E::Install(cal.clone()),
+                    E::ReportSuccess {
+                        cal,
+                        autosaved: true,
+                        commanded: false,
+                    },
+                ],
+            ),
+            (R::Running { opts }, V::FitFailed) if opts.retry => {
+                (R::Running { opts }, vec![E::ReportFailure, E::Restart])
+            }
+            (R::Running { .. }, V::FitFailed) => (R::Failed, vec![E::ReportFailure]),
+            (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
+            (s, V::Accept { mask } | V::Cancel { mask }) if !selects_ours(mask) => {
+                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            (R::Held { cal }, V::Accept { .. }) => (
+                R::Idle,
+                vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
+            ),
+            (s, V::Accept { .. }) => (s, vec![ack(MavResult::MAV_RESULT_FAILED)]),
+            (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
+            (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
+        }
+    }
+
+    /// Whether magnetometer progress is reported: during a commanded run, or while idle when the
+    /// service calibrates continuously.
+    pub fn reports_progress(&self, continuous: bool) -> bool {
+        match self {
+            MagCalRun::Running { .. } => true,
+            MagCalRun::Idle => continuous,
+            _ => false,
+        }
+    }
+}
+
+/// COMMAND_ACK for `command` to its sender.
+pub fn command_ack(
+    command: MavCmd,
+    result: MavResult,
+    target_system: u8,
+    target_component: u8,
+) -> MavMessage {
+    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command,
+        result,
+        target_system,
+        target_component,
+        ..Default::default()
     })
 }
 
@@ -984,6 +1237,278 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn mavout_heartbeat_says_onboard_controller_without_autopilot_with_our_ids() {
+        let mut enc = MavEncoder::new(42, 191);
+        let f = decode(&enc.encode(&heartbeat()));
+        assert_eq!((f.system_id, f.component_id), (42, 191));
+        let MavMessage::HEARTBEAT(h) = f.message else {
+            panic!("{:?}", f.message)
+        };
+        assert_eq!(h.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
+        assert_eq!(h.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        assert_eq!(h.system_status, MavState::MAV_STATE_ACTIVE);
+        assert_eq!(h.mavlink_version, 3);
+    }
+
+    fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
+        Box::new(SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: None,
+            model: "sym9".into(),
+            units: "uT".into(),
+            offset: [offset_x, 0.0, 0.0],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            radius: 50.0,
+            rms_residual: 0.1,
+            offset_sigma: [0.01; 3],
+            samples_used: 500,
+            iterations: 5,
+            candidates: vec![],
+            outliers_rejected: 0,
+        })
+    }
+
+    #[test]
+    fn mavout_mag_cal_run_follows_the_ground_station_protocol() {
+        use MagCalEffect as E;
+        use MagCalEvent as V;
+        let accepted = E::Ack(MavResult::MAV_RESULT_ACCEPTED);
+        let failed = E::Ack(MavResult::MAV_RESULT_FAILED);
+        let opts = |autosave: bool, retry: bool, delay_s: f64| MagCalStart {
+            mask: 0,
+            retry,
+            autosave,
+            delay_s,
+            autoreboot: false,
+        };
+        // Autosave off: start -> ack + restart; a passing fit is held and reported (not saved);
+        // accept installs it.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(false, false, 0.0),
+                now_s: 5.0,
+            },
+            false,
+        );
+        assert_eq!(fx, vec![accepted.clone(), E::Restart]);
+        assert!(s.reports_progress(false));
+        // A fit that passes before the data covers the sphere does not end the run.
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(2.0),
+                complete: false,
+            },
+            false,
+        );
+        assert!(fx.is_empty() && matches!(s, MagCalRun::Running { .. }));
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(3.0),
+                complete: true,
+            },
+            false,
+        );
+        assert_eq!(s, MagCalRun::Held { cal: run_cal(3.0) });
+        assert_eq!(
+            fx,
+            vec![E::ReportSuccess {
+                cal: run_cal(3.0),
+                autosaved: false,
+                commanded: true
+            }]
+        );
+        assert!(!s.reports_progress(true));
+        // Held: later fits change nothing.
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(4.0),
+                complete: true,
+            },
+            true,
+        );
+        assert!(fx.is_empty() && s == MagCalRun::Held { cal: run_cal(3.0) });
+        let (s, fx) = s.on(V::Accept { mask: 0 }, false);
+        assert_eq!(s, MagCalRun::Idle);
+        assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
+        // Accept with nothing held fails; cancel always succeeds and discards the held result.
+        let (s, fx) = s.on(V::Accept { mask: 1 }, false);
+        assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![failed.clone()]));
+        let (s, _) = s.on(
+            V::Start {
+                opts: opts(false, false, 0.0),
+                now_s: 0.0,
+            },
+            false,
+        );
+        let (s, _) = s.on(
+            V::FitPassed {
+                cal: run_cal(3.0),
+                complete: true,
+            },
+            false,
+        );
+        let (s, fx) = s.on(V::Cancel { mask: 0 }, false);
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
+        // Autosave on: installed and reported as saved at once, back to idle.
+        let (s, _) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(true, false, 0.0),
+                now_s: 0.0,
+            },
+            false,
+        );
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(1.0),
+                complete: true,
+            },
+            false,
+        );
+        assert_eq!(s, MagCalRun::Idle);
+        assert_eq!(
+            fx,
+            vec![
+                E::Install(run_cal(1.0)),
+                E::ReportSuccess {
+                    cal: run_cal(1.0),
+                    autosaved: true,
+                    commanded: true
+                }
+            ]
+        );
+        // Delay: collecting starts (from zero) when it has passed.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(true, false, 2.0),
+                now_s: 10.0,
+            },
+            false,
+        );
+        assert_eq!(fx, vec![accepted.clone()]);
+        assert!(!s.reports_progress(true));
+        let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false);
+        assert!(fx.is_empty() && matches!(s, MagCalRun::Waiting { .. }));
+        let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false);
+        assert_eq!(fx, vec![E::Restart]);
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        // Failure: with retry, again from zero; without, failed until restarted or cancelled.
+        let (s, fx) = MagCalRun::Running {
+            opts: opts(true, true, 0.0),
+        }
+        .on(V::FitFailed, false);
+        assert_eq!(fx, vec![E::ReportFailure, E::Restart]);
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        let (s, fx) = MagCalRun::Running {
+            opts: opts(true, false, 0.0),
+        }
+        .on(V::FitFailed, false);
+        assert_eq!((s.clone(), fx), (MagCalRun::Failed, vec![E::ReportFailure]));
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(1.0),
+                complete: true,
+            },
+            true,
+        );
+        assert!(fx.is_empty() && s == MagCalRun::Failed);
+        // A mask without compass 0 is refused and changes nothing.
+        let other = MagCalStart {
+            mask: 0b10,
+            ..opts(true, false, 0.0)
+        };
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: other,
+                now_s: 0.0,
+            },
+            false,
+        );
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![failed.clone()]));
+        // Idle: continuous installs and reports passing fits and reports failures; on command only,
+        // nothing happens without a run.
+        let (_, fx) = MagCalRun::Idle.on(
+            V::FitPassed {
+                cal: run_cal(2.0),
+                complete: true,
+            },
+            true,
+        );
+        assert_eq!(
+            fx,
+            vec![
+                E::Install(run_cal(2.0)),
+                E::ReportSuccess {
+                    cal: run_cal(2.0),
+                    autosaved: true,
+                    commanded: false
+                }
+            ]
+        );
+        assert_eq!(
+            MagCalRun::Idle.on(V::FitFailed, true).1,
+            vec![E::ReportFailure]
+        );
+        assert!(MagCalRun::Idle
+            .on(
+                V::FitPassed {
+                    cal: run_cal(2.0),
+                    complete: true
+                },
+                false
+            )
+            .1
+            .is_empty());
+        assert!(MagCalRun::Idle.on(V::FitFailed, false).1.is_empty());
+        assert!(MagCalRun::Idle.reports_progress(true) && !MagCalRun::Idle.reports_progress(false));
+    }
+
+    #[test]
+    fn mavout_start_mag_cal_parameters_as_ardupilot_reads_them() {
+        let c = COMMAND_LONG_DATA {
+            param1: 1.0,
+            param2: 1.0,
+            param3: 0.0,
+            param4: 2.5,
+            param5: 1.0,
+            command: MavCmd::MAV_CMD_DO_START_MAG_CAL,
+            ..Default::default()
+        };
+        let o = MagCalStart::from_command(&c);
+        assert_eq!(
+            o,
+            MagCalStart {
+                mask: 1,
+                retry: true,
+                autosave: false,
+                delay_s: 2.5,
+                autoreboot: true
+            }
+        );
+        let bad = COMMAND_LONG_DATA {
+            param1: f32::NAN,
+            param4: -3.0,
+            ..c
+        };
+        let o = MagCalStart::from_command(&bad);
+        assert_eq!((o.mask, o.delay_s), (0, 0.0));
+        assert_eq!(mask_param(300.0), 0);
+    }
+
+    #[test]
+    fn mavout_own_ids_match_only_both_ids() {
+        let own = OwnIds {
+            system_id: 1,
+            component_id: 191,
+        };
+        assert!(own.is_own(1, 191));
+        // The flight controller of the same vehicle, another computer, a ground station.
+        assert!(!own.is_own(1, 1));
+        assert!(!own.is_own(2, 191));
+        assert!(!own.is_own(255, 190));
     }
 
     fn fib_sphere(n: usize) -> impl Iterator<Item = [f64; 3]> {

@@ -291,6 +291,7 @@ pub fn make_report(
         declination_deg,
         refits: pipe.refits.clone(),
         instances: Vec::new(),
+        outputs: None,
     }
 }
 

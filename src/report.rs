@@ -23,6 +23,9 @@ pub struct Report {
     /// is also `calibration`); empty for other inputs.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub instances: Vec<InstanceReport>,
+    /// The live service only: what its outputs delivered and dropped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outputs: Option<OutputsReport>,
 }
 
 /// One IMU instance of the input and its calibration.
@@ -38,6 +41,37 @@ pub struct InstanceReport {
     /// Its clock ([`InputReport::time`]).
     pub time: crate::clock::TimeStats,
     pub calibration: CalibrationReport,
+}
+
+/// The live service's outputs: what each JSON consumer and MAVLink link could not take.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct OutputsReport {
+    pub json_sinks: Vec<SinkReport>,
+    pub links: Vec<LinkOutputReport>,
+}
+
+/// One JSON-lines consumer (`publish`): lines handed to it, and lines lost.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SinkReport {
+    /// As configured: "stdout", "udp:IP:PORT", "tcp:IP:PORT".
+    pub sink: String,
+    pub sent: u64,
+    /// Dropped because its queue was full (the consumer was not taking lines).
+    pub queue_full: u64,
+    /// Taken from the queue but not delivered (not connected, refused by the socket).
+    pub not_delivered: u64,
+}
+
+/// One link's outbound MAVLink.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LinkOutputReport {
+    pub link: String,
+    /// Datagrams (or writes) of frames not sent: its outbound queue was full, no peer yet (udpin),
+    /// link down.
+    pub outbound_dropped: u64,
+    /// Of those, dropped because its outbound queue was full.
+    #[serde(default)]
+    pub outbound_queue_full: u64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

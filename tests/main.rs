@@ -846,6 +846,84 @@ mod live {
         assert_eq!(store.mag.unwrap().status, "ok");
     }
 
+    /// A pymavlink ground station drives the magnetometer calibration with ArduPilot's commands
+    /// (the service calibrates only on command): START (autosave 0) -> ACK -> progress -> report ->
+    /// nothing on disk -> ACCEPT -> ACK -> written; a second run cancelled leaves the file as it was.
+    #[test]
+    fn interop_pymavlink_ground_station_starts_accepts_and_cancels_a_calibration() {
+        let py = python();
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 2);
+        imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
+        imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        let port = free_udp_port();
+        // A commanded run ends on a passing fit once progress says 100 %: one pass of the tumble
+        // filled 95-100 % of the default 80 regions in runs here, so 70 count as full.
+        let cfg = format!(
+            "[fit]\nrefit_every_s = 5.0\n[daemon]\nmag_cal = \"on_command\"\nprogress_full_regions = 70\ncalibration_dir = \"{}\"\nsources = [{{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
+            d.join("cal").display()
+        );
+        std::fs::write(d.join("gcs.toml"), cfg).unwrap();
+        let mut child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(d.join("gcs.toml"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        let peer = Command::new(&py)
+            .arg(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/interop/pymavlink_peer.py"
+            ))
+            .arg(port.to_string())
+            .arg(d.join("tumble.csv"))
+            .arg(d.join("truth.json"))
+            .arg("20")
+            .arg("gcs")
+            .arg(d.join("cal"))
+            .output()
+            .unwrap();
+        sigterm(child.id());
+        let status = wait_exit(&mut child, Duration::from_secs(5));
+        let mut err = String::new();
+        use std::io::Read;
+        child
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut err)
+            .unwrap();
+        let seen = String::from_utf8_lossy(&peer.stdout);
+        eprintln!(
+            "peer: {seen}\npeer stderr: {}",
+            String::from_utf8_lossy(&peer.stderr)
+        );
+        assert!(
+            peer.status.success(),
+            "ground station checks failed: {seen}\nimucald stderr:\n{err}"
+        );
+        assert!(status
+            .expect("imucald did not exit after SIGTERM")
+            .success());
+        // The accepted calibration is what a restart loads (the cancelled run changed nothing).
+        let store = imucald::daemon::load_store(&d.join("cal"))
+            .unwrap()
+            .expect("calibration file");
+        let mag = store.mag.expect("mag calibration");
+        // Measured: 0.006 uT from the hidden hard iron (the report: 0.06 mGauss).
+        let hi = sim.truth.mag.offset;
+        for k in 0..3 {
+            assert!(
+                (mag.offset[k] - hi[k]).abs() < 0.1,
+                "{:?} vs {hi:?}",
+                mag.offset
+            );
+        }
+    }
+
     #[test]
     fn kill_9_during_calibration_writes_leaves_old_or_new_file() {
         let dir = tempfile::tempdir().unwrap();
@@ -1831,6 +1909,7 @@ mod live_attitude {
         cfg.daemon.attitude_rate_hz = 0.001;
         cfg.daemon.heading_rate_hz = 0.1;
         cfg.daemon.progress_rate_hz = 0.1;
+        cfg.daemon.heartbeat_rate_hz = 0.0;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
@@ -2156,5 +2235,333 @@ mod live_attitude {
                 }
             }
         }
+    }
+}
+
+mod live_consumers {
+    //! The live service against consumers that misbehave, and as a MAVLink component: spawned as the
+    //! built binary, fed by a Rust MAVLink peer over UDP.
+    use super::*;
+    use imucald::decode::FrameDecoder;
+    use imucald::mavout::MavEncoder;
+    use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA};
+    use std::process::{Command, Stdio};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
+
+    /// What the peer got back from the service.
+    #[derive(Debug, Default)]
+    struct Seen {
+        heading: usize,
+        attitude: usize,
+        reports_ok: usize,
+        /// Arrival times (s since the peer started) of the service's HEARTBEATs.
+        heartbeats_s: Vec<f64>,
+        /// HEARTBEATs with the service's ids, whether they say an onboard controller without autopilot.
+        heartbeat_kind_ok: bool,
+        frames: usize,
+    }
+
+    /// Stream `samples` as HIGHRES_IMU to `udpin` `port` at `speed` times their pace (sender 1/1),
+    /// counting what comes back until `linger` after the last sample.
+    fn stream_and_count(
+        port: u16,
+        samples: &[imucald::types::Sample],
+        speed: f64,
+        linger: Duration,
+    ) -> Seen {
+        let sock = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        sock.connect(("127.0.0.1", port)).unwrap();
+        let rx = sock.try_clone().unwrap();
+        rx.set_read_timeout(Some(Duration::from_millis(20)))
+            .unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let t0 = Instant::now();
+        let reader = {
+            let stop = stop.clone();
+            std::thread::spawn(move || {
+                let mut seen = Seen {
+                    heartbeat_kind_ok: true,
+                    ..Seen::default()
+                };
+                let mut dec = FrameDecoder::new();
+                let mut buf = vec![0u8; 65_536];
+                while !stop.load(Ordering::Relaxed) {
+                    let Ok(n) = rx.recv(&mut buf) else { continue };
+                    for f in dec.push(&buf[..n]) {
+                        seen.frames += 1;
+                        match f.message {
+                            MavMessage::NAMED_VALUE_FLOAT(_) => seen.heading += 1,
+                            MavMessage::ATTITUDE_QUATERNION(_) => seen.attitude += 1,
+                            MavMessage::MAG_CAL_REPORT(r)
+                                if r.cal_status
+                                    == mavlink::dialects::ardupilotmega::MagCalStatus::MAG_CAL_SUCCESS =>
+                            {
+                                seen.reports_ok += 1
+                            }
+                            MavMessage::HEARTBEAT(h) => {
+                                seen.heartbeats_s.push(t0.elapsed().as_secs_f64());
+                                seen.heartbeat_kind_ok &= f.system_id == 1
+                                    && f.component_id == 191
+                                    && h.mavtype
+                                        == mavlink::dialects::ardupilotmega::MavType::MAV_TYPE_ONBOARD_CONTROLLER
+                                    && h.autopilot
+                                        == mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_INVALID;
+                            }
+                            _ => {}
+                        }
+                    }
+                }
+                seen
+            })
+        };
+        let mut enc = MavEncoder::new(1, 1);
+        for s in samples {
+            let target = Duration::from_secs_f64(s.t_s / speed);
+            let now = t0.elapsed();
+            if target > now + Duration::from_millis(1) {
+                std::thread::sleep(target - now);
+            }
+            let (a, g, m) = (
+                s.accel_mps2.unwrap(),
+                s.gyro_rad_s.unwrap(),
+                s.mag_ut.unwrap(),
+            );
+            let frame = enc.encode(&MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                time_usec: 10_000_000 + (s.t_s * 1e6) as u64,
+                xacc: a[0] as f32,
+                yacc: a[1] as f32,
+                zacc: a[2] as f32,
+                xgyro: g[0] as f32,
+                ygyro: g[1] as f32,
+                zgyro: g[2] as f32,
+                xmag: (m[0] / 100.0) as f32,
+                ymag: (m[1] / 100.0) as f32,
+                zmag: (m[2] / 100.0) as f32,
+                temperature: s.temp_c.unwrap_or(25.0) as f32,
+                fields_updated: mavlink::dialects::ardupilotmega::HighresImuUpdatedFlags::all(),
+                ..Default::default()
+            }));
+            let _ = sock.send(&frame);
+        }
+        std::thread::sleep(linger);
+        stop.store(true, Ordering::Relaxed);
+        reader.join().unwrap()
+    }
+
+    /// A TCP listener that accepts every connection and never reads from it, with a small receive
+    /// buffer so the sender's side fills quickly. Returns its address and a stop flag.
+    fn never_reading_listener() -> (
+        std::net::SocketAddr,
+        Arc<AtomicBool>,
+        std::thread::JoinHandle<usize>,
+    ) {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        {
+            use std::os::fd::AsRawFd;
+            let v: libc::c_int = 4096;
+            // SAFETY: a valid socket fd and a c_int option value of the stated size.
+            let r = unsafe {
+                libc::setsockopt(
+                    l.as_raw_fd(),
+                    libc::SOL_SOCKET,
+                    libc::SO_RCVBUF,
+                    &v as *const libc::c_int as *const libc::c_void,
+                    std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+                )
+            };
+            assert_eq!(r, 0, "SO_RCVBUF");
+        }
+        l.set_nonblocking(true).unwrap();
+        let addr = l.local_addr().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let s2 = stop.clone();
+        let held = Arc::new(Mutex::new(vec![]));
+        let h = std::thread::spawn(move || {
+            while !s2.load(Ordering::Relaxed) {
+                match l.accept() {
+                    Ok((c, _)) => held.lock().unwrap().push(c),
+                    Err(_) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+            let n = held.lock().unwrap().len();
+            n
+        });
+        (addr, stop, h)
+    }
+
+    struct Service {
+        child: std::process::Child,
+    }
+
+    impl Service {
+        fn start(cfg_path: &Path, report: &Path) -> Service {
+            let child = Command::new(env!("CARGO_BIN_EXE_imucald"))
+                .args(["run", "--config"])
+                .arg(cfg_path)
+                .arg("--report")
+                .arg(report)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap();
+            std::thread::sleep(Duration::from_millis(300));
+            Service { child }
+        }
+
+        /// SIGTERM, then seconds until it exited (None: still running after 5 s, then killed).
+        fn stop(mut self) -> Option<f64> {
+            let t = Instant::now();
+            Command::new("kill")
+                .args(["-TERM", &self.child.id().to_string()])
+                .status()
+                .unwrap();
+            while t.elapsed() < Duration::from_secs(5) {
+                if let Some(s) = self.child.try_wait().unwrap() {
+                    assert!(s.success(), "exit {s:?}");
+                    return Some(t.elapsed().as_secs_f64());
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            None
+        }
+    }
+
+    impl Drop for Service {
+        fn drop(&mut self) {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+
+    /// A JSON consumer over TCP that connects and never reads must not slow the MAVLink side: the
+    /// peer gets at least half the heading/attitude messages it gets without that consumer, the
+    /// calibration report still comes, and SIGTERM still stops the service within a second. The lines
+    /// the stuck consumer cannot take are dropped and counted (JSON `status` line, report).
+    #[test]
+    fn tcp_json_consumer_that_never_reads_does_not_stall_the_service() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 3);
+        let speed = 20.0;
+        let (tcp_addr, tcp_stop, tcp_thread) = never_reading_listener();
+        let json = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let json_addr = json.local_addr().unwrap();
+        json.set_read_timeout(Some(Duration::from_millis(20)))
+            .unwrap();
+        let json_stop = Arc::new(AtomicBool::new(false));
+        let json_reader = {
+            let stop = json_stop.clone();
+            std::thread::spawn(move || {
+                let mut lines = vec![];
+                let mut buf = vec![0u8; 65_536];
+                while !stop.load(Ordering::Relaxed) {
+                    if let Ok(n) = json.recv(&mut buf) {
+                        lines.push(String::from_utf8_lossy(&buf[..n]).to_string());
+                    }
+                }
+                lines
+            })
+        };
+        let mut measured = vec![];
+        for with_consumer in [false, true] {
+            let (port, mut cfg) = udpin_config(d);
+            cfg.fit.refit_every_s = 5.0;
+            // Many JSON lines a second (heading, calibrated, attitude: about 3000 lines, 750 kB/s),
+            // so a consumer that does not read fills the socket buffers (the sender's grows to a
+            // few MB on loopback) within seconds.
+            cfg.daemon.heading_rate_hz = 1000.0;
+            cfg.daemon.attitude_rate_hz = 1000.0;
+            cfg.daemon.publish = if with_consumer {
+                vec![format!("tcp:{tcp_addr}"), format!("udp:{json_addr}")]
+            } else {
+                vec![]
+            };
+            let cfg_path = d.join("live.toml");
+            std::fs::write(&cfg_path, toml::to_string(&cfg).unwrap()).unwrap();
+            let _ = std::fs::remove_dir_all(d.join("cal"));
+            let report = d.join("report.json");
+            let svc = Service::start(&cfg_path, &report);
+            let seen = stream_and_count(port, &sim.samples, speed, Duration::from_millis(1500));
+            let stop_s = svc.stop();
+            eprintln!("consumer {with_consumer}: {seen:?}, stopped after {stop_s:?} s");
+            measured.push((seen, stop_s, report));
+        }
+        tcp_stop.store(true, Ordering::Relaxed);
+        let connections = tcp_thread.join().unwrap();
+        json_stop.store(true, Ordering::Relaxed);
+        let lines = json_reader.join().unwrap();
+        let (base, stuck) = (&measured[0], &measured[1]);
+        assert!(
+            connections >= 1,
+            "the service never connected to the TCP consumer"
+        );
+        // Measured (20x speed, 8.5 s of streaming): without the consumer 7747 NAMED_VALUE_FLOAT and
+        // 7731 ATTITUDE_QUATERNION, with it 7730 and 7719 (before the JSON queues: 3434 and 3411,
+        // the service stalled once the TCP buffers filled, and SIGTERM no longer stopped it).
+        // MAG_CAL_REPORT successes: 5 in both. Stopped 0.03 s / 0.18 s after SIGTERM (the JSON
+        // writers get 150 ms to pass on what is queued). The TCP consumer: 10347 lines sent, 11885
+        // dropped with its queue full.
+        assert!(
+            base.0.heading > 100 && base.0.attitude > 100,
+            "{:?}",
+            base.0
+        );
+        assert!(
+            2 * stuck.0.heading >= base.0.heading && 2 * stuck.0.attitude >= base.0.attitude,
+            "with a stuck consumer {:?}, without {:?}",
+            stuck.0,
+            base.0
+        );
+        assert!(stuck.0.reports_ok >= 1, "no MAG_CAL_REPORT: {:?}", stuck.0);
+        for (i, (_, stop_s, _)) in measured.iter().enumerate() {
+            let s = stop_s.unwrap_or_else(|| panic!("run {i}: not stopped 5 s after SIGTERM"));
+            assert!(s < 1.0, "run {i}: stopped {s:.2} s after SIGTERM");
+        }
+        // The service is a MAVLink component: its HEARTBEAT at 1 Hz, with its ids and kind.
+        // Measured: 8 in each run, 0.999-1.001 s apart (the first one, before the peer's first
+        // datagram, has nowhere to go on a udpin link).
+        for (i, (seen, _, _)) in measured.iter().enumerate() {
+            let hb = &seen.heartbeats_s;
+            assert!(
+                seen.heartbeat_kind_ok,
+                "run {i}: a HEARTBEAT not ours or not an onboard controller"
+            );
+            assert!(hb.len() >= 6, "run {i}: {} HEARTBEATs in 8.5 s", hb.len());
+            let gaps: Vec<f64> = hb.windows(2).map(|w| w[1] - w[0]).collect();
+            let mean = (hb[hb.len() - 1] - hb[0]) / gaps.len() as f64;
+            assert!(
+                (mean - 1.0).abs() < 0.05,
+                "run {i}: mean period {mean:.3} s"
+            );
+            assert!(
+                gaps.iter().all(|g| (0.7..1.3).contains(g)),
+                "run {i}: gaps {gaps:?}"
+            );
+        }
+        // The drops are said, naming the sink.
+        let said = lines
+            .iter()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l.trim()).ok())
+            .filter(|v| v["type"] == "status")
+            .filter_map(|v| v["text"].as_str().map(String::from))
+            .find(|t| t.contains(&format!("tcp:{tcp_addr}")) && t.contains("dropped"));
+        assert!(
+            said.is_some(),
+            "no status line about the dropped lines ({} lines)",
+            lines.len()
+        );
+        let rep: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&stuck.2).unwrap()).unwrap();
+        let sinks = rep["outputs"]["json_sinks"]
+            .as_array()
+            .expect("outputs.json_sinks");
+        let tcp = sinks
+            .iter()
+            .find(|s| s["sink"] == format!("tcp:{tcp_addr}"))
+            .expect("tcp sink in the report");
+        eprintln!("status: {said:?}\nreport: {tcp}");
+        assert!(tcp["queue_full"].as_u64().unwrap() > 0, "{tcp}");
     }
 }
