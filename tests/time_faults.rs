@@ -430,3 +430,69 @@ proptest! {
         prop_assert!(serde_json::to_string(&d).is_ok());
     }
 }
+
+/// Python with pymavlink (`./scripts/test` installs it into `.venv`; `IMUCALD_PYTHON` overrides).
+fn python() -> String {
+    let p = std::env::var("IMUCALD_PYTHON")
+        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
+    let ok = std::process::Command::new(&p)
+        .args(["-c", "import pymavlink"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
+    p
+}
+
+#[test]
+fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
+    // The same tumble, framed by pymavlink as a ground station records it: a clock from zero, a
+    // reboot halfway, and two logs (a day apart) joined with `cat`.
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("tumble.csv");
+    imucald::sim::write_csv(&csv, &tumble().samples).unwrap();
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/interop/pymavlink_tlog.py"
+    );
+    let py = python();
+    let write = |mode: &str| {
+        let out = dir.path().join(format!("{mode}.tlog"));
+        let st = std::process::Command::new(&py)
+            .arg(script)
+            .arg(&csv)
+            .arg(&out)
+            .arg(mode)
+            .status()
+            .unwrap();
+        assert!(st.success(), "pymavlink_tlog.py {mode}");
+        out
+    };
+    let (first, second) = (write("first"), write("second"));
+    let joined = dir.path().join("joined.tlog");
+    let st = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "cat '{}' '{}' > '{}'",
+            first.display(),
+            second.display(),
+            joined.display()
+        ))
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let n = tumble().samples.len() as u64;
+    for (what, log, segments) in [
+        ("pymavlink clock from zero", write("zero"), 1),
+        ("pymavlink reboot", write("reboot"), 2),
+        ("pymavlink logs joined by cat", joined, 2),
+    ] {
+        let r = replay_checked(&log, what);
+        assert_recovered(&r.calibration, what);
+        assert_eq!(r.input.samples, n, "{what}");
+        assert_eq!(
+            r.input.time.segments, segments,
+            "{what}: {:?}",
+            r.input.time
+        );
+    }
+}
