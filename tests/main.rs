@@ -2311,3 +2311,76 @@ mod honest_progress {
         }
     }
 }
+
+/// The gyro scale is published only when its held-out check passes (`replay`).
+mod gyro_scale_checked {
+    use super::*;
+    use imucald::fit::FitFailure;
+    use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
+
+    /// A turntable log with these attitudes, replayed.
+    fn turntable_replay(attitudes: Vec<[f64; 3]>) -> imucald::report::Report {
+        let mut sc = Scenario::named("turntable").unwrap();
+        sc.attitudes = Some(attitudes);
+        let sim = simulate(&sc, 3);
+        let dir = tempfile::tempdir().unwrap();
+        let tlog = dir.path().join("turntable.tlog");
+        write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
+        run(&tlog, &Config::default()).report
+    }
+
+    #[test]
+    fn a_turntable_turning_about_one_axis_says_not_identifiable() {
+        // Two turns about the body x axis (tilted 20 deg) in 40 deg steps.
+        let att = (0..18)
+            .map(|i| [((i * 40) % 360) as f64 - 180.0, 20.0, 0.0])
+            .collect();
+        let g = turntable_replay(att).calibration.gyro;
+        assert_eq!(g.status, "ok", "the bias is still known");
+        assert!(g.scale.is_none(), "published: {:?}", g.scale);
+        let f = g.scale_failure.expect("a named reason");
+        eprintln!("turntable about one axis: {f}");
+        assert_eq!(f.failure, FitFailure::NotIdentifiable);
+        assert!(f.detail.contains("rotations about one axis only"), "{f}");
+        let json = serde_json::to_value(&f).unwrap();
+        assert_eq!(json["failure"], "not_identifiable");
+    }
+
+    #[test]
+    fn a_turntable_mostly_about_one_axis_fails_the_held_out_check() {
+        // Six positions, then three turns about x: it was published with its held-out check at
+        // 0.21 -> 9.8 deg.
+        let mut att = vec![
+            [0.0, 0.0, 0.0],
+            [0.0, 90.0, 0.0],
+            [90.0, 0.0, 0.0],
+            [0.0, -90.0, 0.0],
+            [180.0, 0.0, 0.0],
+            [-90.0, 0.0, 0.0],
+        ];
+        att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
+        let r = turntable_replay(att);
+        assert_eq!(r.calibration.accel.status, "ok");
+        let g = r.calibration.gyro;
+        assert!(g.scale.is_none(), "published: {:?}", g.scale);
+        let f = g.scale_failure.expect("a named reason");
+        eprintln!("six positions + turns about one axis: {f}");
+        assert_eq!(f.failure, FitFailure::HeldOut);
+        let h = f.held_out.expect("figures");
+        // Measured 0.21 -> 9.97 deg.
+        assert!(h.rms_after_deg > 3.0 * h.rms_before_deg, "{h:?}");
+    }
+
+    #[test]
+    fn the_tumble_still_publishes_its_checked_gyro_scale() {
+        let path = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"));
+        let g = run(&path, &Config::default()).report.calibration.gyro;
+        let k = g.scale.unwrap_or_else(|| panic!("{:?}", g.scale_failure));
+        let h = k.held_out.expect("checked");
+        eprintln!(
+            "tumble gyro scale: {} rotations, held out {:.3} -> {:.3} deg over {}",
+            k.segments, h.rms_before_deg, h.rms_after_deg, h.segments
+        );
+        assert!(h.rms_after_deg <= h.rms_before_deg * 1.1, "{h:?}");
+    }
+}
