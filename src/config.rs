@@ -179,6 +179,12 @@ pub struct FitConfig {
     pub gravity_mps2: f64,
     /// Minimum angle between kept magnetometer samples, deg.
     pub min_separation_deg: f64,
+    /// Before a first fit, the magnetometer's centre (for the progress regions and the direction
+    /// bins) is taken from the kept points once they spread enough: their standard deviation along
+    /// their narrowest direction at least this many field radii (0.25: about a cap reaching 80 deg
+    /// from its middle, filled; a still or barely turned sensor stays far below), and they lie on
+    /// one sphere (see [`crate::pipeline::Pipeline::mag_centre`]).
+    pub centre_min_spread_radii: f64,
     /// Seed 000's scalar Kalman prefilter on accel and mag before gating and fitting.
     pub prefilter: bool,
     pub prefilter_q: f64,
@@ -193,6 +199,7 @@ impl Default for FitConfig {
             refit_every_s: 10.0,
             gravity_mps2: crate::types::STANDARD_GRAVITY_MPS2,
             min_separation_deg: 1.0,
+            centre_min_spread_radii: 0.15,
             prefilter: false,
             prefilter_q: 1e-4,
             prefilter_r: 1.0,
@@ -444,6 +451,15 @@ impl Config {
         pos("fit.refit_every_s", self.fit.refit_every_s)?;
         pos("fit.gravity_mps2", self.fit.gravity_mps2)?;
         pos("fit.min_separation_deg", self.fit.min_separation_deg)?;
+        if !(self.fit.centre_min_spread_radii > 0.0 && self.fit.centre_min_spread_radii < 1.0) {
+            return Err(err(
+                "fit.centre_min_spread_radii",
+                format!(
+                    "must be between 0 and 1 field radii, got {}",
+                    self.fit.centre_min_spread_radii
+                ),
+            ));
+        }
         pos("fit.prefilter_q", self.fit.prefilter_q)?;
         pos("fit.prefilter_r", self.fit.prefilter_r)?;
         pos("gate.window_s", self.gate.window_s)?;

@@ -192,9 +192,186 @@ impl DirectionBins {
     }
 }
 
+/// Which parts of the sphere magnetometer points cover about one centre: the coverage regions
+/// ([`region`]) and ArduPilot's 80 sections ([`crate::mavout::section80`]). Built up point by point,
+/// so a progress report costs the points kept since the last one, not all.
+#[derive(Debug, Clone)]
+pub struct CoverageMap {
+    pub centre: Vec3,
+    pub regions: [bool; REGIONS],
+    pub regions_filled: usize,
+    /// ArduPilot's completion mask.
+    pub mask: [u8; 10],
+    /// Direction of the last point added, about the centre.
+    pub last_dir: Vec3,
+}
+
+impl CoverageMap {
+    pub fn new(centre: Vec3) -> CoverageMap {
+        CoverageMap {
+            centre,
+            regions: [false; REGIONS],
+            regions_filled: 0,
+            mask: [0; 10],
+            last_dir: [0.0; 3],
+        }
+    }
+
+    /// Mark the regions and sections of `points` (raw vectors) about the centre.
+    pub fn add(&mut self, points: &[Vec3]) {
+        let c = self.centre;
+        for p in points {
+            let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+            if let Some(r) = region(&d) {
+                if !self.regions[r] {
+                    self.regions[r] = true;
+                    self.regions_filled += 1;
+                }
+            }
+            if let Some(s) = crate::mavout::section80(&d) {
+                self.mask[s / 8] |= 1 << (s % 8);
+            }
+            self.last_dir = d;
+        }
+    }
+}
+
+/// Completion of one calibration run (from the start, or from a restart of the calibration), as
+/// MAG_CAL_PROGRESS and the JSON `progress` line report it.
+///
+/// * No region is counted before a centre is known (a calibration, or the pipeline's centre from
+///   points spread enough, [`crate::pipeline::Pipeline::mag_centre`]): directions about a guessed
+///   centre make a still sensor look like it filled half the sphere.
+/// * The regions are the union of all regions seen about the current centre (points the pipeline
+///   drops or re-bins later still count). When the centre moves, they are derived again from the
+///   kept points about the new centre.
+/// * Completion is a high-water mark: it never goes down within a run, also when a new centre
+///   shows fewer regions than the old one did.
+#[derive(Debug, Clone)]
+pub struct Progress {
+    full_regions: usize,
+    map: Option<CoverageMap>,
+    /// The pipeline's magnetometer epoch the map holds the points of (see
+    /// [`crate::pipeline::Pipeline::take_fresh_mag`]).
+    epoch: u64,
+    high_water_pct: u8,
+}
+
+/// One progress report.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProgressReport {
+    /// High-water mark of filled regions / `full_regions`, 0..=100.
+    pub completion_pct: u8,
+    /// Regions (of [`REGIONS`]) filled about the current centre; 0 while no centre is known.
+    pub filled_regions: usize,
+    /// ArduPilot's 80-section completion mask about the current centre.
+    pub mask: [u8; 10],
+    /// Direction of the latest point about the centre (zero while no centre is known).
+    pub direction: Vec3,
+    /// Whether a centre is known.
+    pub centre_known: bool,
+}
+
+impl Progress {
+    /// `full_regions`: regions that count as 100 % (`daemon.progress_full_regions`, 1..=100).
+    pub fn new(full_regions: usize) -> Progress {
+        Progress {
+            full_regions: full_regions.clamp(1, REGIONS),
+            map: None,
+            epoch: 0,
+            high_water_pct: 0,
+        }
+    }
+
+    /// A new calibration run: no regions, completion back to zero.
+    pub fn restart(&mut self) {
+        *self = Progress::new(self.full_regions);
+    }
+
+    /// Completion so far in this run, percent.
+    pub fn completion_pct(&self) -> u8 {
+        self.high_water_pct
+    }
+
+    /// Take in the magnetometer points kept since the last call and report. `centre`: the current
+    /// centre, `None` while unknown; `epoch` and `fresh` as [`crate::pipeline::Pipeline::take_fresh_mag`]
+    /// gives them; `all` the kept points (called only when the centre or the epoch changed).
+    pub fn update(
+        &mut self,
+        centre: Option<Vec3>,
+        epoch: u64,
+        fresh: &[Vec3],
+        all: impl FnOnce() -> Vec<Vec3>,
+    ) -> ProgressReport {
+        let Some(c) = centre.filter(|c| c.iter().all(|v| v.is_finite())) else {
+            self.map = None;
+            return ProgressReport {
+                completion_pct: self.high_water_pct,
+                filled_regions: 0,
+                mask: [0; 10],
+                direction: [0.0; 3],
+                centre_known: false,
+            };
+        };
+        match &mut self.map {
+            // Same centre and the same kept set: only the new points.
+            Some(m) if m.centre == c && self.epoch == epoch => m.add(fresh),
+            // Same centre, points dropped or re-binned: the union with what was seen before.
+            Some(m) if m.centre == c => m.add(&all()),
+            // A new centre: the regions about it, from the points kept.
+            slot => {
+                let m = slot.insert(CoverageMap::new(c));
+                m.add(&all());
+            }
+        }
+        self.epoch = epoch;
+        let m = self.map.as_ref().expect("set above");
+        let pct = ((100 * m.regions_filled) / self.full_regions).min(100) as u8;
+        self.high_water_pct = self.high_water_pct.max(pct);
+        ProgressReport {
+            completion_pct: self.high_water_pct,
+            filled_regions: m.regions_filled,
+            mask: m.mask,
+            direction: m.last_dir,
+            centre_known: true,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn coverage_map_built_in_steps_matches_the_full_scan() {
+        // Points on a sphere of radius 40 about c, over about two thirds of the directions.
+        let c = [12.0, -7.0, 30.0];
+        let pts: Vec<Vec3> = (0..1500)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f64 + 0.5) / 1500.0;
+                let phi = i as f64 * 2.399_963;
+                let r = (1.0 - z * z).sqrt();
+                [40.0 * r * phi.cos(), 40.0 * r * phi.sin(), 40.0 * z]
+            })
+            .filter(|d| d[2] < 15.0)
+            .map(|d| [d[0] + c[0], d[1] + c[1], d[2] + c[2]])
+            .collect();
+        let mut stepped = CoverageMap::new(c);
+        for chunk in pts.chunks(97) {
+            stepped.add(chunk);
+        }
+        let dirs: Vec<Vec3> = pts
+            .iter()
+            .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
+            .collect();
+        let full = coverage(&dirs, &[0.0; 3]);
+        let (mask, sections) = crate::mavout::completion_mask(dirs.iter().copied());
+        assert_eq!(stepped.regions_filled, full.filled);
+        assert!(full.filled > 30 && full.filled < 100, "{}", full.filled);
+        assert_eq!(stepped.mask, mask);
+        assert!(sections > 20 && sections < 80, "{sections}");
+        assert_eq!(stepped.last_dir, *dirs.last().unwrap());
+    }
 
     #[test]
     fn direction_bins_stay_bounded_and_spread() {
@@ -218,6 +395,59 @@ mod tests {
         assert!(b.cell_deg() > 1.0);
         // Still the whole sphere.
         assert_eq!(coverage(&b.points(), &[10.0, -5.0, 3.0]).filled, REGIONS);
+    }
+
+    /// Points on a sphere of radius 50 about `c` with polar angle below `max_deg` (Fibonacci spiral).
+    fn cap(c: Vec3, max_deg: f64, n: usize) -> Vec<Vec3> {
+        let zmin = max_deg.to_radians().cos();
+        (0..n)
+            .map(|i| {
+                let z = 1.0 - (1.0 - zmin) * (i as f64 + 0.5) / n as f64;
+                let r = (1.0 - z * z).sqrt();
+                let phi = i as f64 * 2.399_963;
+                [
+                    c[0] + 50.0 * r * phi.cos(),
+                    c[1] + 50.0 * r * phi.sin(),
+                    c[2] + 50.0 * z,
+                ]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn progress_counts_nothing_without_a_centre_and_never_goes_down_in_a_run() {
+        let c = [10.0, -20.0, 30.0];
+        let half = cap(c, 90.0, 2000);
+        let mut p = Progress::new(80);
+        // No centre: nothing counted, whatever the points.
+        let r = p.update(None, 0, &half, || half.clone());
+        assert_eq!(
+            (r.completion_pct, r.filled_regions, r.centre_known),
+            (0, 0, false)
+        );
+        // About the centre: the upper hemisphere (51 regions: the cap, band 1 and band 2).
+        let r = p.update(Some(c), 1, &[], || half.clone());
+        assert_eq!(r.filled_regions, 50);
+        assert_eq!(r.completion_pct, 62);
+        // The pipeline dropped half of its points (new epoch): the regions seen stay.
+        let fewer: Vec<Vec3> = half.iter().step_by(2).copied().collect();
+        let r = p.update(Some(c), 2, &[], || fewer.clone());
+        assert_eq!(r.filled_regions, 50);
+        // A fresh point in the same epoch is added.
+        let south = [c[0], c[1], c[2] - 50.0];
+        let r = p.update(Some(c), 2, &[south], || unreachable!());
+        assert_eq!(r.filled_regions, 51);
+        assert_eq!(r.direction, [0.0, 0.0, -50.0]);
+        // A new centre far below: the points all point up about it, the completion stays.
+        let moved = [c[0], c[1], c[2] - 200.0];
+        let r = p.update(Some(moved), 2, &[], || fewer.clone());
+        assert!(r.filled_regions < 20, "{}", r.filled_regions);
+        assert_eq!(r.completion_pct, 63);
+        // A restarted run starts from zero.
+        p.restart();
+        assert_eq!(p.completion_pct(), 0);
+        let r = p.update(Some(c), 2, &[south], || vec![south]);
+        assert_eq!((r.filled_regions, r.completion_pct), (1, 1));
     }
 
     #[test]

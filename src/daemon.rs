@@ -5,7 +5,7 @@
 //! link tasks ──(bounded mpsc, drops counted)──> run loop ──> Pipeline::push
 //!                                                  │  Calibrator ─> OrientationFilter (fused attitude)
 //!                                                  │  refit due: snapshot ─> spawn_blocking(fit_all)
-//!                                                  │  result: accept if checks pass and not worse on recent data
+//!                                                  │  result: accept if checks pass and not worse on held-out points
 //!                                                  ├─> MAVLink back to the links (progress, report, heading,
 //!                                                  │   ATTITUDE_QUATERNION / ATTITUDE)
 //!                                                  ├─> JSON lines: a bounded queue per consumer
@@ -15,6 +15,7 @@
 
 use crate::clock::{ClockSettings, SourceClock};
 use crate::config::{Config, SourceConfig};
+use crate::coverage::Progress;
 use crate::decode::{InstanceChoice, MessageConverter};
 use crate::error::Error;
 use crate::fusion::OrientationFilter;
@@ -125,32 +126,87 @@ fn rms_on(cal: &Calibration, radius: f64, pts: &[Vec3]) -> f64 {
         .sqrt()
 }
 
-/// Accept a new fit when it passed its checks and is not worse than the current one on the same
-/// recent data. Returns the reason when it is not accepted.
-pub fn accept(
-    new: &SensorResult,
-    current: Option<&SensorCalibration>,
-    recent: &[Vec3],
-) -> Result<(), String> {
-    let Some(nc) = new.calibration else {
-        return Err(format!(
-            "failed {}: {}",
-            new.report.failure.as_deref().unwrap_or("?"),
-            new.report.detail.as_deref().unwrap_or("")
-        ));
-    };
-    if let Some(cur) = current.filter(|c| c.status == "ok") {
-        if let Some(cc) = StoredCalibration::cal(&Some(cur.clone())) {
-            let (rn, rc) = (
-                rms_on(&nc, new.report.radius, recent),
-                rms_on(&cc, cur.radius, recent),
-            );
-            if rn > rc * 1.02 + 1e-12 {
-                return Err(format!(
-                    "worse on recent data than the current calibration (rms {rn:.4} vs {rc:.4})"
-                ));
+/// The live service holds every this-many-th kept magnetometer point and pose out of its fits
+/// ([`crate::pipeline::hold_out`]): a new calibration is judged on those against the current one.
+pub const HOLD_OUT_EVERY: usize = 5;
+
+/// How much worse (relative RMS) on the held-out points than the current calibration a new one may
+/// be and still replace it (two fits of the same field differ by noise).
+pub const ACCEPT_MARGIN: f64 = 0.02;
+
+/// Whether a failed magnetometer fit is reported (MAG_CAL_REPORT with a failure status), as
+/// ArduPilot's calibrator does: only once the run's completion reached 100 % (the data covered the
+/// sphere, about a known centre) and the fit still failed for a reason other than still collecting.
+pub fn failure_report_due(mag: &SensorCalibration, completion_pct: u8) -> bool {
+    let collecting = matches!(
+        mag.failure.as_deref(),
+        Some("coverage") | Some("not_enough_samples")
+    );
+    mag.status != "ok" && !collecting && completion_pct >= 100
+}
+
+/// Why a new calibration did not replace the current one.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NotReplaced {
+    /// The fit failed a check (`failure`: the report's reason).
+    Failed { failure: String, detail: String },
+    /// A calibration is in use and the new fit had no points held out to compare them on.
+    NothingHeldOut,
+    /// Worse than the current calibration on the held-out points (RMS of |calibrated| - radius).
+    WorseOnHeldOut {
+        points: usize,
+        rms_new: f64,
+        rms_current: f64,
+    },
+}
+
+impl std::fmt::Display for NotReplaced {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            NotReplaced::Failed { failure, detail } => write!(f, "failed {failure}: {detail}"),
+            NotReplaced::NothingHeldOut => {
+                write!(f, "too few points to hold out a comparison with the current calibration")
             }
+            NotReplaced::WorseOnHeldOut {
+                points,
+                rms_new,
+                rms_current,
+            } => write!(
+                f,
+                "worse than the current calibration on {points} points held out of the fit (rms {rms_new:.4} vs {rms_current:.4})"
+            ),
         }
+    }
+}
+
+/// Whether a new fit replaces the current calibration: it passed its checks, and (when there is a
+/// current one) it is better on the points held out of its fit, or worse by at most
+/// [`ACCEPT_MARGIN`].
+pub fn accept(new: &SensorResult, current: Option<&SensorCalibration>) -> Result<(), NotReplaced> {
+    let Some(nc) = new.calibration else {
+        return Err(NotReplaced::Failed {
+            failure: new.report.failure.clone().unwrap_or_else(|| "?".into()),
+            detail: new.report.detail.clone().unwrap_or_default(),
+        });
+    };
+    let current = current.filter(|c| c.status == "ok");
+    let Some((cur, cc)) =
+        current.and_then(|c| StoredCalibration::cal(&Some(c.clone())).map(|cc| (c, cc)))
+    else {
+        return Ok(());
+    };
+    let held = &new.held_out;
+    if held.is_empty() {
+        return Err(NotReplaced::NothingHeldOut);
+    }
+    let rms_new = rms_on(&nc, new.report.radius, held);
+    let rms_current = rms_on(&cc, cur.radius, held);
+    if rms_new > rms_current * (1.0 + ACCEPT_MARGIN) + 1e-12 {
+        return Err(NotReplaced::WorseOnHeldOut {
+            points: held.len(),
+            rms_new,
+            rms_current,
+        });
     }
     Ok(())
 }
@@ -392,50 +448,6 @@ async fn tcp_writer(
     }
 }
 
-/// Which parts of the sphere the kept magnetometer points cover, about a centre: the coverage
-/// regions ([`crate::coverage::region`]) and ArduPilot's 80 sections ([`mavout::section80`]). Built
-/// up point by point, so a progress report costs the points kept since the last one, not all.
-#[derive(Debug, Clone)]
-struct CoverageMap {
-    /// The centre, and the pipeline's magnetometer epoch the points came from.
-    basis: (Vec3, u64),
-    regions: [bool; crate::coverage::REGIONS],
-    regions_filled: usize,
-    /// ArduPilot's completion mask.
-    mask: [u8; 10],
-    /// Direction of the last point added, about the centre.
-    last_dir: [f64; 3],
-}
-
-impl CoverageMap {
-    fn new(centre: Vec3, epoch: u64) -> CoverageMap {
-        CoverageMap {
-            basis: (centre, epoch),
-            regions: [false; crate::coverage::REGIONS],
-            regions_filled: 0,
-            mask: [0; 10],
-            last_dir: [0.0; 3],
-        }
-    }
-
-    fn add(&mut self, points: &[Vec3]) {
-        let c = self.basis.0;
-        for p in points {
-            let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
-            if let Some(r) = crate::coverage::region(&d) {
-                if !self.regions[r] {
-                    self.regions[r] = true;
-                    self.regions_filled += 1;
-                }
-            }
-            if let Some(s) = mavout::section80(&d) {
-                self.mask[s / 8] |= 1 << (s % 8);
-            }
-            self.last_dir = d;
-        }
-    }
-}
-
 /// A periodic output: served at the ticks of the run loop's clock when its period is a whole number
 /// of clock periods, else by a timer of its own. Both are on the time grid from `epoch`.
 struct Output {
@@ -560,8 +572,8 @@ struct State {
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
-    /// Coverage of the kept magnetometer points, for the progress reports (none before the first).
-    coverage_map: Option<CoverageMap>,
+    /// Completion of the calibration run, for the progress reports.
+    progress: Progress,
     /// The calibration store and the report, written off the run loop.
     store_writes: Writes,
     report_writes: Writes,
@@ -576,7 +588,6 @@ struct State {
     start: tokio::time::Instant,
     declination: Option<f64>,
     last_results: Option<FitResults>,
-    progress_pct: u8,
     mag_awaiting_params: u64,
     /// Calibrated vectors since the last heading publication.
     window: Averager,
@@ -1035,60 +1046,30 @@ impl State {
         {
             return;
         }
-        let (epoch, fresh) = self.pipe.take_fresh_mag();
-        let centre = match self.calibrator.mag {
-            Some(c) => Some(c.offset),
-            None => crate::fit::sphere_start(&self.pipe.mag_points())
-                .map(|s| [s.centre[0], s.centre[1], s.centre[2]]),
-        };
-        let Some(c) = centre else { return };
-        // Only the points kept since the last time, unless the centre moved or points were dropped.
-        let map = match &mut self.coverage_map {
-            Some(m) if m.basis == (c, epoch) => {
-                m.add(&fresh);
-                m
-            }
-            slot => {
-                let m = slot.insert(CoverageMap::new(c, epoch));
-                m.add(&self.pipe.mag_points());
-                m
-            }
-        };
-        let pct =
-            ((100 * map.regions_filled) / self.cfg.daemon.progress_full_regions).min(100) as u8;
-        self.progress_pct = self.progress_pct.max(pct);
-        let dir = map.last_dir.map(|v| v as f32);
-        let msg = mavout::mag_cal_progress(0, self.progress_pct, map.mask, dir, 1);
-        let filled_regions = map.regions_filled;
+        let centre = self.calibrator.mag.map(|c| c.offset);
+        let p = self.pipe.progress(&mut self.progress, centre);
+        let dir = p.direction.map(|v| v as f32);
+        let msg = mavout::mag_cal_progress(0, p.completion_pct, p.mask, dir, 1);
         self.send_mav(&[msg]).await;
         let ev = LiveEvent::Progress {
             sensor: "mag".into(),
-            completion_pct: self.progress_pct as f64,
-            filled_regions,
+            completion_pct: p.completion_pct as f64,
+            filled_regions: p.filled_regions,
         };
         self.send_json(&ev).await;
     }
 
     /// A refit came back: decide, store, publish.
-    async fn on_fit(
-        &mut self,
-        input_mag: Vec<Vec3>,
-        input_accel: Vec<Vec3>,
-        t: f64,
-        results: FitResults,
-    ) {
+    async fn on_fit(&mut self, t: f64, results: FitResults) {
         let mut changed = false;
         let mut mag_passed = false;
-        for (name, res, recent) in [
-            ("mag", &results.mag, &input_mag),
-            ("accel", &results.accel, &input_accel),
-        ] {
+        for (name, res) in [("mag", &results.mag), ("accel", &results.accel)] {
             let current = if name == "mag" {
                 self.store.mag.clone()
             } else {
                 self.store.accel.clone()
             };
-            match accept(res, current.as_ref(), recent) {
+            match accept(res, current.as_ref()) {
                 // The magnetometer's goes to the calibration run (`mag_event`), which installs it
                 // or holds it for the ground station.
                 Ok(()) if name == "mag" => mag_passed = true,
@@ -1108,17 +1089,13 @@ impl State {
         // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
         // data covered the sphere and the fit still failed (not while still collecting).
         let mag = &results.mag.report;
-        let collecting = matches!(
-            mag.failure.as_deref(),
-            Some("coverage") | Some("not_enough_samples")
-        );
         if mag_passed {
             let ev = MagCalEvent::FitPassed {
                 cal: Box::new(mag.clone()),
-                complete: self.progress_pct >= 100,
+                complete: self.progress.completion_pct() >= 100,
             };
             changed |= self.mag_event(ev, None).await;
-        } else if mag.status != "ok" && !collecting && self.progress_pct >= 100 {
+        } else if failure_report_due(mag, self.progress.completion_pct()) {
             self.mag_failed = Some(mag.clone());
             self.mag_event(MagCalEvent::FitFailed, None).await;
         }
@@ -1248,8 +1225,7 @@ impl State {
             Err(e) => tracing::error!("calibration run not restarted: {e}"),
         }
         self.pipe_generation += 1;
-        self.coverage_map = None;
-        self.progress_pct = 0;
+        self.progress.restart();
         self.status(6, "mag calibration run started".into()).await;
     }
 
@@ -1591,7 +1567,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         InstanceChoice::Named(cfg.input.instance.clone())
     };
     let mut st = State {
-        pipe: Pipeline::new(&cfg)?,
+        pipe: Pipeline::new(&cfg)?.with_hold_out(HOLD_OUT_EVERY),
         conv: MessageConverter::new(choice, cfg.input.raw_imu_scale),
         sample_clocks: Vec::new(),
         calibrator: State::calibrator_from_store(&store, declination),
@@ -1607,7 +1583,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         mag_failed: None,
         pipe_generation: 0,
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
-        coverage_map: None,
+        progress: Progress::new(cfg.daemon.progress_full_regions),
         store_writes: Writes::default(),
         report_writes: Writes::default(),
         links,
@@ -1621,7 +1597,6 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         start: tokio::time::Instant::now(),
         declination,
         last_results: None,
-        progress_pct: 0,
         mag_awaiting_params: 0,
         reported_mag: None,
         window: Averager::default(),
@@ -1661,7 +1636,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     });
     let mut clock = tokio::time::interval_at(epoch, clock_period);
     clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    type FitJob = tokio::task::JoinHandle<(Vec<Vec3>, Vec<Vec3>, f64, FitResults)>;
+    type FitJob = tokio::task::JoinHandle<(f64, FitResults)>;
     let mut fit_job: Option<FitJob> = None;
     // The calibration run the fit in flight belongs to (`State::pipe_generation`).
     let mut fit_gen = 0u64;
@@ -1683,9 +1658,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             let t = st.pipe.last_t;
             fit_gen = st.pipe_generation;
             fit_job = Some(tokio::task::spawn_blocking(move || {
-                let r = fit_all(&input, &cfg2);
-                let accel_pts = input.poses.iter().map(|p| p.accel).collect();
-                (input.mag_points, accel_pts, t, r)
+                (t, fit_all(&input, &cfg2))
             }));
         }
         // Whatever this turn queued for the links goes out before the loop waits again.
@@ -1726,13 +1699,13 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                                     if let Some(l) = st.links.get_mut(link) { l.ended = true; }
                                     if st.links.iter().all(|l| l.replay && l.ended) {
                                         // Every source was a replay and all have ended: final fit, then stop.
-                                        if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) { if let Ok((m, a, t, r)) = j.await { st.on_fit(m, a, t, r).await; } }
+                                        if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) { if let Ok((t, r)) = j.await { st.on_fit(t, r).await; } }
                                         st.pipe.finish_poses();
                                         let input = st.pipe.snapshot();
                                         let cfg2 = st.cfg.clone();
                                         let t = st.pipe.last_t;
-                                        if let Ok((m, a, r)) = tokio::task::spawn_blocking(move || { let r = fit_all(&input, &cfg2); (input.mag_points.clone(), input.poses.iter().map(|p| p.accel).collect(), r) }).await {
-                                            st.on_fit(m, a, t, r).await;
+                                        if let Ok(r) = tokio::task::spawn_blocking(move || fit_all(&input, &cfg2)).await {
+                                            st.on_fit(t, r).await;
                                         }
                                         break 'main;
                                     }
@@ -1745,7 +1718,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
                 fit_job = None;
                 match r {
-                    Ok((m, a, t, res)) if fit_gen == st.pipe_generation => st.on_fit(m, a, t, res).await,
+                    Ok((t, res)) if fit_gen == st.pipe_generation => st.on_fit(t, res).await,
                     Ok(_) => tracing::info!("a fit from before the calibration run restarted: disregarded"),
                     Err(e) => tracing::error!("fit task failed: {e}"),
                 }
@@ -1785,8 +1758,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
     let _ = link_stop_tx.send(true);
     if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) {
-        if let Ok(Ok((m, a, t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
-            st.on_fit(m, a, t, r).await;
+        if let Ok(Ok((t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
+            st.on_fit(t, r).await;
         }
     }
     // Writes in flight finish first, so an older file cannot land after the final one.
@@ -1872,6 +1845,75 @@ mod tests {
     }
 
     #[test]
+    fn daemon_replaces_a_calibration_only_when_better_on_points_held_out_of_the_fit() {
+        let sim = crate::sim::simulate(&crate::sim::Scenario::named("tumble").unwrap(), 5);
+        let cfg = Config::default();
+        let mut pipe = Pipeline::new(&cfg).unwrap().with_hold_out(HOLD_OUT_EVERY);
+        for s in &sim.samples {
+            pipe.push(s);
+        }
+        pipe.finish_poses();
+        let input = pipe.snapshot();
+        let r = fit_all(&input, &cfg);
+        let n = input.mag_points.len();
+        // Every 5th kept point held out, the fit made on the rest.
+        assert_eq!(r.mag.held_out.len(), n.div_ceil(HOLD_OUT_EVERY));
+        assert!(r.mag.report.samples_used <= n - r.mag.held_out.len());
+        let every_fifth: Vec<Vec3> = input
+            .mag_points
+            .iter()
+            .step_by(HOLD_OUT_EVERY)
+            .copied()
+            .collect();
+        assert_eq!(r.mag.held_out, every_fifth);
+        assert_eq!(r.mag.report.status, "ok", "{:?}", r.mag.report.detail);
+        let truth = &sim.truth.mag;
+        let current = |offset: Vec3| SensorCalibration {
+            offset,
+            matrix: truth.matrix,
+            ..r.mag.report.clone()
+        };
+        // Nothing to compare with: its checks decide.
+        assert_eq!(accept(&r.mag, None), Ok(()));
+        // A current calibration 3 uT off: replaced.
+        let off = [truth.offset[0] + 3.0, truth.offset[1], truth.offset[2]];
+        assert_eq!(accept(&r.mag, Some(&current(off))), Ok(()));
+        // A new one 1 uT off against the true one: worse on the held-out points, kept out.
+        let mut worse = r.mag.clone();
+        let c = worse.calibration.as_mut().unwrap();
+        c.offset[1] += 1.0;
+        match accept(&worse, Some(&current(truth.offset))) {
+            Err(NotReplaced::WorseOnHeldOut {
+                points,
+                rms_new,
+                rms_current,
+            }) => {
+                assert_eq!(points, r.mag.held_out.len());
+                assert!(
+                    rms_new > rms_current * (1.0 + ACCEPT_MARGIN),
+                    "{rms_new} {rms_current}"
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        // No points held out: no comparison, the current one stays.
+        let mut none = r.mag.clone();
+        none.held_out.clear();
+        assert_eq!(
+            accept(&none, Some(&current(off))),
+            Err(NotReplaced::NothingHeldOut)
+        );
+        // A failed fit never replaces anything.
+        let mut failed = r.mag.clone();
+        failed.calibration = None;
+        failed.report.failure = Some("coverage".into());
+        assert!(matches!(
+            accept(&failed, None),
+            Err(NotReplaced::Failed { .. })
+        ));
+    }
+
+    #[test]
     fn daemon_attitude_rates_are_means_between_publications() {
         let mut r = RateMean::default();
         assert_eq!(r.take(), None);
@@ -1882,37 +1924,6 @@ mod tests {
         assert_eq!(r.take(), Some([0.2, 0.1, 0.0]));
         r.add(&[1.0, 1.0, 1.0]);
         assert_eq!(r.take(), Some([1.0, 1.0, 1.0]));
-    }
-
-    #[test]
-    fn daemon_coverage_map_built_in_steps_matches_the_full_scan() {
-        // Points on a sphere of radius 40 about c, over about two thirds of the directions.
-        let c = [12.0, -7.0, 30.0];
-        let pts: Vec<Vec3> = (0..1500)
-            .map(|i| {
-                let z = 1.0 - 2.0 * (i as f64 + 0.5) / 1500.0;
-                let phi = i as f64 * 2.399_963;
-                let r = (1.0 - z * z).sqrt();
-                [40.0 * r * phi.cos(), 40.0 * r * phi.sin(), 40.0 * z]
-            })
-            .filter(|d| d[2] < 15.0)
-            .map(|d| [d[0] + c[0], d[1] + c[1], d[2] + c[2]])
-            .collect();
-        let mut stepped = CoverageMap::new(c, 3);
-        for chunk in pts.chunks(97) {
-            stepped.add(chunk);
-        }
-        let dirs: Vec<Vec3> = pts
-            .iter()
-            .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
-            .collect();
-        let full = crate::coverage::coverage(&dirs, &[0.0; 3]);
-        let (mask, sections) = mavout::completion_mask(dirs.iter().copied());
-        assert_eq!(stepped.regions_filled, full.filled);
-        assert!(full.filled > 30 && full.filled < 100, "{}", full.filled);
-        assert_eq!(stepped.mask, mask);
-        assert!(sections > 20 && sections < 80, "{sections}");
-        assert_eq!(stepped.last_dir, *dirs.last().unwrap());
     }
 
     /// A TCP consumer that accepts and never reads: queueing lines for it never waits, what its

@@ -31,6 +31,10 @@ pub enum FitFailure {
     Disturbed,
     /// An axis is saturated (clipped at one value) or stuck.
     AxisFault,
+    /// Worse on data held out of the fit than the simpler model it would replace.
+    HeldOut,
+    /// Needs another sensor's calibration first (the gyro scale: the accelerometer's).
+    NeedsCalibration,
 }
 
 impl FitFailure {
@@ -46,6 +50,8 @@ impl FitFailure {
             FitFailure::DidNotConverge => "did_not_converge",
             FitFailure::Disturbed => "disturbed",
             FitFailure::AxisFault => "axis_fault",
+            FitFailure::HeldOut => "held_out",
+            FitFailure::NeedsCalibration => "needs_calibration",
         }
     }
 }

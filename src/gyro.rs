@@ -12,9 +12,15 @@
 //!   the accelerometer's axes, so all 9 entries are determined when the rotations between poses
 //!   turn about varied axes; with too few or too similar rotations the fit reports failure.
 //!
+//! `K` is published only when it is checked: the rotation axes must span all three directions (about
+//! one axis, or axes in one plane, the scale about the others cannot be determined), and a second
+//! fit on every other rotation must carry gravity over the rotations it did not see at least about
+//! as well as the bias alone ([`HELD_OUT_MARGIN`]); otherwise a named failure ([`ScaleFailure`]).
+//!
 //! The accelerometer readings should be calibrated first (the directions matter, not the norm): pass
 //! the accelerometer calibration, or identity when the readings are already calibrated.
 
+use crate::fit::FitFailure;
 use crate::gate::{GateConfig, Pose, StaticDetector};
 use crate::model::Calibration;
 use crate::types::{Sample, Vec3};
@@ -165,7 +171,7 @@ pub struct GyroFit {
     /// Smallest singular value of the normal matrix relative to the largest: how well the
     /// rotations determine all 9 entries (near 0: badly).
     pub conditioning: f64,
-    /// Error on rotations held out of a second fit (when there were enough rotations).
+    /// Error on rotations held out of a second fit ([`fit_scale`] returns no fit without it).
     pub held_out: Option<HeldOut>,
 }
 
@@ -460,61 +466,189 @@ pub struct HeldOut {
     pub rms_after_deg: f64,
 }
 
+/// Why no gyro scale is published, with the held-out figures when the check was made.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScaleFailure {
+    pub failure: FitFailure,
+    pub detail: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out: Option<HeldOut>,
+}
+
+impl ScaleFailure {
+    fn new(failure: FitFailure, detail: String) -> ScaleFailure {
+        ScaleFailure {
+            failure,
+            detail,
+            held_out: None,
+        }
+    }
+}
+
+impl std::fmt::Display for ScaleFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.failure.name(), self.detail)
+    }
+}
+
+/// The fitted `K` may do this much worse (relative RMS) than the bias-only model on the held-out
+/// rotations and still be published (the half fit is noisier than the full one).
+pub const HELD_OUT_MARGIN: f64 = 0.1;
+
+/// Rotations off the main axis (or off the main plane) below this share of the RMS rotation count as
+/// none: about 6 degrees of spread.
+pub const MIN_AXIS_SPREAD: f64 = 0.1;
+
+/// Which directions the rotations between poses turn about.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum AxisSpan {
+    /// About one axis only (unit vector, sensor axes).
+    OneAxis(Vec3),
+    /// About axes in one plane only (its normal).
+    OnePlane(Vec3),
+    /// All three directions.
+    Full,
+}
+
+impl AxisSpan {
+    /// The failure a scale fit on such rotations has, if any.
+    pub fn failure(&self, rotations: usize) -> Option<ScaleFailure> {
+        let f = |v: &Vec3| format!("[{:.2}, {:.2}, {:.2}]", v[0], v[1], v[2]);
+        let detail = match self {
+            AxisSpan::OneAxis(a) => format!(
+                "rotations about one axis only ({rotations} rotations about {}): the scale about the other axes cannot be determined; turn about other axes too",
+                f(a)
+            ),
+            AxisSpan::OnePlane(n) => format!(
+                "rotations about axes in one plane only ({rotations} rotations, none about {}): the scale about it cannot be determined; turn about it too",
+                f(n)
+            ),
+            AxisSpan::Full => return None,
+        };
+        Some(ScaleFailure::new(FitFailure::NotIdentifiable, detail))
+    }
+}
+
+/// The span of the rotation vectors (axis times angle, from the gyro integrated with `k`): the
+/// eigenvalues of their scatter matrix against [`MIN_AXIS_SPREAD`].
+fn axis_span(segs: &[Segment], k: &Matrix3<f64>) -> AxisSpan {
+    let mut m = Matrix3::zeros();
+    for s in segs {
+        let r = integrate(s, k).scaled_axis();
+        m += r * r.transpose();
+    }
+    let e = m.symmetric_eigen();
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| e.eigenvalues[b].total_cmp(&e.eigenvalues[a]));
+    let l = order.map(|i| e.eigenvalues[i].max(0.0));
+    let v = |i: usize| {
+        let c = e.eigenvectors.column(order[i]);
+        [c[0], c[1], c[2]]
+    };
+    let small = |x: f64| !(x > MIN_AXIS_SPREAD * MIN_AXIS_SPREAD * l[0]);
+    if small(l[1]) {
+        AxisSpan::OneAxis(v(0))
+    } else if small(l[2]) {
+        AxisSpan::OnePlane(v(2))
+    } else {
+        AxisSpan::Full
+    }
+}
+
+/// The span of the rotations between the static poses ([`AxisSpan`]), with the bias and the
+/// accelerometer calibration (identity for raw directions) that select them, as [`fit_scale`] does.
+/// `None` without rotations.
+pub fn rotation_axes(
+    samples: &[Sample],
+    poses: &[Pose],
+    bias: &GyroBias,
+    accel: &Calibration,
+    opt: &ScaleOptions,
+) -> Option<(AxisSpan, usize)> {
+    let segs = segments(samples, poses, bias, accel, opt);
+    if segs.is_empty() {
+        return None;
+    }
+    let k0 = start_k(&segs, opt);
+    Some((axis_span(&segs, &k0), segs.len()))
+}
+
+/// The starting `K`: identity for a gyro in rad/s, else the best isotropic scale.
+fn start_k(segs: &[Segment], opt: &ScaleOptions) -> Matrix3<f64> {
+    if opt.raw_in_counts {
+        Matrix3::identity() * isotropic_scale(segs)
+    } else {
+        Matrix3::identity()
+    }
+}
+
 /// Scale and misalignment from the rotations between consecutive static poses (`poses` in time order,
 /// from [`static_poses`] or the pipeline), with the bias from [`bias_from_poses`] and the accelerometer
 /// calibration that makes the pose means into directions.
 ///
 /// `K` starts from the identity when `raw_in_counts` is false, otherwise from the best isotropic
 /// scale (a raw-count gyro, e.g. imu_tk's Xsens at about 6258 counts per rad/s, needs no nominal
-/// sensitivity). "Before" figures use that same starting `K`. With at least `2 * min_segments`
-/// rotations, a second fit on every other rotation is scored on the rest ([`GyroFit::held_out`]).
+/// sensitivity). "Before" figures use that same starting `K`. It needs `2 * min_segments`
+/// rotations about all three directions ([`AxisSpan`]); a second fit on every other rotation is
+/// scored on the rest ([`GyroFit::held_out`]) and must not be worse than the starting `K` there by
+/// more than [`HELD_OUT_MARGIN`]. Each refusal is a [`ScaleFailure`] naming its reason.
 pub fn fit_scale(
     samples: &[Sample],
     poses: &[Pose],
     bias: &GyroBias,
     accel: &Calibration,
     opt: &ScaleOptions,
-) -> Result<GyroFit, String> {
+) -> Result<GyroFit, ScaleFailure> {
     let segs = segments(samples, poses, bias, accel, opt);
-    if segs.len() < opt.min_segments {
-        return Err(format!(
-            "{} rotations of at least {} deg between static poses; {} needed",
-            segs.len(),
-            opt.min_rotation_deg,
-            opt.min_segments
+    if segs.len() < 2 * opt.min_segments {
+        return Err(ScaleFailure::new(
+            FitFailure::NotEnoughSamples,
+            format!(
+                "{} rotations of at least {} deg between static poses; {} needed (half of them held out to check the fit)",
+                segs.len(),
+                opt.min_rotation_deg,
+                2 * opt.min_segments
+            ),
         ));
     }
-    let start = |segs: &[Segment]| -> Matrix3<f64> {
-        if opt.raw_in_counts {
-            Matrix3::identity() * isotropic_scale(segs)
-        } else {
-            Matrix3::identity()
-        }
-    };
-    let k0 = start(&segs);
+    let k0 = start_k(&segs, opt);
+    if let Some(f) = axis_span(&segs, &k0).failure(segs.len()) {
+        return Err(f);
+    }
     let (k, conditioning) = fit_k(&segs, &k0);
     if conditioning < opt.min_conditioning {
-        return Err(format!(
-            "the rotations between poses do not determine all 9 scale/misalignment terms (conditioning {conditioning:.1e}); turn about more varied axes"
+        return Err(ScaleFailure::new(
+            FitFailure::NotIdentifiable,
+            format!(
+                "the rotations between poses do not determine all 9 scale/misalignment terms (conditioning {conditioning:.1e}); turn about more varied axes"
+            ),
         ));
     }
-    let held_out = (segs.len() >= 2 * opt.min_segments).then(|| {
-        let (mut fit, mut test) = (Vec::new(), Vec::new());
-        for (i, s) in segs.iter().enumerate() {
-            if i % 2 == 0 {
-                fit.push(s.clone());
-            } else {
-                test.push(s.clone());
-            }
+    let (mut fit, mut test) = (Vec::new(), Vec::new());
+    for (i, s) in segs.iter().enumerate() {
+        if i % 2 == 0 {
+            fit.push(s.clone());
+        } else {
+            test.push(s.clone());
         }
-        let k0 = start(&fit);
-        let (kf, _) = fit_k(&fit, &k0);
-        HeldOut {
-            segments: test.len(),
-            rms_before_deg: rms_deg(&test, &k0),
-            rms_after_deg: rms_deg(&test, &kf),
-        }
-    });
+    }
+    let k0h = start_k(&fit, opt);
+    let (kf, _) = fit_k(&fit, &k0h);
+    let held_out = HeldOut {
+        segments: test.len(),
+        rms_before_deg: rms_deg(&test, &k0h),
+        rms_after_deg: rms_deg(&test, &kf),
+    };
+    if !(held_out.rms_after_deg <= held_out.rms_before_deg * (1.0 + HELD_OUT_MARGIN)) {
+        return Err(ScaleFailure {
+            failure: FitFailure::HeldOut,
+            detail: format!(
+                "on {} rotations held out of the fit the gravity direction is carried {:.2} deg off with the fitted scale, {:.2} deg with the bias alone: the rotations do not determine the scale (turn about more varied axes)",
+                held_out.segments, held_out.rms_after_deg, held_out.rms_before_deg
+            ),
+            held_out: Some(held_out),
+        });
+    }
     Ok(GyroFit {
         matrix: crate::model::mat_to_rows(&k),
         bias: *bias,
@@ -522,7 +656,7 @@ pub fn fit_scale(
         rms_after_deg: rms_deg(&segs, &k),
         segments: segs.len(),
         conditioning,
-        held_out,
+        held_out: Some(held_out),
     })
 }
 
@@ -677,6 +811,92 @@ mod tests {
         assert!(h.rms_after_deg < h.rms_before_deg, "{h:?}");
     }
 
+    /// A turntable scenario's log through the static detector: poses, bias, the true accel calibration.
+    fn turntable(attitudes: Vec<[f64; 3]>) -> (Vec<Sample>, Vec<Pose>, GyroBias, Calibration) {
+        let mut sc = Scenario::named("turntable").unwrap();
+        sc.attitudes = Some(attitudes);
+        let out = simulate(&sc, 3);
+        let poses = static_poses(&out.samples, &GateConfig::default());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        (out.samples, poses, bias, out.truth.accel.calibration())
+    }
+
+    /// Two turns about the body x axis in 40 deg steps, the axis tilted 20 deg from level.
+    fn about_x() -> Vec<[f64; 3]> {
+        (0..18)
+            .map(|i| [((i * 40) % 360) as f64 - 180.0, 20.0, 0.0])
+            .collect()
+    }
+
+    #[test]
+    fn rotations_about_one_axis_do_not_determine_the_scale() {
+        let (samples, poses, bias, accel) = turntable(about_x());
+        let opt = ScaleOptions::default();
+        let (span, n) = rotation_axes(&samples, &poses, &bias, &accel, &opt).unwrap();
+        let AxisSpan::OneAxis(a) = span else {
+            panic!("{span:?}")
+        };
+        assert!(a[0].abs() > 0.99, "{a:?}");
+        assert!(n >= 12, "{n} rotations");
+        let e = fit_scale(&samples, &poses, &bias, &accel, &opt).unwrap_err();
+        assert_eq!(e.failure, FitFailure::NotIdentifiable, "{e}");
+        assert!(e.detail.contains("one axis only"), "{e}");
+        // Turned about x and about y, never about z: the plane's normal is z.
+        let seg = |w: [f64; 3]| Segment {
+            steps: vec![(w, 1.0)],
+            up0: Vector3::z(),
+            up1: Vector3::z(),
+        };
+        let xy: Vec<Segment> = (0..12)
+            .map(|i| {
+                if i % 3 == 0 {
+                    seg([0.0, 0.7, 0.01])
+                } else {
+                    seg([0.9, 0.0, -0.01])
+                }
+            })
+            .collect();
+        let k = Matrix3::identity();
+        let AxisSpan::OnePlane(n) = axis_span(&xy, &k) else {
+            panic!("{:?}", axis_span(&xy, &k))
+        };
+        assert!(n[2].abs() > 0.99, "{n:?}");
+        let f = axis_span(&xy, &k).failure(12).unwrap();
+        assert_eq!(f.failure, FitFailure::NotIdentifiable);
+        assert!(f.detail.contains("one plane only"), "{f}");
+        // And about z too: all three.
+        let mut xyz = xy;
+        xyz.push(seg([0.0, 0.0, 0.5]));
+        assert_eq!(axis_span(&xyz, &k), AxisSpan::Full);
+    }
+
+    #[test]
+    fn a_scale_that_fails_its_held_out_check_is_refused() {
+        // Six positions (gravity along each axis), then three turns about x: all three directions
+        // are turned about, but most rotations about one, and the half fits cannot place the rest.
+        let mut att = vec![
+            [0.0, 0.0, 0.0],
+            [0.0, 90.0, 0.0],
+            [90.0, 0.0, 0.0],
+            [0.0, -90.0, 0.0],
+            [180.0, 0.0, 0.0],
+            [-90.0, 0.0, 0.0],
+        ];
+        att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
+        let (samples, poses, bias, accel) = turntable(att);
+        let opt = ScaleOptions::default();
+        let (span, _) = rotation_axes(&samples, &poses, &bias, &accel, &opt).unwrap();
+        assert_eq!(span, AxisSpan::Full);
+        let e = fit_scale(&samples, &poses, &bias, &accel, &opt).unwrap_err();
+        assert_eq!(e.failure, FitFailure::HeldOut, "{e}");
+        let h = e.held_out.expect("the check was made");
+        eprintln!(
+            "held out {:.2} -> {:.2} deg over {}",
+            h.rms_before_deg, h.rms_after_deg, h.segments
+        );
+        assert!(h.rms_after_deg > h.rms_before_deg * (1.0 + HELD_OUT_MARGIN));
+    }
+
     #[test]
     fn too_few_rotations_is_an_error() {
         let (samples, truth) = tumble(13);
@@ -684,11 +904,13 @@ mod tests {
         let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
         let e = fit_scale(
             &samples,
-            &poses[..3],
+            &poses[..8],
             &bias,
             &truth.accel.calibration(),
             &ScaleOptions::default(),
-        );
-        assert!(e.is_err());
+        )
+        .unwrap_err();
+        // Seven rotations: enough for a fit, not for a fit and its held-out check.
+        assert_eq!(e.failure, FitFailure::NotEnoughSamples, "{e}");
     }
 }

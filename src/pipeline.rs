@@ -7,7 +7,7 @@
 //! automatic model choice, acceptance checks, gyro bias from poses.
 
 use crate::config::{AcceptLimits, Config};
-use crate::coverage::{coverage, Coverage, DirectionBins};
+use crate::coverage::{coverage, Coverage, DirectionBins, Progress, ProgressReport};
 use crate::fit::{fit_norm, significantly_better, six_position, FitFailure, NormFitOptions};
 use crate::gate::{Pose, Prefilter3, StaticDetector};
 use crate::model::{Calibration, ModelKind};
@@ -24,6 +24,9 @@ pub struct FitInput {
     pub gyro_units: Unit,
     /// From config: "auto", "si", "counts".
     pub accel_units: String,
+    /// Hold every this-many-th magnetometer point and pose out of the fits (0: fit on all); see
+    /// [`hold_out`].
+    pub hold_out_every: usize,
 }
 
 /// One sensor's outcome.
@@ -39,6 +42,9 @@ pub struct SensorResult {
     pub dirs_after: Vec<Vec3>,
     /// Per fitted point: time unknown for bins, so index; norm residual in calibrated units.
     pub residuals: Vec<f64>,
+    /// Raw points held out of the fit ([`hold_out`]): what a new calibration is judged on
+    /// against the current one.
+    pub held_out: Vec<Vec3>,
 }
 
 #[derive(Debug, Clone)]
@@ -74,6 +80,10 @@ pub struct Pipeline {
     pub samples: u64,
     pub mag_units: Unit,
     pub gyro_units: Unit,
+    /// [`FitInput::hold_out_every`] of the snapshots (0, fit on all, unless set: the live service
+    /// holds points out to judge a new calibration against the current one; `replay` replaces
+    /// nothing and fits on all).
+    pub hold_out_every: usize,
     /// Latest results (whether accepted or not) and refit history.
     pub latest: Option<FitResults>,
     pub refits: Vec<RefitReport>,
@@ -113,9 +123,16 @@ impl Pipeline {
             samples: 0,
             mag_units: Unit::Si,
             gyro_units: Unit::Si,
+            hold_out_every: 0,
             latest: None,
             refits: Vec::new(),
         })
+    }
+
+    /// The pipeline with [`Pipeline::hold_out_every`] set.
+    pub fn with_hold_out(mut self, every: usize) -> Self {
+        self.hold_out_every = every;
+        self
     }
 
     pub fn config(&self) -> &Config {
@@ -217,32 +234,26 @@ impl Pipeline {
         }
     }
 
-    /// Start direction binning once the buffered field vectors span enough of a sphere to place its centre.
+    /// Start direction binning once the buffered field vectors spread enough to place the centre
+    /// of their sphere ([`centre_from_spread`]).
     fn try_start_bins(&mut self) {
-        let Some(st) = crate::fit::sphere_start(&self.mag_buffer) else {
-            return;
-        };
-        let r = 1.0 / st.shape[(0, 0)];
-        // The smallest spread of the points must be a fair part of the radius (not a small cap).
-        let n = self.mag_buffer.len() as f64;
-        let mean = self.mag_buffer.iter().fold([0.0; 3], |a, p| {
-            [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
-        });
-        let mut cov = Matrix3::zeros();
-        for p in &self.mag_buffer {
-            let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
-            cov += d * d.transpose() / n;
+        let limits = (self.mag_units == Unit::Si).then_some(&self.cfg.accept.mag);
+        if let Some(c) = centre_from_spread(
+            &self.mag_buffer,
+            self.cfg.fit.centre_min_spread_radii,
+            limits,
+        ) {
+            self.start_bins(c);
         }
-        let min_sd = cov.symmetric_eigen().eigenvalues.min().max(0.0).sqrt();
-        if min_sd > 0.25 * r && r.is_finite() {
-            let c = [st.centre[0], st.centre[1], st.centre[2]];
-            let mut b = DirectionBins::new(c, self.cfg.fit.min_separation_deg);
-            for p in self.mag_buffer.drain(..) {
-                b.add(&p);
-            }
-            self.mag_bins = Some(b);
-            self.mag_points_changed();
+    }
+
+    fn start_bins(&mut self, centre: Vec3) {
+        let mut b = DirectionBins::new(centre, self.cfg.fit.min_separation_deg);
+        for p in self.mag_buffer.drain(..) {
+            b.add(&p);
         }
+        self.mag_bins = Some(b);
+        self.mag_points_changed();
     }
 
     /// Copy out what a refit needs.
@@ -259,6 +270,7 @@ impl Pipeline {
             mag_units: self.mag_units,
             gyro_units: self.gyro_units,
             accel_units: self.cfg.input.accel_units.clone(),
+            hold_out_every: self.hold_out_every,
         }
     }
 
@@ -282,7 +294,12 @@ impl Pipeline {
             self.refits.drain(..extra);
         }
         let mut recentred = false;
-        if let (Some(b), Some(c)) = (self.mag_bins.as_mut(), results.mag.calibration.as_ref()) {
+        if let (None, Some(c)) = (&self.mag_bins, results.mag.calibration.as_ref()) {
+            // A first fit that passed its checks places the centre before the spread did.
+            self.start_bins(c.offset);
+        } else if let (Some(b), Some(c)) =
+            (self.mag_bins.as_mut(), results.mag.calibration.as_ref())
+        {
             let d = norm(&[
                 b.centre[0] - c.offset[0],
                 b.centre[1] - c.offset[1],
@@ -350,7 +367,63 @@ impl Pipeline {
             None => self.mag_buffer.clone(),
         }
     }
+
+    /// The magnetometer's centre (hard iron, raw units) as far as it is known: the last fit that
+    /// passed its checks, or before one the centre of the kept points once they spread enough
+    /// ([`centre_from_spread`]). `None` before either.
+    pub fn mag_centre(&self) -> Option<Vec3> {
+        self.mag_bins.as_ref().map(|b| b.centre)
+    }
+
+    /// A progress report for this run: the points kept since the last report about `calibrated`
+    /// (the centre of the calibration in use) or else [`Pipeline::mag_centre`].
+    pub fn progress(&mut self, run: &mut Progress, calibrated: Option<Vec3>) -> ProgressReport {
+        let centre = calibrated.or(self.mag_centre());
+        let (epoch, fresh) = self.take_fresh_mag();
+        run.update(centre, epoch, &fresh, || self.mag_points())
+    }
 }
+
+/// The centre of the sphere the points lie on, when they spread enough to place it: a sphere fits
+/// them (RMS distance from it at most [`CENTRE_MAX_RMS_RADII`] radii), their standard deviation
+/// along their narrowest direction is at least `min_spread_radii` of its radius, and with `limits`
+/// (units known) the radius is within them. A still sensor's points (a small cluster, on which an
+/// algebraic sphere fit gives a small sphere through the noise) never pass.
+pub fn centre_from_spread(
+    points: &[Vec3],
+    min_spread_radii: f64,
+    limits: Option<&AcceptLimits>,
+) -> Option<Vec3> {
+    let st = crate::fit::sphere_start(points)?;
+    let r = 1.0 / st.shape[(0, 0)];
+    let c = [st.centre[0], st.centre[1], st.centre[2]];
+    if !(r.is_finite() && r > 0.0) || limits.is_some_and(|l| r < l.min_radius || r > l.max_radius) {
+        return None;
+    }
+    let n = points.len() as f64;
+    let rms = (points
+        .iter()
+        .map(|p| (norm(&[p[0] - c[0], p[1] - c[1], p[2] - c[2]]) - r).powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    if !(rms <= CENTRE_MAX_RMS_RADII * r) {
+        return None;
+    }
+    let mean = points.iter().fold([0.0; 3], |a, p| {
+        [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
+    });
+    let mut cov = Matrix3::zeros();
+    for p in points {
+        let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
+        cov += d * d.transpose() / n;
+    }
+    let min_sd = cov.symmetric_eigen().eigenvalues.min().max(0.0).sqrt();
+    (min_sd >= min_spread_radii * r).then_some(c)
+}
+
+/// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
+pub const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
 fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> SensorCalibration {
     SensorCalibration {
@@ -392,6 +465,7 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
         dirs_before: vec![],
         dirs_after: vec![],
         residuals: vec![],
+        held_out: vec![],
     }
 }
 
@@ -611,10 +685,12 @@ fn sym9_inliers(points: &[Vec3], mask: &[bool], opts: &NormFitOptions) -> Option
 }
 
 /// The points within 4 robust sigmas of a `sym9` fit, and how many were not. The first look is a
-/// fit to all points; when more than 0.5% fall outside, the start is a least-median-of-squares fit
-/// instead ([`lmeds_inliers`]), which a cluster of disturbed points (up to about 40%) cannot pull
-/// over. Then fit the inliers and reclassify all points, until the set stops changing (at most 4
-/// times).
+/// fit to all points; when more than 0.5% fall outside, a least-median-of-squares fit
+/// ([`lmeds_inliers`]), which a cluster of disturbed points (up to about 40%) cannot pull over, is a
+/// second start. From each start: fit the inliers and reclassify all points, until the set stops
+/// changing (at most 4 times). Of the two, the one whose fit has the smaller median residual over
+/// all points wins (the least-median criterion again: a random subset of the least-median search
+/// can leave its start far off, and the plain start is the one a cluster pulls over).
 fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
     let opts = NormFitOptions {
         target_norm: spec.target_norm,
@@ -627,19 +703,43 @@ fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
     if out == 0 {
         return (points.to_vec(), 0);
     }
-    let mut mask = if out as f64 > 0.005 * points.len() as f64 {
-        lmeds_inliers(points).unwrap_or(first)
-    } else {
-        first
-    };
-    for _ in 0..4 {
-        let Some(new) = sym9_inliers(points, &mask, &opts) else {
-            break;
-        };
-        if new == mask || new.iter().filter(|k| **k).count() < 12 {
-            break;
+    let refine = |mut mask: Vec<bool>| -> Vec<bool> {
+        for _ in 0..4 {
+            let Some(new) = sym9_inliers(points, &mask, &opts) else {
+                break;
+            };
+            if new == mask || new.iter().filter(|k| **k).count() < 12 {
+                break;
+            }
+            mask = new;
         }
-        mask = new;
+        mask
+    };
+    // Median |residual| over all points of a sym9 fit to the marked ones.
+    let median_residual = |mask: &[bool]| -> f64 {
+        let Ok(f) = fit_norm(&masked(points, mask), ModelKind::Sym9, &opts) else {
+            return f64::INFINITY;
+        };
+        let mut r: Vec<f64> = points
+            .iter()
+            .map(|p| (norm(&f.calibration.apply(p)) - f.radius).abs() / f.radius.abs())
+            .collect();
+        let mid = r.len() / 2;
+        let m = *r.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+        if m.is_finite() {
+            m
+        } else {
+            f64::INFINITY
+        }
+    };
+    let lmeds = (out as f64 > 0.005 * points.len() as f64)
+        .then(|| lmeds_inliers(points))
+        .flatten();
+    let mut mask = refine(first);
+    if let Some(m) = lmeds.map(refine) {
+        if median_residual(&m) < median_residual(&mask) {
+            mask = m;
+        }
     }
     let keep = masked(points, &mask);
     let rejected = points.len() - keep.len();
@@ -888,6 +988,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         dirs_before,
         dirs_after,
         residuals,
+        held_out: vec![],
     }
 }
 
@@ -1043,12 +1144,35 @@ pub fn accel_units(poses: &[Pose], setting: &str) -> Unit {
     }
 }
 
+/// Fewest points held out for a comparison: below `MIN_HELD_OUT * every` points none are.
+pub const MIN_HELD_OUT: usize = 4;
+
+/// Every `every`-th point (the 1st, the `every+1`-th, ...) held out, the rest to fit: `(fit, held)`.
+/// Deterministic; on the direction bins' points (ordered by direction) the held-out ones spread
+/// over the whole sphere, on poses (in time order) over the whole run. With `every` 0 or fewer
+/// than `MIN_HELD_OUT * every` points, none are held out.
+pub fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) {
+    if every < 2 || points.len() < MIN_HELD_OUT * every {
+        return (points.to_vec(), vec![]);
+    }
+    let (mut fit, mut held) = (Vec::new(), Vec::new());
+    for (i, p) in points.iter().enumerate() {
+        if i % every == 0 {
+            held.push(*p);
+        } else {
+            fit.push(*p);
+        }
+    }
+    (fit, held)
+}
+
 /// All fits from a snapshot. Pure; may run on any thread.
 pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
     let au = accel_units(&input.poses, &input.accel_units);
     let mag_full12 = cfg.fit.mag_model == "full12";
+    let (mag_fit, mag_held) = hold_out(&input.mag_points, input.hold_out_every);
     let mut mag = fit_sensor(
-        &input.mag_points,
+        &mag_fit,
         &SensorSpec {
             model: if mag_full12 {
                 "sym9"
@@ -1066,9 +1190,11 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
             is_accel: false,
         },
     );
+    mag.held_out = mag_held;
     let accel_points: Vec<Vec3> = input.poses.iter().map(|p| p.accel).collect();
-    let accel = fit_sensor(
-        &accel_points,
+    let (accel_fit, accel_held) = hold_out(&accel_points, input.hold_out_every);
+    let mut accel = fit_sensor(
+        &accel_fit,
         &SensorSpec {
             model: &cfg.fit.accel_model,
             target_norm: Some(cfg.fit.gravity_mps2),
@@ -1078,6 +1204,7 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
             is_accel: true,
         },
     );
+    accel.held_out = accel_held;
     if mag_full12 {
         mag_rotation_from_dip(&mut mag, &accel, &input.poses);
     }
@@ -1284,6 +1411,64 @@ mod tests {
         }
         assert!(p.refits.len() >= MAX_REFIT_HISTORY);
         assert_eq!(p.refits.last().unwrap().t_s, 1999.0);
+    }
+
+    #[test]
+    fn a_centre_only_from_points_spread_over_a_sphere() {
+        let c = [12.0, -25.0, 40.0];
+        // Directions within `max_deg` of +z, or on a circle (turned about one axis), radius 48 uT.
+        let pts = |max_deg: f64, ring: bool| -> Vec<Vec3> {
+            (0..600)
+                .map(|i| {
+                    let u = (i as f64 + 0.5) / 600.0;
+                    let th = if ring {
+                        90f64.to_radians()
+                    } else {
+                        (max_deg * u.sqrt()).to_radians()
+                    };
+                    let phi = if ring {
+                        u * max_deg.to_radians()
+                    } else {
+                        i as f64 * 2.399_963
+                    };
+                    [
+                        c[0] + 48.0 * th.sin() * phi.cos(),
+                        c[1] + 48.0 * th.sin() * phi.sin(),
+                        c[2] + 48.0 * th.cos(),
+                    ]
+                })
+                .collect()
+        };
+        let limits = Config::default().accept.mag;
+        let spread = Config::default().fit.centre_min_spread_radii;
+        // A still sensor: noise about one reading (an algebraic sphere through the noise is small).
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let still: Vec<Vec3> = (0..600)
+            .map(|_| {
+                let mut f = || rng.random_range(-0.3..0.3);
+                [c[0] + 30.0 + f(), c[1] + f(), c[2] + 40.0 + f()]
+            })
+            .collect();
+        assert_eq!(centre_from_spread(&still, spread, Some(&limits)), None);
+        // Units unknown (counts): still none, the noise lies on no sphere.
+        assert_eq!(centre_from_spread(&still, spread, None), None);
+        // Turned through a whole circle about one axis: the sphere is not determined.
+        assert_eq!(
+            centre_from_spread(&pts(360.0, true), spread, Some(&limits)),
+            None
+        );
+        // A small cap (30 deg): not yet.
+        assert_eq!(
+            centre_from_spread(&pts(30.0, false), spread, Some(&limits)),
+            None
+        );
+        // A cap reaching 75 deg from its middle: the centre.
+        let got =
+            centre_from_spread(&pts(75.0, false), spread, Some(&limits)).expect("spread enough");
+        for k in 0..3 {
+            assert!((got[k] - c[k]).abs() < 1e-6, "{got:?}");
+        }
     }
 
     #[test]

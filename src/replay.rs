@@ -169,21 +169,20 @@ pub fn replay(
 }
 
 /// Gyro scale and misalignment from the rotations between the log's static poses (see
-/// [`crate::gyro::fit_scale`]). `(None, None)` when the log has no gyro; a failure says why.
+/// [`crate::gyro::fit_scale`]). `(None, None)` when the log has no gyro; a refusal says why. Without
+/// an accelerometer calibration the rotations are still looked at (with the raw accelerometer
+/// directions): about one axis or in one plane only, the scale could not be determined with one.
 fn gyro_scale(
     samples: &[crate::types::Sample],
     pipe: &Pipeline,
     results: &FitResults,
-) -> (Option<crate::report::GyroScaleReport>, Option<String>) {
+) -> (
+    Option<crate::report::GyroScaleReport>,
+    Option<crate::gyro::ScaleFailure>,
+) {
     if results.gyro.status != "ok" {
         return (None, None);
     }
-    let Some(accel) = results.accel.calibration.as_ref() else {
-        return (
-            None,
-            Some("needs an accelerometer calibration (the gravity directions of the poses)".into()),
-        );
-    };
     let Some(bias) = crate::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
         return (None, None);
     };
@@ -191,6 +190,24 @@ fn gyro_scale(
     let opt = crate::gyro::ScaleOptions {
         raw_in_counts: results.gyro.units == "counts",
         ..Default::default()
+    };
+    let Some(accel) = results.accel.calibration.as_ref() else {
+        let raw = crate::model::Calibration {
+            model: crate::model::ModelKind::Sphere,
+            offset: [0.0; 3],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let span = crate::gyro::rotation_axes(&body, pipe.poses(), &bias, &raw, &opt);
+        let failure = match span.and_then(|(s, n)| s.failure(n)) {
+            Some(f) => f,
+            None => crate::gyro::ScaleFailure {
+                failure: crate::fit::FitFailure::NeedsCalibration,
+                detail: "needs an accelerometer calibration (the gravity directions of the poses)"
+                    .into(),
+                held_out: None,
+            },
+        };
+        return (None, Some(failure));
     };
     match crate::gyro::fit_scale(&body, pipe.poses(), &bias, accel, &opt) {
         Ok(f) => (

@@ -196,11 +196,14 @@ pub struct GyroCalibration {
     pub bias_sigma: Vec3,
     pub poses_used: usize,
     /// Scale and misalignment from the rotations between static poses (replay only: it needs the
-    /// whole log). `None` when not attempted; `Err`-like failures are in `scale_failure`.
+    /// whole log), present only when its held-out check passed. `None` when not attempted or
+    /// refused; a refusal is in `scale_failure`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scale: Option<GyroScaleReport>,
+    /// Why no scale is published: `failure` (not_enough_samples, not_identifiable, held_out,
+    /// needs_calibration), `detail`, and `held_out` figures when that check was made.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub scale_failure: Option<String>,
+    pub scale_failure: Option<crate::gyro::ScaleFailure>,
 }
 
 /// The 12-parameter gyro calibration `omega_rad_s = matrix (raw - bias)` and how well it carries the
@@ -214,7 +217,7 @@ pub struct GyroScaleReport {
     /// RMS gravity-direction error over those rotations, bias-only model then fitted, degrees.
     pub rms_before_deg: f64,
     pub rms_after_deg: f64,
-    /// The same on every other rotation, left out of a second fit; absent with too few rotations.
+    /// The same on every other rotation, left out of a second fit (the check the scale passed).
     pub held_out: Option<crate::gyro::HeldOut>,
     pub conditioning: f64,
 }

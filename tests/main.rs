@@ -2565,3 +2565,229 @@ mod live_consumers {
         assert!(tcp["queue_full"].as_u64().unwrap() > 0, "{tcp}");
     }
 }
+
+/// Progress as the live service reports it, and which calibration replaces which: the service's
+/// pure parts (pipeline, progress, acceptance) driven in-process over simulated data.
+mod honest_progress {
+    use super::*;
+    use imucald::coverage::{Progress, ProgressReport};
+    use imucald::daemon::{accept, failure_report_due, HOLD_OUT_EVERY};
+    use imucald::pipeline::{fit_all, Pipeline};
+    use imucald::report::SensorCalibration;
+    use imucald::types::Sample;
+
+    /// One progress report per second of data, as the service makes them: refits when due (inline
+    /// here), a new magnetometer calibration only when [`accept`] says so, its centre then used.
+    /// Returns (time, report, whether a failure MAG_CAL_REPORT would go out after that refit).
+    fn live_progress(
+        samples: &[Sample],
+        cfg: &Config,
+        stored: Option<SensorCalibration>,
+    ) -> Vec<(f64, ProgressReport, bool)> {
+        let mut pipe = Pipeline::new(cfg).unwrap().with_hold_out(HOLD_OUT_EVERY);
+        let mut run = Progress::new(cfg.daemon.progress_full_regions);
+        let mut current = stored;
+        let mut failure_report = false;
+        let t0 = samples.first().map_or(0.0, |s| s.t_s);
+        let mut next = t0 + 1.0;
+        let mut out = vec![];
+        for s in samples {
+            if pipe.push(s) {
+                let r = fit_all(&pipe.snapshot(), cfg);
+                if accept(&r.mag, current.as_ref()).is_ok() {
+                    current = Some(r.mag.report.clone());
+                } else {
+                    failure_report |= failure_report_due(&r.mag.report, run.completion_pct());
+                }
+                let t = pipe.last_t;
+                pipe.install(t, r);
+            }
+            if s.t_s >= next {
+                next += 1.0;
+                let centre = current.as_ref().map(|c| c.offset);
+                let p = pipe.progress(&mut run, centre);
+                out.push((s.t_s - t0, p, std::mem::take(&mut failure_report)));
+            }
+        }
+        out
+    }
+
+    fn embedded_tumble() -> imucald::sim::SimOutput {
+        // The live service's default source, `sim:tumble` (seed 1).
+        imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 1)
+    }
+
+    #[test]
+    fn progress_over_the_embedded_tumble_never_goes_down_and_starts_honest() {
+        let sim = embedded_tumble();
+        let cfg = Config::default();
+        let reports = live_progress(&sim.samples, &cfg, None);
+        for (t, p, _) in reports.iter().step_by(5) {
+            eprintln!(
+                "t {t:5.1} s: {:3} % {:3} regions, centre known {}",
+                p.completion_pct, p.filled_regions, p.centre_known
+            );
+        }
+        assert!(!reports.is_empty());
+        // Honest: never more regions than the data fill about the true centre (up to a couple
+        // counted about an estimated centre a little off).
+        let mut truth_map = imucald::coverage::CoverageMap::new(sim.truth.mag.offset);
+        let mut i = 0;
+        for (t, p, _) in &reports {
+            while i < sim.samples.len() && sim.samples[i].t_s - sim.samples[0].t_s <= *t {
+                truth_map.add(&sim.samples[i].mag_ut.into_iter().collect::<Vec<_>>());
+                i += 1;
+            }
+            assert!(
+                p.filled_regions <= truth_map.regions_filled + 3,
+                "{t} s: {} regions reported, {} about the true centre",
+                p.filled_regions,
+                truth_map.regions_filled
+            );
+        }
+        // The first report, one second in (the sensor still in its first pause): nothing claimed.
+        // Measured 0 % and 0 regions (it was 68 % and 55 regions about a centre fitted to noise).
+        let (t, first, _) = reports[0];
+        assert!((t - 1.0).abs() < 0.05, "{t}");
+        assert!(
+            first.filled_regions <= 2 && first.completion_pct <= 3,
+            "{first:?}"
+        );
+        let mut last = 0;
+        for (t, p, failure) in &reports {
+            assert!(
+                p.completion_pct >= last,
+                "completion went down at {t} s: {} after {last}",
+                p.completion_pct
+            );
+            last = p.completion_pct;
+            assert!(!failure, "failure report at {t} s");
+        }
+    }
+
+    /// A still sensor (hand-held, with its tremor) for 30 s: the first pause of a tumble, made 35 s.
+    fn still_sensor() -> imucald::sim::SimOutput {
+        let mut sc = imucald::sim::Scenario::named("tumble").unwrap();
+        sc.pause_s = [35.0, 35.0];
+        sc.duration_s = Some(30.0);
+        imucald::sim::simulate(&sc, 1)
+    }
+
+    #[test]
+    fn a_still_sensor_shows_at_most_a_couple_of_regions() {
+        let sim = still_sensor();
+        let span = sim.samples.last().unwrap().t_s - sim.samples[0].t_s;
+        assert!(span > 29.9, "{span} s");
+        // It did not move: its field readings stay within a few noise widths.
+        let m0 = sim.samples[0].mag_ut.unwrap();
+        let moved = sim
+            .samples
+            .iter()
+            .filter_map(|s| s.mag_ut)
+            .map(|m| imucald::types::norm(&[m[0] - m0[0], m[1] - m0[1], m[2] - m0[2]]))
+            .fold(0.0, f64::max);
+        assert!(moved < 5.0, "field moved {moved} uT");
+        let cfg = Config::default();
+        // Without a calibration: no centre, no region. With one (a restart resumes from the
+        // stored calibration): the one or two regions the field points into.
+        let stored = SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: None,
+            model: "sphere".into(),
+            units: "uT".into(),
+            offset: sim.truth.mag.offset,
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            radius: 50.0,
+            rms_residual: 0.1,
+            offset_sigma: [0.01; 3],
+            samples_used: 500,
+            iterations: 5,
+            candidates: vec![],
+            outliers_rejected: 0,
+        };
+        for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
+            let reports = live_progress(&sim.samples, &cfg, stored);
+            assert!(reports.len() >= 29, "{} reports", reports.len());
+            let regions = reports.iter().map(|r| r.1.filled_regions).max().unwrap();
+            let pct = reports.iter().map(|r| r.1.completion_pct).max().unwrap();
+            eprintln!("still 30 s, {what}: at most {regions} regions, {pct} %");
+            // Measured: 0 regions without a calibration, 1 with one.
+            assert!(regions <= most, "{what}: {regions} regions");
+            assert!(pct <= 3, "{what}: {pct} %");
+        }
+    }
+}
+
+/// The gyro scale is published only when its held-out check passes (`replay`).
+mod gyro_scale_checked {
+    use super::*;
+    use imucald::fit::FitFailure;
+    use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
+
+    /// A turntable log with these attitudes, replayed.
+    fn turntable_replay(attitudes: Vec<[f64; 3]>) -> imucald::report::Report {
+        let mut sc = Scenario::named("turntable").unwrap();
+        sc.attitudes = Some(attitudes);
+        let sim = simulate(&sc, 3);
+        let dir = tempfile::tempdir().unwrap();
+        let tlog = dir.path().join("turntable.tlog");
+        write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
+        run(&tlog, &Config::default()).report
+    }
+
+    #[test]
+    fn a_turntable_turning_about_one_axis_says_not_identifiable() {
+        // Two turns about the body x axis (tilted 20 deg) in 40 deg steps.
+        let att = (0..18)
+            .map(|i| [((i * 40) % 360) as f64 - 180.0, 20.0, 0.0])
+            .collect();
+        let g = turntable_replay(att).calibration.gyro;
+        assert_eq!(g.status, "ok", "the bias is still known");
+        assert!(g.scale.is_none(), "published: {:?}", g.scale);
+        let f = g.scale_failure.expect("a named reason");
+        eprintln!("turntable about one axis: {f}");
+        assert_eq!(f.failure, FitFailure::NotIdentifiable);
+        assert!(f.detail.contains("rotations about one axis only"), "{f}");
+        let json = serde_json::to_value(&f).unwrap();
+        assert_eq!(json["failure"], "not_identifiable");
+    }
+
+    #[test]
+    fn a_turntable_mostly_about_one_axis_fails_the_held_out_check() {
+        // Six positions, then three turns about x: it was published with its held-out check at
+        // 0.21 -> 9.8 deg.
+        let mut att = vec![
+            [0.0, 0.0, 0.0],
+            [0.0, 90.0, 0.0],
+            [90.0, 0.0, 0.0],
+            [0.0, -90.0, 0.0],
+            [180.0, 0.0, 0.0],
+            [-90.0, 0.0, 0.0],
+        ];
+        att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
+        let r = turntable_replay(att);
+        assert_eq!(r.calibration.accel.status, "ok");
+        let g = r.calibration.gyro;
+        assert!(g.scale.is_none(), "published: {:?}", g.scale);
+        let f = g.scale_failure.expect("a named reason");
+        eprintln!("six positions + turns about one axis: {f}");
+        assert_eq!(f.failure, FitFailure::HeldOut);
+        let h = f.held_out.expect("figures");
+        // Measured 0.21 -> 9.97 deg.
+        assert!(h.rms_after_deg > 3.0 * h.rms_before_deg, "{h:?}");
+    }
+
+    #[test]
+    fn the_tumble_still_publishes_its_checked_gyro_scale() {
+        let path = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"));
+        let g = run(&path, &Config::default()).report.calibration.gyro;
+        let k = g.scale.unwrap_or_else(|| panic!("{:?}", g.scale_failure));
+        let h = k.held_out.expect("checked");
+        eprintln!(
+            "tumble gyro scale: {} rotations, held out {:.3} -> {:.3} deg over {}",
+            k.segments, h.rms_before_deg, h.rms_after_deg, h.segments
+        );
+        assert!(h.rms_after_deg <= h.rms_before_deg * 1.1, "{h:?}");
+    }
+}
