@@ -1063,9 +1063,13 @@ impl State {
     async fn on_fit(&mut self, t: f64, results: FitResults) {
         let mut changed = false;
         let mut mag_passed = false;
+        // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
+        // result is reported whatever the calibration in use (accepting it is the ground
+        // station's call).
+        let commanded = matches!(self.mag_run, MagCalRun::Running { .. });
         for (name, res) in [("mag", &results.mag), ("accel", &results.accel)] {
             let current = if name == "mag" {
-                self.store.mag.clone()
+                self.store.mag.clone().filter(|_| !commanded)
             } else {
                 self.store.accel.clone()
             };
