@@ -92,6 +92,11 @@ pub struct DaemonConfig {
     /// MAV_CMD_DO_START_MAG_CAL calibrates). Either way the commands DO_START/ACCEPT/CANCEL_MAG_CAL
     /// addressed to our ids (or broadcast) start, accept and cancel a run.
     pub mag_cal: String,
+    /// Links are "separate" vehicles (default): each link and system id has its own converter
+    /// (instances, clocks) and ArduPilot state, and the first vehicle whose IMU data arrives is
+    /// the one calibrated (the others' samples are counted as `other_vehicle`). "merged": every
+    /// link is one vehicle (one sensor seen over several links).
+    pub links: String,
     /// ArduPilot sends magnetometer data with its calibration applied: "undo" it (reading COMPASS_*
     /// parameters) or "refuse" to fit such data.
     pub ardupilot_corrected_mag: String,
@@ -129,6 +134,7 @@ impl Default for DaemonConfig {
             component_id: 191,
             heartbeat_rate_hz: 1.0,
             mag_cal: "continuous".into(),
+            links: "separate".into(),
             ardupilot_corrected_mag: "undo".into(),
             queue_capacity: 4096,
             silent_after_s: 3.0,
@@ -536,6 +542,12 @@ impl Config {
             return Err(err(
                 "daemon.mag_cal",
                 format!("`{}` is not continuous or on_command", d.mag_cal),
+            ));
+        }
+        if !["separate", "merged"].contains(&d.links.as_str()) {
+            return Err(err(
+                "daemon.links",
+                format!("`{}` is not separate or merged", d.links),
             ));
         }
         for (key, id) in [

@@ -533,6 +533,18 @@ pub struct RunSummary {
     pub inbound_dropped: u64,
 }
 
+/// A vehicle heard on the links: its converter (instances, clocks) and its ArduPilot state (whether
+/// its magnetometer data comes calibrated, and the calibration to undo).
+struct Vehicle {
+    /// Link index and system id; (0, 0) for every link with `daemon.links = "merged"`.
+    key: (usize, u8),
+    conv: MessageConverter,
+    ardupilot: bool,
+    ap_params: ApCompassParams,
+    /// Told the user it is not calibrated.
+    announced: bool,
+}
+
 struct LinkEntry {
     handle: LinkHandle,
     mavlink: bool,
@@ -551,7 +563,6 @@ struct LinkEntry {
 struct State {
     cfg: Config,
     pipe: Pipeline,
-    conv: MessageConverter,
     /// Clocks of the links that deliver samples rather than MAVLink frames, by link index, with
     /// the last sample of each (to tell a repeated line).
     sample_clocks: Vec<(SourceClock, Option<Sample>)>,
@@ -579,8 +590,17 @@ struct State {
     report_writes: Writes,
     links: Vec<LinkEntry>,
     sinks: Vec<Sink>,
-    ardupilot: bool,
-    ap_params: ApCompassParams,
+    /// The vehicles heard (a link and a system id each, or one for all with
+    /// `daemon.links = "merged"`): their converters and ArduPilot state.
+    vehicles: Vec<Vehicle>,
+    /// The vehicle calibrated: the first whose IMU data arrived.
+    primary_vehicle: Option<usize>,
+    /// IMU samples of other vehicles, not calibrated.
+    other_vehicle_samples: u64,
+    /// A converter as new, for the next vehicle heard.
+    new_converter: MessageConverter,
+    /// Counts of the samples from text-line and simulator links.
+    line_stats: crate::decode::DecodeStats,
     writer: Option<ParamWriter>,
     accepted: usize,
     cal_dir: PathBuf,
@@ -898,6 +918,27 @@ impl State {
         self.send_json(&ev).await;
     }
 
+    /// The vehicle a frame comes from: its link and system id (every link is one vehicle with
+    /// `daemon.links = "merged"`), taken on when first heard.
+    fn vehicle(&mut self, link: usize, system_id: u8) -> usize {
+        let key = if self.cfg.daemon.links == "merged" {
+            (0, 0)
+        } else {
+            (link, system_id)
+        };
+        if let Some(v) = self.vehicles.iter().position(|v| v.key == key) {
+            return v;
+        }
+        self.vehicles.push(Vehicle {
+            key,
+            conv: self.new_converter.clone(),
+            ardupilot: false,
+            ap_params: ApCompassParams::default(),
+            announced: false,
+        });
+        self.vehicles.len() - 1
+    }
+
     /// A frame from a MAVLink link: heartbeats and parameters steer, IMU messages become samples.
     /// Our own frames echoed back (a router, a looped link) are dropped and counted.
     async fn on_frame(&mut self, link: usize, frame: &crate::decode::Frame, time_us: u64) -> bool {
@@ -907,11 +948,12 @@ impl State {
         }
         match &frame.message {
             MavMessage::HEARTBEAT(h) => {
+                let v = self.vehicle(link, frame.system_id);
                 if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
-                    && !self.ardupilot
+                    && !self.vehicles[v].ardupilot
                     && frame.component_id != 191
                 {
-                    self.ardupilot = true;
+                    self.vehicles[v].ardupilot = true;
                     if self.cfg.daemon.ardupilot_corrected_mag == "undo" {
                         self.status(6, "ArduPilot link: reading COMPASS_* to undo its calibration before fitting".into()).await;
                         let reqs = mavout::param_request_reads(frame.system_id, frame.component_id);
@@ -927,21 +969,36 @@ impl State {
                 false
             }
             MavMessage::PARAM_VALUE(_) => {
-                self.ap_params.absorb(&frame.message);
+                let v = self.vehicle(link, frame.system_id);
+                self.vehicles[v].ap_params.absorb(&frame.message);
                 if let Some(w) = self.writer.as_mut() {
                     w.absorb(&frame.message);
                 }
                 false
             }
             _ => {
-                let _ = link;
-                let Some(mut s) = self.conv.convert(&frame.message, time_us) else {
+                let v = self.vehicle(link, frame.system_id);
+                let Some(mut s) = self.vehicles[v].conv.convert(&frame.message, time_us) else {
                     return false;
                 };
-                if self.ardupilot {
+                if *self.primary_vehicle.get_or_insert(v) != v {
+                    self.other_vehicle_samples += 1;
+                    if !std::mem::replace(&mut self.vehicles[v].announced, true) {
+                        let (l, sys) = self.vehicles[v].key;
+                        let label = self
+                            .links
+                            .get(l)
+                            .map(|x| x.label.clone())
+                            .unwrap_or_default();
+                        self.status(4, format!("{label}: IMU data of a second vehicle (system {sys}): not calibrated; one vehicle is, the first heard (daemon.links = \"merged\" takes every link as one vehicle)")).await;
+                    }
+                    return false;
+                }
+                let vh = &self.vehicles[v];
+                if vh.ardupilot {
                     if let Some(m) = s.mag_ut {
                         s.mag_ut = if self.cfg.daemon.ardupilot_corrected_mag == "undo" {
-                            self.ap_params.undo(m)
+                            vh.ap_params.undo(m)
                         } else {
                             None
                         };
@@ -1338,7 +1395,13 @@ impl State {
         let (Some(path), Some(results)) = (self.report.clone(), self.last_results.clone()) else {
             return None;
         };
-        let mut stats = self.conv.stats.clone();
+        let mut stats = self
+            .primary_vehicle
+            .map(|v| self.vehicles[v].conv.stats.clone())
+            .unwrap_or_default();
+        stats.records += self.line_stats.records;
+        stats.counts.add(&self.line_stats.counts);
+        stats.skip_n("other_vehicle", self.other_vehicle_samples);
         for l in &self.links {
             if let Ok(d) = l.handle.decode_stats.lock() {
                 for (k, v) in &d.skipped {
@@ -1367,7 +1430,9 @@ impl State {
         let input = crate::report::InputReport::new(
             "live",
             Some(label),
-            self.conv.instance().map(String::from),
+            self.primary_vehicle
+                .and_then(|v| self.vehicles[v].conv.instance())
+                .map(String::from),
             &stats,
             self.pipe.samples,
             self.pipe.last_t,
@@ -1572,7 +1637,6 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     };
     let mut st = State {
         pipe: Pipeline::new(&cfg)?.with_hold_out(HOLD_OUT_EVERY),
-        conv: MessageConverter::new(choice, cfg.input.raw_imu_scale),
         sample_clocks: Vec::new(),
         calibrator: State::calibrator_from_store(&store, declination),
         store,
@@ -1592,8 +1656,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         report_writes: Writes::default(),
         links,
         sinks,
-        ardupilot: false,
-        ap_params: ApCompassParams::default(),
+        vehicles: Vec::new(),
+        primary_vehicle: None,
+        other_vehicle_samples: 0,
+        new_converter: MessageConverter::new(choice.clone(), cfg.input.raw_imu_scale),
+        line_stats: crate::decode::DecodeStats::default(),
         writer: None,
         accepted: 0,
         cal_dir,
@@ -1685,8 +1752,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     match ev {
                         Inbound::Sample { link, sample } => {
                             if let Some(sample) = st.stamp(link, sample) {
-                                st.conv.stats.records += 1;
-                                st.conv.stats.count_sample(&sample);
+                                st.line_stats.records += 1;
+                                st.line_stats.count_sample(&sample);
                                 refit_wanted |= st.on_sample(sample);
                             }
                         }
@@ -1966,6 +2033,97 @@ mod tests {
         // Measured: queueing ~0.15 s (mostly the sleeps), closing 0.10 s (the deadline).
         assert!(queued_s < 2.0 && closed_s < 0.5, "{queued_s} {closed_s}");
         drop(held);
+    }
+
+    /// Two links, two vehicles: an ArduPilot HEARTBEAT on one does not make the service undo the
+    /// other's (PX4) magnetometer data, and the second vehicle's IMU data is counted, not mixed
+    /// into the first's calibration. With `daemon.links = "merged"` both are one vehicle.
+    #[tokio::test]
+    async fn daemon_keeps_links_apart_as_vehicles() {
+        use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
+        for merged in [false, true] {
+            let dir = tempfile::tempdir().unwrap();
+            let ports: Vec<u16> = (0..2)
+                .map(|_| {
+                    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+                    s.local_addr().unwrap().port()
+                })
+                .collect();
+            let mut cfg = Config::default();
+            cfg.daemon.sources = ports
+                .iter()
+                .map(|p| SourceConfig {
+                    address: format!("udpin:127.0.0.1:{p}"),
+                    payload: "mavlink".into(),
+                    fields: vec![],
+                    scales: Default::default(),
+                })
+                .collect();
+            let report = dir.path().join("report.json");
+            cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+            cfg.daemon.report = Some(report.display().to_string());
+            cfg.daemon.publish = vec![];
+            cfg.daemon.links = if merged { "merged" } else { "separate" }.into();
+            cfg.daemon.heartbeat_rate_hz = 0.0;
+            cfg.fit.refit_every_s = 0.1;
+            let (stop_tx, stop_rx) = watch::channel(false);
+            let daemon = tokio::spawn(run(cfg, stop_rx));
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            let imu = |i: u64| {
+                MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+                    time_usec: 1_000_000 + i * 10_000,
+                    zacc: -9.81,
+                    xmag: 0.2 + 0.001 * i as f32,
+                    zmag: 0.4,
+                    ..Default::default()
+                })
+            };
+            let (px4, ap) = (
+                tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap(),
+                tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap(),
+            );
+            px4.connect(("127.0.0.1", ports[0])).await.unwrap();
+            ap.connect(("127.0.0.1", ports[1])).await.unwrap();
+            let (mut px4_enc, mut ap_enc) = (MavEncoder::new(1, 1), MavEncoder::new(7, 1));
+            // The PX4 vehicle's IMU data first (it is the one calibrated), then an ArduPilot
+            // vehicle on the other link: its HEARTBEAT and IMU data, then more PX4 data.
+            for i in 0..30 {
+                px4.send(&px4_enc.encode(&imu(i))).await.unwrap();
+            }
+            tokio::time::sleep(Duration::from_millis(150)).await;
+            let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+                mavtype: MavType::MAV_TYPE_QUADROTOR,
+                ..Default::default()
+            });
+            ap.send(&ap_enc.encode(&hb)).await.unwrap();
+            for i in 0..20 {
+                ap.send(&ap_enc.encode(&imu(i))).await.unwrap();
+            }
+            tokio::time::sleep(Duration::from_millis(150)).await;
+            for i in 30..60 {
+                px4.send(&px4_enc.encode(&imu(i))).await.unwrap();
+            }
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            stop_tx.send(true).unwrap();
+            let summary = daemon.await.unwrap().unwrap();
+            let r: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+            let skipped = &r["input"]["skipped"];
+            if merged {
+                // One vehicle: the ArduPilot HEARTBEAT holds back the magnetometer data from then
+                // on (its COMPASS_* never come), as it does for a single ArduPilot link.
+                assert_eq!(summary.samples, 80, "{r}");
+                assert!(
+                    skipped["mag_awaiting_params"].as_u64().unwrap_or(0) > 0,
+                    "{skipped}"
+                );
+            } else {
+                assert_eq!(summary.samples, 60, "{r}");
+                assert_eq!(skipped["other_vehicle"].as_u64(), Some(20), "{skipped}");
+                assert!(skipped.get("mag_awaiting_params").is_none(), "{skipped}");
+            }
+        }
     }
 
     /// Our own frames echoed back (same system and component id) are dropped and counted, never
