@@ -1,5 +1,5 @@
-//! Attitude from calibrated vectors: pitch and roll from specific force (seed 000 eq. 8 written for
-//! specific force, see CONVENTIONS.md), tilt-compensated heading (seed 000 eq. 7-8, seed 004 eq. 1-2),
+//! Attitude from calibrated vectors: pitch and roll from specific force (Ren and Liu's eq. 8 written
+//! for the specific force f in FRD: pitch = atan2(f_x, sqrt(f_y^2 + f_z^2)), roll = atan2(-f_y, -f_z)), tilt-compensated heading (Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" eq. 7-8, Chu et al., "Magnetic Orientation System Based on Magnetometer, Accelerometer and Gyroscope" eq. 1-2),
 //! true heading through World Magnetic Model declination, and the MAVLink sensor orientations.
 //! Body frame FRD, world NED. Pure math, no I/O.
 

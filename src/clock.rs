@@ -184,26 +184,6 @@ impl SourceClock {
         recv_us: Option<i64>,
         wrap_us: Option<i64>,
     ) -> Stamp {
-        let before = (self.stats.segments, self.faults_seen(), self.stats.clock);
-        let out = self.stamp_inner(msg_us, recv_us, wrap_us);
-        if before != (self.stats.segments, self.faults_seen(), self.stats.clock) {
-            self.revision += 1;
-        }
-        out
-    }
-
-    /// Faults counted so far, all kinds (a duplicate recounted as a stop lowers it, which the
-    /// stop's own count makes up).
-    fn faults_seen(&self) -> u64 {
-        self.stats.faults.values().sum()
-    }
-
-    fn stamp_inner(
-        &mut self,
-        msg_us: Option<i64>,
-        recv_us: Option<i64>,
-        wrap_us: Option<i64>,
-    ) -> Stamp {
         let source = *self.stats.clock.get_or_insert(match (msg_us, recv_us) {
             (None, Some(_)) => ClockSource::Receive,
             _ => ClockSource::Message,
@@ -234,7 +214,7 @@ impl SourceClock {
         let step_s = to_s(now.saturating_sub(last));
         if step_s >= 0.0 {
             if step_s > self.cfg.max_step_s {
-                self.stats.count(TimeFault::Gap);
+                self.fault(TimeFault::Gap);
                 // The receive clock tells a real outage from a jump of the message clock; with
                 // none, the gap is taken as it is (at most an hour, to keep `t_s` precise).
                 let over = recv_step
@@ -249,7 +229,7 @@ impl SourceClock {
         if let Some(w) = wrap.filter(|w| *w > 0) {
             let ahead = now.saturating_add(w).saturating_sub(last);
             if ahead > 0 && to_s(ahead) <= self.cfg.max_step_s {
-                self.stats.count(TimeFault::Wrap);
+                self.fault(TimeFault::Wrap);
                 self.unwrap_us = self.unwrap_us.saturating_add(w);
                 let now = raw.saturating_add(self.unwrap_us);
                 self.advance(now, to_s(ahead));
@@ -262,7 +242,7 @@ impl SourceClock {
             return self.out();
         }
         let restarted = source == ClockSource::Message && to_s(raw) < self.cfg.reset_below_s;
-        self.stats.count(if restarted {
+        self.fault(if restarted {
             TimeFault::Reset
         } else {
             TimeFault::Backward
@@ -284,12 +264,22 @@ impl SourceClock {
 
     /// A repeated frame (same time, same readings), which the caller drops: counted.
     pub fn duplicate(&mut self) {
-        self.stats.count(TimeFault::Duplicate);
+        self.fault(TimeFault::Duplicate);
+    }
+
+    /// Count a fault; every change of `stats` goes through here or [`SourceClock::new_segment`].
+    fn fault(&mut self, f: TimeFault) {
+        self.stats.count(f);
+        self.revision += 1;
+    }
+
+    fn new_segment(&mut self) {
+        self.stats.segments += 1;
         self.revision += 1;
     }
 
     fn begin_first(&mut self, raw: i64) {
-        self.stats.segments = 1;
+        self.new_segment();
         self.last_us = Some(raw);
         let origin = if self.cfg.keep_origin { to_s(raw) } else { 0.0 };
         self.anchor = (raw, origin);
@@ -304,7 +294,7 @@ impl SourceClock {
             return self.out();
         }
         if !self.stuck {
-            self.stats.count(if raw == 0 {
+            self.fault(if raw == 0 {
                 TimeFault::Zero
             } else {
                 TimeFault::Constant
@@ -318,7 +308,7 @@ impl SourceClock {
                 return self.out();
             }
             self.stuck = true;
-            self.stats.segments += 1;
+            self.new_segment();
         }
         // Synthesised: the receive clock's step, else the last normal step.
         self.last_t_s += recv_step.unwrap_or(self.step_s);
@@ -338,7 +328,7 @@ impl SourceClock {
     /// A new segment starting at raw time `now`, `step_s` after the last sample (the last normal
     /// step when not known).
     fn boundary(&mut self, now: i64, step_s: Option<f64>) {
-        self.stats.segments += 1;
+        self.new_segment();
         self.last_t_s += step_s.unwrap_or(self.step_s).max(0.0);
         self.anchor = (now, self.last_t_s);
         self.last_us = Some(now);

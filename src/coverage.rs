@@ -1,6 +1,7 @@
 //! Sphere coverage: which of 100 equal-area regions of the unit sphere hold at least one measured
 //! direction (MotionCal's layout of latitude bands: 1 + 15 + 34 + 34 + 15 + 1 regions), and the
-//! seed-002 (theta, phi) projection. Directions are taken about the current hard-iron centre.
+//! (theta, phi) projection of Camps, Harasse and Monin, "Numerical calibration for 3-axis
+//! accelerometers and magnetometers" (2009). Directions are taken about the current hard-iron centre.
 
 use crate::types::Vec3;
 use serde::{Deserialize, Serialize};
@@ -43,7 +44,7 @@ pub fn region(v: &Vec3) -> Option<usize> {
     None
 }
 
-/// (theta, phi) of seed 002 in degrees: theta polar angle from +z (0..180), phi azimuth (-180..180).
+/// (theta, phi) of Camps et al. in degrees: theta polar angle from +z (0..180), phi azimuth (-180..180).
 pub fn theta_phi(v: &Vec3) -> (f64, f64) {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-300);
     (

@@ -563,9 +563,8 @@ struct LinkEntry {
 struct State {
     cfg: Config,
     pipe: Pipeline,
-    /// Clocks of the links that deliver samples rather than MAVLink frames, by link index, with
-    /// the last sample of each (to tell a repeated line).
-    sample_clocks: Vec<(SourceClock, Option<Sample>)>,
+    /// Clocks of the links that deliver samples rather than MAVLink frames, by link index.
+    sample_clocks: Vec<SourceClock>,
     store: StoredCalibration,
     calibrator: Calibrator,
     latest: Option<Calibrated>,
@@ -832,24 +831,19 @@ impl State {
 
     /// A sample from a link that times its own samples (text lines: the time they were read, or
     /// their own `t` column), through that link's clock, taken as a receive clock (lines read
-    /// together share a time); `None` for a repeated line.
-    fn stamp(&mut self, link: usize, mut s: Sample) -> Option<Sample> {
+    /// together share a time, and a still sensor's lines can repeat: none is dropped).
+    fn stamp(&mut self, link: usize, mut s: Sample) -> Sample {
         if self.links.get(link).is_some_and(|l| l.replay) {
             // Already timed: a file's samples by its reader's clock; the simulator's are ours.
-            return Some(s);
+            return s;
         }
         if self.sample_clocks.len() <= link {
-            let fresh = (SourceClock::new(ClockSettings::default()), None);
+            let fresh = SourceClock::new(ClockSettings::default());
             self.sample_clocks.resize(link + 1, fresh);
         }
-        let (clock, last) = &mut self.sample_clocks[link];
-        if last.replace(s) == Some(s) {
-            clock.duplicate();
-            return None;
-        }
-        let c = clock.stamp(None, Some(crate::clock::us_from_s(s.t_s)), None);
+        let c = self.sample_clocks[link].stamp(None, Some(crate::clock::us_from_s(s.t_s)), None);
         (s.t_s, s.segment) = (c.t_s, c.segment);
-        Some(s)
+        s
     }
 
     /// Feed a calibrated sample (body axes, stored gyro bias removed) to the orientation filter.
@@ -1417,7 +1411,7 @@ impl State {
             stats.skip_n("queue_full", dropped);
         }
         stats.skip_n("mag_awaiting_params", self.mag_awaiting_params);
-        for (c, _) in &self.sample_clocks {
+        for c in &self.sample_clocks {
             stats.time.add(&c.stats);
         }
         stats.skip_n("own_echo", self.own_echo);
@@ -1751,11 +1745,10 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                     }
                     match ev {
                         Inbound::Sample { link, sample } => {
-                            if let Some(sample) = st.stamp(link, sample) {
-                                st.line_stats.records += 1;
-                                st.line_stats.count_sample(&sample);
-                                refit_wanted |= st.on_sample(sample);
-                            }
+                            let sample = st.stamp(link, sample);
+                            st.line_stats.records += 1;
+                            st.line_stats.count_sample(&sample);
+                            refit_wanted |= st.on_sample(sample);
                         }
                         Inbound::Frame { link, frame, time_us } => {
                             refit_wanted |= st.on_frame(link, &frame, time_us).await;

@@ -1,4 +1,5 @@
-//! Exports of a calibration in flight-stack conventions (see CONVENTIONS.md):
+//! Exports of a calibration in flight-stack conventions (from the ArduPilot
+//! and PX4 sources' correction code):
 //!
 //! * ArduPilot: mag += COMPASS_OFS (mGauss, so OFS = -offset); mag = S mag with
 //!   S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]].

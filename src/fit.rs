@@ -69,7 +69,7 @@ pub struct LmOutcome<const N: usize> {
     pub converged: bool,
 }
 
-/// Levenberg-Marquardt with Marquardt's diagonal scaling (seed 000 eq. 13) on residuals given point by
+/// Levenberg-Marquardt with Marquardt's diagonal scaling (Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" eq. 13) on residuals given point by
 /// point: `prepare(p)` runs once per parameter vector and its result is handed to every
 /// `resid(prepared, p, i, grad)` call (a matrix built from the parameters, say), which returns residual
 /// `i` and writes its gradient. Normal equations are accumulated point by point, so memory is O(N^2)
@@ -710,7 +710,7 @@ pub fn significantly_better(
     stat > chi2_quantile_999(extra_params) && (simple_ssr - complex_ssr) > 0.005 * simple_ssr
 }
 
-/// Accelerometer calibration from static poses near the six axis directions (seed 004, seed 000
+/// Accelerometer calibration from static poses near the six axis directions (Chu et al., "Magnetic Orientation System Based on Magnetometer, Accelerometer and Gyroscope", Ren and Liu
 /// section IV): the linear 12-parameter model raw = K f + b, solved by least squares against the
 /// nominal specific force of each pose (+-g on one axis). Returns `None` unless every one of the six
 /// directions has a pose within `max_angle_deg`.

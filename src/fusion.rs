@@ -2,12 +2,13 @@
 //! sensor -> world per sample (world ENU or NED, selectable), plus roll/pitch/heading. Pure math, no I/O.
 //!
 //! # Design
-//! The starting point is seed 004's linear quaternion Kalman filter: the gyroscope drives the prediction
+//! The starting point is the linear quaternion Kalman filter of Chu et al., "Magnetic Orientation
+//! System Based on Magnetometer, Accelerometer and Gyroscope": the gyroscope drives the prediction
 //! and a quaternion built from accelerometer (tilt) and magnetometer (heading) is the measurement. Here
 //! that filter is written in error-state form: the state is the small rotation `dtheta` (world axes)
 //! that takes the predicted attitude to the measured one, plus the gyro bias error. With the measurement
 //! quaternion split into its tilt part and its rotation about the vertical, the measurement equations
-//! stay linear (H is a selection matrix, as in seed 004) and no Jacobian is needed:
+//! stay linear (H is a selection matrix, as in Chu et al.) and no Jacobian is needed:
 //!
 //! * tilt: `z = (a_w.y, -a_w.x) / g = (dtheta_x, dtheta_y)` with `a_w` the specific force rotated into
 //!   the world frame by the prediction. Applied every accelerometer sample, the Kalman update averages
@@ -39,7 +40,7 @@
 //! The sensor frame is whatever the sensor's axes are (FRD for a flight controller's body, z up for
 //! BROAD's sensor): only the specific-force convention matters (an accelerometer at rest reads +g along
 //! the axis that points up). NED output is `C * q_enu` with `C` the ENU -> NED rotation (180 deg about
-//! (1, 1, 0)/sqrt(2)), see CONVENTIONS.md.
+//! (1, 1, 0)/sqrt(2)).
 
 use crate::types::{Sample, Vec3, STANDARD_GRAVITY_MPS2};
 use nalgebra::{Matrix6, RowVector6, UnitQuaternion, Vector3, Vector6};

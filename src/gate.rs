@@ -1,5 +1,5 @@
-//! Gating: the scalar Kalman prefilter of seed 000 (eq. 3) and static-pose detection by sliding-window
-//! variance (seed 002), with a threshold that needs no hand tuning. Pure, streaming, bounded memory.
+//! Gating: the scalar Kalman prefilter of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" (eq. 3) and static-pose detection by sliding-window
+//! variance (Camps, Harasse and Monin, "Numerical calibration for 3-axis accelerometers and magnetometers" (2009)), with a threshold that needs no hand tuning. Pure, streaming, bounded memory.
 
 use crate::types::{Sample, Vec3};
 use serde::{Deserialize, Serialize};

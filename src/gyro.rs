@@ -3,7 +3,8 @@
 //! * **Bias** from static poses: the mean gyro reading of each still pose is the bias at that pose's
 //!   temperature. With temperatures that vary (spread >= `min_temp_span_c` over >= 3 poses), a weighted
 //!   linear fit `bias(T) = b0 + k (T - T_ref)` per axis gives the drift; otherwise the weighted mean.
-//! * **Scale and misalignment** (seed 004's 12-parameter model `omega = K (raw - b)`: a general 3x3 `K`
+//! * **Scale and misalignment** (the 12-parameter model of Chu et al., "Magnetic Orientation System Based on
+//!   Magnetometer, Accelerometer and Gyroscope": `omega = K (raw - b)`: a general 3x3 `K`
 //!   plus the bias, the same `calibrated = M (raw - o)` convention as the other sensors): between two
 //!   static poses the calibrated gyro is integrated and the rotation it gives must carry the gravity
 //!   direction measured at the first pose onto the one measured at the next (the method of imu_tk:

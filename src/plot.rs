@@ -1,4 +1,4 @@
-//! Plots for people: the coverage map of seed 002 (the θ/φ projection of measured directions, with
+//! Plots for people: the coverage map of Camps, Harasse and Monin, "Numerical calibration for 3-axis accelerometers and magnetometers" (2009) (the θ/φ projection of measured directions, with
 //! MotionCal's 100 equal-area regions) and residual-versus-time plots, as PNG or SVG.
 //!
 //! The format follows the file extension (`.png` or `.svg`, any case). Every plot is rendered to a

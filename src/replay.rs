@@ -312,7 +312,8 @@ pub fn make_report(
     }
 }
 
-/// Coverage maps (seed 002's (theta, phi) projection, before and after) and residual plots.
+/// Coverage maps (the (theta, phi) projection of Camps, Harasse and Monin, "Numerical calibration
+/// for 3-axis accelerometers and magnetometers" (2009), before and after) and residual plots.
 fn write_plots(
     dir: &Path,
     pipe: &Pipeline,

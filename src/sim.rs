@@ -1411,7 +1411,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
     }
 }
 
-/// The rotation taking NED vectors to ENU (180 deg about (1, 1, 0)/sqrt 2; CONVENTIONS.md).
+/// The rotation taking NED vectors to ENU (180 deg about (1, 1, 0)/sqrt 2).
 pub fn ned_to_enu() -> UnitQuaternion<f64> {
     UnitQuaternion::from_axis_angle(
         &nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0)),
