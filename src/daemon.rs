@@ -39,9 +39,28 @@ use tokio::sync::{mpsc, watch};
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct StoredCalibration {
     pub schema: String,
+    /// The primary instance's compass id (the index its flight-stack parameters are named for:
+    /// COMPASS_OFS / CAL_MAG0 for 0, COMPASS_OFS2 / CAL_MAG1 for 1 ...).
+    #[serde(default)]
+    pub compass_id: u8,
     pub mag: Option<SensorCalibration>,
     pub accel: Option<SensorCalibration>,
     pub gyro: Option<GyroCalibration>,
+    /// The stream's other IMU instances, each calibrated on its own (a vehicle with several
+    /// compasses).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub instances: Vec<StoredInstance>,
+}
+
+/// The calibration in use of an IMU instance other than the primary.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StoredInstance {
+    /// `highres_imu:1`, `scaled_imu2`, ...
+    pub instance: String,
+    /// MAG_CAL_* `compass_id`, and the index of its flight-stack parameters.
+    pub compass_id: u8,
+    pub mag: Option<SensorCalibration>,
+    pub accel: Option<SensorCalibration>,
 }
 
 pub const STORE_SCHEMA: &str = "imucald.calibration/1";
@@ -51,26 +70,51 @@ impl StoredCalibration {
     fn empty() -> Self {
         StoredCalibration {
             schema: STORE_SCHEMA.into(),
+            compass_id: 0,
             mag: None,
             accel: None,
             gyro: None,
+            instances: Vec::new(),
         }
     }
-    fn cal(s: &Option<SensorCalibration>) -> Option<Calibration> {
-        let s = s.as_ref().filter(|s| s.status == "ok")?;
-        let model =
-            crate::model::ModelKind::parse(&s.model).unwrap_or(crate::model::ModelKind::Full12);
-        Some(Calibration {
-            model,
-            offset: s.offset,
-            matrix: s.matrix,
-        })
-    }
     pub fn mag_cal(&self) -> Option<Calibration> {
-        Self::cal(&self.mag)
+        self.mag.as_ref()?.calibration()
     }
     pub fn accel_cal(&self) -> Option<Calibration> {
-        Self::cal(&self.accel)
+        self.accel.as_ref()?.calibration()
+    }
+    /// Every compass's magnetometer calibration in uT with its compass id (what parameters hold).
+    pub fn mags_ut(&self) -> Vec<(usize, Calibration)> {
+        let primary = self.mag.as_ref().and_then(|m| m.calibration_ut());
+        let others = self.instances.iter().filter_map(|i| {
+            let c = i.mag.as_ref()?.calibration_ut()?;
+            Some((i.compass_id as usize, c))
+        });
+        primary
+            .map(|c| (self.compass_id as usize, c))
+            .into_iter()
+            .chain(others)
+            .collect()
+    }
+    /// The stored entry of the instance with compass id `compass_id` (made when missing).
+    fn instance_mut(&mut self, name: &str, compass_id: u8) -> &mut StoredInstance {
+        let k = match self
+            .instances
+            .iter()
+            .position(|i| i.compass_id == compass_id)
+        {
+            Some(k) => k,
+            None => {
+                self.instances.push(StoredInstance {
+                    instance: name.to_string(),
+                    compass_id,
+                    mag: None,
+                    accel: None,
+                });
+                self.instances.len() - 1
+            }
+        };
+        &mut self.instances[k]
     }
 }
 
@@ -97,14 +141,14 @@ pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
         source,
     })?;
     let (m, a) = (store.mag_cal(), store.accel_cal());
-    let m_ut = m.filter(|_| store.mag.as_ref().is_some_and(|s| s.units == "uT"));
+    let mags = store.mags_ut();
     crate::publish::write_atomic(
         &dir.join("ardupilot.parm"),
-        crate::export::ardupilot_file(m_ut.as_ref(), a.as_ref()).as_bytes(),
+        crate::export::ardupilot_file(&mags, a.as_ref()).as_bytes(),
     )?;
     crate::publish::write_atomic(
         &dir.join("px4.params"),
-        crate::export::px4_file(m_ut.as_ref(), a.as_ref()).as_bytes(),
+        crate::export::px4_file(&mags, a.as_ref()).as_bytes(),
     )?;
     crate::publish::write_atomic(
         &dir.join("fusion.h"),
@@ -189,10 +233,7 @@ pub fn accept(new: &SensorResult, current: Option<&SensorCalibration>) -> Result
             detail: new.report.detail.clone().unwrap_or_default(),
         });
     };
-    let current = current.filter(|c| c.status == "ok");
-    let Some((cur, cc)) =
-        current.and_then(|c| StoredCalibration::cal(&Some(c.clone())).map(|cc| (c, cc)))
-    else {
+    let Some((cur, cc)) = current.and_then(|c| c.calibration().map(|cc| (c, cc))) else {
         return Ok(());
     };
     let held = &new.held_out;
@@ -560,9 +601,78 @@ struct LinkEntry {
     queue_full_reported: u64,
 }
 
+/// One IMU instance calibrated live: its pipeline, its magnetometer calibration run and progress,
+/// its latest fit. Track 0 is the primary instance, whose calibration also gives the heading and
+/// the attitude; every further compass of the calibrated vehicle gets a track of its own
+/// (at most [`crate::decode::MAX_INSTANCES`]), calibrated, reported (MAG_CAL_* with its compass id,
+/// JSON with its `instance`), stored and written under its own parameter names.
+struct Track {
+    /// The instance's index in the calibrated vehicle's converter; `None` for track 0 until the
+    /// converter picked its primary (and for samples of text-line links, which have no instances).
+    instance: Option<usize>,
+    /// `highres_imu:1`, `scaled_imu2`, ...
+    name: String,
+    /// MAG_CAL_* `compass_id`.
+    compass_id: u8,
+    pipe: Pipeline,
+    /// Magnetometer samples pushed (a track without any reports no magnetometer progress).
+    mag_samples: u64,
+    /// Counts calibration-run restarts: a fit started before the latest one is disregarded.
+    generation: u64,
+    /// Completion of the calibration run, for the progress reports.
+    progress: Progress,
+    /// The magnetometer calibration run (ground-station commands, continuous calibration).
+    mag_run: MagCalRun,
+    /// The failed magnetometer fit to report, while its event is handled.
+    mag_failed: Option<SensorCalibration>,
+    /// The last magnetometer calibration sent in MAG_CAL_REPORT (reports only when it moved).
+    reported_mag: Option<SensorCalibration>,
+    last_results: Option<FitResults>,
+    /// A refit is due (its pipeline said so since the last fit started).
+    refit_wanted: bool,
+}
+
+impl Track {
+    fn new(
+        cfg: &Config,
+        instance: Option<usize>,
+        name: String,
+        compass_id: u8,
+    ) -> Result<Track, Error> {
+        Ok(Track {
+            instance,
+            name,
+            compass_id,
+            pipe: Pipeline::new(cfg)?.with_hold_out(HOLD_OUT_EVERY),
+            mag_samples: 0,
+            generation: 0,
+            progress: Progress::new(cfg.daemon.progress_full_regions),
+            mag_run: MagCalRun::Idle,
+            mag_failed: None,
+            reported_mag: None,
+            last_results: None,
+            refit_wanted: false,
+        })
+    }
+
+    /// Push a sample (raw, sensor axes); true when a refit is due.
+    fn push(&mut self, s: &Sample) -> bool {
+        if s.mag_ut.is_some() {
+            self.mag_samples += 1;
+        }
+        let due = self.pipe.push(s);
+        self.refit_wanted |= due;
+        due
+    }
+}
+
+/// Which tracks a fit job fitted: (track, its generation when the job started, time, results).
+type TrackFits = Vec<(usize, u64, f64, FitResults)>;
+
 struct State {
     cfg: Config,
-    pipe: Pipeline,
+    /// The instances calibrated; track 0 is the primary.
+    tracks: Vec<Track>,
     /// Clocks of the links that deliver samples rather than MAVLink frames, by link index.
     sample_clocks: Vec<SourceClock>,
     store: StoredCalibration,
@@ -573,17 +683,9 @@ struct State {
     own: mavout::OwnIds,
     /// Inbound frames dropped as our own echo.
     own_echo: u64,
-    /// The magnetometer calibration run (ground-station commands, continuous calibration).
-    mag_run: MagCalRun,
-    /// The failed magnetometer fit to report, while its event is handled.
-    mag_failed: Option<SensorCalibration>,
-    /// Counts calibration-run restarts: a fit started before the latest one is disregarded.
-    pipe_generation: u64,
     /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
     /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
     mav_out: Vec<u8>,
-    /// Completion of the calibration run, for the progress reports.
-    progress: Progress,
     /// The calibration store and the report, written off the run loop.
     store_writes: Writes,
     report_writes: Writes,
@@ -596,6 +698,8 @@ struct State {
     primary_vehicle: Option<usize>,
     /// IMU samples of other vehicles, not calibrated.
     other_vehicle_samples: u64,
+    /// IMU samples of instances past the tracks the service keeps, not calibrated.
+    other_instance_samples: u64,
     /// A converter as new, for the next vehicle heard.
     new_converter: MessageConverter,
     /// Counts of the samples from text-line and simulator links.
@@ -606,12 +710,9 @@ struct State {
     report: Option<PathBuf>,
     start: tokio::time::Instant,
     declination: Option<f64>,
-    last_results: Option<FitResults>,
     mag_awaiting_params: u64,
     /// Calibrated vectors since the last heading publication.
     window: Averager,
-    /// The last magnetometer calibration sent in MAG_CAL_REPORT (reports only when it moved).
-    reported_mag: Option<SensorCalibration>,
     /// Fused attitude (body FRD -> NED, true north when the place is known) from every calibrated sample.
     fusion: OrientationFilter,
     /// Calibrated gyro since the last attitude publication (the body rates sent with it).
@@ -807,9 +908,10 @@ impl State {
         .await;
     }
 
+    /// A sample of the primary instance: calibrated for the heading and attitude, and pushed.
     fn on_sample(&mut self, s: Sample) -> bool {
-        let due = self.pipe.push(&s);
-        let body = self.pipe.to_body(&s);
+        let due = self.tracks[0].push(&s);
+        let body = self.tracks[0].pipe.to_body(&s);
         if body.mag_ut.is_some() {
             self.last_body_mag = body.mag_ut;
         }
@@ -849,7 +951,9 @@ impl State {
     /// Feed a calibrated sample (body axes, stored gyro bias removed) to the orientation filter.
     /// A gyro still in counts (no scale known) is left out: the filter then runs on accel and mag.
     fn fuse(&mut self, c: &Calibrated) {
-        let gyro = c.gyro_rad_s.filter(|_| self.pipe.gyro_units == Unit::Si);
+        let gyro = c
+            .gyro_rad_s
+            .filter(|_| self.tracks[0].pipe.gyro_units == Unit::Si);
         if c.accel_mps2.is_none() && gyro.is_none() && c.mag_ut.is_none() {
             return;
         }
@@ -896,7 +1000,7 @@ impl State {
         self.send_mav(&msgs).await;
         let stored_bias = self.calibrator.gyro_bias.unwrap_or([0.0; 3]);
         let ev = LiveEvent::Attitude {
-            t: self.latest.map_or(self.pipe.last_t, |c| c.t_s),
+            t: self.latest.map_or(self.tracks[0].pipe.last_t, |c| c.t_s),
             q,
             roll_deg: o.roll_deg,
             pitch_deg: o.pitch_deg,
@@ -972,7 +1076,8 @@ impl State {
             }
             _ => {
                 let v = self.vehicle(link, frame.system_id);
-                let Some(mut s) = self.vehicles[v].conv.convert(&frame.message, time_us) else {
+                let Some((k, mut s)) = self.vehicles[v].conv.convert_any(&frame.message, time_us)
+                else {
                     return false;
                 };
                 if *self.primary_vehicle.get_or_insert(v) != v {
@@ -988,11 +1093,14 @@ impl State {
                     }
                     return false;
                 }
+                let Some(track) = self.track_of(k).await else {
+                    return false;
+                };
                 let vh = &self.vehicles[v];
                 if vh.ardupilot {
                     if let Some(m) = s.mag_ut {
                         s.mag_ut = if self.cfg.daemon.ardupilot_corrected_mag == "undo" {
-                            vh.ap_params.undo(m)
+                            vh.ap_params.undo(self.tracks[track].compass_id, m)
                         } else {
                             None
                         };
@@ -1001,9 +1109,52 @@ impl State {
                         }
                     }
                 }
-                self.on_sample(s)
+                if track == 0 {
+                    self.on_sample(s)
+                } else {
+                    self.tracks[track].push(&s)
+                }
             }
         }
+    }
+
+    /// The track of instance `k` of the calibrated vehicle: track 0 for its primary (named on its
+    /// first sample), a new track for a further instance. `None` (counted) past
+    /// [`crate::decode::MAX_INSTANCES`] tracks or when a pipeline cannot be made.
+    async fn track_of(&mut self, k: usize) -> Option<usize> {
+        if let Some(t) = self.tracks.iter().position(|t| t.instance == Some(k)) {
+            return Some(t);
+        }
+        let v = self.primary_vehicle?;
+        let conv = &self.vehicles[v].conv;
+        let info = conv.instances().get(k).cloned()?;
+        if conv.primary_index() == Some(k) {
+            let t0 = &mut self.tracks[0];
+            (t0.instance, t0.name, t0.compass_id) = (Some(k), info.name, info.compass_id);
+            self.store.compass_id = info.compass_id;
+            return Some(0);
+        }
+        if self.tracks.len() >= crate::decode::MAX_INSTANCES {
+            self.other_instance_samples += 1;
+            return None;
+        }
+        let mut t = match Track::new(&self.cfg, Some(k), info.name.clone(), info.compass_id) {
+            Ok(t) => t,
+            Err(e) => {
+                tracing::error!("instance {} not calibrated: {e}", info.name);
+                self.other_instance_samples += 1;
+                return None;
+            }
+        };
+        t.pipe.mag_units = info.units.mag;
+        t.pipe.gyro_units = info.units.gyro;
+        self.tracks.push(t);
+        let text = format!(
+            "{}: a further IMU instance (compass {}), calibrated on its own",
+            info.name, info.compass_id
+        );
+        self.status(6, text).await;
+        Some(self.tracks.len() - 1)
     }
 
     /// The heading cadence: the heading, and the next messages of a parameter write in progress.
@@ -1090,87 +1241,128 @@ impl State {
         self.send_json(&ev).await;
     }
 
+    /// MAG_CAL_PROGRESS and a JSON `progress` line for each compass whose calibration run
+    /// reports progress (track 0 always; a further instance once it has magnetometer data).
     async fn publish_progress(&mut self) {
-        if !self
-            .mag_run
-            .reports_progress(self.cfg.daemon.mag_cal == "continuous")
-        {
-            return;
+        let continuous = self.cfg.daemon.mag_cal == "continuous";
+        for i in 0..self.tracks.len() {
+            let centre = self
+                .mag_in_use(i)
+                .and_then(|m| m.calibration())
+                .map(|c| c.offset);
+            let t = &mut self.tracks[i];
+            if (i > 0 && t.mag_samples == 0) || !t.mag_run.reports_progress(continuous) {
+                continue;
+            }
+            let p = t.pipe.progress(&mut t.progress, centre);
+            let dir = p.direction.map(|v| v as f32);
+            let msg = mavout::mag_cal_progress(t.compass_id, p.completion_pct, p.mask, dir, 1);
+            let ev = LiveEvent::Progress {
+                sensor: "mag".into(),
+                instance: t.compass_id,
+                completion_pct: p.completion_pct as f64,
+                filled_regions: p.filled_regions,
+            };
+            self.send_mav(&[msg]).await;
+            self.send_json(&ev).await;
         }
-        let centre = self.calibrator.mag.map(|c| c.offset);
-        let p = self.pipe.progress(&mut self.progress, centre);
-        let dir = p.direction.map(|v| v as f32);
-        let msg = mavout::mag_cal_progress(0, p.completion_pct, p.mask, dir, 1);
-        self.send_mav(&[msg]).await;
-        let ev = LiveEvent::Progress {
-            sensor: "mag".into(),
-            completion_pct: p.completion_pct as f64,
-            filled_regions: p.filled_regions,
-        };
-        self.send_json(&ev).await;
     }
 
-    /// A refit came back: decide, store, publish.
-    async fn on_fit(&mut self, t: f64, results: FitResults) {
+    /// The magnetometer calibration in use of track `i`.
+    fn mag_in_use(&self, i: usize) -> Option<&SensorCalibration> {
+        if i == 0 {
+            return self.store.mag.as_ref();
+        }
+        let id = self.tracks[i].compass_id;
+        let s = self.store.instances.iter().find(|s| s.compass_id == id)?;
+        s.mag.as_ref()
+    }
+
+    /// The accelerometer calibration in use of track `i`.
+    fn accel_in_use(&self, i: usize) -> Option<&SensorCalibration> {
+        if i == 0 {
+            return self.store.accel.as_ref();
+        }
+        let id = self.tracks[i].compass_id;
+        let s = self.store.instances.iter().find(|s| s.compass_id == id)?;
+        s.accel.as_ref()
+    }
+
+    /// A compass's name in messages to the user: empty with one compass.
+    fn compass_label(&self, i: usize) -> String {
+        if self.tracks.len() > 1 {
+            format!(" (compass {})", self.tracks[i].compass_id)
+        } else {
+            String::new()
+        }
+    }
+
+    /// A refit of track `i` came back: decide, store, publish.
+    async fn on_fit(&mut self, i: usize, t: f64, results: FitResults) {
         let mut changed = false;
-        let mut mag_passed = false;
+        let id = self.tracks[i].compass_id;
         // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
         // result is reported whatever the calibration in use (accepting it is the ground
-        // station's call).
-        let commanded = matches!(self.mag_run, MagCalRun::Running { .. });
-        for (name, res) in [("mag", &results.mag), ("accel", &results.accel)] {
-            let current = if name == "mag" {
-                self.store.mag.clone().filter(|_| !commanded)
-            } else {
-                self.store.accel.clone()
-            };
-            match accept(res, current.as_ref()) {
-                // The magnetometer's goes to the calibration run (`mag_event`), which installs it
-                // or holds it for the ground station.
-                Ok(()) if name == "mag" => mag_passed = true,
-                Ok(()) => {
-                    tracing::info!(sensor = name, model = %res.report.model, rms = res.report.rms_residual, "calibration accepted");
-                    self.store.accel = Some(res.report.clone());
-                    self.calibrator.accel = res.calibration;
-                    changed = true;
-                }
-                Err(why) => tracing::info!(sensor = name, "calibration not replaced: {why}"),
+        // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
+        // which installs it or holds it for the ground station.
+        let commanded = matches!(self.tracks[i].mag_run, MagCalRun::Running { .. });
+        let current_mag = self.mag_in_use(i).filter(|_| !commanded).cloned();
+        let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
+            Ok(()) => true,
+            Err(why) => {
+                tracing::info!(
+                    sensor = "mag",
+                    compass = id,
+                    "calibration not replaced: {why}"
+                );
+                false
             }
+        };
+        match accept(&results.accel, self.accel_in_use(i)) {
+            Ok(()) => {
+                let r = &results.accel.report;
+                tracing::info!(sensor = "accel", compass = id, model = %r.model, rms = r.rms_residual, "calibration accepted");
+                if i == 0 {
+                    self.store.accel = Some(r.clone());
+                    self.calibrator.accel = results.accel.calibration;
+                } else {
+                    let name = self.tracks[i].name.clone();
+                    self.store.instance_mut(&name, id).accel = Some(r.clone());
+                }
+                changed = true;
+            }
+            Err(why) => tracing::info!(
+                sensor = "accel",
+                compass = id,
+                "calibration not replaced: {why}"
+            ),
         }
-        if results.gyro.status == "ok" {
+        if i == 0 && results.gyro.status == "ok" {
             self.store.gyro = Some(results.gyro.clone());
             self.calibrator.gyro_bias = Some(results.gyro.bias);
         }
         // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
         // data covered the sphere and the fit still failed (not while still collecting).
         let mag = &results.mag.report;
+        let completion = self.tracks[i].progress.completion_pct();
         if mag_passed {
             let ev = MagCalEvent::FitPassed {
                 cal: Box::new(mag.clone()),
-                complete: self.progress.completion_pct() >= 100,
+                complete: completion >= 100,
             };
-            changed |= self.mag_event(ev, None).await;
-        } else if failure_report_due(mag, self.progress.completion_pct()) {
-            self.mag_failed = Some(mag.clone());
-            self.mag_event(MagCalEvent::FitFailed, None).await;
+            changed |= self.mag_event(i, ev).await.0;
+        } else if failure_report_due(mag, completion) {
+            self.tracks[i].mag_failed = Some(mag.clone());
+            self.mag_event(i, MagCalEvent::FitFailed).await;
         }
         for (name, r) in [
             ("mag", &results.mag.report),
             ("accel", &results.accel.report),
         ] {
-            let ev = LiveEvent::Calibration {
-                sensor: name.into(),
-                status: r.status.clone(),
-                failure: r.failure.clone(),
-                model: r.model.clone(),
-                offset: r.offset,
-                matrix: r.matrix,
-                rms_residual: r.rms_residual,
-            };
-            self.send_json(&ev).await;
+            self.send_json(&LiveEvent::calibration(name, id, r)).await;
         }
-        self.pipe.install(t, results.clone());
-        self.last_results = Some(results);
+        self.tracks[i].pipe.install(t, results.clone());
+        self.tracks[i].last_results = Some(results);
         if changed {
             self.store_changed();
         }
@@ -1187,27 +1379,23 @@ impl State {
             .want(WriteJob::Store(self.cal_dir.clone(), store));
     }
 
-    /// Feed the magnetometer calibration run an event and carry out what its transition says.
-    /// `ack_to`: the command and its sender, for COMMAND_ACK. Returns whether a calibration was
-    /// installed (the caller has the store written).
-    async fn mag_event(&mut self, ev: MagCalEvent, ack_to: Option<(MavCmd, u8, u8)>) -> bool {
+    /// Feed track `i`'s magnetometer calibration run an event and carry out what its transition
+    /// says. Returns whether a calibration was installed (the caller has the store written) and
+    /// the COMMAND_ACK results the transition gave (the caller answers the command once).
+    async fn mag_event(&mut self, i: usize, ev: MagCalEvent) -> (bool, Vec<MavResult>) {
         let accepting = matches!(ev, MagCalEvent::Accept { .. });
         let continuous = self.cfg.daemon.mag_cal == "continuous";
-        let run = std::mem::replace(&mut self.mag_run, MagCalRun::Idle);
-        let (next, effects) = run.on(ev, continuous);
-        self.mag_run = next;
-        let (mut installed, mut reported) = (false, false);
+        let id = self.tracks[i].compass_id;
+        let run = std::mem::replace(&mut self.tracks[i].mag_run, MagCalRun::Idle);
+        let (next, effects) = run.on(ev, continuous, id);
+        self.tracks[i].mag_run = next;
+        let (mut installed, mut reported, mut acks) = (false, false, vec![]);
         for fx in effects {
             match fx {
-                MagCalEffect::Ack(result) => {
-                    if let Some((cmd, sys, comp)) = ack_to {
-                        self.send_mav(&[mavout::command_ack(cmd, result, sys, comp)])
-                            .await;
-                    }
-                }
-                MagCalEffect::Restart => self.restart_mag_run().await,
+                MagCalEffect::Ack(result) => acks.push(result),
+                MagCalEffect::Restart => self.restart_mag_run(i).await,
                 MagCalEffect::Install(cal) => {
-                    self.install_mag(*cal);
+                    self.install_mag(i, *cal);
                     installed = true;
                 }
                 MagCalEffect::ReportSuccess {
@@ -1215,37 +1403,35 @@ impl State {
                     autosaved,
                     commanded,
                 } => {
-                    let moved = self.reported_mag.as_ref().is_none_or(|prev| {
+                    let moved = self.tracks[i].reported_mag.as_ref().is_none_or(|prev| {
                         prev.model != cal.model
                             || (0..3).any(|k| (prev.offset[k] - cal.offset[k]).abs() > 0.05)
                     });
                     if commanded || moved {
                         reported = autosaved;
-                        let msg = mavout::mag_cal_report_autosaved(0, &cal, autosaved);
+                        let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
                         self.send_mav(&[msg]).await;
                         let what = if autosaved {
                             "mag calibrated"
                         } else {
                             "mag calibration ready (accept to install it, cancel to discard it)"
                         };
-                        self.status(
-                            6,
-                            format!(
-                                "{what}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
-                                cal.model,
-                                cal.offset[0],
-                                cal.offset[1],
-                                cal.offset[2],
-                                cal.rms_residual
-                            ),
-                        )
-                        .await;
-                        self.reported_mag = Some(*cal);
+                        let text = format!(
+                            "{what}{}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
+                            self.compass_label(i),
+                            cal.model,
+                            cal.offset[0],
+                            cal.offset[1],
+                            cal.offset[2],
+                            cal.rms_residual
+                        );
+                        self.status(6, text).await;
+                        self.tracks[i].reported_mag = Some(*cal);
                     }
                 }
                 MagCalEffect::ReportFailure => {
-                    if let Some(mag) = self.mag_failed.take() {
-                        self.send_mav(&[mavout::mag_cal_report(0, &mag)]).await;
+                    if let Some(mag) = self.tracks[i].mag_failed.take() {
+                        self.send_mav(&[mavout::mag_cal_report(id, &mag)]).await;
                     }
                 }
             }
@@ -1253,12 +1439,18 @@ impl State {
         if installed && (reported || accepting) && self.cfg.daemon.write_params {
             self.start_param_write();
         }
-        installed
+        (installed, acks)
     }
 
-    /// A magnetometer calibration in use from now on (the store is written by the caller).
-    fn install_mag(&mut self, cal: SensorCalibration) {
-        tracing::info!(sensor = "mag", model = %cal.model, rms = cal.rms_residual, "calibration accepted");
+    /// A magnetometer calibration of track `i` in use from now on (the store is written by the
+    /// caller). The primary's also goes to the heading and attitude.
+    fn install_mag(&mut self, i: usize, cal: SensorCalibration) {
+        tracing::info!(sensor = "mag", compass = self.tracks[i].compass_id, model = %cal.model, rms = cal.rms_residual, "calibration accepted");
+        if i > 0 {
+            let (name, id) = (self.tracks[i].name.clone(), self.tracks[i].compass_id);
+            self.store.instance_mut(&name, id).mag = Some(cal);
+            return;
+        }
         let before = self.calibrator.mag;
         self.store.mag = Some(cal);
         self.calibrator.mag = self.store.mag_cal();
@@ -1272,19 +1464,28 @@ impl State {
         }
     }
 
-    /// A new calibration run from zero coverage: what was collected goes, a fit in flight is
-    /// disregarded (it saw the old data); the calibration in use stays.
-    async fn restart_mag_run(&mut self) {
+    /// A new calibration run of track `i` from zero coverage: what was collected goes, a fit in
+    /// flight is disregarded (it saw the old data); the calibration in use stays.
+    async fn restart_mag_run(&mut self, i: usize) {
+        let t = &mut self.tracks[i];
         match Pipeline::new(&self.cfg) {
-            Ok(p) => self.pipe = p,
+            Ok(p) => {
+                let (mag_units, gyro_units) = (t.pipe.mag_units, t.pipe.gyro_units);
+                t.pipe = p.with_hold_out(HOLD_OUT_EVERY);
+                (t.pipe.mag_units, t.pipe.gyro_units) = (mag_units, gyro_units);
+            }
             Err(e) => tracing::error!("calibration run not restarted: {e}"),
         }
-        self.pipe_generation += 1;
-        self.progress.restart();
-        self.status(6, "mag calibration run started".into()).await;
+        t.generation += 1;
+        t.refit_wanted = false;
+        t.progress.restart();
+        let text = format!("mag calibration run started{}", self.compass_label(i));
+        self.status(6, text).await;
     }
 
     /// COMMAND_LONG: the ground station's calibration commands when addressed to us (or to all).
+    /// Like ArduPilot, each compass has its own run and the command's compass mask says which
+    /// take it (0: all); one COMMAND_ACK answers: accepted when a compass took it.
     async fn on_command(&mut self, frame: &crate::decode::Frame, c: &COMMAND_LONG_DATA) {
         let to_us = |target: u8, own: u8| target == 0 || target == own;
         if !(to_us(c.target_system, self.own.system_id)
@@ -1323,25 +1524,45 @@ impl State {
             frame.system_id,
             frame.component_id
         );
-        let ack_to = Some((c.command, frame.system_id, frame.component_id));
-        if self.mag_event(ev, ack_to).await {
+        let (mut installed, mut acks) = (false, vec![]);
+        for i in 0..self.tracks.len() {
+            if i == 0 || self.tracks[i].mag_samples > 0 {
+                let (inst, a) = self.mag_event(i, ev.clone()).await;
+                installed |= inst;
+                acks.extend(a);
+            }
+        }
+        let result = if acks.contains(&MavResult::MAV_RESULT_ACCEPTED) {
+            MavResult::MAV_RESULT_ACCEPTED
+        } else {
+            acks.first()
+                .copied()
+                .unwrap_or(MavResult::MAV_RESULT_FAILED)
+        };
+        let ack = mavout::command_ack(c.command, result, frame.system_id, frame.component_id);
+        self.send_mav(&[ack]).await;
+        if installed {
             self.store_changed();
         }
     }
 
+    /// Write every compass's calibration in use to the flight controller (`daemon.write_params`).
     fn start_param_write(&mut self) {
-        let Some(m) = self
+        let params: Vec<_> = self
             .store
-            .mag_cal()
-            .filter(|_| self.store.mag.as_ref().is_some_and(|s| s.units == "uT"))
-        else {
+            .mags_ut()
+            .iter()
+            .flat_map(|(k, m)| {
+                if self.cfg.daemon.param_target == "px4" {
+                    crate::export::px4_mag(m, *k).0
+                } else {
+                    crate::export::ardupilot_mag(m, *k).0
+                }
+            })
+            .collect();
+        if params.is_empty() {
             return;
-        };
-        let params = if self.cfg.daemon.param_target == "px4" {
-            crate::export::px4_mag(&m).0
-        } else {
-            crate::export::ardupilot_mag(&m, 0).0
-        };
+        }
         self.writer = Some(ParamWriter::new(
             params,
             self.cfg.daemon.target_system,
@@ -1386,7 +1607,9 @@ impl State {
 
     /// The report as it stands, ready to be written (none without `--report` or before a fit).
     fn report_job(&self) -> Option<WriteJob> {
-        let (Some(path), Some(results)) = (self.report.clone(), self.last_results.clone()) else {
+        let (Some(path), Some(results)) =
+            (self.report.clone(), self.tracks[0].last_results.clone())
+        else {
             return None;
         };
         let mut stats = self
@@ -1396,6 +1619,7 @@ impl State {
         stats.records += self.line_stats.records;
         stats.counts.add(&self.line_stats.counts);
         stats.skip_n("other_vehicle", self.other_vehicle_samples);
+        stats.skip_n("too_many_instances", self.other_instance_samples);
         for l in &self.links {
             if let Ok(d) = l.handle.decode_stats.lock() {
                 for (k, v) in &d.skipped {
@@ -1428,12 +1652,98 @@ impl State {
                 .and_then(|v| self.vehicles[v].conv.instance())
                 .map(String::from),
             &stats,
-            self.pipe.samples,
-            self.pipe.last_t,
+            self.tracks[0].pipe.samples,
+            self.tracks[0].pipe.last_t,
         );
-        let mut report = crate::replay::make_report(input, &self.pipe, &results, self.declination);
+        let pipe = &self.tracks[0].pipe;
+        let mut report = crate::replay::make_report(input, pipe, &results, self.declination);
+        report.instances = self.instance_reports(&report.calibration);
         report.outputs = Some(self.outputs_report());
         Some(WriteJob::Report(path, Box::new(report)))
+    }
+}
+
+impl State {
+    /// Start a fit of every track whose refit is due (`all`: of every track, with its last poses
+    /// closed: the end of a replay), off the executor.
+    fn start_fits(&mut self, all: bool) -> tokio::task::JoinHandle<TrackFits> {
+        let mut inputs = vec![];
+        for (i, t) in self.tracks.iter_mut().enumerate() {
+            if all {
+                t.pipe.finish_poses();
+            } else if !t.refit_wanted {
+                continue;
+            }
+            t.refit_wanted = false;
+            inputs.push((i, t.generation, t.pipe.last_t, t.pipe.snapshot()));
+        }
+        let cfg = self.cfg.clone();
+        tokio::task::spawn_blocking(move || {
+            inputs
+                .into_iter()
+                .map(|(i, generation, t, input)| (i, generation, t, fit_all(&input, &cfg)))
+                .collect()
+        })
+    }
+
+    /// Fits came back: each goes to its track unless that track's run restarted meanwhile.
+    async fn fits_done(&mut self, r: Result<TrackFits, tokio::task::JoinError>) {
+        match r {
+            Ok(fits) => {
+                for (i, generation, t, res) in fits {
+                    if generation == self.tracks[i].generation {
+                        self.on_fit(i, t, res).await;
+                    } else {
+                        tracing::info!(
+                            "a fit from before the calibration run restarted: disregarded"
+                        );
+                    }
+                }
+            }
+            Err(e) => tracing::error!("fit task failed: {e}"),
+        }
+    }
+}
+
+/// A block per calibrated instance for the report (empty with one): the primary's calibration is
+/// the report's own (`primary`), the others' their latest fits.
+impl State {
+    fn instance_reports(
+        &self,
+        primary: &crate::report::CalibrationReport,
+    ) -> Vec<crate::report::InstanceReport> {
+        if self.tracks.len() < 2 {
+            return Vec::new();
+        }
+        let infos = self
+            .primary_vehicle
+            .map(|v| self.vehicles[v].conv.instances())
+            .unwrap_or_default();
+        self.tracks
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| {
+                let calibration = if i == 0 {
+                    primary.clone()
+                } else {
+                    let r = t.last_results.as_ref()?;
+                    crate::report::CalibrationReport {
+                        mag: r.mag.report.clone(),
+                        accel: r.accel.report.clone(),
+                        gyro: r.gyro.clone(),
+                    }
+                };
+                let info = t.instance.and_then(|k| infos.get(k));
+                Some(crate::report::InstanceReport {
+                    instance: t.name.clone(),
+                    compass_id: t.compass_id,
+                    primary: i == 0,
+                    samples: info.map_or(t.pipe.samples, |x| x.samples),
+                    time: info.map(|x| x.time.clone()).unwrap_or_default(),
+                    calibration,
+                })
+            })
+            .collect()
     }
 }
 
@@ -1629,8 +1939,14 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     } else {
         InstanceChoice::Named(cfg.input.instance.clone())
     };
+    let mut new_converter = MessageConverter::new(choice.clone(), cfg.input.raw_imu_scale);
+    if new_converter.choice == InstanceChoice::Auto {
+        // Every compass of the calibrated vehicle, each on its own track.
+        new_converter = new_converter.with_other_instances();
+    }
+    let track0 = Track::new(&cfg, None, String::new(), store.compass_id)?;
     let mut st = State {
-        pipe: Pipeline::new(&cfg)?.with_hold_out(HOLD_OUT_EVERY),
+        tracks: vec![track0],
         sample_clocks: Vec::new(),
         calibrator: State::calibrator_from_store(&store, declination),
         store,
@@ -1641,11 +1957,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             component_id: d.component_id,
         },
         own_echo: 0,
-        mag_run: MagCalRun::Idle,
-        mag_failed: None,
-        pipe_generation: 0,
         mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
-        progress: Progress::new(cfg.daemon.progress_full_regions),
         store_writes: Writes::default(),
         report_writes: Writes::default(),
         links,
@@ -1653,7 +1965,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         vehicles: Vec::new(),
         primary_vehicle: None,
         other_vehicle_samples: 0,
-        new_converter: MessageConverter::new(choice.clone(), cfg.input.raw_imu_scale),
+        other_instance_samples: 0,
+        new_converter,
         line_stats: crate::decode::DecodeStats::default(),
         writer: None,
         accepted: 0,
@@ -1661,9 +1974,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         report: d.report.as_ref().map(PathBuf::from),
         start: tokio::time::Instant::now(),
         declination,
-        last_results: None,
         mag_awaiting_params: 0,
-        reported_mag: None,
         window: Averager::default(),
         fusion: OrientationFilter::new(cfg.fusion_config(declination)),
         attitude_rates: RateMean::default(),
@@ -1701,11 +2012,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     });
     let mut clock = tokio::time::interval_at(epoch, clock_period);
     clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    type FitJob = tokio::task::JoinHandle<(f64, FitResults)>;
-    let mut fit_job: Option<FitJob> = None;
-    // The calibration run the fit in flight belongs to (`State::pipe_generation`).
-    let mut fit_gen = 0u64;
-    let mut refit_wanted = false;
+    // One fit job at a time, for every track whose refit was due when it started.
+    let mut fit_job: Option<tokio::task::JoinHandle<TrackFits>> = None;
     // Whatever is queued is taken in one go (at most this many), so the select below runs once per
     // batch of samples rather than once per sample.
     const INBOX_BATCH: usize = 256;
@@ -1716,15 +2024,8 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             st.attitude_due = false;
             st.publish_attitude().await;
         }
-        if refit_wanted && fit_job.is_none() {
-            refit_wanted = false;
-            let input = st.pipe.snapshot();
-            let cfg2 = st.cfg.clone();
-            let t = st.pipe.last_t;
-            fit_gen = st.pipe_generation;
-            fit_job = Some(tokio::task::spawn_blocking(move || {
-                (t, fit_all(&input, &cfg2))
-            }));
+        if fit_job.is_none() && st.tracks.iter().any(|t| t.refit_wanted) {
+            fit_job = Some(st.start_fits(false));
         }
         // Whatever this turn queued for the links goes out before the loop waits again.
         st.flush_mav();
@@ -1748,10 +2049,10 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                             let sample = st.stamp(link, sample);
                             st.line_stats.records += 1;
                             st.line_stats.count_sample(&sample);
-                            refit_wanted |= st.on_sample(sample);
+                            st.on_sample(sample);
                         }
                         Inbound::Frame { link, frame, time_us } => {
-                            refit_wanted |= st.on_frame(link, &frame, time_us).await;
+                            st.on_frame(link, &frame, time_us).await;
                         }
                         Inbound::Status { link, status } => {
                             let label = st.links.get(link).map(|l| l.label.clone()).unwrap_or_default();
@@ -1763,14 +2064,9 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                                     if let Some(l) = st.links.get_mut(link) { l.ended = true; }
                                     if st.links.iter().all(|l| l.replay && l.ended) {
                                         // Every source was a replay and all have ended: final fit, then stop.
-                                        if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) { if let Ok((t, r)) = j.await { st.on_fit(t, r).await; } }
-                                        st.pipe.finish_poses();
-                                        let input = st.pipe.snapshot();
-                                        let cfg2 = st.cfg.clone();
-                                        let t = st.pipe.last_t;
-                                        if let Ok(r) = tokio::task::spawn_blocking(move || fit_all(&input, &cfg2)).await {
-                                            st.on_fit(t, r).await;
-                                        }
+                                        if let Some(j) = fit_job.take() { st.fits_done(j.await).await; }
+                                        let last = st.start_fits(true).await;
+                                        st.fits_done(last).await;
                                         break 'main;
                                     }
                                 }
@@ -1781,11 +2077,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
             }
             r = async { fit_job.as_mut().expect("guarded").await }, if fit_job.is_some() => {
                 fit_job = None;
-                match r {
-                    Ok((t, res)) if fit_gen == st.pipe_generation => st.on_fit(t, res).await,
-                    Ok(_) => tracing::info!("a fit from before the calibration run restarted: disregarded"),
-                    Err(e) => tracing::error!("fit task failed: {e}"),
-                }
+                st.fits_done(r).await;
             }
             t = clock.tick() => {
                 if heading_out.due_at_clock(t) {
@@ -1803,9 +2095,11 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
                 if heartbeat_out.as_mut().is_some_and(|o| o.due_at_clock(t)) {
                     st.send_heartbeat().await;
                 }
-                if matches!(st.mag_run, MagCalRun::Waiting { .. }) {
-                    let now_s = st.now_s();
-                    st.mag_event(MagCalEvent::Tick { now_s }, None).await;
+                for i in 0..st.tracks.len() {
+                    if matches!(st.tracks[i].mag_run, MagCalRun::Waiting { .. }) {
+                        let now_s = st.now_s();
+                        st.mag_event(i, MagCalEvent::Tick { now_s }).await;
+                    }
                 }
             }
             _ = heading_out.own_tick(), if heading_out.own.is_some() => st.on_heading_tick().await,
@@ -1821,9 +2115,9 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
     st.flush_mav();
     // Shutdown: stop the links, keep the last good calibration on disk, write the report.
     let _ = link_stop_tx.send(true);
-    if let Some(j) = fit_job.take().filter(|_| fit_gen == st.pipe_generation) {
-        if let Ok(Ok((t, r))) = tokio::time::timeout(Duration::from_millis(500), j).await {
-            st.on_fit(t, r).await;
+    if let Some(j) = fit_job.take() {
+        if let Ok(r) = tokio::time::timeout(Duration::from_millis(500), j).await {
+            st.fits_done(r).await;
         }
     }
     // Writes in flight finish first, so an older file cannot land after the final one.
@@ -1864,7 +2158,7 @@ pub async fn run(cfg: Config, mut shutdown: watch::Receiver<bool>) -> Result<Run
         l.handle.task.abort();
     }
     Ok(RunSummary {
-        samples: st.pipe.samples,
+        samples: st.tracks[0].pipe.samples,
         accepted: st.accepted,
         inbound_dropped,
     })

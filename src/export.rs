@@ -45,16 +45,19 @@ fn sym(m: &[[f64; 3]; 3], i: usize, j: usize) -> f64 {
     0.5 * (m[i][j] + m[j][i])
 }
 
+/// ArduPilot's name of a compass parameter: `COMPASS_OFS_X` for compass index 0, `COMPASS_OFS2_X`
+/// for index 1, `COMPASS_DIA3_Z` ...
+pub fn ardupilot_compass_param(base: &str, compass_index: usize, axis: &str) -> String {
+    if compass_index == 0 {
+        format!("COMPASS_{base}_{axis}")
+    } else {
+        format!("COMPASS_{base}{}_{axis}", compass_index + 1)
+    }
+}
+
 /// ArduPilot compass parameters from a magnetometer calibration in uT (1 uT = 10 mGauss).
 pub fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Vec<String>) {
-    let name = |base: &str, axis: &str| {
-        // COMPASS_OFS_X, COMPASS_OFS2_X, COMPASS_DIA2_X ...
-        if compass_index == 0 {
-            format!("COMPASS_{base}_{axis}")
-        } else {
-            format!("COMPASS_{base}{}_{axis}", compass_index + 1)
-        }
-    };
+    let name = |base: &str, axis: &str| ardupilot_compass_param(base, compass_index, axis);
     let m = &cal.matrix;
     let params = vec![
         (name("OFS", "X"), -cal.offset[0] * 10.0),
@@ -84,19 +87,21 @@ pub fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
     (params, representability(cal, false))
 }
 
-/// PX4 magnetometer parameters (gauss; 1 uT = 0.01 gauss).
-pub fn px4_mag(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
+/// PX4 magnetometer parameters of calibration slot `index` (CAL_MAG0_*, CAL_MAG1_* ...; gauss,
+/// 1 uT = 0.01 gauss).
+pub fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
     let m = &cal.matrix;
+    let n = |field: &str| format!("CAL_MAG{index}_{field}");
     let params = vec![
-        ("CAL_MAG0_XOFF".into(), cal.offset[0] * 0.01),
-        ("CAL_MAG0_YOFF".into(), cal.offset[1] * 0.01),
-        ("CAL_MAG0_ZOFF".into(), cal.offset[2] * 0.01),
-        ("CAL_MAG0_XSCALE".into(), m[0][0]),
-        ("CAL_MAG0_YSCALE".into(), m[1][1]),
-        ("CAL_MAG0_ZSCALE".into(), m[2][2]),
-        ("CAL_MAG0_XODIAG".into(), sym(m, 0, 1)),
-        ("CAL_MAG0_YODIAG".into(), sym(m, 0, 2)),
-        ("CAL_MAG0_ZODIAG".into(), sym(m, 1, 2)),
+        (n("XOFF"), cal.offset[0] * 0.01),
+        (n("YOFF"), cal.offset[1] * 0.01),
+        (n("ZOFF"), cal.offset[2] * 0.01),
+        (n("XSCALE"), m[0][0]),
+        (n("YSCALE"), m[1][1]),
+        (n("ZSCALE"), m[2][2]),
+        (n("XODIAG"), sym(m, 0, 1)),
+        (n("YODIAG"), sym(m, 0, 2)),
+        (n("ZODIAG"), sym(m, 1, 2)),
     ];
     (params, representability(cal, true))
 }
@@ -115,14 +120,16 @@ pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
     (params, representability(cal, false))
 }
 
+/// Magnetometer calibrations (uT) with the compass index each is for (0 for COMPASS_OFS and
+/// CAL_MAG0, 1 for COMPASS_OFS2 and CAL_MAG1 ...).
+pub type CompassCalibrations = [(usize, Calibration)];
+
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
-pub fn ardupilot_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
+pub fn ardupilot_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
     let mut out =
         String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
-    for (params, warns) in [mag.map(|c| ardupilot_mag(c, 0)), accel.map(ardupilot_accel)]
-        .into_iter()
-        .flatten()
-    {
+    let mags = mags.iter().map(|(k, c)| ardupilot_mag(c, *k));
+    for (params, warns) in mags.chain(accel.map(ardupilot_accel)) {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
@@ -134,12 +141,10 @@ pub fn ardupilot_file(mag: Option<&Calibration>, accel: Option<&Calibration>) ->
 }
 
 /// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
-pub fn px4_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
+pub fn px4_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
     let mut out = String::from("# imucald calibration for PX4 (QGroundControl parameter file)\n# Vehicle-Id\tComponent-Id\tName\tValue\tType\n");
-    for (params, warns) in [mag.map(px4_mag), accel.map(px4_accel)]
-        .into_iter()
-        .flatten()
-    {
+    let mags = mags.iter().map(|(k, c)| px4_mag(c, *k));
+    for (params, warns) in mags.chain(accel.map(px4_accel)) {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
@@ -245,7 +250,7 @@ mod tests {
     #[test]
     fn px4_mag_reproduces_its_correction_in_gauss() {
         let c = cal();
-        let (p, _) = px4_mag(&c);
+        let (p, _) = px4_mag(&c, 0);
         let raw_g = [0.40, 0.05, -0.20];
         let off = [
             get(&p, "CAL_MAG0_XOFF"),

@@ -36,15 +36,15 @@
 //! | `attitude`    | `t` (s), `q` ([w,x,y,z], body FRD -> NED, from the gyro+accel+mag orientation filter), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, ZYX angles of `q`), `true_heading` (as for `heading`), `gyro_bias_rad_s` ([x,y,z] body: the stored gyro calibration plus the filter's residual estimate), `mag_disturbed` (bool: the field's norm or dip is off its reference, so the heading runs on the gyro) |
 //! | `heading`     | `t` (s), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, clockwise from north), `true_heading` (bool: true when the declination was added, i.e. from true north; false: magnetic north) |
 //! | `calibrated`  | `t` (s), `accel_mps2` ([x,y,z] m/s^2 or null), `gyro_rad_s` ([x,y,z] rad/s or null), `mag_ut` ([x,y,z] uT or null): the latest sample after calibration |
-//! | `progress`    | `sensor` ("mag"), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100) |
-//! | `calibration` | `sensor` ("mag" or "accel"), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
+//! | `progress`    | `sensor` ("mag"), `instance` (the compass: MAG_CAL_* `compass_id`; a stream with several compasses has a progress line per compass), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100) |
+//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
 //! | `status`      | `level` (emergency, alert, critical, error, warning, notice, info, debug), `text` |
 //!
 //! Example lines:
 //! ```text
 //! {"schema":"imucald.live/1","type":"heading","t":12.5,"roll_deg":1.2,"pitch_deg":-0.4,"heading_deg":273.9,"true_heading":true}
 //! {"schema":"imucald.live/1","type":"attitude","t":12.5,"q":[0.259,0.0,0.0,0.966],"roll_deg":0.0,"pitch_deg":0.0,"heading_deg":150.0,"true_heading":false,"gyro_bias_rad_s":[0.001,0.0,-0.002],"mag_disturbed":false}
-//! {"schema":"imucald.live/1","type":"progress","sensor":"mag","completion_pct":45.0,"filled_regions":45}
+//! {"schema":"imucald.live/1","type":"progress","sensor":"mag","instance":0,"completion_pct":45.0,"filled_regions":45}
 //! {"schema":"imucald.live/1","type":"status","level":"info","text":"mag calibrated"}
 //! ```
 
@@ -428,9 +428,9 @@ pub fn mask_param(p: f32) -> u8 {
     }
 }
 
-/// Whether a compass mask selects our compass (instance 0): 0 means all.
-fn selects_ours(mask: u8) -> bool {
-    mask == 0 || mask & 1 != 0
+/// Whether a compass mask selects compass `compass_id`: 0 means all.
+pub fn mask_selects(mask: u8, compass_id: u8) -> bool {
+    mask == 0 || (compass_id < 8 && mask & (1 << compass_id) != 0)
 }
 
 /// Where the magnetometer calibration stands, in the manner of ArduPilot's compass calibrator:
@@ -498,15 +498,22 @@ pub enum MagCalEffect {
 }
 
 impl MagCalRun {
-    /// The transition function: the next status and what to do, given whether the service
-    /// calibrates without a command (`continuous`).
-    pub fn on(self, ev: MagCalEvent, continuous: bool) -> (MagCalRun, Vec<MagCalEffect>) {
+    /// The transition function of compass `compass_id`'s run: the next status and what to do,
+    /// given whether the service calibrates without a command (`continuous`). Commands whose
+    /// compass mask leaves this compass out are refused (MAV_RESULT_FAILED) and change nothing.
+    pub fn on(
+        self,
+        ev: MagCalEvent,
+        continuous: bool,
+        compass_id: u8,
+    ) -> (MagCalRun, Vec<MagCalEffect>) {
+        let ours = |mask: u8| mask_selects(mask, compass_id);
         use MagCalEffect as E;
         use MagCalEvent as V;
         use MagCalRun as R;
         let ack = E::Ack;
         match (self, ev) {
-            (s, V::Start { opts, .. }) if !selects_ours(opts.mask) => {
+            (s, V::Start { opts, .. }) if !ours(opts.mask) => {
                 (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
             }
             (_, V::Start { opts, now_s }) if opts.delay_s > 0.0 => (
@@ -564,7 +571,7 @@ impl MagCalRun {
             }
             (R::Running { .. }, V::FitFailed) => (R::Failed, vec![E::ReportFailure]),
             (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
-            (s, V::Accept { mask } | V::Cancel { mask }) if !selects_ours(mask) => {
+            (s, V::Accept { mask } | V::Cancel { mask }) if !ours(mask) => {
                 (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
             }
             (R::Held { cal }, V::Accept { .. }) => (
@@ -861,43 +868,63 @@ pub fn attitude_from_quaternion(
 // ---------------------------------------------------------------------------------------------
 // Undoing ArduPilot's correction
 
-/// ArduPilot's compass parameters for compass index 0, in `correct_field` order.
-pub const AP_COMPASS_PARAMS: [&str; 9] = [
-    "COMPASS_OFS_X",
-    "COMPASS_OFS_Y",
-    "COMPASS_OFS_Z",
-    "COMPASS_DIA_X",
-    "COMPASS_DIA_Y",
-    "COMPASS_DIA_Z",
-    "COMPASS_ODI_X",
-    "COMPASS_ODI_Y",
-    "COMPASS_ODI_Z",
+/// ArduPilot's compass parameters in `correct_field` order, as (name part, axis).
+const AP_COMPASS_FIELDS: [(&str, &str); 9] = [
+    ("OFS", "X"),
+    ("OFS", "Y"),
+    ("OFS", "Z"),
+    ("DIA", "X"),
+    ("DIA", "Y"),
+    ("DIA", "Z"),
+    ("ODI", "X"),
+    ("ODI", "Y"),
+    ("ODI", "Z"),
 ];
 
-/// Optional scale parameter: applied only when it has been read and ArduPilot would apply it.
-pub const AP_COMPASS_SCALE: &str = "COMPASS_SCALE";
+/// Compasses whose ArduPilot parameters the service reads to undo their correction (COMPASS_OFS,
+/// COMPASS_OFS2, COMPASS_OFS3 ...: ArduPilot keeps three sets).
+pub const AP_COMPASSES: u8 = 3;
+
+/// The nine parameters of compass `compass` (0-based) in `correct_field` order, then its optional
+/// scale (`COMPASS_SCALE`, `COMPASS_SCALE2` ...: applied only when read and within ArduPilot's
+/// bounds).
+pub fn ap_compass_params(compass: u8) -> [String; 10] {
+    let name = |base: &str, axis: &str| {
+        crate::export::ardupilot_compass_param(base, compass as usize, axis)
+    };
+    let scale = if compass == 0 {
+        "COMPASS_SCALE".to_string()
+    } else {
+        format!("COMPASS_SCALE{}", compass + 1)
+    };
+    let mut out: [String; 10] = Default::default();
+    for (k, (base, axis)) in AP_COMPASS_FIELDS.iter().enumerate() {
+        out[k] = name(base, axis);
+    }
+    out[9] = scale;
+    out
+}
 
 /// ArduPilot applies COMPASS_SCALE only within these bounds (COMPASS_MIN/MAX_SCALE_FACTOR).
 const AP_SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
 
-/// PARAM_REQUEST_READ by name (`param_index` -1) for [`AP_COMPASS_PARAMS`] and then
-/// [`AP_COMPASS_SCALE`] (10 messages).
+/// PARAM_REQUEST_READ by name (`param_index` -1) for the parameters of compasses 0 to
+/// [`AP_COMPASSES`] - 1 ([`ap_compass_params`]: ten per compass).
 pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
-    AP_COMPASS_PARAMS
-        .iter()
-        .chain(std::iter::once(&AP_COMPASS_SCALE))
+    (0..AP_COMPASSES)
+        .flat_map(ap_compass_params)
         .map(|name| {
             MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
                 param_index: -1,
                 target_system,
                 target_component,
-                param_id: char_array(name),
+                param_id: char_array(&name),
             })
         })
         .collect()
 }
 
-/// ArduPilot's compass-0 correction as read back from the vehicle, to undo it.
+/// ArduPilot's compass corrections as read back from the vehicle, to undo them (one set per compass).
 ///
 /// ArduPilot streams RAW_IMU / SCALED_IMU* magnetometer fields after
 /// `mag = S (scale (raw + OFS))` (mGauss; S from DIA/ODI, all-zero DIA read as 1; `scale` =
@@ -909,15 +936,15 @@ pub struct ApCompassParams {
 }
 
 impl ApCompassParams {
-    /// Take a PARAM_VALUE for one of [`AP_COMPASS_PARAMS`] or [`AP_COMPASS_SCALE`]; true when it was one.
+    /// Take a PARAM_VALUE for one of the compasses' parameters ([`ap_compass_params`]); true when
+    /// it was one.
     pub fn absorb(&mut self, msg: &MavMessage) -> bool {
         let MavMessage::PARAM_VALUE(p) = msg else {
             return false;
         };
         let name = array_text(&p.param_id);
-        if (AP_COMPASS_PARAMS.contains(&name.as_str()) || name == AP_COMPASS_SCALE)
-            && p.param_value.is_finite()
-        {
+        let known = (0..AP_COMPASSES).any(|c| ap_compass_params(c).contains(&name));
+        if known && p.param_value.is_finite() {
             self.values.insert(name, p.param_value);
             true
         } else {
@@ -935,22 +962,20 @@ impl ApCompassParams {
         self.values.get(name).copied()
     }
 
-    /// All nine of [`AP_COMPASS_PARAMS`] have been read.
-    pub fn complete(&self) -> bool {
-        AP_COMPASS_PARAMS
+    /// All nine offset and matrix parameters of `compass` have been read.
+    pub fn complete(&self, compass: u8) -> bool {
+        ap_compass_params(compass)[..9]
             .iter()
-            .all(|n| self.values.contains_key(*n))
+            .all(|n| self.values.contains_key(n))
     }
 
-    /// (OFS in mGauss, S, scale) as ArduPilot uses them.
-    fn parts(&self) -> Option<([f64; 3], [[f64; 3]; 3], f64)> {
-        if !self.complete() {
+    /// (OFS in mGauss, S, scale) of `compass` as ArduPilot uses them.
+    fn parts(&self, compass: u8) -> Option<([f64; 3], [[f64; 3]; 3], f64)> {
+        if !self.complete(compass) {
             return None;
         }
-        let v: Vec<f64> = AP_COMPASS_PARAMS
-            .iter()
-            .map(|n| self.values[*n] as f64)
-            .collect();
+        let names = ap_compass_params(compass);
+        let v: Vec<f64> = names[..9].iter().map(|n| self.values[n] as f64).collect();
         let ofs = [v[0], v[1], v[2]];
         let mut dia = [v[3], v[4], v[5]];
         if dia.iter().all(|d| *d == 0.0) {
@@ -958,27 +983,27 @@ impl ApCompassParams {
         }
         let (odx, ody, odz) = (v[6], v[7], v[8]);
         let s = [[dia[0], odx, ody], [odx, dia[1], odz], [ody, odz, dia[2]]];
-        let scale = match self.get(AP_COMPASS_SCALE).map(f64::from) {
+        let scale = match self.get(&names[9]).map(f64::from) {
             Some(k) if k >= AP_SCALE_RANGE.0 && k <= AP_SCALE_RANGE.1 => k,
             _ => 1.0,
         };
         Some((ofs, s, scale))
     }
 
-    /// ArduPilot's forward correction of a raw field (uT in, uT out). None until complete.
-    pub fn correct(&self, raw_ut: [f64; 3]) -> Option<[f64; 3]> {
-        let (ofs, s, scale) = self.parts()?;
+    /// ArduPilot's forward correction of `compass`'s raw field (uT in, uT out). None until complete.
+    pub fn correct(&self, compass: u8, raw_ut: [f64; 3]) -> Option<[f64; 3]> {
+        let (ofs, s, scale) = self.parts(compass)?;
         let m = [0, 1, 2].map(|i| scale * (raw_ut[i] * 10.0 + ofs[i]));
         Some([0, 1, 2].map(|i| dot(&s[i], &m) / 10.0))
     }
 
-    /// The raw field (uT) behind a corrected one (uT): raw = S^-1 corrected / scale - OFS.
+    /// The raw field (uT) behind `compass`'s corrected one (uT): raw = S^-1 corrected / scale - OFS.
     /// None until complete, or when S is singular or the input not finite.
-    pub fn undo(&self, corrected_ut: [f64; 3]) -> Option<[f64; 3]> {
+    pub fn undo(&self, compass: u8, corrected_ut: [f64; 3]) -> Option<[f64; 3]> {
         if !corrected_ut.iter().all(|x| x.is_finite()) {
             return None;
         }
-        let (ofs, s, scale) = self.parts()?;
+        let (ofs, s, scale) = self.parts(compass)?;
         let sm = rows_to_mat(&s);
         if !(sm.determinant().abs() > 1e-9) {
             return None;
@@ -1164,11 +1189,15 @@ pub enum LiveEvent {
     },
     Progress {
         sensor: String,
+        /// The compass (MAG_CAL_* `compass_id`) of the instance.
+        instance: u8,
         completion_pct: f64,
         filled_regions: usize,
     },
     Calibration {
         sensor: String,
+        /// The IMU instance's compass id (MAG_CAL_* `compass_id`).
+        instance: u8,
         status: String,
         failure: Option<String>,
         model: String,
@@ -1183,10 +1212,11 @@ pub enum LiveEvent {
 }
 
 impl LiveEvent {
-    /// A `calibration` event from a report entry.
-    pub fn calibration(sensor: &str, cal: &SensorCalibration) -> Self {
+    /// A `calibration` event from a report entry of the instance with compass id `instance`.
+    pub fn calibration(sensor: &str, instance: u8, cal: &SensorCalibration) -> Self {
         LiveEvent::Calibration {
             sensor: sensor.to_string(),
+            instance,
             status: cal.status.clone(),
             failure: cal.failure.clone(),
             model: cal.model.clone(),
@@ -1293,6 +1323,7 @@ mod tests {
                 now_s: 5.0,
             },
             false,
+            0,
         );
         assert_eq!(fx, vec![accepted.clone(), E::Restart]);
         assert!(s.reports_progress(false));
@@ -1303,6 +1334,7 @@ mod tests {
                 complete: false,
             },
             false,
+            0,
         );
         assert!(fx.is_empty() && matches!(s, MagCalRun::Running { .. }));
         let (s, fx) = s.on(
@@ -1311,6 +1343,7 @@ mod tests {
                 complete: true,
             },
             false,
+            0,
         );
         assert_eq!(s, MagCalRun::Held { cal: run_cal(3.0) });
         assert_eq!(
@@ -1329,13 +1362,14 @@ mod tests {
                 complete: true,
             },
             true,
+            0,
         );
         assert!(fx.is_empty() && s == MagCalRun::Held { cal: run_cal(3.0) });
-        let (s, fx) = s.on(V::Accept { mask: 0 }, false);
+        let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
         assert_eq!(s, MagCalRun::Idle);
         assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
         // Accept with nothing held fails; cancel always succeeds and discards the held result.
-        let (s, fx) = s.on(V::Accept { mask: 1 }, false);
+        let (s, fx) = s.on(V::Accept { mask: 1 }, false, 0);
         assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![failed.clone()]));
         let (s, _) = s.on(
             V::Start {
@@ -1343,6 +1377,7 @@ mod tests {
                 now_s: 0.0,
             },
             false,
+            0,
         );
         let (s, _) = s.on(
             V::FitPassed {
@@ -1350,8 +1385,9 @@ mod tests {
                 complete: true,
             },
             false,
+            0,
         );
-        let (s, fx) = s.on(V::Cancel { mask: 0 }, false);
+        let (s, fx) = s.on(V::Cancel { mask: 0 }, false, 0);
         assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
         // Autosave on: installed and reported as saved at once, back to idle.
         let (s, _) = MagCalRun::Idle.on(
@@ -1360,6 +1396,7 @@ mod tests {
                 now_s: 0.0,
             },
             false,
+            0,
         );
         let (s, fx) = s.on(
             V::FitPassed {
@@ -1367,6 +1404,7 @@ mod tests {
                 complete: true,
             },
             false,
+            0,
         );
         assert_eq!(s, MagCalRun::Idle);
         assert_eq!(
@@ -1387,25 +1425,26 @@ mod tests {
                 now_s: 10.0,
             },
             false,
+            0,
         );
         assert_eq!(fx, vec![accepted.clone()]);
         assert!(!s.reports_progress(true));
-        let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false);
+        let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false, 0);
         assert!(fx.is_empty() && matches!(s, MagCalRun::Waiting { .. }));
-        let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false);
+        let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false, 0);
         assert_eq!(fx, vec![E::Restart]);
         assert!(matches!(s, MagCalRun::Running { .. }));
         // Failure: with retry, again from zero; without, failed until restarted or cancelled.
         let (s, fx) = MagCalRun::Running {
             opts: opts(true, true, 0.0),
         }
-        .on(V::FitFailed, false);
+        .on(V::FitFailed, false, 0);
         assert_eq!(fx, vec![E::ReportFailure, E::Restart]);
         assert!(matches!(s, MagCalRun::Running { .. }));
         let (s, fx) = MagCalRun::Running {
             opts: opts(true, false, 0.0),
         }
-        .on(V::FitFailed, false);
+        .on(V::FitFailed, false, 0);
         assert_eq!((s.clone(), fx), (MagCalRun::Failed, vec![E::ReportFailure]));
         let (s, fx) = s.on(
             V::FitPassed {
@@ -1413,6 +1452,7 @@ mod tests {
                 complete: true,
             },
             true,
+            0,
         );
         assert!(fx.is_empty() && s == MagCalRun::Failed);
         // A mask without compass 0 is refused and changes nothing.
@@ -1426,8 +1466,22 @@ mod tests {
                 now_s: 0.0,
             },
             false,
+            0,
         );
         assert_eq!((s, fx), (MagCalRun::Idle, vec![failed.clone()]));
+        // ... and taken by compass 1's run, which it selects.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: other,
+                now_s: 0.0,
+            },
+            false,
+            1,
+        );
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        assert_eq!(fx, vec![E::Ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart]);
+        assert!(mask_selects(0, 5) && mask_selects(0b100, 2) && !mask_selects(0b100, 1));
+        assert!(!mask_selects(0xff, 9));
         // Idle: continuous installs and reports passing fits and reports failures; on command only,
         // nothing happens without a run.
         let (_, fx) = MagCalRun::Idle.on(
@@ -1436,6 +1490,7 @@ mod tests {
                 complete: true,
             },
             true,
+            0,
         );
         assert_eq!(
             fx,
@@ -1449,7 +1504,7 @@ mod tests {
             ]
         );
         assert_eq!(
-            MagCalRun::Idle.on(V::FitFailed, true).1,
+            MagCalRun::Idle.on(V::FitFailed, true, 0).1,
             vec![E::ReportFailure]
         );
         assert!(MagCalRun::Idle
@@ -1458,11 +1513,12 @@ mod tests {
                     cal: run_cal(2.0),
                     complete: true
                 },
-                false
+                false,
+                0
             )
             .1
             .is_empty());
-        assert!(MagCalRun::Idle.on(V::FitFailed, false).1.is_empty());
+        assert!(MagCalRun::Idle.on(V::FitFailed, false, 0).1.is_empty());
         assert!(MagCalRun::Idle.reports_progress(true) && !MagCalRun::Idle.reports_progress(false));
     }
 
@@ -1883,7 +1939,7 @@ mod tests {
 
     fn ap_params(values: [f32; 9]) -> ApCompassParams {
         let mut p = ApCompassParams::default();
-        for (n, v) in AP_COMPASS_PARAMS.iter().zip(values) {
+        for (n, v) in ap_compass_params(0).iter().zip(values) {
             assert!(p.absorb(&param_value(n, v)));
         }
         p
@@ -1892,11 +1948,14 @@ mod tests {
     #[test]
     fn ardupilot_correction_is_undone() {
         let reqs = param_request_reads(1, 1);
-        assert_eq!(reqs.len(), 10);
-        for (m, n) in reqs
-            .iter()
-            .zip(AP_COMPASS_PARAMS.iter().chain([&AP_COMPASS_SCALE]))
-        {
+        assert_eq!(reqs.len(), 30);
+        let names: Vec<String> = (0..AP_COMPASSES).flat_map(ap_compass_params).collect();
+        assert_eq!(names[0], "COMPASS_OFS_X");
+        assert_eq!(names[9], "COMPASS_SCALE");
+        assert_eq!(names[10], "COMPASS_OFS2_X");
+        assert_eq!(names[18], "COMPASS_ODI2_Z");
+        assert_eq!(names[29], "COMPASS_SCALE3");
+        for (m, n) in reqs.iter().zip(&names) {
             let MavMessage::PARAM_REQUEST_READ(r) = m else {
                 panic!()
             };
@@ -1908,21 +1967,21 @@ mod tests {
         }
 
         let mut p = ApCompassParams::default();
-        assert!(!p.absorb(&param_value("COMPASS_OFS2_X", 1.0)));
+        assert!(!p.absorb(&param_value("COMPASS_OFS4_X", 1.0)));
         assert!(!p.absorb(&named_float("COMPASS_OF", 0, 1.0)));
-        assert!(p.undo([1.0, 2.0, 3.0]).is_none());
+        assert!(p.undo(0, [1.0, 2.0, 3.0]).is_none());
         p = ap_params([-120.0, 300.0, -450.0, 1.05, 0.97, 1.01, 0.02, -0.01, 0.04]);
-        assert!(p.complete());
+        assert!(p.complete(0) && !p.complete(1));
         let raw = [40.0, 5.0, -20.0];
         // ArduPilot's correct_field, written out in mGauss.
         let m = [400.0 - 120.0, 50.0 + 300.0, -200.0 - 450.0];
         let s = [[1.05, 0.02, -0.01], [0.02, 0.97, 0.04], [-0.01, 0.04, 1.01]];
         let corrected = [0, 1, 2].map(|i| dot(&s[i], &m) / 10.0);
-        let fwd = p.correct(raw).unwrap();
+        let fwd = p.correct(0, raw).unwrap();
         for i in 0..3 {
             assert!((fwd[i] - corrected[i]).abs() < 1e-4);
         }
-        let back = p.undo(corrected).unwrap();
+        let back = p.undo(0, corrected).unwrap();
         for i in 0..3 {
             assert!((back[i] - raw[i]).abs() < 1e-4, "{back:?}");
         }
@@ -1938,29 +1997,39 @@ mod tests {
             q.set(n, *v as f32);
         }
         let c = cal.apply(&raw);
-        let u = q.undo(c).unwrap();
+        let u = q.undo(0, c).unwrap();
         assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
 
         // COMPASS_SCALE is applied when ArduPilot would.
-        p.absorb(&param_value(AP_COMPASS_SCALE, 1.2));
-        let c = p.correct(raw).unwrap();
+        p.absorb(&param_value("COMPASS_SCALE", 1.2));
+        let c = p.correct(0, raw).unwrap();
         assert!((c[0] - 1.2 * corrected[0]).abs() < 1e-3);
-        let back = p.undo(c).unwrap();
+        let back = p.undo(0, c).unwrap();
         assert!((0..3).all(|i| (back[i] - raw[i]).abs() < 1e-4));
-        p.absorb(&param_value(AP_COMPASS_SCALE, 3.0));
-        assert!((p.correct(raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
+        p.absorb(&param_value("COMPASS_SCALE", 3.0));
+        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
+
+        // The second compass has parameters of its own, undone apart from the first's.
+        let (exp2, _) = crate::export::ardupilot_mag(&cal, 1);
+        for (n, v) in exp2.iter() {
+            assert!(p.absorb(&param_value(n, *v as f32)), "{n}");
+        }
+        assert!(p.complete(1));
+        let u = p.undo(1, cal.apply(&raw)).unwrap();
+        assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
+        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
     }
 
     #[test]
     fn zero_diagonals_read_as_one_and_singular_is_refused() {
         let p = ap_params([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(p.undo([5.0, 1.0, 2.0]).unwrap(), [4.0, 1.0, 2.0]);
+        assert_eq!(p.undo(0, [5.0, 1.0, 2.0]).unwrap(), [4.0, 1.0, 2.0]);
         let p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
-        assert!(p.undo([5.0, 1.0, 2.0]).is_none());
+        assert!(p.undo(0, [5.0, 1.0, 2.0]).is_none());
         let mut p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
-        assert!(p.undo([f64::NAN, 0.0, 0.0]).is_none());
+        assert!(p.undo(0, [f64::NAN, 0.0, 0.0]).is_none());
         p.values.remove("COMPASS_ODI_Z");
-        assert!(!p.complete());
+        assert!(!p.complete(0));
     }
 
     fn sets(msgs: &[MavMessage]) -> Vec<(String, f32)> {
@@ -2101,10 +2170,11 @@ mod tests {
             },
             LiveEvent::Progress {
                 sensor: "mag".into(),
+                instance: 1,
                 completion_pct: 45.0,
                 filled_regions: 45,
             },
-            LiveEvent::calibration("mag", &sensor_cal("failed", Some("residuals"))),
+            LiveEvent::calibration("mag", 0, &sensor_cal("failed", Some("residuals"))),
             LiveEvent::Status {
                 level: severity_name(6).into(),
                 text: "line\nbreak \"quoted\"".into(),

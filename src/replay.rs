@@ -148,9 +148,22 @@ pub fn replay(
                 .filter(|_| report.calibration.mag.units == "uT"),
             results.accel.calibration.as_ref(),
         );
+        // Every compass of the log under its own index (COMPASS_OFS2, CAL_MAG1 ...).
+        let primary_id = report
+            .instances
+            .iter()
+            .find(|i| i.primary)
+            .map_or(0, |i| i.compass_id);
+        let mut mags: Vec<(usize, crate::model::Calibration)> =
+            m.map(|c| (primary_id as usize, *c)).into_iter().collect();
+        for i in report.instances.iter().filter(|i| !i.primary) {
+            if let Some(c) = i.calibration.mag.calibration_ut() {
+                mags.push((i.compass_id as usize, c));
+            }
+        }
         for (name, text) in [
-            ("ardupilot.parm", crate::export::ardupilot_file(m, a)),
-            ("px4.params", crate::export::px4_file(m, a)),
+            ("ardupilot.parm", crate::export::ardupilot_file(&mags, a)),
+            ("px4.params", crate::export::px4_file(&mags, a)),
             ("fusion.h", crate::export::fusion_file(m, a)),
         ] {
             let p = dir.join(name);

@@ -177,6 +177,25 @@ pub struct SensorCalibration {
     pub outliers_rejected: usize,
 }
 
+impl SensorCalibration {
+    /// The calibration to apply when it passed (`status` "ok"); a model name this build does not
+    /// know reads as the general one (full12), which applies the stored matrix as it is.
+    pub fn calibration(&self) -> Option<crate::model::Calibration> {
+        use crate::model::ModelKind;
+        (self.status == "ok").then(|| crate::model::Calibration {
+            model: ModelKind::parse(&self.model).unwrap_or(ModelKind::Full12),
+            offset: self.offset,
+            matrix: self.matrix,
+        })
+    }
+
+    /// [`SensorCalibration::calibration`] of a magnetometer in uT (what flight-stack parameters
+    /// can hold).
+    pub fn calibration_ut(&self) -> Option<crate::model::Calibration> {
+        self.calibration().filter(|_| self.units == "uT")
+    }
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Candidate {
     pub model: String,

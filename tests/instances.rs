@@ -128,3 +128,175 @@ fn a_config_can_still_pick_one_instance() {
     // Measured 0.0037 uT (the same as compass 1 among both).
     assert!(err < 0.012, "{err} uT");
 }
+
+/// The live service, fed the same two compasses over a UDP MAVLink link as an autopilot streams
+/// them: each compass gets its own MAG_CAL_PROGRESS and MAG_CAL_REPORT (its `compass_id` and
+/// `cal_mask`), its own JSON lines (`instance`), its own entry in the calibration file and its own
+/// parameter names in the exports (COMPASS_OFS / COMPASS_OFS2, CAL_MAG0 / CAL_MAG1).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_service_reports_each_compass_on_its_own() {
+    use imucald::mavout::MavEncoder;
+    use std::collections::BTreeMap;
+    use std::time::Duration;
+    let (a, b) = two_compasses();
+    let dir = tempfile::tempdir().unwrap();
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut cfg = Config::default();
+    cfg.daemon.sources = vec![imucald::config::SourceConfig {
+        address: format!("udpin:127.0.0.1:{port}"),
+        payload: "mavlink".into(),
+        fields: vec![],
+        scales: Default::default(),
+    }];
+    let cal_dir = dir.path().join("cal");
+    cfg.daemon.calibration_dir = cal_dir.display().to_string();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
+    cfg.fit.refit_every_s = 5.0;
+    cfg.validate().unwrap();
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    // What comes back from the service: the last MAG_CAL_REPORT and the progress per compass.
+    let reports = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
+    let progress = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
+    let listen = {
+        let peer_rx = std::sync::Arc::new(peer);
+        let peer_tx = peer_rx.clone();
+        let (reports, progress) = (reports.clone(), progress.clone());
+        let task = tokio::spawn(async move {
+            let mut dec = imucald::decode::FrameDecoder::new();
+            let mut buf = vec![0u8; 4096];
+            while let Ok((n, _)) = peer_rx.recv_from(&mut buf).await {
+                for f in dec.push(&buf[..n]) {
+                    match f.message {
+                        MavMessage::MAG_CAL_REPORT(r) => {
+                            reports.lock().unwrap().insert(r.compass_id, r);
+                        }
+                        MavMessage::MAG_CAL_PROGRESS(p) => {
+                            progress.lock().unwrap().insert(p.compass_id, p);
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        });
+        (peer_tx, task)
+    };
+    let (peer, listener) = listen;
+    let mut enc = MavEncoder::new(1, 1);
+    let target = format!("127.0.0.1:{port}");
+    // At 20 times real time, both compasses' messages of an instant back to back.
+    let speed = 20.0;
+    let t0 = tokio::time::Instant::now();
+    for i in 0..a.samples.len() {
+        for (sim, id) in [(&a, 0u8), (&b, 1u8)] {
+            let s = &sim.samples[i];
+            let t_us = (s.t_s * 1e6).round() as u64;
+            let MavMessage::HIGHRES_IMU(mut d) = imucald::sim::highres_imu(s, 10_000_000 + t_us)
+            else {
+                unreachable!()
+            };
+            d.id = id;
+            peer.send_to(&enc.encode(&MavMessage::HIGHRES_IMU(d)), &target)
+                .await
+                .unwrap();
+        }
+        if i % 50 == 0 {
+            let t = a.samples[i].t_s;
+            tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    stop_tx.send(true).unwrap();
+    let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap();
+    listener.abort();
+    eprintln!("{summary:?}");
+
+    // Two successful reports, each within 1 mGauss of its own compass's truth (COMPASS_OFS: mGauss,
+    // added, so -10 x the hard iron in uT).
+    let reports = reports.lock().unwrap().clone();
+    let progress = progress.lock().unwrap().clone();
+    assert_eq!(
+        reports.keys().copied().collect::<Vec<_>>(),
+        vec![0, 1],
+        "{reports:?}"
+    );
+    for (id, sim) in [(0u8, &a), (1u8, &b)] {
+        let r = &reports[&id];
+        assert_eq!(r.cal_mask, 1 << id);
+        assert_eq!(r.cal_status as u8, 4, "compass {id}: {r:?}"); // MAG_CAL_SUCCESS
+        let got = [r.ofs_x, r.ofs_y, r.ofs_z].map(f64::from);
+        let want = sim.truth.mag.offset.map(|x| -10.0 * x);
+        let err = (0..3).map(|k| (got[k] - want[k]).abs()).fold(0.0, f64::max);
+        eprintln!("live compass {id}: COMPASS_OFS {got:.2?} mGauss, truth {want:.2?}, error {err:.3} mGauss");
+        // Measured 0.16 (compass 0) and 0.53 mGauss (compass 1). Continuous calibration reports a
+        // calibration only once it moved by more than 0.5 mGauss from the last report, so the
+        // last report can be that far from the one installed (checked below against the file, at
+        // 0.06 and 0.04 mGauss); 1 mGauss is what a report must meet.
+        assert!(err < 1.0, "compass {id}: COMPASS_OFS error {err} mGauss");
+        let p = &progress[&id];
+        assert_eq!(p.cal_mask, 1 << id);
+        assert!(p.completion_pct >= 90, "compass {id}: {p:?}");
+    }
+
+    // Its own JSON lines.
+    let mut buf = vec![0u8; 65536];
+    let mut instances = std::collections::BTreeSet::new();
+    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+    {
+        for line in String::from_utf8_lossy(&buf[..n]).lines() {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            if v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok" {
+                instances.insert(v["instance"].as_u64().unwrap());
+            }
+        }
+    }
+    assert_eq!(instances.into_iter().collect::<Vec<_>>(), vec![0, 1]);
+
+    // Its own entry in the calibration file, and its own parameter names.
+    let store = imucald::daemon::load_store(&cal_dir).unwrap().unwrap();
+    assert_eq!(store.compass_id, 0);
+    assert_eq!(store.instances.len(), 1);
+    assert_eq!(store.instances[0].compass_id, 1);
+    assert_eq!(store.instances[0].instance, "highres_imu:1");
+    for (stored, sim) in [
+        (store.mag.as_ref(), &a),
+        (store.instances[0].mag.as_ref(), &b),
+    ] {
+        let m = stored.unwrap();
+        let err = (0..3)
+            .map(|k| (m.offset[k] - sim.truth.mag.offset[k]).abs())
+            .fold(0.0, f64::max);
+        eprintln!("stored offset error {err:.4} uT");
+        // Measured 0.0064 (compass 0) and 0.0036 uT (compass 1).
+        assert!(err < 0.02, "stored offset error {err} uT");
+    }
+    let parm = std::fs::read_to_string(cal_dir.join("ardupilot.parm")).unwrap();
+    let px4 = std::fs::read_to_string(cal_dir.join("px4.params")).unwrap();
+    for name in ["COMPASS_OFS_X", "COMPASS_OFS2_X", "COMPASS_DIA2_Z"] {
+        assert!(parm.contains(name), "{name} missing:\n{parm}");
+    }
+    for name in ["CAL_MAG0_XOFF", "CAL_MAG1_XOFF"] {
+        assert!(px4.contains(name), "{name} missing:\n{px4}");
+    }
+    // And its own block in the report.
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+            .unwrap();
+    let blocks = report["instances"].as_array().unwrap();
+    assert_eq!(blocks.len(), 2, "{blocks:?}");
+    assert_eq!(blocks[1]["compass_id"], 1);
+    assert_eq!(blocks[1]["calibration"]["mag"]["status"], "ok");
+}

@@ -1488,7 +1488,7 @@ mod live_ardupilot {
                 }
             }
             // ArduPilot streams its corrected field: S (raw + OFS), in gauss in HIGHRES_IMU.
-            let corrected = ap.correct(s.mag_ut.unwrap()).unwrap();
+            let corrected = ap.correct(0, s.mag_ut.unwrap()).unwrap();
             let a = s.accel_mps2.unwrap();
             let g = s.gyro_rad_s.unwrap();
             let msg = MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
@@ -2081,6 +2081,8 @@ mod live_attitude {
         let cal_dir = d.join("cal");
         let store = StoredCalibration {
             schema: STORE_SCHEMA.into(),
+            compass_id: 0,
+            instances: vec![],
             mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
             accel: Some(stored(&truth.accel, "m/s^2", g)),
             gyro: Some(GyroCalibration {
