@@ -191,7 +191,7 @@ pub struct FitConfig {
     /// from its middle, filled; a still or barely turned sensor stays far below), and they lie on
     /// one sphere (see [`crate::pipeline::Pipeline::mag_centre`]).
     pub centre_min_spread_radii: f64,
-    /// Seed 000's scalar Kalman prefilter on accel and mag before gating and fitting.
+    /// The scalar Kalman prefilter of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" on accel and mag before gating and fitting.
     pub prefilter: bool,
     pub prefilter_q: f64,
     pub prefilter_r: f64,

@@ -5,7 +5,7 @@ use crate::types::{Sample, Vec3};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
-/// Seed 000 eq. 3: a random-constant Kalman filter per channel.
+/// Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation", eq. 3: a random-constant Kalman filter per channel.
 /// x_k|k-1 = x, P_k|k-1 = P + Q, K = P/(P + R), x += K (z - x), P = (1 - K) P.
 #[derive(Debug, Clone, Copy)]
 pub struct ScalarKalman {
@@ -17,7 +17,7 @@ pub struct ScalarKalman {
 }
 
 impl ScalarKalman {
-    /// Seed 000's values: Q = 1e-4, R = 1, P0 = 1; the state starts at the first measurement.
+    /// Ren and Liu's values: Q = 1e-4, R = 1, P0 = 1; the state starts at the first measurement.
     pub fn new(q: f64, r: f64) -> Self {
         ScalarKalman {
             x: 0.0,

@@ -29,7 +29,7 @@ use crate::error::Error;
 /// Number of MotionCal coverage regions.
 pub const REGIONS: usize = 100;
 
-/// Seed 002's 2-D projection of measured directions: theta = polar angle from +z (0..180 deg) on the
+/// The 2-D projection of measured directions of Camps, Harasse and Monin, "Numerical calibration for 3-axis accelerometers and magnetometers" (2009): theta = polar angle from +z (0..180 deg) on the
 /// y axis (0 at the top), phi = azimuth atan2(y, x) (-180..180 deg) on the x axis; one point per
 /// direction vector (any length; normalised inside; zero or non-finite vectors are skipped), plus the
 /// 100 equal-area region boundaries drawn faintly and filled regions shaded (`filled[i]` for region

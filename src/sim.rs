@@ -169,7 +169,7 @@ impl Truth {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TrajectoryKind {
-    /// Seed 000's experiment: 32 static attitudes on a turntable, 1000 samples each, short slews.
+    /// Ren and Liu's turntable experiment: 32 static attitudes on a turntable, 1000 samples each, short slews.
     Turntable,
     /// A hand tumble: random static pauses over the sphere joined by smooth rotations, hand tremor.
     Tumble,
@@ -471,7 +471,7 @@ impl Scenario {
         };
         match kind {
             TrajectoryKind::Turntable => {
-                // Seed 000, Tables I and II: a = S (V - O), S the scale factors, O the bias.
+                // Ren and Liu, Tables I and II: a = S (V - O), S the scale factors, O the bias.
                 truth.accel = SensorTruth {
                     offset: [0.016 * g(), 0.0017 * g(), 0.0013 * g()],
                     matrix: [[1.0036, 0.0, 0.0], [0.0, 1.0019, 0.0], [0.0, 0.0, 0.9992]],
@@ -1102,7 +1102,7 @@ fn build_segments<R: rand::Rng>(
     (segs, truths)
 }
 
-/// Seed 000's 32 turntable attitudes (roll, pitch, yaw deg), ordered to keep slews short.
+/// The 32 turntable attitudes of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" (roll, pitch, yaw deg), ordered to keep slews short.
 pub fn turntable_attitudes() -> Vec<[f64; 3]> {
     let mut v: Vec<[f64; 3]> = Vec::new();
     let golden = 137.5;
@@ -1125,7 +1125,7 @@ pub fn turntable_attitudes() -> Vec<[f64; 3]> {
     v.push([-135.0, 45.0, yaw()]);
     v.push([-45.0, -45.0, yaw()]);
     v.push([135.0, -45.0, yaw()]);
-    // Seed 000's check settings: pitch 15, roll +-20.
+    // Ren and Liu's check settings: pitch 15, roll +-20.
     v.push([20.0, 15.0, 0.0]);
     v.push([-20.0, 15.0, 45.0]);
     // Greedy nearest-neighbour order from the level pose.

@@ -127,7 +127,7 @@ mod real_data {
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
         assert_eq!(a.units, "m/s^2");
         assert_eq!(out.report.calibration.gyro.units, "counts");
-        // Issue 5: the gyro calibration (bias from the poses, scale and misalignment from the
+        // The gyro calibration (bias from the poses, scale and misalignment from the
         // rotations between them) carries the gravity direction from pose to pose better than the
         // bias with the best single scale, also on rotations it was not fitted on.
         let g = &out.report.calibration.gyro;
@@ -218,7 +218,7 @@ mod simulated {
 
     #[test]
     fn calibrated_out_carries_the_fused_attitude_of_a_moving_sensor() {
-        // Issue 5: `replay --calibrated-out` writes the gyro+accel+mag filter's quaternion (body ->
+        // `replay --calibrated-out` writes the gyro+accel+mag filter's quaternion (body ->
         // NED) and angles; checked against the simulator's reference attitude through the motion.
         let dir = tempfile::tempdir().unwrap();
         let mut sc = Scenario::named("tumble").unwrap();
@@ -975,7 +975,7 @@ mod live {
 }
 
 mod faults {
-    //! Issue 6: the calibration directory fills up or turns read-only while the daemon runs: the
+    //! The calibration directory fills up or turns read-only while the daemon runs: the
     //! previous calibration file stays as it was, and the daemon says so and goes on.
     use super::*;
     use std::process::Command;
@@ -1566,7 +1566,7 @@ mod live_ardupilot {
 }
 
 mod fuzz_regressions {
-    //! Issue 6: inputs that once crashed a fuzz target (`fuzz/regressions/<target>/`) and hand-made
+    //! Inputs that once crashed a fuzz target (`fuzz/regressions/<target>/`) and hand-made
     //! nasty inputs, through the fuzz targets' own entry points (`fuzz/entry.rs`, included here).
     include!(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/entry.rs"));
 
