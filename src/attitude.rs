@@ -32,6 +32,38 @@ pub fn wrap360(a: f64) -> f64 {
     }
 }
 
+/// An angle in radians wrapped to (-pi, pi] (not finite: returned as it is).
+pub fn wrap_pi(a: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    let w = a.rem_euclid(TAU);
+    if w > PI {
+        w - TAU
+    } else {
+        w
+    }
+}
+
+/// `[roll, pitch, heading]` in degrees of a body -> NED rotation, ZYX Euler angles (heading in
+/// [0, 360), pitch in [-90, 90]). At pitch +-90 deg (gimbal lock) roll is reported as 0 and the
+/// rotation about the vertical as heading.
+pub fn euler_zyx_deg(q: &nalgebra::UnitQuaternion<f64>) -> [f64; 3] {
+    let m = q.to_rotation_matrix();
+    let r = m.matrix();
+    let c = (r[(0, 0)] * r[(0, 0)] + r[(1, 0)] * r[(1, 0)]).sqrt();
+    let pitch = (-r[(2, 0)]).atan2(c);
+    let (roll, yaw) = if c > 1e-7 {
+        (r[(2, 1)].atan2(r[(2, 2)]), r[(1, 0)].atan2(r[(0, 0)]))
+    } else {
+        // R = Rz(yaw) Ry(+-90) with roll 0: R01 = -sin(yaw), R11 = cos(yaw).
+        (0.0, (-r[(0, 1)]).atan2(r[(1, 1)]))
+    };
+    [
+        roll.to_degrees(),
+        pitch.to_degrees(),
+        wrap360(yaw.to_degrees()),
+    ]
+}
+
 /// Signed difference a - b wrapped to (-180, 180].
 pub fn angle_diff_deg(a: f64, b: f64) -> f64 {
     let d = (a - b).rem_euclid(360.0);

@@ -58,14 +58,13 @@ pub struct DaemonConfig {
     pub heading_rate_hz: f64,
     /// MAG_CAL_PROGRESS and JSON progress, per second.
     pub progress_rate_hz: f64,
-    /// "named_value_float" (NAMED_VALUE_FLOAT "HEADING"), "attitude" (ATTITUDE) or "none".
-    pub heading_message: String,
+    /// MAVLink message of the heading. Default: "named_value_float".
+    pub heading_message: HeadingMessage,
     /// Fused attitude (gyro + accel + mag orientation filter) per second: MAVLink per
     /// `attitude_message` and JSON `attitude` lines. At most [`MAX_RATE_HZ`].
     pub attitude_rate_hz: f64,
-    /// MAVLink message of the fused attitude: "attitude_quaternion" (ATTITUDE_QUATERNION),
-    /// "attitude" (ATTITUDE), "both" or "none" (JSON lines only).
-    pub attitude_message: String,
+    /// MAVLink message of the fused attitude. Default: "attitude_quaternion".
+    pub attitude_message: AttitudeMessage,
     /// Also publish the fused attitude right after every N-th sample (0: off, the timer alone).
     /// For consumers that steer by it: sample-in to attitude-out is then the processing time only.
     pub attitude_every_samples: u32,
@@ -75,8 +74,8 @@ pub struct DaemonConfig {
     pub progress_full_regions: usize,
     /// Send accepted parameters to the flight controller with PARAM_SET (off unless set).
     pub write_params: bool,
-    /// Flight-stack convention of the parameters written: "ardupilot" or "px4".
-    pub param_target: String,
+    /// Flight-stack convention of the parameters written. Default: "ardupilot".
+    pub param_target: ParamTarget,
     pub target_system: u8,
     pub target_component: u8,
     /// Our own MAVLink ids (1..=255 each; 0 is broadcast): every message we send carries them, and
@@ -87,19 +86,15 @@ pub struct DaemonConfig {
     /// link, so ground stations and routers see the component; 1 by default, 0 = none. At most
     /// [`MAX_RATE_HZ`].
     pub heartbeat_rate_hz: f64,
-    /// Magnetometer calibration without a ground-station command: "continuous" (passing fits are
-    /// installed and written as they come, the default) or "on_command" (only a run started by
-    /// MAV_CMD_DO_START_MAG_CAL calibrates). Either way the commands DO_START/ACCEPT/CANCEL_MAG_CAL
-    /// addressed to our ids (or broadcast) start, accept and cancel a run.
-    pub mag_cal: String,
-    /// Links are "separate" vehicles (default): each link and system id has its own converter
-    /// (instances, clocks) and ArduPilot state, and the first vehicle whose IMU data arrives is
-    /// the one calibrated (the others' samples are counted as `other_vehicle`). "merged": every
-    /// link is one vehicle (one sensor seen over several links).
-    pub links: String,
-    /// ArduPilot sends magnetometer data with its calibration applied: "undo" it (reading COMPASS_*
-    /// parameters) or "refuse" to fit such data.
-    pub ardupilot_corrected_mag: String,
+    /// Magnetometer calibration without a ground-station command. Either way the commands
+    /// DO_START/ACCEPT/CANCEL_MAG_CAL addressed to our ids (or broadcast) start, accept and cancel a
+    /// run. Default: "continuous".
+    pub mag_cal: MagCalMode,
+    /// How links map to vehicles. Default: "separate".
+    pub links: Links,
+    /// What to do with ArduPilot's magnetometer data, which comes with its calibration applied.
+    /// Default: "undo".
+    pub ardupilot_corrected_mag: ArdupilotCorrectedMag,
     /// Capacity of the sample queue from the links to the pipeline.
     pub queue_capacity: usize,
     /// A link with no bytes for this long is reported silent.
@@ -120,22 +115,22 @@ impl Default for DaemonConfig {
             report: None,
             heading_rate_hz: 5.0,
             progress_rate_hz: 1.0,
-            heading_message: "named_value_float".into(),
+            heading_message: HeadingMessage::NamedValueFloat,
             attitude_rate_hz: 10.0,
-            attitude_message: "attitude_quaternion".into(),
+            attitude_message: AttitudeMessage::AttitudeQuaternion,
             attitude_every_samples: 0,
             debug_vect: true,
             progress_full_regions: 80,
             write_params: false,
-            param_target: "ardupilot".into(),
+            param_target: ParamTarget::Ardupilot,
             target_system: 1,
             target_component: 1,
             system_id: 1,
             component_id: 191,
             heartbeat_rate_hz: 1.0,
-            mag_cal: "continuous".into(),
-            links: "separate".into(),
-            ardupilot_corrected_mag: "undo".into(),
+            mag_cal: MagCalMode::Continuous,
+            links: Links::Separate,
+            ardupilot_corrected_mag: ArdupilotCorrectedMag::Undo,
             queue_capacity: 4096,
             silent_after_s: 3.0,
             udp_poll_ms: 50.0,
@@ -330,11 +325,111 @@ impl Default for OrientationConfig {
     }
 }
 
+/// The dotted key a TOML line sets (`daemon.mag_cal` for `mag_cal = ...` under `[daemon]`), for
+/// errors; "toml" when the line sets none.
+fn key_at_line(text: &str, line: usize) -> String {
+    let lines: Vec<&str> = text.lines().collect();
+    let Some(here) = lines.get(line.saturating_sub(1)) else {
+        return "toml".into();
+    };
+    let Some((key, _)) = here.split_once('=') else {
+        return "toml".into();
+    };
+    let key = key.trim().trim_matches('"');
+    let table = lines[..line - 1]
+        .iter()
+        .rev()
+        .map(|l| l.trim())
+        .find(|l| l.starts_with('['))
+        .map(|l| l.trim_matches(|c| c == '[' || c == ']').trim());
+    match table {
+        Some(t) if !t.is_empty() => format!("{t}.{key}"),
+        _ => key.to_string(),
+    }
+}
+
 /// Highest publication rate of the live service, per second (the timers need a non-zero period).
 pub const MAX_RATE_HZ: f64 = 1000.0;
 
-/// The values `daemon.attitude_message` takes.
-pub const ATTITUDE_MESSAGES: [&str; 4] = ["attitude_quaternion", "attitude", "both", "none"];
+/// `daemon.heading_message`: the MAVLink message of the heading.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HeadingMessage {
+    /// NAMED_VALUE_FLOAT "HEADING" (deg).
+    NamedValueFloat,
+    /// ATTITUDE (roll, pitch, yaw in rad).
+    Attitude,
+    /// None (JSON lines only).
+    None,
+}
+
+/// `daemon.attitude_message`: the MAVLink message of the fused attitude.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AttitudeMessage {
+    /// ATTITUDE_QUATERNION.
+    AttitudeQuaternion,
+    /// ATTITUDE.
+    Attitude,
+    /// Both.
+    Both,
+    /// None (JSON lines only).
+    None,
+}
+
+impl AttitudeMessage {
+    pub fn quaternion(self) -> bool {
+        matches!(
+            self,
+            AttitudeMessage::AttitudeQuaternion | AttitudeMessage::Both
+        )
+    }
+    pub fn euler(self) -> bool {
+        matches!(self, AttitudeMessage::Attitude | AttitudeMessage::Both)
+    }
+}
+
+/// `daemon.param_target`: whose parameter names and conventions a parameter write uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ParamTarget {
+    /// COMPASS_OFS/DIA/ODI (COMPASS_OFS2 ... for further compasses).
+    Ardupilot,
+    /// CAL_MAGn_*.
+    Px4,
+}
+
+/// `daemon.mag_cal`: magnetometer calibration without a ground-station command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MagCalMode {
+    /// Passing fits are installed and written as they come.
+    Continuous,
+    /// Only a run started by MAV_CMD_DO_START_MAG_CAL calibrates the magnetometer.
+    OnCommand,
+}
+
+/// `daemon.links`: how links map to vehicles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Links {
+    /// Each link and system id is a vehicle with its own converter (instances, clocks) and
+    /// ArduPilot state; the first vehicle whose IMU data arrives is the one calibrated (the others'
+    /// samples are counted as `other_vehicle`).
+    Separate,
+    /// Every link is one vehicle (one sensor seen over several links).
+    Merged,
+}
+
+/// `daemon.ardupilot_corrected_mag`: ArduPilot streams its magnetometer with its calibration applied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ArdupilotCorrectedMag {
+    /// Undo it (reading the COMPASS_* parameters of each compass) before fitting.
+    Undo,
+    /// Do not fit such data (the magnetometer samples are dropped, counted).
+    Refuse,
+}
 
 fn err(key: &str, message: impl Into<String>) -> Error {
     Error::Config {
@@ -348,11 +443,13 @@ impl Config {
     pub fn from_toml_str(text: &str) -> Result<Config, Error> {
         let cfg: Config = toml::from_str(text).map_err(|e| {
             let msg = e.message().to_string();
-            let loc = e.span().map(|s| {
-                let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                format!(" (line {line})")
-            });
-            err("toml", format!("{msg}{}", loc.unwrap_or_default()))
+            match e.span() {
+                Some(s) => {
+                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                    err(&key_at_line(text, line), format!("{msg} (line {line})"))
+                }
+                None => err("toml", msg),
+            }
         })?;
         cfg.validate()?;
         Ok(cfg)
@@ -538,18 +635,6 @@ impl Config {
         if d.heartbeat_rate_hz != 0.0 {
             rate("daemon.heartbeat_rate_hz", d.heartbeat_rate_hz)?;
         }
-        if !["continuous", "on_command"].contains(&d.mag_cal.as_str()) {
-            return Err(err(
-                "daemon.mag_cal",
-                format!("`{}` is not continuous or on_command", d.mag_cal),
-            ));
-        }
-        if !["separate", "merged"].contains(&d.links.as_str()) {
-            return Err(err(
-                "daemon.links",
-                format!("`{}` is not separate or merged", d.links),
-            ));
-        }
         for (key, id) in [
             ("daemon.system_id", d.system_id),
             ("daemon.component_id", d.component_id),
@@ -565,46 +650,10 @@ impl Config {
                 format!("must be between 0 and 50 ms, got {}", d.udp_poll_ms),
             ));
         }
-        if !["named_value_float", "attitude", "none"].contains(&d.heading_message.as_str()) {
-            return Err(err(
-                "daemon.heading_message",
-                format!(
-                    "`{}` is not named_value_float, attitude or none",
-                    d.heading_message
-                ),
-            ));
-        }
-        if !ATTITUDE_MESSAGES.contains(&d.attitude_message.as_str()) {
+        if d.heading_message == HeadingMessage::Attitude && d.attitude_message.euler() {
             return Err(err(
                 "daemon.attitude_message",
-                format!(
-                    "`{}` is not one of {}",
-                    d.attitude_message,
-                    ATTITUDE_MESSAGES.join(", ")
-                ),
-            ));
-        }
-        if d.heading_message == "attitude"
-            && ["attitude", "both"].contains(&d.attitude_message.as_str())
-        {
-            return Err(err(
-                "daemon.attitude_message",
-                format!(
-                    "`{}` sends ATTITUDE, which heading_message = \"attitude\" already sends: use attitude_quaternion or none here, or another heading_message",
-                    d.attitude_message
-                ),
-            ));
-        }
-        if !["ardupilot", "px4"].contains(&d.param_target.as_str()) {
-            return Err(err(
-                "daemon.param_target",
-                format!("`{}` is not ardupilot or px4", d.param_target),
-            ));
-        }
-        if !["undo", "refuse"].contains(&d.ardupilot_corrected_mag.as_str()) {
-            return Err(err(
-                "daemon.ardupilot_corrected_mag",
-                format!("`{}` is not undo or refuse", d.ardupilot_corrected_mag),
+                "it sends ATTITUDE, which heading_message = \"attitude\" already sends: use attitude_quaternion or none here, or another heading_message",
             ));
         }
         if d.queue_capacity == 0 || d.progress_full_regions == 0 || d.progress_full_regions > 100 {
@@ -702,7 +751,7 @@ mod tests {
                 "{e}"
             );
         }
-        assert_eq!(d.mag_cal, "continuous");
+        assert_eq!(d.mag_cal, MagCalMode::Continuous);
         let e = Config::from_toml_str("[daemon]\nmag_cal = \"manual\"\n")
             .unwrap_err()
             .to_string();
@@ -716,13 +765,18 @@ mod tests {
     fn attitude_keys_default_parse_and_validate() {
         let d = DaemonConfig::default();
         assert_eq!(d.attitude_rate_hz, 10.0);
-        assert_eq!(d.attitude_message, "attitude_quaternion");
-        for m in ATTITUDE_MESSAGES {
+        assert_eq!(d.attitude_message, AttitudeMessage::AttitudeQuaternion);
+        let names = ["attitude_quaternion", "attitude", "both", "none"];
+        use AttitudeMessage as A;
+        for (m, want) in names
+            .iter()
+            .zip([A::AttitudeQuaternion, A::Attitude, A::Both, A::None])
+        {
             let c = Config::from_toml_str(&format!(
                 "[daemon]\nattitude_rate_hz = 25.0\nattitude_message = \"{m}\"\n"
             ))
             .unwrap();
-            assert_eq!(c.daemon.attitude_message, m);
+            assert_eq!(c.daemon.attitude_message, want);
             assert_eq!(c.daemon.attitude_rate_hz, 25.0);
         }
         // A bad message names the key and the values allowed.
@@ -730,7 +784,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("daemon.attitude_message"), "{e}");
-        for m in ATTITUDE_MESSAGES {
+        for m in names {
             assert!(e.contains(m), "{e} lacks {m}");
         }
         // Rates: positive, finite, at most MAX_RATE_HZ (a zero timer period would panic).

@@ -175,35 +175,8 @@ pub fn enu_to_ned() -> UnitQuaternion<f64> {
     UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(0.0, s, s, 0.0))
 }
 
-/// `[roll, pitch, heading]` degrees (heading in [0, 360)) of a sensor -> NED rotation (ZYX Euler).
-pub fn euler_ned_deg(q_ned: &UnitQuaternion<f64>) -> [f64; 3] {
-    let r = q_ned.to_rotation_matrix();
-    let m = r.matrix();
-    let pitch = (-m[(2, 0)]).clamp(-1.0, 1.0).asin();
-    let c = (m[(0, 0)] * m[(0, 0)] + m[(1, 0)] * m[(1, 0)]).sqrt();
-    let (roll, yaw) = if c > 1e-9 {
-        (m[(2, 1)].atan2(m[(2, 2)]), m[(1, 0)].atan2(m[(0, 0)]))
-    } else {
-        (0.0, (-m[(0, 1)]).atan2(m[(1, 1)]))
-    };
-    [
-        roll.to_degrees(),
-        pitch.to_degrees(),
-        yaw.to_degrees().rem_euclid(360.0) % 360.0,
-    ]
-}
-
 fn v3(v: &Vec3) -> Vector3<f64> {
     Vector3::new(v[0], v[1], v[2])
-}
-
-fn wrap_pi(a: f64) -> f64 {
-    let w = (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
-    if w.is_finite() {
-        w
-    } else {
-        0.0
-    }
 }
 
 /// Shortest rotation taking unit vector `a` onto unit vector `b`.
@@ -402,6 +375,25 @@ impl DelayEst {
         (self.sxy / self.sxx).clamp(0.0, max)
     }
 }
+
+/// What the filter has learnt that outlives it (as VQF's `getState`/`setState`): the gyro bias and
+/// its uncertainty, and the magnetic reference. The live service saves it with the calibration and
+/// restores it on start, and keeps the bias when a new magnetometer calibration makes it restart
+/// the filter.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FilterState {
+    /// Gyro bias, rad/s, sensor axes (what is left after the gyro calibration the filter is fed).
+    pub gyro_bias_rad_s: Vec3,
+    /// 1-sigma of the bias per axis, rad/s.
+    pub gyro_bias_sigma_rad_s: Vec3,
+    /// Reference field norm (input units, uT) and dip (deg), once learnt: the field the
+    /// magnetometer calibration in use gives. `None`: not learnt (or the calibration changed).
+    pub mag_reference: Option<(f64, f64)>,
+}
+
+/// Smallest bias uncertainty a restored state starts with, rad/s (0.01 deg/s): a bias moves
+/// between runs (temperature, turn-on repeatability), so a saved one is never taken as exact.
+pub const RESTORED_BIAS_SIGMA_MIN_RAD_S: f64 = 1.75e-4;
 
 /// The orientation filter. Feed samples in time order with [`OrientationFilter::update`].
 #[derive(Debug, Clone)]
@@ -695,9 +687,15 @@ impl OrientationFilter {
         }
         let decl = self.cfg.declination_deg.to_radians();
         let azimuth = mw.x.atan2(mw.y);
+        if !azimuth.is_finite() {
+            return;
+        }
         if !self.heading_init {
             // First field: set the heading directly.
-            let rz = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), wrap_pi(azimuth - decl));
+            let rz = UnitQuaternion::from_axis_angle(
+                &Vector3::z_axis(),
+                crate::attitude::wrap_pi(azimuth - decl),
+            );
             self.q = rz * self.q;
             for x in self.history.iter_mut() {
                 x.1 = rz * x.1;
@@ -715,7 +713,7 @@ impl OrientationFilter {
         }
         let sd = self.cfg.mag_heading_noise_deg.to_radians();
         let r = sd * sd + self.cfg.mag_rate_noise_s.powi(2) * self.rate_ms;
-        let y = wrap_pi(azimuth - decl);
+        let y = crate::attitude::wrap_pi(azimuth - decl);
         let mut hrow = RowVector6::zeros();
         hrow[2] = 1.0;
         let s = self.p[(2, 2)] + r;
@@ -741,7 +739,7 @@ impl OrientationFilter {
 
     /// The current output (quaternion and roll/pitch/heading).
     pub fn orientation(&self) -> Orientation {
-        let e = euler_ned_deg(&(enu_to_ned() * self.q));
+        let e = crate::attitude::euler_zyx_deg(&(enu_to_ned() * self.q));
         Orientation {
             q: self.quaternion(),
             roll_deg: e[0],
@@ -796,6 +794,54 @@ impl OrientationFilter {
     /// True once the first accelerometer sample has set the tilt.
     pub fn initialized(&self) -> bool {
         self.tilt_init
+    }
+
+    /// The gyro fed to the filter has `removed_rad_s` more bias taken out from now on (a new gyro
+    /// calibration upstream): the residual bias estimate moves by as much the other way, its
+    /// uncertainty unchanged, so the filter neither removes the bias twice nor learns it again.
+    pub fn gyro_bias_removed(&mut self, removed_rad_s: &Vec3) {
+        if crate::types::is_finite3(removed_rad_s) {
+            self.bias -= v3(removed_rad_s);
+        }
+    }
+
+    /// What the filter has learnt, to save ([`OrientationFilter::set_state`] restores it).
+    pub fn state(&self) -> FilterState {
+        FilterState {
+            gyro_bias_rad_s: self.bias(),
+            gyro_bias_sigma_rad_s: self.bias_sigma(),
+            mag_reference: self.mag_reference(),
+        }
+    }
+
+    /// Restore what a filter had learnt: the gyro bias with its uncertainty (not below
+    /// [`RESTORED_BIAS_SIGMA_MIN_RAD_S`]), and the magnetic reference when given (taken as learnt for
+    /// `mag_ref_tau_s`, so it changes only slowly from here). The attitude is not part of it: the
+    /// next samples set it as they would in a new filter. Values that are not finite are ignored.
+    pub fn set_state(&mut self, s: &FilterState) {
+        let finite = |v: &Vec3| v.iter().all(|x| x.is_finite());
+        if finite(&s.gyro_bias_rad_s) && finite(&s.gyro_bias_sigma_rad_s) {
+            self.bias = v3(&s.gyro_bias_rad_s);
+            for i in 0..3 {
+                let sd = s.gyro_bias_sigma_rad_s[i].max(RESTORED_BIAS_SIGMA_MIN_RAD_S);
+                for j in 0..6 {
+                    self.p[(i + 3, j)] = 0.0;
+                    self.p[(j, i + 3)] = 0.0;
+                }
+                self.p[(i + 3, i + 3)] = sd * sd;
+            }
+        }
+        if let Some((norm, dip_deg)) = s.mag_reference {
+            if norm.is_finite() && norm > 0.0 && dip_deg.is_finite() {
+                self.mag_ref = MagRef {
+                    norm,
+                    dip: dip_deg.to_radians(),
+                    known: true,
+                    learn_s: self.cfg.mag_ref_tau_s,
+                    ..MagRef::default()
+                };
+            }
+        }
     }
 }
 
@@ -893,6 +939,64 @@ mod tests {
             f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m));
         }
         assert!((f.orientation().heading_deg - 140.0).abs() < 1e-6);
+    }
+
+    /// What a filter learnt (gyro bias, field reference) survives a save and restore: the restored
+    /// filter starts with the bias instead of learning it again, and judges a field against the
+    /// saved reference from its first sample.
+    #[test]
+    fn state_saved_and_restored() {
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let bias = [0.01, -0.02, 0.005];
+        let (a, m) = readings(&UnitQuaternion::identity(), &field);
+        let mut f = OrientationFilter::new(FusionConfig::default());
+        for _ in 0..6000 {
+            f.update(DT, Some(&bias), Some(&a), Some(&m));
+        }
+        let saved = f.state();
+        let err = (0..3)
+            .map(|k| (saved.gyro_bias_rad_s[k] - bias[k]).abs())
+            .fold(0.0, f64::max);
+        // Measured 9.5e-8 rad/s after 60 s at rest.
+        assert!(err < 3e-7, "learnt bias off by {err} rad/s: {saved:?}");
+        let (norm, dip) = saved.mag_reference.unwrap();
+        assert!(
+            // Dip measured 63.448 deg against atan2(40, 20) = 63.435.
+            (norm - field.norm()).abs() < 1e-6 && (dip - 63.435).abs() < 0.04,
+            "{saved:?}"
+        );
+        // Through the calibration file's JSON and back.
+        let text = serde_json::to_string(&saved).unwrap();
+        let back: FilterState = serde_json::from_str(&text).unwrap();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(1.0);
+        assert!((0..3).all(|k| close(back.gyro_bias_rad_s[k], saved.gyro_bias_rad_s[k])));
+        assert!(close(back.mag_reference.unwrap().0, norm));
+        let mut g = OrientationFilter::new(FusionConfig::default());
+        g.set_state(&back);
+        assert_eq!(g.bias(), back.gyro_bias_rad_s);
+        assert!(g.bias_sigma()[0] >= RESTORED_BIAS_SIGMA_MIN_RAD_S);
+        // A gyro calibration upstream that removes the bias: the residual goes with it.
+        let mut k = g.clone();
+        k.gyro_bias_removed(&back.gyro_bias_rad_s);
+        assert!(k.bias().iter().all(|b| b.abs() < 1e-12), "{:?}", k.bias());
+        assert_eq!(k.bias_sigma(), g.bias_sigma());
+        // A field 30 % stronger than the saved reference is a disturbance from the first sample;
+        // a new filter would take it as its reference.
+        let (_, strong) = readings(&UnitQuaternion::identity(), &(field * 1.3));
+        g.update(DT, Some(&bias), Some(&a), Some(&strong));
+        assert!(g.mag_disturbed());
+        let mut fresh = OrientationFilter::new(FusionConfig::default());
+        fresh.update(DT, Some(&bias), Some(&a), Some(&strong));
+        assert!(!fresh.mag_disturbed());
+        // Values that are not finite are ignored.
+        let mut h = OrientationFilter::new(FusionConfig::default());
+        h.set_state(&FilterState {
+            gyro_bias_rad_s: [f64::NAN, 0.0, 0.0],
+            gyro_bias_sigma_rad_s: [0.0; 3],
+            mag_reference: Some((f64::INFINITY, 10.0)),
+        });
+        assert_eq!(h.bias(), [0.0; 3]);
+        assert!(h.mag_reference().is_none());
     }
 
     /// Simulated hand tumble (calibrated sensors, gyro bias kept): the filter tracks the true attitude.

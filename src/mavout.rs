@@ -61,7 +61,6 @@ use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::f64::consts::{PI, TAU};
 
 // ---------------------------------------------------------------------------------------------
 // Framing
@@ -782,16 +781,7 @@ pub fn statustext(severity_level: u8, text: &str) -> Vec<MavMessage> {
     out
 }
 
-/// An angle in radians wrapped to (-pi, pi].
-fn wrap_pi(x: f64) -> f64 {
-    let mut y = x % TAU;
-    if y <= -PI {
-        y += TAU;
-    } else if y > PI {
-        y -= TAU;
-    }
-    y
-}
+use crate::attitude::wrap_pi;
 
 /// ATTITUDE from Euler angles in degrees (ZYX, body FRD -> NED): radians, roll and yaw wrapped to
 /// (-pi, pi] (a heading of 270 deg is sent as -pi/2). Angular rates are sent as 0.
@@ -815,9 +805,8 @@ fn unit_wxyz(q: [f64; 4]) -> Option<[f64; 4]> {
 /// (-pi, pi], pitch in [-pi/2, pi/2]. `None` for a quaternion that is not finite or zero.
 pub fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
     let [w, x, y, z] = unit_wxyz(q_wxyz)?;
-    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
-    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
-    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    let q = nalgebra::UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(w, x, y, z));
+    let [roll, pitch, yaw] = crate::attitude::euler_zyx_deg(&q).map(f64::to_radians);
     Some([wrap_pi(roll), pitch, wrap_pi(yaw)])
 }
 
@@ -1258,6 +1247,7 @@ mod tests {
     use super::*;
     use crate::decode::{parse_frame, Frame, FrameParse};
     use mavlink::dialects::ardupilotmega::PARAM_VALUE_DATA;
+    use std::f64::consts::PI;
 
     fn decode(bytes: &[u8]) -> Frame {
         match parse_frame(bytes) {
@@ -2266,7 +2256,7 @@ mod tests {
             let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
                 q[0], q[1], q[2], q[3],
             ));
-            let f = crate::fusion::euler_ned_deg(&uq);
+            let f = crate::attitude::euler_zyx_deg(&uq);
             assert!((f[0] - e[0].to_degrees()).abs() < 1e-6);
             assert!((f[1] - e[1].to_degrees()).abs() < 1e-6);
             assert!((f[2] - e[2].to_degrees().rem_euclid(360.0)).abs() < 1e-6);

@@ -13,7 +13,6 @@
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
@@ -237,26 +236,6 @@ fn format_of(path: &Path) -> Result<Format, Error> {
     }
 }
 
-/// A fresh temporary path next to `path`, keeping its extension (the PNG encoder picks the format
-/// from the extension).
-fn temp_path(path: &Path, format: Format) -> Result<PathBuf, Error> {
-    static COUNTER: AtomicUsize = AtomicUsize::new(0);
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::Other(format!("{}: not a file name", path.display())))?
-        .to_string_lossy();
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let ext = match format {
-        Format::Png => "png",
-        Format::Svg => "svg",
-    };
-    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    Ok(dir.join(format!(".{name}.{}-{n}.tmp.{ext}", std::process::id())))
-}
-
 fn write_error(path: &Path, source: std::io::Error) -> Error {
     Error::Write {
         path: path.to_path_buf(),
@@ -266,13 +245,9 @@ fn write_error(path: &Path, source: std::io::Error) -> Error {
 
 fn render<F: Figure>(path: &Path, fig: &F) -> Result<(), Error> {
     let format = format_of(path)?;
-    let tmp = temp_path(path, format)?;
-    let result = render_to(path, &tmp, format, fig)
-        .and_then(|()| std::fs::rename(&tmp, path).map_err(|e| write_error(path, e)));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    let file = crate::publish::AtomicFile::new(path)?;
+    render_to(path, file.temp_path(), format, fig)?;
+    file.commit()
 }
 
 /// Render into `tmp`; errors name `dest`, the file the caller asked for.

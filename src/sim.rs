@@ -784,34 +784,7 @@ pub fn quat_from_euler_deg(roll: f64, pitch: f64, yaw: f64) -> UnitQuaternion<f6
     UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians())
 }
 
-/// `[roll, pitch, yaw]` degrees (yaw in [0, 360)) of a body -> NED rotation.
-/// At pitch +-90 deg (gimbal lock) roll is reported as 0 and the rotation about the vertical as yaw.
-pub fn euler_deg_from_quat(q: &UnitQuaternion<f64>) -> [f64; 3] {
-    let m = q.to_rotation_matrix();
-    let r = m.matrix();
-    let c = (r[(0, 0)] * r[(0, 0)] + r[(1, 0)] * r[(1, 0)]).sqrt();
-    let pitch = (-r[(2, 0)]).atan2(c);
-    let (roll, yaw) = if c > 1e-7 {
-        (r[(2, 1)].atan2(r[(2, 2)]), r[(1, 0)].atan2(r[(0, 0)]))
-    } else {
-        // R = Rz(yaw) Ry(+-90) with roll 0: R01 = -sin(yaw), R11 = cos(yaw).
-        (0.0, (-r[(0, 1)]).atan2(r[(1, 1)]))
-    };
-    [
-        roll.to_degrees(),
-        pitch.to_degrees(),
-        wrap360(yaw.to_degrees()),
-    ]
-}
-
-fn wrap360(d: f64) -> f64 {
-    let w = d.rem_euclid(360.0);
-    if w >= 360.0 {
-        0.0
-    } else {
-        w
-    }
-}
+use crate::attitude::wrap360;
 
 /// Minimum-jerk profile 0 -> 1 on u in [0, 1] (zero velocity and acceleration at both ends).
 fn min_jerk(u: f64) -> f64 {
@@ -1275,7 +1248,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
         }
         TrajectoryKind::Flight => {
             let p = FlightPlan::new(scenario.duration_s.unwrap_or(80.0), &mut rng);
-            let q0 = euler_deg_from_quat(&p.attitude(0.0));
+            let q0 = crate::attitude::euler_zyx_deg(&p.attitude(0.0));
             truth.poses = vec![PoseTruth {
                 t_start: 0.0,
                 t_end: p.t_up - 1.0,
@@ -1283,7 +1256,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
                 pitch_deg: q0[1],
                 yaw_deg: q0[2],
             }];
-            let qe = euler_deg_from_quat(&p.attitude(p.t_total));
+            let qe = crate::attitude::euler_zyx_deg(&p.attitude(p.t_total));
             truth.poses.push(PoseTruth {
                 t_start: p.t_down + p.t_climb + 1.0,
                 t_end: p.t_total,
@@ -1397,7 +1370,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             s.ref_q = Some([q_enu.w, q_enu.i, q_enu.j, q_enu.k]);
         }
         samples.push(s);
-        att.push(euler_deg_from_quat(&q));
+        att.push(crate::attitude::euler_zyx_deg(&q));
     }
     truth.poses.retain(|p| p.t_start < end);
     for p in truth.poses.iter_mut() {
@@ -1455,51 +1428,6 @@ fn apply_raw_effects(fx: &Effects, s: &mut Sample, t: f64, temp: f64) {
 
 // ---------------------------------------------------------------------------------------------
 // Writers
-
-static TMP_COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-
-/// Write a file atomically: into a temporary file in the same directory, then rename over `path`.
-fn write_atomic<F>(path: &std::path::Path, body: F) -> Result<(), Error>
-where
-    F: FnOnce(std::fs::File) -> std::io::Result<std::fs::File>,
-{
-    let werr = |source: std::io::Error| Error::Write {
-        path: path.to_path_buf(),
-        source,
-    };
-    let name = path.file_name().ok_or_else(|| {
-        werr(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            "not a file path",
-        ))
-    })?;
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    let n = TMP_COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = dir.join(format!(
-        ".{}.tmp-{}-{}",
-        name.to_string_lossy(),
-        std::process::id(),
-        n
-    ));
-    let result = (|| -> std::io::Result<()> {
-        let file = std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&tmp)?;
-        let file = body(file)?;
-        file.sync_all()?;
-        drop(file);
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(werr(e));
-    }
-    Ok(())
-}
 
 /// The CSV header [`write_csv`] writes.
 pub const CSV_HEADER: &str = "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle";
@@ -1560,16 +1488,16 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
 /// uT, deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
 pub fn write_csv(path: &std::path::Path, samples: &[Sample]) -> Result<(), Error> {
     let gz = path.to_string_lossy().to_ascii_lowercase().ends_with(".gz");
-    write_atomic(path, |file| {
+    crate::publish::write_atomic_with(path, |file| {
         let buf = std::io::BufWriter::with_capacity(1 << 16, file);
         if gz {
             let mut enc = flate2::write::GzEncoder::new(buf, flate2::Compression::default());
             csv_rows(&mut enc, samples)?;
-            enc.finish()?.into_inner().map_err(|e| e.into_error())
+            std::io::Write::flush(&mut enc.finish()?)
         } else {
             let mut buf = buf;
             csv_rows(&mut buf, samples)?;
-            buf.into_inner().map_err(|e| e.into_error())
+            std::io::Write::flush(&mut buf)
         }
     })
 }
@@ -1767,10 +1695,10 @@ pub fn write_tlog(
             message: format!("must be 1 or 2, got {}", opts.mavlink_version),
         });
     }
-    write_atomic(path, |file| {
+    crate::publish::write_atomic_with(path, |file| {
         let mut buf = std::io::BufWriter::with_capacity(1 << 16, file);
         tlog_records(&mut buf, samples, opts)?;
-        buf.into_inner().map_err(|e| e.into_error())
+        std::io::Write::flush(&mut buf)
     })
 }
 
@@ -2254,12 +2182,12 @@ mod tests {
             [180.0, 0.0, 0.0],
         ] {
             let q = quat_from_euler_deg(e[0], e[1], e[2]);
-            let back = euler_deg_from_quat(&q);
+            let back = crate::attitude::euler_zyx_deg(&q);
             let q2 = quat_from_euler_deg(back[0], back[1], back[2]);
             assert!(q.angle_to(&q2) < 1e-6, "{e:?} -> {back:?}");
             assert!((0.0..360.0).contains(&back[2]));
         }
-        let b = euler_deg_from_quat(&quat_from_euler_deg(10.0, 20.0, 30.0));
+        let b = crate::attitude::euler_zyx_deg(&quat_from_euler_deg(10.0, 20.0, 30.0));
         assert!(
             (b[0] - 10.0).abs() < 1e-9 && (b[1] - 20.0).abs() < 1e-9 && (b[2] - 30.0).abs() < 1e-9
         );

@@ -263,7 +263,7 @@ mod simulated {
             }
             // The angles are those of the quaternion.
             let h: f64 = c[fh].parse().unwrap();
-            let e = imucald::fusion::euler_ned_deg(&q);
+            let e = imucald::attitude::euler_zyx_deg(&q);
             assert!(angle_diff_deg(h, e[2]).abs() < 0.01, "{h} vs {e:?}");
         }
         let rms = |sq: f64| (sq / n as f64).sqrt().to_degrees();
@@ -2083,6 +2083,7 @@ mod live_attitude {
             schema: STORE_SCHEMA.into(),
             compass_id: 0,
             instances: vec![],
+            filter: None,
             mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
             accel: Some(stored(&truth.accel, "m/s^2", g)),
             gyro: Some(GyroCalibration {
@@ -2119,7 +2120,7 @@ mod live_attitude {
         cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
         cfg.daemon.calibration_dir = cal_dir.display().to_string();
         cfg.daemon.attitude_rate_hz = rate_hz;
-        cfg.daemon.attitude_message = "both".into();
+        cfg.daemon.attitude_message = imucald::config::AttitudeMessage::Both;
         cfg.daemon.silent_after_s = 100.0;
         cfg.validate().unwrap();
         let fc_rx = collect(fc);
@@ -2170,7 +2171,7 @@ mod live_attitude {
                 a.q4 as f64,
             ));
             let err = q.angle_to(&q_true).to_degrees();
-            let e = imucald::sim::euler_deg_from_quat(&q);
+            let e = imucald::attitude::euler_zyx_deg(&q);
             assert!(
                 err < 2.0,
                 "t {} ms: attitude off by {err:.2} deg: roll {:.2} pitch {:.2} heading {:.2}",

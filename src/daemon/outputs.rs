@@ -1,0 +1,212 @@
+//! The timing and averaging of the periodic outputs: cadences on the run loop's time grid, the
+//! mean calibrated vectors and body rates between two publications.
+
+use super::*;
+
+/// A periodic output: served at the ticks of the run loop's clock when its period is a whole number
+/// of clock periods, else by a timer of its own. Both are on the time grid from `epoch`.
+pub(super) struct Output {
+    pub(super) cadence: Cadence,
+    pub(super) own: Option<tokio::time::Interval>,
+}
+
+impl Output {
+    pub(super) fn new(epoch: tokio::time::Instant, rate_hz: f64) -> Output {
+        Output {
+            cadence: Cadence::new(epoch, rate_hz),
+            own: None,
+        }
+    }
+
+    /// Keep to the clock of period `clock`, or take a timer of its own.
+    pub(super) fn use_clock(&mut self, epoch: tokio::time::Instant, clock: Duration) {
+        let (p, c) = (self.cadence.period.as_nanos(), clock.as_nanos());
+        if c == 0 || p % c != 0 {
+            let mut t = tokio::time::interval_at(epoch, self.cadence.period);
+            t.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+            self.own = Some(t);
+        }
+    }
+
+    /// Whether the output is due at clock tick `t` (never, when it has a timer of its own).
+    pub(super) fn due_at_clock(&mut self, t: tokio::time::Instant) -> bool {
+        self.own.is_none() && self.cadence.due(t)
+    }
+
+    /// The next tick of its own timer (polled only when it has one).
+    pub(super) async fn own_tick(&mut self) {
+        match self.own.as_mut() {
+            Some(t) => {
+                t.tick().await;
+            }
+            None => std::future::pending().await,
+        }
+    }
+}
+
+/// A periodic output on the shared time grid: due at `epoch + k * period`. Asked at the ticks of a
+/// clock on the same grid, at least as fast; ticks missed while busy are skipped, not made up.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Cadence {
+    pub(super) period: Duration,
+    pub(super) next: tokio::time::Instant,
+}
+
+impl Cadence {
+    pub(super) fn new(epoch: tokio::time::Instant, rate_hz: f64) -> Cadence {
+        Cadence {
+            // (Rates are validated: finite, positive and at most 1 kHz.)
+            period: Duration::from_secs_f64(1.0 / rate_hz).max(Duration::from_micros(1)),
+            next: epoch,
+        }
+    }
+
+    /// Whether the output is due at clock tick `t`; if so, the next time is set after `t`.
+    pub(super) fn due(&mut self, t: tokio::time::Instant) -> bool {
+        if t < self.next {
+            return false;
+        }
+        let behind = (t - self.next).as_nanos() / self.period.as_nanos();
+        self.next = u32::try_from(behind + 1)
+            .ok()
+            .and_then(|k| self.period.checked_mul(k))
+            .and_then(|d| self.next.checked_add(d))
+            .unwrap_or(t + self.period);
+        true
+    }
+}
+
+/// Mean of the calibrated body rates between two attitude publications; keeps the last mean when
+/// no gyro sample came in between.
+#[derive(Debug, Default, Clone, Copy)]
+pub(super) struct RateMean {
+    pub(super) sum: Vec3,
+    pub(super) n: u32,
+    pub(super) last: Option<Vec3>,
+}
+
+impl RateMean {
+    pub(super) fn add(&mut self, g: &Vec3) {
+        for k in 0..3 {
+            self.sum[k] += g[k];
+        }
+        self.n += 1;
+    }
+
+    pub(super) fn take(&mut self) -> Option<Vec3> {
+        if self.n > 0 {
+            let n = self.n as f64;
+            self.last = Some(self.sum.map(|v| v / n));
+            self.sum = [0.0; 3];
+            self.n = 0;
+        }
+        self.last
+    }
+}
+
+/// Running means of calibrated vectors between publications.
+#[derive(Debug, Default)]
+pub(super) struct Averager {
+    pub(super) a: [f64; 3],
+    pub(super) na: usize,
+    pub(super) g: [f64; 3],
+    pub(super) ng: usize,
+    pub(super) m: [f64; 3],
+    pub(super) nm: usize,
+}
+
+impl Averager {
+    pub(super) fn add(&mut self, c: &Calibrated) {
+        let acc = |s: &mut [f64; 3], n: &mut usize, v: Option<Vec3>| {
+            if let Some(v) = v {
+                for k in 0..3 {
+                    s[k] += v[k];
+                }
+                *n += 1;
+            }
+        };
+        acc(&mut self.a, &mut self.na, c.accel_mps2);
+        acc(&mut self.g, &mut self.ng, c.gyro_rad_s);
+        acc(&mut self.m, &mut self.nm, c.mag_ut);
+    }
+
+    /// Means and the attitude from them; resets. None when nothing arrived.
+    pub(super) fn take(&mut self, declination: Option<f64>) -> Option<Calibrated> {
+        let mean = |s: [f64; 3], n: usize| (n > 0).then(|| s.map(|v| v / n as f64));
+        let out = Calibrated {
+            accel_mps2: mean(self.a, self.na),
+            gyro_rad_s: mean(self.g, self.ng),
+            mag_ut: mean(self.m, self.nm),
+            ..Default::default()
+        };
+        *self = Averager::default();
+        if out.accel_mps2.is_none() && out.mag_ut.is_none() {
+            return None;
+        }
+        let mut out = out;
+        if let Some(f) = out.accel_mps2 {
+            let (r, p) = crate::attitude::roll_pitch_deg(&f);
+            out.roll_deg = Some(r);
+            out.pitch_deg = Some(p);
+            if let Some(m) = out.mag_ut {
+                out.heading_deg = Some(crate::attitude::wrap360(
+                    crate::attitude::heading_deg(&m, r, p) + declination.unwrap_or(0.0),
+                ));
+            }
+        }
+        Some(out)
+    }
+}
+
+/// The periodic outputs' timing, on the same time grid as the links' UDP polls (`epoch`). Those
+/// whose period is a whole number of clock periods are served at the ticks of one clock that ticks
+/// with the polls, in the wake-up a poll makes anyway (a timer of its own per output, set 100 ms or
+/// more ahead, would cost tokio's timer wheel a wake-up of its own to move it to its finest level).
+/// Any other keeps a timer of its own, so every output stays evenly spaced.
+pub(super) struct Timers {
+    pub(super) clock: tokio::time::Interval,
+    pub(super) heading: Output,
+    pub(super) progress: Output,
+    pub(super) attitude: Output,
+    pub(super) drops: Output,
+    pub(super) heartbeat: Option<Output>,
+}
+
+impl Timers {
+    /// `polled`: a link is read by polling on the time grid.
+    pub(super) fn new(
+        d: &crate::config::DaemonConfig,
+        polled: bool,
+        epoch: tokio::time::Instant,
+    ) -> Timers {
+        let poll = (polled && d.udp_poll_ms > 0.0 && d.attitude_every_samples == 0)
+            .then(|| Duration::from_secs_f64(d.udp_poll_ms / 1000.0));
+        let mut outputs = [
+            Output::new(epoch, d.heading_rate_hz),
+            Output::new(epoch, d.progress_rate_hz),
+            Output::new(epoch, d.attitude_rate_hz),
+        ];
+        let clock_period = poll
+            .or_else(|| outputs.iter().map(|o| o.cadence.period).min())
+            .unwrap_or(Duration::from_millis(100));
+        let on_clock = |mut o: Output| {
+            o.use_clock(epoch, clock_period);
+            o
+        };
+        for o in outputs.iter_mut() {
+            o.use_clock(epoch, clock_period);
+        }
+        let [heading, progress, attitude] = outputs;
+        let mut clock = tokio::time::interval_at(epoch, clock_period);
+        clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        Timers {
+            clock,
+            heading,
+            progress,
+            attitude,
+            drops: on_clock(Output::new(epoch, 1.0 / DROPS_REPORT_S)),
+            heartbeat: (d.heartbeat_rate_hz > 0.0)
+                .then(|| on_clock(Output::new(epoch, d.heartbeat_rate_hz))),
+        }
+    }
+}
