@@ -169,7 +169,7 @@ pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
         return Ok(Matrix3::identity());
     }
     let parts: Vec<&str> = n.split('_').collect();
-    if parts.len() % 2 != 0 || parts.is_empty() {
+    if !parts.len().is_multiple_of(2) || parts.is_empty() {
         return Err(format!("unknown sensor orientation `{name}`: use a MAV_SENSOR_ORIENTATION name such as ROTATION_YAW_90"));
     }
     let (mut r, mut p, mut y) = (0.0, 0.0, 0.0);

@@ -9,10 +9,9 @@ use crate::model::{
     a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration, ModelKind,
 };
 use crate::types::Vec3;
-use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
+use nalgebra::{Cholesky, Const, Matrix3, SMatrix, SVector, Vector3};
 
 mod kernel;
-mod spd;
 use serde::{Deserialize, Serialize};
 
 /// Why a fit was refused. The names are the report's `failure` strings.
@@ -54,6 +53,18 @@ impl FitFailure {
             FitFailure::NeedsCalibration => "needs_calibration",
         }
     }
+}
+
+/// The Cholesky factor `L L^T = a` of a symmetric positive-definite matrix (its lower triangle is
+/// read): the one factorisation every fit here solves and inverts with. `None` unless every entry
+/// is finite and every pivot positive, i.e. unless `a` is positive definite to working precision
+/// (nalgebra refuses a pivot that is not positive; from finite entries a pivot cannot grow past the
+/// diagonal entry it starts from, so the factor is then finite).
+fn cholesky<const N: usize>(a: &SMatrix<f64, N, N>) -> Option<Cholesky<f64, Const<N>>> {
+    if !a.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    a.cholesky()
 }
 
 /// Outcome of a Levenberg-Marquardt run.
@@ -152,7 +163,7 @@ pub fn levenberg_marquardt_batch<const N: usize>(
         for k in 0..N {
             a[(k, k)] += lambda * jtj[(k, k)].max(1e-12);
         }
-        let step = match spd::Cholesky::new(&a) {
+        let step = match cholesky(&a) {
             Some(ch) => ch.solve(&(-jtr)),
             None => {
                 lambda *= 10.0;
@@ -233,7 +244,7 @@ pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
 }
 
 fn sphere_from_normal_equations(ata: &SMatrix<f64, 4, 4>, atb: &SVector<f64, 4>) -> Option<Start> {
-    let sol = spd::Cholesky::new(ata)?.solve(atb);
+    let sol = cholesky(ata)?.solve(atb);
     let c = Vector3::new(sol[0], sol[1], sol[2]);
     let r2 = sol[3] + c.norm_squared();
     if !(r2 > 0.0) || !r2.is_finite() {
@@ -313,7 +324,7 @@ fn ellipsoid_from_normal_equations(
     ata: &SMatrix<f64, 9, 9>,
     atb: &SVector<f64, 9>,
 ) -> Option<Start> {
-    let s = spd::Cholesky::new(ata)?.solve(atb);
+    let s = cholesky(ata)?.solve(atb);
     let q = Matrix3::new(s[0], s[3], s[4], s[3], s[1], s[5], s[4], s[5], s[2]);
     let g = Vector3::new(s[6], s[7], s[8]);
     let qi = q.try_inverse()?;
@@ -401,19 +412,6 @@ struct NormSolution {
 /// squarings of `M / trace(M)` (eigenvalues in (0, 1], so nothing overflows): independent
 /// multiply-adds instead of a chain of 24 dependent matrix-vector products.
 fn largest_eigenvalue<const N: usize>(m: &SMatrix<f64, N, N>) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    if N <= 12
-        && std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-    {
-        // SAFETY: the CPU was just checked for the features the function was compiled for.
-        return unsafe { kernel::largest_eigenvalue_avx2(m) }.unwrap_or(0.0);
-    }
-    largest_eigenvalue_portable(m)
-}
-
-/// [`largest_eigenvalue`] on any CPU.
-fn largest_eigenvalue_portable<const N: usize>(m: &SMatrix<f64, N, N>) -> f64 {
     let trace: f64 = (0..N).map(|i| m[(i, i)]).sum();
     if !(trace > 0.0) || !trace.is_finite() {
         return 0.0;
@@ -479,23 +477,22 @@ fn condition_number<const N: usize>(
 /// solution. The ellipsoid start usually lands this close, so the last evaluation forms no J^T J.
 pub const NORM_REUSE_JTJ: f64 = 1e-4;
 
-fn solve_norm<const K: u8, const N: usize, const M: usize>(
+fn solve_norm<const K: u8, const N: usize>(
     pts: &kernel::Soa,
     scratch: &mut kernel::Scratch,
     x0: &[f64],
     max_iter: usize,
 ) -> NormSolution {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
-    scratch.clear(N, M, pts.padded);
     let dof = pts.n.saturating_sub(N).max(1) as f64;
     let shortcuts = LmShortcuts {
         last_step: 1e-6 / dof,
         reuse_jtj: NORM_REUSE_JTJ,
     };
     let out = levenberg_marquardt_batch::<N>(x0v, max_iter, shortcuts, |p, with_jtj| {
-        kernel::norm_normal_equations::<K, N, M>(p, pts, scratch, with_jtj)
+        kernel::norm_normal_equations::<K, N>(p, pts, scratch, with_jtj)
     });
-    let inv = spd::Cholesky::new(&out.jtj).map(|c| c.inverse());
+    let inv = cholesky(&out.jtj).map(|c| c.inverse());
     NormSolution {
         params: out.params.as_slice().to_vec(),
         ssr: out.ssr,
@@ -611,7 +608,7 @@ impl NormFitter {
         let shape0 = if kind == ModelKind::Full12 {
             // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
             let s2 = start.shape.transpose() * start.shape;
-            s2.cholesky()
+            cholesky(&s2)
                 .map(|c| c.l().transpose())
                 .unwrap_or(Matrix3::identity())
         } else {
@@ -621,10 +618,10 @@ impl NormFitter {
         x0.extend(params_from_a(kind, &shape0));
         let (sc, it) = (scratch, opts.max_iterations);
         let sol = match kind {
-            ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4, 6>(soa, sc, &x0, it),
-            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6, 6>(soa, sc, &x0, it),
-            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9, 9>(soa, sc, &x0, it),
-            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9, 9>(soa, sc, &x0, it),
+            ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4>(soa, sc, &x0, it),
+            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6>(soa, sc, &x0, it),
+            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9>(soa, sc, &x0, it),
+            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9>(soa, sc, &x0, it),
         };
         let p = &sol.params;
         if p.iter().any(|v| !v.is_finite()) {
@@ -753,7 +750,7 @@ pub fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<C
         let r = nalgebra::Vector4::new(f[0], f[1], f[2], 1.0);
         ata += r * r.transpose();
     }
-    let ch = ata.cholesky()?;
+    let ch = cholesky(&ata)?;
     let mut k = Matrix3::zeros();
     let mut b = Vector3::zeros();
     for j in 0..3 {
@@ -882,7 +879,7 @@ mod tests {
                     f64::INFINITY
                 }
             };
-            let inv = m.cholesky().map(|c| c.inverse());
+            let inv = cholesky(&m).map(|c| c.inverse());
             let est = condition_number(&m, inv.as_ref());
             if exact > 1e12 {
                 assert!(est > 1e11, "case {case}: {est:e} vs {exact:e}");
@@ -896,35 +893,39 @@ mod tests {
         }
     }
 
-    /// The vectorised power iteration (used where the CPU has AVX2) gives the portable one's value
-    /// to rounding, for each size a fit uses and for spreads up to 1e13.
+    /// Nothing to iterate on (a zero or non-finite matrix): 0, for each size a fit uses.
     #[test]
-    fn fast_largest_eigenvalue_equals_the_portable_one() {
-        fn check<const N: usize>(rng: &mut rand_chacha::ChaCha8Rng) {
-            for case in 0..40 {
-                let spread: f64 = [1.0, 30.0, 1e6, 1e13][case % 4];
-                let qd =
-                    nalgebra::DMatrix::<f64>::from_fn(N, N, |_, _| rng.random_range(-1.0..1.0))
-                        .qr()
-                        .q();
-                let q = SMatrix::<f64, N, N>::from_fn(|i, j| qd[(i, j)]);
-                let d = SVector::<f64, N>::from_fn(|_, _| spread.powf(rng.random_range(0.0..1.0)));
-                let m = q * SMatrix::<f64, N, N>::from_diagonal(&d) * q.transpose() * 1e3;
-                let m = (m + m.transpose()) * 0.5;
-                let (fast, portable) = (largest_eigenvalue(&m), largest_eigenvalue_portable(&m));
-                assert!(
-                    portable > 0.0 && (fast - portable).abs() <= 1e-12 * portable,
-                    "N {N} case {case}: {fast:e} vs {portable:e}"
-                );
-            }
+    fn largest_eigenvalue_of_nothing_is_zero() {
+        fn check<const N: usize>() {
             assert_eq!(largest_eigenvalue(&SMatrix::<f64, N, N>::zeros()), 0.0);
             let nan = SMatrix::<f64, N, N>::from_element(f64::NAN);
             assert_eq!(largest_eigenvalue(&nan), 0.0);
         }
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        check::<4>(&mut rng);
-        check::<6>(&mut rng);
-        check::<9>(&mut rng);
+        check::<4>();
+        check::<6>();
+        check::<9>();
+    }
+
+    /// Not positive definite, or not finite: no factor.
+    #[test]
+    fn cholesky_refuses_what_is_not_positive_definite() {
+        let mut a = SMatrix::<f64, 4, 4>::identity();
+        a[(2, 2)] = 0.0;
+        assert!(cholesky(&a).is_none());
+        a[(2, 2)] = -1.0;
+        assert!(cholesky(&a).is_none());
+        a[(2, 2)] = f64::NAN;
+        assert!(cholesky(&a).is_none());
+        a[(2, 2)] = f64::INFINITY;
+        assert!(cholesky(&a).is_none());
+        let mut b = SMatrix::<f64, 4, 4>::identity();
+        b[(3, 1)] = f64::NAN;
+        b[(1, 3)] = f64::NAN;
+        assert!(cholesky(&b).is_none());
+        // Finite entries whose factor would overflow.
+        let c = SMatrix::<f64, 2, 2>::new(1e-300, 0.0, 1e300, 1.0);
+        assert!(cholesky(&c).is_none());
+        assert!(cholesky(&SMatrix::<f64, 4, 4>::identity()).is_some());
     }
 
     /// 300 points on a slightly sheared, shifted unit sphere with uniform noise of `noise`.
@@ -952,7 +953,7 @@ mod tests {
         let out = levenberg_marquardt_batch::<9>(*x0, 200, shortcuts, |p, with_jtj| {
             evals += 1;
             formed += usize::from(with_jtj);
-            kernel::norm_normal_equations::<{ kernel::SYM9 }, 9, 9>(p, &soa, &mut scratch, with_jtj)
+            kernel::norm_normal_equations::<{ kernel::SYM9 }, 9>(p, &soa, &mut scratch, with_jtj)
         });
         (out, evals, formed)
     }

@@ -513,7 +513,7 @@ mod tests {
             } else {
                 1e-6
             };
-            let v = if x % 97 == 0 {
+            let v = if x.is_multiple_of(97) {
                 0.0
             } else {
                 scale * (x as f64 / u32::MAX as f64)

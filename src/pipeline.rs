@@ -217,7 +217,7 @@ impl Pipeline {
             return;
         }
         self.mag_seen += 1;
-        if self.mag_seen % self.mag_stride == 0 {
+        if self.mag_seen.is_multiple_of(self.mag_stride) {
             self.mag_buffer.push(m);
             self.new_inputs += 1;
             self.note_fresh_mag(m);
@@ -229,7 +229,7 @@ impl Pipeline {
             self.mag_stride *= 2;
             self.mag_points_changed();
         }
-        if self.mag_buffer.len() >= 100 && self.mag_buffer.len() % 50 == 0 {
+        if self.mag_buffer.len() >= 100 && self.mag_buffer.len().is_multiple_of(50) {
             self.try_start_bins();
         }
     }
