@@ -339,7 +339,7 @@ fn key_at_line(text: &str, line: usize) -> String {
     let table = lines[..line - 1]
         .iter()
         .rev()
-        .map(|l| l.trim())
+        .map(|l| l.trim_start_matches('\u{feff}').trim())
         .find(|l| l.starts_with('['))
         .map(|l| l.trim_matches(|c| c == '[' || c == ']').trim());
     match table {

@@ -328,6 +328,17 @@ pub enum InstanceChoice {
     Named(String),
 }
 
+impl InstanceChoice {
+    /// From the `input.instance` setting: "auto", or an instance name.
+    pub fn from_setting(s: &str) -> InstanceChoice {
+        if s == "auto" {
+            InstanceChoice::Auto
+        } else {
+            InstanceChoice::Named(s.to_string())
+        }
+    }
+}
+
 /// Scales for RAW_IMU counts (from config).
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]

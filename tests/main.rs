@@ -1827,16 +1827,16 @@ mod fuzz_regressions {
         }
         // (TOML, the key the error must name, a word of the message)
         let mistakes = [
-            ("[fit]\nmag_modle = \"sym9\"\n", "toml", "mag_modle"),
-            ("[fit]\nrefit_every_s = \"ten\"\n", "toml", "line 2"),
+            ("[fit]\nmag_modle = \"sym9\"\n", "fit.mag_modle", "mag_model"),
+            ("[fit]\nrefit_every_s = \"ten\"\n", "fit.refit_every_s", "line 2"),
             ("[fit]\nrefit_every_s = nan\n", "fit.refit_every_s", "positive"),
             ("[gate]\nwindow_s = inf\n", "gate.window_s", "positive"),
             ("[gate]\nmin_pose_s = -nan\n", "gate.min_pose_s", "zero"),
             ("[fit]\nmag_model = \"\u{e9}\u{1F600}\"\n", "fit.mag_model", "sym9"),
             ("[accept.mag]\nmin_radius = 100.0\n", "accept.mag.min_radius", "max_radius"),
             ("[accept.accel]\nmin_filled_regions = 101\n", "accept.accel.min_filled_regions", "100"),
-            ("[daemon]\nqueue_capacity = -1\n", "toml", "line 2"),
-            ("[daemon]\ntarget_system = 300\n", "toml", "line 2"),
+            ("[daemon]\nqueue_capacity = -1\n", "daemon.queue_capacity", "line 2"),
+            ("[daemon]\ntarget_system = 300\n", "daemon.target_system", "line 2"),
             ("[daemon]\nqueue_capacity = 0\n", "daemon.queue_capacity", "> 0"),
             ("[daemon]\nsources = [{ address = \"bogus\" }]\n", "daemon.sources[0].address", "scheme"),
             (
@@ -1853,10 +1853,10 @@ mod fuzz_regressions {
             ),
             ("[orientation]\nsensor = \"ROTATION_YAW_7\"\n", "orientation.sensor", "7"),
             ("[input]\ninstance = \"raw_imu:256\"\n", "input.instance", "raw_imu:N"),
-            ("a = 1\na = 2\n", "toml", "line"),
+            ("a = 1\na = 2\n", "a", "line"),
             ("[fit]\n[fit]\n", "toml", "line"),
             ("[fit\nmag_model = 1\n", "toml", "line 1"),
-            ("\u{feff}[fit]\nprefilter = 2\n", "toml", "line 2"),
+            ("\u{feff}[fit]\nprefilter = 2\n", "fit.prefilter", "line 2"),
         ];
         for (text, key, word) in mistakes {
             let (k, m) = config(text.as_bytes()).expect_err(text);

@@ -11,7 +11,7 @@ impl State {
         let continuous = self.cfg.daemon.mag_cal == MagCalMode::Continuous;
         for i in 0..self.tracks.len() {
             let centre = self
-                .mag_in_use(i)
+                .in_use(i, Sensor::Mag)
                 .and_then(|m| m.calibration())
                 .map(|c| c.offset);
             let t = &mut self.tracks[i];
@@ -32,24 +32,20 @@ impl State {
         }
     }
 
-    /// The magnetometer calibration in use of track `i`.
-    pub(super) fn mag_in_use(&self, i: usize) -> Option<&SensorCalibration> {
-        if i == 0 {
-            return self.store.mag.as_ref();
+    /// The calibration in use of track `i`'s `sensor` (magnetometer or accelerometer).
+    pub(super) fn in_use(&self, i: usize, sensor: Sensor) -> Option<&SensorCalibration> {
+        let (mag, accel) = if i == 0 {
+            (&self.store.mag, &self.store.accel)
+        } else {
+            let id = self.tracks[i].compass_id;
+            let s = self.store.instances.iter().find(|s| s.compass_id == id)?;
+            (&s.mag, &s.accel)
+        };
+        match sensor {
+            Sensor::Mag => mag.as_ref(),
+            Sensor::Accel => accel.as_ref(),
+            Sensor::Gyro => None,
         }
-        let id = self.tracks[i].compass_id;
-        let s = self.store.instances.iter().find(|s| s.compass_id == id)?;
-        s.mag.as_ref()
-    }
-
-    /// The accelerometer calibration in use of track `i`.
-    pub(super) fn accel_in_use(&self, i: usize) -> Option<&SensorCalibration> {
-        if i == 0 {
-            return self.store.accel.as_ref();
-        }
-        let id = self.tracks[i].compass_id;
-        let s = self.store.instances.iter().find(|s| s.compass_id == id)?;
-        s.accel.as_ref()
     }
 
     /// A compass's name in messages to the user: empty with one compass.
@@ -70,7 +66,7 @@ impl State {
         // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
         // which installs it or holds it for the ground station.
         let commanded = matches!(self.tracks[i].mag_run, MagCalRun::Running { .. });
-        let current_mag = self.mag_in_use(i).filter(|_| !commanded).cloned();
+        let current_mag = self.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
         let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
             Ok(()) => true,
             Err(why) => {
@@ -82,7 +78,7 @@ impl State {
                 false
             }
         };
-        match accept(&results.accel, self.accel_in_use(i)) {
+        match accept(&results.accel, self.in_use(i, Sensor::Accel)) {
             Ok(()) => {
                 let r = &results.accel.report;
                 tracing::info!(sensor = "accel", compass = id, model = %r.model, rms = r.rms_residual, "calibration accepted");

@@ -51,7 +51,7 @@ use crate::mavout::{
 use crate::model::Calibration;
 use crate::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
 use crate::report::{GyroCalibration, SensorCalibration};
-use crate::types::{norm, Sample, Unit, Vec3};
+use crate::types::{norm, Sample, Sensor, Unit, Vec3};
 use mavlink::dialects::ardupilotmega::{
     MavAutopilot, MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA,
 };
