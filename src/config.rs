@@ -10,14 +10,20 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
 #[serde(deny_unknown_fields, default)]
 pub struct Config {
+    /// `[input]`: formats and units. Default: see [`InputConfig`].
     pub input: InputConfig,
+    /// `[gate]`: the static-pose detector. Default: see [`GateConfig`].
     pub gate: GateConfig,
+    /// `[fit]`: models and refits. Default: see [`FitConfig`].
     pub fit: FitConfig,
+    /// `[accept]`: acceptance limits. Default: see [`AcceptLimits`].
     pub accept: AcceptConfig,
     /// Where and when: enables true heading (declination) and the expected field strength.
+    /// Default: none (magnetic heading).
     pub place: Option<Place>,
+    /// `[orientation]`: the IMU's mounting. Default: see [`OrientationConfig`].
     pub orientation: OrientationConfig,
-    /// The live service (`imucald run`).
+    /// The live service (`imucald run`). Default: see [`DaemonConfig`].
     pub daemon: DaemonConfig,
 }
 
@@ -26,15 +32,17 @@ pub struct Config {
 #[serde(deny_unknown_fields)]
 pub struct SourceConfig {
     /// `udpin:IP:PORT`, `udpout:IP:PORT`, `tcpout:HOST:PORT`, `tcpin:IP:PORT`, `serial:/dev/ttyX:BAUD`,
-    /// `file:PATH[?speed=N]`, `sim:SCENARIO[?seed=N&speed=N]`.
+    /// `file:PATH[?speed=N]`, `sim:SCENARIO[?seed=N&speed=N]`. Required (no default).
     pub address: String,
-    /// What the bytes are: "mavlink" (default), "motioncal" (`Raw:` lines), "csv" (lines of `fields`).
+    /// What the bytes are: "mavlink", "motioncal" (`Raw:` lines), "csv" (lines of `fields`).
+    /// Default: "mavlink".
     #[serde(default = "default_payload")]
     pub payload: String,
     /// For "csv": field names in column order (t, ax, ay, az, gx, gy, gz, mx, my, mz, temp, ...).
+    /// Default: none.
     #[serde(default)]
     pub fields: Vec<String>,
-    /// For "csv": unit factors per field.
+    /// For "csv": unit factors per field. Default: none (1).
     #[serde(default)]
     pub scales: std::collections::BTreeMap<String, f64>,
 }
@@ -47,44 +55,52 @@ fn default_payload() -> String {
 #[serde(deny_unknown_fields, default)]
 pub struct DaemonConfig {
     /// Inputs. Empty: the embedded default, a simulated IMU tumbling with pauses (`sim:tumble`).
+    /// Default: empty.
     pub sources: Vec<SourceConfig>,
     /// JSON-lines consumers: "stdout", "udp:IP:PORT", "tcp:IP:PORT" (schema imucald.live/1).
+    /// Default: none.
     pub publish: Vec<String>,
     /// Where calibration files go (JSON + ArduPilot/PX4/Fusion exports); loaded at start.
+    /// Default: "calibration" (relative to the working directory).
     pub calibration_dir: String,
-    /// Keep the latest report (imucald.report/1) here.
+    /// Keep the latest report (imucald.report/1) here. Default: none.
     pub report: Option<String>,
-    /// Heading and calibrated vectors, per second.
+    /// Heading and calibrated vectors, per second (Hz). Default: 5.
     pub heading_rate_hz: f64,
-    /// MAG_CAL_PROGRESS and JSON progress, per second.
+    /// MAG_CAL_PROGRESS and JSON progress, per second (Hz). Default: 1.
     pub progress_rate_hz: f64,
     /// MAVLink message of the heading. Default: "named_value_float".
     pub heading_message: HeadingMessage,
     /// Fused attitude (gyro + accel + mag orientation filter) per second: MAVLink per
-    /// `attitude_message` and JSON `attitude` lines. At most [`MAX_RATE_HZ`].
+    /// `attitude_message` and JSON `attitude` lines (Hz). At most [`MAX_RATE_HZ`]. Default: 10.
     pub attitude_rate_hz: f64,
     /// MAVLink message of the fused attitude. Default: "attitude_quaternion".
     pub attitude_message: AttitudeMessage,
     /// Also publish the fused attitude right after every N-th sample (0: off, the timer alone).
     /// For consumers that steer by it: sample-in to attitude-out is then the processing time only.
+    /// Default: 0.
     pub attitude_every_samples: u32,
-    /// Send calibrated vectors as DEBUG_VECT ("MAG_UT", "ACC_MPS2").
+    /// Send calibrated vectors as DEBUG_VECT ("MAG_UT", "ACC_MPS2"). Default: true.
     pub debug_vect: bool,
-    /// Coverage regions (of 100) that count as 100% complete in MAG_CAL_PROGRESS.
+    /// Coverage regions (of 100) that count as 100% complete in MAG_CAL_PROGRESS. Default: 80.
     pub progress_full_regions: usize,
-    /// Send accepted parameters to the flight controller with PARAM_SET (off unless set).
+    /// Send accepted parameters to the flight controller with PARAM_SET. Default: false.
     pub write_params: bool,
     /// Flight-stack convention of the parameters written. Default: "ardupilot".
     pub param_target: ParamTarget,
+    /// The flight controller's system id, for parameter writes and reads. Default: 1.
     pub target_system: u8,
+    /// The flight controller's component id, for parameter writes and reads. Default: 1.
     pub target_component: u8,
     /// Our own MAVLink ids (1..=255 each; 0 is broadcast): every message we send carries them, and
     /// an inbound frame that carries both is our own echoed back, dropped (counted as `own_echo`).
+    /// Default: 1.
     pub system_id: u8,
+    /// Our component id. Default: 191 (MAV_COMP_ID_ONBOARD_COMPUTER).
     pub component_id: u8,
     /// HEARTBEAT (MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID) per second on every MAVLink
-    /// link, so ground stations and routers see the component; 1 by default, 0 = none. At most
-    /// [`MAX_RATE_HZ`].
+    /// link, so ground stations and routers see the component (Hz); 0 = none. At most
+    /// [`MAX_RATE_HZ`]. Default: 1.
     pub heartbeat_rate_hz: f64,
     /// Magnetometer calibration without a ground-station command. Either way the commands
     /// DO_START/ACCEPT/CANCEL_MAG_CAL addressed to our ids (or broadcast) start, accept and cancel a
@@ -95,14 +111,14 @@ pub struct DaemonConfig {
     /// What to do with ArduPilot's magnetometer data, which comes with its calibration applied.
     /// Default: "undo".
     pub ardupilot_corrected_mag: ArdupilotCorrectedMag,
-    /// Capacity of the sample queue from the links to the pipeline.
+    /// Capacity of the sample queue from the links to the pipeline (messages). Default: 4096.
     pub queue_capacity: usize,
-    /// A link with no bytes for this long is reported silent.
+    /// A link with no bytes for this long is reported silent, s. Default: 3.
     pub silent_after_s: f64,
     /// UDP sources: read the socket every this many ms, taking all that queued, instead of waking
     /// for every datagram (at 1 kHz waking costs more CPU than the samples); more often, down to
     /// 1 ms, while datagrams arrive fast enough to fill the kernel's buffer. 0 = wake per datagram;
-    /// ignored (0) when `attitude_every_samples` is set. At most 50.
+    /// ignored (0) when `attitude_every_samples` is set. At most 50. Default: 50.
     pub udp_poll_ms: f64,
 }
 
@@ -141,17 +157,20 @@ impl Default for DaemonConfig {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct InputConfig {
-    /// "auto" (from content), "tlog" or "csv".
+    /// "auto" (from content), "tlog" or "csv". Default: "auto".
     pub format: String,
     /// IMU instance in MAVLink logs: "auto" (default: every instance, each calibrated on its own in
     /// `replay`, the first with a magnetometer primary; the live service takes the primary), or one
     /// instance only: "highres_imu:0", "scaled_imu", "scaled_imu2", "scaled_imu3", "raw_imu:0".
+    /// Default: "auto".
     pub instance: String,
-    /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them).
+    /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them). Default: all 0.
     pub raw_imu_scale: RawImuScale,
-    /// Column mapping and unit scales for users' own CSV files.
+    /// Column mapping and unit scales for users' own CSV files. Default: imucald's own column
+    /// names (`t,ax,ay,az,gx,gy,gz,mx,my,mz,...`) in SI units.
     pub csv: CsvMapping,
     /// Accelerometer units: "auto" (m/s^2 when the static norm is near g, else counts), "si", "counts".
+    /// Default: "auto".
     pub accel_units: String,
 }
 
@@ -170,25 +189,30 @@ impl Default for InputConfig {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct FitConfig {
-    /// "auto", "sphere", "diag6", "sym9", "full12".
+    /// Magnetometer model: "auto" (the simplest the data support, by a nested F-test), "sphere",
+    /// "diag6", "sym9", "full12". Default: "auto".
     pub mag_model: String,
-    /// "auto", "sphere", "diag6", "sym9", "full12", "six_position".
+    /// Accelerometer model: as `mag_model`, or "six_position". Default: "auto".
     pub accel_model: String,
-    /// Refit every this many seconds of data.
+    /// Refit every this many seconds of data, s. Default: 10.
     pub refit_every_s: f64,
-    /// Local gravity, m/s^2 (the accelerometer's calibrated norm).
+    /// Local gravity, m/s^2 (the accelerometer's calibrated norm). Default: 9.80665.
     pub gravity_mps2: f64,
-    /// Minimum angle between kept magnetometer samples, deg.
+    /// Minimum angle between kept magnetometer samples, deg. Default: 1.
     pub min_separation_deg: f64,
     /// Before a first fit, the magnetometer's centre (for the progress regions and the direction
     /// bins) is taken from the kept points once they spread enough: their standard deviation along
     /// their narrowest direction at least this many field radii (0.25: about a cap reaching 80 deg
     /// from its middle, filled; a still or barely turned sensor stays far below), and they lie on
-    /// one sphere (see [`crate::pipeline::Pipeline::mag_centre`]).
+    /// one sphere (see [`crate::pipeline::Pipeline::mag_centre`]). Field radii. Default: 0.15.
     pub centre_min_spread_radii: f64,
-    /// The scalar Kalman prefilter of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" on accel and mag before gating and fitting.
+    /// The scalar Kalman prefilter of Ren and Liu, "Calibration of MEMS Accelerometers and
+    /// Magnetometers for Rotor UAV Attitude Estimation", on accel and mag before gating and
+    /// fitting. Default: false.
     pub prefilter: bool,
+    /// Its process noise Q (squared input units per sample). Default: 1e-4 (Ren and Liu's).
     pub prefilter_q: f64,
+    /// Its measurement noise R (squared input units). Default: 1 (Ren and Liu's).
     pub prefilter_r: f64,
 }
 
@@ -209,28 +233,34 @@ impl Default for FitConfig {
 }
 
 /// Acceptance limits of one sensor's fit. Field magnitudes are in the sensor's calibrated units.
+/// Defaults (magnetometer uT / accelerometer m/s^2) are given as `[accept.mag]` / `[accept.accel]`.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct AcceptLimits {
-    /// Radius (field magnitude) limits; checked only when the input's units are known.
+    /// Smallest radius (field magnitude); checked only when the input's units are known.
+    /// Default: 15 / 7.
     pub min_radius: f64,
+    /// Largest radius. Default: 95 / 12.
     pub max_radius: f64,
-    /// Largest |offset| per axis, raw units (checked when units are known).
+    /// Largest |offset| per axis, raw units (checked when units are known). Default: 1000 / 3.5.
     pub max_offset: f64,
-    /// Limits on the diagonal of the normalised matrix.
+    /// Smallest diagonal element of the normalised matrix. Default: 0.2 / 0.8.
     pub min_diag: f64,
+    /// Largest diagonal element of the normalised matrix. Default: 5 / 1.2.
     pub max_diag: f64,
-    /// Largest |off-diagonal| of the normalised matrix.
+    /// Largest |off-diagonal| of the normalised matrix. Default: 1 / 0.2.
     pub max_offdiag: f64,
-    /// Largest RMS residual as a fraction of the radius.
+    /// Largest RMS residual as a fraction of the radius. Default: 0.05 / 0.02.
     pub max_rms_ratio: f64,
-    /// Fewest filled coverage regions (of 100).
+    /// Fewest filled coverage regions (of 100). Default: 25 / 6.
     pub min_filled_regions: usize,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[serde(from = "AcceptToml")]
 pub struct AcceptConfig {
+    /// Magnetometer limits (uT). Default: the first of each pair in [`AcceptLimits`].
     pub mag: AcceptLimits,
+    /// Accelerometer limits (m/s^2). Default: the second of each pair in [`AcceptLimits`].
     pub accel: AcceptLimits,
 }
 
@@ -314,6 +344,7 @@ impl From<AcceptToml> for AcceptConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct OrientationConfig {
     /// MAV_SENSOR_ORIENTATION name of the IMU in the body frame, e.g. "ROTATION_NONE", "ROTATION_YAW_90".
+    /// Default: "ROTATION_NONE".
     pub sensor: String,
 }
 
@@ -496,6 +527,19 @@ impl Config {
 
     /// Range and name checks; each error names the key and the fix.
     pub fn validate(&self) -> Result<(), Error> {
+        self.validate_input()?;
+        self.validate_fit()?;
+        self.validate_daemon()?;
+        crate::attitude::sensor_rotation(&self.orientation.sensor)
+            .map_err(|m| err("orientation.sensor", m))?;
+        if let Some(p) = &self.place {
+            crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
+        }
+        Ok(())
+    }
+
+    /// `[input]`: names the keys it refuses.
+    fn validate_input(&self) -> Result<(), Error> {
         if !["auto", "tlog", "csv"].contains(&self.input.format.as_str()) {
             return Err(err(
                 "input.format",
@@ -521,6 +565,11 @@ impl Config {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// `[fit]`, `[gate]` and `[accept]`.
+    fn validate_fit(&self) -> Result<(), Error> {
         let models = ["auto", "sphere", "diag6", "sym9", "full12"];
         if !models.contains(&self.fit.mag_model.as_str()) {
             return Err(err(
@@ -544,16 +593,9 @@ impl Config {
                 ),
             ));
         }
-        let pos = |key: &str, v: f64| {
-            if v > 0.0 && v.is_finite() {
-                Ok(())
-            } else {
-                Err(err(key, format!("must be a positive number, got {v}")))
-            }
-        };
-        pos("fit.refit_every_s", self.fit.refit_every_s)?;
-        pos("fit.gravity_mps2", self.fit.gravity_mps2)?;
-        pos("fit.min_separation_deg", self.fit.min_separation_deg)?;
+        positive("fit.refit_every_s", self.fit.refit_every_s)?;
+        positive("fit.gravity_mps2", self.fit.gravity_mps2)?;
+        positive("fit.min_separation_deg", self.fit.min_separation_deg)?;
         if !(self.fit.centre_min_spread_radii > 0.0 && self.fit.centre_min_spread_radii < 1.0) {
             return Err(err(
                 "fit.centre_min_spread_radii",
@@ -563,15 +605,15 @@ impl Config {
                 ),
             ));
         }
-        pos("fit.prefilter_q", self.fit.prefilter_q)?;
-        pos("fit.prefilter_r", self.fit.prefilter_r)?;
-        pos("gate.window_s", self.gate.window_s)?;
-        pos("gate.threshold_factor", self.gate.threshold_factor)?;
+        positive("fit.prefilter_q", self.fit.prefilter_q)?;
+        positive("fit.prefilter_r", self.fit.prefilter_r)?;
+        positive("gate.window_s", self.gate.window_s)?;
+        positive("gate.threshold_factor", self.gate.threshold_factor)?;
         if !(self.gate.min_pose_s >= 0.0) {
             return Err(err("gate.min_pose_s", "must be zero or more seconds"));
         }
         if let Some(t) = self.gate.threshold {
-            pos("gate.threshold", t)?;
+            positive("gate.threshold", t)?;
         }
         for (name, l) in [
             ("accept.mag", &self.accept.mag),
@@ -593,6 +635,11 @@ impl Config {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// `[daemon]`: sources, consumers, rates, ids.
+    fn validate_daemon(&self) -> Result<(), Error> {
         let d = &self.daemon;
         for (i, src) in d.sources.iter().enumerate() {
             crate::link::Address::parse(&src.address)
@@ -643,7 +690,7 @@ impl Config {
                 return Err(err(key, "0 is the broadcast id: use 1..=255"));
             }
         }
-        pos("daemon.silent_after_s", d.silent_after_s)?;
+        positive("daemon.silent_after_s", d.silent_after_s)?;
         if !(d.udp_poll_ms.is_finite() && (0.0..=50.0).contains(&d.udp_poll_ms)) {
             return Err(err(
                 "daemon.udp_poll_ms",
@@ -665,18 +712,70 @@ impl Config {
         if d.calibration_dir.is_empty() {
             return Err(err("daemon.calibration_dir", "must name a directory"));
         }
-        crate::attitude::sensor_rotation(&self.orientation.sensor)
-            .map_err(|m| err("orientation.sensor", m))?;
-        if let Some(p) = &self.place {
-            crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
-        }
         Ok(())
+    }
+}
+
+/// `Ok` for a finite number above 0; otherwise an error naming `key`.
+fn positive(key: &str, v: f64) -> Result<(), Error> {
+    if v > 0.0 && v.is_finite() {
+        Ok(())
+    } else {
+        Err(err(key, format!("must be a positive number, got {v}")))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every setting says its default (and its unit where it has one) in its documentation, as
+    /// VQF documents its parameters: a new key without one fails here.
+    #[test]
+    fn every_setting_documents_its_default() {
+        let files: [(&str, &str, &[&str]); 3] = [
+            (
+                "config.rs",
+                include_str!("config.rs"),
+                &[
+                    "Config",
+                    "SourceConfig",
+                    "DaemonConfig",
+                    "InputConfig",
+                    "FitConfig",
+                    "AcceptLimits",
+                    "AcceptConfig",
+                    "OrientationConfig",
+                ],
+            ),
+            ("gate.rs", include_str!("gate.rs"), &["GateConfig"]),
+            ("fusion.rs", include_str!("fusion.rs"), &["FusionConfig"]),
+        ];
+        let mut fields = 0;
+        for (file, text, structs) in files {
+            for st in structs {
+                let start = text.find(&format!("pub struct {st} {{")).unwrap();
+                let len = text[start..].find("\n}\n").unwrap();
+                let mut doc = String::new();
+                for line in text[start..start + len].lines().skip(1) {
+                    let t = line.trim();
+                    if let Some(d) = t.strip_prefix("///") {
+                        doc.push_str(d);
+                    } else if t.starts_with("pub ") {
+                        assert!(
+                            doc.contains("Default") || doc.contains("Required"),
+                            "{file}: {st}: `{t}` does not say its default"
+                        );
+                        fields += 1;
+                        doc.clear();
+                    } else if !t.starts_with("#[") {
+                        doc.clear();
+                    }
+                }
+            }
+        }
+        assert!(fields > 60, "{fields} settings read");
+    }
 
     #[test]
     fn fusion_config_uses_declination_ned_and_the_fit_gravity() {

@@ -62,64 +62,70 @@ pub enum WorldFrame {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct FusionConfig {
-    /// World frame of [`OrientationFilter::quaternion`].
+    /// World frame of [`OrientationFilter::quaternion`]. Default: NED.
     pub world: WorldFrame,
-    /// Use the magnetometer (9D); false = 6D, heading from the gyro alone.
+    /// Use the magnetometer (9D); false = 6D, heading from the gyro alone. Default: true.
     pub use_mag: bool,
     /// Magnetic declination, degrees east: the world's north is true north when set, magnetic when 0.
+    /// Default: 0.
     pub declination_deg: f64,
-    /// Gravity magnitude, m/s^2.
+    /// Gravity magnitude, m/s^2. Default: 9.80665.
     pub gravity_mps2: f64,
-    /// Gyro white noise density for the process noise, rad/s/sqrt(Hz).
+    /// Gyro white noise density for the process noise, rad/s/sqrt(Hz). Default: 0.001.
     pub gyro_noise_density: f64,
     /// Extra process noise proportional to the (slow RMS) rotation rate (scale and misalignment
-    /// errors), sqrt(s).
+    /// errors), sqrt(s). Default: 0.001.
     pub gyro_rate_noise: f64,
     /// Time constant of the motion intensity (mean squares of rate and of | |f| - g |) that sets the
     /// noise levels, s. Slow on purpose: weights that follow the instantaneous acceleration would
-    /// bias the world-frame average that the tilt correction relies on.
+    /// bias the world-frame average that the tilt correction relies on. Default: 3.
     pub intensity_tau_s: f64,
     /// Standard deviation of one gyro sample at rest (the bias measurement noise), rad/s.
+    /// Default: 0.004.
     pub gyro_sample_sd: f64,
-    /// Initial bias uncertainty, rad/s.
+    /// Initial bias uncertainty, rad/s. Default: 0.5 deg/s (0.0087).
     pub bias_sigma_init: f64,
-    /// Bias random walk, rad/s/sqrt(s), in motion.
+    /// Bias random walk, rad/s/sqrt(s), in motion. Default: 0.0001 deg/s/sqrt(s).
     pub bias_walk: f64,
-    /// Largest bias magnitude per axis, rad/s.
+    /// Largest bias magnitude per axis, rad/s. Default: 5 deg/s (0.087).
     pub bias_clip: f64,
     /// Tilt measurement noise in motion: horizontal specific force in the world frame, m/s^2.
+    /// Default: 2.
     pub acc_noise_mps2: f64,
-    /// Tilt measurement noise at rest, m/s^2.
+    /// Tilt measurement noise at rest, m/s^2. Default: 0.5.
     pub acc_rest_noise_mps2: f64,
-    /// Extra tilt noise per m/s^2 of the slow RMS of | |f| - g | (adaptive gain).
+    /// Extra tilt noise per m/s^2 of the slow RMS of | |f| - g | (adaptive gain). Default: 1.
     pub acc_norm_gain: f64,
-    /// Accelerometer samples with | |f| - g | above this are not used, m/s^2.
+    /// Accelerometer samples with | |f| - g | above this are not used, m/s^2. Default: 50.
     pub acc_reject_mps2: f64,
     /// Accelerometer latency behind the gyro, s (negative: ahead), for rotating it into the world.
+    /// Default: 0.
     pub acc_delay_s: f64,
-    /// Heading measurement noise of an undisturbed field, degrees.
+    /// Heading measurement noise of an undisturbed field, degrees. Default: 60.
     pub mag_heading_noise_deg: f64,
     /// Extra heading noise per rad/s of the slow RMS rotation rate (magnetometer timing), s.
+    /// Default: 0.
     pub mag_rate_noise_s: f64,
-    /// Relative field-norm deviation from the reference that counts as disturbed.
+    /// Relative field-norm deviation from the reference that counts as disturbed. Default: 0.1.
     pub mag_norm_tol: f64,
-    /// Dip deviation from the reference that counts as disturbed, degrees.
+    /// Dip deviation from the reference that counts as disturbed, degrees. Default: 10.
     pub mag_dip_tol_deg: f64,
-    /// Time constant of the reference norm/dip tracking while undisturbed, s.
+    /// Time constant of the reference norm/dip tracking while undisturbed, s. Default: 30.
     pub mag_ref_tau_s: f64,
-    /// A steady new field is accepted as the reference after this long disturbed, s.
+    /// A steady new field is accepted as the reference after this long disturbed, s. Default: 20.
     pub mag_new_field_s: f64,
-    /// Heading innovation gate, in standard deviations.
+    /// Heading innovation gate, in standard deviations. Default: 4.
     pub mag_gate_sigma: f64,
     /// Magnetometer latency behind the gyro, s: `Some(d)` fixed, `None` estimated online.
+    /// Default: none (estimated).
     pub mag_delay_s: Option<f64>,
-    /// Largest magnetometer latency considered by the online estimate, s.
+    /// Largest magnetometer latency considered by the online estimate, s. Default: 0.05.
     pub mag_delay_max_s: f64,
-    /// Rest: gyro deviation threshold, rad/s.
+    /// Rest: gyro deviation threshold, rad/s. Default: 2 deg/s (0.035).
     pub rest_gyro_rad_s: f64,
-    /// Rest: accel deviation threshold, m/s^2.
+    /// Rest: accel deviation threshold, m/s^2. Default: 0.5.
     pub rest_acc_mps2: f64,
-    /// Rest: shortest still time before rest counts, s.
+    /// Rest: shortest still time before rest counts, s. Default: 1.5.
     pub rest_min_s: f64,
 }
 

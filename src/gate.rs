@@ -62,13 +62,15 @@ impl Prefilter3 {
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct GateConfig {
-    /// Sliding window length, seconds.
+    /// Sliding window length, s. Default: 1.
     pub window_s: f64,
     /// Fixed threshold on the summed per-axis accel variance ((m/s^2)^2 or counts^2); `None` = automatic.
+    /// Default: none (automatic).
     pub threshold: Option<f64>,
     /// Automatic threshold = factor x the noise floor (the 10th percentile of window variances).
+    /// Default: 8.
     pub threshold_factor: f64,
-    /// Shortest static run that counts as a pose, seconds.
+    /// Shortest static run that counts as a pose, s. Default: 1.
     pub min_pose_s: f64,
 }
 
