@@ -23,6 +23,7 @@ pub mod fusion;
 pub mod gate;
 pub mod gyro;
 pub mod link;
+pub mod lm;
 pub mod mavout;
 pub mod model;
 pub mod pipeline;
