@@ -1,5 +1,4 @@
 use super::evidence::v3;
-use super::stats::{f_sf, ln_gamma, t_sf};
 use super::*;
 use crate::sim::{
     simulate, BenchSettings, Effects, GyroBiasDrift, MotorDriver, ScaleCubic, Scenario,
@@ -9,29 +8,6 @@ use crate::types::Vec3;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-
-#[test]
-fn distributions_match_known_values() {
-    // F(3, 100) upper 5% point 2.696; F(1, 10) upper 1% point 10.04; t(inf) 1.645 -> 5%.
-    assert!(
-        (f_sf(2.696, 3.0, 100.0) - 0.05).abs() < 1e-3,
-        "{}",
-        f_sf(2.696, 3.0, 100.0)
-    );
-    assert!(
-        (f_sf(10.04, 1.0, 10.0) - 0.01).abs() < 2e-4,
-        "{}",
-        f_sf(10.04, 1.0, 10.0)
-    );
-    assert!((t_sf(1.645, 1e6) - 0.05).abs() < 1e-3);
-    assert!(
-        (t_sf(2.015, 5.0) - 0.05).abs() < 1e-3,
-        "{}",
-        t_sf(2.015, 5.0)
-    );
-    assert!((ln_gamma(5.0) - 24f64.ln()).abs() < 1e-12);
-    assert_eq!(f_sf(0.0, 3.0, 10.0), 1.0);
-}
 
 /// Which effect a blind case hides.
 #[derive(Debug, Clone, Copy, PartialEq)]
