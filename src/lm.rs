@@ -1,6 +1,6 @@
 //! Levenberg-Marquardt least squares over a dynamic-size parameter vector with a forward-difference
 //! Jacobian, for the fits where the parameter count is known only at run time or speed does not
-//! matter: `diagnose`'s joint forward model.
+//! matter: `diagnose`'s joint forward model and the gyro scale/misalignment fit (`gyro`).
 //!
 //! One damping strategy (Marquardt's scaling of the diagonal): the normal matrix J^T J gets
 //! `lambda * diag(J^T J)` added; a step that lowers the sum of squares is taken and `lambda` multiplied by
