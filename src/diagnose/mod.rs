@@ -64,6 +64,8 @@ mod rounds;
 mod stats;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_mismatch;
 
 pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MIN_STATIC_MAG_UNITS, WINDOW_BLOCK, WINDOW_S,

@@ -25,7 +25,7 @@ impl Case {
     }
 }
 
-fn rand_dir(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+pub(super) fn rand_dir(rng: &mut ChaCha8Rng) -> Vector3<f64> {
     loop {
         let v = Vector3::new(
             rng.random_range(-1.0..1.0),
@@ -49,7 +49,7 @@ fn signed(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
 }
 
 /// A bench scenario with a diag6-exact truth (so the base model is right when nothing is hidden).
-fn base_bench(rng: &mut ChaCha8Rng) -> Scenario {
+pub(super) fn base_bench(rng: &mut ChaCha8Rng) -> Scenario {
     let mut sc = Scenario::named("bench").unwrap();
     sc.truth.rate_hz = 50.0;
     sc.pauses = rng.random_range(20..=30);
