@@ -1025,15 +1025,11 @@ mod tests {
     /// Real data: BROAD trial 02 against its optical reference, BROAD's metric.
     #[test]
     fn broad_trial_02_real_data() {
-        let path = std::path::Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/broad/02_undisturbed_slow_rotation_B.csv.gz"
-        ));
-        if !path.exists() {
-            eprintln!("SKIPPED: {} is absent", path.display());
+        let Some(data) = crate::testdata::shared_data() else {
             return;
-        }
-        let log = crate::sources::read_log(path, None, &crate::config::Config::default()).unwrap();
+        };
+        let path = data.join("broad/02_undisturbed_slow_rotation_B.csv.gz");
+        let log = crate::sources::read_log(&path, None, &crate::config::Config::default()).unwrap();
         let cfg = FusionConfig {
             world: WorldFrame::Enu,
             ..FusionConfig::default()

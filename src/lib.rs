@@ -33,6 +33,8 @@ pub mod replay;
 pub mod report;
 pub mod sim;
 pub mod sources;
+#[doc(hidden)]
+pub mod testdata;
 pub mod types;
 
 pub use error::Error;

@@ -5,24 +5,11 @@ use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
 use std::path::{Path, PathBuf};
 
-/// `../shared/data` beside the checkout, or `None` with a plain message when it is absent.
-fn shared_data() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is absent; real-data tests need the shared recordings beside the checkout",
-            p.display()
-        );
-        None
-    }
-}
-
-/// Return early from a test (with the message above) when the shared data is absent.
+/// Return early from a test (with a plain message) when the shared data is absent; a failure instead
+/// under `IMUCALD_REQUIRE_DATA=1` ([`imucald::testdata::shared_data`]).
 macro_rules! require_data {
     () => {
-        match shared_data() {
+        match imucald::testdata::shared_data() {
             Some(p) => p,
             None => return,
         }

@@ -437,21 +437,8 @@ fn explore() {
 // -----------------------------------------------------------------------------------------
 // Real recordings (tyrex phone magnetometer tumbles) with a synthetic motor field.
 
-fn shared_data() -> Option<std::path::PathBuf> {
-    let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is absent; real-data diagnosis tests need the shared recordings",
-            p.display()
-        );
-        None
-    }
-}
-
 fn tyrex(set: &str) -> Option<Vec<Sample>> {
-    let data = shared_data()?;
+    let data = crate::testdata::shared_data()?;
     let path = data.join(format!("tyrex/{set}.csv.gz"));
     let log = crate::sources::read_log(&path, None, &Config::default())
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
