@@ -36,7 +36,7 @@ mod real_data {
     }
 
     #[test]
-    fn tyrex_hard_iron_within_3_ut_of_the_phone() {
+    fn tyrex_hard_iron_within_0_7_ut_of_the_phone() {
         let data = require_data!();
         for set in ["calib_mag_Nexus5_d1", "calib_mag_Nexus5_d3"] {
             let out = run(
@@ -52,7 +52,8 @@ mod real_data {
                     "{set} axis {k}: ours {:.3} phone {:.3} diff {d:.3} uT",
                     m.offset[k], r[k]
                 );
-                assert!(d < 3.0, "{set} axis {k}: {} vs {}", m.offset[k], r[k]);
+                // Measured: 0.03 to 0.22 uT (d1: 0.121 0.107 0.061; d3: 0.219 0.164 0.026).
+                assert!(d < 0.7, "{set} axis {k}: {} vs {}", m.offset[k], r[k]);
             }
             assert!(out.report.coverage.mag.filled >= 80);
         }
@@ -260,7 +261,8 @@ mod simulated {
             rms(sq_head)
         );
         assert!(n > 10_000 && moving > 1000, "{n} samples, {moving} turning");
-        assert!(rms(sq_tot) < 2.0 && rms(sq_head) < 1.5);
+        // Measured: total 0.35 deg, heading 0.25 deg.
+        assert!(rms(sq_tot) < 1.1 && rms(sq_head) < 0.75);
     }
 
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
@@ -271,10 +273,12 @@ mod simulated {
         let (mo, mm) = errors(m, &truth.mag);
         let (ao, am) = errors(a, &truth.accel);
         eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
-        assert!(mo < 0.1, "{what}: mag offset error {mo} uT");
-        assert!(mm < 0.002, "{what}: mag matrix error {mm}");
-        assert!(ao < 0.01, "{what}: accel offset error {ao} m/s^2");
-        assert!(am < 0.001, "{what}: accel matrix error {am}");
+        // Measured (seeds 1, 2; tlog and CSV alike): mag offset 0.0078, 0.0085 uT, matrix 0.00027,
+        // 0.00014; accel offset 0.00024, 0.00066 m/s^2, matrix 0.00006, 0.00013.
+        assert!(mo < 0.025, "{what}: mag offset error {mo} uT");
+        assert!(mm < 0.0008, "{what}: mag matrix error {mm}");
+        assert!(ao < 0.002, "{what}: accel offset error {ao} m/s^2");
+        assert!(am < 0.0004, "{what}: accel matrix error {am}");
     }
 
     #[test]
@@ -303,7 +307,7 @@ mod simulated {
             out.results.accel.calibration.expect("accel ok"),
         );
         let decl = sim.truth.world.declination_deg();
-        let mut roll_err: f64 = 0.0;
+        let (mut roll_err, mut pitch_err): (f64, f64) = (0.0, 0.0);
         let (mut hmin, mut hmax) = (f64::INFINITY, f64::NEG_INFINITY);
         let mut matched = 0;
         for tp in &sim.truth.poses {
@@ -323,21 +327,19 @@ mod simulated {
             if tp.pitch_deg.abs() < 80.0 {
                 roll_err = roll_err.max(angle_diff_deg(r, tp.roll_deg).abs());
             }
-            assert!(
-                (pi - tp.pitch_deg).abs() < 0.2,
-                "pitch {pi} vs {}",
-                tp.pitch_deg
-            );
+            pitch_err = pitch_err.max((pi - tp.pitch_deg).abs());
             if tp.pitch_deg.abs() < 80.0 {
                 let e = angle_diff_deg(h, tp.yaw_deg);
                 hmin = hmin.min(e);
                 hmax = hmax.max(e);
             }
         }
-        eprintln!("turntable: {matched}/{} poses, max roll error {roll_err:.3} deg, heading error spread {:.3}..{:.3} deg", sim.truth.poses.len(), hmin, hmax);
+        eprintln!("turntable: {matched}/{} poses, max roll error {roll_err:.3} deg, max pitch error {pitch_err:.3} deg, heading error spread {:.3}..{:.3} deg", sim.truth.poses.len(), hmin, hmax);
         assert!(matched >= 30, "{matched} poses matched");
-        assert!(roll_err < 0.2, "roll error {roll_err}");
-        assert!((hmax - hmin) / 2.0 < 1.0, "heading spread {hmin}..{hmax}");
+        // Measured: roll 0.012 deg, pitch 0.010 deg, heading spread -0.037..0.049 deg (half 0.043).
+        assert!(roll_err < 0.04, "roll error {roll_err}");
+        assert!(pitch_err < 0.03, "pitch error {pitch_err}");
+        assert!((hmax - hmin) / 2.0 < 0.13, "heading spread {hmin}..{hmax}");
     }
 }
 
@@ -580,7 +582,8 @@ mod diagnose_cli {
                 "diagnose CLI: {axis} {got:.4} (true {want}) +- {:.4}",
                 k[axis]["sigma"]
             );
-            assert!((got - want).abs() < 0.1, "{axis}: {got} vs {want}");
+            // Measured: 0.0007, 0.012, 0.0036.
+            assert!((got - want).abs() < 0.04, "{axis}: {got} vs {want}");
         }
         let (before, after) = (
             v["rms_before"].as_f64().unwrap(),
@@ -904,7 +907,7 @@ mod live {
         let hi = sim.truth.mag.offset;
         for k in 0..3 {
             assert!(
-                (mag.offset[k] - hi[k]).abs() < 0.1,
+                (mag.offset[k] - hi[k]).abs() < 0.02,
                 "{:?} vs {hi:?}",
                 mag.offset
             );
@@ -1164,9 +1167,10 @@ mod faults {
             if share <= 0.2 {
                 assert_eq!(m.status, "ok", "{:?}", m.detail);
                 assert!(m.outliers_rejected > 0);
+                // Measured: at most 0.014 uT off (6 uT magnet, 20% of the run).
                 for k in 0..3 {
                     assert!(
-                        (m.offset[k] - truth.mag.offset[k]).abs() < 0.1,
+                        (m.offset[k] - truth.mag.offset[k]).abs() < 0.04,
                         "{:?}",
                         m.offset
                     );
