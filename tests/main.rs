@@ -453,9 +453,14 @@ mod fixtures {
             .split(',')
             .map(|c| c.parse().unwrap())
             .collect();
-        assert!(row[10].abs() < 1.0 && row[11].abs() < 1.0, "{row:?}");
+        eprintln!(
+            "at rest: roll {:.4} pitch {:.4} deg, fused roll {:.4} pitch {:.4} deg",
+            row[10], row[11], row[17], row[18]
+        );
+        // Measured: roll 0.072, pitch -0.064 deg; fused roll 0.132, pitch 0.040 deg.
+        assert!(row[10].abs() < 0.22 && row[11].abs() < 0.22, "{row:?}");
         // The fused roll and pitch agree at rest.
-        assert!(row[17].abs() < 1.0 && row[18].abs() < 1.0, "{row:?}");
+        assert!(row[17].abs() < 0.4 && row[18].abs() < 0.4, "{row:?}");
         for f in ["ardupilot.parm", "px4.params", "fusion.h"] {
             assert!(d.join("export").join(f).metadata().unwrap().len() > 50);
         }
@@ -1378,9 +1383,14 @@ mod live_serial {
             .mag
             .unwrap();
         assert_eq!(after.status, "ok");
+        eprintln!(
+            "after the replug: offset {:?}, truth {:?}",
+            after.offset, sim.truth.mag.offset
+        );
+        // Measured: at most 0.011 uT off the truth.
         for k in 0..3 {
             assert!(
-                (after.offset[k] - sim.truth.mag.offset[k]).abs() < 0.5,
+                (after.offset[k] - sim.truth.mag.offset[k]).abs() < 0.035,
                 "{:?} vs {:?}",
                 after.offset,
                 sim.truth.mag.offset
@@ -1534,12 +1544,14 @@ mod live_ardupilot {
             .unwrap();
         // The daemon fitted the raw field (undoing the FC's correction) and wrote COMPASS_OFS = -hard iron.
         let truth = sim.truth.mag.offset;
+        eprintln!("COMPASS_OFS sets {sets:?}, truth hard iron {truth:?} uT");
         for (k, axis) in ["X", "Y", "Z"].iter().enumerate() {
             let v = *sets
                 .get(&format!("COMPASS_OFS_{axis}"))
                 .unwrap_or_else(|| panic!("no PARAM_SET COMPASS_OFS_{axis}; sets: {sets:?}"));
+            // Measured: 0.20, 0.22, 0.22 mG.
             assert!(
-                (v as f64 + truth[k] * 10.0).abs() < 2.0,
+                (v as f64 + truth[k] * 10.0).abs() < 0.7,
                 "COMPASS_OFS_{axis} = {v} mG, truth hard iron {} uT",
                 truth[k]
             );
