@@ -1102,8 +1102,13 @@ mod tests {
                 assert!(f.mag_disturbed(), "t {t}: disturbance not detected");
             }
         }
-        assert!(worst_tilt < 0.01, "inclination moved by {worst_tilt} deg");
-        assert!(worst_head < 1.0, "heading error {worst_head} deg");
+        eprintln!(
+            "disturbance: inclination moved {worst_tilt:.2e} deg, heading {worst_head:.2e} deg"
+        );
+        // Measured: inclination 0, heading 2.6e-11 deg (rounding only: the rejected field does not
+        // reach the state). Bounds at a rounding level, not 3x of it, so other FPUs pass.
+        assert!(worst_tilt < 1e-6, "inclination moved by {worst_tilt} deg");
+        assert!(worst_head < 1e-6, "heading error {worst_head} deg");
     }
 
     /// A bad field that passes the norm and dip checks (a heading-only error) still cannot tilt.
@@ -1135,15 +1140,11 @@ mod tests {
     /// Real data: BROAD trial 02 against its optical reference, BROAD's metric.
     #[test]
     fn broad_trial_02_real_data() {
-        let path = std::path::Path::new(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../shared/data/broad/02_undisturbed_slow_rotation_B.csv.gz"
-        ));
-        if !path.exists() {
-            eprintln!("SKIPPED: {} is absent", path.display());
+        let Some(data) = crate::testdata::shared_data() else {
             return;
-        }
-        let log = crate::sources::read_log(path, None, &crate::config::Config::default()).unwrap();
+        };
+        let path = data.join("broad/02_undisturbed_slow_rotation_B.csv.gz");
+        let log = crate::sources::read_log(&path, None, &crate::config::Config::default()).unwrap();
         let cfg = FusionConfig {
             world: WorldFrame::Enu,
             ..FusionConfig::default()

@@ -25,7 +25,7 @@ use crate::fit::FitFailure;
 use crate::gate::{GateConfig, Pose, StaticDetector};
 use crate::model::Calibration;
 use crate::types::{Sample, Vec3};
-use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
+use nalgebra::{DVector, Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Gyro bias, possibly temperature dependent.
@@ -268,7 +268,7 @@ fn residual(seg: &Segment, k: &Matrix3<f64>) -> Vector3<f64> {
     seg.up1 - pred
 }
 
-fn k_from(p: &SVector<f64, 9>) -> Matrix3<f64> {
+fn k_from(p: &[f64]) -> Matrix3<f64> {
     Matrix3::new(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8])
 }
 
@@ -383,76 +383,28 @@ fn isotropic_scale(segs: &[Segment]) -> f64 {
     (0.5 * (a + b)).exp()
 }
 
-/// Levenberg-Marquardt on the 9 entries of `K` from `k0`. Returns `K` and the relative conditioning
-/// of the normal matrix.
+/// Most Jacobians of the Levenberg-Marquardt fit of `K`.
+const K_FIT_MAX_ITER: usize = 50;
+
+/// Levenberg-Marquardt ([`crate::lm`]) on the 9 entries of `K` from `k0`, the residuals being every
+/// segment's end-direction error. Returns `K` and the relative conditioning of the normal matrix at
+/// the solution (smallest over largest singular value).
 fn fit_k(segs: &[Segment], k0: &Matrix3<f64>) -> (Matrix3<f64>, f64) {
-    let cost = |p: &SVector<f64, 9>| -> f64 {
+    let f = |p: &[f64], out: &mut Vec<f64>| {
+        out.clear();
         let k = k_from(p);
-        segs.iter().map(|s| residual(s, &k).norm_squared()).sum()
+        for s in segs {
+            out.extend(residual(s, &k).iter());
+        }
     };
-    let mut p = SVector::<f64, 9>::from_iterator(k0.transpose().iter().copied());
-    // Differentiation step relative to the scale of K.
-    let h = 1e-6 * k0.norm().max(1e-12) / 3f64.sqrt();
-    let mut lambda = 1e-3;
-    let mut c = cost(&p);
-    let mut conditioning = 0.0;
-    for _ in 0..50 {
-        // Jacobian by central differences.
-        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
-        let mut jtr = SVector::<f64, 9>::zeros();
-        let k0 = k_from(&p);
-        let r0: Vec<Vector3<f64>> = segs.iter().map(|s| residual(s, &k0)).collect();
-        let mut cols: Vec<Vec<Vector3<f64>>> = Vec::with_capacity(9);
-        // Forward differences: half the integrations of central ones, and ample for LM steps.
-        for j in 0..9 {
-            let mut pp = p;
-            pp[j] += h;
-            let kp = k_from(&pp);
-            cols.push(
-                segs.iter()
-                    .zip(&r0)
-                    .map(|(s, r)| (residual(s, &kp) - r) / h)
-                    .collect(),
-            );
-        }
-        for (si, r) in r0.iter().enumerate() {
-            for a in 0..9 {
-                jtr[a] += cols[a][si].dot(r);
-                for b in 0..9 {
-                    jtj[(a, b)] += cols[a][si].dot(&cols[b][si]);
-                }
-            }
-        }
-        let sv = jtj.singular_values();
-        let (smax, smin) = (sv.max(), sv.min());
-        conditioning = if smax > 0.0 { smin / smax } else { 0.0 };
-        let mut improved = false;
-        for _ in 0..10 {
-            let mut a = jtj;
-            for d in 0..9 {
-                a[(d, d)] += lambda * jtj[(d, d)].max(1e-300);
-            }
-            let Some(step) = a.lu().solve(&(-jtr)) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let pn = p + step;
-            let cn = cost(&pn);
-            if cn < c {
-                let rel = (c - cn) / c.max(1e-300);
-                p = pn;
-                c = cn;
-                lambda = (lambda * 0.3).max(1e-9);
-                improved = rel > 1e-12;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    (k_from(&p), conditioning)
+    let p0 = DVector::from_iterator(9, k0.transpose().iter().copied());
+    // Typical size of an entry: the scale of K (sets the difference step of entries near zero).
+    let typ = [k0.norm().max(1e-12) / 3f64.sqrt(); 9];
+    let fit = crate::lm::minimise(&f, p0, &typ, K_FIT_MAX_ITER);
+    let sv = fit.jtj.singular_values();
+    let (smax, smin) = (sv.max(), sv.min());
+    let conditioning = if smax > 0.0 { smin / smax } else { 0.0 };
+    (k_from(fit.p.as_slice()), conditioning)
 }
 
 /// Gravity-direction error on rotations that the fit did not see.

@@ -23,6 +23,7 @@ pub mod fusion;
 pub mod gate;
 pub mod gyro;
 pub mod link;
+pub mod lm;
 pub mod mavout;
 pub mod model;
 pub mod pipeline;
@@ -32,6 +33,8 @@ pub mod replay;
 pub mod report;
 pub mod sim;
 pub mod sources;
+#[doc(hidden)]
+pub mod testdata;
 pub mod types;
 
 pub use error::Error;

@@ -1865,7 +1865,9 @@ mod tests {
             let err = q
                 .angle_to(&quat_from_euler_deg(e[0], e[1], e[2]))
                 .to_degrees();
-            assert!(err < 1.0, "{name}: integrated attitude off by {err} deg");
+            eprintln!("{name}: integrated attitude off by {err:.4} deg");
+            // Measured: tumble 0.0011 deg, flight 0.0005 deg.
+            assert!(err < 0.004, "{name}: integrated attitude off by {err} deg");
         }
     }
 

@@ -5,24 +5,11 @@ use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
 use std::path::{Path, PathBuf};
 
-/// `../shared/data` beside the checkout, or `None` with a plain message when it is absent.
-fn shared_data() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!(
-            "SKIPPED: {} is absent; real-data tests need the shared recordings beside the checkout",
-            p.display()
-        );
-        None
-    }
-}
-
-/// Return early from a test (with the message above) when the shared data is absent.
+/// Return early from a test (with a plain message) when the shared data is absent; a failure instead
+/// under `IMUCALD_REQUIRE_DATA=1` ([`imucald::testdata::shared_data`]).
 macro_rules! require_data {
     () => {
-        match shared_data() {
+        match imucald::testdata::shared_data() {
             Some(p) => p,
             None => return,
         }
@@ -49,7 +36,7 @@ mod real_data {
     }
 
     #[test]
-    fn tyrex_hard_iron_within_3_ut_of_the_phone() {
+    fn tyrex_hard_iron_within_0_7_ut_of_the_phone() {
         let data = require_data!();
         for set in ["calib_mag_Nexus5_d1", "calib_mag_Nexus5_d3"] {
             let out = run(
@@ -65,7 +52,8 @@ mod real_data {
                     "{set} axis {k}: ours {:.3} phone {:.3} diff {d:.3} uT",
                     m.offset[k], r[k]
                 );
-                assert!(d < 3.0, "{set} axis {k}: {} vs {}", m.offset[k], r[k]);
+                // Measured: 0.03 to 0.22 uT (d1: 0.121 0.107 0.061; d3: 0.219 0.164 0.026).
+                assert!(d < 0.7, "{set} axis {k}: {} vs {}", m.offset[k], r[k]);
             }
             assert!(out.report.coverage.mag.filled >= 80);
         }
@@ -273,7 +261,8 @@ mod simulated {
             rms(sq_head)
         );
         assert!(n > 10_000 && moving > 1000, "{n} samples, {moving} turning");
-        assert!(rms(sq_tot) < 2.0 && rms(sq_head) < 1.5);
+        // Measured: total 0.35 deg, heading 0.25 deg.
+        assert!(rms(sq_tot) < 1.1 && rms(sq_head) < 0.75);
     }
 
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
@@ -284,10 +273,12 @@ mod simulated {
         let (mo, mm) = errors(m, &truth.mag);
         let (ao, am) = errors(a, &truth.accel);
         eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
-        assert!(mo < 0.1, "{what}: mag offset error {mo} uT");
-        assert!(mm < 0.002, "{what}: mag matrix error {mm}");
-        assert!(ao < 0.01, "{what}: accel offset error {ao} m/s^2");
-        assert!(am < 0.001, "{what}: accel matrix error {am}");
+        // Measured (seeds 1, 2; tlog and CSV alike): mag offset 0.0078, 0.0085 uT, matrix 0.00027,
+        // 0.00014; accel offset 0.00024, 0.00066 m/s^2, matrix 0.00006, 0.00013.
+        assert!(mo < 0.025, "{what}: mag offset error {mo} uT");
+        assert!(mm < 0.0008, "{what}: mag matrix error {mm}");
+        assert!(ao < 0.002, "{what}: accel offset error {ao} m/s^2");
+        assert!(am < 0.0004, "{what}: accel matrix error {am}");
     }
 
     #[test]
@@ -316,7 +307,7 @@ mod simulated {
             out.results.accel.calibration.expect("accel ok"),
         );
         let decl = sim.truth.world.declination_deg();
-        let mut roll_err: f64 = 0.0;
+        let (mut roll_err, mut pitch_err): (f64, f64) = (0.0, 0.0);
         let (mut hmin, mut hmax) = (f64::INFINITY, f64::NEG_INFINITY);
         let mut matched = 0;
         for tp in &sim.truth.poses {
@@ -336,21 +327,19 @@ mod simulated {
             if tp.pitch_deg.abs() < 80.0 {
                 roll_err = roll_err.max(angle_diff_deg(r, tp.roll_deg).abs());
             }
-            assert!(
-                (pi - tp.pitch_deg).abs() < 0.2,
-                "pitch {pi} vs {}",
-                tp.pitch_deg
-            );
+            pitch_err = pitch_err.max((pi - tp.pitch_deg).abs());
             if tp.pitch_deg.abs() < 80.0 {
                 let e = angle_diff_deg(h, tp.yaw_deg);
                 hmin = hmin.min(e);
                 hmax = hmax.max(e);
             }
         }
-        eprintln!("turntable: {matched}/{} poses, max roll error {roll_err:.3} deg, heading error spread {:.3}..{:.3} deg", sim.truth.poses.len(), hmin, hmax);
+        eprintln!("turntable: {matched}/{} poses, max roll error {roll_err:.3} deg, max pitch error {pitch_err:.3} deg, heading error spread {:.3}..{:.3} deg", sim.truth.poses.len(), hmin, hmax);
         assert!(matched >= 30, "{matched} poses matched");
-        assert!(roll_err < 0.2, "roll error {roll_err}");
-        assert!((hmax - hmin) / 2.0 < 1.0, "heading spread {hmin}..{hmax}");
+        // Measured: roll 0.012 deg, pitch 0.010 deg, heading spread -0.037..0.049 deg (half 0.043).
+        assert!(roll_err < 0.04, "roll error {roll_err}");
+        assert!(pitch_err < 0.03, "pitch error {pitch_err}");
+        assert!((hmax - hmin) / 2.0 < 0.13, "heading spread {hmin}..{hmax}");
     }
 }
 
@@ -464,9 +453,14 @@ mod fixtures {
             .split(',')
             .map(|c| c.parse().unwrap())
             .collect();
-        assert!(row[10].abs() < 1.0 && row[11].abs() < 1.0, "{row:?}");
+        eprintln!(
+            "at rest: roll {:.4} pitch {:.4} deg, fused roll {:.4} pitch {:.4} deg",
+            row[10], row[11], row[17], row[18]
+        );
+        // Measured: roll 0.072, pitch -0.064 deg; fused roll 0.132, pitch 0.040 deg.
+        assert!(row[10].abs() < 0.22 && row[11].abs() < 0.22, "{row:?}");
         // The fused roll and pitch agree at rest.
-        assert!(row[17].abs() < 1.0 && row[18].abs() < 1.0, "{row:?}");
+        assert!(row[17].abs() < 0.4 && row[18].abs() < 0.4, "{row:?}");
         for f in ["ardupilot.parm", "px4.params", "fusion.h"] {
             assert!(d.join("export").join(f).metadata().unwrap().len() > 50);
         }
@@ -593,7 +587,8 @@ mod diagnose_cli {
                 "diagnose CLI: {axis} {got:.4} (true {want}) +- {:.4}",
                 k[axis]["sigma"]
             );
-            assert!((got - want).abs() < 0.1, "{axis}: {got} vs {want}");
+            // Measured: 0.0007, 0.012, 0.0036.
+            assert!((got - want).abs() < 0.04, "{axis}: {got} vs {want}");
         }
         let (before, after) = (
             v["rms_before"].as_f64().unwrap(),
@@ -917,7 +912,7 @@ mod live {
         let hi = sim.truth.mag.offset;
         for k in 0..3 {
             assert!(
-                (mag.offset[k] - hi[k]).abs() < 0.1,
+                (mag.offset[k] - hi[k]).abs() < 0.02,
                 "{:?} vs {hi:?}",
                 mag.offset
             );
@@ -1177,9 +1172,10 @@ mod faults {
             if share <= 0.2 {
                 assert_eq!(m.status, "ok", "{:?}", m.detail);
                 assert!(m.outliers_rejected > 0);
+                // Measured: at most 0.014 uT off (6 uT magnet, 20% of the run).
                 for k in 0..3 {
                     assert!(
-                        (m.offset[k] - truth.mag.offset[k]).abs() < 0.1,
+                        (m.offset[k] - truth.mag.offset[k]).abs() < 0.04,
                         "{:?}",
                         m.offset
                     );
@@ -1387,9 +1383,14 @@ mod live_serial {
             .mag
             .unwrap();
         assert_eq!(after.status, "ok");
+        eprintln!(
+            "after the replug: offset {:?}, truth {:?}",
+            after.offset, sim.truth.mag.offset
+        );
+        // Measured: at most 0.011 uT off the truth.
         for k in 0..3 {
             assert!(
-                (after.offset[k] - sim.truth.mag.offset[k]).abs() < 0.5,
+                (after.offset[k] - sim.truth.mag.offset[k]).abs() < 0.035,
                 "{:?} vs {:?}",
                 after.offset,
                 sim.truth.mag.offset
@@ -1543,12 +1544,14 @@ mod live_ardupilot {
             .unwrap();
         // The daemon fitted the raw field (undoing the FC's correction) and wrote COMPASS_OFS = -hard iron.
         let truth = sim.truth.mag.offset;
+        eprintln!("COMPASS_OFS sets {sets:?}, truth hard iron {truth:?} uT");
         for (k, axis) in ["X", "Y", "Z"].iter().enumerate() {
             let v = *sets
                 .get(&format!("COMPASS_OFS_{axis}"))
                 .unwrap_or_else(|| panic!("no PARAM_SET COMPASS_OFS_{axis}; sets: {sets:?}"));
+            // Measured: 0.20, 0.22, 0.22 mG.
             assert!(
-                (v as f64 + truth[k] * 10.0).abs() < 2.0,
+                (v as f64 + truth[k] * 10.0).abs() < 0.7,
                 "COMPASS_OFS_{axis} = {v} mG, truth hard iron {} uT",
                 truth[k]
             );

@@ -1,0 +1,495 @@
+//! The `imucald.diagnosis/1` report: its types, the residual series of each effect found (the data of
+//! `--plot`), the fitted effect parameters with uncertainties, and the terminal table.
+
+use super::evidence::Driver;
+use super::layout::{decode, residuals, tags, Layout, ALL_CH, NCH};
+use super::rounds::{median_count, Run, Selection, Split};
+use super::{Effect, SCHEMA};
+use crate::model::ModelKind;
+use nalgebra::{DVector, Vector3};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+/// One candidate effect of a round.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CandidateReport {
+    pub name: String,
+    /// F statistic of the nested test (joint refit when `refit`, else linearised at the current fit).
+    pub statistic: f64,
+    /// Uncorrected p-value of that test (compare with alpha / number of identifiable candidates).
+    pub p_value: f64,
+    /// Fraction of the current model's weighted squared residual (fit units) the effect removes.
+    pub improvement: f64,
+    pub plausible: bool,
+    pub identifiable: bool,
+    /// Number of parameters the effect adds.
+    pub params: usize,
+    /// Whether it was refitted jointly with the current model.
+    pub refit: bool,
+    /// Whether the improvement holds on the held-out groups (refitted candidates only).
+    pub held_out: Option<bool>,
+    pub note: String,
+}
+
+/// One round of the search.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RoundReport {
+    pub round: usize,
+    /// "named", "none", "unexplained" or "not_identifiable".
+    pub decision: String,
+    /// The effect named (or the one that could not be told apart, for not_identifiable).
+    pub effect: Option<String>,
+    pub detail: String,
+    pub candidates: Vec<CandidateReport>,
+}
+
+/// A fitted parameter with its 1-sigma uncertainty.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParamEstimate {
+    pub value: f64,
+    pub sigma: f64,
+    pub unit: String,
+}
+
+/// RMS of one residual channel on the held-out units, in its physical unit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChannelRms {
+    pub unit: String,
+    pub before: f64,
+    pub after: f64,
+    /// Noise expected from the within-unit scatter (median over units).
+    pub noise: f64,
+}
+
+/// What evidence the diagnosis used.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct EvidenceSummary {
+    /// "static_segments" or "static_segments+moving_windows".
+    pub unit: String,
+    pub units: usize,
+    pub static_units: usize,
+    pub moving_windows: usize,
+    pub poses: usize,
+    pub held_out_units: usize,
+    pub channels: Vec<String>,
+    /// "throttle", "current" or none.
+    pub driver: Option<String>,
+    /// Whether the accelerometer calibration was refitted with the model (else held fixed).
+    pub accel_fitted: bool,
+}
+
+/// The diagnosis (JSON contract `imucald.diagnosis/1`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DiagnosisReport {
+    pub schema: String,
+    pub base_model: String,
+    pub evidence: EvidenceSummary,
+    /// Effects named, in the order they were added (empty when none).
+    pub found: Vec<String>,
+    pub rounds: Vec<RoundReport>,
+    /// RMS of the held-out residuals of the base model, in units of the expected noise (all channels).
+    pub rms_before: f64,
+    /// The same with the effects found.
+    pub rms_after: f64,
+    pub rms_channels: BTreeMap<String, ChannelRms>,
+    /// Per effect found: fitted parameters (all units) with uncertainties.
+    pub effects: BTreeMap<String, BTreeMap<String, ParamEstimate>>,
+    /// Per effect found: the residual of the channel it explains most, against its regressor, for the
+    /// base model (before) and the final model (after), every unit (the data of `--plot`).
+    #[serde(default)]
+    pub residual_plots: Vec<ResidualSeries>,
+    pub notes: Vec<String>,
+}
+
+/// Residuals of one channel against the regressor of one effect, before and after adding it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResidualSeries {
+    pub effect: String,
+    /// Residual channel (`mag_norm`, `dip`, ...) and its unit.
+    pub channel: String,
+    pub unit: String,
+    /// What `x` is, with its unit.
+    pub regressor: String,
+    /// One entry per residual component (a unit can give several, e.g. the three gyro axes).
+    pub x: Vec<f64>,
+    /// Residual of the base model (fitted on the fit units).
+    pub before: Vec<f64>,
+    /// Residual of the final model.
+    pub after: Vec<f64>,
+    /// The part of the residual the effect's fitted term explains (final model with the effect
+    /// switched off minus the final model): "before" lies along it, "after" does not.
+    #[serde(default)]
+    pub predicted: Vec<f64>,
+    /// Whether each point is held out.
+    pub held_out: Vec<bool>,
+}
+
+impl DiagnosisReport {
+    pub(super) fn failed(base: ModelKind, why: String) -> Self {
+        DiagnosisReport {
+            schema: SCHEMA.into(),
+            base_model: base.name().into(),
+            evidence: EvidenceSummary::default(),
+            found: vec![],
+            rounds: vec![RoundReport {
+                round: 1,
+                decision: "not_identifiable".into(),
+                effect: None,
+                detail: why.clone(),
+                candidates: vec![],
+            }],
+            rms_before: f64::NAN,
+            rms_after: f64::NAN,
+            rms_channels: BTreeMap::new(),
+            effects: BTreeMap::new(),
+            residual_plots: vec![],
+            notes: vec![why],
+        }
+    }
+}
+
+/// Held-out RMS per channel (physical units) for the base and the final model, with the expected
+/// noise of a unit of median size.
+fn rms_channels(run: &Run, pb: &[f64; NCH], pa: &[f64; NCH]) -> BTreeMap<String, ChannelRms> {
+    let mut out = BTreeMap::new();
+    for c in ALL_CH {
+        let i = c.i();
+        if run.ctx.ch[i] && pb[i].is_finite() {
+            let typ_n = median_count(run.ev, i).unwrap_or(1) as f64;
+            out.insert(
+                c.name().to_string(),
+                ChannelRms {
+                    unit: c.unit().into(),
+                    before: pb[i],
+                    after: pa[i],
+                    noise: run.noise_sd[i] / typ_n.sqrt(),
+                },
+            );
+        }
+    }
+    out
+}
+
+/// The parameters of the effects found, from a fit of the final model on all units, with 1-sigma
+/// uncertainties (cross-axis terms relative to the mean diagonal, angles in degrees).
+fn effect_params(
+    run: &Run,
+    sel: &Selection,
+    all: &[usize],
+) -> BTreeMap<String, BTreeMap<String, ParamEstimate>> {
+    let mut effects = BTreeMap::new();
+    if sel.found.is_empty() {
+        return effects;
+    }
+    let (lay, p) = (&sel.lay, &sel.p);
+    let w = run.weights(lay, p);
+    let fa = run.fit(lay, &w, all, p.clone());
+    let dof = (fa.r.len() as f64 - lay.n as f64).max(1.0);
+    let s2 = fa.ssr / dof;
+    let cov = fa.jtj.clone().try_inverse().map(|c| c * s2);
+    let md = decode(&run.ctx, lay, fa.p.as_slice());
+    let diag_scale = (md.am[(0, 0)] + md.am[(1, 1)] + md.am[(2, 2)]) / 3.0;
+    let acc_scale = (md.aa[(0, 0)] + md.aa[(1, 1)] + md.aa[(2, 2)]) / 3.0;
+    for b in &lay.effects {
+        let mut params = BTreeMap::new();
+        for k in 0..b.len {
+            let idx = b.start + k;
+            let (name, unit) = lay.names[idx].clone();
+            let sig = cov
+                .as_ref()
+                .map(|c| c[(idx, idx)].max(0.0).sqrt())
+                .unwrap_or(f64::NAN);
+            let (mut v, mut s, mut u) = (fa.p[idx], sig, unit);
+            match b.effect {
+                Effect::CrossAxis => {
+                    let sc = if name.starts_with("mag") {
+                        diag_scale
+                    } else {
+                        acc_scale
+                    };
+                    v /= sc;
+                    s /= sc;
+                }
+                Effect::MagAccelMisalignment | Effect::HeadingOffset => {
+                    v = v.to_degrees();
+                    s = s.to_degrees();
+                    u = "deg".into();
+                }
+                _ => {}
+            }
+            let name = if b.effect == Effect::MagAccelMisalignment {
+                format!("{name}_deg")
+            } else if b.effect == Effect::HeadingOffset {
+                "heading_offset_deg".to_string()
+            } else {
+                name
+            };
+            params.insert(
+                name,
+                ParamEstimate {
+                    value: v,
+                    sigma: s,
+                    unit: u,
+                },
+            );
+        }
+        effects.insert(b.effect.name().to_string(), params);
+    }
+    effects
+}
+
+/// The report of a finished selection: held-out RMS of the base (`lay0`, `base_p`) and the final
+/// model, per-channel RMS, effect parameters, residual series.
+pub(super) fn assemble(
+    run: &Run,
+    split: &Split,
+    base: ModelKind,
+    (lay0, base_p): (&Layout, &DVector<f64>),
+    sel: Selection,
+    notes: Vec<String>,
+) -> DiagnosisReport {
+    let ev = run.ev;
+    let rms_units = if run.hold_units.is_empty() {
+        run.fit_units.clone()
+    } else {
+        run.hold_units.clone()
+    };
+    let (rb, pb) = run.rms(lay0, base_p, &rms_units);
+    let (ra, pa) = run.rms(&sel.lay, &sel.p, &rms_units);
+    let rms_channels = rms_channels(run, &pb, &pa);
+    let effects = effect_params(run, &sel, &split.order);
+    let residual_plots: Vec<ResidualSeries> = sel
+        .found
+        .iter()
+        .filter_map(|e| residual_series(run, *e, lay0, base_p, &sel.lay, &sel.p, &split.order))
+        .collect();
+    let channels = ALL_CH
+        .iter()
+        .filter(|c| run.ctx.ch[c.i()])
+        .map(|c| c.name().to_string())
+        .collect();
+    let static_units = ev.units.iter().filter(|u| !u.moving).count();
+    DiagnosisReport {
+        schema: SCHEMA.into(),
+        base_model: base.name().into(),
+        evidence: EvidenceSummary {
+            unit: if ev.moving_windows > 0 {
+                "static_segments+moving_windows".into()
+            } else {
+                "static_segments".into()
+            },
+            units: ev.units.len(),
+            static_units,
+            moving_windows: ev.moving_windows,
+            poses: ev.poses,
+            held_out_units: run.hold_units.len(),
+            channels,
+            driver: ev.driver.map(|d| match d {
+                Driver::Throttle => "throttle".to_string(),
+                Driver::Current => "current".to_string(),
+            }),
+            accel_fitted: run.ctx.acc_free,
+        },
+        found: sel.found.iter().map(|e| e.name().to_string()).collect(),
+        rounds: sel.rounds,
+        rms_before: rb,
+        rms_after: ra,
+        rms_channels,
+        effects,
+        residual_plots,
+        notes,
+    }
+}
+
+/// The residual series of effect `e` (see [`ResidualSeries`]): the channel where the effect's term
+/// is largest against the expected noise, x its natural regressor (driver, temperature, time,
+/// reference heading) or else the residual the effect's term predicts.
+#[allow(clippy::too_many_arguments)]
+fn residual_series(
+    run: &Run,
+    e: Effect,
+    lay0: &Layout,
+    p0: &DVector<f64>,
+    lay: &Layout,
+    p: &DVector<f64>,
+    units: &[usize],
+) -> Option<ResidualSeries> {
+    let ev = run.ev;
+    let ctx = &run.ctx;
+    let block = lay.block(e)?;
+    let mut p_off = p.clone();
+    for k in 0..block.len {
+        p_off[block.start + k] = 0.0;
+    }
+    let tg = tags(ctx, lay, p, ev, units);
+    let after = residuals(ctx, lay, ev, units, p.as_slice());
+    let off = residuals(ctx, lay, ev, units, p_off.as_slice());
+    let tg0 = tags(ctx, lay0, p0, ev, units);
+    let before = residuals(ctx, lay0, ev, units, p0.as_slice());
+    if tg.len() != after.len() || off.len() != after.len() || tg0 != tg || before.len() != tg.len()
+    {
+        return None;
+    }
+    // The channel the effect moves most, in units of the expected noise.
+    let mut score = [0.0; NCH];
+    for (((ui, c, _), (_, ra)), (_, ro)) in tg.iter().zip(&after).zip(&off) {
+        score[c.i()] += ((ro - ra) / run.noise(*ui, *c).max(1e-300)).powi(2);
+    }
+    let ch = ALL_CH
+        .into_iter()
+        .filter(|c| score[c.i()] > 0.0)
+        .max_by(|a, b| score[a.i()].total_cmp(&score[b.i()]))?;
+    let heading_deg = |ui: usize| {
+        ev.units[ui].ref_w.map(|w| {
+            // Heading of the body x axis in ENU: clockwise from north.
+            let x = w * Vector3::x();
+            x.x.atan2(x.y).to_degrees().rem_euclid(360.0)
+        })
+    };
+    let regressor = match e {
+        Effect::MotorInterference => match ev.driver {
+            Some(Driver::Current) => "current (A)".to_string(),
+            _ => "throttle (0..1)".to_string(),
+        },
+        Effect::TemperatureBias => "temperature (deg C)".to_string(),
+        Effect::GyroBiasDrift => "time (s)".to_string(),
+        Effect::HeadingOffset if units.iter().all(|&u| heading_deg(u).is_some()) => {
+            "reference heading (deg)".to_string()
+        }
+        _ => format!("{} predicted by {} ({})", ch.name(), e.name(), ch.unit()),
+    };
+    let hold: std::collections::HashSet<usize> = run.hold_units.iter().copied().collect();
+    let mut out = ResidualSeries {
+        effect: e.name().into(),
+        channel: ch.name().into(),
+        unit: ch.unit().into(),
+        regressor: regressor.clone(),
+        x: vec![],
+        before: vec![],
+        after: vec![],
+        predicted: vec![],
+        held_out: vec![],
+    };
+    for (i, (ui, c, _)) in tg.iter().enumerate() {
+        if *c != ch {
+            continue;
+        }
+        let u = &ev.units[*ui];
+        let x = match e {
+            Effect::MotorInterference => u.drv + ev.drv_mean,
+            Effect::TemperatureBias if u.has_temp => u.temp + ev.temp_mean,
+            Effect::GyroBiasDrift => u.t + ev.t_mean,
+            Effect::HeadingOffset if regressor.starts_with("reference") => {
+                heading_deg(*ui).unwrap_or(f64::NAN)
+            }
+            Effect::TemperatureBias => f64::NAN,
+            _ => off[i].1 - after[i].1,
+        };
+        out.x.push(x);
+        out.before.push(before[i].1);
+        out.after.push(after[i].1);
+        out.predicted.push(off[i].1 - after[i].1);
+        out.held_out.push(hold.contains(ui));
+    }
+    Some(out)
+}
+
+/// A terminal table of a diagnosis.
+pub fn summary_table(r: &DiagnosisReport) -> String {
+    let mut s = String::new();
+    let e = &r.evidence;
+    let _ = writeln!(
+        s,
+        "diagnosis ({}): base {}, {} evidence units ({} static from {} poses, {} moving windows), {} held out",
+        r.schema, r.base_model, e.units, e.static_units, e.poses, e.moving_windows, e.held_out_units
+    );
+    let _ = writeln!(
+        s,
+        "channels: {}; driver: {}; accel {}",
+        e.channels.join(", "),
+        e.driver.as_deref().unwrap_or("none"),
+        if e.accel_fitted {
+            "refitted"
+        } else {
+            "held fixed"
+        }
+    );
+    for rd in &r.rounds {
+        let _ = writeln!(
+            s,
+            "round {}: {}{} - {}",
+            rd.round,
+            rd.decision,
+            rd.effect
+                .as_deref()
+                .map(|x| format!(" {x}"))
+                .unwrap_or_default(),
+            rd.detail
+        );
+        let _ = writeln!(
+            s,
+            "  {:<24} {:>10} {:>10} {:>8} {:>6} {:>6} {:>5} {:>8}",
+            "candidate", "F", "p", "improv", "plaus", "ident", "q", "held-out"
+        );
+        for c in &rd.candidates {
+            let _ = writeln!(
+                s,
+                "  {:<24} {:>10.2} {:>10.2e} {:>7.1}% {:>6} {:>6} {:>5} {:>8}{}",
+                c.name,
+                c.statistic,
+                c.p_value,
+                100.0 * c.improvement,
+                if c.plausible { "yes" } else { "no" },
+                if c.identifiable { "yes" } else { "no" },
+                c.params,
+                match c.held_out {
+                    Some(true) => "holds",
+                    Some(false) => "fails",
+                    None => "-",
+                },
+                if c.note.is_empty() {
+                    String::new()
+                } else {
+                    format!("  ({})", c.note)
+                }
+            );
+        }
+    }
+    let _ = writeln!(
+        s,
+        "found: {}",
+        if r.found.is_empty() {
+            "nothing".to_string()
+        } else {
+            r.found.join(", ")
+        }
+    );
+    let ratio = r.rms_before / r.rms_after;
+    let _ = writeln!(
+        s,
+        "held-out RMS (units of expected noise): {:.3} -> {:.3} ({:.2}x)",
+        r.rms_before, r.rms_after, ratio
+    );
+    for (name, c) in &r.rms_channels {
+        let _ = writeln!(
+            s,
+            "  {:<13} {:>12.4e} -> {:>12.4e} {} (noise {:.2e})",
+            name, c.before, c.after, c.unit, c.noise
+        );
+    }
+    for (name, params) in &r.effects {
+        let _ = writeln!(s, "{name}:");
+        for (p, v) in params {
+            let _ = writeln!(
+                s,
+                "  {:<22} {:>12.5} +- {:<10.2e} {}",
+                p, v.value, v.sigma, v.unit
+            );
+        }
+    }
+    for n in &r.notes {
+        let _ = writeln!(s, "note: {n}");
+    }
+    s
+}

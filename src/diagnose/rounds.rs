@@ -1,0 +1,1161 @@
+//! The nested selection rounds: the held-out split, start values and noise levels, the base fit, and
+//! per round the linearised screen of every candidate effect, the joint refits in rank order and the
+//! decision (named, none, unexplained, not_identifiable).
+
+use super::evidence::{quat_rot, v3, Evidence, MagObs, Unit};
+use super::layout::{
+    applicable, build_layout, carry_params, decode, eval_units, plausibility, residuals, tags, Ch,
+    Ctx, Layout, ALL_CH, NCH,
+};
+use super::report::{CandidateReport, RoundReport};
+use super::stats::{columns, condition, explained, f_sf, mean_sd, select_cols, t_sf};
+use super::{DiagnoseOptions, Effect};
+use crate::config::Config;
+use crate::lm::LmFit;
+use crate::model::{params_from_a, ModelKind};
+use crate::pipeline::Pipeline;
+use crate::types::Sample;
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+use std::collections::BTreeMap;
+
+/// "Unexplained": residual variance above this multiple of the within-unit noise.
+pub const EXCESS_RATIO: f64 = 4.0;
+/// Most Jacobians of one Levenberg-Marquardt fit of the forward model.
+const LM_MAX_ITER: usize = 60;
+/// Fewest groups (poses, window blocks) for a held-out split; below it the checks are skipped.
+const MIN_GROUPS_FOR_HOLDOUT: usize = 8;
+/// Largest fraction of the groups held out, whatever the options say.
+const MAX_HOLDOUT_FRACTION: f64 = 0.5;
+/// Fewest groups held out.
+const MIN_HELD_OUT_GROUPS: usize = 2;
+/// Range of a unit's relative weight within a channel, sqrt(n / median n).
+const REL_WEIGHT_RANGE: (f64, f64) = (0.3, 3.0);
+/// Floor of a channel's residual sd (weights), as a fraction of its within-unit noise sd.
+const SD_FLOOR_PER_NOISE: f64 = 1e-4;
+/// Largest lag-1 autocorrelation used to deflate the F-test (the estimate is clamped to it).
+const MAX_AUTOCORR: f64 = 0.95;
+/// Held-out check: the drop in squared residual must exceed this many sd of a spurious fit's...
+const HELD_OUT_Z: f64 = 3.0;
+/// ...or a paired one-sided t-test over the held-out groups must reach this p-value...
+const HELD_OUT_P: f64 = 0.05;
+/// ...over at least this many groups.
+const MIN_T_TEST_GROUPS: usize = 3;
+/// A regressor column with norm below this (relative to 1 + |r|) does not vary.
+const MIN_REGRESSOR_NORM: f64 = 1e-12;
+/// A regressor whose normalised column keeps less than this norm after projecting out the current
+/// model is absorbed by it (collinear, or poor coverage).
+const MIN_RESIDUAL_REGRESSOR: f64 = 0.03;
+/// Largest condition number of a candidate's projected regressors.
+const MAX_CANDIDATE_CONDITION: f64 = 1e3;
+/// Candidates are refitted jointly, in rank order, while their linearised p is below this multiple
+/// of the round's threshold alpha / m.
+const REFIT_P_FACTOR: f64 = 10.0;
+/// Largest condition number of a joint fit's normal matrix (column-normalised); above it the fit is
+/// degenerate.
+const MAX_JOINT_CONDITION: f64 = 1e12;
+/// Confounding: another significant candidate explains at least this share of the named one's
+/// linearised drop...
+const CONFOUND_SHARE: f64 = 0.8;
+/// ...and both together explain at most this multiple of the larger single drop.
+const CONFOUND_UNION: f64 = 1.1;
+/// "Unexplained" needs at least this many residual components in the channel.
+const MIN_EXCESS_COMPONENTS: usize = 5;
+/// Floor of the fraction of a channel's components left as degrees of freedom in the excess test.
+const MIN_DOF_FRACTION: f64 = 0.1;
+/// Fewest samples of a channel inside a unit for its within-unit scatter.
+const MIN_SCATTER_SAMPLES: usize = 3;
+
+/// State shared by the rounds.
+pub(super) struct Run<'a> {
+    pub ctx: Ctx,
+    pub ev: &'a Evidence,
+    pub fit_units: Vec<usize>,
+    pub hold_units: Vec<usize>,
+    /// Expected noise (within-unit scatter) per channel and unit: sd_c / sqrt(n).
+    pub noise_sd: [f64; NCH],
+    /// Relative weight of each unit within a channel: sqrt(n / median n), clamped to [0.3, 3].
+    pub rel: Vec<[f64; NCH]>,
+}
+
+impl Run<'_> {
+    pub(super) fn noise(&self, ui: usize, c: Ch) -> f64 {
+        let n = self.ev.units[ui].n[c.i()].max(1) as f64;
+        self.noise_sd[c.i()] / n.sqrt()
+    }
+
+    pub(super) fn fit(
+        &self,
+        lay: &Layout,
+        w: &[f64; NCH],
+        units: &[usize],
+        p0: DVector<f64>,
+    ) -> LmFit {
+        let f = |p: &[f64], out: &mut Vec<f64>| {
+            out.clear();
+            let md = decode(&self.ctx, lay, p);
+            eval_units(&self.ctx, &md, self.ev, units, &mut |ui, c, r| {
+                out.push(r * w[c.i()] * self.rel[ui][c.i()])
+            });
+        };
+        crate::lm::minimise(&f, p0, &lay.typ, LM_MAX_ITER)
+    }
+
+    pub(super) fn jac(
+        &self,
+        lay: &Layout,
+        w: &[f64; NCH],
+        units: &[usize],
+        p: &DVector<f64>,
+    ) -> (DMatrix<f64>, Vec<f64>) {
+        let f = |p: &[f64], out: &mut Vec<f64>| {
+            out.clear();
+            let md = decode(&self.ctx, lay, p);
+            eval_units(&self.ctx, &md, self.ev, units, &mut |ui, c, r| {
+                out.push(r * w[c.i()] * self.rel[ui][c.i()])
+            });
+        };
+        let mut r0 = Vec::new();
+        f(p.as_slice(), &mut r0);
+        (crate::lm::jacobian(&f, p, &r0, &lay.typ), r0)
+    }
+
+    /// Channel weights: 1 / residual RMS of each channel on the fit units (dof-corrected).
+    pub(super) fn weights(&self, lay: &Layout, p: &DVector<f64>) -> [f64; NCH] {
+        let md = decode(&self.ctx, lay, p.as_slice());
+        let mut ss = [0.0; NCH];
+        let mut nn = [0usize; NCH];
+        eval_units(&self.ctx, &md, self.ev, &self.fit_units, &mut |ui, c, r| {
+            ss[c.i()] += (r * self.rel[ui][c.i()]).powi(2);
+            nn[c.i()] += 1;
+        });
+        let m = nn.iter().sum::<usize>() as f64;
+        let corr = m / (m - lay.n as f64).max(1.0);
+        let mut w = [0.0; NCH];
+        for c in ALL_CH {
+            let i = c.i();
+            if nn[i] > 0 {
+                let floor = SD_FLOOR_PER_NOISE * self.noise_sd[i] + 1e-15;
+                let sd = (ss[i] / nn[i] as f64 * corr).sqrt().max(floor);
+                w[i] = 1.0 / sd;
+            }
+        }
+        w
+    }
+
+    /// Noise-normalised RMS over `units` (all channels), and per-channel physical RMS.
+    pub(super) fn rms(&self, lay: &Layout, p: &DVector<f64>, units: &[usize]) -> (f64, [f64; NCH]) {
+        let md = decode(&self.ctx, lay, p.as_slice());
+        let mut tot = 0.0;
+        let mut cnt = 0usize;
+        let mut ss = [0.0; NCH];
+        let mut nn = [0usize; NCH];
+        eval_units(&self.ctx, &md, self.ev, units, &mut |ui, c, r| {
+            let s = self.noise(ui, c).max(1e-300);
+            tot += (r / s).powi(2);
+            cnt += 1;
+            ss[c.i()] += r * r;
+            nn[c.i()] += 1;
+        });
+        let mut per = [f64::NAN; NCH];
+        for i in 0..NCH {
+            if nn[i] > 0 {
+                per[i] = (ss[i] / nn[i] as f64).sqrt();
+            }
+        }
+        ((tot / cnt.max(1) as f64).sqrt(), per)
+    }
+
+    /// Lag-1 autocorrelation of the alternative model's weighted residuals (each (channel, component)
+    /// sequence in time order), averaged over channels with weights equal to each channel's share of
+    /// the drop in squared residual from `cur` to `alt`: the channels the effect's evidence comes from.
+    /// Smooth structure left in those channels means the units are not independent evidence.
+    pub(super) fn autocorr(
+        &self,
+        w: &[f64; NCH],
+        cur: (&Layout, &DVector<f64>),
+        alt: (&Layout, &DVector<f64>),
+    ) -> f64 {
+        let weighted = |lay: &Layout, p: &DVector<f64>| {
+            let tg = tags(&self.ctx, lay, p, self.ev, &self.fit_units);
+            let res = residuals(&self.ctx, lay, self.ev, &self.fit_units, p.as_slice());
+            tg.iter()
+                .zip(&res)
+                .map(|((ui, c, k), (_, r))| (*c, *k, r * w[c.i()] * self.rel[*ui][c.i()]))
+                .collect::<Vec<_>>()
+        };
+        let a = weighted(cur.0, cur.1);
+        let b = weighted(alt.0, alt.1);
+        let mut drop = [0.0; NCH];
+        for (x, y) in a.iter().zip(&b) {
+            drop[x.0.i()] += x.2 * x.2 - y.2 * y.2;
+        }
+        let mut last: BTreeMap<(usize, usize), f64> = BTreeMap::new();
+        let (mut num, mut den) = ([0.0; NCH], [0.0; NCH]);
+        for (c, k, r) in &b {
+            den[c.i()] += r * r;
+            if let Some(prev) = last.insert((c.i(), *k), *r) {
+                num[c.i()] += prev * r;
+            }
+        }
+        let (mut acc, mut tot) = (0.0, 0.0);
+        for i in 0..NCH {
+            let d = drop[i].max(0.0);
+            if d > 0.0 && den[i] > 0.0 {
+                acc += d * (num[i] / den[i]).clamp(0.0, MAX_AUTOCORR);
+                tot += d;
+            }
+        }
+        if tot > 0.0 {
+            (acc / tot).clamp(0.0, MAX_AUTOCORR)
+        } else {
+            0.0
+        }
+    }
+
+    /// Does `alt` (q more parameters, fitted on m_fit components) beat `cur` on the held-out groups?
+    /// Two tests, either suffices: the held-out drop D = S_cur - S_alt (weighted so that a component
+    /// has unit variance under the current model) against its null distribution (a spurious q-parameter
+    /// fit makes D about -q m_h / m_fit with sd 2 sqrt(q m_h / m_fit); we ask D > [`HELD_OUT_Z`] sd), or a
+    /// paired one-sided t-test over the groups (p < [`HELD_OUT_P`], D > 0). Returns (holds, z of D, relative drop).
+    pub(super) fn held_out(
+        &self,
+        w: &[f64; NCH],
+        cur: (&Layout, &DVector<f64>),
+        alt: (&Layout, &DVector<f64>),
+        q: usize,
+        m_fit: usize,
+    ) -> (bool, f64, f64) {
+        if self.hold_units.is_empty() {
+            return (true, f64::NAN, f64::NAN);
+        }
+        let mut m_h = 0usize;
+        {
+            let md = decode(&self.ctx, cur.0, cur.1.as_slice());
+            eval_units(&self.ctx, &md, self.ev, &self.hold_units, &mut |_, _, _| {
+                m_h += 1
+            });
+        }
+        let ratio = m_h as f64 / m_fit.max(1) as f64;
+        let sd_null = 2.0 * (q as f64 * ratio).sqrt();
+        let per_group = |lay: &Layout, p: &DVector<f64>| {
+            let md = decode(&self.ctx, lay, p.as_slice());
+            let mut g: BTreeMap<usize, f64> = BTreeMap::new();
+            eval_units(
+                &self.ctx,
+                &md,
+                self.ev,
+                &self.hold_units,
+                &mut |ui, c, r| {
+                    *g.entry(self.ev.units[ui].group).or_insert(0.0) +=
+                        (r * w[c.i()] * self.rel[ui][c.i()]).powi(2);
+                },
+            );
+            g
+        };
+        let a = per_group(cur.0, cur.1);
+        let b = per_group(alt.0, alt.1);
+        let d: Vec<f64> = a
+            .iter()
+            .map(|(k, v)| v - b.get(k).copied().unwrap_or(0.0))
+            .collect();
+        let s0: f64 = a.values().sum();
+        let s1: f64 = b.values().sum();
+        let drop = if s0 > 0.0 { (s0 - s1) / s0 } else { 0.0 };
+        let z = (s0 - s1) / sd_null.max(1e-12);
+        if z > HELD_OUT_Z {
+            return (true, z, drop);
+        }
+        if d.len() < MIN_T_TEST_GROUPS {
+            return (false, z, drop);
+        }
+        let (m, sd) = mean_sd(&d);
+        let t = if sd > 0.0 {
+            m / (sd / (d.len() as f64).sqrt())
+        } else if m > 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        };
+        let p = t_sf(t, d.len() as f64 - 1.0);
+        (m > 0.0 && p < HELD_OUT_P, z, drop)
+    }
+}
+
+/// The samples sorted by time, run through the pipeline (static poses and the start fits) and turned
+/// into evidence units. Err: why there is nothing to compare.
+pub(super) struct Prepared {
+    pub ev: Evidence,
+    pub results: crate::pipeline::FitResults,
+    /// Sensor -> body rotation.
+    pub rot: Matrix3<f64>,
+}
+
+pub(super) fn prepare(
+    samples: &[Sample],
+    cfg: &Config,
+    base: ModelKind,
+    notes: &mut Vec<String>,
+) -> Result<Prepared, String> {
+    let mut cfg2 = cfg.clone();
+    cfg2.fit.mag_model = base.name().into();
+    let mut pipe = Pipeline::new(&cfg2).map_err(|e| format!("configuration: {e}"))?;
+    let mut sorted: Vec<Sample> = samples
+        .iter()
+        .filter(|s| s.t_s.is_finite())
+        .copied()
+        .collect();
+    if sorted.windows(2).any(|w| w[1].t_s < w[0].t_s) {
+        sorted.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+        notes.push("samples sorted by time".into());
+    }
+    for s in &sorted {
+        pipe.push(s);
+    }
+    let results = pipe.finish().clone();
+    let poses = pipe.poses().to_vec();
+    let body: Vec<Sample> = sorted.iter().map(|s| pipe.to_body(s)).collect();
+    let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor)
+        .unwrap_or_else(|_| Matrix3::identity());
+    let ev = super::evidence::build_evidence(body, &poses, &rot);
+    if ev.units.is_empty() {
+        return Err("no static poses and no magnetometer windows: nothing to compare".into());
+    }
+    Ok(Prepared { ev, results, rot })
+}
+
+/// Units in time order, and the fit and held-out units (whole groups held out, drawn with the seed).
+pub(super) struct Split {
+    pub order: Vec<usize>,
+    pub fit_units: Vec<usize>,
+    pub hold_units: Vec<usize>,
+}
+
+pub(super) fn split_units(ev: &Evidence, opts: &DiagnoseOptions, notes: &mut Vec<String>) -> Split {
+    let mut groups: Vec<usize> = ev.units.iter().map(|u| u.group).collect();
+    groups.sort_unstable();
+    groups.dedup();
+    let mut hold_groups = std::collections::BTreeSet::new();
+    if groups.len() >= MIN_GROUPS_FOR_HOLDOUT && opts.holdout_fraction > 0.0 {
+        use rand::{seq::SliceRandom, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(opts.seed);
+        let mut g2 = groups.clone();
+        g2.shuffle(&mut rng);
+        let k = ((opts.holdout_fraction.min(MAX_HOLDOUT_FRACTION) * g2.len() as f64).ceil()
+            as usize)
+            .max(MIN_HELD_OUT_GROUPS);
+        hold_groups.extend(g2.into_iter().take(k));
+    } else {
+        notes.push(format!(
+            "{} groups: too few to hold any out; held-out checks skipped and RMS is in-sample",
+            groups.len()
+        ));
+    }
+    let mut order: Vec<usize> = (0..ev.units.len()).collect();
+    order.sort_by(|&a, &b| ev.units[a].t.total_cmp(&ev.units[b].t));
+    let fit_units: Vec<usize> = order
+        .iter()
+        .copied()
+        .filter(|&i| !hold_groups.contains(&ev.units[i].group))
+        .collect();
+    let hold_units: Vec<usize> = order
+        .iter()
+        .copied()
+        .filter(|&i| hold_groups.contains(&ev.units[i].group))
+        .collect();
+    Split {
+        order,
+        fit_units,
+        hold_units,
+    }
+}
+
+/// Median over the units of a channel's sample count (units without the channel left out), 1 when none.
+pub(super) fn median_count(ev: &Evidence, i: usize) -> Option<usize> {
+    let mut v: Vec<usize> = ev.units.iter().map(|u| u.n[i]).filter(|n| *n > 0).collect();
+    v.sort_unstable();
+    v.get(v.len() / 2).copied()
+}
+
+/// Largest sample count of a channel over the units, 1 when none.
+fn max_count(ev: &Evidence, i: usize) -> f64 {
+    ev.units
+        .iter()
+        .map(|u| u.n[i])
+        .filter(|n| *n > 0)
+        .max()
+        .unwrap_or(1) as f64
+}
+
+impl<'a> Run<'a> {
+    pub(super) fn new(ctx: Ctx, ev: &'a Evidence, split: &Split) -> Run<'a> {
+        let mut med = [1.0; NCH];
+        for (i, m) in med.iter_mut().enumerate() {
+            if let Some(x) = median_count(ev, i) {
+                *m = x as f64;
+            }
+        }
+        let rel = ev
+            .units
+            .iter()
+            .map(|u| {
+                std::array::from_fn(|i| {
+                    (u.n[i] as f64 / med[i])
+                        .sqrt()
+                        .clamp(REL_WEIGHT_RANGE.0, REL_WEIGHT_RANGE.1)
+                })
+            })
+            .collect();
+        Run {
+            ctx,
+            ev,
+            fit_units: split.fit_units.clone(),
+            hold_units: split.hold_units.clone(),
+            noise_sd: [f64::NAN; NCH],
+            rel,
+        }
+    }
+}
+
+/// Start values of the base layout: the pipeline's matrices, the mean dip, the mean field direction
+/// against the reference attitude, the mean static gyro.
+pub(super) fn start_params(
+    run: &Run,
+    lay0: &Layout,
+    base: ModelKind,
+    m0: &Matrix3<f64>,
+    a0: &Matrix3<f64>,
+) -> DVector<f64> {
+    let mut p0 = DVector::zeros(lay0.n);
+    if let Some(s) = lay0.mag {
+        for (k, v) in params_from_a(base, m0).iter().enumerate() {
+            p0[s + 3 + k] = *v;
+        }
+    }
+    if let Some(s) = lay0.acc {
+        for (k, v) in params_from_a(base, a0).iter().enumerate() {
+            p0[s + 3 + k] = *v;
+        }
+    }
+    let md = decode(&run.ctx, lay0, p0.as_slice());
+    let (mut sd, mut nd) = (0.0, 0usize);
+    let mut hsum = Vector3::zeros();
+    let mut gsum = Vector3::zeros();
+    let mut ng = 0usize;
+    for u in &run.ev.units {
+        if u.moving {
+            continue;
+        }
+        let cm = u.mags.first().map(|o| run.ctx.cal_mag(&md, o).normalize());
+        let ca = u.acc.map(|a| run.ctx.cal_acc(&md, &a, u.temp).normalize());
+        if let (Some(c), Some(a)) = (cm, ca) {
+            sd += -a.dot(&c);
+            nd += 1;
+        }
+        if let (Some(c), Some(w)) = (cm, u.ref_w) {
+            hsum += w * c;
+        }
+        if let Some(gv) = u.gyro {
+            gsum += gv;
+            ng += 1;
+        }
+    }
+    if let Some(s) = lay0.dip {
+        p0[s] = if nd > 0 { sd / nd as f64 } else { 0.0 };
+    }
+    if let Some(s) = lay0.vec {
+        let h = if hsum.norm() > 0.0 {
+            hsum.normalize()
+        } else {
+            Vector3::new(0.0, 0.5, -0.8).normalize()
+        };
+        p0[s] = h.x.atan2(h.y);
+        p0[s + 1] = (-h.z).clamp(-1.0, 1.0).asin();
+    }
+    if let Some(s) = lay0.gyro {
+        let m = if ng > 0 {
+            gsum / ng as f64
+        } else {
+            Vector3::zeros()
+        };
+        p0[s] = m.x;
+        p0[s + 1] = m.y;
+        p0[s + 2] = m.z;
+    }
+    p0
+}
+
+/// Within-unit scatter of each channel in one unit under the model `md` (per channel, the sd of the
+/// samples about the unit mean; two components of a vector channel pooled; gyro axes pooled).
+fn unit_scatter(
+    ctx: &Ctx,
+    md: &super::layout::Model,
+    ev: &Evidence,
+    u: &Unit,
+    rot: &Matrix3<f64>,
+) -> [Option<f64>; NCH] {
+    let mut vals: [Vec<f64>; NCH] = Default::default();
+    let mut vals2: [Vec<f64>; NCH] = Default::default();
+    let mut gyro_axes: [Vec<f64>; 3] = Default::default();
+    if u.moving {
+        for o in &u.mags {
+            vals[0].push((ctx.cal_mag(md, o).norm() - 1.0) * ctx.s0m);
+        }
+    } else {
+        let mut last_acc: Option<Vector3<f64>> = None;
+        for &i in &u.idx {
+            let s = &ev.body[i];
+            let ca = s.accel_mps2.map(|a| ctx.cal_acc(md, &v3(&a), u.temp));
+            if ca.is_some() {
+                last_acc = ca;
+            }
+            let w = s
+                .ref_q
+                .and_then(|q| quat_rot(&q))
+                .map(|r| r * rot.transpose());
+            if let Some(a) = ca {
+                vals[Ch::AccNorm.i()].push((a.norm() - 1.0) * ctx.g);
+                if let Some(w) = w {
+                    let f = w * a.normalize();
+                    vals[Ch::VecAcc.i()].push(f.x);
+                    vals2[Ch::VecAcc.i()].push(f.y);
+                }
+            }
+            if let Some(m) = s.mag_ut {
+                let o = MagObs {
+                    m: v3(&m),
+                    temp: u.temp,
+                    drv: u.drv,
+                };
+                let c = ctx.cal_mag(md, &o);
+                vals[Ch::MagNorm.i()].push((c.norm() - 1.0) * ctx.s0m);
+                let ch = c.normalize();
+                if let Some(a) = last_acc {
+                    vals[Ch::Dip.i()].push(-a.normalize().dot(&ch));
+                }
+                if let Some(w) = w {
+                    let v = w * ch;
+                    vals[Ch::VecMag.i()].push(v.dot(&md.e1));
+                    vals2[Ch::VecMag.i()].push(v.dot(&md.e2));
+                }
+            }
+            if let Some(gv) = s.gyro_rad_s {
+                for k in 0..3 {
+                    gyro_axes[k].push(gv[k]);
+                }
+            }
+        }
+    }
+    let mut out = [None; NCH];
+    if gyro_axes[0].len() >= MIN_SCATTER_SAMPLES {
+        let v: f64 = gyro_axes.iter().map(|a| mean_sd(a).1.powi(2)).sum::<f64>() / 3.0;
+        if v.is_finite() {
+            out[Ch::Gyro.i()] = Some(v.sqrt());
+        }
+    }
+    for c in 0..NCH {
+        if c != Ch::Gyro.i() && vals[c].len() >= MIN_SCATTER_SAMPLES {
+            let (_, s1) = mean_sd(&vals[c]);
+            let s = if vals2[c].len() >= MIN_SCATTER_SAMPLES {
+                let (_, s2) = mean_sd(&vals2[c]);
+                ((s1 * s1 + s2 * s2) / 2.0).sqrt()
+            } else {
+                s1
+            };
+            if s.is_finite() {
+                out[c] = Some(s);
+            }
+        }
+    }
+    out
+}
+
+/// Within-unit scatter of each channel under the start model: the noise a unit mean should show
+/// (median over units; NaN for a channel without any).
+pub(super) fn estimate_noise(run: &mut Run, lay0: &Layout, p0: &DVector<f64>, rot: &Matrix3<f64>) {
+    let md = decode(&run.ctx, lay0, p0.as_slice());
+    let mut per_ch: [Vec<f64>; NCH] = Default::default();
+    for u in &run.ev.units {
+        for (c, s) in unit_scatter(&run.ctx, &md, run.ev, u, rot)
+            .iter()
+            .enumerate()
+        {
+            if let Some(s) = s {
+                per_ch[c].push(*s);
+            }
+        }
+    }
+    for c in 0..NCH {
+        let v = &mut per_ch[c];
+        if !v.is_empty() {
+            v.sort_by(|a, b| a.total_cmp(b));
+            run.noise_sd[c] = v[v.len() / 2].max(1e-12);
+        } else {
+            run.noise_sd[c] = f64::NAN;
+        }
+    }
+}
+
+/// The base model fitted on the fit units, in two passes (noise weights, then residual weights);
+/// channels without a noise estimate get one from the base residuals (and no excess test).
+/// Returns the parameters and which channels' noise came from the within-unit scatter.
+pub(super) fn base_fit(
+    run: &mut Run,
+    lay0: &Layout,
+    p0: DVector<f64>,
+) -> (DVector<f64>, [bool; NCH]) {
+    let ev = run.ev;
+    let noise_known: [bool; NCH] = std::array::from_fn(|i| run.noise_sd[i].is_finite());
+    let mut w0 = [0.0; NCH];
+    for c in ALL_CH {
+        let i = c.i();
+        if run.ctx.ch[i] {
+            let typ_n = max_count(ev, i);
+            let s = if run.noise_sd[i].is_finite() {
+                run.noise_sd[i] / typ_n.sqrt()
+            } else {
+                1.0
+            };
+            w0[i] = 1.0 / s.max(1e-12);
+        }
+    }
+    let fit = run.fit(lay0, &w0, &run.fit_units.clone(), p0);
+    let w1 = run.weights(lay0, &fit.p);
+    for i in 0..NCH {
+        if run.ctx.ch[i] && !noise_known[i] && w1[i] > 0.0 {
+            run.noise_sd[i] = max_count(ev, i).sqrt() / w1[i];
+        }
+    }
+    let fit = run.fit(lay0, &w1, &run.fit_units.clone(), fit.p);
+    (fit.p, noise_known)
+}
+
+/// The model found so far: effects named in order, the rounds' reports, the current layout and
+/// parameters (fitted on the fit units).
+pub(super) struct Selection {
+    pub found: Vec<Effect>,
+    pub rounds: Vec<RoundReport>,
+    pub lay: Layout,
+    pub p: DVector<f64>,
+}
+
+/// The current model linearised with every remaining candidate appended at zero: one Jacobian for
+/// the ranking.
+struct Linearised {
+    /// Channel weights of the round.
+    w: [f64; NCH],
+    /// Weighted sum of squares of the current fit, its component count and parameter count.
+    s0: f64,
+    m: usize,
+    p_cur: usize,
+    lay_all: Layout,
+    j_all: DMatrix<f64>,
+    r_vec: DVector<f64>,
+    /// Columns of the current model (base and effects found).
+    base_cols: Vec<usize>,
+    /// Sum of squares the current model's columns explain, and an orthonormal basis of them.
+    ex0: f64,
+    u0: DMatrix<f64>,
+}
+
+/// A candidate after the linearised screen.
+struct Cand {
+    e: Effect,
+    q: usize,
+    ident: bool,
+    plaus: bool,
+    note: String,
+    ds_lin: f64,
+    f_lin: f64,
+    p_lin: f64,
+    cols: Vec<usize>,
+}
+
+impl Cand {
+    fn rejected(e: Effect, q: usize, note: String, cols: Vec<usize>) -> Cand {
+        Cand {
+            e,
+            q,
+            ident: false,
+            plaus: false,
+            note,
+            ds_lin: 0.0,
+            f_lin: 0.0,
+            p_lin: 1.0,
+            cols,
+        }
+    }
+}
+
+/// How the refits of a round ended: an effect named, a decision without one, or neither (with the
+/// significant candidates that failed a check).
+struct Verdict {
+    decision: Option<(String, Option<Effect>, String)>,
+    named: Option<(Effect, Layout, DVector<f64>)>,
+    failed_sig: Vec<String>,
+}
+
+/// Run the rounds from the base model until one names nothing (or `max_rounds`).
+pub(super) fn select(
+    run: &Run,
+    lay0: &Layout,
+    base_p: &DVector<f64>,
+    noise_known: &[bool; NCH],
+    alpha: f64,
+    max_rounds: usize,
+) -> Selection {
+    let mut sel = Selection {
+        found: vec![],
+        rounds: vec![],
+        lay: lay0.clone(),
+        p: base_p.clone(),
+    };
+    for round in 1..=max_rounds.max(1) {
+        let (report, named, cur_p) = one_round(run, &sel, round, noise_known, alpha);
+        sel.rounds.push(report);
+        match named {
+            Some((e, lay1, p1)) => {
+                sel.found.push(e);
+                sel.lay = lay1;
+                sel.p = p1;
+            }
+            None => {
+                sel.p = cur_p;
+                break;
+            }
+        }
+    }
+    sel
+}
+
+fn linearise(
+    run: &Run,
+    sel: &Selection,
+    cur_p: &DVector<f64>,
+    w: [f64; NCH],
+    cur: &LmFit,
+) -> Linearised {
+    let cands: Vec<Effect> = Effect::ALL
+        .iter()
+        .copied()
+        .filter(|e| !sel.found.contains(e))
+        .collect();
+    let mut all_effects = sel.found.clone();
+    all_effects.extend(cands.iter().copied());
+    let lay_all = build_layout(&run.ctx, &all_effects);
+    let p_all = carry_params(&sel.lay, cur_p, &lay_all);
+    let (j_all, r_all) = run.jac(&lay_all, &w, &run.fit_units.clone(), &p_all);
+    let r_vec = DVector::from_column_slice(&r_all);
+    let base_cols: Vec<usize> = (0..sel.lay.n_base)
+        .chain(sel.found.iter().flat_map(|e| columns(&lay_all, *e)))
+        .collect();
+    let j0 = select_cols(&j_all, &base_cols);
+    let (ex0, u0) = explained(&j0, &r_vec);
+    Linearised {
+        w,
+        s0: cur.ssr,
+        m: cur.r.len(),
+        p_cur: sel.lay.n,
+        lay_all,
+        j_all,
+        r_vec,
+        base_cols,
+        ex0,
+        u0,
+    }
+}
+
+/// Identifiability of a candidate's regressors `x`: each must vary and must not be absorbed by the
+/// current model. Err: why not.
+fn identifiable(lin: &Linearised, cols: &[usize], x: &DMatrix<f64>) -> Result<(), String> {
+    let q = cols.len();
+    let mut xn = x.clone();
+    for c in 0..q {
+        let s = xn.column(c).norm();
+        if !(s > MIN_REGRESSOR_NORM * (1.0 + lin.r_vec.norm())) {
+            return Err(format!(
+                "regressor {} has no variation",
+                lin.lay_all.names[cols[c]].0
+            ));
+        }
+        xn.column_mut(c).scale_mut(1.0 / s);
+    }
+    let px = &xn - &lin.u0 * (lin.u0.transpose() * &xn);
+    let mut worst = f64::INFINITY;
+    let mut worst_c = 0;
+    for c in 0..q {
+        let r = px.column(c).norm();
+        if r < worst {
+            worst = r;
+            worst_c = c;
+        }
+    }
+    let sv = px.clone().svd(false, false).singular_values;
+    let cond = sv.max() / sv.min().max(1e-300);
+    if worst < MIN_RESIDUAL_REGRESSOR {
+        Err(format!(
+            "regressor {} is absorbed by the current model (collinear or poor coverage)",
+            lin.lay_all.names[cols[worst_c]].0
+        ))
+    } else if cond > MAX_CANDIDATE_CONDITION {
+        Err(format!(
+            "collinear regressors (condition {cond:.1e}): poor coverage"
+        ))
+    } else {
+        Ok(())
+    }
+}
+
+/// The linearised nested test of candidate `e` at the current fit.
+fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e: Effect) -> Cand {
+    let cols = columns(&lin.lay_all, e);
+    if let Err(why) = applicable(&run.ctx, e) {
+        return Cand::rejected(e, 0, why, cols);
+    }
+    let x = select_cols(&lin.j_all, &cols);
+    let q = cols.len();
+    if let Err(note) = identifiable(lin, &cols, &x) {
+        return Cand::rejected(e, q, note, cols);
+    }
+    let mut bc = lin.base_cols.clone();
+    bc.extend(cols.iter().copied());
+    let jb = select_cols(&lin.j_all, &bc);
+    let (ex1, _) = explained(&jb, &lin.r_vec);
+    let ds = (ex1 - lin.ex0).max(0.0);
+    // Linearised parameter step, for a first plausibility check.
+    let mut effs = sel.found.clone();
+    effs.push(e);
+    let lay1 = build_layout(&run.ctx, &effs);
+    let mut p1 = carry_params(&sel.lay, cur_p, &lay1);
+    if let Ok(step) = jb.clone().svd(true, true).solve(&(-&lin.r_vec), 1e-10) {
+        if step.len() == lay1.n {
+            p1 += step;
+        }
+    }
+    let (plaus_lin, pnote) = plausibility(&run.ctx, &lay1, &p1, e);
+    let note = if plaus_lin {
+        String::new()
+    } else {
+        format!("linearised estimate implausible: {pnote}")
+    };
+    let dof2 = lin.m as f64 - (lin.p_cur + q) as f64;
+    let s1 = (lin.s0 - ds).max(1e-300);
+    let f = if dof2 > 0.0 {
+        (ds / q as f64) / (s1 / dof2)
+    } else {
+        0.0
+    };
+    let pl = if dof2 > 0.0 {
+        f_sf(f, q as f64, dof2)
+    } else {
+        1.0
+    };
+    Cand {
+        e,
+        q,
+        ident: true,
+        plaus: plaus_lin,
+        note,
+        ds_lin: ds,
+        f_lin: f,
+        p_lin: pl,
+        cols,
+    }
+}
+
+/// Another significant candidate that explains the same structure as `c`, if any.
+fn confounder(lin: &Linearised, list: &[Cand], c: &Cand, thresh: f64) -> Option<Effect> {
+    for o in list {
+        if o.e == c.e || !o.ident || !(o.p_lin < thresh) {
+            continue;
+        }
+        let mut bc = lin.base_cols.clone();
+        bc.extend(c.cols.iter().copied());
+        bc.extend(o.cols.iter().copied());
+        let (exu, _) = explained(&select_cols(&lin.j_all, &bc), &lin.r_vec);
+        let dsu = (exu - lin.ex0).max(0.0);
+        if o.ds_lin >= CONFOUND_SHARE * c.ds_lin && dsu <= CONFOUND_UNION * c.ds_lin.max(o.ds_lin) {
+            return Some(o.e);
+        }
+    }
+    None
+}
+
+/// The joint refit of the current model plus candidate `c`: its report entry is updated. Returns
+/// the layout, parameters, p-value, plausibility, held-out verdict and condition number.
+fn refit(
+    run: &Run,
+    lin: &Linearised,
+    sel: &Selection,
+    cur_p: &DVector<f64>,
+    c: &Cand,
+    rep: &mut CandidateReport,
+) -> (Layout, DVector<f64>, f64, bool, bool, f64) {
+    let mut effs = sel.found.clone();
+    effs.push(c.e);
+    let lay1 = build_layout(&run.ctx, &effs);
+    let p1s = carry_params(&sel.lay, cur_p, &lay1);
+    let w = &lin.w;
+    let alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
+    let (m, p_cur, q, s0) = (lin.m, lin.p_cur, c.q, lin.s0);
+    let s1 = alt.ssr.max(1e-300);
+    let rho = run.autocorr(w, (&sel.lay, cur_p), (&lay1, &alt.p));
+    let defl = (1.0 - rho) / (1.0 + rho);
+    let dof2 = (m as f64 - (p_cur + q) as f64) * defl;
+    let f = if dof2 > 0.0 {
+        ((s0 - s1).max(0.0) / q as f64) / (s1 / (m as f64 - (p_cur + q) as f64)) * defl
+    } else {
+        0.0
+    };
+    let pv = if dof2 > 0.0 {
+        f_sf(f, q as f64, dof2)
+    } else {
+        1.0
+    };
+    let (plaus, pnote) = plausibility(&run.ctx, &lay1, &alt.p, c.e);
+    let (holds, hp, hdrop) = run.held_out(w, (&sel.lay, cur_p), (&lay1, &alt.p), q, m);
+    let cond = condition(&alt.jtj);
+    rep.statistic = f;
+    rep.p_value = pv;
+    rep.improvement = if s0 > 0.0 { (s0 - s1) / s0 } else { 0.0 };
+    rep.plausible = plaus;
+    rep.refit = true;
+    rep.held_out = Some(holds);
+    let mut note = format!(
+        "held-out drop {:.1}% (z {:.1}); lag-1 autocorrelation {:.2}; linearised F {:.2}; params {:?}",
+        100.0 * hdrop,
+        hp,
+        rho,
+        c.f_lin,
+        lay1.block(c.e).map(|b| (0..b.len)
+            .map(|k| (alt.p[b.start + k] * 1e4).round() / 1e4)
+            .collect::<Vec<_>>())
+    );
+    if !pnote.is_empty() {
+        note.push_str("; implausible: ");
+        note.push_str(&pnote);
+    }
+    if !(cond < MAX_JOINT_CONDITION) {
+        note.push_str(&format!("; joint fit degenerate (condition {cond:.1e})"));
+    }
+    rep.note = note;
+    (lay1, alt.p, pv, plaus, holds, cond)
+}
+
+/// Refit the candidates in rank order until one is named or a decision is reached.
+#[allow(clippy::too_many_arguments)]
+fn judge(
+    run: &Run,
+    lin: &Linearised,
+    sel: &Selection,
+    cur_p: &DVector<f64>,
+    list: &[Cand],
+    rank: &[usize],
+    reports: &mut [CandidateReport],
+    thresh: f64,
+) -> Verdict {
+    let mut failed_sig: Vec<String> = vec![];
+    for &ci in rank {
+        let c = &list[ci];
+        if !(c.p_lin < REFIT_P_FACTOR * thresh) {
+            break;
+        }
+        let (lay1, p1, pv, plaus, holds, cond) = refit(run, lin, sel, cur_p, c, &mut reports[ci]);
+        if !(pv < thresh) {
+            continue;
+        }
+        if !(cond < MAX_JOINT_CONDITION) {
+            let d = format!(
+                "{} is significant but its joint fit is degenerate (condition {cond:.1e}): poor coverage",
+                c.e.name()
+            );
+            return Verdict {
+                decision: Some(("not_identifiable".into(), Some(c.e), d)),
+                named: None,
+                failed_sig,
+            };
+        }
+        if !plaus || !holds {
+            failed_sig.push(format!(
+                "{} (p {:.1e}) {}",
+                c.e.name(),
+                pv,
+                if !plaus {
+                    "implausible"
+                } else {
+                    "does not hold on held-out poses"
+                }
+            ));
+            continue;
+        }
+        if let Some(o) = confounder(lin, list, c, thresh) {
+            let d = format!(
+                "{} and {} explain the same residual structure (their regressors are collinear in this data); vary them independently",
+                c.e.name(),
+                o.name()
+            );
+            return Verdict {
+                decision: Some(("not_identifiable".into(), Some(c.e), d)),
+                named: None,
+                failed_sig,
+            };
+        }
+        return Verdict {
+            decision: None,
+            named: Some((c.e, lay1, p1)),
+            failed_sig,
+        };
+    }
+    Verdict {
+        decision: None,
+        named: None,
+        failed_sig,
+    }
+}
+
+/// No effect named and no other decision: "unexplained" when some channel's residual variance is
+/// more than [`EXCESS_RATIO`] x its expected noise, else "none".
+fn no_effect_decision(
+    run: &Run,
+    sel: &Selection,
+    cur_p: &DVector<f64>,
+    noise_known: &[bool; NCH],
+    failed_sig: &[String],
+    (alpha, n_ident, thresh): (f64, usize, f64),
+) -> (String, Option<Effect>, String) {
+    let ev = run.ev;
+    let res = residuals(&run.ctx, &sel.lay, ev, &run.fit_units, cur_p.as_slice());
+    let tg = tags(&run.ctx, &sel.lay, cur_p, ev, &run.fit_units);
+    let mut chi = [0.0; NCH];
+    let mut nn = [0usize; NCH];
+    for ((ui, _, _), (c, r)) in tg.iter().zip(&res) {
+        chi[c.i()] += (r / run.noise(*ui, *c).max(1e-300)).powi(2);
+        nn[c.i()] += 1;
+    }
+    let mtot = res.len() as f64;
+    let mut excess = vec![];
+    for c in ALL_CH {
+        let i = c.i();
+        if nn[i] >= MIN_EXCESS_COMPONENTS && noise_known[i] {
+            let dof = nn[i] as f64 * (1.0 - sel.lay.n as f64 / mtot).max(MIN_DOF_FRACTION);
+            let ratio = chi[i] / dof;
+            if ratio > EXCESS_RATIO {
+                excess.push(format!(
+                    "{} residual variance {:.1}x the within-pose noise",
+                    c.name(),
+                    ratio
+                ));
+            }
+        }
+    }
+    if !excess.is_empty() {
+        let mut d = excess.join("; ");
+        if !failed_sig.is_empty() {
+            d.push_str(&format!(
+                "; candidates that fit but failed: {}",
+                failed_sig.join(", ")
+            ));
+        }
+        ("unexplained".to_string(), None, d)
+    } else {
+        let d = if failed_sig.is_empty() {
+            format!(
+                "no candidate is significant at {:.1e} (alpha {alpha} / {n_ident})",
+                thresh
+            )
+        } else {
+            format!("significant but rejected: {}", failed_sig.join(", "))
+        };
+        ("none".to_string(), None, d)
+    }
+}
+
+/// One round: refit the current model, screen and rank the candidates, refit them in order.
+/// Returns the round's report, the effect named (with its layout and parameters) and the current
+/// model's refitted parameters.
+#[allow(clippy::type_complexity)]
+fn one_round(
+    run: &Run,
+    sel: &Selection,
+    round: usize,
+    noise_known: &[bool; NCH],
+    alpha: f64,
+) -> (
+    RoundReport,
+    Option<(Effect, Layout, DVector<f64>)>,
+    DVector<f64>,
+) {
+    let w = run.weights(&sel.lay, &sel.p);
+    let cur = run.fit(&sel.lay, &w, &run.fit_units.clone(), sel.p.clone());
+    let cur_p = cur.p.clone();
+    let lin = linearise(run, sel, &cur_p, w, &cur);
+    let list: Vec<Cand> = Effect::ALL
+        .iter()
+        .copied()
+        .filter(|e| !sel.found.contains(e))
+        .map(|e| screen(run, &lin, sel, &cur_p, e))
+        .collect();
+    let s0 = lin.s0;
+    let n_ident = list.iter().filter(|c| c.ident).count().max(1);
+    let thresh = alpha / n_ident as f64;
+    let mut reports: Vec<CandidateReport> = list
+        .iter()
+        .map(|c| CandidateReport {
+            name: c.e.name().into(),
+            statistic: c.f_lin,
+            p_value: c.p_lin,
+            improvement: if s0 > 0.0 { c.ds_lin / s0 } else { 0.0 },
+            plausible: c.plaus,
+            identifiable: c.ident,
+            params: c.q,
+            refit: false,
+            held_out: None,
+            note: c.note.clone(),
+        })
+        .collect();
+    let mut rank: Vec<usize> = (0..list.len()).filter(|&i| list[i].ident).collect();
+    rank.sort_by(|&a, &b| {
+        list[a]
+            .p_lin
+            .total_cmp(&list[b].p_lin)
+            .then(list[b].f_lin.total_cmp(&list[a].f_lin))
+    });
+    let verdict = judge(run, &lin, sel, &cur_p, &list, &rank, &mut reports, thresh);
+    if let Some((e, lay1, p1)) = verdict.named {
+        let rep = reports.iter().find(|r| r.name == e.name());
+        let detail = format!(
+            "{} removes {:.1}% of the weighted residual (F {:.1}, p {:.1e} < {:.1e})",
+            e.name(),
+            100.0 * rep.map(|r| r.improvement).unwrap_or(0.0),
+            rep.map(|r| r.statistic).unwrap_or(0.0),
+            rep.map(|r| r.p_value).unwrap_or(1.0),
+            thresh
+        );
+        let report = RoundReport {
+            round,
+            decision: "named".into(),
+            effect: Some(e.name().into()),
+            detail,
+            candidates: reports,
+        };
+        return (report, Some((e, lay1, p1)), cur_p);
+    }
+    let (dec, eff, detail) = match verdict.decision {
+        Some(d) => d,
+        None => no_effect_decision(
+            run,
+            sel,
+            &cur_p,
+            noise_known,
+            &verdict.failed_sig,
+            (alpha, n_ident, thresh),
+        ),
+    };
+    let report = RoundReport {
+        round,
+        decision: dec,
+        effect: eff.map(|e| e.name().to_string()),
+        detail,
+        candidates: reports,
+    };
+    (report, None, cur_p)
+}
