@@ -26,7 +26,7 @@ enum Cmd {
         /// TOML configuration (see config/).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Write the JSON report here.
@@ -67,7 +67,7 @@ enum Cmd {
         /// TOML configuration (see config/).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
@@ -95,7 +95,7 @@ enum Cmd {
         /// TOML configuration (see config/); only the input mapping is used.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
@@ -131,9 +131,9 @@ enum Cmd {
     },
 }
 
-/// `--format`: none (detect from the content), tlog or csv.
+/// `--format`: none (detect from the content), tlog, csv, bin or ulg.
 fn parse_format(f: Option<&str>) -> Result<Option<Format>> {
-    f.map(|f| Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv")))
+    f.map(|f| Format::parse(f).with_context(|| format!("--format `{f}`: use tlog, csv, bin or ulg")))
         .transpose()
 }
 

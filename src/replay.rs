@@ -99,6 +99,10 @@ pub fn replay(
     );
     let mut report = make_report(input, &pipe, &results, declination);
     report.instances = instance_reports(&log, &report, &mut others);
+    if let Some(f) = &log.flight {
+        report.input.sensors = f.sensors.clone();
+        report.onboard = Some(f.onboard.clone());
+    }
     let mut written = vec![];
     if let Some(p) = &opts.report {
         crate::publish::write_json(p, &report)?;
@@ -309,6 +313,7 @@ pub fn make_report(
         refits: pipe.refits.clone(),
         instances: Vec::new(),
         outputs: None,
+        onboard: None,
     }
 }
 
