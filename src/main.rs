@@ -133,8 +133,10 @@ enum Cmd {
 
 /// `--format`: none (detect from the content), tlog, csv, bin or ulg.
 fn parse_format(f: Option<&str>) -> Result<Option<Format>> {
-    f.map(|f| Format::parse(f).with_context(|| format!("--format `{f}`: use tlog, csv, bin or ulg")))
-        .transpose()
+    f.map(|f| {
+        Format::parse(f).with_context(|| format!("--format `{f}`: use tlog, csv, bin or ulg"))
+    })
+    .transpose()
 }
 
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {

@@ -56,7 +56,8 @@ struct Group {
     clock: SourceClock,
     has_accel: bool,
     gyro: Option<Vec3>,
-    mag: Option<Vec3>,
+    /// A magnetometer reading waiting for the next accelerometer sample, and its time (us).
+    mag: Option<(u64, Vec3)>,
     samples: u64,
 }
 
@@ -168,7 +169,7 @@ impl Assembler {
         let g = &mut self.groups[k];
         g.has_accel = true;
         let gyro = gyro.or(g.gyro.take());
-        let mag = g.mag.take();
+        let mag = g.mag.take().map(|(_, m)| m);
         self.emit(k, t_us, Some(acc), gyro, mag, temp)
     }
 
@@ -184,12 +185,22 @@ impl Assembler {
     fn mag(&mut self, k: usize, t_us: u64, mag: Vec3) -> Option<(usize, Sample)> {
         let g = &mut self.groups[k];
         if g.has_accel {
-            if g.mag.replace(mag).is_some() && Some(k) == self.primary {
-                self.stats.skip("mag_superseded");
-            }
-            return None;
+            // Two readings with no accelerometer sample between: the older goes on its own.
+            let (t0, m0) = g.mag.replace((t_us, mag))?;
+            return self.emit(k, t0, None, None, Some(m0), None);
         }
         self.emit(k, t_us, None, None, Some(mag), None)
+    }
+
+    /// Magnetometer readings still waiting at the end of the log, as samples of their own.
+    fn flush(&mut self) -> Vec<(usize, Sample)> {
+        let mut out = Vec::new();
+        for k in 0..self.groups.len() {
+            if let Some((t, m)) = self.groups[k].mag.take() {
+                out.extend(self.emit(k, t, None, None, Some(m), None));
+            }
+        }
+        out
     }
 
     fn emit(
@@ -632,6 +643,9 @@ pub fn decode_dataflash_with(
             emit(gi, s, read, asm.primary);
         }
     }
+    for (gi, s) in asm.flush() {
+        emit(gi, s, bytes.len(), asm.primary);
+    }
     let mut onboard = ap_onboard(&first_params, &sources);
     onboard.undone = undone
         .into_iter()
@@ -932,7 +946,9 @@ pub fn decode_ulog_with(
                         .and_then(|u| u.apply(m))
                     {
                         Some(raw) => {
-                            let _ = asm.mag(gi, t, raw);
+                            if let Some((g2, s2)) = asm.mag(gi, t, raw) {
+                                emit(g2, s2, read, asm.primary);
+                            }
                         }
                         None => not_undone = true,
                     }
@@ -1020,6 +1036,9 @@ pub fn decode_ulog_with(
         if let Some((gi, s)) = out {
             emit(gi, s, read, asm.primary);
         }
+    }
+    for (gi, s) in asm.flush() {
+        emit(gi, s, bytes.len(), asm.primary);
     }
     let params = rd.params().clone();
     let mut onboard = px4_onboard(&params, &mag_ids, &accel_ids, prime_source.as_deref());
