@@ -472,3 +472,70 @@ fn ulog_auav_reports_its_onboard_calibration() {
     );
     assert_eq!(r.input.skipped.get("dropouts"), Some(&4));
 }
+
+// ---------------------------------------------------------------------------------------------
+// Damaged logs
+
+#[allow(dead_code, unused_imports)]
+mod fuzz_entry {
+    //! The fuzz targets' entry points (`fuzz/entry.rs`), which assert what must hold for any input.
+    include!(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/entry.rs"));
+}
+
+/// A small deterministic generator (64-bit LCG) for the damage below.
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self, n: usize) -> usize {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 33) % n as u64) as usize
+    }
+}
+
+/// Real logs with bytes overwritten, runs deleted and tails cut: the readers and the conversion
+/// hold their invariants (fuzz/entry.rs) and never panic, and damage is counted.
+#[test]
+fn damaged_flight_logs_are_read_without_panics() {
+    let dir = require_data!();
+    let mut rng = Lcg(7);
+    for (file, rounds) in [
+        ("ardupilot_plane_pixracer.bin", 300),
+        ("px4_cubeorange_two_mags.ulg", 40),
+    ] {
+        let clean = std::fs::read(dir.join(file)).unwrap();
+        let is_bin = file.ends_with(".bin");
+        let mut damaged_counted = 0;
+        for round in 0..rounds {
+            let mut b = clean.clone();
+            for _ in 0..1 + rng.next(8) {
+                let at = rng.next(b.len());
+                match rng.next(3) {
+                    0 => b[at] = rng.next(256) as u8,
+                    1 => {
+                        let n = rng.next(64).min(b.len() - at);
+                        b.drain(at..at + n);
+                    }
+                    _ => b.truncate(at.max(20)),
+                }
+            }
+            let samples = if is_bin {
+                fuzz_entry::dataflash(&b)
+            } else {
+                fuzz_entry::ulog(&b)
+            };
+            let cfg = Config::default();
+            if let Ok(log) = imucald::sources::decode_log(&b, Path::new(file), None, &cfg) {
+                assert_eq!(log.samples, samples, "{file} round {round}");
+                damaged_counted += (!log.stats.skipped.is_empty()) as usize;
+            }
+        }
+        // Most damaged logs say so (some damage falls in parts nobody reads, e.g. a text field).
+        assert!(
+            damaged_counted * 2 > rounds,
+            "{file}: {damaged_counted} of {rounds}"
+        );
+    }
+}
