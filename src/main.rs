@@ -109,7 +109,8 @@ enum Cmd {
         #[arg(long)]
         report: Option<PathBuf>,
     },
-    /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
+    /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
+    /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
     Simulate {
         /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
         #[arg(long, default_value = "tumble")]
@@ -411,8 +412,20 @@ fn main() -> Result<()> {
                 )?;
             } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
                 write_csv(&out, &sim.samples)?;
+            } else if name.ends_with(".bin") || name.ends_with(".ulg") {
+                // The magnetometer logged corrected by a known onboard calibration, as flight
+                // controllers log it; replay undoes it from the log's parameters.
+                let onboard = imucald::flightlog::write::OnboardMag::example();
+                imucald::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+                println!(
+                    "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
+                    onboard.offset_ut, onboard.matrix
+                );
             } else {
-                anyhow::bail!("--out {}: use a .tlog, .csv or .csv.gz name", out.display());
+                anyhow::bail!(
+                    "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
+                    out.display()
+                );
             }
             println!(
                 "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",

@@ -24,6 +24,7 @@
 
 pub mod dataflash;
 pub mod ulog;
+pub mod write;
 
 use crate::clock::{ClockSettings, SourceClock};
 use crate::decode::{DecodeStats, InstanceInfo, MAX_INSTANCES};
