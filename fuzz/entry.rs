@@ -278,7 +278,7 @@ pub fn config(data: &[u8]) -> Result<Config, (String, String)> {
 
 // Check a flight-log decode: every sample is finite, each instance's count is what the summary
 // says, and the primary's count is its `records`.
-fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], primary: u64) {
+pub fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], primary: u64) {
     assert!(per_instance.len() <= log.instances.len());
     for (k, i) in log.instances.iter().enumerate() {
         assert_eq!(
@@ -296,11 +296,14 @@ fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], prima
     }
 }
 
-fn decode_flight(
-    f: fn(
-        &[u8],
-        &mut dyn FnMut(usize, Sample, usize, Option<usize>),
-    ) -> Option<imucald::flightlog::FlightLog>,
+// A flight-log decoder: `flightlog::decode_dataflash_with` or `decode_ulog_with`.
+pub type FlightDecode = fn(
+    &[u8],
+    &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> Option<imucald::flightlog::FlightLog>;
+
+pub fn decode_flight(
+    f: FlightDecode,
     bytes: &[u8],
 ) -> Option<(imucald::flightlog::FlightLog, Vec<Sample>)> {
     let mut per_instance = Vec::<u64>::new();
@@ -322,7 +325,7 @@ fn decode_flight(
     Some((log, primary))
 }
 
-fn dataflash_some(
+pub fn dataflash_some(
     bytes: &[u8],
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> Option<imucald::flightlog::FlightLog> {

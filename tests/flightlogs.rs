@@ -4,6 +4,7 @@
 //!
 //! The data folder is shared, not in the repository: without it these tests say so and pass,
 //! unless `IMUCALD_REQUIRE_DATA=1`, when they fail.
+#![allow(clippy::needless_range_loop)]
 
 use imucald::config::Config;
 use imucald::flightlog::dataflash::DfReader;
