@@ -65,6 +65,26 @@ pub struct OnboardReport {
     /// The first GPS fix (latitude deg, longitude deg, altitude m), when the log has one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gps: Option<[f64; 3]>,
+    /// imucald's magnetometer calibration of the primary against the onboard one of the same
+    /// compass, when imucald's fit passed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub comparison: Option<OnboardComparison>,
+}
+
+/// imucald's calibration against the onboard one.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OnboardComparison {
+    /// The onboard slot (`onboard.mag[].instance`) and the stream compared.
+    pub instance: u8,
+    pub source: String,
+    /// imucald's offset minus the onboard one, uT.
+    pub offset_diff_ut: Vec3,
+    /// Tilt-compensated heading from the two calibrations of the same readings, at the flight
+    /// controller's own roll and pitch (`ATT`, `vehicle_attitude`): RMS and largest difference, deg.
+    pub heading_diff_rms_deg: f64,
+    pub heading_diff_max_deg: f64,
+    /// Readings compared (those with the flight controller's attitude).
+    pub samples: usize,
 }
 
 /// One onboard calibration in imucald's model: calibrated = matrix (raw - offset).

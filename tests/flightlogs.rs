@@ -553,7 +553,10 @@ fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
     use imucald::flightlog::write::{write_flight_log, OnboardMag};
     use imucald::sim::{simulate, Scenario};
     let dir = tempfile::tempdir().unwrap();
-    let sim = simulate(&Scenario::named("tumble").unwrap(), 3);
+    let mut sc = Scenario::named("tumble").unwrap();
+    // The true attitude, logged as the flight controller's.
+    sc.reference_noise_deg = Some(0.0);
+    let sim = simulate(&sc, 3);
     let onboard = OnboardMag::example();
     let norm = |m: &[[f64; 3]; 3]| {
         imucald::model::Calibration {
@@ -596,6 +599,23 @@ fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
                 "{ext} {name}: offset error {off}, matrix error {mat}"
             );
         }
+        // Compared with the onboard calibration at the logged attitudes: the offsets differ by
+        // truth - onboard, and the headings by a lot (the onboard calibration is not this sensor's).
+        let c = on.comparison.as_ref().expect("comparison");
+        assert_eq!(c.samples, r.input.counts["mag"] as usize);
+        for k in 0..3 {
+            let want = sim.truth.mag.offset[k] - onboard.offset_ut[k];
+            assert!(
+                (c.offset_diff_ut[k] - want).abs() < 0.025,
+                "{:?}",
+                c.offset_diff_ut
+            );
+        }
+        eprintln!(
+            "{ext}: heading difference imucald - onboard: rms {:.2} deg, max {:.2} deg",
+            c.heading_diff_rms_deg, c.heading_diff_max_deg
+        );
+        assert!(c.heading_diff_rms_deg > 5.0 && c.heading_diff_max_deg <= 180.0);
         // Not the onboard one: that is 12 uT and more away.
         let d = (0..3)
             .map(|k| (r.calibration.mag.offset[k] - onboard.offset_ut[k]).abs())

@@ -47,6 +47,8 @@ pub struct FlightLog {
     pub stats: DecodeStats,
     /// Records per message type and instance (`MAG[2]`, `sensor_mag[1]`), as read.
     pub messages: BTreeMap<String, u64>,
+    /// The stream the primary's magnetometer readings come from (`MAG`, `vehicle_magnetometer[0]`).
+    pub primary_mag_source: Option<String>,
 }
 
 /// One instance being assembled.
@@ -296,6 +298,7 @@ impl Assembler {
             onboard,
             stats,
             messages: self.messages,
+            primary_mag_source: None,
         }
     }
 }
@@ -326,6 +329,16 @@ fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
     ];
     let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
     (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
+}
+
+/// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
+pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
+    // ENU -> NED is the same half-turn as NED -> ENU.
+    let b = ned_to_enu(q)?;
+    let (w, x, y, z) = (b[0], b[1], b[2], b[3]);
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    Some((roll.to_degrees(), pitch.to_degrees()))
 }
 
 fn mat3(rows: [[f64; 3]; 3]) -> Matrix3<f64> {
@@ -654,7 +667,10 @@ pub fn decode_dataflash_with(
         .collect();
     onboard.gps = gps;
     let skips = rd.stats.skipped.clone();
-    asm.finish(onboard, &skips)
+    let primary_mag = sources.get(&(0, 0)).cloned();
+    let mut log = asm.finish(onboard, &skips);
+    log.primary_mag_source = primary_mag;
+    log
 }
 
 fn df_group_name(instanced: bool, k: u8) -> String {
@@ -1059,7 +1075,9 @@ pub fn decode_ulog_with(
     if rd.stats.dropouts > 0 {
         skips.insert("dropouts".into(), rd.stats.dropouts);
     }
-    Some(asm.finish(onboard, &skips))
+    let mut log = asm.finish(onboard, &skips);
+    log.primary_mag_source = prime_source;
+    Some(log)
 }
 
 fn px4_group_name(k: u8) -> String {
@@ -1156,6 +1174,19 @@ mod tests {
         assert!((v[0] - 1.0).abs() < 1e-12, "{v:?}");
         let v = rotate_q(q, [0.0, 0.0, 1.0]);
         assert!((v[2] + 1.0).abs() < 1e-12, "{v:?}");
+    }
+
+    #[test]
+    fn roll_and_pitch_come_back_from_ref_q() {
+        let (r, p, y) = (20f64, -35f64, 250f64);
+        let q = ned_to_enu(quat_from_euler(
+            r.to_radians(),
+            p.to_radians(),
+            y.to_radians(),
+        ))
+        .unwrap();
+        let (r2, p2) = roll_pitch_of_ref_q(q).unwrap();
+        assert!((r2 - r).abs() < 1e-9 && (p2 - p).abs() < 1e-9, "{r2} {p2}");
     }
 
     fn rotate_q(q: [f64; 4], v: Vec3) -> Vec3 {

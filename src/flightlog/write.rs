@@ -1,7 +1,8 @@
 //! Writers of flight-controller logs from samples, for simulated tests: an ArduPilot DataFlash
 //! `.bin` and a PX4 `.ulg` whose magnetometer is logged **corrected** by a known onboard
 //! calibration, as the flight controllers log it, with that calibration in the parameters. A replay
-//! undoes the correction ([`crate::flightlog`]) and so sees the raw field again.
+//! undoes the correction ([`crate::flightlog`]) and so sees the raw field again. A sample's
+//! reference attitude (`ref_q`) is written as the flight controller's (`ATT`, `vehicle_attitude`).
 
 use crate::error::Error;
 use crate::types::{Sample, Vec3};
@@ -45,6 +46,16 @@ impl OnboardMag {
     }
 }
 
+/// Roll, pitch, yaw (deg, Euler ZYX, body -> NED) of a sample's reference attitude (sensor -> ENU).
+fn body_ned_euler_deg(q_enu: [f64; 4]) -> Option<[f64; 3]> {
+    let q = super::ned_to_enu(q_enu)?;
+    let (w, x, y, z) = (q[0], q[1], q[2], q[3]);
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    Some([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()])
+}
+
 /// Microseconds of `t_s = 0` in written logs (a flight controller's time since boot).
 const T0_US: u64 = 1_000_000;
 
@@ -82,6 +93,12 @@ pub fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u
         "IMU",
         "QffffffIIfBBHH",
         "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+    ));
+    out.extend(fmt_record(
+        132,
+        "ATT",
+        "QccccCCCC",
+        "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw",
     ));
     out.extend(fmt_record(
         131,
@@ -131,6 +148,19 @@ pub fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u
     let i16_of = |x: f64| x.round().clamp(i16::MIN as f64, i16::MAX as f64) as i16;
     for s in samples {
         let t = time_us(s.t_s);
+        if let Some([r, p, y]) = s.ref_q.and_then(body_ned_euler_deg) {
+            out.extend([0xA3, 0x95, 132]);
+            out.extend(t.to_le_bytes());
+            let c = |x: f64| i16_of(x * 100.0).to_le_bytes();
+            let yaw = ((y.rem_euclid(360.0) * 100.0).round() as u16).min(35999);
+            out.extend(c(r));
+            out.extend(c(r));
+            out.extend(c(p));
+            out.extend(c(p));
+            out.extend(yaw.to_le_bytes());
+            out.extend(yaw.to_le_bytes());
+            out.extend([0u8; 4]);
+        }
         if let Some(raw) = s.mag_ut {
             let c = used.correct(&raw);
             out.extend([0xA3, 0x95, 131]);
@@ -206,6 +236,11 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
         b'F',
         b"vehicle_magnetometer:uint64_t timestamp;float[3] magnetometer_ga;uint8_t[4] _padding0;",
     );
+    ulog_msg(
+        &mut out,
+        b'F',
+        b"vehicle_attitude:uint64_t timestamp;float[4] q;",
+    );
     const ID: f64 = 197_388.0;
     let off = onboard.offset_ut.map(|o| o / 100.0);
     let m = &onboard.matrix;
@@ -238,8 +273,17 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
     };
     sub(0, 0, "sensor_combined");
     sub(0, 1, "vehicle_magnetometer");
+    sub(0, 2, "vehicle_attitude");
     for s in samples {
         let t = time_us(s.t_s);
+        if let Some(q) = s.ref_q.and_then(super::ned_to_enu) {
+            let mut b = 2u16.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            for v in q {
+                b.extend((v as f32).to_le_bytes());
+            }
+            ulog_msg(&mut out, b'D', &b);
+        }
         if let Some(raw) = s.mag_ut {
             let c = used.correct(&raw);
             let mut b = 1u16.to_le_bytes().to_vec();
