@@ -74,7 +74,8 @@ struct Assembler {
     /// The newest reference attitude (sensor -> ENU) and its time, us.
     attitude: Option<(u64, [f64; 4])>,
     stats: DecodeStats,
-    sensors: BTreeMap<(u8, u8, String), (u64, Option<u32>)>,
+    /// (sensor order, instance, source, readings, device id); a handful, searched in place.
+    sensors: Vec<(u8, u8, String, u64, Option<u32>)>,
     messages: BTreeMap<String, u64>,
 }
 
@@ -102,36 +103,26 @@ impl Assembler {
             current_a: None,
             attitude: None,
             stats: DecodeStats::default(),
-            sensors: BTreeMap::new(),
+            sensors: Vec::new(),
             messages: BTreeMap::new(),
-        }
-    }
-
-    fn message(&mut self, name: &str, instance: Option<u8>) {
-        let key = match instance {
-            Some(k) => format!("{name}[{k}]"),
-            None => name.to_string(),
-        };
-        match self.messages.get_mut(&key) {
-            Some(n) => *n += 1,
-            None => {
-                if self.messages.len() < 4096 {
-                    self.messages.insert(key, 1);
-                }
-            }
         }
     }
 
     /// Count a reading of a sensor stream.
     fn stream(&mut self, s: Sensor, instance: u8, source: &str, device_id: Option<u32>) {
-        let key = (sensor_order(s), instance, source.to_string());
-        if let Some(e) = self.sensors.get_mut(&key) {
-            e.0 += 1;
+        let o = sensor_order(s);
+        if let Some(e) = self
+            .sensors
+            .iter_mut()
+            .find(|e| e.0 == o && e.1 == instance && e.2 == source)
+        {
+            e.3 += 1;
             if device_id.is_some() {
-                e.1 = device_id;
+                e.4 = device_id;
             }
         } else if self.sensors.len() < 256 {
-            self.sensors.insert(key, (1, device_id));
+            self.sensors
+                .push((o, instance, source.to_string(), 1, device_id));
         }
     }
 
@@ -277,24 +268,25 @@ impl Assembler {
                 })
                 .collect(),
             primary: self.primary,
-            sensors: self
-                .sensors
-                .into_iter()
-                .map(
-                    |((s, instance, source), (samples, device_id))| SensorStream {
-                        sensor: match s {
-                            0 => "mag",
-                            1 => "accel",
-                            _ => "gyro",
-                        }
-                        .to_string(),
-                        instance,
-                        source,
-                        samples,
-                        device_id,
-                    },
-                )
-                .collect(),
+            sensors: {
+                let mut v = self.sensors;
+                v.sort_by(|a, b| (a.0, a.1, &a.2).cmp(&(b.0, b.1, &b.2)));
+                v
+            }
+            .into_iter()
+            .map(|(s, instance, source, samples, device_id)| SensorStream {
+                sensor: match s {
+                    0 => "mag",
+                    1 => "accel",
+                    _ => "gyro",
+                }
+                .to_string(),
+                instance,
+                source,
+                samples,
+                device_id,
+            })
+            .collect(),
             onboard,
             stats,
             messages: self.messages,
@@ -538,8 +530,26 @@ pub fn decode_dataflash_with(
     let mut sources = BTreeMap::<(u8, u8), String>::new();
     let mut undone = std::collections::BTreeSet::new();
     let mut gps: Option<[f64; 3]> = None;
+    // Column indices of the fields used ([`DF_FIELDS`]) per type id, found once per definition.
+    let mut cols: Vec<Option<Vec<Option<usize>>>> = vec![None; 256];
+    // Records per type id, and per (type id, instance) for instanced types.
+    let mut type_counts = [0u64; 256];
+    let mut inst_counts = BTreeMap::<(u8, u8), u64>::new();
+    let mut names: BTreeMap<(u8, Option<u8>), String> = BTreeMap::new();
     while let Some(rec) = rd.next_record() {
         let name = rec.format.name.as_str();
+        let id = rec.format.type_id;
+        let c = cols[id as usize]
+            .get_or_insert_with(|| DF_FIELDS.iter().map(|f| rec.format.column(f)).collect());
+        let get = |f: DfField| c[f as usize].and_then(|k| rec.value(k));
+        let get3 = |f: DfField| {
+            let k = f as usize;
+            Some([
+                c[k].and_then(|i| rec.value(i))?,
+                c[k + 1].and_then(|i| rec.value(i))?,
+                c[k + 2].and_then(|i| rec.value(i))?,
+            ])
+        };
         let inst_col = rec.format.instance.is_some();
         let (base, k) = if inst_col {
             (name, rec.instance())
@@ -550,11 +560,31 @@ pub fn decode_dataflash_with(
         } else {
             (name, 0)
         };
-        asm.message(name, inst_col.then_some(k));
-        let t_us = rec.time_us();
+        if inst_col {
+            *inst_counts.entry((id, k)).or_insert(0) += 1;
+            if !names.contains_key(&(id, Some(k))) {
+                names.insert((id, Some(k)), format!("{name}[{k}]"));
+            }
+        } else {
+            type_counts[id as usize] += 1;
+            if type_counts[id as usize] == 1 {
+                names.insert((id, None), name.to_string());
+            }
+        }
+        let t_us = get(DfField::TimeUs)
+            .or_else(|| get(DfField::TimeMs).map(|t| t * 1000.0))
+            .filter(|t| *t >= 0.0)
+            .map(|t| t as u64);
         let out = match base {
+            "FMT" => {
+                // A type (re)defined: its columns are looked up again.
+                if let Some(t) = get(DfField::Type).filter(|t| (0.0..256.0).contains(t)) {
+                    cols[t as usize] = None;
+                }
+                None
+            }
             "PARM" => {
-                if let (Some(n), Some(v)) = (rec.text("Name"), rec.get("Value")) {
+                if let (Some(n), Some(v)) = (rec.text("Name"), get(DfField::Value)) {
                     if params.len() < 16384 || params.contains_key(&n) {
                         first_params.entry(n.clone()).or_insert(v);
                         params.insert(n, v);
@@ -563,55 +593,59 @@ pub fn decode_dataflash_with(
                 None
             }
             "IMU" => {
-                let (Some(t), Some(a), Some(g)) = (
-                    t_us,
-                    get3(&rec, ["AccX", "AccY", "AccZ"]),
-                    get3(&rec, ["GyrX", "GyrY", "GyrZ"]),
-                ) else {
+                let (Some(t), Some(a), Some(g)) = (t_us, get3(DfField::AccX), get3(DfField::GyrX))
+                else {
                     asm.stats.skip("bad_record");
                     continue;
                 };
-                let src = if inst_col {
-                    format!("IMU[{k}]")
-                } else {
-                    name.to_string()
-                };
-                asm.stream(Sensor::Accel, k, &src, None);
-                asm.stream(Sensor::Gyro, k, &src, None);
-                sources.entry((1, k)).or_insert(src);
+                let src = names
+                    .get(&(id, inst_col.then_some(k)))
+                    .map(String::as_str)
+                    .unwrap_or(name);
+                asm.stream(Sensor::Accel, k, src, None);
+                asm.stream(Sensor::Gyro, k, src, None);
+                if !sources.contains_key(&(1, k)) {
+                    sources.insert((1, k), src.to_string());
+                }
                 let Some(gi) = asm.group(k, || df_group_name(inst_col, k)) else {
                     continue;
                 };
-                asm.accel(gi, t, a, Some(g), rec.get("T"))
+                asm.accel(gi, t, a, Some(g), get(DfField::T))
             }
             "MAG" => {
-                let (Some(t), Some(m)) = (t_us, get3(&rec, ["MagX", "MagY", "MagZ"])) else {
+                let (Some(t), Some(m)) = (t_us, get3(DfField::MagX)) else {
                     asm.stats.skip("bad_record");
                     continue;
                 };
-                let src = if inst_col {
-                    format!("MAG[{k}]")
-                } else {
-                    name.to_string()
-                };
-                asm.stream(Sensor::Mag, k, &src, ap_dev_id(&params, k));
-                sources.entry((0, k)).or_insert(src.clone());
-                let ofs = get3(&rec, ["OfsX", "OfsY", "OfsZ"]);
-                let mofs = get3(&rec, ["MOfsX", "MOfsY", "MOfsZ"]);
+                let src = names
+                    .get(&(id, inst_col.then_some(k)))
+                    .map(String::as_str)
+                    .unwrap_or(name);
+                asm.stream(Sensor::Mag, k, src, ap_dev_id(&params, k));
+                if !sources.contains_key(&(0, k)) {
+                    sources.insert((0, k), src.to_string());
+                }
+                let ofs = get3(DfField::OfsX);
+                let mofs = get3(DfField::MOfsX);
                 let Some(raw) = ap_undo(&params, k, m, ofs, mofs) else {
                     asm.stats.skip("not_undone");
                     continue;
                 };
-                undone.insert(src);
+                if !undone.contains(src) {
+                    undone.insert(src.to_string());
+                }
                 let Some(gi) = asm.group(k, || df_group_name(inst_col, k)) else {
                     continue;
                 };
                 asm.mag(gi, t, raw)
             }
             "ATT" => {
-                if let (Some(t), Some(r), Some(p), Some(y)) =
-                    (t_us, rec.get("Roll"), rec.get("Pitch"), rec.get("Yaw"))
-                {
+                if let (Some(t), Some(r), Some(p), Some(y)) = (
+                    t_us,
+                    get(DfField::Roll),
+                    get(DfField::Pitch),
+                    get(DfField::Yaw),
+                ) {
                     let q = quat_from_euler(r.to_radians(), p.to_radians(), y.to_radians());
                     asm.attitude = ned_to_enu(q).map(|q| (t, q));
                 }
@@ -619,30 +653,30 @@ pub fn decode_dataflash_with(
             }
             "RCOU" => {
                 // Channel 3 is the throttle by ArduPilot's default RCMAP.
-                if let Some(pwm) = rec.get("C3").filter(|p| *p >= 900.0 && *p <= 2200.0) {
+                if let Some(pwm) = get(DfField::C3).filter(|p| *p >= 900.0 && *p <= 2200.0) {
                     asm.throttle = Some(((pwm - 1000.0) / 1000.0).clamp(0.0, 1.5));
                 }
                 None
             }
             "CTUN" => {
                 // Copter logs ThO (0..1); Plane ThrOut (percent).
-                if let Some(v) = rec.get("ThO").filter(|v| v.is_finite()) {
+                if let Some(v) = get(DfField::ThO).filter(|v| v.is_finite()) {
                     asm.throttle = Some(v.clamp(0.0, 1.5));
-                } else if let Some(v) = rec.get("ThrOut").filter(|v| v.is_finite()) {
+                } else if let Some(v) = get(DfField::ThrOut).filter(|v| v.is_finite()) {
                     asm.throttle = Some((v / 100.0).clamp(0.0, 1.5));
                 }
                 None
             }
             "BAT" | "CURR" if k == 0 => {
-                if let Some(c) = rec.get("Curr").filter(|c| c.is_finite()) {
+                if let Some(c) = get(DfField::Curr).filter(|c| c.is_finite()) {
                     asm.current_a = Some(c);
                 }
                 None
             }
             "GPS" if k == 0 && gps.is_none() => {
-                let status = rec.get("Status").unwrap_or(0.0);
+                let status = get(DfField::Status).unwrap_or(0.0);
                 if let (Some(lat), Some(lng), Some(alt)) =
-                    (rec.get("Lat"), rec.get("Lng"), rec.get("Alt"))
+                    (get(DfField::Lat), get(DfField::Lng), get(DfField::Alt))
                 {
                     if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
                         gps = Some([lat, lng, alt]);
@@ -670,8 +704,51 @@ pub fn decode_dataflash_with(
     let primary_mag = sources.get(&(0, 0)).cloned();
     let mut log = asm.finish(onboard, &skips);
     log.primary_mag_source = primary_mag;
+    for (id, n) in type_counts.iter().enumerate() {
+        if let (true, Some(name)) = (*n > 0, names.get(&(id as u8, None))) {
+            *log.messages.entry(name.clone()).or_insert(0) += n;
+        }
+    }
+    for ((id, k), n) in inst_counts {
+        if let Some(name) = names.get(&(id, Some(k))) {
+            *log.messages.entry(name.clone()).or_insert(0) += n;
+        }
+    }
     log
 }
+
+/// The DataFlash fields the conversion reads, in [`DF_FIELDS`] order; a vector's three axes are
+/// consecutive.
+#[derive(Debug, Clone, Copy)]
+enum DfField {
+    TimeUs,
+    TimeMs,
+    AccX,
+    GyrX = 5,
+    T = 8,
+    MagX,
+    OfsX = 12,
+    MOfsX = 15,
+    Roll = 18,
+    Pitch,
+    Yaw,
+    C3,
+    ThO,
+    ThrOut,
+    Curr,
+    Status,
+    Lat,
+    Lng,
+    Alt,
+    Value,
+    Type,
+}
+
+const DF_FIELDS: [&str; 31] = [
+    "TimeUS", "TimeMS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ", "T", "MagX", "MagY",
+    "MagZ", "OfsX", "OfsY", "OfsZ", "MOfsX", "MOfsY", "MOfsZ", "Roll", "Pitch", "Yaw", "C3", "ThO",
+    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type",
+];
 
 fn df_group_name(instanced: bool, k: u8) -> String {
     if instanced {
@@ -680,10 +757,6 @@ fn df_group_name(instanced: bool, k: u8) -> String {
         let s = ["", "2", "3"].get(k as usize).copied().unwrap_or("?");
         format!("IMU{s}+MAG{s}")
     }
-}
-
-fn get3(rec: &dataflash::Record<'_>, names: [&str; 3]) -> Option<Vec3> {
-    Some([rec.get(names[0])?, rec.get(names[1])?, rec.get(names[2])?])
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -855,17 +928,29 @@ pub fn decode_ulog_with(
     let mut accel_ids = BTreeMap::<u8, u32>::new();
     let mut gps: Option<[f64; 3]> = None;
     let mut not_undone = false;
+    let mut cols = BTreeMap::<u16, UlogCols>::new();
     loop {
         let params_ready = undo.is_some();
         let Some(d) = rd.next_data() else {
             break;
         };
-        let name = d.sub.name.clone();
         let multi = d.sub.multi_id;
         let t_us = d.timestamp_us();
-        // Read what is needed from the record before the reader is used again.
-        let get = |f: &str| d.get(f);
-        let v3 = |a: &str, b: &str, c: &str| Some([get(a)?, get(b)?, get(c)?]);
+        // The topic and its columns, found once per subscription.
+        let id = d.sub.msg_id;
+        if !cols
+            .get(&id)
+            .is_some_and(|c| c.name == d.sub.name && c.multi == multi)
+        {
+            cols.insert(id, UlogCols::new(d.sub));
+        }
+        let c = &cols[&id];
+        let val = |k: usize| c.idx[k].and_then(|i| d.value(i));
+        let get = |f: UlField| val(f as usize);
+        let v3 = |f: UlField| {
+            let k = f as usize;
+            Some([val(k)?, val(k + 1)?, val(k + 2)?])
+        };
         enum R {
             Combined(Option<Vec3>, Option<Vec3>, Option<Vec3>),
             Accel(Vec3, Option<f64>, Option<u32>),
@@ -878,65 +963,57 @@ pub fn decode_ulog_with(
             Gps(f64, f64, f64, f64),
             None,
         }
-        let dev = get("device_id").map(|v| v as u32);
-        let r = match name.as_str() {
-            "sensor_combined" => R::Combined(
-                v3(
-                    "accelerometer_m_s2[0]",
-                    "accelerometer_m_s2[1]",
-                    "accelerometer_m_s2[2]",
-                ),
-                v3("gyro_rad[0]", "gyro_rad[1]", "gyro_rad[2]"),
-                v3(
-                    "magnetometer_ga[0]",
-                    "magnetometer_ga[1]",
-                    "magnetometer_ga[2]",
-                ),
-            ),
-            "sensor_accel" => match v3("x", "y", "z") {
-                Some(a) => R::Accel(a, get("temperature"), dev),
+        let dev = get(UlField::DeviceId).map(|v| v as u32);
+        let r = match c.topic {
+            Topic::Combined => {
+                R::Combined(v3(UlField::Acc0), v3(UlField::Gyro0), v3(UlField::MagGa0))
+            }
+            Topic::Accel => match v3(UlField::X) {
+                Some(a) => R::Accel(a, get(UlField::Temperature), dev),
                 None => R::None,
             },
-            "sensor_gyro" => match v3("x", "y", "z") {
+            Topic::Gyro => match v3(UlField::X) {
                 Some(g) => R::Gyro(g, dev),
                 None => R::None,
             },
-            "sensor_mag" => match v3("x", "y", "z") {
+            Topic::Mag => match v3(UlField::X) {
                 Some(m) => R::Mag(m, dev),
                 None => R::None,
             },
-            "vehicle_magnetometer" if multi == 0 => match v3(
-                "magnetometer_ga[0]",
-                "magnetometer_ga[1]",
-                "magnetometer_ga[2]",
-            ) {
+            Topic::VehicleMag if multi == 0 => match v3(UlField::MagGa0) {
                 Some(m) => R::VMag(m),
                 None => R::None,
             },
-            "vehicle_attitude" if multi == 0 => {
-                match (get("q[0]"), get("q[1]"), get("q[2]"), get("q[3]")) {
-                    (Some(w), Some(x), Some(y), Some(z)) => R::Att([w, x, y, z]),
-                    _ => R::None,
-                }
-            }
-            "actuator_controls_0" if multi == 0 => match get("control[3]") {
+            Topic::Attitude if multi == 0 => match (
+                get(UlField::Q0),
+                get(UlField::Q1),
+                get(UlField::Q2),
+                get(UlField::Q3),
+            ) {
+                (Some(w), Some(x), Some(y), Some(z)) => R::Att([w, x, y, z]),
+                _ => R::None,
+            },
+            Topic::Actuators if multi == 0 => match get(UlField::Control3) {
                 Some(t) => R::Throttle(t),
                 None => R::None,
             },
-            "battery_status" if multi == 0 => match get("current_a") {
+            Topic::Battery if multi == 0 => match get(UlField::CurrentA) {
                 Some(c) => R::Current(c),
                 None => R::None,
             },
-            "vehicle_gps_position" if multi == 0 => {
-                match (get("lat"), get("lon"), get("alt"), get("fix_type")) {
-                    (Some(a), Some(b), Some(c), Some(f)) => R::Gps(a, b, c, f),
-                    _ => R::None,
-                }
-            }
+            Topic::Gps if multi == 0 => match (
+                get(UlField::Lat),
+                get(UlField::Lon),
+                get(UlField::Alt),
+                get(UlField::FixType),
+            ) {
+                (Some(a), Some(b), Some(c), Some(f)) => R::Gps(a, b, c, f),
+                _ => R::None,
+            },
             _ => R::None,
         };
+        let src: &str = &c.source;
         let read = rd.position();
-        asm.message(&name, Some(multi));
         if !params_ready {
             // The definitions section (parameters included) precedes the first data record.
             let p = rd.params();
@@ -956,7 +1033,7 @@ pub fn decode_ulog_with(
                 asm.groups[gi].has_accel |= a.is_some();
                 if let Some(m) = m {
                     asm.stream(Sensor::Mag, 0, "sensor_combined.magnetometer_ga", None);
-                    prime_source.get_or_insert("sensor_combined.magnetometer_ga".into());
+                    prime_source.get_or_insert_with(|| "sensor_combined.magnetometer_ga".into());
                     match undo
                         .as_ref()
                         .and_then(|u| u.as_ref())
@@ -983,7 +1060,7 @@ pub fn decode_ulog_with(
             }
             R::VMag(m) => {
                 asm.stream(Sensor::Mag, 0, "vehicle_magnetometer[0]", None);
-                prime_source.get_or_insert("vehicle_magnetometer[0]".into());
+                prime_source.get_or_insert_with(|| "vehicle_magnetometer[0]".into());
                 let Some(gi) = asm.group(0, || "sensor_combined".into()) else {
                     continue;
                 };
@@ -1000,7 +1077,7 @@ pub fn decode_ulog_with(
                 }
             }
             R::Accel(a, temp, dev) => {
-                asm.stream(Sensor::Accel, multi, &format!("sensor_accel[{multi}]"), dev);
+                asm.stream(Sensor::Accel, multi, src, dev);
                 if let Some(d) = dev {
                     accel_ids.insert(multi, d);
                 }
@@ -1010,14 +1087,14 @@ pub fn decode_ulog_with(
                 asm.accel(gi, t, a, None, temp)
             }
             R::Gyro(g, dev) => {
-                asm.stream(Sensor::Gyro, multi, &format!("sensor_gyro[{multi}]"), dev);
+                asm.stream(Sensor::Gyro, multi, src, dev);
                 let Some(gi) = asm.group(100 + multi, || px4_group_name(multi)) else {
                     continue;
                 };
                 asm.gyro(gi, t, g)
             }
             R::Mag(m, dev) => {
-                asm.stream(Sensor::Mag, multi, &format!("sensor_mag[{multi}]"), dev);
+                asm.stream(Sensor::Mag, multi, src, dev);
                 if let Some(d) = dev {
                     mag_ids.insert(multi, d);
                 }
@@ -1077,7 +1154,113 @@ pub fn decode_ulog_with(
     }
     let mut log = asm.finish(onboard, &skips);
     log.primary_mag_source = prime_source;
+    for sub in rd.subscriptions().filter(|s| s.records > 0) {
+        *log.messages
+            .entry(format!("{}[{}]", sub.name, sub.multi_id))
+            .or_insert(0) += sub.records;
+    }
     Some(log)
+}
+
+/// The ULog topics the conversion reads.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Topic {
+    Combined,
+    Accel,
+    Gyro,
+    Mag,
+    VehicleMag,
+    Attitude,
+    Actuators,
+    Battery,
+    Gps,
+    Other,
+}
+
+/// The ULog fields the conversion reads, in [`UL_FIELDS`] order; a vector's axes are consecutive.
+#[derive(Debug, Clone, Copy)]
+enum UlField {
+    Acc0,
+    Gyro0 = 3,
+    MagGa0 = 6,
+    X = 9,
+    Temperature = 12,
+    DeviceId,
+    Q0,
+    Q1,
+    Q2,
+    Q3,
+    Control3,
+    CurrentA,
+    Lat,
+    Lon,
+    Alt,
+    FixType,
+}
+
+const UL_FIELDS: [&str; 24] = [
+    "accelerometer_m_s2[0]",
+    "accelerometer_m_s2[1]",
+    "accelerometer_m_s2[2]",
+    "gyro_rad[0]",
+    "gyro_rad[1]",
+    "gyro_rad[2]",
+    "magnetometer_ga[0]",
+    "magnetometer_ga[1]",
+    "magnetometer_ga[2]",
+    "x",
+    "y",
+    "z",
+    "temperature",
+    "device_id",
+    "q[0]",
+    "q[1]",
+    "q[2]",
+    "q[3]",
+    "control[3]",
+    "current_a",
+    "lat",
+    "lon",
+    "alt",
+    "fix_type",
+];
+
+/// A subscription's topic, the indices of [`UL_FIELDS`] in its fields, and its source name.
+struct UlogCols {
+    name: String,
+    multi: u8,
+    topic: Topic,
+    idx: Vec<Option<usize>>,
+    source: String,
+}
+
+impl UlogCols {
+    fn new(sub: &ulog::Subscription) -> UlogCols {
+        let topic = match sub.name.as_str() {
+            "sensor_combined" => Topic::Combined,
+            "sensor_accel" => Topic::Accel,
+            "sensor_gyro" => Topic::Gyro,
+            "sensor_mag" => Topic::Mag,
+            "vehicle_magnetometer" => Topic::VehicleMag,
+            "vehicle_attitude" => Topic::Attitude,
+            "actuator_controls_0" => Topic::Actuators,
+            "battery_status" => Topic::Battery,
+            "vehicle_gps_position" => Topic::Gps,
+            _ => Topic::Other,
+        };
+        let idx = if topic == Topic::Other {
+            vec![None; UL_FIELDS.len()]
+        } else {
+            UL_FIELDS.iter().map(|f| sub.field(f)).collect()
+        };
+        UlogCols {
+            name: sub.name.clone(),
+            multi: sub.multi_id,
+            topic,
+            idx,
+            source: format!("{}[{}]", sub.name, sub.multi_id),
+        }
+    }
 }
 
 fn px4_group_name(k: u8) -> String {
