@@ -562,9 +562,9 @@ pub fn decode_dataflash_with(
         };
         if inst_col {
             *inst_counts.entry((id, k)).or_insert(0) += 1;
-            if !names.contains_key(&(id, Some(k))) {
-                names.insert((id, Some(k)), format!("{name}[{k}]"));
-            }
+            names
+                .entry((id, Some(k)))
+                .or_insert_with(|| format!("{name}[{k}]"));
         } else {
             type_counts[id as usize] += 1;
             if type_counts[id as usize] == 1 {
@@ -604,9 +604,7 @@ pub fn decode_dataflash_with(
                     .unwrap_or(name);
                 asm.stream(Sensor::Accel, k, src, None);
                 asm.stream(Sensor::Gyro, k, src, None);
-                if !sources.contains_key(&(1, k)) {
-                    sources.insert((1, k), src.to_string());
-                }
+                sources.entry((1, k)).or_insert_with(|| src.to_string());
                 let Some(gi) = asm.group(k, || df_group_name(inst_col, k)) else {
                     continue;
                 };
@@ -622,9 +620,7 @@ pub fn decode_dataflash_with(
                     .map(String::as_str)
                     .unwrap_or(name);
                 asm.stream(Sensor::Mag, k, src, ap_dev_id(&params, k));
-                if !sources.contains_key(&(0, k)) {
-                    sources.insert((0, k), src.to_string());
-                }
+                sources.entry((0, k)).or_insert_with(|| src.to_string());
                 let ofs = get3(DfField::OfsX);
                 let mofs = get3(DfField::MOfsX);
                 let Some(raw) = ap_undo(&params, k, m, ofs, mofs) else {
