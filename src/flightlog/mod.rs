@@ -934,10 +934,7 @@ pub fn decode_ulog_with(
         let t_us = d.timestamp_us();
         // The topic and its columns, found once per subscription.
         let id = d.sub.msg_id;
-        if !cols
-            .get(&id)
-            .is_some_and(|c| c.name == d.sub.name && c.multi == multi)
-        {
+        if !cols.get(&id).is_some_and(|c| c.serial == d.sub.serial) {
             cols.insert(id, UlogCols::new(d.sub));
         }
         let c = &cols[&id];
@@ -1223,8 +1220,7 @@ const UL_FIELDS: [&str; 24] = [
 
 /// A subscription's topic, the indices of [`UL_FIELDS`] in its fields, and its source name.
 struct UlogCols {
-    name: String,
-    multi: u8,
+    serial: u32,
     topic: Topic,
     idx: Vec<Option<usize>>,
     source: String,
@@ -1250,8 +1246,7 @@ impl UlogCols {
             UL_FIELDS.iter().map(|f| sub.field(f)).collect()
         };
         UlogCols {
-            name: sub.name.clone(),
-            multi: sub.multi_id,
+            serial: sub.serial,
             topic,
             idx,
             source: format!("{}[{}]", sub.name, sub.multi_id),

@@ -117,6 +117,10 @@ pub struct Subscription {
     pub used: usize,
     /// Data records read.
     pub records: u64,
+    /// Which `A` message made it (counting from 0): tells a re-subscription under the same id.
+    pub serial: u32,
+    /// The index of the `timestamp` field.
+    timestamp: Option<usize>,
 }
 
 impl Subscription {
@@ -148,7 +152,7 @@ impl Data<'_> {
 
     /// The `timestamp` field (us), exactly.
     pub fn timestamp_us(&self) -> Option<u64> {
-        let f = &self.sub.fields[self.sub.field("timestamp")?];
+        let f = &self.sub.fields[self.sub.timestamp?];
         let b = self.payload.get(f.offset..f.offset + 8)?;
         (f.ty == Ty::U64).then(|| u64::from_le_bytes(b.try_into().expect("8 bytes")))
     }
@@ -193,6 +197,8 @@ pub struct UlogReader<'a> {
     pub info: BTreeMap<String, String>,
     /// Offsets of appended data still ahead.
     appended: Vec<usize>,
+    /// Subscriptions made so far.
+    serial: u32,
     pub stats: UlogStats,
 }
 
@@ -212,6 +218,7 @@ impl<'a> UlogReader<'a> {
             params: BTreeMap::new(),
             info: BTreeMap::new(),
             appended: Vec::new(),
+            serial: 0,
             stats: UlogStats::default(),
         })
     }
@@ -348,6 +355,8 @@ impl<'a> UlogReader<'a> {
                 let mut used = 0;
                 match flatten(&self.formats, &name, "", 0, &mut fields, &mut used, 0) {
                     Some(size) if self.subs.len() < MAX_SUBSCRIPTIONS => {
+                        let timestamp = fields.iter().position(|f| f.name == "timestamp");
+                        self.serial += 1;
                         self.subs.insert(
                             msg_id,
                             Subscription {
@@ -358,6 +367,8 @@ impl<'a> UlogReader<'a> {
                                 size,
                                 used,
                                 records: 0,
+                                serial: self.serial,
+                                timestamp,
                             },
                         );
                     }
