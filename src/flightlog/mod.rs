@@ -934,7 +934,7 @@ pub fn decode_ulog_with(
         let t_us = d.timestamp_us();
         // The topic and its columns, found once per subscription.
         let id = d.sub.msg_id;
-        if !cols.get(&id).is_some_and(|c| c.serial == d.sub.serial) {
+        if cols.get(&id).is_none_or(|c| c.serial != d.sub.serial) {
             cols.insert(id, UlogCols::new(d.sub));
         }
         let c = &cols[&id];
