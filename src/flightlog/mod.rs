@@ -16,10 +16,11 @@
 //! COMPASS_OFS/DIA/ODI/SCALE of that compass (the record's own OfsX/Y/Z where the parameter is
 //! absent or differs by more than 1 mGauss: an offset changed in flight). PX4's
 //! `vehicle_magnetometer` and `sensor_combined.magnetometer_ga` are `R S (raw - OFF)` (gauss) of
-//! the prime compass (CAL_MAG_PRIME = CAL_MAGn_ID): raw = R^T... undone as
-//! R S^-1 R^T m + R OFF, body axes, with R the compass's rotation (CAL_MAGn_ROT, the board's
+//! the prime compass (CAL_MAG_PRIME = CAL_MAGn_ID), undone to the raw field in body axes,
+//! R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
 //! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations, else not undone and said
-//! so. `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
+//! so (`onboard.not_undone`). The conversion uses the onboard convention's offsets (shared
+//! `CONVENTIONS.md`; the CAL_MAGn_?COMP power compensation is not undone). `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
 //! board); their onboard calibration is reported, not undone.
 
 pub mod dataflash;
