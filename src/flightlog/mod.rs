@@ -55,7 +55,8 @@ pub struct FlightLog {
 /// One instance being assembled.
 #[derive(Debug, Clone)]
 struct Group {
-    key: u8,
+    /// DataFlash: the instance k; ULog: 0 for the primary, [`PX4_SENSOR_KEY`] + k for sensor k.
+    key: u16,
     name: String,
     clock: SourceClock,
     has_accel: bool,
@@ -79,6 +80,9 @@ struct Assembler {
     sensors: Vec<(u8, u8, String, u64, Option<u32>)>,
     messages: BTreeMap<String, u64>,
 }
+
+/// Group keys of PX4 sensor instances start here (a `multi_id` is a u8).
+const PX4_SENSOR_KEY: u16 = 256;
 
 /// An attitude older than this is not attached to a sample, us.
 const ATTITUDE_MAX_AGE_US: u64 = 50_000;
@@ -128,7 +132,7 @@ impl Assembler {
     }
 
     /// The group of instance `key`, made on first use (at most [`MAX_INSTANCES`]).
-    fn group(&mut self, key: u8, name: impl FnOnce() -> String) -> Option<usize> {
+    fn group(&mut self, key: u16, name: impl FnOnce() -> String) -> Option<usize> {
         if let Some(k) = self.groups.iter().position(|g| g.key == key) {
             return Some(k);
         }
@@ -258,7 +262,11 @@ impl Assembler {
                 .iter()
                 .map(|g| InstanceInfo {
                     name: g.name.clone(),
-                    compass_id: if g.key >= 100 { g.key - 100 } else { g.key },
+                    compass_id: (if g.key >= PX4_SENSOR_KEY {
+                        g.key - PX4_SENSOR_KEY
+                    } else {
+                        g.key
+                    }) as u8,
                     samples: g.samples,
                     units: Units {
                         accel: Unit::Si,
@@ -606,7 +614,7 @@ pub fn decode_dataflash_with(
                 asm.stream(Sensor::Accel, k, src, None);
                 asm.stream(Sensor::Gyro, k, src, None);
                 sources.entry((1, k)).or_insert_with(|| src.to_string());
-                let Some(gi) = asm.group(k, || df_group_name(inst_col, k)) else {
+                let Some(gi) = asm.group(u16::from(k), || df_group_name(inst_col, k)) else {
                     continue;
                 };
                 asm.accel(gi, t, a, Some(g), get(DfField::T))
@@ -631,7 +639,7 @@ pub fn decode_dataflash_with(
                 if !undone.contains(src) {
                     undone.insert(src.to_string());
                 }
-                let Some(gi) = asm.group(k, || df_group_name(inst_col, k)) else {
+                let Some(gi) = asm.group(u16::from(k), || df_group_name(inst_col, k)) else {
                     continue;
                 };
                 asm.mag(gi, t, raw)
@@ -1075,14 +1083,16 @@ pub fn decode_ulog_with(
                 if let Some(d) = dev {
                     accel_ids.insert(multi, d);
                 }
-                let Some(gi) = asm.group(100 + multi, || px4_group_name(multi)) else {
+                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
+                else {
                     continue;
                 };
                 asm.accel(gi, t, a, None, temp)
             }
             R::Gyro(g, dev) => {
                 asm.stream(Sensor::Gyro, multi, src, dev);
-                let Some(gi) = asm.group(100 + multi, || px4_group_name(multi)) else {
+                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
+                else {
                     continue;
                 };
                 asm.gyro(gi, t, g)
@@ -1092,7 +1102,8 @@ pub fn decode_ulog_with(
                 if let Some(d) = dev {
                     mag_ids.insert(multi, d);
                 }
-                let Some(gi) = asm.group(100 + multi, || px4_group_name(multi)) else {
+                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
+                else {
                     continue;
                 };
                 asm.mag(gi, t, m.map(|x| x * 100.0))
@@ -1349,6 +1360,35 @@ mod tests {
         assert!((v[0] - 1.0).abs() < 1e-12, "{v:?}");
         let v = rotate_q(q, [0.0, 0.0, 1.0]);
         assert!((v[2] + 1.0).abs() < 1e-12, "{v:?}");
+    }
+
+    #[test]
+    fn ulog_sensor_instances_up_to_255_stay_apart() {
+        // A multi_id above 155 once overflowed the instance key (found by fuzzing).
+        use ulog::tests::{header, msg, sub};
+        let mut f = header();
+        f.extend(msg(
+            b'F',
+            b"sensor_mag:uint64_t timestamp;uint32_t device_id;float x;float y;float z;",
+        ));
+        f.extend(sub(0, 1, "sensor_mag"));
+        f.extend(sub(200, 2, "sensor_mag"));
+        for (id, t) in [(1u16, 10u64), (2, 11), (1, 20), (2, 21)] {
+            let mut b = id.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            b.extend(7u32.to_le_bytes());
+            for v in [0.2f32, 0.1, -0.4] {
+                b.extend(v.to_le_bytes());
+            }
+            f.extend(msg(b'D', &b));
+        }
+        let log = decode_ulog_with(&f, &mut |_, _, _, _| {}).unwrap();
+        let ids: Vec<(u8, u64)> = log
+            .instances
+            .iter()
+            .map(|i| (i.compass_id, i.samples))
+            .collect();
+        assert_eq!(ids, [(0, 2), (200, 2)]);
     }
 
     #[test]
