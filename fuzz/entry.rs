@@ -5,11 +5,11 @@
 // Plain `//` comments only: this file is `include!`d.
 
 use imucald::config::Config;
+use imucald::decode::TlogRecords;
 use imucald::decode::{
     decode_csv, decode_tlog, detect_format, maybe_gunzip, CsvMapping, DecodeStats, FrameDecoder,
     InstanceChoice, MessageConverter, RawImuScale,
 };
-use imucald::decode::TlogRecords;
 use imucald::link::{parse_motioncal_line, CsvLineParser, LineBuffer, MAX_LINE};
 use imucald::types::Sample;
 use std::collections::BTreeMap;
@@ -274,4 +274,134 @@ pub fn config(data: &[u8]) -> Result<Config, (String, String)> {
         }
         Err(other) => panic!("not a config error: {other}"),
     }
+}
+
+// Check a flight-log decode: every sample is finite, each instance's count is what the summary
+// says, and the primary's count is its `records`.
+pub fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], primary: u64) {
+    assert!(per_instance.len() <= log.instances.len());
+    for (k, i) in log.instances.iter().enumerate() {
+        assert_eq!(
+            i.samples,
+            per_instance.get(k).copied().unwrap_or(0),
+            "{}",
+            i.name
+        );
+    }
+    assert_eq!(log.stats.records, primary);
+    for c in log.onboard.mag.iter().chain(&log.onboard.accel) {
+        assert!(
+            c.offset.iter().all(|x| x.is_finite()) || c.params.values().any(|v| !v.is_finite())
+        );
+    }
+}
+
+// A flight-log decoder: `flightlog::decode_dataflash_with` or `decode_ulog_with`.
+pub type FlightDecode = fn(
+    &[u8],
+    &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> Option<imucald::flightlog::FlightLog>;
+
+pub fn decode_flight(
+    f: FlightDecode,
+    bytes: &[u8],
+) -> Option<(imucald::flightlog::FlightLog, Vec<Sample>)> {
+    let mut per_instance = Vec::<u64>::new();
+    let mut primary = Vec::new();
+    let mut last_read = 0usize;
+    let log = f(bytes, &mut |k, s, read, p| {
+        check_sample(&s);
+        assert!(read >= last_read && read <= bytes.len());
+        last_read = read;
+        if per_instance.len() <= k {
+            per_instance.resize(k + 1, 0);
+        }
+        per_instance[k] += 1;
+        if Some(k) == p {
+            primary.push(s);
+        }
+    })?;
+    check_flight(&log, &per_instance, primary.len() as u64);
+    Some((log, primary))
+}
+
+pub fn dataflash_some(
+    bytes: &[u8],
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> Option<imucald::flightlog::FlightLog> {
+    Some(imucald::flightlog::decode_dataflash_with(bytes, emit))
+}
+
+// Target `dataflash`: the DataFlash reader on arbitrary bytes (records in order: each payload its
+// format's length, positions moving on), the conversion to samples of every instance, and
+// `sources::decode_log` forced to `bin`. Returns the primary's samples.
+pub fn dataflash(data: &[u8]) -> Vec<Sample> {
+    static CFG: OnceLock<Config> = OnceLock::new();
+    let cfg = CFG.get_or_init(Config::default);
+    let mut rd = imucald::flightlog::dataflash::DfReader::new(data);
+    let mut pos = 0;
+    while let Some(rec) = rd.next_record() {
+        assert_eq!(rec.payload.len() + 3, rec.format.length);
+        for k in 0..rec.format.columns.len() {
+            let _ = rec.value(k);
+        }
+        let _ = (rec.time_us(), rec.instance());
+        let p = rd.position();
+        assert!(p > pos && p <= data.len());
+        pos = p;
+    }
+    let (_, samples) = decode_flight(dataflash_some, data).expect("DataFlash always decodes");
+    if let Ok(log) = imucald::sources::decode_log(
+        data,
+        Path::new("fuzz.bin"),
+        Some(imucald::decode::Format::Bin),
+        cfg,
+    ) {
+        assert_eq!(log.samples, samples);
+    }
+    samples
+}
+
+// Target `ulog`: the ULog reader on arbitrary bytes after a valid 16-byte header (every field of
+// every data record read), the conversion to samples of every instance, and
+// `sources::decode_log` forced to `ulg`. Returns the primary's samples.
+pub fn ulog(data: &[u8]) -> Vec<Sample> {
+    static CFG: OnceLock<Config> = OnceLock::new();
+    let cfg = CFG.get_or_init(Config::default);
+    let owned;
+    let bytes: &[u8] = if imucald::flightlog::ulog::looks_like(data) {
+        data
+    } else {
+        let mut v = imucald::flightlog::ulog::MAGIC.to_vec();
+        v.extend([1, 0, 0, 0, 0, 0, 0, 0, 0]);
+        v.extend_from_slice(data);
+        owned = v;
+        &owned
+    };
+    if let Some(mut rd) = imucald::flightlog::ulog::UlogReader::new(bytes) {
+        let mut pos = rd.position();
+        while let Some(d) = rd.next_data() {
+            for k in 0..d.sub.fields.len() {
+                let _ = d.value(k);
+            }
+            let _ = d.timestamp_us();
+            let p = rd.position();
+            assert!(p > pos && p <= bytes.len());
+            pos = p;
+        }
+        assert!(rd.params().len() <= imucald::flightlog::ulog::MAX_PARAMS);
+    }
+    let samples = match decode_flight(imucald::flightlog::decode_ulog_with, bytes) {
+        Some((_, s)) => s,
+        None => Vec::new(),
+    };
+    if let Ok(log) = imucald::sources::decode_log(
+        bytes,
+        Path::new("fuzz.ulg"),
+        Some(imucald::decode::Format::Ulg),
+        cfg,
+    ) {
+        assert_eq!(log.samples, samples);
+    }
+    samples
 }

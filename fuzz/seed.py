@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Seed corpora for the fuzz targets from the repo's own data (scripts/fuzz runs this).
 
-Writes fuzz/corpus/<target>/seed-* (overwriting only seed-* files): pieces of
-fixtures/tumble.tlog, raw MAVLink frames (including IMU messages the fixture lacks), CSV
+Writes fuzz/corpus/<target>/seed-* (overwriting only seed-* files): a synthetic DataFlash log and
+ULog file, the heads of ../shared/data/flightlogs when present, pieces of fixtures/tumble.tlog, raw MAVLink frames (including IMU messages the fixture lacks), CSV
 snippets, MotionCal and CSV serial lines, and config/*.toml. Standard library only.
 """
 import gzip
@@ -75,7 +75,81 @@ def write(target, name, data):
     (d / f"seed-{name}").write_bytes(data if isinstance(data, bytes) else data.encode())
 
 
+def df_fmt(type_id, name, fmt, cols):
+    sizes = {"b": 1, "B": 1, "M": 1, "h": 2, "H": 2, "c": 2, "C": 2, "i": 4, "I": 4, "f": 4, "e": 4,
+             "E": 4, "L": 4, "q": 8, "Q": 8, "d": 8, "n": 4, "N": 16, "Z": 64, "a": 64}
+    length = 3 + sum(sizes[c] for c in fmt)
+    pad = lambda t, n: t.encode().ljust(n, b"\0")
+    return bytes([0xA3, 0x95, 0x80, type_id, length]) + pad(name, 4) + pad(fmt, 16) + pad(cols, 64)
+
+
+def dataflash_seed():
+    """A DataFlash log: FMT, PARM (COMPASS_OFS), IMU, MAG with offsets, instanced MAG (FMTU `#`)."""
+    out = df_fmt(0x80, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
+    out += df_fmt(129, "PARM", "QNf", "TimeUS,Name,Value")
+    out += df_fmt(130, "IMU", "QffffffIIfBBHH", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
+    out += df_fmt(131, "MAG", "QhhhhhhhhhBI", "TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ,Health,S")
+    out += df_fmt(132, "ATT", "QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw")
+    out += df_fmt(133, "FMTU", "QBNN", "TimeUS,FmtType,UnitIds,MultIds")
+    out += df_fmt(134, "MAGI", "QBhhh", "TimeUS,I,MagX,MagY,MagZ")
+    for i, (n, v) in enumerate([("COMPASS_OFS_X", -58.5), ("COMPASS_OFS_Y", 57.1), ("COMPASS_OFS_Z", 90.3),
+                                ("COMPASS_DIA_X", 1.02), ("COMPASS_ODI_X", -0.01)]):
+        out += bytes([0xA3, 0x95, 129]) + struct.pack("<Q", i) + n.encode().ljust(16, b"\0") + struct.pack("<f", v)
+    out += bytes([0xA3, 0x95, 133]) + struct.pack("<QB", 0, 134) + b"s#GGG".ljust(16, b"\0") + b"F-CCC".ljust(16, b"\0")
+    for k in range(20):
+        t = 1_000_000 + k * 20_000
+        out += bytes([0xA3, 0x95, 130]) + struct.pack("<Q6fIIfBBHH", t, 0.01, 0.02, -0.01, 0.3, -0.2, -9.8, 0, 0, 40.0, 1, 1, 1000, 1000)
+        if k % 4 == 0:
+            out += bytes([0xA3, 0x95, 131]) + struct.pack("<Q9hBI", t + 5, 219, 179, -517, -58, 57, 90, 0, 0, 0, 1, t)
+            out += bytes([0xA3, 0x95, 134]) + struct.pack("<QB3h", t + 6, k % 3, 100, 200, 300)
+            out += bytes([0xA3, 0x95, 132]) + struct.pack("<Q4h4H", t + 7, 0, -718, 0, 258, 0, 33710, 0, 0)
+    return out
+
+
+def ulog_msg(ty, body):
+    return struct.pack("<HB", len(body), ord(ty)) + body
+
+
+def ulog_seed():
+    """A ULog file: flag bits, nested format with padding, parameters, two sensor_mag instances,
+    sensor_combined, a dropout, a sync marker."""
+    out = b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0)
+    out += ulog_msg("B", bytes(40))
+    out += ulog_msg("F", b"vec3:float x;float y;float z;")
+    out += ulog_msg("F", b"sensor_mag:uint64_t timestamp;uint32_t device_id;vec3 v;float x;float y;float z;uint8_t[4] _padding0;")
+    out += ulog_msg("F", b"sensor_combined:uint64_t timestamp;float[3] gyro_rad;float[3] accelerometer_m_s2;float[3] magnetometer_ga;")
+    for n, v in [("CAL_MAG0_ID", None), ("CAL_MAG0_XOFF", 0.1), ("CAL_MAG0_YOFF", -0.2), ("CAL_MAG0_ZOFF", 0.05),
+                 ("CAL_MAG_PRIME", None)]:
+        key = (f"int32_t {n}" if v is None else f"float {n}").encode()
+        val = struct.pack("<i", 1234) if v is None else struct.pack("<f", v)
+        out += ulog_msg("P", bytes([len(key)]) + key + val)
+    out += ulog_msg("A", struct.pack("<BH", 0, 1) + b"sensor_mag")
+    out += ulog_msg("A", struct.pack("<BH", 1, 2) + b"sensor_mag")
+    out += ulog_msg("A", struct.pack("<BH", 0, 3) + b"sensor_combined")
+    for k in range(20):
+        t = 1_000_000 + k * 10_000
+        out += ulog_msg("D", struct.pack("<HQI6f", 3, t, 0, 0, 0, 0, 0.1, -0.2, -9.8)[:2 + 8] + struct.pack("<9f", 0.01, 0.0, 0.0, 0.1, -0.2, -9.8, 0.2, 0.1, -0.4))
+        if k % 5 == 0:
+            out += ulog_msg("D", struct.pack("<HQI6f", 1 + k % 2, t, 1234, 0.2, 0.1, -0.4, 0.2, 0.1, -0.4) + bytes(4))
+        if k == 10:
+            out += ulog_msg("O", struct.pack("<H", 40))
+            out += ulog_msg("S", bytes([0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12]))
+    return out
+
+
 def main():
+    write("dataflash", "synthetic", dataflash_seed())
+    write("ulog", "synthetic", ulog_seed())
+    # Pieces of the shared flight logs, when they are beside the checkout.
+    logs = ROOT.parent / "shared" / "data" / "flightlogs"
+    for name, target in [("ardupilot_plane_pixracer.bin", "dataflash"), ("px4_cubeorange_two_mags.ulg", "ulog"),
+                         ("px4_auav_x21.ulg", "ulog")]:
+        p = logs / name
+        if p.is_file():
+            b = p.read_bytes()
+            write(target, f"{p.stem}-head", b[:16384])
+            if target == "dataflash":
+                write(target, f"{p.stem}-tail", b[-8192:])
     tlog = (ROOT / "fixtures" / "tumble.tlog").read_bytes()
     recs = tlog_records(tlog)
     # tlog: record-aligned pieces of ~3 KB from across the file, unaligned cuts, gzip.

@@ -1112,6 +1112,10 @@ pub fn sample_from_fields(
 pub enum Format {
     Tlog,
     Csv,
+    /// ArduPilot DataFlash (`crate::flightlog::dataflash`).
+    Bin,
+    /// PX4 ULog (`crate::flightlog::ulog`).
+    Ulg,
 }
 
 impl Format {
@@ -1119,6 +1123,8 @@ impl Format {
         match s {
             "tlog" => Some(Format::Tlog),
             "csv" => Some(Format::Csv),
+            "bin" => Some(Format::Bin),
+            "ulg" => Some(Format::Ulg),
             _ => None,
         }
     }
@@ -1126,13 +1132,22 @@ impl Format {
         match self {
             Format::Tlog => "tlog",
             Format::Csv => "csv",
+            Format::Bin => "bin",
+            Format::Ulg => "ulg",
         }
     }
 }
 
 /// Detect the format from content: a tlog has a MAVLink magic byte after its first 8-byte
-/// timestamp; CSV is text whose first line has a comma.
+/// timestamp; CSV is text whose first line has a comma; a ULog file starts with its magic; a
+/// DataFlash log has an FMT record defining FMT in its first bytes.
 pub fn detect_format(bytes: &[u8]) -> Option<Format> {
+    if crate::flightlog::ulog::looks_like(bytes) {
+        return Some(Format::Ulg);
+    }
+    if crate::flightlog::dataflash::looks_like(bytes) {
+        return Some(Format::Bin);
+    }
     if bytes.len() > 9 && (bytes[8] == V1_MAGIC || bytes[8] == V2_MAGIC) {
         return Some(Format::Tlog);
     }

@@ -1612,8 +1612,8 @@ async fn run_file(
                 Err(e) => deliver_status(sh, ctl, LinkStatus::Lost(format!("{name}: {e}"))).await,
             }
         }
-        None => {
-            let msg = format!("{name}: neither a .tlog nor a CSV with a header row");
+        Some(decode::Format::Bin | decode::Format::Ulg) | None => {
+            let msg = format!("{name}: neither a .tlog nor a CSV with a header row (flight-controller logs: use `imucald replay`)");
             deliver_status(sh, ctl, LinkStatus::Lost(msg)).await
         }
     };

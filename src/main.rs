@@ -26,7 +26,7 @@ enum Cmd {
         /// TOML configuration (see config/).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Write the JSON report here.
@@ -67,7 +67,7 @@ enum Cmd {
         /// TOML configuration (see config/).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
@@ -95,7 +95,7 @@ enum Cmd {
         /// TOML configuration (see config/); only the input mapping is used.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Override format detection: tlog or csv.
+        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
         #[arg(long)]
         format: Option<String>,
         /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
@@ -109,7 +109,8 @@ enum Cmd {
         #[arg(long)]
         report: Option<PathBuf>,
     },
-    /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv or .csv.gz).
+    /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
+    /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
     Simulate {
         /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
         #[arg(long, default_value = "tumble")]
@@ -131,10 +132,12 @@ enum Cmd {
     },
 }
 
-/// `--format`: none (detect from the content), tlog or csv.
+/// `--format`: none (detect from the content), tlog, csv, bin or ulg.
 fn parse_format(f: Option<&str>) -> Result<Option<Format>> {
-    f.map(|f| Format::parse(f).with_context(|| format!("--format `{f}`: use tlog or csv")))
-        .transpose()
+    f.map(|f| {
+        Format::parse(f).with_context(|| format!("--format `{f}`: use tlog, csv, bin or ulg"))
+    })
+    .transpose()
 }
 
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {
@@ -409,8 +412,20 @@ fn main() -> Result<()> {
                 )?;
             } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
                 write_csv(&out, &sim.samples)?;
+            } else if name.ends_with(".bin") || name.ends_with(".ulg") {
+                // The magnetometer logged corrected by a known onboard calibration, as flight
+                // controllers log it; replay undoes it from the log's parameters.
+                let onboard = imucald::flightlog::write::OnboardMag::example();
+                imucald::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+                println!(
+                    "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
+                    onboard.offset_ut, onboard.matrix
+                );
             } else {
-                anyhow::bail!("--out {}: use a .tlog, .csv or .csv.gz name", out.display());
+                anyhow::bail!(
+                    "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
+                    out.display()
+                );
             }
             println!(
                 "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",

@@ -99,6 +99,12 @@ pub fn replay(
     );
     let mut report = make_report(input, &pipe, &results, declination);
     report.instances = instance_reports(&log, &report, &mut others);
+    if let Some(f) = &log.flight {
+        report.input.sensors = f.sensors.clone();
+        let mut onboard = f.onboard.clone();
+        onboard.comparison = onboard_comparison(f, &onboard, &log.samples, &pipe, &results);
+        report.onboard = Some(onboard);
+    }
     let mut written = vec![];
     if let Some(p) = &opts.report {
         crate::publish::write_json(p, &report)?;
@@ -238,6 +244,51 @@ fn gyro_scale(
     }
 }
 
+/// imucald's primary magnetometer calibration against the onboard one of the same compass: the
+/// offsets, and the headings the two give for the same raw readings at the flight controller's
+/// roll and pitch. `None` unless imucald's fit passed and the compass has an onboard calibration.
+fn onboard_comparison(
+    f: &crate::flightlog::FlightLog,
+    onboard: &crate::report::OnboardReport,
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+) -> Option<crate::report::OnboardComparison> {
+    let ours = results.mag.calibration.as_ref()?;
+    let source = f.primary_mag_source.clone()?;
+    let slot = onboard.mag.iter().find(|c| c.sources.contains(&source))?;
+    let theirs = crate::model::Calibration {
+        model: crate::model::ModelKind::Full12,
+        offset: slot.offset,
+        matrix: slot.matrix,
+    };
+    let (mut sq, mut max, mut n) = (0.0, 0.0f64, 0usize);
+    for s in samples {
+        let (Some(m), Some(q)) = (pipe.to_body(s).mag_ut, s.ref_q) else {
+            continue;
+        };
+        let Some((roll, pitch)) = crate::flightlog::roll_pitch_of_ref_q(q) else {
+            continue;
+        };
+        let a = crate::attitude::heading_deg(&ours.apply(&m), roll, pitch);
+        let b = crate::attitude::heading_deg(&theirs.apply(&m), roll, pitch);
+        let d = crate::attitude::angle_diff_deg(a, b);
+        if d.is_finite() {
+            sq += d * d;
+            max = max.max(d.abs());
+            n += 1;
+        }
+    }
+    Some(crate::report::OnboardComparison {
+        instance: slot.instance,
+        source,
+        offset_diff_ut: [0, 1, 2].map(|i| ours.offset[i] - slot.offset[i]),
+        heading_diff_rms_deg: if n > 0 { (sq / n as f64).sqrt() } else { 0.0 },
+        heading_diff_max_deg: max,
+        samples: n,
+    })
+}
+
 /// The pipeline of instance `k` (not the primary), made on its first sample with the instance's
 /// units; `None` when it cannot be (a configuration the primary's pipeline took, so not here).
 fn other_pipeline<'a>(
@@ -322,6 +373,7 @@ pub fn make_report(
         refits: pipe.refits.clone(),
         instances: Vec::new(),
         outputs: None,
+        onboard: None,
     }
 }
 

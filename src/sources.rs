@@ -18,8 +18,11 @@ pub struct Log {
     pub stats: DecodeStats,
     pub instance: Option<String>,
     pub units: Units,
-    /// Every IMU instance read (MAVLink logs), the primary among them.
+    /// Every IMU instance read (MAVLink and flight-controller logs), the primary among them.
     pub instances: Vec<InstanceInfo>,
+    /// Flight-controller logs (`.bin`, `.ulg`): sensor streams, onboard calibration, message
+    /// counts (`instances` and `stats` above are its own).
+    pub flight: Option<crate::flightlog::FlightLog>,
 }
 
 /// Read and decode a log file (`.tlog`, `.csv`, `.csv.gz`). `format` overrides detection.
@@ -86,7 +89,7 @@ pub fn decode_log_batched(
         None => {
             return Err(Error::Format {
                 path: path.to_path_buf(),
-                message: "cannot tell the format: neither a MAVLink .tlog (u64 timestamp + frame) nor CSV with a header row; use --format tlog|csv".into(),
+                message: "cannot tell the format: neither a MAVLink .tlog (u64 timestamp + frame), an ArduPilot DataFlash .bin, a PX4 .ulg nor CSV with a header row; use --format tlog|csv|bin|ulg".into(),
             })
         }
     };
@@ -158,6 +161,7 @@ pub fn decode_log_batched(
                 instances: conv.instances(),
                 stats: conv.stats,
                 units,
+                flight: None,
             })
         }
         Format::Csv => {
@@ -192,7 +196,98 @@ pub fn decode_log_batched(
                 instance: None,
                 instances: Vec::new(),
                 units,
+                flight: None,
             })
         }
+        Format::Bin | Format::Ulg => decode_flight_log(&data, path, format, sink),
     }
+}
+
+/// A DataFlash or ULog file: samples of every instance handed on in batches, as for a tlog.
+fn decode_flight_log(
+    data: &[u8],
+    path: &Path,
+    format: Format,
+    sink: &mut dyn FnMut(Batch),
+) -> Result<Log, Error> {
+    let total = data.len();
+    let mut batch = Vec::with_capacity(BATCH_SAMPLES);
+    let mut others = Vec::new();
+    let mut any = false;
+    // Instance names are known only at the end; batches carry placeholders with SI units
+    // (flight-controller logs are in physical units throughout).
+    let placeholder = |n: usize| -> Vec<InstanceInfo> {
+        (0..n)
+            .map(|k| InstanceInfo {
+                name: format!("instance {k}"),
+                compass_id: 0,
+                samples: 0,
+                units: Units::default(),
+                time: Default::default(),
+            })
+            .collect()
+    };
+    let mut seen = 0usize;
+    let mut emit = |k: usize, s: Sample, read: usize, primary: Option<usize>| {
+        seen = seen.max(k + 1);
+        if Some(k) == primary {
+            batch.push(s);
+        } else {
+            others.push((k, s));
+        }
+        if batch.len() + others.len() >= BATCH_SAMPLES {
+            any |= !batch.is_empty();
+            sink(Batch {
+                samples: std::mem::replace(&mut batch, Vec::with_capacity(BATCH_SAMPLES)),
+                others: std::mem::take(&mut others),
+                instances: placeholder(seen),
+                units: Units::default(),
+                bytes_read: read,
+                bytes_total: total,
+            });
+        }
+    };
+    let flight = match format {
+        Format::Bin => Some(crate::flightlog::decode_dataflash_with(data, &mut emit)),
+        _ => crate::flightlog::decode_ulog_with(data, &mut emit),
+    };
+    let Some(flight) = flight else {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: "not a ULog file (no `ULog` header)".into(),
+        });
+    };
+    if !batch.is_empty() || !others.is_empty() {
+        any |= !batch.is_empty();
+        sink(Batch {
+            samples: batch,
+            others,
+            instances: placeholder(seen),
+            units: Units::default(),
+            bytes_read: total,
+            bytes_total: total,
+        });
+    }
+    if !any {
+        let what = match format {
+            Format::Bin => "no IMU or MAG record with a known layout (FMT) in the DataFlash log",
+            _ => "no sensor_combined, vehicle_magnetometer or sensor_* data in the ULog file",
+        };
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: format!("{what}; skipped: {:?}", flight.stats.skipped),
+        });
+    }
+    Ok(Log {
+        format,
+        samples: Vec::new(),
+        stats: flight.stats.clone(),
+        instance: flight
+            .primary
+            .and_then(|k| flight.instances.get(k))
+            .map(|i| i.name.clone()),
+        instances: flight.instances.clone(),
+        units: Units::default(),
+        flight: Some(flight),
+    })
 }

@@ -1577,7 +1577,15 @@ mod fuzz_regressions {
     use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA, RAW_IMU_DATA};
     use mavlink::{MavHeader, MavlinkVersion};
 
-    const TARGETS: [&str; 5] = ["tlog", "mavlink_frames", "csv", "serial_lines", "config"];
+    const TARGETS: [&str; 7] = [
+        "tlog",
+        "mavlink_frames",
+        "csv",
+        "serial_lines",
+        "config",
+        "dataflash",
+        "ulog",
+    ];
 
     fn regressions_dir() -> std::path::PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/regressions")
@@ -1619,6 +1627,52 @@ mod fuzz_regressions {
                 p.display()
             );
         }
+    }
+
+    #[test]
+    fn flight_log_readers_take_nasty_inputs() {
+        // Empty, a lone record head, an FMT cut short, an FMT defining a type longer than a
+        // record can be, a ULog header alone, a message claiming 65535 bytes, a format nesting
+        // itself, a subscription to an undefined format, data before any subscription.
+        let mut fmt = vec![0xA3, 0x95, 0x80, 0x80, 89];
+        fmt.resize(5 + 86, 0);
+        let mut big = fmt.clone();
+        big[3] = 200;
+        big[4] = 2;
+        big[5..9].copy_from_slice(b"BIG\0");
+        big[9..12].copy_from_slice(b"ZZZ");
+        for d in [
+            &b""[..],
+            &[0xA3, 0x95][..],
+            &fmt[..40],
+            &[fmt.clone(), big].concat()[..],
+        ] {
+            let s = dataflash(d);
+            assert!(s.is_empty());
+        }
+        let head = imucald::flightlog::ulog::MAGIC
+            .iter()
+            .copied()
+            .chain([1, 0, 0, 0, 0, 0, 0, 0, 0])
+            .collect::<Vec<u8>>();
+        let msg = |ty: u8, body: &[u8]| {
+            let mut m = (body.len() as u16).to_le_bytes().to_vec();
+            m.push(ty);
+            m.extend_from_slice(body);
+            m
+        };
+        for tail in [
+            vec![],
+            vec![0xFF, 0xFF, b'D', 1, 2],
+            [msg(b'F', b"a:a x;"), msg(b'A', b"\0\x01\0a")].concat(),
+            msg(b'A', b"\0\x01\0undefined"),
+            msg(b'D', &[1, 0, 9, 9, 9]),
+        ] {
+            let s = ulog(&[head.clone(), tail].concat());
+            assert!(s.is_empty());
+        }
+        replay_regressions("dataflash", dataflash);
+        replay_regressions("ulog", ulog);
     }
 
     fn frame(msg: &MavMessage, v: MavlinkVersion, seq: u8) -> Vec<u8> {

@@ -1,0 +1,617 @@
+//! PX4 ULog (`.ulg`) reader: bytes in, records out. Pure; no I/O.
+//!
+//! A ULog file is a 16-byte header (`ULog` magic, version, start time) and then messages, each a
+//! u16 size, a type byte and that many bytes: flag bits (`B`: incompatible flags and the offsets of
+//! appended data), formats (`F`: `name:type field;type[n] field;...`, where a type may be another
+//! format, nested), information (`I`, `M`), parameters (`P`, `Q`), subscriptions (`A`: a topic
+//! instance, `multi_id`, under a message id), data (`D`: message id and the topic's fields),
+//! dropouts (`O`), log text (`L`, `C`) and sync markers (`S`). A subscription's layout is resolved
+//! once into flattened fields (`gyro_rad[0]`, `nested.field`), `_padding*` fields left out, as
+//! pyulog names them; data records are read in place.
+//!
+//! Bad input is skipped and counted in [`UlogStats::skipped`], never fatal: `resync` (a message
+//! header that cannot be one: reading goes on after the next sync marker), `unknown_subscription`
+//! (data under an id no subscription gave), `bad_format`, `bad_subscription`, `bad_message` (a
+//! known message too short for its fields), `short_data` (data shorter than its topic's fields),
+//! `truncated` (the file ends inside a message). Appended data (flag bits) is read from its
+//! offset. State is bounded: at most [`MAX_FORMATS`] formats, [`MAX_SUBSCRIPTIONS`]
+//! subscriptions, [`MAX_PARAMS`] parameters, [`MAX_FIELDS`] flattened fields per topic.
+
+use std::collections::BTreeMap;
+
+/// The file magic (`ULog`, then 01 12 35), followed by a version byte and the start time.
+pub const MAGIC: [u8; 7] = [0x55, 0x4c, 0x6f, 0x67, 0x01, 0x12, 0x35];
+/// A sync message's payload.
+pub const SYNC: [u8; 8] = [0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12];
+pub const MAX_FORMATS: usize = 4096;
+pub const MAX_SUBSCRIPTIONS: usize = 4096;
+pub const MAX_PARAMS: usize = 16384;
+pub const MAX_FIELDS: usize = 8192;
+const MAX_NESTING: usize = 8;
+
+/// A primitive field type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Ty {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    I64,
+    U64,
+    F32,
+    F64,
+    Bool,
+    Char,
+}
+
+impl Ty {
+    fn parse(s: &str) -> Option<Ty> {
+        Some(match s {
+            "int8_t" => Ty::I8,
+            "uint8_t" => Ty::U8,
+            "int16_t" => Ty::I16,
+            "uint16_t" => Ty::U16,
+            "int32_t" => Ty::I32,
+            "uint32_t" => Ty::U32,
+            "int64_t" => Ty::I64,
+            "uint64_t" => Ty::U64,
+            "float" => Ty::F32,
+            "double" => Ty::F64,
+            "bool" => Ty::Bool,
+            "char" => Ty::Char,
+            _ => return None,
+        })
+    }
+
+    pub fn size(self) -> usize {
+        match self {
+            Ty::I8 | Ty::U8 | Ty::Bool | Ty::Char => 1,
+            Ty::I16 | Ty::U16 => 2,
+            Ty::I32 | Ty::U32 | Ty::F32 => 4,
+            Ty::I64 | Ty::U64 | Ty::F64 => 8,
+        }
+    }
+
+    /// The value at the start of `b` (at least `size()` bytes).
+    fn read(self, b: &[u8]) -> f64 {
+        let a = |n: usize| -> [u8; 8] {
+            let mut x = [0u8; 8];
+            x[..n].copy_from_slice(&b[..n]);
+            x
+        };
+        match self {
+            Ty::I8 => b[0] as i8 as f64,
+            Ty::U8 | Ty::Bool | Ty::Char => b[0] as f64,
+            Ty::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
+            Ty::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
+            Ty::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            Ty::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            Ty::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+            Ty::I64 => i64::from_le_bytes(a(8)) as f64,
+            Ty::U64 => u64::from_le_bytes(a(8)) as f64,
+            Ty::F64 => f64::from_le_bytes(a(8)),
+        }
+    }
+}
+
+/// A flattened field of a topic.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Field {
+    pub name: String,
+    pub ty: Ty,
+    pub offset: usize,
+}
+
+/// A subscription: a topic instance and its resolved layout.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Subscription {
+    pub msg_id: u16,
+    pub multi_id: u8,
+    pub name: String,
+    pub fields: Vec<Field>,
+    /// Bytes of the topic (padding included).
+    pub size: usize,
+    /// End of the last field that is not padding.
+    pub used: usize,
+    /// Data records read.
+    pub records: u64,
+    /// Which `A` message made it (counting from 0): tells a re-subscription under the same id.
+    pub serial: u32,
+    /// The index of the `timestamp` field.
+    timestamp: Option<usize>,
+}
+
+impl Subscription {
+    /// The index of field `name`.
+    pub fn field(&self, name: &str) -> Option<usize> {
+        self.fields.iter().position(|f| f.name == name)
+    }
+}
+
+/// One data record: its subscription and its bytes (after the message id).
+#[derive(Debug, Clone, Copy)]
+pub struct Data<'a> {
+    pub sub: &'a Subscription,
+    pub payload: &'a [u8],
+}
+
+impl Data<'_> {
+    /// Field `k` (an index from [`Subscription::field`]) as a number; `None` past the data's end.
+    pub fn value(&self, k: usize) -> Option<f64> {
+        let f = self.sub.fields.get(k)?;
+        let b = self.payload.get(f.offset..f.offset + f.ty.size())?;
+        Some(f.ty.read(b))
+    }
+
+    /// Field `name` as a number.
+    pub fn get(&self, name: &str) -> Option<f64> {
+        self.value(self.sub.field(name)?)
+    }
+
+    /// The `timestamp` field (us), exactly.
+    pub fn timestamp_us(&self) -> Option<u64> {
+        let f = &self.sub.fields[self.sub.timestamp?];
+        let b = self.payload.get(f.offset..f.offset + 8)?;
+        (f.ty == Ty::U64).then(|| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+    }
+}
+
+/// What a [`UlogReader`] read and skipped.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct UlogStats {
+    /// Messages read (all types).
+    pub messages: u64,
+    /// Data records read.
+    pub data: u64,
+    /// Dropouts the logger marked, and their total duration (ms).
+    pub dropouts: u64,
+    pub dropout_ms: u64,
+    /// Parameter messages after the first value of a parameter (changes in flight).
+    pub param_changes: u64,
+    pub skipped: BTreeMap<String, u64>,
+}
+
+impl UlogStats {
+    fn skip(&mut self, why: &str) {
+        *self.skipped.entry(why.to_string()).or_insert(0) += 1;
+    }
+}
+
+/// A parsed format: fields as (type name, array length, field name).
+type RawFormat = Vec<(String, Option<usize>, String)>;
+
+/// Reads a ULog file's data records in order ([`UlogReader::next_data`]); formats, parameters,
+/// information and subscriptions are taken in on the way.
+pub struct UlogReader<'a> {
+    data: &'a [u8],
+    pos: usize,
+    pub version: u8,
+    pub start_us: u64,
+    formats: BTreeMap<String, RawFormat>,
+    subs: BTreeMap<u16, Subscription>,
+    /// Every parameter's first value (the one in use when the log started).
+    params: BTreeMap<String, f64>,
+    /// Information messages (`I`) with text values.
+    pub info: BTreeMap<String, String>,
+    /// Offsets of appended data still ahead.
+    appended: Vec<usize>,
+    /// Subscriptions made so far.
+    serial: u32,
+    pub stats: UlogStats,
+}
+
+impl<'a> UlogReader<'a> {
+    /// A reader over a file; `None` when it does not start with the ULog header.
+    pub fn new(data: &'a [u8]) -> Option<Self> {
+        if !looks_like(data) || data.len() < 16 {
+            return None;
+        }
+        Some(UlogReader {
+            data,
+            pos: 16,
+            version: data[7],
+            start_us: u64::from_le_bytes(data[8..16].try_into().expect("8 bytes")),
+            formats: BTreeMap::new(),
+            subs: BTreeMap::new(),
+            params: BTreeMap::new(),
+            info: BTreeMap::new(),
+            appended: Vec::new(),
+            serial: 0,
+            stats: UlogStats::default(),
+        })
+    }
+
+    pub fn position(&self) -> usize {
+        self.pos
+    }
+
+    /// Parameters read so far (first value of each).
+    pub fn params(&self) -> &BTreeMap<String, f64> {
+        &self.params
+    }
+
+    /// Subscriptions made so far, by message id.
+    pub fn subscriptions(&self) -> impl Iterator<Item = &Subscription> {
+        self.subs.values()
+    }
+
+    /// The next data record, or `None` at the end of the file.
+    pub fn next_data(&mut self) -> Option<Data<'_>> {
+        loop {
+            // Appended data starts at its offset, whatever the message before it left.
+            if let Some(&a) = self.appended.first() {
+                if self.pos >= a {
+                    self.appended.remove(0);
+                }
+            }
+            let rest = &self.data[self.pos..];
+            if rest.len() < 3 {
+                if !rest.is_empty() {
+                    self.stats.skip("truncated");
+                    self.pos = self.data.len();
+                }
+                return None;
+            }
+            let size = u16::from_le_bytes([rest[0], rest[1]]) as usize;
+            let ty = rest[2];
+            if !b"BFIMPQARDLCSO".contains(&ty) {
+                self.stats.skip("resync");
+                self.resync();
+                continue;
+            }
+            if let Some(&a) = self.appended.first() {
+                if self.pos < a && self.pos + 3 + size > a {
+                    self.stats.skip("truncated");
+                    self.pos = a;
+                    self.appended.remove(0);
+                    continue;
+                }
+            }
+            if rest.len() < 3 + size {
+                self.stats.skip("truncated");
+                self.pos = self.data.len();
+                return None;
+            }
+            let start = self.pos + 3;
+            self.pos += 3 + size;
+            self.stats.messages += 1;
+            let body = &self.data[start..start + size];
+            if ty == b'D' {
+                if body.len() < 2 {
+                    self.stats.skip("bad_message");
+                    continue;
+                }
+                let id = u16::from_le_bytes([body[0], body[1]]);
+                let payload = &body[2..];
+                let Some(sub) = self.subs.get_mut(&id) else {
+                    self.stats.skip("unknown_subscription");
+                    continue;
+                };
+                if payload.len() < sub.used {
+                    self.stats.skip("short_data");
+                }
+                sub.records += 1;
+                self.stats.data += 1;
+                return Some(Data {
+                    sub: self.subs.get(&id).expect("present"),
+                    payload,
+                });
+            }
+            self.absorb(ty, body);
+        }
+    }
+
+    /// Skip to just after the next sync marker (or to the end).
+    fn resync(&mut self) {
+        let from = self.pos + 1;
+        match self.data[from.min(self.data.len())..]
+            .windows(SYNC.len())
+            .position(|w| w == SYNC)
+        {
+            Some(k) => self.pos = from + k + SYNC.len(),
+            None => self.pos = self.data.len(),
+        }
+    }
+
+    fn absorb(&mut self, ty: u8, body: &[u8]) {
+        match ty {
+            b'B' => {
+                if body.len() < 40 {
+                    self.stats.skip("bad_message");
+                    return;
+                }
+                // incompat_flags[0] bit 0: data appended at the offsets that follow.
+                if body[8] & 1 != 0 {
+                    for k in 0..3 {
+                        let o = 16 + 8 * k;
+                        let off = u64::from_le_bytes(body[o..o + 8].try_into().expect("8"));
+                        if off > 0 && (off as usize) > self.pos && off < self.data.len() as u64 {
+                            self.appended.push(off as usize);
+                        }
+                    }
+                    self.appended.sort_unstable();
+                }
+            }
+            b'F' => {
+                let text = String::from_utf8_lossy(body);
+                match parse_format(&text) {
+                    Some((name, f)) if self.formats.len() < MAX_FORMATS => {
+                        self.formats.insert(name, f);
+                    }
+                    _ => self.stats.skip("bad_format"),
+                }
+            }
+            b'A' => {
+                if body.len() < 3 {
+                    self.stats.skip("bad_message");
+                    return;
+                }
+                let multi_id = body[0];
+                let msg_id = u16::from_le_bytes([body[1], body[2]]);
+                let name = String::from_utf8_lossy(&body[3..]).into_owned();
+                let mut fields = Vec::new();
+                let mut used = 0;
+                match flatten(&self.formats, &name, "", 0, &mut fields, &mut used, 0) {
+                    Some(size) if self.subs.len() < MAX_SUBSCRIPTIONS => {
+                        let timestamp = fields.iter().position(|f| f.name == "timestamp");
+                        self.serial += 1;
+                        self.subs.insert(
+                            msg_id,
+                            Subscription {
+                                msg_id,
+                                multi_id,
+                                name,
+                                fields,
+                                size,
+                                used,
+                                records: 0,
+                                serial: self.serial,
+                                timestamp,
+                            },
+                        );
+                    }
+                    _ => self.stats.skip("bad_subscription"),
+                }
+            }
+            b'P' | b'I' => {
+                let Some((key, value)) = key_value(body) else {
+                    self.stats.skip("bad_message");
+                    return;
+                };
+                let Some((tyname, name)) = key.split_once(' ') else {
+                    self.stats.skip("bad_message");
+                    return;
+                };
+                if ty == b'I' {
+                    if tyname.starts_with("char[") && self.info.len() < 1024 {
+                        self.info.insert(
+                            name.to_string(),
+                            String::from_utf8_lossy(value).into_owned(),
+                        );
+                    }
+                    return;
+                }
+                let v = match Ty::parse(tyname) {
+                    Some(t) if value.len() >= t.size() => t.read(value),
+                    _ => {
+                        self.stats.skip("bad_message");
+                        return;
+                    }
+                };
+                if self.params.contains_key(name) {
+                    self.stats.param_changes += 1;
+                } else if self.params.len() < MAX_PARAMS {
+                    self.params.insert(name.to_string(), v);
+                }
+            }
+            b'O' => {
+                if body.len() >= 2 {
+                    self.stats.dropouts += 1;
+                    self.stats.dropout_ms += u16::from_le_bytes([body[0], body[1]]) as u64;
+                } else {
+                    self.stats.skip("bad_message");
+                }
+            }
+            // Multi information, default parameters, unsubscribe, log text, sync: nothing needed.
+            _ => {}
+        }
+    }
+}
+
+/// `key_len`, key, value of an information or parameter message.
+fn key_value(body: &[u8]) -> Option<(String, &[u8])> {
+    let n = *body.first()? as usize;
+    let key = body.get(1..1 + n)?;
+    Some((String::from_utf8_lossy(key).into_owned(), &body[1 + n..]))
+}
+
+/// `name:type field;type[n] field;...`
+fn parse_format(text: &str) -> Option<(String, RawFormat)> {
+    let (name, rest) = text.split_once(':')?;
+    let mut fields = Vec::new();
+    for part in rest.split(';').filter(|p| !p.trim().is_empty()) {
+        let (ty, field) = part.trim().split_once(' ')?;
+        let (ty, n) = match ty.split_once('[') {
+            Some((t, n)) => (t, Some(n.strip_suffix(']')?.parse::<usize>().ok()?)),
+            None => (ty, None),
+        };
+        if n.is_some_and(|n| n > MAX_FIELDS) {
+            return None;
+        }
+        fields.push((ty.to_string(), n, field.to_string()));
+    }
+    Some((name.to_string(), fields))
+}
+
+/// Flatten format `name` into `out` from byte `base` with name prefix `prefix`; returns its size.
+/// `used` is set to the end of the last non-padding field. `None` on an unknown type, nesting
+/// deeper than [`MAX_NESTING`] (or a cycle) or more than [`MAX_FIELDS`] fields.
+fn flatten(
+    formats: &BTreeMap<String, RawFormat>,
+    name: &str,
+    prefix: &str,
+    base: usize,
+    out: &mut Vec<Field>,
+    used: &mut usize,
+    depth: usize,
+) -> Option<usize> {
+    if depth > MAX_NESTING {
+        return None;
+    }
+    let f = formats.get(name)?;
+    let mut off = 0usize;
+    for (ty, n, field) in f {
+        let count = n.unwrap_or(1);
+        let padding = field.starts_with("_padding");
+        match Ty::parse(ty) {
+            Some(t) => {
+                if !padding {
+                    for i in 0..count {
+                        if out.len() >= MAX_FIELDS {
+                            return None;
+                        }
+                        let fname = match n {
+                            Some(_) => format!("{prefix}{field}[{i}]"),
+                            None => format!("{prefix}{field}"),
+                        };
+                        out.push(Field {
+                            name: fname,
+                            ty: t,
+                            offset: base + off + i * t.size(),
+                        });
+                    }
+                }
+                off = off.checked_add(t.size().checked_mul(count)?)?;
+                if !padding {
+                    *used = (*used).max(base + off);
+                }
+            }
+            None => {
+                for i in 0..count {
+                    let p = match n {
+                        Some(_) => format!("{prefix}{field}[{i}]."),
+                        None => format!("{prefix}{field}."),
+                    };
+                    let size = flatten(formats, ty, &p, base + off, out, used, depth + 1)?;
+                    off = off.checked_add(size)?;
+                }
+            }
+        }
+        if off > 1 << 20 {
+            return None;
+        }
+    }
+    Some(off)
+}
+
+/// Whether `bytes` begin a ULog file.
+pub fn looks_like(bytes: &[u8]) -> bool {
+    bytes.len() >= MAGIC.len() && bytes[..MAGIC.len()] == MAGIC
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    pub fn msg(ty: u8, body: &[u8]) -> Vec<u8> {
+        let mut m = (body.len() as u16).to_le_bytes().to_vec();
+        m.push(ty);
+        m.extend_from_slice(body);
+        m
+    }
+
+    pub fn header() -> Vec<u8> {
+        let mut h = MAGIC.to_vec();
+        h.push(1);
+        h.extend(0u64.to_le_bytes());
+        h
+    }
+
+    pub fn param(name: &str, v: f32) -> Vec<u8> {
+        let key = format!("float {name}");
+        let mut b = vec![key.len() as u8];
+        b.extend(key.as_bytes());
+        b.extend(v.to_le_bytes());
+        msg(b'P', &b)
+    }
+
+    pub fn sub(multi: u8, id: u16, name: &str) -> Vec<u8> {
+        let mut b = vec![multi];
+        b.extend(id.to_le_bytes());
+        b.extend(name.as_bytes());
+        msg(b'A', &b)
+    }
+
+    #[test]
+    fn nested_formats_padding_and_multi_instances() {
+        let mut f = header();
+        f.extend(msg(b'F', b"vec3:float x;float y;float z;"));
+        f.extend(msg(
+            b'F',
+            b"sensor_mag:uint64_t timestamp;uint32_t device_id;vec3 v;uint8_t[2] _padding0;int16_t[2] k;",
+        ));
+        f.extend(param("CAL_MAG0_XOFF", 0.25));
+        f.extend(sub(0, 3, "sensor_mag"));
+        f.extend(sub(1, 4, "sensor_mag"));
+        f.extend(msg(b'O', &50u16.to_le_bytes()));
+        let data = |id: u16, t: u64, x: f32| {
+            let mut b = id.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            b.extend(7u32.to_le_bytes());
+            for v in [x, 2.0, 3.0] {
+                b.extend(v.to_le_bytes());
+            }
+            b.extend([0, 0]);
+            b.extend(5i16.to_le_bytes());
+            b.extend((-6i16).to_le_bytes());
+            msg(b'D', &b)
+        };
+        f.extend(data(3, 100, 1.5));
+        f.extend([0xFF, 0xFF, b'X']); // damaged header
+        f.extend(msg(b'S', &SYNC));
+        f.extend(data(4, 200, -1.5));
+        f.extend(data(9, 300, 0.0)); // no subscription
+        let last = data(3, 400, 9.0);
+        f.extend(&last[..last.len() - 3]); // truncated tail
+        let mut r = UlogReader::new(&f).unwrap();
+        let mut got = vec![];
+        while let Some(d) = r.next_data() {
+            got.push((
+                d.sub.name.clone(),
+                d.sub.multi_id,
+                d.timestamp_us().unwrap(),
+                d.get("v.x").unwrap(),
+                d.get("k[1]").unwrap(),
+            ));
+        }
+        assert_eq!(
+            got,
+            [
+                ("sensor_mag".to_string(), 0, 100, 1.5, -6.0),
+                ("sensor_mag".to_string(), 1, 200, -1.5, -6.0)
+            ]
+        );
+        assert_eq!(r.params()["CAL_MAG0_XOFF"], 0.25);
+        assert_eq!(r.stats.dropouts, 1);
+        assert_eq!(r.stats.dropout_ms, 50);
+        assert_eq!(r.stats.skipped["resync"], 1);
+        assert_eq!(r.stats.skipped["unknown_subscription"], 1);
+        assert_eq!(r.stats.skipped["truncated"], 1);
+        let s = r.subscriptions().next().unwrap();
+        assert!(s.field("_padding0").is_none());
+        assert_eq!(s.size, 8 + 4 + 12 + 2 + 4);
+    }
+
+    #[test]
+    fn a_cyclic_format_is_refused() {
+        let mut f = header();
+        f.extend(msg(b'F', b"a:b x;"));
+        f.extend(msg(b'F', b"b:a y;"));
+        f.extend(sub(0, 1, "a"));
+        let mut r = UlogReader::new(&f).unwrap();
+        assert!(r.next_data().is_none());
+        assert_eq!(r.stats.skipped["bad_subscription"], 1);
+    }
+}
