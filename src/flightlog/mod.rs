@@ -11,7 +11,7 @@
 //! readings since the last one (as a MAVLink IMU message does); an instance without an
 //! accelerometer gives a sample per reading. Each instance has its own [`SourceClock`].
 //!
-//! Onboard correction undone (conventions: `shared/CONVENTIONS.md`). ArduPilot logs `MAG` after
+//! Onboard correction undone. ArduPilot logs `MAG` after
 //! `mag = S (scale (raw + OFS)) + MOfs` (mGauss): raw = (S^-1 (mag - MOfs)) / scale - OFS, with
 //! COMPASS_OFS/DIA/ODI/SCALE of that compass (the record's own OfsX/Y/Z where the parameter is
 //! absent or differs by more than 1 mGauss: an offset changed in flight). PX4's
@@ -19,8 +19,10 @@
 //! the prime compass (CAL_MAG_PRIME = CAL_MAGn_ID), undone to the raw field in body axes,
 //! R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
 //! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations, else not undone and said
-//! so (`onboard.not_undone`). The conversion uses the onboard convention's offsets (shared
-//! `CONVENTIONS.md`; the CAL_MAGn_?COMP power compensation is not undone). `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
+//! so (`onboard.not_undone`). Onboard calibrations are reported in imucald's model, calibrated =
+//! M (raw - offset) in uT: ArduPilot's hard iron is -COMPASS_OFS/10, M = S (x scale); PX4's is
+//! CAL_MAGn_?OFF x 100, M = S (the CAL_MAGn_?COMP power compensation is not undone).
+//! `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
 //! board); their onboard calibration is reported, not undone.
 
 pub mod dataflash;
