@@ -69,6 +69,56 @@ pub struct Batch {
 /// Samples per [`Batch`].
 pub const BATCH_SAMPLES: usize = 8192;
 
+/// Gathers decoded samples into [`Batch`]es of [`BATCH_SAMPLES`]: the primary instance's in
+/// `samples`, the others' in `others`.
+struct Batcher {
+    samples: Vec<Sample>,
+    others: Vec<(usize, Sample)>,
+    /// A primary sample was handed on.
+    any: bool,
+}
+
+impl Batcher {
+    fn new() -> Batcher {
+        Batcher {
+            samples: Vec::with_capacity(BATCH_SAMPLES),
+            others: Vec::new(),
+            any: false,
+        }
+    }
+
+    /// Take a sample of instance `k`; true when a batch is full.
+    fn push(&mut self, k: usize, s: Sample, primary: Option<usize>) -> bool {
+        if Some(k) == primary {
+            self.samples.push(s);
+        } else {
+            self.others.push((k, s));
+        }
+        self.samples.len() + self.others.len() >= BATCH_SAMPLES
+    }
+
+    /// Hand on what was gathered (nothing when empty).
+    fn flush(
+        &mut self,
+        sink: &mut dyn FnMut(Batch),
+        info: (Vec<InstanceInfo>, Units),
+        read: (usize, usize),
+    ) {
+        if self.samples.is_empty() && self.others.is_empty() {
+            return;
+        }
+        self.any |= !self.samples.is_empty();
+        sink(Batch {
+            samples: std::mem::replace(&mut self.samples, Vec::with_capacity(BATCH_SAMPLES)),
+            others: std::mem::take(&mut self.others),
+            instances: info.0,
+            units: info.1,
+            bytes_read: read.0,
+            bytes_total: read.1,
+        });
+    }
+}
+
 /// As [`decode_log`], handing the samples on in batches of [`BATCH_SAMPLES`] as they are decoded
 /// (a tlog; a CSV comes as one batch), so a consumer can work while decoding goes on. The returned
 /// [`Log`] has everything but the samples.
@@ -95,50 +145,21 @@ pub fn decode_log_batched(
     };
     match format {
         Format::Tlog => {
-            let choice = if cfg.input.instance == "auto" {
-                InstanceChoice::Auto
-            } else {
-                InstanceChoice::Named(cfg.input.instance.clone())
-            };
+            let choice = InstanceChoice::from_setting(&cfg.input.instance);
             let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
             if conv.choice == InstanceChoice::Auto {
                 conv = conv.with_other_instances();
             }
             let total = data.len();
-            let mut batch = Vec::with_capacity(BATCH_SAMPLES);
-            let mut others = Vec::new();
-            let mut any = false;
+            let mut b = Batcher::new();
             decode_tlog_with(&data, &mut conv, &mut |k, s, read, conv| {
-                if Some(k) == conv.primary_index() {
-                    batch.push(s);
-                } else {
-                    others.push((k, s));
-                }
-                if batch.len() + others.len() >= BATCH_SAMPLES {
-                    any |= !batch.is_empty();
-                    sink(Batch {
-                        samples: std::mem::replace(&mut batch, Vec::with_capacity(BATCH_SAMPLES)),
-                        others: std::mem::take(&mut others),
-                        instances: conv.instances(),
-                        // Fixed by the instance, which the first sample locked.
-                        units: conv.units(),
-                        bytes_read: read,
-                        bytes_total: total,
-                    });
+                if b.push(k, s, conv.primary_index()) {
+                    // Units are fixed by the instance, which the first sample locked.
+                    b.flush(sink, (conv.instances(), conv.units()), (read, total));
                 }
             });
-            if !batch.is_empty() || !others.is_empty() {
-                any |= !batch.is_empty();
-                sink(Batch {
-                    samples: batch,
-                    others,
-                    instances: conv.instances(),
-                    units: conv.units(),
-                    bytes_read: total,
-                    bytes_total: total,
-                });
-            }
-            if !any {
+            b.flush(sink, (conv.instances(), conv.units()), (total, total));
+            if !b.any {
                 let what = match &conv.choice {
                     InstanceChoice::Auto => {
                         "no IMU message with a magnetometer (HIGHRES_IMU, SCALED_IMU*, RAW_IMU)"
@@ -211,13 +232,11 @@ fn decode_flight_log(
     sink: &mut dyn FnMut(Batch),
 ) -> Result<Log, Error> {
     let total = data.len();
-    let mut batch = Vec::with_capacity(BATCH_SAMPLES);
-    let mut others = Vec::new();
-    let mut any = false;
+    let mut b = Batcher::new();
     // Instance names are known only at the end; batches carry placeholders with SI units
     // (flight-controller logs are in physical units throughout).
-    let placeholder = |n: usize| -> Vec<InstanceInfo> {
-        (0..n)
+    let placeholder = |n: usize| -> (Vec<InstanceInfo>, Units) {
+        let info = (0..n)
             .map(|k| InstanceInfo {
                 name: format!("instance {k}"),
                 compass_id: 0,
@@ -225,26 +244,14 @@ fn decode_flight_log(
                 units: Units::default(),
                 time: Default::default(),
             })
-            .collect()
+            .collect();
+        (info, Units::default())
     };
     let mut seen = 0usize;
     let mut emit = |k: usize, s: Sample, read: usize, primary: Option<usize>| {
         seen = seen.max(k + 1);
-        if Some(k) == primary {
-            batch.push(s);
-        } else {
-            others.push((k, s));
-        }
-        if batch.len() + others.len() >= BATCH_SAMPLES {
-            any |= !batch.is_empty();
-            sink(Batch {
-                samples: std::mem::replace(&mut batch, Vec::with_capacity(BATCH_SAMPLES)),
-                others: std::mem::take(&mut others),
-                instances: placeholder(seen),
-                units: Units::default(),
-                bytes_read: read,
-                bytes_total: total,
-            });
+        if b.push(k, s, primary) {
+            b.flush(sink, placeholder(seen), (read, total));
         }
     };
     let flight = match format {
@@ -257,18 +264,8 @@ fn decode_flight_log(
             message: "not a ULog file (no `ULog` header)".into(),
         });
     };
-    if !batch.is_empty() || !others.is_empty() {
-        any |= !batch.is_empty();
-        sink(Batch {
-            samples: batch,
-            others,
-            instances: placeholder(seen),
-            units: Units::default(),
-            bytes_read: total,
-            bytes_total: total,
-        });
-    }
-    if !any {
+    b.flush(sink, placeholder(seen), (total, total));
+    if !b.any {
         let what = match format {
             Format::Bin => "no IMU or MAG record with a known layout (FMT) in the DataFlash log",
             _ => "no sensor_combined, vehicle_magnetometer or sensor_* data in the ULog file",
