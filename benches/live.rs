@@ -99,7 +99,10 @@ impl Daemon {
         // `daemon.udp_poll_ms` values); a table given both ways is merged by TOML rules or refused.
         let extra = std::env::var("IMUCALD_BENCH_TOML").unwrap_or_default();
         std::fs::write(&cfg, merge_toml(toml, &extra)).expect("bench config");
-        let child = Command::new(env!("CARGO_BIN_EXE_imucald"))
+        // IMUCALD_BENCH_BIN: another build of imucald to measure (an A/B against this one).
+        let bin = std::env::var("IMUCALD_BENCH_BIN")
+            .unwrap_or_else(|_| env!("CARGO_BIN_EXE_imucald").to_string());
+        let child = Command::new(bin)
             .args([
                 "run",
                 "--config",
@@ -258,7 +261,7 @@ fn cpu_at_1khz(seconds: f64) {
     let d = Daemon::start();
     let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
     sock.connect(("127.0.0.1", d.port)).unwrap();
-    let mut enc = MavEncoder::default();
+    let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
     let minutes = (seconds / 60.0).ceil() as u64;
     let mut sent = 0;
     let (mut cpu0, mut loop0, mut t0) = (f64::NAN, f64::NAN, Instant::now());
@@ -305,7 +308,7 @@ fn memory(minutes: u64, rate: f64) {
     let d = Daemon::start();
     let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
     sock.connect(("127.0.0.1", d.port)).unwrap();
-    let mut enc = MavEncoder::default();
+    let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
     let mut rss = vec![];
     let start = Instant::now();
     let mut sent = 0;
@@ -335,7 +338,7 @@ fn load(seconds: f64) {
     let d = Daemon::start();
     let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
     sock.connect(("127.0.0.1", d.port)).unwrap();
-    let mut enc = MavEncoder::default();
+    let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
     let k0 = udp_rcvbuf_errors();
     let mut sent = 0;
     let minutes = (seconds / 6.0).ceil() as u64;
@@ -368,7 +371,7 @@ fn latency(seconds: f64) {
     sock.connect(("127.0.0.1", d.port)).unwrap();
     sock.set_read_timeout(Some(Duration::from_millis(20)))
         .unwrap();
-    let mut enc = MavEncoder::default();
+    let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
     let n = (seconds * 1000.0) as usize + 3000;
     let mut samples = Vec::new();
     let mut m = 0;
