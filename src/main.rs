@@ -1,7 +1,7 @@
 //! The `imucald` binary: a thin edge over the library (anyhow lives only here).
 
 use anyhow::{Context, Result};
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use imucald::config::Config;
 use imucald::decode::Format;
 use std::path::PathBuf;
@@ -19,117 +19,133 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Run a captured log (MAVLink .tlog, CSV or .csv.gz) through the calibration pipeline.
-    Replay {
-        /// The log file. Default: the bundled simulated tumble in fixtures/.
-        log: Option<PathBuf>,
-        /// TOML configuration (see config/).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-        #[arg(long)]
-        format: Option<String>,
-        /// Write the JSON report here.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Write calibrated samples (CSV) here.
-        #[arg(long)]
-        calibrated_out: Option<PathBuf>,
-        /// Write plots (coverage maps, residuals) into this directory.
-        #[arg(long)]
-        plot: Option<PathBuf>,
-        /// Write ArduPilot, PX4 and x-io Fusion parameter files into this directory.
-        #[arg(long)]
-        export: Option<PathBuf>,
-    },
+    /// Run a captured log (MAVLink .tlog, ArduPilot DataFlash .bin, PX4 .ulg, CSV or .csv.gz)
+    /// through the calibration pipeline.
+    Replay(ReplayArgs),
     /// Run the live service: read IMU data from links, calibrate online, publish heading and calibrations.
     /// With no config: the embedded default, a simulated IMU tumbling with pauses.
-    Run {
-        /// TOML configuration (see config/).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Source address, overriding the config's (repeatable): udpin:IP:PORT, udpout:IP:PORT,
-        /// tcpout:HOST:PORT, tcpin:IP:PORT, serial:/dev/ttyX:BAUD, file:LOG[?speed=N], sim:SCENARIO.
-        #[arg(long = "source")]
-        sources: Vec<String>,
-        /// JSON-lines consumer, overriding the config's (repeatable): stdout, udp:IP:PORT, tcp:IP:PORT.
-        #[arg(long = "publish")]
-        publish: Vec<String>,
-        /// Keep the latest report (imucald.report/1) in this file.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    Run(RunArgs),
     /// Find where the fitted model and the measured data disagree: name the missing effect (from a
     /// catalogue), add it to the model and show how far the residual shrinks on held-out poses.
-    Diagnose {
-        /// The log file (.tlog, CSV or .csv.gz).
-        log: PathBuf,
-        /// TOML configuration (see config/).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-        #[arg(long)]
-        format: Option<String>,
-        /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
-        #[arg(long, default_value = "diag6")]
-        base_model: String,
-        /// Family-wise significance level of each round.
-        #[arg(long, default_value_t = 0.01)]
-        alpha: f64,
-        /// Seed of the held-out split.
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Write the JSON report (imucald.diagnosis/1) here.
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Write residual-versus-regressor plots (before and after) into this directory.
-        #[arg(long)]
-        plot: Option<PathBuf>,
-    },
+    Diagnose(DiagnoseArgs),
     /// Score imucald's orientation filter (gyro + accel + mag) against the reference orientation a
     /// log carries (ref_qw..ref_qz, sensor -> ENU, e.g. BROAD's optical motion capture): total,
     /// heading and inclination RMSE over the movement phase, by BROAD's definitions.
-    Eval {
-        /// The log file (CSV or .csv.gz with ref_q columns).
-        log: PathBuf,
-        /// TOML configuration (see config/); only the input mapping is used.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-        #[arg(long)]
-        format: Option<String>,
-        /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
-        /// heading, or heading-and-misalignment.
-        #[arg(long, default_value = "none")]
-        align: String,
-        /// Without the magnetometer (6D: heading from the gyro alone).
-        #[arg(long)]
-        no_mag: bool,
-        /// Write the figures as JSON here.
-        #[arg(long)]
-        report: Option<PathBuf>,
-    },
+    Eval(EvalArgs),
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
     /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
-    Simulate {
-        /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
-        #[arg(long, default_value = "tumble")]
-        scenario: String,
-        /// Output log; the format follows the extension.
-        #[arg(long)]
-        out: PathBuf,
-        /// Write the true parameters and poses here (JSON).
-        #[arg(long)]
-        truth: Option<PathBuf>,
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// IMU message in a .tlog: highres_imu or scaled_imu.
-        #[arg(long, default_value = "highres_imu")]
-        message: String,
-        /// MAVLink version of the frames in a .tlog (1 or 2).
-        #[arg(long, default_value_t = 2)]
-        mavlink_version: u8,
-    },
+    Simulate(SimulateArgs),
+}
+
+#[derive(Args)]
+struct ReplayArgs {
+    /// The log file. Default: the bundled simulated tumble in fixtures/.
+    log: Option<PathBuf>,
+    /// TOML configuration (see config/).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
+    #[arg(long)]
+    format: Option<String>,
+    /// Write the JSON report here.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Write calibrated samples (CSV) here.
+    #[arg(long)]
+    calibrated_out: Option<PathBuf>,
+    /// Write plots (coverage maps, residuals) into this directory.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+    /// Write ArduPilot, PX4 and x-io Fusion parameter files into this directory.
+    #[arg(long)]
+    export: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// TOML configuration (see config/).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Source address, overriding the config's (repeatable): udpin:IP:PORT, udpout:IP:PORT,
+    /// tcpout:HOST:PORT, tcpin:IP:PORT, serial:/dev/ttyX:BAUD, file:LOG[?speed=N], sim:SCENARIO.
+    #[arg(long = "source")]
+    sources: Vec<String>,
+    /// JSON-lines consumer, overriding the config's (repeatable): stdout, udp:IP:PORT, tcp:IP:PORT.
+    #[arg(long = "publish")]
+    publish: Vec<String>,
+    /// Keep the latest report (imucald.report/1) in this file.
+    #[arg(long)]
+    report: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct DiagnoseArgs {
+    /// The log file (.tlog, CSV or .csv.gz).
+    log: PathBuf,
+    /// TOML configuration (see config/).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
+    #[arg(long)]
+    format: Option<String>,
+    /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
+    #[arg(long, default_value = "diag6")]
+    base_model: String,
+    /// Family-wise significance level of each round.
+    #[arg(long, default_value_t = 0.01)]
+    alpha: f64,
+    /// Seed of the held-out split.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Write the JSON report (imucald.diagnosis/1) here.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Write residual-versus-regressor plots (before and after) into this directory.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct EvalArgs {
+    /// The log file (CSV or .csv.gz with ref_q columns).
+    log: PathBuf,
+    /// TOML configuration (see config/); only the input mapping is used.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
+    #[arg(long)]
+    format: Option<String>,
+    /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
+    /// heading, or heading-and-misalignment.
+    #[arg(long, default_value = "none")]
+    align: String,
+    /// Without the magnetometer (6D: heading from the gyro alone).
+    #[arg(long)]
+    no_mag: bool,
+    /// Write the figures as JSON here.
+    #[arg(long)]
+    report: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct SimulateArgs {
+    /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
+    #[arg(long, default_value = "tumble")]
+    scenario: String,
+    /// Output log; the format follows the extension.
+    #[arg(long)]
+    out: PathBuf,
+    /// Write the true parameters and poses here (JSON).
+    #[arg(long)]
+    truth: Option<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// IMU message in a .tlog: highres_imu or scaled_imu.
+    #[arg(long, default_value = "highres_imu")]
+    message: String,
+    /// MAVLink version of the frames in a .tlog (1 or 2).
+    #[arg(long, default_value_t = 2)]
+    mavlink_version: u8,
 }
 
 /// `--format`: none (detect from the content), tlog, csv, bin or ulg.
@@ -179,266 +195,286 @@ fn main() -> Result<()> {
         .init();
     let cli = Cli::parse();
     match cli.cmd {
-        Cmd::Replay {
-            log,
-            config,
-            format,
-            report,
-            calibrated_out,
-            plot,
-            export,
-        } => {
-            let cfg = load_config(config.as_ref())?;
-            let format = parse_format(format.as_deref())?;
-            let log = log.unwrap_or_else(|| {
-                PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
-            });
-            let opts = imucald::replay::ReplayOptions {
-                format,
-                report,
-                calibrated_out,
-                plot_dir: plot,
-                export_dir: export,
-            };
-            let bar = indicatif::ProgressBar::new(0);
-            bar.set_style(
-                indicatif::ProgressStyle::with_template(
-                    "{bar:40} {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
-                )
-                .expect("template"),
-            );
-            let out = imucald::replay::replay(&log, &cfg, &opts, &mut |done, total| {
-                bar.set_length(total);
-                bar.set_position(done);
+        Cmd::Replay(a) => replay_cmd(a),
+        Cmd::Run(a) => run_cmd(a),
+        Cmd::Diagnose(a) => diagnose_cmd(a),
+        Cmd::Eval(a) => eval_cmd(a),
+        Cmd::Simulate(a) => simulate_cmd(a),
+    }
+}
+
+fn replay_cmd(args: ReplayArgs) -> Result<()> {
+    let ReplayArgs {
+        log,
+        config,
+        format,
+        report,
+        calibrated_out,
+        plot,
+        export,
+    } = args;
+    let cfg = load_config(config.as_ref())?;
+    let format = parse_format(format.as_deref())?;
+    let log = log.unwrap_or_else(|| {
+        PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
+    });
+    let opts = imucald::replay::ReplayOptions {
+        format,
+        report,
+        calibrated_out,
+        plot_dir: plot,
+        export_dir: export,
+    };
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
+        )
+        .expect("template"),
+    );
+    let out = imucald::replay::replay(&log, &cfg, &opts, &mut |done, total| {
+        bar.set_length(total);
+        bar.set_position(done);
+    })
+    .with_context(|| format!("replay of {}", log.display()))?;
+    bar.finish_and_clear();
+    print!("{}", imucald::replay::summary(&out.report));
+    for p in &out.written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
+
+fn run_cmd(args: RunArgs) -> Result<()> {
+    let RunArgs {
+        config,
+        sources,
+        publish,
+        report,
+    } = args;
+    let mut cfg = load_config(config.as_ref())?;
+    if !sources.is_empty() {
+        cfg.daemon.sources = sources
+            .into_iter()
+            .map(|address| imucald::config::SourceConfig {
+                address,
+                payload: "mavlink".into(),
+                fields: vec![],
+                scales: Default::default(),
             })
-            .with_context(|| format!("replay of {}", log.display()))?;
-            bar.finish_and_clear();
-            print!("{}", imucald::replay::summary(&out.report));
-            for p in &out.written {
-                println!("wrote {}", p.display());
-            }
+            .collect();
+    }
+    if !publish.is_empty() {
+        cfg.daemon.publish = publish;
+    }
+    if let Some(r) = report {
+        cfg.daemon.report = Some(r.display().to_string());
+    }
+    if cfg.daemon.sources.is_empty() && cfg.daemon.publish.is_empty() {
+        // The embedded default shows its output on the terminal.
+        cfg.daemon.publish = vec!["stdout".into()];
+        cfg.daemon.heading_rate_hz = 1.0;
+        cfg.daemon.attitude_rate_hz = 1.0;
+        eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
+    }
+    cfg.validate()?;
+    // One thread: the per-sample work is small, and waking a second worker for every arriving frame
+    // costs more CPU than the work itself (benches/live.rs). Fits run on the blocking pool.
+    // Memory stays flat over long runs: one malloc arena for the few threads (the blocking
+    // pool's fit thread had its own, whose heap crept up about 0.5 MB an hour by
+    // fragmentation), and the fits' large scratch buffers (hundreds of kB per refit) always
+    // from mmap, back to the system when freed.
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets allocator parameters; called before other threads start.
+    unsafe {
+        libc::mallopt(libc::M_ARENA_MAX, 1);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 128 * 1024);
+    }
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("tokio runtime")?;
+    let summary = rt.block_on(async move {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            wait_for_signal().await;
+            let _ = tx.send(true);
+        });
+        // The service runs as a task, not as the `block_on` future itself: waking that
+        // future goes through the I/O driver (an eventfd write and one more epoll_wait),
+        // while waking a task from another task on this thread only queues it.
+        let r = tokio::spawn(imucald::daemon::run(cfg, rx))
+            .await
+            .context("service task")?;
+        anyhow::Ok(r?)
+    })?;
+    rt.shutdown_timeout(std::time::Duration::from_millis(200));
+    eprintln!(
+        "imucald run: {} samples, {} calibrations accepted, {} samples dropped",
+        summary.samples, summary.accepted, summary.inbound_dropped
+    );
+    Ok(())
+}
+
+fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
+    let DiagnoseArgs {
+        log,
+        config,
+        format,
+        base_model,
+        alpha,
+        seed,
+        report,
+        plot,
+    } = args;
+    let cfg = load_config(config.as_ref())?;
+    let format = parse_format(format.as_deref())?;
+    let base = match imucald::model::ModelKind::parse(&base_model) {
+        Some(m @ (imucald::model::ModelKind::Diag6 | imucald::model::ModelKind::Sym9)) => m,
+        _ => anyhow::bail!("--base-model `{base_model}`: use diag6 or sym9"),
+    };
+    anyhow::ensure!(
+        alpha > 0.0 && alpha < 1.0,
+        "--alpha {alpha}: must be between 0 and 1"
+    );
+    let input = imucald::sources::read_log(&log, format, &cfg)
+        .with_context(|| format!("reading {}", log.display()))?;
+    let spinner = indicatif::ProgressBar::new_spinner();
+    spinner.set_message(format!(
+        "diagnosing {} samples of {}",
+        input.samples.len(),
+        log.display()
+    ));
+    spinner.enable_steady_tick(std::time::Duration::from_millis(120));
+    let opts = imucald::diagnose::DiagnoseOptions {
+        base_model: base,
+        alpha,
+        seed,
+        ..Default::default()
+    };
+    let r = imucald::diagnose::diagnose(&input.samples, &cfg, &opts);
+    spinner.finish_and_clear();
+    print!("{}", imucald::diagnose::summary_table(&r));
+    if let Some(path) = report {
+        imucald::publish::write_json(&path, &r)?;
+        println!("wrote {}", path.display());
+    }
+    if let Some(dir) = plot {
+        for p in imucald::plot::diagnosis(&dir, &r)
+            .with_context(|| format!("plots into {}", dir.display()))?
+        {
+            println!("wrote {}", p.display());
         }
-        Cmd::Run {
-            config,
-            sources,
-            publish,
-            report,
-        } => {
-            let mut cfg = load_config(config.as_ref())?;
-            if !sources.is_empty() {
-                cfg.daemon.sources = sources
-                    .into_iter()
-                    .map(|address| imucald::config::SourceConfig {
-                        address,
-                        payload: "mavlink".into(),
-                        fields: vec![],
-                        scales: Default::default(),
-                    })
-                    .collect();
-            }
-            if !publish.is_empty() {
-                cfg.daemon.publish = publish;
-            }
-            if let Some(r) = report {
-                cfg.daemon.report = Some(r.display().to_string());
-            }
-            if cfg.daemon.sources.is_empty() && cfg.daemon.publish.is_empty() {
-                // The embedded default shows its output on the terminal.
-                cfg.daemon.publish = vec!["stdout".into()];
-                cfg.daemon.heading_rate_hz = 1.0;
-                cfg.daemon.attitude_rate_hz = 1.0;
-                eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
-            }
-            cfg.validate()?;
-            // One thread: the per-sample work is small, and waking a second worker for every arriving frame
-            // costs more CPU than the work itself (benches/live.rs). Fits run on the blocking pool.
-            // Memory stays flat over long runs: one malloc arena for the few threads (the blocking
-            // pool's fit thread had its own, whose heap crept up about 0.5 MB an hour by
-            // fragmentation), and the fits' large scratch buffers (hundreds of kB per refit) always
-            // from mmap, back to the system when freed.
-            #[cfg(all(target_os = "linux", target_env = "gnu"))]
-            // SAFETY: mallopt only sets allocator parameters; called before other threads start.
-            unsafe {
-                libc::mallopt(libc::M_ARENA_MAX, 1);
-                libc::mallopt(libc::M_MMAP_THRESHOLD, 128 * 1024);
-            }
-            let rt = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()
-                .context("tokio runtime")?;
-            let summary = rt.block_on(async move {
-                let (tx, rx) = tokio::sync::watch::channel(false);
-                tokio::spawn(async move {
-                    wait_for_signal().await;
-                    let _ = tx.send(true);
-                });
-                // The service runs as a task, not as the `block_on` future itself: waking that
-                // future goes through the I/O driver (an eventfd write and one more epoll_wait),
-                // while waking a task from another task on this thread only queues it.
-                let r = tokio::spawn(imucald::daemon::run(cfg, rx))
-                    .await
-                    .context("service task")?;
-                anyhow::Ok(r?)
+    }
+    Ok(())
+}
+
+fn eval_cmd(args: EvalArgs) -> Result<()> {
+    let EvalArgs {
+        log,
+        config,
+        format,
+        align,
+        no_mag,
+        report,
+    } = args;
+    let cfg = load_config(config.as_ref())?;
+    let format = parse_format(format.as_deref())?;
+    let alignment = imucald::eval::Alignment::parse(&align).with_context(|| {
+        format!("--align `{align}`: use none, heading or heading-and-misalignment")
+    })?;
+    let input = imucald::sources::read_log(&log, format, &cfg)
+        .with_context(|| format!("reading {}", log.display()))?;
+    let fcfg = imucald::fusion::FusionConfig {
+        use_mag: !no_mag,
+        ..Default::default()
+    };
+    let r = imucald::eval::evaluate_filter(&input.samples, &fcfg, alignment)
+            .with_context(|| {
+                format!(
+                    "{}: no sample has a reference orientation (ref_qw, ref_qx, ref_qy, ref_qz columns) \
+                     inside the movement phase (moving = 1, or all samples without a moving column)",
+                    log.display()
+                )
             })?;
-            rt.shutdown_timeout(std::time::Duration::from_millis(200));
-            eprintln!(
-                "imucald run: {} samples, {} calibrations accepted, {} samples dropped",
-                summary.samples, summary.accepted, summary.inbound_dropped
-            );
-        }
-        Cmd::Diagnose {
-            log,
-            config,
-            format,
-            base_model,
-            alpha,
-            seed,
-            report,
-            plot,
-        } => {
-            let cfg = load_config(config.as_ref())?;
-            let format = parse_format(format.as_deref())?;
-            let base = match imucald::model::ModelKind::parse(&base_model) {
-                Some(m @ (imucald::model::ModelKind::Diag6 | imucald::model::ModelKind::Sym9)) => m,
-                _ => anyhow::bail!("--base-model `{base_model}`: use diag6 or sym9"),
-            };
-            anyhow::ensure!(
-                alpha > 0.0 && alpha < 1.0,
-                "--alpha {alpha}: must be between 0 and 1"
-            );
-            let input = imucald::sources::read_log(&log, format, &cfg)
-                .with_context(|| format!("reading {}", log.display()))?;
-            let spinner = indicatif::ProgressBar::new_spinner();
-            spinner.set_message(format!(
-                "diagnosing {} samples of {}",
-                input.samples.len(),
-                log.display()
-            ));
-            spinner.enable_steady_tick(std::time::Duration::from_millis(120));
-            let opts = imucald::diagnose::DiagnoseOptions {
-                base_model: base,
-                alpha,
-                seed,
-                ..Default::default()
-            };
-            let r = imucald::diagnose::diagnose(&input.samples, &cfg, &opts);
-            spinner.finish_and_clear();
-            print!("{}", imucald::diagnose::summary_table(&r));
-            if let Some(path) = report {
-                imucald::publish::write_json(&path, &r)?;
-                println!("wrote {}", path.display());
-            }
-            if let Some(dir) = plot {
-                for p in imucald::plot::diagnosis(&dir, &r)
-                    .with_context(|| format!("plots into {}", dir.display()))?
-                {
-                    println!("wrote {}", p.display());
-                }
-            }
-        }
-        Cmd::Eval {
-            log,
-            config,
-            format,
-            align,
-            no_mag,
-            report,
-        } => {
-            let cfg = load_config(config.as_ref())?;
-            let format = parse_format(format.as_deref())?;
-            let alignment = imucald::eval::Alignment::parse(&align).with_context(|| {
-                format!("--align `{align}`: use none, heading or heading-and-misalignment")
+    print!("{}", r.to_text());
+    if let Some(path) = report {
+        imucald::publish::write_json(&path, &r)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn simulate_cmd(args: SimulateArgs) -> Result<()> {
+    let SimulateArgs {
+        scenario,
+        out,
+        truth,
+        seed,
+        message,
+        mavlink_version,
+    } = args;
+    use imucald::sim::{simulate, write_csv, write_tlog, ImuMessage, Scenario, TlogWriteOptions};
+    let sc = match Scenario::named(&scenario) {
+        Some(s) => s,
+        None => {
+            let text = std::fs::read_to_string(&scenario).with_context(|| {
+                format!(
+                    "--scenario `{scenario}` is neither a built-in ({}) nor a readable file",
+                    Scenario::names().join(", ")
+                )
             })?;
-            let input = imucald::sources::read_log(&log, format, &cfg)
-                .with_context(|| format!("reading {}", log.display()))?;
-            let fcfg = imucald::fusion::FusionConfig {
-                use_mag: !no_mag,
+            Scenario::from_toml_str(&text).with_context(|| format!("scenario file {scenario}"))?
+        }
+    };
+    let sim = simulate(&sc, seed);
+    let name = out.to_string_lossy().to_lowercase();
+    if name.ends_with(".tlog") {
+        let message = match message.as_str() {
+            "highres_imu" => ImuMessage::HighresImu,
+            "scaled_imu" => ImuMessage::ScaledImu,
+            m => anyhow::bail!("--message `{m}`: use highres_imu or scaled_imu"),
+        };
+        anyhow::ensure!(
+            mavlink_version == 1 || mavlink_version == 2,
+            "--mavlink-version must be 1 or 2"
+        );
+        write_tlog(
+            &out,
+            &sim.samples,
+            &TlogWriteOptions {
+                message,
+                mavlink_version,
                 ..Default::default()
-            };
-            let r = imucald::eval::evaluate_filter(&input.samples, &fcfg, alignment)
-                .with_context(|| {
-                    format!(
-                        "{}: no sample has a reference orientation (ref_qw, ref_qx, ref_qy, ref_qz columns) \
-                         inside the movement phase (moving = 1, or all samples without a moving column)",
-                        log.display()
-                    )
-                })?;
-            print!("{}", r.to_text());
-            if let Some(path) = report {
-                imucald::publish::write_json(&path, &r)?;
-                println!("wrote {}", path.display());
-            }
-        }
-        Cmd::Simulate {
-            scenario,
-            out,
-            truth,
-            seed,
-            message,
-            mavlink_version,
-        } => {
-            use imucald::sim::{
-                simulate, write_csv, write_tlog, ImuMessage, Scenario, TlogWriteOptions,
-            };
-            let sc = match Scenario::named(&scenario) {
-                Some(s) => s,
-                None => {
-                    let text = std::fs::read_to_string(&scenario)
-                        .with_context(|| format!("--scenario `{scenario}` is neither a built-in ({}) nor a readable file", Scenario::names().join(", ")))?;
-                    Scenario::from_toml_str(&text)
-                        .with_context(|| format!("scenario file {scenario}"))?
-                }
-            };
-            let sim = simulate(&sc, seed);
-            let name = out.to_string_lossy().to_lowercase();
-            if name.ends_with(".tlog") {
-                let message = match message.as_str() {
-                    "highres_imu" => ImuMessage::HighresImu,
-                    "scaled_imu" => ImuMessage::ScaledImu,
-                    m => anyhow::bail!("--message `{m}`: use highres_imu or scaled_imu"),
-                };
-                anyhow::ensure!(
-                    mavlink_version == 1 || mavlink_version == 2,
-                    "--mavlink-version must be 1 or 2"
-                );
-                write_tlog(
-                    &out,
-                    &sim.samples,
-                    &TlogWriteOptions {
-                        message,
-                        mavlink_version,
-                        ..Default::default()
-                    },
-                )?;
-            } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
-                write_csv(&out, &sim.samples)?;
-            } else if name.ends_with(".bin") || name.ends_with(".ulg") {
-                // The magnetometer logged corrected by a known onboard calibration, as flight
-                // controllers log it; replay undoes it from the log's parameters.
-                let onboard = imucald::flightlog::write::OnboardMag::example();
-                imucald::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
-                println!(
-                    "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
-                    onboard.offset_ut, onboard.matrix
-                );
-            } else {
-                anyhow::bail!(
-                    "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
-                    out.display()
-                );
-            }
-            println!(
-                "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",
-                out.display(),
-                sim.samples.len(),
-                sim.samples.last().map_or(0.0, |s| s.t_s),
-                sc.name
-            );
-            if let Some(t) = truth {
-                imucald::publish::write_json(&t, &sim.truth)?;
-                println!("wrote {}", t.display());
-            }
-        }
+            },
+        )?;
+    } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
+        write_csv(&out, &sim.samples)?;
+    } else if name.ends_with(".bin") || name.ends_with(".ulg") {
+        // The magnetometer logged corrected by a known onboard calibration, as flight
+        // controllers log it; replay undoes it from the log's parameters.
+        let onboard = imucald::flightlog::write::OnboardMag::example();
+        imucald::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+        println!(
+            "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
+            onboard.offset_ut, onboard.matrix
+        );
+    } else {
+        anyhow::bail!(
+            "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
+            out.display()
+        );
+    }
+    println!(
+        "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",
+        out.display(),
+        sim.samples.len(),
+        sim.samples.last().map_or(0.0, |s| s.t_s),
+        sc.name
+    );
+    if let Some(t) = truth {
+        imucald::publish::write_json(&t, &sim.truth)?;
+        println!("wrote {}", t.display());
     }
     Ok(())
 }

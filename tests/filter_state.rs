@@ -62,11 +62,15 @@ async fn filter_state_is_saved_and_restored() {
         assert!(dip.abs() < 90.0);
     }
     let stored_bias = store.gyro.as_ref().unwrap().bias;
-    let truth = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 3).truth;
-    eprintln!(
-        "gyro bias: stored {stored_bias:?}, truth {:?}, gyro cal {:?}",
-        truth.gyro.offset, store.gyro
-    );
+    // The gyro calibration took the simulated bias (0.01, -0.02, 0.005 rad/s) out of what the
+    // filter sees, and the filter's own estimate moved with it: what is left is small. (Measured
+    // 5.5e-4 to 1.7e-3 rad/s at most over runs; before the filter's estimate followed a new gyro
+    // calibration it was 0.014: the bias removed twice.)
+    let left = learnt
+        .gyro_bias_rad_s
+        .iter()
+        .fold(0.0f64, |m, b| m.max(b.abs()));
+    assert!(left < 5e-3, "residual bias {:?}", learnt.gyro_bias_rad_s);
 
     // A restored bias is where the next run's filter starts: set a known one, run again.
     let planted = [0.02, -0.03, 0.01];

@@ -231,6 +231,7 @@ impl State {
                 };
                 self.fusion = OrientationFilter::new(*self.fusion.config());
                 self.fusion.set_state(&kept);
+                self.filter_seeded = true;
             }
         }
     }

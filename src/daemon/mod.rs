@@ -232,6 +232,9 @@ struct State {
     /// The latest magnetometer reading in body axes before calibration (to tell how far a new
     /// calibration moves the field the filter sees).
     last_body_mag: Option<Vec3>,
+    /// The orientation filter was given a state (restored at start, or kept across a restart):
+    /// it has something to save even before its first sample.
+    filter_seeded: bool,
 }
 
 /// Time step of the orientation filter's first sample and of samples whose clock jumps, s.

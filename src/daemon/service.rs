@@ -126,10 +126,12 @@ impl State {
             samples_since_attitude: 0,
             attitude_due: false,
             last_body_mag: None,
+            filter_seeded: false,
             cfg,
         };
         if let Some(f) = st.store.filter {
             st.fusion.set_state(&f);
+            st.filter_seeded = true;
         }
         Ok(st)
     }

@@ -19,11 +19,12 @@ impl State {
         c
     }
 
-    /// What the orientation filter has learnt, to save: once it has run (before, nothing was
-    /// learnt beyond what was restored). A filter just restarted by a new magnetometer calibration
-    /// has kept its bias but not yet learnt the new field's reference: it is saved without one.
+    /// What the orientation filter has learnt, to save: once it has run or was given a state
+    /// (before, there is nothing to save). A filter just restarted by a new magnetometer
+    /// calibration has kept its bias but not yet learnt the new field's reference: it is saved
+    /// without one.
     pub(super) fn filter_state(&self) -> Option<crate::fusion::FilterState> {
-        if self.fusion.initialized() {
+        if self.fusion.initialized() || self.filter_seeded {
             Some(self.fusion.state())
         } else {
             self.store.filter
