@@ -88,13 +88,15 @@ pub struct DaemonConfig {
     pub write_params: bool,
     /// Flight-stack convention of the parameters written. Default: "ardupilot".
     pub param_target: ParamTarget,
-    /// The flight controller's system id, for parameter writes and reads. Default: 1.
+    /// The flight controller's system id, for parameter writes and reads (of the first vehicle
+    /// calibrated; a further vehicle's go to its own system id). Default: 1.
     pub target_system: u8,
     /// The flight controller's component id, for parameter writes and reads. Default: 1.
     pub target_component: u8,
-    /// Our own MAVLink ids (1..=255 each; 0 is broadcast): every message we send carries them, and
-    /// an inbound frame that carries both is our own echoed back, dropped (counted as `own_echo`).
-    /// Default: 1.
+    /// Our own MAVLink ids (1..=255 each; 0 is broadcast): every message we send carries them
+    /// (about a further vehicle than the first: its own system id with our component id), and
+    /// an inbound frame that carries the ids we send with is our own echoed back, dropped
+    /// (counted as `own_echo`). Default: 1.
     pub system_id: u8,
     /// Our component id. Default: 191 (MAV_COMP_ID_ONBOARD_COMPUTER).
     pub component_id: u8,
@@ -106,7 +108,8 @@ pub struct DaemonConfig {
     /// DO_START/ACCEPT/CANCEL_MAG_CAL addressed to our ids (or broadcast) start, accept and cancel a
     /// run. Default: "continuous".
     pub mag_cal: MagCalMode,
-    /// How links map to vehicles. Default: "separate".
+    /// How links map to vehicles: "separate" (each link and system id is a vehicle, calibrated on
+    /// its own) or "merged" (every link is one vehicle). Default: "separate".
     pub links: Links,
     /// What to do with ArduPilot's magnetometer data, which comes with its calibration applied.
     /// Default: "undo".

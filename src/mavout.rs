@@ -1219,14 +1219,32 @@ impl LiveEvent {
 #[derive(Serialize)]
 struct Line<'a> {
     schema: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    vehicle: Option<&'a VehicleTag>,
     #[serde(flatten)]
     event: &'a LiveEvent,
 }
 
+/// Which vehicle a JSON line is about, on lines about a vehicle other than the first the live
+/// service calibrates: `"vehicle": {"link": "udpin:0.0.0.0:14550", "system_id": 2}`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct VehicleTag {
+    /// The link it was heard on (its address as configured).
+    pub link: String,
+    /// Its MAVLink system id.
+    pub system_id: u8,
+}
+
 /// One JSON line (terminated by `\n`) for an event: `schema`, then `type`, then the event's fields.
 pub fn json_line(ev: &LiveEvent) -> String {
+    json_line_for(ev, None)
+}
+
+/// [`json_line`] for an event about a vehicle: `schema`, `vehicle` (when given), `type`, fields.
+pub fn json_line_for(ev: &LiveEvent, vehicle: Option<&VehicleTag>) -> String {
     let mut s = serde_json::to_string(&Line {
         schema: JSON_SCHEMA,
+        vehicle,
         event: ev,
     })
     .unwrap_or_else(|e| {

@@ -373,6 +373,7 @@ pub fn make_report(
         refits: pipe.refits.clone(),
         instances: Vec::new(),
         outputs: None,
+        vehicles: Vec::new(),
         onboard: None,
     }
 }

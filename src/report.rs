@@ -26,6 +26,10 @@ pub struct Report {
     /// The live service only: what its outputs delivered and dropped.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outputs: Option<OutputsReport>,
+    /// The live service only: every vehicle calibrated after the first (the rest of the report
+    /// is the first's), each on its own.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub vehicles: Vec<VehicleReport>,
     /// Flight-controller logs (`.bin`, `.ulg`): the calibration the flight controller applied, as
     /// its parameters record it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -118,6 +122,22 @@ pub struct InstanceReport {
     /// Its clock ([`InputReport::time`]).
     pub time: crate::clock::TimeStats,
     pub calibration: CalibrationReport,
+}
+
+/// A further vehicle calibrated by the live service (a link and system id of its own).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VehicleReport {
+    /// The link it was heard on (its address as configured).
+    pub link: String,
+    /// Its MAVLink system id; the service speaks for it as our component in this system.
+    pub system_id: u8,
+    /// Where its calibration is kept.
+    pub calibration_dir: String,
+    pub input: InputReport,
+    /// Its latest fits; none before the first.
+    pub calibration: Option<CalibrationReport>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub instances: Vec<InstanceReport>,
 }
 
 /// The live service's outputs: what each JSON consumer and MAVLink link could not take.

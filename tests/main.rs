@@ -2141,6 +2141,7 @@ mod live_attitude {
             compass_id: 0,
             instances: vec![],
             filter: None,
+            vehicle: None,
             mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
             accel: Some(stored(&truth.accel, "m/s^2", g)),
             gyro: Some(GyroCalibration {

@@ -8,16 +8,25 @@ impl State {
     /// MAG_CAL_PROGRESS and a JSON `progress` line for each compass whose calibration run
     /// reports progress (track 0 always; a further instance once it has magnetometer data).
     pub(super) async fn publish_progress(&mut self) {
-        let continuous = self.cfg.daemon.mag_cal == MagCalMode::Continuous;
-        for i in 0..self.tracks.len() {
-            let centre = self
-                .in_use(i, Sensor::Mag)
-                .and_then(|m| m.calibration())
-                .map(|c| c.offset);
-            let t = &mut self.tracks[i];
-            if (i > 0 && t.mag_samples == 0) || !t.mag_run.reports_progress(continuous) {
-                continue;
+        for c in 0..self.cals.len() {
+            for i in 0..self.cals[c].tracks.len() {
+                self.publish_track_progress(c, i).await;
             }
+        }
+    }
+
+    async fn publish_track_progress(&mut self, c: usize, i: usize) {
+        let continuous = self.cfg.daemon.mag_cal == MagCalMode::Continuous;
+        let cal = &mut self.cals[c];
+        let centre = cal
+            .in_use(i, Sensor::Mag)
+            .and_then(|m| m.calibration())
+            .map(|m| m.offset);
+        let t = &mut cal.tracks[i];
+        if (i > 0 && t.mag_samples == 0) || !t.mag_run.reports_progress(continuous) {
+            return;
+        }
+        {
             let p = t.pipe.progress(&mut t.progress, centre);
             let dir = p.direction.map(|v| v as f32);
             let msg = mavout::mag_cal_progress(t.compass_id, p.completion_pct, p.mask, dir, 1);
@@ -27,11 +36,13 @@ impl State {
                 completion_pct: p.completion_pct as f64,
                 filled_regions: p.filled_regions,
             };
-            self.send_mav(&[msg]).await;
-            self.send_json(&ev).await;
+            self.send_mav(To::Cal(c), &[msg]).await;
+            self.send_json_for(c, &ev).await;
         }
     }
+}
 
+impl Cal {
     /// The calibration in use of track `i`'s `sensor` (magnetometer or accelerometer).
     pub(super) fn in_use(&self, i: usize, sensor: Sensor) -> Option<&SensorCalibration> {
         let (mag, accel) = if i == 0 {
@@ -46,166 +57,6 @@ impl State {
             Sensor::Accel => accel.as_ref(),
             Sensor::Gyro => None,
         }
-    }
-
-    /// A compass's name in messages to the user: empty with one compass.
-    pub(super) fn compass_label(&self, i: usize) -> String {
-        if self.tracks.len() > 1 {
-            format!(" (compass {})", self.tracks[i].compass_id)
-        } else {
-            String::new()
-        }
-    }
-
-    /// A refit of track `i` came back: decide, store, publish.
-    pub(super) async fn on_fit(&mut self, i: usize, t: f64, results: FitResults) {
-        let mut changed = false;
-        let id = self.tracks[i].compass_id;
-        // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
-        // result is reported whatever the calibration in use (accepting it is the ground
-        // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
-        // which installs it or holds it for the ground station.
-        let commanded = matches!(self.tracks[i].mag_run, MagCalRun::Running { .. });
-        let current_mag = self.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
-        let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
-            Ok(()) => true,
-            Err(why) => {
-                tracing::info!(
-                    sensor = "mag",
-                    compass = id,
-                    "calibration not replaced: {why}"
-                );
-                false
-            }
-        };
-        match accept(&results.accel, self.in_use(i, Sensor::Accel)) {
-            Ok(()) => {
-                let r = &results.accel.report;
-                tracing::info!(sensor = "accel", compass = id, model = %r.model, rms = r.rms_residual, "calibration accepted");
-                if i == 0 {
-                    self.store.accel = Some(r.clone());
-                    self.calibrator.accel = results.accel.calibration;
-                } else {
-                    let name = self.tracks[i].name.clone();
-                    self.store.instance_mut(&name, id).accel = Some(r.clone());
-                }
-                changed = true;
-            }
-            Err(why) => tracing::info!(
-                sensor = "accel",
-                compass = id,
-                "calibration not replaced: {why}"
-            ),
-        }
-        if i == 0 && results.gyro.status == "ok" {
-            let before = self.calibrator.gyro_bias.unwrap_or([0.0; 3]);
-            let now = results.gyro.bias;
-            self.fusion
-                .gyro_bias_removed(&[0, 1, 2].map(|k| now[k] - before[k]));
-            self.store.gyro = Some(results.gyro.clone());
-            self.calibrator.gyro_bias = Some(now);
-        }
-        // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
-        // data covered the sphere and the fit still failed (not while still collecting).
-        let mag = &results.mag.report;
-        let completion = self.tracks[i].progress.completion_pct();
-        if mag_passed {
-            let ev = MagCalEvent::FitPassed {
-                cal: Box::new(mag.clone()),
-                complete: completion >= 100,
-            };
-            changed |= self.mag_event(i, ev).await.0;
-        } else if failure_report_due(mag, completion) {
-            self.tracks[i].mag_failed = Some(mag.clone());
-            self.mag_event(i, MagCalEvent::FitFailed).await;
-        }
-        for (name, r) in [
-            ("mag", &results.mag.report),
-            ("accel", &results.accel.report),
-        ] {
-            self.send_json(&LiveEvent::calibration(name, id, r)).await;
-        }
-        self.tracks[i].pipe.install(t, results.clone());
-        self.tracks[i].last_results = Some(results);
-        if changed {
-            self.store_changed();
-        }
-        if let Some(job) = self.report_job() {
-            self.report_writes.want(job);
-        }
-    }
-
-    /// A new calibration in the store: counted, and written off the run loop (with what the
-    /// orientation filter has learnt).
-    pub(super) fn store_changed(&mut self) {
-        self.accepted += 1;
-        self.store.filter = self.filter_state();
-        let store = Box::new(self.store.clone());
-        self.store_writes
-            .want(WriteJob::Store(self.cal_dir.clone(), store));
-    }
-
-    /// Feed track `i`'s magnetometer calibration run an event and carry out what its transition
-    /// says. Returns whether a calibration was installed (the caller has the store written) and
-    /// the COMMAND_ACK results the transition gave (the caller answers the command once).
-    pub(super) async fn mag_event(&mut self, i: usize, ev: MagCalEvent) -> (bool, Vec<MavResult>) {
-        let accepting = matches!(ev, MagCalEvent::Accept { .. });
-        let continuous = self.cfg.daemon.mag_cal == MagCalMode::Continuous;
-        let id = self.tracks[i].compass_id;
-        let run = std::mem::replace(&mut self.tracks[i].mag_run, MagCalRun::Idle);
-        let (next, effects) = run.on(ev, continuous, id);
-        self.tracks[i].mag_run = next;
-        let (mut installed, mut reported, mut acks) = (false, false, vec![]);
-        for fx in effects {
-            match fx {
-                MagCalEffect::Ack(result) => acks.push(result),
-                MagCalEffect::Restart => self.restart_mag_run(i).await,
-                MagCalEffect::Install(cal) => {
-                    self.install_mag(i, *cal);
-                    installed = true;
-                }
-                MagCalEffect::ReportSuccess {
-                    cal,
-                    autosaved,
-                    commanded,
-                } => {
-                    let moved = self.tracks[i].reported_mag.as_ref().is_none_or(|prev| {
-                        prev.model != cal.model
-                            || (0..3).any(|k| (prev.offset[k] - cal.offset[k]).abs() > 0.05)
-                    });
-                    if commanded || moved {
-                        reported = autosaved;
-                        let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
-                        self.send_mav(&[msg]).await;
-                        let what = if autosaved {
-                            "mag calibrated"
-                        } else {
-                            "mag calibration ready (accept to install it, cancel to discard it)"
-                        };
-                        let text = format!(
-                            "{what}{}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
-                            self.compass_label(i),
-                            cal.model,
-                            cal.offset[0],
-                            cal.offset[1],
-                            cal.offset[2],
-                            cal.rms_residual
-                        );
-                        self.status(6, text).await;
-                        self.tracks[i].reported_mag = Some(*cal);
-                    }
-                }
-                MagCalEffect::ReportFailure => {
-                    if let Some(mag) = self.tracks[i].mag_failed.take() {
-                        self.send_mav(&[mavout::mag_cal_report(id, &mag)]).await;
-                    }
-                }
-            }
-        }
-        if installed && (reported || accepting) && self.cfg.daemon.write_params {
-            self.start_param_write();
-        }
-        (installed, acks)
     }
 
     /// A magnetometer calibration of track `i` in use from now on (the store is written by the
@@ -235,11 +86,178 @@ impl State {
             }
         }
     }
+}
+
+impl State {
+    /// A refit of calibrated vehicle `c`'s track `i` came back: decide, store, publish.
+    pub(super) async fn on_fit(&mut self, c: usize, i: usize, t: f64, results: FitResults) {
+        let mut changed = false;
+        let cal = &mut self.cals[c];
+        let id = cal.tracks[i].compass_id;
+        // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
+        // result is reported whatever the calibration in use (accepting it is the ground
+        // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
+        // which installs it or holds it for the ground station.
+        let commanded = matches!(cal.tracks[i].mag_run, MagCalRun::Running { .. });
+        let current_mag = cal.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
+        let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
+            Ok(()) => true,
+            Err(why) => {
+                tracing::info!(
+                    sensor = "mag",
+                    compass = id,
+                    "calibration not replaced: {why}"
+                );
+                false
+            }
+        };
+        match accept(&results.accel, cal.in_use(i, Sensor::Accel)) {
+            Ok(()) => {
+                let r = &results.accel.report;
+                tracing::info!(sensor = "accel", compass = id, model = %r.model, rms = r.rms_residual, "calibration accepted");
+                if i == 0 {
+                    cal.store.accel = Some(r.clone());
+                    cal.calibrator.accel = results.accel.calibration;
+                } else {
+                    let name = cal.tracks[i].name.clone();
+                    cal.store.instance_mut(&name, id).accel = Some(r.clone());
+                }
+                changed = true;
+            }
+            Err(why) => tracing::info!(
+                sensor = "accel",
+                compass = id,
+                "calibration not replaced: {why}"
+            ),
+        }
+        if i == 0 && results.gyro.status == "ok" {
+            let before = cal.calibrator.gyro_bias.unwrap_or([0.0; 3]);
+            let now = results.gyro.bias;
+            cal.fusion
+                .gyro_bias_removed(&[0, 1, 2].map(|k| now[k] - before[k]));
+            cal.store.gyro = Some(results.gyro.clone());
+            cal.calibrator.gyro_bias = Some(now);
+        }
+        // The magnetometer like ArduPilot's calibrator: success when accepted, failure once the
+        // data covered the sphere and the fit still failed (not while still collecting).
+        let mag = &results.mag.report;
+        let completion = cal.tracks[i].progress.completion_pct();
+        if mag_passed {
+            let ev = MagCalEvent::FitPassed {
+                cal: Box::new(mag.clone()),
+                complete: completion >= 100,
+            };
+            changed |= self.mag_event(c, i, ev).await.0;
+        } else if failure_report_due(mag, completion) {
+            cal.tracks[i].mag_failed = Some(mag.clone());
+            self.mag_event(c, i, MagCalEvent::FitFailed).await;
+        }
+        for (name, r) in [
+            ("mag", &results.mag.report),
+            ("accel", &results.accel.report),
+        ] {
+            self.send_json_for(c, &LiveEvent::calibration(name, id, r))
+                .await;
+        }
+        let track = &mut self.cals[c].tracks[i];
+        track.pipe.install(t, results.clone());
+        track.last_results = Some(results);
+        if changed {
+            self.store_changed(c);
+        }
+        if let Some(job) = self.report_job() {
+            self.report_writes.want(job);
+        }
+    }
+
+    /// A new calibration in the store: counted, and written off the run loop (with what the
+    /// orientation filter has learnt).
+    pub(super) fn store_changed(&mut self, c: usize) {
+        self.accepted += 1;
+        let cal = &mut self.cals[c];
+        cal.store.filter = cal.filter_state();
+        let store = Box::new(cal.store.clone());
+        self.store_writes
+            .want(WriteJob::Store(cal.cal_dir.clone(), store));
+    }
+
+    /// Feed track `i`'s magnetometer calibration run an event and carry out what its transition
+    /// says. Returns whether a calibration was installed (the caller has the store written) and
+    /// the COMMAND_ACK results the transition gave (the caller answers the command once).
+    pub(super) async fn mag_event(
+        &mut self,
+        c: usize,
+        i: usize,
+        ev: MagCalEvent,
+    ) -> (bool, Vec<MavResult>) {
+        let accepting = matches!(ev, MagCalEvent::Accept { .. });
+        let continuous = self.cfg.daemon.mag_cal == MagCalMode::Continuous;
+        let track = &mut self.cals[c].tracks[i];
+        let id = track.compass_id;
+        let run = std::mem::replace(&mut track.mag_run, MagCalRun::Idle);
+        let (next, effects) = run.on(ev, continuous, id);
+        track.mag_run = next;
+        let (mut installed, mut reported, mut acks) = (false, false, vec![]);
+        for fx in effects {
+            match fx {
+                MagCalEffect::Ack(result) => acks.push(result),
+                MagCalEffect::Restart => self.restart_mag_run(c, i).await,
+                MagCalEffect::Install(cal) => {
+                    self.cals[c].install_mag(i, *cal);
+                    installed = true;
+                }
+                MagCalEffect::ReportSuccess {
+                    cal,
+                    autosaved,
+                    commanded,
+                } => {
+                    let moved = self.cals[c].tracks[i]
+                        .reported_mag
+                        .as_ref()
+                        .is_none_or(|prev| {
+                            prev.model != cal.model
+                                || (0..3).any(|k| (prev.offset[k] - cal.offset[k]).abs() > 0.05)
+                        });
+                    if commanded || moved {
+                        reported = autosaved;
+                        let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
+                        self.send_mav(To::Cal(c), &[msg]).await;
+                        let what = if autosaved {
+                            "mag calibrated"
+                        } else {
+                            "mag calibration ready (accept to install it, cancel to discard it)"
+                        };
+                        let text = format!(
+                            "{what}{}: {} offset [{:.2}, {:.2}, {:.2}] uT, rms {:.3}",
+                            self.cals[c].compass_label(i),
+                            cal.model,
+                            cal.offset[0],
+                            cal.offset[1],
+                            cal.offset[2],
+                            cal.rms_residual
+                        );
+                        self.status_for(c, 6, text).await;
+                        self.cals[c].tracks[i].reported_mag = Some(*cal);
+                    }
+                }
+                MagCalEffect::ReportFailure => {
+                    if let Some(mag) = self.cals[c].tracks[i].mag_failed.take() {
+                        self.send_mav(To::Cal(c), &[mavout::mag_cal_report(id, &mag)])
+                            .await;
+                    }
+                }
+            }
+        }
+        if installed && (reported || accepting) && self.cfg.daemon.write_params {
+            self.cals[c].start_param_write(self.cfg.daemon.param_target);
+        }
+        (installed, acks)
+    }
 
     /// A new calibration run of track `i` from zero coverage: what was collected goes, a fit in
     /// flight is disregarded (it saw the old data); the calibration in use stays.
-    pub(super) async fn restart_mag_run(&mut self, i: usize) {
-        let t = &mut self.tracks[i];
+    pub(super) async fn restart_mag_run(&mut self, c: usize, i: usize) {
+        let t = &mut self.cals[c].tracks[i];
         match Pipeline::new(&self.cfg) {
             Ok(p) => {
                 let (mag_units, gyro_units) = (t.pipe.mag_units, t.pipe.gyro_units);
@@ -251,81 +269,101 @@ impl State {
         t.generation += 1;
         t.refit_wanted = false;
         t.progress.restart();
-        let text = format!("mag calibration run started{}", self.compass_label(i));
-        self.status(6, text).await;
+        let text = format!(
+            "mag calibration run started{}",
+            self.cals[c].compass_label(i)
+        );
+        self.status_for(c, 6, text).await;
     }
 
-    /// COMMAND_LONG: the ground station's calibration commands when addressed to us (or to all).
-    /// Like ArduPilot, each compass has its own run and the command's compass mask says which
-    /// take it (0: all); one COMMAND_ACK answers: accepted when a compass took it.
-    pub(super) async fn on_command(&mut self, frame: &crate::decode::Frame, c: &COMMAND_LONG_DATA) {
-        let to_us = |target: u8, own: u8| target == 0 || target == own;
-        if !(to_us(c.target_system, self.own.system_id)
-            && to_us(c.target_component, self.own.component_id))
-        {
+    /// COMMAND_LONG: the ground station's calibration commands for the calibrated vehicles it
+    /// is addressed to: to the ids one is spoken for with, or broadcast (0); a broadcast reaches
+    /// the first vehicle and those heard on the command's link. Like ArduPilot, each compass has
+    /// its own run and the command's compass mask says which take it (0: all); one COMMAND_ACK
+    /// per vehicle answers: accepted when a compass took it.
+    pub(super) async fn on_command(
+        &mut self,
+        link: usize,
+        frame: &crate::decode::Frame,
+        cmd: &COMMAND_LONG_DATA,
+    ) {
+        let to = |target: u8, own: u8| target == 0 || target == own;
+        let takers: Vec<usize> = (0..self.cals.len())
+            .filter(|&c| {
+                let own = self.cals[c].own;
+                let here = c == 0 || self.links.get(link).is_some_and(|l| l.cals.contains(&c));
+                to(cmd.target_component, own.component_id)
+                    && (cmd.target_system == own.system_id || (cmd.target_system == 0 && here))
+            })
+            .collect();
+        let Some(&first) = takers.first() else {
             return;
-        }
-        let ev = match c.command {
+        };
+        let ev = match cmd.command {
             MavCmd::MAV_CMD_DO_START_MAG_CAL => MagCalEvent::Start {
-                opts: mavout::MagCalStart::from_command(c),
+                opts: mavout::MagCalStart::from_command(cmd),
                 now_s: self.now_s(),
             },
             MavCmd::MAV_CMD_DO_ACCEPT_MAG_CAL => MagCalEvent::Accept {
-                mask: mavout::mask_param(c.param1),
+                mask: mavout::mask_param(cmd.param1),
             },
             MavCmd::MAV_CMD_DO_CANCEL_MAG_CAL => MagCalEvent::Cancel {
-                mask: mavout::mask_param(c.param1),
+                mask: mavout::mask_param(cmd.param1),
             },
             other => {
                 // Another command meant for us alone gets an answer; broadcast ones are for others.
-                if c.target_system != 0 && c.target_component != 0 {
+                if cmd.target_system != 0 && cmd.target_component != 0 {
                     let ack = mavout::command_ack(
                         other,
                         MavResult::MAV_RESULT_UNSUPPORTED,
                         frame.system_id,
                         frame.component_id,
                     );
-                    self.send_mav(&[ack]).await;
+                    self.send_mav(To::Cal(first), &[ack]).await;
                 }
                 return;
             }
         };
         tracing::info!(
             "{:?} from {}/{}",
-            c.command,
+            cmd.command,
             frame.system_id,
             frame.component_id
         );
-        let (mut installed, mut acks) = (false, vec![]);
-        for i in 0..self.tracks.len() {
-            if i == 0 || self.tracks[i].mag_samples > 0 {
-                let (inst, a) = self.mag_event(i, ev.clone()).await;
-                installed |= inst;
-                acks.extend(a);
+        for c in takers {
+            let (mut installed, mut acks) = (false, vec![]);
+            for i in 0..self.cals[c].tracks.len() {
+                if i == 0 || self.cals[c].tracks[i].mag_samples > 0 {
+                    let (inst, a) = self.mag_event(c, i, ev.clone()).await;
+                    installed |= inst;
+                    acks.extend(a);
+                }
+            }
+            let result = if acks.contains(&MavResult::MAV_RESULT_ACCEPTED) {
+                MavResult::MAV_RESULT_ACCEPTED
+            } else {
+                acks.first()
+                    .copied()
+                    .unwrap_or(MavResult::MAV_RESULT_FAILED)
+            };
+            let ack = mavout::command_ack(cmd.command, result, frame.system_id, frame.component_id);
+            self.send_mav(To::Cal(c), &[ack]).await;
+            if installed {
+                self.store_changed(c);
             }
         }
-        let result = if acks.contains(&MavResult::MAV_RESULT_ACCEPTED) {
-            MavResult::MAV_RESULT_ACCEPTED
-        } else {
-            acks.first()
-                .copied()
-                .unwrap_or(MavResult::MAV_RESULT_FAILED)
-        };
-        let ack = mavout::command_ack(c.command, result, frame.system_id, frame.component_id);
-        self.send_mav(&[ack]).await;
-        if installed {
-            self.store_changed();
-        }
     }
+}
 
+impl Cal {
     /// Write every compass's calibration in use to the flight controller (`daemon.write_params`).
-    pub(super) fn start_param_write(&mut self) {
+    pub(super) fn start_param_write(&mut self, convention: ParamTarget) {
         let params: Vec<_> = self
             .store
             .mags_ut()
             .iter()
             .flat_map(|(k, m)| {
-                if self.cfg.daemon.param_target == ParamTarget::Px4 {
+                if convention == ParamTarget::Px4 {
                     crate::export::px4_mag(m, *k).0
                 } else {
                     crate::export::ardupilot_mag(m, *k).0
@@ -335,11 +373,7 @@ impl State {
         if params.is_empty() {
             return;
         }
-        self.writer = Some(ParamWriter::new(
-            params,
-            self.cfg.daemon.target_system,
-            self.cfg.daemon.target_component,
-        ));
+        self.writer = Some(ParamWriter::new(params, self.target.0, self.target.1));
     }
 }
 
@@ -348,20 +382,22 @@ impl State {
     /// closed: the end of a replay), off the executor.
     pub(super) fn start_fits(&mut self, all: bool) -> tokio::task::JoinHandle<TrackFits> {
         let mut inputs = vec![];
-        for (i, t) in self.tracks.iter_mut().enumerate() {
-            if all {
-                t.pipe.finish_poses();
-            } else if !t.refit_wanted {
-                continue;
+        for (c, cal) in self.cals.iter_mut().enumerate() {
+            for (i, t) in cal.tracks.iter_mut().enumerate() {
+                if all {
+                    t.pipe.finish_poses();
+                } else if !t.refit_wanted {
+                    continue;
+                }
+                t.refit_wanted = false;
+                inputs.push((c, i, t.generation, t.pipe.last_t, t.pipe.snapshot()));
             }
-            t.refit_wanted = false;
-            inputs.push((i, t.generation, t.pipe.last_t, t.pipe.snapshot()));
         }
         let cfg = self.cfg.clone();
         tokio::task::spawn_blocking(move || {
             inputs
                 .into_iter()
-                .map(|(i, generation, t, input)| (i, generation, t, fit_all(&input, &cfg)))
+                .map(|(c, i, generation, t, input)| (c, i, generation, t, fit_all(&input, &cfg)))
                 .collect()
         })
     }
@@ -370,9 +406,9 @@ impl State {
     pub(super) async fn fits_done(&mut self, r: Result<TrackFits, tokio::task::JoinError>) {
         match r {
             Ok(fits) => {
-                for (i, generation, t, res) in fits {
-                    if generation == self.tracks[i].generation {
-                        self.on_fit(i, t, res).await;
+                for (c, i, generation, t, res) in fits {
+                    if generation == self.cals[c].tracks[i].generation {
+                        self.on_fit(c, i, t, res).await;
                     } else {
                         tracing::info!(
                             "a fit from before the calibration run restarted: disregarded"
@@ -385,21 +421,23 @@ impl State {
     }
 }
 
-/// A block per calibrated instance for the report (empty with one): the primary's calibration is
-/// the report's own (`primary`), the others' their latest fits.
 impl State {
+    /// A block per instance of calibrated vehicle `c` for the report (empty with one): the
+    /// primary's calibration is `primary`, the others' their latest fits.
     pub(super) fn instance_reports(
         &self,
+        c: usize,
         primary: &crate::report::CalibrationReport,
     ) -> Vec<crate::report::InstanceReport> {
-        if self.tracks.len() < 2 {
+        let cal = &self.cals[c];
+        if cal.tracks.len() < 2 {
             return Vec::new();
         }
-        let infos = self
-            .primary_vehicle
+        let infos = cal
+            .vehicle
             .map(|v| self.vehicles[v].conv.instances())
             .unwrap_or_default();
-        self.tracks
+        cal.tracks
             .iter()
             .enumerate()
             .filter_map(|(i, t)| {

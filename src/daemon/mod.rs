@@ -31,7 +31,7 @@ use service::{open_store, start_links};
 use sinks::*;
 pub use store::{
     accept, failure_report_due, load_store, save_store, NotReplaced, StoredCalibration,
-    StoredInstance, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE, STORE_SCHEMA,
+    StoredInstance, StoredVehicle, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE, STORE_SCHEMA,
 };
 use store::{WriteJob, Writes};
 
@@ -91,6 +91,8 @@ struct Vehicle {
     conv: MessageConverter,
     ardupilot: bool,
     ap_params: ApCompassParams,
+    /// Its calibration (index in `State::cals`), once its IMU data arrived.
+    cal: Option<usize>,
     /// Told the user it is not calibrated.
     announced: bool,
 }
@@ -108,6 +110,12 @@ struct LinkEntry {
     outbound_queue_full: u64,
     /// `outbound_queue_full` when it was last reported.
     queue_full_reported: u64,
+    /// MAVLink frames queued in this turn of the run loop, sent as one datagram (or write) at its
+    /// end: one `sendto` for all the messages of a tick, not one per message.
+    out: Vec<u8>,
+    /// The calibrated vehicles heard on it (their messages go only to such links, or to links
+    /// where none was heard).
+    cals: Vec<usize>,
 }
 
 /// One IMU instance calibrated live: its pipeline, its magnetometer calibration run and progress,
@@ -175,50 +183,48 @@ impl Track {
     }
 }
 
-/// Which tracks a fit job fitted: (track, its generation when the job started, time, results).
-type TrackFits = Vec<(usize, u64, f64, FitResults)>;
+/// Which tracks a fit job fitted: (calibrated vehicle, track, its generation when the job
+/// started, time, results).
+type TrackFits = Vec<(usize, usize, u64, f64, FitResults)>;
 
-struct State {
-    cfg: Config,
+/// Calibrated vehicles kept at most (further vehicles' samples are counted, not calibrated).
+const MAX_CALIBRATED_VEHICLES: usize = 8;
+
+/// Where a MAVLink message goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum To {
+    /// Every live MAVLink link, as the service (its configured ids): status of the links,
+    /// heartbeats.
+    All,
+    /// One link, as the service.
+    Link(usize),
+    /// About calibrated vehicle `c`, with the ids it is spoken for with: every live MAVLink link
+    /// except those where another calibrated vehicle was heard.
+    Cal(usize),
+}
+
+/// A vehicle calibrated: its IMU instances (tracks), its calibration in use and on disk, its
+/// heading and attitude. Calibrated vehicle 0 is the first heard (and takes the samples of text
+/// and simulator links); it is spoken for with the configured ids and kept in
+/// `daemon.calibration_dir`. Each further vehicle (`daemon.links = "separate"`) is spoken for as
+/// component `daemon.component_id` of its own system, and kept in
+/// `calibration_dir/vehicle-<link>-<system>/`.
+struct Cal {
+    /// Index in `State::vehicles`; `None` until the first MAVLink vehicle's IMU data arrives
+    /// (calibrated vehicle 0 only).
+    vehicle: Option<usize>,
+    /// The ids its messages carry, and an inbound frame carrying both is our own echo.
+    own: mavout::OwnIds,
+    enc: MavEncoder,
+    /// Parameter writes go to this system and component.
+    target: (u8, u8),
     /// The instances calibrated; track 0 is the primary.
     tracks: Vec<Track>,
-    /// Clocks of the links that deliver samples rather than MAVLink frames, by link index.
-    sample_clocks: Vec<SourceClock>,
     store: StoredCalibration,
     calibrator: Calibrator,
     latest: Option<Calibrated>,
-    enc: MavEncoder,
-    /// Our MAVLink ids: inbound frames carrying them are our own echo.
-    own: mavout::OwnIds,
-    /// Inbound frames dropped as our own echo.
-    own_echo: u64,
-    /// MAVLink frames encoded in this turn of the run loop, sent to the links as one datagram (or
-    /// write) at its end: one `sendto` for all the messages of a tick, not one per message.
-    mav_out: Vec<u8>,
-    /// The calibration store and the report, written off the run loop.
-    store_writes: Writes,
-    report_writes: Writes,
-    links: Vec<LinkEntry>,
-    sinks: Vec<Sink>,
-    /// The vehicles heard (a link and a system id each, or one for all with
-    /// `daemon.links = "merged"`): their converters and ArduPilot state.
-    vehicles: Vec<Vehicle>,
-    /// The vehicle calibrated: the first whose IMU data arrived.
-    primary_vehicle: Option<usize>,
-    /// IMU samples of other vehicles, not calibrated.
-    other_vehicle_samples: u64,
-    /// IMU samples of instances past the tracks the service keeps, not calibrated.
-    other_instance_samples: u64,
-    /// A converter as new, for the next vehicle heard.
-    new_converter: MessageConverter,
-    /// Counts of the samples from text-line and simulator links.
-    line_stats: crate::decode::DecodeStats,
     writer: Option<ParamWriter>,
-    accepted: usize,
     cal_dir: PathBuf,
-    report: Option<PathBuf>,
-    start: tokio::time::Instant,
-    declination: Option<f64>,
     mag_awaiting_params: u64,
     /// Calibrated vectors since the last heading publication.
     window: Averager,
@@ -235,6 +241,36 @@ struct State {
     /// The orientation filter was given a state (restored at start, or kept across a restart):
     /// it has something to save even before its first sample.
     filter_seeded: bool,
+}
+
+struct State {
+    cfg: Config,
+    /// The vehicles calibrated; 0 is the first heard.
+    cals: Vec<Cal>,
+    /// Clocks of the links that deliver samples rather than MAVLink frames, by link index.
+    sample_clocks: Vec<SourceClock>,
+    /// Inbound frames dropped as our own echo.
+    own_echo: u64,
+    /// The calibration stores and the report, written off the run loop.
+    store_writes: Writes,
+    report_writes: Writes,
+    links: Vec<LinkEntry>,
+    sinks: Vec<Sink>,
+    /// The vehicles heard (a link and a system id each, or one for all with
+    /// `daemon.links = "merged"`): their converters and ArduPilot state.
+    vehicles: Vec<Vehicle>,
+    /// IMU samples of vehicles past [`MAX_CALIBRATED_VEHICLES`], not calibrated.
+    other_vehicle_samples: u64,
+    /// IMU samples of instances past the tracks the service keeps, not calibrated.
+    other_instance_samples: u64,
+    /// A converter as new, for the next vehicle heard.
+    new_converter: MessageConverter,
+    /// Counts of the samples from text-line and simulator links.
+    line_stats: crate::decode::DecodeStats,
+    accepted: usize,
+    report: Option<PathBuf>,
+    start: tokio::time::Instant,
+    declination: Option<f64>,
 }
 
 /// Time step of the orientation filter's first sample and of samples whose clock jumps, s.
@@ -436,8 +472,9 @@ mod tests {
     }
 
     /// Two links, two vehicles: an ArduPilot HEARTBEAT on one does not make the service undo the
-    /// other's (PX4) magnetometer data, and the second vehicle's IMU data is counted, not mixed
-    /// into the first's calibration. With `daemon.links = "merged"` both are one vehicle.
+    /// other's (PX4) magnetometer data, and the second vehicle's IMU data is calibrated on its
+    /// own, not mixed into the first's calibration. With `daemon.links = "merged"` both are one
+    /// vehicle.
     #[tokio::test]
     async fn daemon_keeps_links_apart_as_vehicles() {
         use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
@@ -523,9 +560,15 @@ mod tests {
                     "{skipped}"
                 );
             } else {
+                // Two vehicles, each calibrated on its own: the ArduPilot one holds back its own
+                // magnetometer data (its COMPASS_* never come), the other's is taken.
                 assert_eq!(summary.samples, 60, "{r}");
-                assert_eq!(skipped["other_vehicle"].as_u64(), Some(20), "{skipped}");
+                assert!(skipped.get("other_vehicle").is_none(), "{skipped}");
                 assert!(skipped.get("mag_awaiting_params").is_none(), "{skipped}");
+                let v = &r["vehicles"][0];
+                assert_eq!(v["system_id"], 7, "{r}");
+                assert_eq!(v["input"]["samples"], 20, "{v}");
+                assert_eq!(v["input"]["skipped"]["mag_awaiting_params"], 20, "{v}");
             }
         }
     }

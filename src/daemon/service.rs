@@ -68,9 +68,51 @@ pub(super) fn start_links(
             label: s.address.clone(),
             outbound_queue_full: 0,
             queue_full_reported: 0,
+            out: Vec::with_capacity(MAV_DATAGRAM_MAX),
+            cals: Vec::new(),
         });
     }
     Ok(links)
+}
+
+impl Cal {
+    /// A vehicle's calibration, resumed from `store`, spoken for with `own` ids, writing its
+    /// parameters to `target`.
+    pub(super) fn new(
+        cfg: &Config,
+        store: StoredCalibration,
+        cal_dir: PathBuf,
+        own: mavout::OwnIds,
+        target: (u8, u8),
+        declination: Option<f64>,
+    ) -> Result<Cal, Error> {
+        let track0 = Track::new(cfg, None, String::new(), store.compass_id)?;
+        let mut c = Cal {
+            vehicle: None,
+            own,
+            enc: MavEncoder::new(own.system_id, own.component_id),
+            target,
+            tracks: vec![track0],
+            calibrator: Cal::calibrator_from_store(&store, declination),
+            store,
+            latest: None,
+            writer: None,
+            cal_dir,
+            mag_awaiting_params: 0,
+            window: Averager::default(),
+            fusion: OrientationFilter::new(cfg.fusion_config(declination)),
+            attitude_rates: RateMean::default(),
+            samples_since_attitude: 0,
+            attitude_due: false,
+            last_body_mag: None,
+            filter_seeded: false,
+        };
+        if let Some(f) = c.store.filter {
+            c.fusion.set_state(&f);
+            c.filter_seeded = true;
+        }
+        Ok(c)
+    }
 }
 
 impl State {
@@ -82,58 +124,45 @@ impl State {
         sinks: Vec<Sink>,
     ) -> Result<State, Error> {
         let d = cfg.daemon.clone();
-        let cal_dir = PathBuf::from(&d.calibration_dir);
         let choice = InstanceChoice::from_setting(&cfg.input.instance);
         let mut new_converter = MessageConverter::new(choice, cfg.input.raw_imu_scale);
         if new_converter.choice == InstanceChoice::Auto {
             // Every compass of the calibrated vehicle, each on its own track.
             new_converter = new_converter.with_other_instances();
         }
-        let track0 = Track::new(&cfg, None, String::new(), store.compass_id)?;
-        let mut st = State {
-            tracks: vec![track0],
+        let own = mavout::OwnIds {
+            system_id: d.system_id,
+            component_id: d.component_id,
+        };
+        let target = (d.target_system, d.target_component);
+        let cal_dir = PathBuf::from(&d.calibration_dir);
+        let cal0 = Cal::new(&cfg, store, cal_dir, own, target, declination)?;
+        Ok(State {
+            cals: vec![cal0],
             sample_clocks: Vec::new(),
-            calibrator: State::calibrator_from_store(&store, declination),
-            store,
-            latest: None,
-            enc: MavEncoder::new(d.system_id, d.component_id),
-            own: mavout::OwnIds {
-                system_id: d.system_id,
-                component_id: d.component_id,
-            },
             own_echo: 0,
-            mav_out: Vec::with_capacity(MAV_DATAGRAM_MAX),
             store_writes: Writes::default(),
             report_writes: Writes::default(),
             links,
             sinks,
             vehicles: Vec::new(),
-            primary_vehicle: None,
             other_vehicle_samples: 0,
             other_instance_samples: 0,
             new_converter,
             line_stats: crate::decode::DecodeStats::default(),
-            writer: None,
             accepted: 0,
-            cal_dir,
             report: d.report.as_ref().map(PathBuf::from),
             start: tokio::time::Instant::now(),
             declination,
-            mag_awaiting_params: 0,
-            window: Averager::default(),
-            fusion: OrientationFilter::new(cfg.fusion_config(declination)),
-            attitude_rates: RateMean::default(),
-            samples_since_attitude: 0,
-            attitude_due: false,
-            last_body_mag: None,
-            filter_seeded: false,
             cfg,
-        };
-        if let Some(f) = st.store.filter {
-            st.fusion.set_state(&f);
-            st.filter_seeded = true;
-        }
-        Ok(st)
+        })
+    }
+
+    /// Whether a refit is due on any track of any vehicle.
+    fn refit_wanted(&self) -> bool {
+        self.cals
+            .iter()
+            .any(|c| c.tracks.iter().any(|t| t.refit_wanted))
     }
 
     /// The run loop: events until a stop (shutdown asked, the inbound queue closed, every replay
@@ -149,7 +178,7 @@ impl State {
         loop {
             // `daemon.attitude_every_samples`: the attitude right after the sample that made it due.
             self.attitude_if_due().await;
-            if fit_job.is_none() && self.tracks.iter().any(|t| t.refit_wanted) {
+            if fit_job.is_none() && self.refit_wanted() {
                 fit_job = Some(self.start_fits(false));
             }
             // Whatever this turn queued for the links goes out before the loop waits again.
@@ -179,7 +208,7 @@ impl State {
                 t = tm.clock.tick() => self.on_clock(t, tm).await,
                 _ = tm.heading.own_tick(), if tm.heading.own.is_some() => self.on_heading_tick().await,
                 _ = tm.progress.own_tick(), if tm.progress.own.is_some() => self.publish_progress().await,
-                _ = tm.attitude.own_tick(), if tm.attitude.own.is_some() => self.publish_attitude().await,
+                _ = tm.attitude.own_tick(), if tm.attitude.own.is_some() => self.publish_attitudes().await,
                 _ = tm.drops.own_tick(), if tm.drops.own.is_some() => self.report_drops().await,
                 _ = async { tm.heartbeat.as_mut().expect("guarded").own_tick().await },
                     if tm.heartbeat.as_ref().is_some_and(|o| o.own.is_some()) => self.send_heartbeat().await,
@@ -192,9 +221,10 @@ impl State {
     }
 
     async fn attitude_if_due(&mut self) {
-        if self.attitude_due {
-            self.attitude_due = false;
-            self.publish_attitude().await;
+        for c in 0..self.cals.len() {
+            if std::mem::take(&mut self.cals[c].attitude_due) {
+                self.publish_attitude(c).await;
+            }
         }
     }
 
@@ -207,7 +237,7 @@ impl State {
                 let sample = self.stamp(link, sample);
                 self.line_stats.records += 1;
                 self.line_stats.count_sample(&sample);
-                self.on_sample(sample);
+                self.on_sample(0, sample);
             }
             Inbound::Frame {
                 link,
@@ -263,7 +293,7 @@ impl State {
             self.publish_progress().await;
         }
         if tm.attitude.due_at_clock(t) {
-            self.publish_attitude().await;
+            self.publish_attitudes().await;
         }
         if tm.drops.due_at_clock(t) {
             self.report_drops().await;
@@ -271,10 +301,12 @@ impl State {
         if tm.heartbeat.as_mut().is_some_and(|o| o.due_at_clock(t)) {
             self.send_heartbeat().await;
         }
-        for i in 0..self.tracks.len() {
-            if matches!(self.tracks[i].mag_run, MagCalRun::Waiting { .. }) {
-                let now_s = self.now_s();
-                self.mag_event(i, MagCalEvent::Tick { now_s }).await;
+        for c in 0..self.cals.len() {
+            for i in 0..self.cals[c].tracks.len() {
+                if matches!(self.cals[c].tracks[i].mag_run, MagCalRun::Waiting { .. }) {
+                    let now_s = self.now_s();
+                    self.mag_event(c, i, MagCalEvent::Tick { now_s }).await;
+                }
             }
         }
     }
@@ -289,7 +321,7 @@ impl State {
         }
         // Writes in flight finish first, so an older file cannot land after the final one.
         for w in [&mut self.store_writes, &mut self.report_writes] {
-            w.next = None;
+            w.next.clear();
         }
         if self.store_writes.job.is_some() {
             let r = self.store_writes.done().await;
@@ -299,8 +331,11 @@ impl State {
             let r = self.report_writes.done().await;
             self.written(r).await;
         }
-        if self.store.mag.is_some() || self.store.accel.is_some() {
-            self.save().await;
+        for c in 0..self.cals.len() {
+            let s = &self.cals[c].store;
+            if s.mag.is_some() || s.accel.is_some() {
+                self.save(c).await;
+            }
         }
         self.write_report().await;
         // What is queued for the JSON consumers goes out, briefly: one that does not read cannot
@@ -316,7 +351,7 @@ impl State {
             l.handle.task.abort();
         }
         RunSummary {
-            samples: self.tracks[0].pipe.samples,
+            samples: self.cals[0].tracks[0].pipe.samples,
             accepted: self.accepted,
             inbound_dropped,
         }

@@ -23,6 +23,19 @@ pub struct StoredCalibration {
     /// start.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub filter: Option<crate::fusion::FilterState>,
+    /// The vehicle this calibration belongs to (the live service, MAVLink links): after a restart
+    /// it goes to that vehicle again, whichever vehicle is heard first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle: Option<StoredVehicle>,
+}
+
+/// A vehicle as the live service knows it: the link it is heard on and its system id.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+pub struct StoredVehicle {
+    /// The link's address as configured (`udpin:0.0.0.0:14550`, `serial:/dev/ttyACM0:115200`).
+    pub link: String,
+    /// Its MAVLink system id.
+    pub system_id: u8,
 }
 
 /// The calibration in use of an IMU instance other than the primary.
@@ -49,6 +62,7 @@ impl StoredCalibration {
             gyro: None,
             instances: Vec::new(),
             filter: None,
+            vehicle: None,
         }
     }
     pub fn mag_cal(&self) -> Option<Calibration> {
@@ -232,9 +246,10 @@ pub(super) enum WriteJob {
 }
 
 /// Which file a finished write was.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub(super) enum Written {
-    Calibration,
+    /// The calibration in this directory.
+    Calibration(PathBuf),
     Report,
 }
 
@@ -242,7 +257,10 @@ impl WriteJob {
     /// Write it (blocking: temp file, fsync, rename). Returns which file it was, and how it went.
     pub(super) fn run(self) -> (Written, Result<(), Error>) {
         match self {
-            WriteJob::Store(dir, store) => (Written::Calibration, save_store(&dir, &store)),
+            WriteJob::Store(dir, store) => {
+                let r = save_store(&dir, &store);
+                (Written::Calibration(dir), r)
+            }
             WriteJob::Report(path, report) => {
                 (Written::Report, crate::publish::write_json(&path, &report))
             }
@@ -250,26 +268,38 @@ impl WriteJob {
     }
 }
 
-/// One file kept up to date off the run loop: at most one write in flight on the blocking pool;
-/// content asked for meanwhile waits, and newer content replaces it (only the latest is written).
+/// Files kept up to date off the run loop: at most one write in flight on the blocking pool;
+/// content asked for meanwhile waits, and newer content for the same file replaces it (only the
+/// latest is written; one waiting write per file, so the queue is as long as the vehicles' files).
 /// An fsync on a slow card can take a good part of a second; the live outputs must not wait for it.
 #[derive(Default)]
 pub(super) struct Writes {
     pub(super) job: Option<tokio::task::JoinHandle<(Written, Result<(), Error>)>>,
-    pub(super) next: Option<WriteJob>,
+    pub(super) next: Vec<WriteJob>,
+}
+
+impl WriteJob {
+    fn path(&self) -> &Path {
+        match self {
+            WriteJob::Store(dir, _) => dir,
+            WriteJob::Report(path, _) => path,
+        }
+    }
 }
 
 impl Writes {
     pub(super) fn want(&mut self, job: WriteJob) {
-        self.next = Some(job);
+        match self.next.iter().position(|j| j.path() == job.path()) {
+            Some(k) => self.next[k] = job,
+            None => self.next.push(job),
+        }
     }
 
-    /// Start the waiting write if none is in flight.
+    /// Start the oldest waiting write if none is in flight.
     pub(super) fn start(&mut self) {
-        if self.job.is_none() {
-            if let Some(job) = self.next.take() {
-                self.job = Some(tokio::task::spawn_blocking(move || job.run()));
-            }
+        if self.job.is_none() && !self.next.is_empty() {
+            let job = self.next.remove(0);
+            self.job = Some(tokio::task::spawn_blocking(move || job.run()));
         }
     }
 
@@ -288,10 +318,12 @@ impl Writes {
     }
 }
 impl State {
-    /// Write the calibration store now (at shutdown; while running, `store_writes` does it).
-    pub(super) async fn save(&mut self) {
-        self.store.filter = self.filter_state();
-        let job = WriteJob::Store(self.cal_dir.clone(), Box::new(self.store.clone()));
+    /// Write calibrated vehicle `c`'s store now (at shutdown; while running, `store_writes`
+    /// does it).
+    pub(super) async fn save(&mut self, c: usize) {
+        let cal = &mut self.cals[c];
+        cal.store.filter = cal.filter_state();
+        let job = WriteJob::Store(cal.cal_dir.clone(), Box::new(cal.store.clone()));
         let r = tokio::task::spawn_blocking(move || job.run()).await;
         self.written(r).await;
     }
@@ -303,10 +335,10 @@ impl State {
         r: Result<(Written, Result<(), Error>), tokio::task::JoinError>,
     ) {
         match r {
-            Ok((Written::Calibration, Ok(()))) => {
-                tracing::info!("calibration written to {}", self.cal_dir.display())
+            Ok((Written::Calibration(dir), Ok(()))) => {
+                tracing::info!("calibration written to {}", dir.display())
             }
-            Ok((Written::Calibration, Err(e))) => {
+            Ok((Written::Calibration(_), Err(e))) => {
                 self.status(
                     3,
                     format!("calibration not written (the previous file is kept): {e}"),
@@ -327,17 +359,70 @@ impl State {
         }
     }
 
-    /// The report as it stands, ready to be written (none without `--report` or before a fit).
+    /// The report as it stands, ready to be written (none without `--report` or before a fit):
+    /// the first vehicle's, with a block per further vehicle.
     pub(super) fn report_job(&self) -> Option<WriteJob> {
-        let (Some(path), Some(results)) =
-            (self.report.clone(), self.tracks[0].last_results.clone())
-        else {
-            return None;
+        let path = self.report.clone()?;
+        let mut report = self.vehicle_report(0).1?;
+        report.outputs = Some(self.outputs_report());
+        report.vehicles = (1..self.cals.len())
+            .filter_map(|c| {
+                let tag = self.vehicle_tag(c)?;
+                let (input, r) = self.vehicle_report(c);
+                Some(crate::report::VehicleReport {
+                    link: tag.link,
+                    system_id: tag.system_id,
+                    calibration_dir: self.cals[c].cal_dir.display().to_string(),
+                    input,
+                    calibration: r.as_ref().map(|r| r.calibration.clone()),
+                    instances: r.map(|r| r.instances).unwrap_or_default(),
+                })
+            })
+            .collect();
+        Some(WriteJob::Report(path, Box::new(report)))
+    }
+
+    /// Calibrated vehicle `c`'s input, and its report (none before its first fit). The first
+    /// vehicle's input also counts what the service as a whole read and skipped (text lines,
+    /// other links, queues, echoes).
+    fn vehicle_report(
+        &self,
+        c: usize,
+    ) -> (crate::report::InputReport, Option<crate::report::Report>) {
+        let cal = &self.cals[c];
+        let vehicle = cal.vehicle.map(|v| &self.vehicles[v]);
+        let mut stats = vehicle.map(|v| v.conv.stats.clone()).unwrap_or_default();
+        stats.skip_n("mag_awaiting_params", cal.mag_awaiting_params);
+        let label = if c == 0 {
+            self.service_input(&mut stats);
+            let labels: Vec<_> = self.links.iter().map(|l| l.label.clone()).collect();
+            labels.join(",")
+        } else {
+            let l = vehicle.map_or(0, |v| v.key.0);
+            self.links
+                .get(l)
+                .map(|l| l.label.clone())
+                .unwrap_or_default()
         };
-        let mut stats = self
-            .primary_vehicle
-            .map(|v| self.vehicles[v].conv.stats.clone())
-            .unwrap_or_default();
+        let pipe = &cal.tracks[0].pipe;
+        let input = crate::report::InputReport::new(
+            "live",
+            Some(label),
+            vehicle.and_then(|v| v.conv.instance()).map(String::from),
+            &stats,
+            pipe.samples,
+            pipe.last_t,
+        );
+        let Some(results) = cal.tracks[0].last_results.as_ref() else {
+            return (input, None);
+        };
+        let mut report = crate::replay::make_report(input.clone(), pipe, results, self.declination);
+        report.instances = self.instance_reports(c, &report.calibration);
+        (input, Some(report))
+    }
+
+    /// What the service as a whole read and skipped, added to `stats`.
+    fn service_input(&self, stats: &mut crate::decode::DecodeStats) {
         stats.records += self.line_stats.records;
         stats.counts.add(&self.line_stats.counts);
         stats.skip_n("other_vehicle", self.other_vehicle_samples);
@@ -356,31 +441,9 @@ impl State {
                 .load(std::sync::atomic::Ordering::Relaxed);
             stats.skip_n("queue_full", dropped);
         }
-        stats.skip_n("mag_awaiting_params", self.mag_awaiting_params);
         for c in &self.sample_clocks {
             stats.time.add(&c.stats);
         }
         stats.skip_n("own_echo", self.own_echo);
-        let label = self
-            .links
-            .iter()
-            .map(|l| l.label.clone())
-            .collect::<Vec<_>>()
-            .join(",");
-        let input = crate::report::InputReport::new(
-            "live",
-            Some(label),
-            self.primary_vehicle
-                .and_then(|v| self.vehicles[v].conv.instance())
-                .map(String::from),
-            &stats,
-            self.tracks[0].pipe.samples,
-            self.tracks[0].pipe.last_t,
-        );
-        let pipe = &self.tracks[0].pipe;
-        let mut report = crate::replay::make_report(input, pipe, &results, self.declination);
-        report.instances = self.instance_reports(&report.calibration);
-        report.outputs = Some(self.outputs_report());
-        Some(WriteJob::Report(path, Box::new(report)))
     }
 }

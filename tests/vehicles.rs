@@ -1,0 +1,305 @@
+//! Several vehicles heard by one live service: each is calibrated on its own.
+//!
+//! Two simulated vehicles with different hidden hard and soft iron tumble at the same time. Either
+//! each has a link of its own and both use system id 1 (two drones on two radios, default ids),
+//! or both share one link with system ids 1 and 2 (a router in front of the service). Each must
+//! get its own MAG_CAL_REPORT, from the ids the service speaks for it with and only on its own
+//! link, within 1 mGauss of its own truth in ArduPilot's COMPASS_OFS convention; its own
+//! calibration directory; its own block in the report and its own JSON lines.
+
+use imucald::config::{Config, SourceConfig};
+use imucald::mavout::MavEncoder;
+use imucald::sim::{simulate, Scenario, SimOutput};
+use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// The tumble, and the tumble with another vehicle's hard and soft iron.
+fn two_vehicles() -> (SimOutput, SimOutput) {
+    let sc = Scenario::named("tumble").unwrap();
+    let a = simulate(&sc, 4);
+    let mut sc2 = sc.clone();
+    sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
+    sc2.truth.mag.matrix = [
+        [0.97, 0.03, -0.02],
+        [0.03, 1.04, 0.015],
+        [-0.02, 0.015, 0.99],
+    ];
+    (a, simulate(&sc2, 11))
+}
+
+fn udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// The last MAG_CAL_REPORT a peer received, keyed by the sender's (system, component) ids.
+type Reports = Arc<Mutex<BTreeMap<(u8, u8), MAG_CAL_REPORT_DATA>>>;
+
+fn listen(peer: Arc<tokio::net::UdpSocket>) -> (Reports, tokio::task::JoinHandle<()>) {
+    let reports: Reports = Default::default();
+    let r = reports.clone();
+    let task = tokio::spawn(async move {
+        let mut dec = imucald::decode::FrameDecoder::new();
+        let mut buf = vec![0u8; 4096];
+        while let Ok((n, _)) = peer.recv_from(&mut buf).await {
+            for f in dec.push(&buf[..n]) {
+                if let MavMessage::MAG_CAL_REPORT(m) = f.message {
+                    r.lock().unwrap().insert((f.system_id, f.component_id), m);
+                }
+            }
+        }
+    });
+    (reports, task)
+}
+
+/// COMPASS_OFS error of a report against a simulated truth (mGauss, added: -10 x offset in uT).
+fn ofs_error_mgauss(r: &MAG_CAL_REPORT_DATA, sim: &SimOutput) -> f64 {
+    let got = [r.ofs_x, r.ofs_y, r.ofs_z].map(f64::from);
+    let want = sim.truth.mag.offset.map(|x| -10.0 * x);
+    (0..3).map(|k| (got[k] - want[k]).abs()).fold(0.0, f64::max)
+}
+
+fn stored_error_ut(dir: &std::path::Path, sim: &SimOutput) -> f64 {
+    let store = imucald::daemon::load_store(dir)
+        .unwrap()
+        .unwrap_or_else(|| panic!("nothing stored in {}", dir.display()));
+    let m = store.mag.expect("a magnetometer calibration");
+    (0..3)
+        .map(|k| (m.offset[k] - sim.truth.mag.offset[k]).abs())
+        .fold(0.0, f64::max)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_service_calibrates_each_vehicle_on_its_own() {
+    let (a, b) = two_vehicles();
+    for shared_link in [false, true] {
+        let dir = tempfile::tempdir().unwrap();
+        let ports = [udp_port(), udp_port()];
+        let links = if shared_link { 1 } else { 2 };
+        let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let mut cfg = Config::default();
+        cfg.daemon.sources = ports[..links]
+            .iter()
+            .map(|p| SourceConfig {
+                address: format!("udpin:127.0.0.1:{p}"),
+                payload: "mavlink".into(),
+                fields: vec![],
+                scales: Default::default(),
+            })
+            .collect();
+        let cal_dir = dir.path().join("cal");
+        cfg.daemon.calibration_dir = cal_dir.display().to_string();
+        cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+        cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
+        cfg.fit.refit_every_s = 5.0;
+        cfg.validate().unwrap();
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(Duration::from_millis(200)).await;
+
+        // Vehicle A: system 1 on link 0. Vehicle B: system 1 on link 1, or system 2 on link 0.
+        // One link: both vehicles behind one router (one address); two: one radio each.
+        let peer_a = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+        let peer_b = if shared_link {
+            peer_a.clone()
+        } else {
+            Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap())
+        };
+        let (sys_b, port_b) = if shared_link {
+            (2, ports[0])
+        } else {
+            (1, ports[1])
+        };
+        let (got_a, task_a) = listen(peer_a.clone());
+        let (got_b, task_b) = if shared_link {
+            (Reports::default(), tokio::spawn(async {}))
+        } else {
+            listen(peer_b.clone())
+        };
+        let mut enc_a = MavEncoder::new(1, 1);
+        let mut enc_b = MavEncoder::new(sys_b, 1);
+        // A is heard first: it takes the configured directory (B, heard first after a restart, is
+        // still kept in its own: checked below).
+        let first = imucald::sim::highres_imu(&a.samples[0], 9_990_000);
+        peer_a
+            .send_to(&enc_a.encode(&first), ("127.0.0.1", ports[0]))
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let speed = 20.0;
+        let t0 = tokio::time::Instant::now();
+        for i in 0..a.samples.len().min(b.samples.len()) {
+            for (sim, enc, peer, port) in [
+                (&a, &mut enc_a, &peer_a, ports[0]),
+                (&b, &mut enc_b, &peer_b, port_b),
+            ] {
+                let s = &sim.samples[i];
+                let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+                peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
+                    .await
+                    .unwrap();
+            }
+            if i % 50 == 0 {
+                let t = a.samples[i].t_s;
+                tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        stop_tx.send(true).unwrap();
+        tokio::time::timeout(Duration::from_secs(2), daemon)
+            .await
+            .expect("stops")
+            .unwrap()
+            .unwrap();
+        task_a.abort();
+        task_b.abort();
+        let (got_a, got_b) = (got_a.lock().unwrap().clone(), got_b.lock().unwrap().clone());
+        let setup = if shared_link {
+            "one link, systems 1 and 2"
+        } else {
+            "two links, system 1 each"
+        };
+
+        // Each vehicle's report, from the ids the service speaks for it with.
+        let ra = got_a.get(&(1, 191)).expect("vehicle A's report");
+        let ea = ofs_error_mgauss(ra, &a);
+        let (rb, eb) = if shared_link {
+            // One link: the router hears both vehicles, told apart by system id.
+            let rb = got_a.get(&(2, 191)).expect("vehicle B's report");
+            assert_eq!(got_a.len(), 2, "{got_a:?}");
+            (rb, ofs_error_mgauss(rb, &b))
+        } else {
+            // Two links: each peer hears only its own vehicle (both speak as 1/191).
+            assert_eq!(got_a.len(), 1, "{got_a:?}");
+            assert_eq!(got_b.len(), 1, "{got_b:?}");
+            let rb = got_b.get(&(1, 191)).expect("vehicle B's report");
+            (rb, ofs_error_mgauss(rb, &b))
+        };
+        eprintln!("{setup}: COMPASS_OFS error A {ea:.3} mGauss, B {eb:.3} mGauss");
+        for (r, e) in [(ra, ea), (rb, eb)] {
+            assert_eq!(r.cal_status as u8, 4, "{setup}: {r:?}"); // MAG_CAL_SUCCESS
+                                                                 // Measured: 0.36 / 0.08 mGauss (both set-ups). Continuous
+                                                                 // calibration reports again only once the calibration moved by 0.5 mGauss, so a
+                                                                 // report must meet 1 mGauss; the files are checked tighter below.
+            assert!(e < 1.0, "{setup}: COMPASS_OFS error {e} mGauss");
+        }
+
+        // Each in its own directory: A in the configured one, B in vehicle-<link>-<system>.
+        let link_b = if shared_link { 0 } else { 1 };
+        let dir_b = cal_dir.join(format!("vehicle-{link_b}-{sys_b}"));
+        let (sa, sb) = (stored_error_ut(&cal_dir, &a), stored_error_ut(&dir_b, &b));
+        eprintln!("{setup}: stored offset error A {sa:.4} uT, B {sb:.4} uT");
+        // Measured: 0.0086 / 0.0155 uT.
+        assert!(sa < 0.05 && sb < 0.05, "{setup}: {sa} {sb}");
+        assert!(dir_b.join("ardupilot.parm").exists());
+
+        // Its own block in the report.
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+                .unwrap();
+        let vehicles = report["vehicles"].as_array().expect("vehicles");
+        assert_eq!(vehicles.len(), 1, "{vehicles:?}");
+        assert_eq!(vehicles[0]["system_id"], sys_b);
+        assert_eq!(vehicles[0]["calibration"]["mag"]["status"], "ok");
+        assert_eq!(
+            vehicles[0]["calibration_dir"],
+            dir_b.display().to_string().as_str()
+        );
+        let n = a.samples.len().min(b.samples.len()) as u64;
+        assert_eq!(report["input"]["samples"], n + 1, "{}", report["input"]);
+        assert_eq!(vehicles[0]["input"]["samples"], n);
+
+        // Its own JSON lines: a further vehicle's say which it is.
+        let mut buf = vec![0u8; 65536];
+        let mut calibrated = std::collections::BTreeSet::new();
+        while let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+        {
+            for line in String::from_utf8_lossy(&buf[..n]).lines() {
+                let v: serde_json::Value = serde_json::from_str(line).unwrap();
+                if v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok" {
+                    calibrated.insert(v["vehicle"]["system_id"].as_u64());
+                }
+            }
+        }
+        assert_eq!(
+            calibrated.into_iter().collect::<Vec<_>>(),
+            vec![None, Some(sys_b as u64)],
+            "{setup}"
+        );
+        if !shared_link {
+            restart_with_the_other_vehicle_first(&cal_dir, &ports, &b).await;
+        }
+    }
+}
+
+/// After a restart, vehicle B (link 1) is heard first: it resumes from its own directory, and the
+/// configured directory keeps vehicle A's calibration.
+async fn restart_with_the_other_vehicle_first(
+    cal_dir: &std::path::Path,
+    ports: &[u16],
+    b: &SimOutput,
+) {
+    let before = std::fs::read_to_string(cal_dir.join("calibration.json")).unwrap();
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut cfg = Config::default();
+    cfg.daemon.sources = ports
+        .iter()
+        .map(|p| SourceConfig {
+            address: format!("udpin:127.0.0.1:{p}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        })
+        .collect();
+    cfg.daemon.calibration_dir = cal_dir.display().to_string();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut enc = MavEncoder::new(1, 1);
+    for s in &b.samples[..200] {
+        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+        peer.send_to(&enc.encode(&msg), ("127.0.0.1", ports[1]))
+            .await
+            .unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    stop_tx.send(true).unwrap();
+    tokio::time::timeout(Duration::from_secs(2), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap();
+    let mut said = vec![];
+    let mut buf = vec![0u8; 65536];
+    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+    {
+        for line in String::from_utf8_lossy(&buf[..n]).lines() {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            if v["type"] == "status" {
+                said.push(v["text"].as_str().unwrap_or("").to_string());
+            }
+        }
+    }
+    assert!(
+        said.iter()
+            .any(|t| t.contains("vehicle-1-1") && t.contains("(resumed)")),
+        "{said:?}"
+    );
+    let after: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(cal_dir.join("calibration.json")).unwrap())
+            .unwrap();
+    let before: serde_json::Value = serde_json::from_str(&before).unwrap();
+    assert_eq!(
+        after["mag"], before["mag"],
+        "vehicle A's calibration changed"
+    );
+    assert_eq!(after["vehicle"]["system_id"], 1);
+}
