@@ -303,3 +303,95 @@ async fn restart_with_the_other_vehicle_first(
     );
     assert_eq!(after["vehicle"]["system_id"], 1);
 }
+
+/// Ground-station commands reach the vehicle they are addressed to: DO_START_MAG_CAL to system 2
+/// (our component) is answered by system 2 alone and restarts only its run; one to system 1 by
+/// the first vehicle alone; a broadcast by both.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_reach_the_vehicle_they_are_addressed_to() {
+    use mavlink::dialects::ardupilotmega::{MavCmd, COMMAND_LONG_DATA};
+    let (a, b) = two_vehicles();
+    let dir = tempfile::tempdir().unwrap();
+    let port = udp_port();
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut cfg = Config::default();
+    cfg.daemon.sources = vec![SourceConfig {
+        address: format!("udpin:127.0.0.1:{port}"),
+        payload: "mavlink".into(),
+        fields: vec![],
+        scales: Default::default(),
+    }];
+    cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    cfg.daemon.heartbeat_rate_hz = 0.0;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let peer = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+    let (mut v1, mut v2, mut gcs) = (
+        MavEncoder::new(1, 1),
+        MavEncoder::new(2, 1),
+        MavEncoder::new(255, 190),
+    );
+    for i in 0..100 {
+        for (sim, enc) in [(&a, &mut v1), (&b, &mut v2)] {
+            let s = &sim.samples[i];
+            let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+            peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
+                .await
+                .unwrap();
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Who answers each command: the (system, component) of every COMMAND_ACK.
+    let mut answers = vec![];
+    let mut dec = imucald::decode::FrameDecoder::new();
+    let mut buf = vec![0u8; 65536];
+    for target in [2u8, 1, 0] {
+        let start = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_DO_START_MAG_CAL,
+            target_system: target,
+            target_component: if target == 0 { 0 } else { 191 },
+            param3: 1.0, // autosave
+            ..Default::default()
+        });
+        peer.send_to(&gcs.encode(&start), ("127.0.0.1", port))
+            .await
+            .unwrap();
+        let mut acks = std::collections::BTreeSet::new();
+        let until = tokio::time::Instant::now() + Duration::from_millis(400);
+        while let Ok(Ok(n)) = tokio::time::timeout_at(until, peer.recv(&mut buf)).await {
+            for f in dec.push(&buf[..n]) {
+                if let MavMessage::COMMAND_ACK(ack) = f.message {
+                    assert_eq!(ack.result as u8, 0, "{ack:?}"); // MAV_RESULT_ACCEPTED
+                    acks.insert(f.system_id);
+                }
+            }
+        }
+        answers.push((target, acks.into_iter().collect::<Vec<_>>()));
+    }
+    stop_tx.send(true).unwrap();
+    tokio::time::timeout(Duration::from_secs(2), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        answers,
+        vec![(2, vec![2]), (1, vec![1]), (0, vec![1, 2])],
+        "(target system, systems that answered)"
+    );
+    // The runs restarted: one per vehicle for its own command, one each for the broadcast.
+    let mut started = BTreeMap::new();
+    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+    {
+        for line in String::from_utf8_lossy(&buf[..n]).lines() {
+            let v: serde_json::Value = serde_json::from_str(line).unwrap();
+            if v["type"] == "status" && v["text"] == "mag calibration run started" {
+                let sys = v["vehicle"]["system_id"].as_u64().unwrap_or(1);
+                *started.entry(sys).or_insert(0) += 1;
+            }
+        }
+    }
+    assert_eq!(started, BTreeMap::from([(1, 2), (2, 2)]));
+}
