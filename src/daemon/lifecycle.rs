@@ -26,6 +26,8 @@ impl State {
                 instance: t.compass_id,
                 completion_pct: p.completion_pct as f64,
                 filled_regions: p.filled_regions,
+                regions: crate::coverage::regions_hex(&p.regions),
+                direction: p.direction,
             };
             self.send_mav(&[msg]).await;
             self.send_json(&ev).await;
