@@ -2,7 +2,8 @@
 // JSON line, imucald.live/1), drawn at most every 100 ms.
 (() => {
   const f = IMUDraw.fmt;
-  const S = { progress: {}, calibration: {}, heading: null, attitude: null, trail: [], log: [], bands: [], lastEvent: 0 };
+  const S = { progress: {}, calibration: {}, heading: null, attitude: null, trail: [], log: [], bands: [], lastEvent: 0,
+    events: 0, connected: false };
   const sphere = IMUDraw.sphere(document.getElementById("sphere"));
   const $ = id => document.getElementById(id);
   const key = e => e.sensor + ":" + e.instance;
@@ -23,6 +24,7 @@
 
   function apply(e) {
     S.lastEvent = Date.now();
+    document.body.dataset.events = String(++S.events);
     switch (e.type) {
       case "progress": {
         S.progress[key(e)] = e;
@@ -111,18 +113,23 @@
     document.body.dataset.rendered = String((+document.body.dataset.rendered || 0) + 1);
   }
 
-  let pending = false;
-  function schedule() { if (!pending) { pending = true; setTimeout(() => { pending = false; render(); }, 100); } }
+  // At most one render per 100 ms, the next one 100 ms after the last (not after the event).
+  let pending = false, last = 0;
+  function schedule() {
+    if (pending) return;
+    pending = true;
+    setTimeout(() => { pending = false; last = performance.now(); render(); }, Math.max(0, last + 100 - performance.now()));
+  }
 
   function linkText() {
     const age = (Date.now() - S.lastEvent) / 1000;
-    $("link").textContent = !S.lastEvent ? "Connected; waiting for data from the service." :
+    $("link").textContent = !S.connected ? "Connection to the service lost; retrying…" : !S.lastEvent ? "Connected; waiting for data from the service." :
       age < 3 ? "Receiving live data." : "No data for " + f(age, 0) + " s (sources silent or ended).";
   }
   setInterval(linkText, 1000);
 
   const es = new EventSource("/api/events");
-  es.addEventListener("state", e => { setState(JSON.parse(e.data)); linkText(); schedule(); });
+  es.addEventListener("state", e => { S.connected = true; setState(JSON.parse(e.data)); linkText(); schedule(); });
   es.onmessage = e => { try { apply(JSON.parse(e.data)); } catch (err) { /* not an event: skipped */ } };
-  es.onerror = () => { $("link").textContent = "Connection to the service lost; retrying…"; };
+  es.onerror = () => { S.connected = false; linkText(); };
 })();
