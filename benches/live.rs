@@ -13,6 +13,12 @@
 //! 4. **Latency**: sample-in to fused-attitude-out round trip at 1 kHz for `IMUCALD_BENCH_LATENCY_S`
 //!    seconds (default 30), with `daemon.attitude_every_samples = 1`: p50/p90/p99/p99.9/max.
 //!
+//! 5. **Live page cost** (`IMUCALD_BENCH_ONLY=ui`): CPU at 1 kHz as in 1., in alternating runs of
+//!    `IMUCALD_BENCH_UI_S` seconds (default 30), `IMUCALD_BENCH_UI_ROUNDS` rounds (default 3): no
+//!    page served, the page served with no one connected, and one page connected (an event-stream
+//!    client reading every line, as the browser does); and the page's transfer size (the page,
+//!    the snapshot, the stream's first message).
+//!
 //! Linux only (reads /proc). Samples come from the simulator (tumble with pauses, 1 kHz), one new
 //! seed per simulated minute, generated while streaming so this process holds one minute at a time.
 
@@ -463,6 +469,117 @@ fn latency(seconds: f64) {
     );
 }
 
+/// The service's CPU over `seconds` of 1 kHz frames: (whole process, main thread), % of one core.
+fn cpu_run(d: &Daemon, seconds: f64, seed_minute: u64) -> (f64, f64) {
+    let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+    sock.connect(("127.0.0.1", d.port)).unwrap();
+    let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
+    let mut s = minute(seed_minute);
+    s.truncate(((seconds + 1.0).min(60.0) * 1000.0) as usize);
+    let warm = 1000.min(s.len());
+    send_paced(&sock, &mut enc, &s[..warm], 1000.0);
+    let (cpu0, loop0, t0) = (d.cpu_s(), d.loop_cpu_s(), Instant::now());
+    send_paced(&sock, &mut enc, &s[warm..], 1000.0);
+    let wall = t0.elapsed().as_secs_f64();
+    (
+        100.0 * (d.cpu_s() - cpu0) / wall,
+        100.0 * (d.loop_cpu_s() - loop0) / wall,
+    )
+}
+
+/// GET on loopback: (bytes of the whole response, body).
+fn http_get(port: u16, path: &str) -> (usize, String) {
+    use std::io::{Read, Write};
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).expect("live page");
+    write!(
+        c,
+        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut out = String::new();
+    c.read_to_string(&mut out).unwrap();
+    let body = out.split_once("\r\n\r\n").map_or("", |x| x.1).to_string();
+    (out.len(), body)
+}
+
+/// An open page's event stream: reads every byte until the service ends it; (bytes read so far).
+fn event_client(port: u16) -> std::sync::Arc<std::sync::atomic::AtomicU64> {
+    use std::io::{Read, Write};
+    let n = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let n2 = n.clone();
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).expect("live page");
+    write!(c, "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n").unwrap();
+    std::thread::spawn(move || {
+        let mut buf = vec![0u8; 65536];
+        while let Ok(k) = c.read(&mut buf) {
+            if k == 0 {
+                break;
+            }
+            n2.fetch_add(k as u64, std::sync::atomic::Ordering::Relaxed);
+        }
+    });
+    n
+}
+
+fn ui_cost(seconds: f64, rounds: u64) {
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let (mut off, mut idle, mut page) = (vec![], vec![], vec![]);
+    let mut transfer = None;
+    for r in 0..rounds {
+        for variant in 0..3 {
+            let port = std::net::TcpListener::bind("127.0.0.1:0")
+                .unwrap()
+                .local_addr()
+                .unwrap()
+                .port();
+            let toml = match variant {
+                0 => String::new(),
+                _ => format!("[ui]\nlisten = \"127.0.0.1:{port}\"\n"),
+            };
+            let d = Daemon::start_with(&toml);
+            let stream = (variant == 2).then(|| {
+                let (page_bytes, _) = http_get(port, "/");
+                let (state_bytes, _) = http_get(port, "/api/state");
+                (page_bytes, state_bytes, event_client(port))
+            });
+            let (cpu, lp) = cpu_run(&d, seconds, r);
+            let streamed = stream
+                .as_ref()
+                .map(|s| s.2.load(std::sync::atomic::Ordering::Relaxed));
+            if let Some((p, s, _)) = &stream {
+                transfer = Some((*p, *s));
+            }
+            d.stop();
+            let name = [
+                "no page served",
+                "page served, none connected",
+                "one page connected",
+            ][variant];
+            println!(
+                "  round {r}: {name}: {cpu:.2}% of one core (main thread {lp:.2}%){}",
+                streamed.map_or(String::new(), |b| format!(
+                    ", {b} bytes streamed to the page"
+                ))
+            );
+            [&mut off, &mut idle, &mut page][variant].push(cpu);
+        }
+    }
+    println!(
+        "live page cost at 1 kHz ({rounds} rounds of {seconds:.0} s, alternated): no page {:.2}%, served with none connected {:.2}%, one page connected {:.2}% of one core: +{:.2} points for the connected page over none connected, +{:.2} over no page (target < 0.5)",
+        mean(&off),
+        mean(&idle),
+        mean(&page),
+        mean(&page) - mean(&idle),
+        mean(&page) - mean(&off)
+    );
+    if let Some((p, s)) = transfer {
+        println!(
+            "live page transfer: page {p} bytes, snapshot {s} bytes (the stream's first message is the same snapshot): {} bytes before the stream (target < 200 KB)",
+            p + s
+        );
+    }
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
@@ -486,5 +603,11 @@ fn main() {
     }
     if only.is_empty() || only == "load" {
         load(env_f64("IMUCALD_BENCH_LOAD_S", 60.0));
+    }
+    if only.is_empty() || only == "ui" {
+        ui_cost(
+            env_f64("IMUCALD_BENCH_UI_S", 30.0),
+            env_f64("IMUCALD_BENCH_UI_ROUNDS", 3.0) as u64,
+        );
     }
 }

@@ -25,6 +25,21 @@ pub struct Config {
     pub orientation: OrientationConfig,
     /// The live service (`imucald run`). Default: see [`DaemonConfig`].
     pub daemon: DaemonConfig,
+    /// `[ui]`: the live page of the service. Default: see [`UiConfig`] (no page).
+    pub ui: UiConfig,
+}
+
+/// The live page (`imucald run --ui ADDR`): a web page and its JSON/event stream served by the
+/// service while it runs.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct UiConfig {
+    /// Serve the page at this `IP:PORT` (port 0: any free port, logged). A loopback address unless
+    /// `allow_remote`. Default: none (no page).
+    pub listen: Option<String>,
+    /// Allow a `listen` address that is not loopback (the page has no authentication: anyone who
+    /// reaches the address sees the calibration and can keep a stream open). Default: false.
+    pub allow_remote: bool,
 }
 
 /// One input of the live service.
@@ -533,10 +548,27 @@ impl Config {
         self.validate_input()?;
         self.validate_fit()?;
         self.validate_daemon()?;
+        self.validate_ui()?;
         crate::attitude::sensor_rotation(&self.orientation.sensor)
             .map_err(|m| err("orientation.sensor", m))?;
         if let Some(p) = &self.place {
             crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
+        }
+        Ok(())
+    }
+
+    /// `[ui]`: an address, loopback unless another is allowed.
+    fn validate_ui(&self) -> Result<(), Error> {
+        if let Some(l) = &self.ui.listen {
+            let addr: std::net::SocketAddr = l
+                .parse()
+                .map_err(|_| err("ui.listen", format!("`{l}` is not IP:PORT")))?;
+            if !addr.ip().is_loopback() && !self.ui.allow_remote {
+                return Err(err(
+                    "ui.listen",
+                    format!("`{l}` is not a loopback address; set ui.allow_remote = true to serve the page (no authentication) beyond this machine"),
+                ));
+            }
         }
         Ok(())
     }
@@ -749,6 +781,7 @@ mod tests {
                     "AcceptLimits",
                     "AcceptConfig",
                     "OrientationConfig",
+                    "UiConfig",
                 ],
             ),
             ("gate.rs", include_str!("gate.rs"), &["GateConfig"]),

@@ -12,7 +12,7 @@ pub const REGIONS: usize = 100;
 /// Latitude bands north to south as (lowest z = sin(latitude), regions in the band). Equal areas
 /// on a sphere are equal spans of z, so with 100 regions the edges are z = 0.98, 0.68, 0, -0.68,
 /// -0.98 (latitudes 78.52, 42.84, 0, -42.84, -78.52 deg).
-const BANDS: [(f64, usize); 6] = [
+pub const BANDS: [(f64, usize); 6] = [
     (0.98, 1),
     (0.68, 15),
     (0.0, 34),
@@ -51,6 +51,22 @@ pub fn theta_phi(v: &Vec3) -> (f64, f64) {
         (v[2] / n).clamp(-1.0, 1.0).acos().to_degrees(),
         v[1].atan2(v[0]).to_degrees(),
     )
+}
+
+/// Regions as 25 hexadecimal digits (region `i` is bit `i % 4` of digit `i / 4`), as the JSON
+/// `progress` line and the pages carry them.
+pub fn regions_hex(regions: &[bool]) -> String {
+    regions
+        .chunks(4)
+        .map(|c| {
+            let d = c
+                .iter()
+                .enumerate()
+                .map(|(b, &f)| (f as u32) << b)
+                .sum::<u32>();
+            char::from_digit(d, 16).unwrap_or('0')
+        })
+        .collect()
 }
 
 /// Coverage summary as the report gives it.
@@ -267,6 +283,9 @@ pub struct ProgressReport {
     pub filled_regions: usize,
     /// ArduPilot's 80-section completion mask about the current centre.
     pub mask: [u8; 10],
+    /// Which of the [`REGIONS`] regions are filled about the current centre (none while no
+    /// centre is known).
+    pub regions: [bool; REGIONS],
     /// Direction of the latest point about the centre (zero while no centre is known).
     pub direction: Vec3,
     /// Whether a centre is known.
@@ -310,6 +329,7 @@ impl Progress {
                 completion_pct: self.high_water_pct,
                 filled_regions: 0,
                 mask: [0; 10],
+                regions: [false; REGIONS],
                 direction: [0.0; 3],
                 centre_known: false,
             };
@@ -333,6 +353,7 @@ impl Progress {
             completion_pct: self.high_water_pct,
             filled_regions: m.regions_filled,
             mask: m.mask,
+            regions: m.regions,
             direction: m.last_dir,
             centre_known: true,
         }

@@ -59,6 +59,14 @@ struct ReplayArgs {
     /// Write ArduPilot, PX4 and x-io Fusion parameter files into this directory.
     #[arg(long)]
     export: Option<PathBuf>,
+    /// Write one self-contained HTML page (no network needed) with the field directions on the
+    /// sphere before and after calibration, coverage, residuals, fitted values and failures.
+    #[arg(long)]
+    html: Option<PathBuf>,
+    /// A diagnosis (`imucald diagnose --report`, imucald.diagnosis/1) of the same log to show in
+    /// the `--html` page.
+    #[arg(long, requires = "html")]
+    diagnosis: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -76,6 +84,9 @@ struct RunArgs {
     /// Keep the latest report (imucald.report/1) in this file.
     #[arg(long)]
     report: Option<PathBuf>,
+    /// Serve the live page at IP:PORT (loopback unless `ui.allow_remote`), overriding `[ui] listen`.
+    #[arg(long)]
+    ui: Option<String>,
 }
 
 #[derive(Args)]
@@ -212,6 +223,8 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         calibrated_out,
         plot,
         export,
+        html,
+        diagnosis,
     } = args;
     let cfg = load_config(config.as_ref())?;
     let format = parse_format(format.as_deref())?;
@@ -224,6 +237,8 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         calibrated_out,
         plot_dir: plot,
         export_dir: export,
+        html,
+        diagnosis,
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
@@ -251,8 +266,12 @@ fn run_cmd(args: RunArgs) -> Result<()> {
         sources,
         publish,
         report,
+        ui,
     } = args;
     let mut cfg = load_config(config.as_ref())?;
+    if ui.is_some() {
+        cfg.ui.listen = ui;
+    }
     if !sources.is_empty() {
         cfg.daemon.sources = sources
             .into_iter()
@@ -273,8 +292,10 @@ fn run_cmd(args: RunArgs) -> Result<()> {
     if cfg.daemon.sources.is_empty() && cfg.daemon.publish.is_empty() {
         // The embedded default shows its output on the terminal.
         cfg.daemon.publish = vec!["stdout".into()];
-        cfg.daemon.heading_rate_hz = 1.0;
-        cfg.daemon.attitude_rate_hz = 1.0;
+        if cfg.ui.listen.is_none() {
+            cfg.daemon.heading_rate_hz = 1.0;
+            cfg.daemon.attitude_rate_hz = 1.0;
+        }
         eprintln!("imucald run: no sources configured, running the embedded simulated tumble (sim:tumble, 140 s). Ctrl-C stops.");
     }
     cfg.validate()?;

@@ -36,8 +36,8 @@
 //! | `attitude`    | `t` (s), `q` ([w,x,y,z], body FRD -> NED, from the gyro+accel+mag orientation filter), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, ZYX angles of `q`), `true_heading` (as for `heading`), `gyro_bias_rad_s` ([x,y,z] body: the stored gyro calibration plus the filter's residual estimate), `mag_disturbed` (bool: the field's norm or dip is off its reference, so the heading runs on the gyro) |
 //! | `heading`     | `t` (s), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, clockwise from north), `true_heading` (bool: true when the declination was added, i.e. from true north; false: magnetic north) |
 //! | `calibrated`  | `t` (s), `accel_mps2` ([x,y,z] m/s^2 or null), `gyro_rad_s` ([x,y,z] rad/s or null), `mag_ut` ([x,y,z] uT or null): the latest sample after calibration |
-//! | `progress`    | `sensor` ("mag"), `instance` (the compass: MAG_CAL_* `compass_id`; a stream with several compasses has a progress line per compass), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100) |
-//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
+//! | `progress`    | `sensor` ("mag"), `instance` (the compass: MAG_CAL_* `compass_id`; a stream with several compasses has a progress line per compass), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100), `regions` (which: 25 hex digits, region i is bit i%4 of digit i/4, regions as in `coverage`), `direction` ([x,y,z] of the latest point about the centre, body axes; zero while no centre is known) |
+//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `offset_sigma` (its 1-sigma), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
 //! | `status`      | `level` (emergency, alert, critical, error, warning, notice, info, debug), `text` |
 //!
 //! Example lines:
@@ -1182,6 +1182,12 @@ pub enum LiveEvent {
         instance: u8,
         completion_pct: f64,
         filled_regions: usize,
+        /// The filled regions ([`crate::coverage::regions_hex`]).
+        #[serde(default)]
+        regions: String,
+        /// Direction of the latest point about the centre, body axes (zero while no centre).
+        #[serde(default)]
+        direction: Vec3,
     },
     Calibration {
         sensor: String,
@@ -1191,6 +1197,9 @@ pub enum LiveEvent {
         failure: Option<String>,
         model: String,
         offset: Vec3,
+        /// 1-sigma of `offset`.
+        #[serde(default)]
+        offset_sigma: Vec3,
         matrix: [[f64; 3]; 3],
         rms_residual: f64,
     },
@@ -1210,6 +1219,7 @@ impl LiveEvent {
             failure: cal.failure.clone(),
             model: cal.model.clone(),
             offset: cal.offset,
+            offset_sigma: cal.offset_sigma,
             matrix: cal.matrix,
             rms_residual: cal.rms_residual,
         }
@@ -2181,6 +2191,8 @@ mod tests {
                 instance: 1,
                 completion_pct: 45.0,
                 filled_regions: 45,
+                regions: crate::coverage::regions_hex(&[true; 45]),
+                direction: [0.6, 0.0, 0.8],
             },
             LiveEvent::calibration("mag", 0, &sensor_cal("failed", Some("residuals"))),
             LiveEvent::Status {

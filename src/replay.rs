@@ -17,6 +17,10 @@ pub struct ReplayOptions {
     pub plot_dir: Option<PathBuf>,
     /// Directory for ArduPilot/PX4/Fusion exports.
     pub export_dir: Option<PathBuf>,
+    /// A self-contained HTML page of the result (`crate::ui::html`).
+    pub html: Option<PathBuf>,
+    /// A diagnosis report (imucald.diagnosis/1) to show in the HTML page.
+    pub diagnosis: Option<PathBuf>,
 }
 
 pub struct ReplayOutcome {
@@ -179,6 +183,14 @@ pub fn replay(
     }
     if let Some(dir) = &opts.plot_dir {
         written.extend(write_plots(dir, &pipe, &log.samples, &results)?);
+    }
+    if let Some(p) = &opts.html {
+        let others = log.instances.iter().zip(others.iter_mut());
+        let others =
+            others.filter_map(|(i, o)| Some((i.name.clone(), o.as_mut()?.finish().clone())));
+        let views = crate::ui::html::Views::new(&report, &results, others.collect());
+        crate::ui::html::write(p, &report, &views, opts.diagnosis.as_deref())?;
+        written.push(p.clone());
     }
     Ok(ReplayOutcome {
         report,

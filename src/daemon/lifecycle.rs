@@ -35,6 +35,8 @@ impl State {
                 instance: t.compass_id,
                 completion_pct: p.completion_pct as f64,
                 filled_regions: p.filled_regions,
+                regions: crate::coverage::regions_hex(&p.regions),
+                direction: p.direction,
             };
             self.send_mav(To::Cal(c), &[msg]).await;
             self.send_json_for(c, &ev).await;

@@ -295,12 +295,18 @@ pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSumm
     cfg.validate()?;
     let store = open_store(&cfg.daemon)?;
     let declination = cfg.declination_deg()?;
-    let sinks = cfg
+    let mut sinks = cfg
         .daemon
         .publish
         .iter()
         .map(|p| Sink::open(p))
         .collect::<Result<Vec<_>, _>>()?;
+    // The live page: a JSON consumer of its own feeds it.
+    let ui = match &cfg.ui.listen {
+        Some(addr) => Some(crate::ui::server::LiveUi::start(addr).await?),
+        None => None,
+    };
+    sinks.extend(ui.as_ref().map(|u| Sink::ui(u.feed())));
     let (tx, rx) = mpsc::channel::<Inbound>(cfg.daemon.queue_capacity);
     // The time grid the UDP polls and the periodic outputs share.
     let epoch = tokio::time::Instant::now();
@@ -310,7 +316,11 @@ pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSumm
     let mut timers = Timers::new(&st.cfg.daemon, st.links.iter().any(|l| l.polled), epoch);
     let fit_job = st.serve(rx, shutdown, &mut timers).await;
     let _ = link_stop_tx.send(true);
-    Ok(st.shut_down(fit_job).await)
+    let summary = st.shut_down(fit_job).await;
+    if let Some(u) = ui {
+        u.stop().await;
+    }
+    Ok(summary)
 }
 
 #[cfg(test)]

@@ -102,6 +102,29 @@ impl Sink {
         })
     }
 
+    /// The live page's consumer: its writer hands the lines to the page's hub (`crate::ui`).
+    pub(super) fn ui(feed: crate::ui::server::Feed) -> Sink {
+        let (tx, mut rx) = mpsc::channel::<std::sync::Arc<str>>(SINK_QUEUE_LINES);
+        let counters = std::sync::Arc::new(SinkCounters::default());
+        let c = counters.clone();
+        let task = tokio::spawn(async move {
+            let mut batch = Vec::with_capacity(SINK_BATCH);
+            while rx.recv_many(&mut batch, SINK_BATCH).await > 0 {
+                for line in batch.drain(..) {
+                    feed.line(&line);
+                    SinkCounters::add(&c.sent, 1);
+                }
+            }
+        });
+        Sink {
+            label: "ui".into(),
+            tx: Some(tx),
+            counters,
+            writer: Some(SinkWriter::Task(task)),
+            lost_reported: 0,
+        }
+    }
+
     /// Queue a line; never waits. A full queue drops it (counted).
     pub(super) fn send(&self, line: &std::sync::Arc<str>) {
         if let Some(tx) = &self.tx {
