@@ -104,7 +104,16 @@ impl Daemon {
         // IMUCALD_BENCH_TOML adds settings to every daemon the bench starts (e.g. to compare
         // `daemon.udp_poll_ms` values); a table given both ways is merged by TOML rules or refused.
         let extra = std::env::var("IMUCALD_BENCH_TOML").unwrap_or_default();
-        std::fs::write(&cfg, merge_toml(toml, &extra)).expect("bench config");
+        // A calibration directory of its own: a daemon never resumes from another run's
+        // calibration (nor writes into the working directory).
+        let cal_dir = std::env::temp_dir().join(format!("imucald-bench-{port}-cal"));
+        let _ = std::fs::remove_dir_all(&cal_dir);
+        let own = format!(
+            "[daemon]\ncalibration_dir = {:?}\n",
+            cal_dir.display().to_string()
+        );
+        let toml = merge_toml(toml, &own);
+        std::fs::write(&cfg, merge_toml(&toml, &extra)).expect("bench config");
         // IMUCALD_BENCH_BIN: another build of imucald to measure (an A/B against this one).
         let bin = std::env::var("IMUCALD_BENCH_BIN")
             .unwrap_or_else(|_| env!("CARGO_BIN_EXE_imucald").to_string());

@@ -19,6 +19,7 @@ pub mod error;
 pub mod eval;
 pub mod export;
 pub mod fit;
+pub mod fixedyaw;
 pub mod flightlog;
 pub mod fusion;
 pub mod gate;

@@ -234,6 +234,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         );
         if !shared_link {
             restart_with_the_other_vehicle_first(&cal_dir, &ports, &b).await;
+            restart_with_an_edited_address(&cal_dir, ports[1], &a).await;
         }
     }
 }
@@ -394,4 +395,50 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
         }
     }
     assert_eq!(started, BTreeMap::from([(1, 2), (2, 2)]));
+}
+
+/// After a restart with vehicle A's link address edited (a new port): A, same system id, still gets
+/// the configured directory's calibration, and the store records the new address.
+async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, a: &SimOutput) {
+    let new_port = udp_port();
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut cfg = Config::default();
+    cfg.daemon.sources = [new_port, port_b]
+        .iter()
+        .map(|p| SourceConfig {
+            address: format!("udpin:127.0.0.1:{p}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        })
+        .collect();
+    cfg.daemon.calibration_dir = cal_dir.display().to_string();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut enc = MavEncoder::new(1, 1);
+    for s in &a.samples[..200] {
+        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+        peer.send_to(&enc.encode(&msg), ("127.0.0.1", new_port))
+            .await
+            .unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    stop_tx.send(true).unwrap();
+    let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap();
+    // Taken by the first calibration (the summary counts its samples), not a further vehicle's.
+    assert_eq!(summary.samples, 200, "{summary:?}");
+    let store = imucald::daemon::load_store(cal_dir).unwrap().unwrap();
+    let v = store.vehicle.expect("vehicle recorded");
+    assert_eq!(
+        (v.link, v.system_id),
+        (format!("udpin:127.0.0.1:{new_port}"), 1)
+    );
+    assert!(!cal_dir.join("vehicle-0-1").exists());
 }

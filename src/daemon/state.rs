@@ -392,13 +392,16 @@ impl State {
             link: label.clone(),
             system_id,
         };
-        // The first calibration is the one the stored calibration's vehicle had (any vehicle's
-        // when it names none: a new one, or a merged link).
-        let cal0 = &mut self.cals[0];
+        // The first calibration is the one the stored calibration's vehicle had: the same link
+        // and system id, or the same system id when that link is no longer configured (an address
+        // edited); any vehicle's when it names none (a new one, or a merged link).
         let merged = self.cfg.daemon.links == Links::Merged;
-        if cal0.vehicle.is_none()
-            && (merged || cal0.store.vehicle.as_ref().is_none_or(|s| *s == me))
-        {
+        let ours = |s: &StoredVehicle| {
+            *s == me || (s.system_id == system_id && !self.links.iter().any(|l| l.label == s.link))
+        };
+        let takes_first = merged || self.cals[0].store.vehicle.as_ref().is_none_or(ours);
+        let cal0 = &mut self.cals[0];
+        if cal0.vehicle.is_none() && takes_first {
             cal0.vehicle = Some(v);
             if !merged {
                 cal0.store.vehicle = Some(me);
