@@ -1,21 +1,64 @@
 //! `cargo bench --bench broad` (or `scripts/bench`, which also installs the Python peer): imucald's
 //! orientation filter against VQF (PyPI `vqf`, default parameters, 9D) on the BROAD trials in
 //! `../shared/data/broad`, both evaluated by `imucald::eval` (BROAD's total / heading / inclination
-//! RMSE over the movement phase). Prints a per-trial table and the means; figures, not assertions.
+//! RMSE over the movement phase). Prints a per-trial table, a per-class table, the means and ratios,
+//! and the cost per sample of both filters (imucald's `OrientationFilter::update_sample` against
+//! VQF's C++ batch update on the same data); figures, not assertions.
 //! VQF runs through `scripts/vqf_peer.py` with `$IMUCALD_PYTHON` or `.venv/bin/python`.
+//!
+//! `cargo bench --bench broad -- --tune` is the procedure that chose the filter's defaults (see
+//! [`tune`]): a coordinate search over the settings in [`TUNED`], from the fixed start point
+//! [`start_point`], scored against VQF on the trials it may see. It runs it three times on two
+//! thirds of the trials each and scores each run only on the third it did not see (the
+//! cross-validated figures), then once on all trials: that last result is what
+//! `FusionConfig::default()` holds.
+//!
+//! `cargo bench --bench broad -- --dump NAME OUT.csv` writes the per-sample errors (deg) of both
+//! filters on the trial whose name contains NAME, for a look at where they fail.
+//!
 //! Needs `[[bench]] name = "broad" harness = false` in Cargo.toml (without it cargo builds this file
 //! under the test harness, which never calls `main`: hence the allow below).
 
 #![allow(dead_code)]
 
 use imucald::config::Config;
-use imucald::eval::{evaluate, EvalResult};
-use imucald::fusion::{run, FusionConfig, WorldFrame};
+use imucald::eval::{errors, evaluate, reference, EvalResult};
+use imucald::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
 use imucald::sources::read_log;
+use imucald::types::Sample;
 use nalgebra::{Quaternion, UnitQuaternion};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
+
+/// BROAD's motion classes, as the trial names spell them, and how the tables print them.
+const CLASSES: [(&str, &str); 9] = [
+    ("slow_rotation", "slow rotation"),
+    ("fast_rotation", "fast rotation"),
+    ("slow_translation", "slow translation"),
+    ("fast_translation", "fast translation"),
+    ("combined", "combined"),
+    ("tapping", "tapping"),
+    ("vibration", "vibration"),
+    ("stationary_magnet", "stationary magnet"),
+    ("attached_magnet", "attached magnet"),
+];
+
+fn class_of(name: &str) -> usize {
+    CLASSES
+        .iter()
+        .position(|(k, _)| name.contains(k))
+        .unwrap_or(CLASSES.len() - 1)
+}
+
+struct Trial {
+    name: String,
+    class: usize,
+    samples: Vec<Sample>,
+    /// VQF's metrics and its batch-update time, s.
+    vqf: Option<(EvalResult, f64)>,
+    vqf_q: Vec<UnitQuaternion<f64>>,
+}
 
 fn python() -> Option<String> {
     let p = std::env::var("IMUCALD_PYTHON")
@@ -55,7 +98,12 @@ fn read_quats(path: &Path) -> Result<Vec<UnitQuaternion<f64>>, String> {
         .collect()
 }
 
-fn run_vqf(py: &str, trial: &Path, out_dir: &Path) -> Result<Vec<UnitQuaternion<f64>>, String> {
+/// VQF's quaternions for a trial and the time of its batch update, s.
+fn run_vqf(
+    py: &str,
+    trial: &Path,
+    out_dir: &Path,
+) -> Result<(Vec<UnitQuaternion<f64>>, f64), String> {
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/vqf_peer.py");
     let out = out_dir.join("vqf.csv");
     let o = Command::new(py)
@@ -70,7 +118,13 @@ fn run_vqf(py: &str, trial: &Path, out_dir: &Path) -> Result<Vec<UnitQuaternion<
             String::from_utf8_lossy(&o.stderr).trim()
         ));
     }
-    read_quats(&out)
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let batch_s = stdout
+        .split("batch_s=")
+        .nth(1)
+        .and_then(|s| s.trim().parse::<f64>().ok())
+        .ok_or_else(|| format!("vqf_peer.py printed no batch_s: {stdout}"))?;
+    Ok((read_quats(&out)?, batch_s))
 }
 
 fn fmt(e: &EvalResult) -> String {
@@ -80,8 +134,439 @@ fn fmt(e: &EvalResult) -> String {
     )
 }
 
+/// imucald's filter over a trial: the estimates (sensor -> ENU) and the time the updates took, s.
+fn run_ours(samples: &[Sample], cfg: &FusionConfig) -> (Vec<UnitQuaternion<f64>>, f64) {
+    let cfg = FusionConfig {
+        world: WorldFrame::Enu,
+        ..*cfg
+    };
+    let dt = median_dt(samples);
+    let mut f = OrientationFilter::new(cfg);
+    let mut q = Vec::with_capacity(samples.len());
+    let start = Instant::now();
+    for s in samples {
+        f.update_sample(s, dt);
+        q.push(f.quaternion_enu());
+    }
+    (q, start.elapsed().as_secs_f64())
+}
+
+fn score(t: &Trial, cfg: &FusionConfig) -> EvalResult {
+    evaluate(&t.samples, &run_ours(&t.samples, cfg).0)
+}
+
+fn load(dir: &Path, py: Option<&str>) -> Vec<Trial> {
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|d| {
+            d.filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.to_string_lossy().ends_with(".csv.gz"))
+                .collect()
+        })
+        .unwrap_or_default();
+    paths.sort();
+    let tmp = tempfile::tempdir().expect("a temporary directory");
+    let mut trials = Vec::new();
+    for p in &paths {
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().trim_end_matches(".csv.gz").to_string())
+            .unwrap_or_default();
+        let log = match read_log(p, None, &Config::default()) {
+            Ok(l) => l,
+            Err(e) => {
+                println!("{name:<44} cannot read: {e}");
+                continue;
+            }
+        };
+        let (vqf, vqf_q) = match py.map(|py| run_vqf(py, p, tmp.path())) {
+            Some(Ok((q, secs))) if q.len() == log.samples.len() => {
+                (Some((evaluate(&log.samples, &q), secs)), q)
+            }
+            Some(Ok((q, _))) => {
+                println!(
+                    "{name}: VQF gave {} quaternions for {} samples; left out",
+                    q.len(),
+                    log.samples.len()
+                );
+                (None, vec![])
+            }
+            Some(Err(e)) => {
+                println!("{name}: VQF: {e}");
+                (None, vec![])
+            }
+            None => (None, vec![]),
+        };
+        trials.push(Trial {
+            class: class_of(&name),
+            name,
+            samples: log.samples,
+            vqf,
+            vqf_q,
+        });
+    }
+    trials
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    s / n.max(1) as f64
+}
+
+/// Mean total, heading, inclination RMSE of a set of results.
+fn means(v: &[EvalResult]) -> String {
+    format!(
+        "{:6.2} {:6.2} {:6.2}",
+        mean(v.iter().map(|e| e.total_rmse_deg)),
+        mean(v.iter().map(|e| e.heading_rmse_deg)),
+        mean(v.iter().map(|e| e.inclination_rmse_deg))
+    )
+}
+
+/// Per-trial, per-class and overall tables of `ours` (one result per trial) against VQF; returns the
+/// ratio of the mean total RMSEs and the worst per-trial ratio (when VQF ran on every trial).
+fn report(title: &str, trials: &[&Trial], ours: &[EvalResult]) -> Option<(f64, f64)> {
+    println!("== {title}: total / heading / inclination RMSE (deg) over moving == 1");
+    println!(
+        "{:<44} {:>20}   {:>20}   {:>6}",
+        "trial", "imucald", "VQF 9D (defaults)", "ratio"
+    );
+    for (t, e) in trials.iter().zip(ours) {
+        match &t.vqf {
+            Some((v, _)) => println!(
+                "{:<44} {}   {}   {:6.2}",
+                t.name,
+                fmt(e),
+                fmt(v),
+                e.total_rmse_deg / v.total_rmse_deg
+            ),
+            None => println!("{:<44} {}", t.name, fmt(e)),
+        }
+    }
+    let all_vqf = trials.iter().all(|t| t.vqf.is_some());
+    let theirs: Vec<EvalResult> = trials.iter().filter_map(|t| t.vqf.map(|v| v.0)).collect();
+    println!("-- per class (mean over its trials)");
+    for (c, (_, label)) in CLASSES.iter().enumerate() {
+        let idx: Vec<usize> = (0..trials.len())
+            .filter(|&i| trials[i].class == c)
+            .collect();
+        if idx.is_empty() {
+            continue;
+        }
+        let o: Vec<EvalResult> = idx.iter().map(|&i| ours[i]).collect();
+        if all_vqf {
+            let v: Vec<EvalResult> = idx.iter().map(|&i| theirs[i]).collect();
+            let r =
+                mean(o.iter().map(|e| e.total_rmse_deg)) / mean(v.iter().map(|e| e.total_rmse_deg));
+            println!(
+                "{:<44} {}   {}   {r:6.2}",
+                format!("{label} ({})", idx.len()),
+                means(&o),
+                means(&v)
+            );
+        } else {
+            println!("{:<44} {}", format!("{label} ({})", idx.len()), means(&o));
+        }
+    }
+    let label = format!("mean of {} trials", ours.len());
+    if !all_vqf || ours.is_empty() {
+        println!("{label:<44} {}", means(ours));
+        return None;
+    }
+    let m_ours = mean(ours.iter().map(|e| e.total_rmse_deg));
+    let m_theirs = mean(theirs.iter().map(|e| e.total_rmse_deg));
+    let ratio = m_ours / m_theirs;
+    println!(
+        "{label:<44} {}   {}   {ratio:6.2}",
+        means(ours),
+        means(&theirs)
+    );
+    let worst = ours
+        .iter()
+        .zip(&theirs)
+        .map(|(a, b)| a.total_rmse_deg / b.total_rmse_deg)
+        .fold(0.0, f64::max);
+    println!(
+        "mean total RMSE imucald {m_ours:.2} vs VQF {m_theirs:.2} deg: ratio {ratio:.2} (target <= 0.8: {}); worst trial ratio {worst:.2} (target <= 1.5: {})",
+        if ratio <= 0.8 { "met" } else { "NOT met" },
+        if worst <= 1.5 { "met" } else { "NOT met" }
+    );
+    Some((ratio, worst))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The tuning procedure.
+
+/// The settings the procedure tunes (all positive; searched by factors).
+const TUNED: [&str; 17] = [
+    "gyro_noise_density",
+    "gyro_rate_noise",
+    "intensity_tau_s",
+    "bias_walk",
+    "acc_noise_mps2",
+    "acc_rest_noise_mps2",
+    "acc_norm_gain",
+    "acc_lin_gain",
+    "acc_lin_tau_s",
+    "mag_heading_noise_deg",
+    "mag_rest_heading_noise_deg",
+    "mag_norm_tol",
+    "mag_dip_tol_deg",
+    "mag_new_field_s",
+    "mag_gate_deg",
+    "mag_gate_timeout_s",
+    "rest_gyro_rad_s",
+];
+
+/// Where every tuning run starts: fixed here, so that no run starts from values another run (on
+/// other trials) found. The settings' values before any tuning on BROAD.
+fn start_point() -> FusionConfig {
+    FusionConfig {
+        world: WorldFrame::Enu,
+        gyro_noise_density: 0.001,
+        gyro_rate_noise: 0.001,
+        intensity_tau_s: 3.0,
+        bias_walk: 0.0001f64.to_radians(),
+        acc_noise_mps2: 2.0,
+        acc_rest_noise_mps2: 0.5,
+        acc_norm_gain: 1.0,
+        acc_lin_gain: 1.0,
+        acc_lin_tau_s: 1.0,
+        mag_heading_noise_deg: 60.0,
+        mag_rest_heading_noise_deg: 60.0,
+        mag_norm_tol: 0.1,
+        mag_dip_tol_deg: 10.0,
+        mag_new_field_s: 20.0,
+        mag_gate_deg: 20.0,
+        mag_gate_timeout_s: 10.0,
+        rest_gyro_rad_s: 2.0f64.to_radians(),
+        ..FusionConfig::default()
+    }
+}
+
+fn get(cfg: &FusionConfig, key: &str) -> f64 {
+    serde_json::to_value(cfg).expect("config to JSON")[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} is not a number setting"))
+}
+
+fn set(cfg: &FusionConfig, key: &str, v: f64) -> FusionConfig {
+    let mut j = serde_json::to_value(cfg).expect("config to JSON");
+    j[key] = serde_json::json!(v);
+    serde_json::from_value(j).expect("config from JSON")
+}
+
+/// What the search minimises on a set of trials: the ratio of imucald's mean total RMSE to VQF's,
+/// plus the excess of the worst per-trial ratio over 1.2 (so that no class is given up for the
+/// mean).
+fn objective(trials: &[&Trial], cfg: &FusionConfig) -> f64 {
+    let ours = score_all(trials, cfg);
+    let m_ours = mean(ours.iter().map(|e| e.total_rmse_deg));
+    let m_vqf = mean(
+        trials
+            .iter()
+            .map(|t| t.vqf.expect("VQF ran").0.total_rmse_deg),
+    );
+    let worst = ours
+        .iter()
+        .zip(trials)
+        .map(|(e, t)| e.total_rmse_deg / t.vqf.expect("VQF ran").0.total_rmse_deg)
+        .fold(0.0, f64::max);
+    m_ours / m_vqf + (worst - 1.2).max(0.0)
+}
+
+/// The trials scored on two threads (the machine's other work permitting).
+fn score_all(trials: &[&Trial], cfg: &FusionConfig) -> Vec<EvalResult> {
+    let mut out: Vec<Option<EvalResult>> = vec![None; trials.len()];
+    std::thread::scope(|s| {
+        let (a, b) = out.split_at_mut(trials.len() / 2);
+        let (ta, tb) = trials.split_at(trials.len() / 2);
+        s.spawn(move || {
+            for (o, t) in a.iter_mut().zip(ta) {
+                *o = Some(score(t, cfg));
+            }
+        });
+        for (o, t) in b.iter_mut().zip(tb) {
+            *o = Some(score(t, cfg));
+        }
+    });
+    out.into_iter().map(|e| e.expect("scored")).collect()
+}
+
+/// Coordinate search: each setting in turn is multiplied by each factor of a pass, and a change is
+/// kept when it lowers [`objective`] by more than 0.002; passes with factors (0.25, 0.5, 0.7, 1.4,
+/// 2, 4), then (0.8, 1.25) up to four times, stopping after a pass that changed nothing.
+fn tune(trials: &[&Trial], quiet: bool) -> FusionConfig {
+    let mut best = start_point();
+    let mut j_best = objective(trials, &best);
+    if !quiet {
+        println!("  start: objective {j_best:.4}");
+    }
+    for factors in [
+        &[0.25, 0.5, 0.7, 1.4, 2.0, 4.0][..],
+        &[0.8, 1.25][..],
+        &[0.8, 1.25][..],
+        &[0.8, 1.25][..],
+        &[0.8, 1.25][..],
+    ] {
+        let j_pass = j_best;
+        for key in TUNED {
+            let v0 = get(&best, key);
+            for f in factors {
+                let cand = set(&best, key, v0 * f);
+                let j = objective(trials, &cand);
+                if j < j_best - 0.002 {
+                    j_best = j;
+                    best = cand;
+                    if !quiet {
+                        println!("  {key} = {:.6} -> objective {j:.4}", v0 * f);
+                    }
+                }
+            }
+        }
+        if j_pass - j_best < 0.002 {
+            break;
+        }
+    }
+    best
+}
+
+fn print_settings(cfg: &FusionConfig) {
+    for key in TUNED {
+        println!("  {key} = {}", get(cfg, key));
+    }
+}
+
+fn tune_mode(trials: &[Trial]) {
+    if trials.iter().any(|t| t.vqf.is_none()) {
+        println!("broad --tune: needs VQF's results on every trial (scripts/bench installs it)");
+        return;
+    }
+    // Three folds, each class's trials dealt in turn (name order) so every fold has a mix.
+    let mut fold = vec![0usize; trials.len()];
+    let mut next = 0;
+    for c in 0..CLASSES.len() {
+        for (i, t) in trials.iter().enumerate() {
+            if t.class == c {
+                fold[i] = next % 3;
+                next += 1;
+            }
+        }
+    }
+    let mut held_out: Vec<Option<EvalResult>> = vec![None; trials.len()];
+    for k in 0..3 {
+        let train: Vec<&Trial> = (0..trials.len())
+            .filter(|&i| fold[i] != k)
+            .map(|i| &trials[i])
+            .collect();
+        let test: Vec<usize> = (0..trials.len()).filter(|&i| fold[i] == k).collect();
+        println!(
+            "== fold {k}: tuned on {} trials, scored on {}",
+            train.len(),
+            test.iter()
+                .map(|&i| trials[i].name.split('_').next().unwrap_or(""))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        let cfg = tune(&train, false);
+        print_settings(&cfg);
+        for i in test {
+            held_out[i] = Some(score(&trials[i], &cfg));
+        }
+    }
+    let all: Vec<&Trial> = trials.iter().collect();
+    let cv: Vec<EvalResult> = held_out.into_iter().map(|e| e.expect("scored")).collect();
+    let cv_fig = report(
+        "cross-validated: each trial scored by the settings tuned on the other two folds",
+        &all,
+        &cv,
+    );
+    println!("== tuned on all {} trials (the defaults)", trials.len());
+    let cfg = tune(&all, false);
+    print_settings(&cfg);
+    let defaults = FusionConfig {
+        world: WorldFrame::Enu,
+        ..FusionConfig::default()
+    };
+    let same = TUNED
+        .iter()
+        .all(|k| (get(&cfg, k) / get(&defaults, k) - 1.0).abs() < 1e-9);
+    println!(
+        "FusionConfig::default() {} these settings",
+        if same { "holds" } else { "does NOT hold" }
+    );
+    if let Some((r, w)) = cv_fig {
+        println!("cross-validated: mean total RMSE ratio {r:.2}, worst trial ratio {w:.2}");
+    }
+}
+
+/// `FusionConfig::default()` with the settings of `$IMUCALD_BROAD_SET` (`key=value,key=value`), for
+/// trying values by hand; the figures of record use none.
+fn configured() -> FusionConfig {
+    let mut cfg = FusionConfig::default();
+    if let Ok(v) = std::env::var("IMUCALD_BROAD_SET") {
+        for kv in v.split(',').filter(|s| !s.trim().is_empty()) {
+            match kv
+                .split_once('=')
+                .map(|(k, v)| (k.trim(), v.trim().parse::<f64>()))
+            {
+                Some((k, Ok(x))) => {
+                    cfg = set(&cfg, k, x);
+                    println!("setting {k} = {x}");
+                }
+                _ => println!("IMUCALD_BROAD_SET: cannot read {kv}"),
+            }
+        }
+    }
+    cfg
+}
+
+fn dump(trials: &[Trial], pattern: &str, out: &Path) {
+    let Some(t) = trials.iter().find(|t| t.name.contains(pattern)) else {
+        println!("broad --dump: no trial matches {pattern}");
+        return;
+    };
+    let cfg = FusionConfig {
+        world: WorldFrame::Enu,
+        ..configured()
+    };
+    let dt = median_dt(&t.samples);
+    let mut flt = OrientationFilter::new(cfg);
+    let mut s = String::from(
+        "t,moving,ours_total,ours_heading,ours_incl,vqf_total,vqf_heading,vqf_incl,rest,mag_disturbed,bias_x,bias_y,bias_z\n",
+    );
+    for (i, smp) in t.samples.iter().enumerate() {
+        flt.update_sample(smp, dt);
+        let Some(r) = reference(smp) else { continue };
+        let (a, b, c) = errors(&flt.quaternion_enu(), &r);
+        let v = t.vqf_q.get(i).map(|v| errors(v, &r));
+        let (d, e, f) = v.unwrap_or((f64::NAN, f64::NAN, f64::NAN));
+        let bias = flt.bias();
+        s += &format!(
+            "{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{:.6},{:.6},{:.6}\n",
+            smp.t_s,
+            u8::from(smp.moving == Some(true)),
+            a.to_degrees(),
+            b.to_degrees(),
+            c.to_degrees(),
+            d.to_degrees(),
+            e.to_degrees(),
+            f.to_degrees(),
+            u8::from(flt.at_rest()),
+            u8::from(flt.mag_disturbed()),
+            bias[0],
+            bias[1],
+            bias[2]
+        );
+    }
+    match std::fs::write(out, s) {
+        Ok(()) => println!("broad --dump: {} -> {}", t.name, out.display()),
+        Err(e) => println!("broad --dump: {}: {e}", out.display()),
+    }
+}
+
 fn main() {
-    if !std::env::args().any(|a| a == "--bench") {
+    let args: Vec<String> = std::env::args().collect();
+    if !args.iter().any(|a| a == "--bench") {
         return;
     }
     let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/broad"));
@@ -92,118 +577,51 @@ fn main() {
         );
         return;
     }
-    let mut trials: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .map(|d| {
-            d.filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.to_string_lossy().ends_with(".csv.gz"))
-                .collect()
-        })
-        .unwrap_or_default();
-    trials.sort();
+    let py = python();
+    let trials = load(&dir, py.as_deref());
     if trials.is_empty() {
         println!("broad: no .csv.gz trial in {}", dir.display());
         return;
     }
-    let py = python();
-    let tmp = tempfile::tempdir().expect("a temporary directory");
-    let cfg = FusionConfig {
-        world: WorldFrame::Enu,
-        ..FusionConfig::default()
-    };
-    println!(
-        "== BROAD: total / heading / inclination RMSE (deg) over moving == 1, reference as published"
-    );
-    println!(
-        "{:<44} {:>20}   {:>20}   {:>6} {:>9}",
-        "trial", "imucald", "VQF 9D (defaults)", "ratio", "imucald"
-    );
-    let mut ours = Vec::new();
-    let mut theirs = Vec::new();
-    for t in &trials {
-        let name = t
-            .file_name()
-            .map(|n| n.to_string_lossy().trim_end_matches(".csv.gz").to_string())
-            .unwrap_or_default();
-        let log = match read_log(t, None, &Config::default()) {
-            Ok(l) => l,
-            Err(e) => {
-                println!("{name:<44} cannot read: {e}");
-                continue;
-            }
-        };
-        let start = Instant::now();
-        let q: Vec<_> = run(&log.samples, &cfg).iter().map(|o| o.q).collect();
-        let secs = start.elapsed().as_secs_f64();
-        let e = evaluate(&log.samples, &q);
-        let v = py.as_deref().map(|py| {
-            run_vqf(py, t, tmp.path()).map(|vq| {
-                if vq.len() != log.samples.len() {
-                    eprintln!(
-                        "broad: {name}: VQF gave {} quaternions for {} samples",
-                        vq.len(),
-                        log.samples.len()
-                    );
-                }
-                evaluate(&log.samples, &vq)
-            })
-        });
-        let rate = log.samples.len() as f64 / secs.max(1e-9) / 1e6;
-        match v {
-            Some(Ok(v)) => {
-                println!(
-                    "{name:<44} {}   {}   {:6.2} {:6.1} MS/s",
-                    fmt(&e),
-                    fmt(&v),
-                    e.total_rmse_deg / v.total_rmse_deg,
-                    rate
-                );
-                theirs.push(v);
-            }
-            Some(Err(err)) => println!("{name:<44} {}   VQF: {err}", fmt(&e)),
-            None => println!(
-                "{name:<44} {}   {:>20}   {:>6} {rate:6.1} MS/s",
-                fmt(&e),
-                "-",
-                "-"
-            ),
-        }
-        ours.push(e);
+    if args.iter().any(|a| a == "--tune") {
+        tune_mode(&trials);
+        return;
     }
-    let mean = |v: &[EvalResult], f: fn(&EvalResult) -> f64| {
-        v.iter().map(f).sum::<f64>() / v.len().max(1) as f64
-    };
-    let row = |v: &[EvalResult]| {
-        format!(
-            "{:6.2} {:6.2} {:6.2}",
-            mean(v, |e| e.total_rmse_deg),
-            mean(v, |e| e.heading_rmse_deg),
-            mean(v, |e| e.inclination_rmse_deg)
-        )
-    };
-    if theirs.len() == ours.len() && !ours.is_empty() {
+    if let Some(i) = args.iter().position(|a| a == "--dump") {
+        match (args.get(i + 1), args.get(i + 2)) {
+            (Some(p), Some(o)) => dump(&trials, p, Path::new(o)),
+            _ => println!("broad --dump NAME OUT.csv"),
+        }
+        return;
+    }
+    // One trial after the other on this thread, so the times are the filter's alone.
+    let cfg = configured();
+    let mut ours = Vec::new();
+    let (mut secs, mut n) = (0.0, 0usize);
+    for t in &trials {
+        let (q, s) = run_ours(&t.samples, &cfg);
+        secs += s;
+        n += t.samples.len();
+        ours.push(evaluate(&t.samples, &q));
+    }
+    let all: Vec<&Trial> = trials.iter().collect();
+    report(
+        &format!("BROAD, {} trials, default settings", trials.len()),
+        &all,
+        &ours,
+    );
+    print!(
+        "cost per sample: imucald {:.2} us ({n} samples, one thread)",
+        secs / n as f64 * 1e6
+    );
+    if trials.iter().all(|t| t.vqf.is_some()) {
+        let v: f64 = trials.iter().map(|t| t.vqf.expect("VQF ran").1).sum();
         println!(
-            "{:<44} {}   {}",
-            format!("mean of {} trials", ours.len()),
-            row(&ours),
-            row(&theirs)
-        );
-        let m_ours = mean(&ours, |e| e.total_rmse_deg);
-        let m_theirs = mean(&theirs, |e| e.total_rmse_deg);
-        let worst = ours
-            .iter()
-            .zip(&theirs)
-            .map(|(a, b)| a.total_rmse_deg / b.total_rmse_deg)
-            .fold(0.0, f64::max);
-        println!(
-            "mean total RMSE imucald {m_ours:.2} vs VQF {m_theirs:.2} deg ({}); worst trial ratio {worst:.2} (target <= 1.5: {})",
-            if m_ours <= m_theirs { "imucald <= VQF" } else { "imucald > VQF" },
-            if worst <= 1.5 { "met" } else { "NOT met" }
+            ", VQF batch update {:.2} us: ratio {:.2}",
+            v / n as f64 * 1e6,
+            secs / v
         );
     } else {
-        println!(
-            "{:<44} {}",
-            format!("mean of {} trials", ours.len()),
-            row(&ours)
-        );
+        println!();
     }
 }
