@@ -37,5 +37,6 @@ pub mod sources;
 #[doc(hidden)]
 pub mod testdata;
 pub mod types;
+pub mod vector;
 
 pub use error::Error;
