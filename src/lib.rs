@@ -25,6 +25,7 @@ pub mod gate;
 pub mod gyro;
 pub mod link;
 pub mod lm;
+pub mod magmethod;
 pub mod mavout;
 pub mod model;
 pub mod pipeline;

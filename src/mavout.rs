@@ -1289,6 +1289,7 @@ mod tests {
             iterations: 5,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         })
     }
 
@@ -1590,6 +1591,7 @@ mod tests {
             iterations: 6,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         }
     }
 
