@@ -20,6 +20,9 @@ use serde::{Deserialize, Serialize};
 /// deviation, A): a constant current cannot be told from the offset.
 pub const MIN_CURRENT_SD_A: f64 = 1.0;
 
+/// A rotation within the vector fit's soft iron above this is named in the reason, deg.
+pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
+
 /// How the magnetometer calibration was made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -241,10 +244,19 @@ fn decide(
     } else {
         format!("not determined, held at nominal: {}", unknown.join(", "))
     };
+    // A turn between the compass and the attitude's frame is kept in the matrix, and said.
+    let turned = if v.rotation_deg > MAX_SILENT_ROTATION_DEG {
+        format!(
+            "; the matrix turns the compass by {:.1} deg onto the attitude's body frame (a mounting the configuration does not give)",
+            v.rotation_deg
+        )
+    } else {
+        String::new()
+    };
     MethodChoice {
         method: MagMethod::Vector,
         method_reason: format!(
-            "attitude and earth field: {} readings, field from {at}; {rest}; {}",
+            "attitude and earth field: {} readings, field from {at}; {rest}; {}{turned}",
             v.points,
             sphere_words(mag)
         ),

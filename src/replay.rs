@@ -590,6 +590,9 @@ pub fn summary(r: &Report) -> String {
             );
         }
     }
+    if let Some(m) = &r.calibration.mag.method {
+        let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
+    }
     let g = &r.calibration.gyro;
     if g.status == "ok" {
         let _ = writeln!(

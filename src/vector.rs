@@ -85,6 +85,9 @@ pub struct VectorFit {
     pub soft_iron_fitted: [bool; 3],
     /// `A^-1`: calibrated = matrix (raw - offset).
     pub matrix: [[f64; 3]; 3],
+    /// The rotation within `A` (its polar factor), deg: the turn between the compass's axes and the
+    /// attitude's body frame (a mounting not given in the configuration).
+    pub rotation_deg: f64,
     /// Field per ampere of battery current, uT/A, with its 1-sigma uncertainty and whether the
     /// data determine it (when the fit includes the current term).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -357,6 +360,7 @@ fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorF
     }
     let am = crate::model::rows_to_mat(&a);
     let matrix = am.try_inverse().ok_or(VectorFailure::Singular)?;
+    let rotation_deg = polar_rotation_deg(&am);
     let current_identifiable = fit_current.then(|| v_un.iter().all(|v| v[4].abs() < 0.1));
     Ok(VectorFit {
         offset_ut: o,
@@ -367,6 +371,7 @@ fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorF
         soft_iron_sigma: a_sd,
         soft_iron_fitted: fitted,
         matrix: crate::model::mat_to_rows(&matrix),
+        rotation_deg,
         current_ut_per_a: fit_current.then_some(kc),
         current_sigma_ut_per_a: fit_current.then_some(kc_sd),
         current_identifiable,
@@ -377,6 +382,19 @@ fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorF
         terms,
         directions,
     })
+}
+
+/// Angle of the rotation `U V^T` of `a = U S V^T` (the orthogonal factor of `a = R P`), deg.
+fn polar_rotation_deg(a: &nalgebra::Matrix3<f64>) -> f64 {
+    let svd = a.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return f64::NAN;
+    };
+    let r = u * vt;
+    ((r.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
 }
 
 /// The earth field `b_ned` (uT) in body axes at the attitude `q_body_ned` (body -> NED): `R^T B`.
@@ -515,6 +533,30 @@ mod tests {
             "{:?}",
             f.soft_iron
         );
+    }
+
+    #[test]
+    fn a_turned_reference_shows_as_the_rotation_within_the_soft_iron() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let att = sphere(1000, &mut rng);
+        let f0 = fit(&points(&att, 0.2, false, &mut rng), false).unwrap();
+        // The truth's A is not quite symmetric (0.01-0.02 off the diagonal): measured 0.51 deg.
+        assert!(f0.rotation_deg < 1.5, "{}", f0.rotation_deg);
+        // The compass mounted turned 10 deg in yaw against the attitude's body frame: the
+        // readings stay, the expected field is the one of a body turned by -10 deg.
+        let q = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 10f64.to_radians());
+        let mut p = points(&att, 0.2, false, &mut rng);
+        for (x, e) in p.iter_mut().zip(&att) {
+            let q0 = crate::sim::quat_from_euler_deg(e[0], e[1], e[2]);
+            x.expected_ut = expected_field(&(q0 * q), &B);
+        }
+        let f = fit(&p, false).unwrap();
+        // Measured 9.71 deg (the truth's own turn on top).
+        assert!((f.rotation_deg - 10.0).abs() < 1.0, "{}", f.rotation_deg);
+        // The offset does not depend on the frame.
+        for j in 0..3 {
+            assert!((f.offset_ut[j] - O[j]).abs() < 0.1, "{:?}", f.offset_ut);
+        }
     }
 
     #[test]

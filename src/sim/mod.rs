@@ -1158,7 +1158,7 @@ impl Stepper<'_> {
         }
         if let Some(sd) = sc
             .reference_noise_deg
-            .filter(|_| i % self.reference_every == 0)
+            .filter(|_| i.is_multiple_of(self.reference_every))
         {
             let w = Vector3::from_fn(|_, _| sd.to_radians() * gauss(&mut rng.extra));
             let psi = fx.heading_offset_deg.unwrap_or(0.0).to_radians();
@@ -1231,7 +1231,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
     for i in 0..n {
         let t = i as f64 / rate;
         let (mut s, q) = stepper.sample(i, t, &mut rng);
-        if let (Some(p), true) = (&scenario.place, i % stepper.reference_every == 0) {
+        if let (Some(p), true) = (&scenario.place, i.is_multiple_of(stepper.reference_every)) {
             s.position = Some(displaced(p, travelled[0], travelled[1]));
         }
         travelled += motion.velocity_ned(t) / rate;
@@ -1803,8 +1803,8 @@ mod tests {
         assert!(bins.iter().all(|b| *b), "headings {bins:?}");
         // Reference attitude and position at 10 Hz on a 100 Hz stream.
         for (i, s) in out.samples.iter().enumerate() {
-            assert_eq!(s.ref_q.is_some(), i % 10 == 0, "{i}");
-            assert_eq!(s.position.is_some(), i % 10 == 0, "{i}");
+            assert_eq!(s.ref_q.is_some(), i.is_multiple_of(10), "{i}");
+            assert_eq!(s.position.is_some(), i.is_multiple_of(10), "{i}");
         }
         // 15 m/s for 300 s travels at most 4.5 km: within 0.05 deg of the place.
         let p = out.samples[29_990].position.unwrap();
