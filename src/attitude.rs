@@ -104,6 +104,18 @@ pub struct EarthField {
     pub total_ut: f64,
 }
 
+impl EarthField {
+    /// The field as a vector in NED, uT.
+    pub fn field_ned_ut(&self) -> [f64; 3] {
+        let (d, i) = (
+            self.declination_deg.to_radians(),
+            self.inclination_deg.to_radians(),
+        );
+        let h = self.total_ut * i.cos();
+        [h * d.cos(), h * d.sin(), self.total_ut * i.sin()]
+    }
+}
+
 /// Evaluate the World Magnetic Model. Errors name what is wrong (date outside the model's span,
 /// latitude out of range, bad date string).
 pub fn earth_field(place: &Place) -> Result<EarthField, String> {

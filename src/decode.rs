@@ -909,7 +909,7 @@ impl Iterator for TlogRecords<'_> {
 #[serde(deny_unknown_fields)]
 pub struct CsvMapping {
     /// Field -> column name in the user's file. Fields: t, ax, ay, az, gx, gy, gz, mx, my, mz, temp,
-    /// throttle, current, ref_qw, ref_qx, ref_qy, ref_qz, moving.
+    /// throttle, current, ref_qw, ref_qx, ref_qy, ref_qz, moving, lat, lon, alt (deg, deg, m).
     #[serde(default)]
     pub columns: BTreeMap<String, String>,
     /// Field -> factor that turns the column's unit into ours (e.g. ax = 9.80665 for g, t = 0.001 for ms).
@@ -918,9 +918,9 @@ pub struct CsvMapping {
 }
 
 /// Field names of CSV input, in the order [`sample_from_fields`] indexes them.
-pub const FIELDS: [&str; 18] = [
+pub const FIELDS: [&str; 21] = [
     "t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current",
-    "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving",
+    "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving", "lat", "lon", "alt",
 ];
 
 /// Decompress if gzip, else borrow.
@@ -1103,6 +1103,15 @@ pub fn sample_from_fields(
             _ => None,
         },
         moving: vals[17].map(|v| v > 0.5),
+        // A fix needs latitude and longitude; the height is 0 when absent.
+        position: match (fin(vals[18]), fin(vals[19])) {
+            (Some(lat_deg), Some(lon_deg)) => Some(crate::types::GeoPoint {
+                lat_deg,
+                lon_deg,
+                alt_m: fin(vals[20]).unwrap_or(0.0),
+            }),
+            _ => None,
+        },
     }
 }
 

@@ -97,16 +97,6 @@ impl std::fmt::Display for FixedYawFailure {
     }
 }
 
-/// The earth field in NED axes, uT.
-pub fn field_ned_ut(field: &EarthField) -> Vec3 {
-    let (d, i) = (
-        field.declination_deg.to_radians(),
-        field.inclination_deg.to_radians(),
-    );
-    let f = field.total_ut;
-    [f * i.cos() * d.cos(), f * i.cos() * d.sin(), f * i.sin()]
-}
-
 /// Mean and the largest per-axis standard deviation of a set of vectors.
 fn mean_and_sd(v: &[Vec3]) -> (Vec3, f64) {
     let n = v.len() as f64;
@@ -168,7 +158,7 @@ pub fn fixed_yaw_offset(
         pitch_deg.to_radians(),
         yaw_deg.to_radians(),
     );
-    let b_ned = field_ned_ut(field);
+    let b_ned = field.field_ned_ut();
     let expected = r.inverse() * Vector3::from(b_ned);
     let m = Matrix3::from_fn(|i, j| matrix[i][j]);
     let m_inv = m.try_inverse().ok_or(FixedYawFailure::Degenerate)?;
@@ -202,7 +192,7 @@ mod tests {
     fn resting(rpy_deg: [f64; 3], o: Vec3, a: [[f64; 3]; 3], n: usize) -> Vec<(Vec3, Vec3)> {
         let [r, p, y] = rpy_deg.map(f64::to_radians);
         let rot = Rotation3::from_euler_angles(r, p, y);
-        let b = rot.inverse() * Vector3::from(field_ned_ut(&field()));
+        let b = rot.inverse() * Vector3::from(field().field_ned_ut());
         let g = rot.inverse() * Vector3::new(0.0, 0.0, -9.81);
         let am = Matrix3::from_fn(|i, j| a[i][j]);
         let raw = am * b;

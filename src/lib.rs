@@ -26,6 +26,7 @@ pub mod gate;
 pub mod gyro;
 pub mod link;
 pub mod lm;
+pub mod magmethod;
 pub mod mavout;
 pub mod model;
 pub mod pipeline;
@@ -39,5 +40,6 @@ pub mod sources;
 pub mod testdata;
 pub mod types;
 pub mod ui;
+pub mod vector;
 
 pub use error::Error;

@@ -271,7 +271,7 @@ pub enum Payload {
     /// MotionCal text lines `Raw:ax,ay,az,gx,gy,gz,mx,my,mz` (int16 counts).
     MotionCal,
     /// Comma-separated numbers per line in the order of `fields` (t, ax, ay, az, gx, gy, gz, mx,
-    /// my, mz, temp, throttle, current, ref_qw, ref_qx, ref_qy, ref_qz, moving; `_` or an empty
+    /// my, mz, temp, throttle, current, ref_qw, ref_qx, ref_qy, ref_qz, moving, lat, lon, alt; `_` or an empty
     /// name ignores a column), each multiplied by its scale. No `t` field: arrival time.
     Csv {
         fields: Vec<String>,
@@ -280,7 +280,7 @@ pub enum Payload {
 }
 
 /// The field names a [`Payload::Csv`] line may carry (those of `decode`'s CSV reader).
-pub const CSV_FIELDS: [&str; 18] = crate::decode::FIELDS;
+pub const CSV_FIELDS: [&str; crate::decode::FIELDS.len()] = crate::decode::FIELDS;
 
 impl Payload {
     /// Check a CSV payload's field names and scales (the others are always valid).

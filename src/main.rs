@@ -140,7 +140,7 @@ struct EvalArgs {
 
 #[derive(Args)]
 struct SimulateArgs {
-    /// A built-in scenario (turntable, tumble, flight) or a scenario TOML file.
+    /// A built-in scenario (turntable, tumble, flight, bench, cruise) or a scenario TOML file.
     #[arg(long, default_value = "tumble")]
     scenario: String,
     /// Output log; the format follows the extension.

@@ -1317,6 +1317,7 @@ mod tests {
             iterations: 5,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         })
     }
 
@@ -1618,6 +1619,7 @@ mod tests {
             iterations: 6,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         }
     }
 

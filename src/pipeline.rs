@@ -441,6 +441,7 @@ fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> Sens
         iterations: 0,
         candidates: vec![],
         outliers_rejected: 0,
+        method: None,
     }
 }
 
@@ -895,6 +896,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             iterations: 1,
             candidates: candidates.clone(),
             outliers_rejected: 0,
+            method: None,
         };
         (cal, rep)
     } else {
@@ -939,6 +941,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             iterations: f.iterations,
             candidates: candidates.clone(),
             outliers_rejected: 0,
+            method: None,
         };
         // Identifiability and convergence come from the fit itself.
         let mut rep = rep;

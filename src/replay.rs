@@ -88,6 +88,7 @@ pub fn replay(
     let (scale, failure) = gyro_scale(&log.samples, &pipe, &results);
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
+    mag_method(&mut results, &log, &pipe, cfg);
     let declination = cfg.declination_deg()?;
     let duration = match (log.samples.first(), log.samples.last()) {
         (Some(a), Some(b)) => b.t_s - a.t_s,
@@ -197,6 +198,20 @@ pub fn replay(
         results,
         written,
     })
+}
+
+/// The primary magnetometer's method: the vector fit when the log carries an attitude and the
+/// place is known and it determines the offset, else the sphere fit ([`crate::magmethod`]).
+fn mag_method(results: &mut FitResults, log: &crate::sources::Log, pipe: &Pipeline, cfg: &Config) {
+    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
+    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    crate::magmethod::choose(
+        &mut results.mag,
+        &log.samples,
+        &body_mag,
+        gps,
+        cfg.place.as_ref(),
+    );
 }
 
 /// Gyro scale and misalignment from the rotations between the log's static poses (see
@@ -587,6 +602,9 @@ pub fn summary(r: &Report) -> String {
                 c.detail.as_deref().unwrap_or("")
             );
         }
+    }
+    if let Some(m) = &r.calibration.mag.method {
+        let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
     }
     let g = &r.calibration.gyro;
     if g.status == "ok" {

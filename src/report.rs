@@ -276,6 +276,10 @@ pub struct SensorCalibration {
     /// the field's ellipsoid, e.g. while a magnet or a motor was near).
     #[serde(default)]
     pub outliers_rejected: usize,
+    /// Magnetometer of a replay: `method` ("vector" or "sphere"), `method_reason`, and the vector
+    /// fit (`vector`) when one was made ([`crate::magmethod`]).
+    #[serde(flatten)]
+    pub method: Option<crate::magmethod::MethodChoice>,
 }
 
 impl SensorCalibration {

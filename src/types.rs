@@ -32,6 +32,16 @@ pub struct Sample {
     pub ref_q: Option<[f64; 4]>,
     /// 1 inside a movement phase marked by the log (BROAD), when present.
     pub moving: Option<bool>,
+    /// Where the vehicle was (a GPS fix), when the log carries one at this instant.
+    pub position: Option<GeoPoint>,
+}
+
+/// A place on the earth: WGS84 latitude and longitude, height above the ellipsoid.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct GeoPoint {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_m: f64,
 }
 
 impl Sample {

@@ -2060,6 +2060,7 @@ mod live_attitude {
             iterations: 5,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         }
     }
 
@@ -2766,6 +2767,7 @@ mod honest_progress {
             iterations: 5,
             candidates: vec![],
             outliers_rejected: 0,
+            method: None,
         };
         for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
             let reports = live_progress(&sim.samples, &cfg, stored);

@@ -11,6 +11,10 @@ use crate::types::{Sample, Sensor, Vec3, STANDARD_GRAVITY_MPS2};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+mod trajectory;
+use trajectory::{build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, Tremor};
+pub use trajectory::{quat_from_euler_deg, turntable_attitudes};
+
 /// True calibration of one sensor: `raw = matrix^-1 * true + offset + noise`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -180,6 +184,9 @@ pub enum TrajectoryKind {
     /// slowly (a half sine over the run), so throttle-, temperature- and time-driven effects can be told
     /// apart from pose means.
     Bench,
+    /// An ordinary fixed-wing-like flight: straight legs joined by coordinated banked turns (bank
+    /// within `cruise.bank_deg`, pitch within +-5 deg), the battery current changing leg by leg.
+    Cruise,
 }
 
 impl TrajectoryKind {
@@ -189,6 +196,7 @@ impl TrajectoryKind {
             TrajectoryKind::Tumble => "tumble",
             TrajectoryKind::Flight => "flight",
             TrajectoryKind::Bench => "bench",
+            TrajectoryKind::Cruise => "cruise",
         }
     }
     pub fn parse(s: &str) -> Option<TrajectoryKind> {
@@ -197,12 +205,13 @@ impl TrajectoryKind {
             "tumble" => Some(TrajectoryKind::Tumble),
             "flight" => Some(TrajectoryKind::Flight),
             "bench" => Some(TrajectoryKind::Bench),
+            "cruise" => Some(TrajectoryKind::Cruise),
             _ => None,
         }
     }
 }
 
-const SCENARIO_NAMES: [&str; 4] = ["turntable", "tumble", "flight", "bench"];
+const SCENARIO_NAMES: [&str; 5] = ["turntable", "tumble", "flight", "bench", "cruise"];
 
 /// A named simulation scenario: truth parameters plus the trajectory and its knobs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -238,6 +247,47 @@ pub struct Scenario {
     /// Knobs of the `bench` trajectory.
     #[serde(default)]
     pub bench: BenchSettings,
+    /// Emit the reference attitude only at this rate, Hz (a flight controller's attitude
+    /// estimate): on every sample when `None`.
+    #[serde(default)]
+    pub reference_rate_hz: Option<f64>,
+    /// Where and when the vehicle is: the earth field becomes the World Magnetic Model's there
+    /// (replacing `truth.world.field_ned_ut`), and the samples carry the position (`position`, at
+    /// the reference rate).
+    #[serde(default)]
+    pub place: Option<crate::attitude::Place>,
+    /// Knobs of the `cruise` trajectory.
+    #[serde(default)]
+    pub cruise: CruiseSettings,
+}
+
+/// Settings of the `cruise` trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CruiseSettings {
+    /// Ground speed (no wind), m/s.
+    pub speed_mps: f64,
+    /// Range of the bank angle at the middle of a turn, deg (a wobble of +-1.5 deg comes on top).
+    pub bank_deg: [f64; 2],
+    /// Range of a straight leg's length, s.
+    pub leg_s: [f64; 2],
+    /// Range of a turn's heading change, deg (left or right at random).
+    pub turn_deg: [f64; 2],
+    /// Range of the battery current of a leg or turn, A (logged as `current_a`; the throttle is
+    /// `(current / max)^(2/3)`).
+    pub current_a: [f64; 2],
+}
+
+impl Default for CruiseSettings {
+    fn default() -> Self {
+        CruiseSettings {
+            speed_mps: 15.0,
+            bank_deg: [18.0, 26.0],
+            leg_s: [10.0, 25.0],
+            turn_deg: [60.0, 180.0],
+            current_a: [0.5, 60.0],
+        }
+    }
 }
 
 /// Settings of the `bench` trajectory.
@@ -468,6 +518,9 @@ impl Scenario {
             effects: Effects::default(),
             reference_noise_deg: None,
             bench: BenchSettings::default(),
+            reference_rate_hz: None,
+            place: None,
+            cruise: CruiseSettings::default(),
         };
         match kind {
             TrajectoryKind::Turntable => {
@@ -498,6 +551,20 @@ impl Scenario {
                 sc.pauses = 24;
                 sc.slew_s = [1.0, 1.5];
                 sc.temp_drift_c = 0.0;
+            }
+            TrajectoryKind::Cruise => {
+                // Five minutes over Zurich in mid-2026, the attitude estimate at 10 Hz with 0.5 deg
+                // of noise per axis.
+                sc.tremor_deg = 0.0;
+                sc.duration_s = Some(300.0);
+                sc.reference_noise_deg = Some(0.5);
+                sc.reference_rate_hz = Some(10.0);
+                sc.place = Some(crate::attitude::Place {
+                    latitude_deg: 47.3769,
+                    longitude_deg: 8.5417,
+                    altitude_m: 600.0,
+                    date: Some("2026-06-01".into()),
+                });
             }
         }
         sc.truth = truth;
@@ -561,6 +628,9 @@ struct ScenarioFile {
     effects: Option<Effects>,
     reference_noise_deg: Option<f64>,
     bench: Option<BenchSettings>,
+    reference_rate_hz: Option<f64>,
+    place: Option<crate::attitude::Place>,
+    cruise: Option<CruiseSettings>,
 }
 
 /// The key a toml/serde error message names (`unknown field `x``), if any.
@@ -649,6 +719,15 @@ impl Scenario {
         }
         if let Some(b) = f.bench {
             sc.bench = b;
+        }
+        if f.reference_rate_hz.is_some() {
+            sc.reference_rate_hz = f.reference_rate_hz;
+        }
+        if f.place.is_some() {
+            sc.place = f.place;
+        }
+        if let Some(c) = f.cruise {
+            sc.cruise = c;
         }
         sc.validate()?;
         Ok(sc)
@@ -741,6 +820,18 @@ impl Scenario {
                 );
             }
         }
+        if let Some(r) = self.reference_rate_hz {
+            if !(r.is_finite() && r > 0.0) {
+                return bad("reference_rate_hz", format!("must be > 0, got {r}"));
+            }
+        }
+        if let Some(p) = &self.place {
+            crate::attitude::earth_field(p).map_err(|m| Error::Config {
+                key: "place".into(),
+                message: m,
+            })?;
+        }
+        self.validate_cruise()?;
         let b = &self.bench;
         if self.kind == TrajectoryKind::Bench {
             if b.levels.is_empty()
@@ -774,373 +865,50 @@ impl Scenario {
     }
 }
 
-// ---------------------------------------------------------------------------------------------
-// Trajectories
-
-type Quat = UnitQuaternion<f64>;
-
-/// Body -> NED rotation from ZYX Euler angles in degrees.
-pub fn quat_from_euler_deg(roll: f64, pitch: f64, yaw: f64) -> UnitQuaternion<f64> {
-    UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians())
-}
-
-use crate::attitude::wrap360;
-
-/// Minimum-jerk profile 0 -> 1 on u in [0, 1] (zero velocity and acceleration at both ends).
-fn min_jerk(u: f64) -> f64 {
-    let u = u.clamp(0.0, 1.0);
-    u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
-}
-
-/// Piece of an attitude timeline: a hold or a rotation about a fixed body axis.
-#[derive(Debug, Clone)]
-enum Segment {
-    Hold {
-        t1: f64,
-        q: Quat,
-    },
-    /// From `q0` by the rotation vector `v` (body axes of `q0`), min-jerk in time.
-    Slew {
-        t0: f64,
-        t1: f64,
-        q0: Quat,
-        v: Vector3<f64>,
-    },
-}
-
-impl Segment {
-    fn t1(&self) -> f64 {
-        match self {
-            Segment::Hold { t1, .. } | Segment::Slew { t1, .. } => *t1,
-        }
-    }
-}
-
-/// Small smooth attitude jitter: a sum of sinusoids per body axis (rotation vector, rad).
-#[derive(Debug, Clone)]
-struct Tremor {
-    /// (axis, amplitude rad, frequency Hz, phase rad)
-    comps: Vec<(usize, f64, f64, f64)>,
-}
-
-impl Tremor {
-    fn new<R: rand::Rng>(amp_deg: f64, rng: &mut R) -> Tremor {
-        let mut comps = Vec::new();
-        for axis in 0..3 {
-            // Relative amplitudes 1, 0.7, 0.5: the RMS of the sum is c * sqrt(1.74 / 2), made `amp_deg`.
-            let c = amp_deg.to_radians() / (1.74f64 / 2.0).sqrt();
-            for rel in [1.0, 0.7, 0.5] {
-                let f = rng.random_range(1.0..9.0);
-                let ph = rng.random_range(0.0..std::f64::consts::TAU);
-                comps.push((axis, c * rel, f, ph));
+impl Scenario {
+    fn validate_cruise(&self) -> Result<(), Error> {
+        let c = &self.cruise;
+        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| {
+            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+                Ok(())
+            } else {
+                Err(Error::Config {
+                    key: format!("cruise.{key}"),
+                    message: format!(
+                        "must be [min, max] with {lo} <= min <= max <= {hi}, got {r:?}"
+                    ),
+                })
             }
-        }
-        Tremor { comps }
-    }
-
-    fn rotvec(&self, t: f64) -> Vector3<f64> {
-        let mut v = Vector3::zeros();
-        for &(axis, a, f, ph) in &self.comps {
-            v[axis] += a * (std::f64::consts::TAU * f * t + ph).sin();
-        }
-        v
-    }
-}
-
-/// The flight trajectory: closed-form functions of time.
-#[derive(Debug, Clone)]
-struct FlightPlan {
-    t_total: f64,
-    /// Lift-off and touch-down times.
-    t_up: f64,
-    t_down: f64,
-    /// Length of the climb and the descent.
-    t_climb: f64,
-    alt_m: f64,
-    ground_rp_deg: [f64; 2],
-    yaw0_deg: f64,
-    /// (t0, t1, delta deg) yaw turns.
-    turns: Vec<(f64, f64, f64)>,
-    /// (amplitude deg, frequency Hz, phase) for roll and pitch.
-    roll: Vec<(f64, f64, f64)>,
-    pitch: Vec<(f64, f64, f64)>,
-    /// (amplitude m, frequency Hz, phase) for north and east.
-    north: (f64, f64, f64),
-    east: (f64, f64, f64),
-    hover_throttle: f64,
-}
-
-fn sines(c: &[(f64, f64, f64)], t: f64) -> f64 {
-    c.iter()
-        .map(|&(a, f, ph)| a * (std::f64::consts::TAU * f * t + ph).sin())
-        .sum()
-}
-
-impl FlightPlan {
-    fn new<R: rand::Rng>(total: f64, rng: &mut R) -> FlightPlan {
-        let t_total = total.max(30.0);
-        let t_up = 5.0;
-        let t_climb = 5.0;
-        let t_down = t_total - 5.0 - t_climb;
-        let h0 = t_up + t_climb;
-        let hl = t_down - h0;
-        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
-        let yaw0_deg = rng.random_range(0.0..360.0);
-        FlightPlan {
-            t_total,
-            t_up,
-            t_down,
-            t_climb,
-            alt_m: 5.0,
-            ground_rp_deg: [rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)],
-            yaw0_deg,
-            turns: vec![
-                (h0 + 0.10 * hl, h0 + 0.45 * hl, 360.0),
-                (h0 + 0.55 * hl, h0 + 0.90 * hl, -360.0),
-            ],
-            roll: vec![
-                (6.0, 0.13, ph(rng)),
-                (3.0, 0.31, ph(rng)),
-                (1.5, 0.7, ph(rng)),
-            ],
-            pitch: vec![
-                (6.0, 0.11, ph(rng)),
-                (3.0, 0.27, ph(rng)),
-                (1.5, 0.6, ph(rng)),
-            ],
-            north: (2.0, 0.05, ph(rng)),
-            east: (1.5, 0.08, ph(rng)),
-            hover_throttle: 0.5,
-        }
-    }
-
-    /// 0 on the ground, 1 in the air, min-jerk during climb and descent.
-    fn airborne(&self, t: f64) -> f64 {
-        if t < self.t_down {
-            min_jerk((t - self.t_up) / self.t_climb)
-        } else {
-            1.0 - min_jerk((t - self.t_down) / self.t_climb)
-        }
-    }
-
-    fn attitude(&self, t: f64) -> Quat {
-        let e = self.airborne(t);
-        let roll = (1.0 - e) * self.ground_rp_deg[0] + e * sines(&self.roll, t);
-        let pitch = (1.0 - e) * self.ground_rp_deg[1] + e * sines(&self.pitch, t);
-        let yaw = self.yaw0_deg
-            + self
-                .turns
-                .iter()
-                .map(|&(t0, t1, d)| d * min_jerk((t - t0) / (t1 - t0)))
-                .sum::<f64>();
-        quat_from_euler_deg(roll, pitch, yaw)
-    }
-
-    fn position_ned(&self, t: f64) -> Vector3<f64> {
-        let e = self.airborne(t);
-        Vector3::new(
-            e * sines(&[self.north], t),
-            e * sines(&[self.east], t),
-            -self.alt_m * e,
-        )
-    }
-
-    /// Throttle before noise: proportional to the thrust needed, spooled up 1 s before lift-off.
-    fn throttle(&self, t: f64, a_ned: &Vector3<f64>, gravity: f64) -> f64 {
-        let spool = if t < self.t_down {
-            min_jerk((t - (self.t_up - 1.0)) / 1.0)
-        } else {
-            1.0 - min_jerk((t - (self.t_down + self.t_climb)) / 1.0)
         };
-        let thrust = (a_ned - Vector3::new(0.0, 0.0, gravity)).norm() / gravity;
-        let wobble = 1.0 + 0.02 * (std::f64::consts::TAU * 1.3 * t).sin();
-        (self.hover_throttle * thrust * wobble * spool).clamp(0.0, 1.0)
-    }
-}
-
-#[derive(Debug, Clone)]
-enum Motion {
-    Segments {
-        segs: Vec<Segment>,
-        tremor: Option<Tremor>,
-    },
-    Flight(FlightPlan),
-}
-
-impl Motion {
-    fn end(&self) -> f64 {
-        match self {
-            Motion::Segments { segs, .. } => segs.last().map(|s| s.t1()).unwrap_or(0.0),
-            Motion::Flight(p) => p.t_total,
-        }
-    }
-
-    fn attitude(&self, t: f64) -> Quat {
-        match self {
-            Motion::Segments { segs, tremor } => {
-                let i = segs
-                    .partition_point(|s| s.t1() <= t)
-                    .min(segs.len().saturating_sub(1));
-                let base = match segs.get(i) {
-                    None => Quat::identity(),
-                    Some(Segment::Hold { q, .. }) => *q,
-                    Some(Segment::Slew { t0, t1, q0, v }) => {
-                        let s = min_jerk((t - t0) / (t1 - t0));
-                        q0 * Quat::from_scaled_axis(v * s)
-                    }
-                };
-                match tremor {
-                    Some(tr) => base * Quat::from_scaled_axis(tr.rotvec(t)),
-                    None => base,
-                }
-            }
-            Motion::Flight(p) => p.attitude(t),
-        }
-    }
-
-    /// Body angular rate, rad/s: central difference of the attitude.
-    fn body_rate(&self, t: f64) -> Vector3<f64> {
-        let h = 1e-4;
-        let qa = self.attitude(t - h);
-        let qb = self.attitude(t + h);
-        (qa.inverse() * qb).scaled_axis() / (2.0 * h)
-    }
-
-    /// Acceleration in NED, m/s^2 (zero for the ground scenarios: rotation about the sensor).
-    fn accel_ned(&self, t: f64) -> Vector3<f64> {
-        match self {
-            Motion::Segments { .. } => Vector3::zeros(),
-            Motion::Flight(p) => {
-                let h = 1e-3;
-                (p.position_ned(t + h) - 2.0 * p.position_ned(t) + p.position_ned(t - h)) / (h * h)
-            }
-        }
-    }
-}
-
-/// A duration in whole sample ticks (at least one).
-fn ticks(d: f64, rate: f64) -> u64 {
-    (d * rate).round().max(1.0) as u64
-}
-
-/// Build hold/slew segments through `poses` (roll, pitch, yaw deg), recording the holds as [`PoseTruth`].
-fn build_segments<R: rand::Rng>(
-    poses: &[[f64; 3]],
-    hold_s: &mut dyn FnMut(&mut R) -> f64,
-    slew_s: [f64; 2],
-    rate: f64,
-    rng: &mut R,
-) -> (Vec<Segment>, Vec<PoseTruth>) {
-    let mut segs = Vec::new();
-    let mut truths = Vec::new();
-    // Boundaries on the sample grid (tick / rate, computed like the sample times) so a hold of N
-    // ticks holds exactly N samples.
-    let mut tick: u64 = 0;
-    let at = |k: u64| k as f64 / rate;
-    for (k, p) in poses.iter().enumerate() {
-        let q = quat_from_euler_deg(p[0], p[1], p[2]);
-        let d = ticks(hold_s(rng), rate);
-        segs.push(Segment::Hold {
-            t1: at(tick + d),
-            q,
-        });
-        truths.push(PoseTruth {
-            t_start: at(tick),
-            t_end: at(tick + d),
-            roll_deg: p[0],
-            pitch_deg: p[1],
-            yaw_deg: wrap360(p[2]),
-        });
-        tick += d;
-        if let Some(n) = poses.get(k + 1) {
-            let q1 = quat_from_euler_deg(n[0], n[1], n[2]);
-            let d = ticks(
-                if slew_s[1] > slew_s[0] {
-                    rng.random_range(slew_s[0]..slew_s[1])
-                } else {
-                    slew_s[0]
-                },
-                rate,
-            );
-            let v = (q.inverse() * q1).scaled_axis();
-            segs.push(Segment::Slew {
-                t0: at(tick),
-                t1: at(tick + d),
-                q0: q,
-                v,
+        range("speed_mps", [c.speed_mps; 2], 1.0, 100.0)?;
+        range("bank_deg", c.bank_deg, 1.0, 60.0)?;
+        range("leg_s", c.leg_s, 0.5, 3600.0)?;
+        range("turn_deg", c.turn_deg, 1.0, 360.0)?;
+        range("current_a", c.current_a, 0.0, 1000.0)?;
+        if c.current_a[1] <= 0.0 {
+            return Err(Error::Config {
+                key: "cruise.current_a".into(),
+                message: "the largest current must be > 0".into(),
             });
-            tick += d;
+        }
+        Ok(())
+    }
+
+    /// The earth field in NED, uT: the World Magnetic Model's at `place`, else `truth.world`'s.
+    pub fn field_ned_ut(&self) -> Result<Vec3, Error> {
+        match &self.place {
+            Some(p) => crate::attitude::earth_field(p)
+                .map(|f| f.field_ned_ut())
+                .map_err(|m| Error::Config {
+                    key: "place".into(),
+                    message: m,
+                }),
+            None => Ok(self.truth.world.field_ned_ut),
         }
     }
-    (segs, truths)
 }
 
-/// The 32 turntable attitudes of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" (roll, pitch, yaw deg), ordered to keep slews short.
-pub fn turntable_attitudes() -> Vec<[f64; 3]> {
-    let mut v: Vec<[f64; 3]> = Vec::new();
-    let golden = 137.5;
-    let mut k = 0.0;
-    let mut yaw = || {
-        k += 1.0;
-        wrap360(k * golden)
-    };
-    for p in [-60.0, -30.0, 0.0, 30.0, 60.0] {
-        for r in [0.0, 90.0, 180.0, -90.0] {
-            v.push([r, p, yaw()]);
-        }
-    }
-    v.push([0.0, 90.0, yaw()]);
-    v.push([0.0, -90.0, yaw()]);
-    for r in [45.0, 135.0, -135.0, -45.0] {
-        v.push([r, 0.0, yaw()]);
-    }
-    v.push([45.0, 45.0, yaw()]);
-    v.push([-135.0, 45.0, yaw()]);
-    v.push([-45.0, -45.0, yaw()]);
-    v.push([135.0, -45.0, yaw()]);
-    // Ren and Liu's check settings: pitch 15, roll +-20.
-    v.push([20.0, 15.0, 0.0]);
-    v.push([-20.0, 15.0, 45.0]);
-    // Greedy nearest-neighbour order from the level pose.
-    let start = v
-        .iter()
-        .position(|p| p[0] == 0.0 && p[1] == 0.0)
-        .unwrap_or(0);
-    let mut order = vec![v.swap_remove(start)];
-    while !v.is_empty() {
-        let last = order.last().copied().unwrap_or([0.0; 3]);
-        let ql = quat_from_euler_deg(last[0], last[1], last[2]);
-        let (i, _) = v
-            .iter()
-            .enumerate()
-            .map(|(i, p)| (i, ql.angle_to(&quat_from_euler_deg(p[0], p[1], p[2]))))
-            .fold((0, f64::INFINITY), |b, c| if c.1 < b.1 { c } else { b });
-        order.push(v.swap_remove(i));
-    }
-    order
-}
-
-/// Random attitudes for a hand tumble: the first level, the others with a uniform random down
-/// direction and a uniform random yaw.
-fn tumble_attitudes<R: rand::Rng>(n: usize, rng: &mut R) -> Vec<[f64; 3]> {
-    let mut v = Vec::with_capacity(n);
-    for k in 0..n {
-        let yaw = rng.random_range(0.0..360.0);
-        if k == 0 {
-            v.push([0.0, 0.0, yaw]);
-            continue;
-        }
-        // Down in body axes: d = (-sin(pitch), sin(roll) cos(pitch), cos(roll) cos(pitch)).
-        let z: f64 = rng.random_range(-1.0..1.0);
-        let phi: f64 = rng.random_range(0.0..std::f64::consts::TAU);
-        let s = (1.0 - z * z).max(0.0).sqrt();
-        let d = [s * phi.cos(), s * phi.sin(), z];
-        let pitch = (-d[0]).clamp(-1.0, 1.0).asin().to_degrees();
-        let roll = d[1].atan2(d[2]).to_degrees();
-        v.push([roll, pitch, yaw]);
-    }
-    v
-}
+// Trajectories: `trajectory.rs`.
 
 // ---------------------------------------------------------------------------------------------
 // Simulation
@@ -1166,25 +934,22 @@ fn raw_with_noise<R: rand::Rng>(t: &SensorTruth, v: &Vector3<f64>, rng: &mut R) 
     r
 }
 
-/// Run a scenario. Deterministic for a seed (ChaCha8: stream 0 draws the trajectory, stream 1 the noise).
-pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut noise_rng = ChaCha8Rng::seed_from_u64(seed);
-    noise_rng.set_stream(1);
-    // Stream 2: the reference attitude's noise and the bench's current noise (drawn only when used,
-    // so scenarios without them see exactly the same numbers as before).
-    let mut extra_rng = ChaCha8Rng::seed_from_u64(seed);
-    extra_rng.set_stream(2);
-    // Bench: per static attitude, (t_start, t_end, throttle levels in the order they are held).
-    let mut bench_schedule: Vec<(f64, f64, Vec<f64>)> = Vec::new();
+/// Per static attitude of the bench: (t_start, t_end, throttle levels in the order they are held).
+type BenchSchedule = Vec<(f64, f64, Vec<f64>)>;
 
-    let mut truth = scenario.truth.clone();
-    let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 {
-        truth.rate_hz
-    } else {
-        100.0
+/// The scenario's trajectory, with the static poses it holds recorded in `truth.poses` and the
+/// bench's throttle schedule. Draws from `rng` (the trajectory's stream) only.
+fn build_motion(
+    scenario: &Scenario,
+    rate: f64,
+    truth: &mut Truth,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> (Motion, BenchSchedule) {
+    use rand::Rng;
+    use rand_chacha::ChaCha8Rng;
+    let mut bench_schedule: BenchSchedule = Vec::new();
+    let tremor = |rng: &mut ChaCha8Rng| {
+        (scenario.tremor_deg > 0.0).then(|| Tremor::new(scenario.tremor_deg, rng))
     };
     let motion = match scenario.kind {
         TrajectoryKind::Turntable | TrajectoryKind::Tumble => {
@@ -1192,7 +957,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             let poses = match &scenario.attitudes {
                 Some(a) => a.clone(),
                 None if turntable => turntable_attitudes(),
-                None => tumble_attitudes(scenario.pauses.max(1), &mut rng),
+                None => tumble_attitudes(scenario.pauses.max(1), rng),
             };
             let n_hold = scenario.samples_per_pose.max(1) as f64 / rate;
             let pr = scenario.pause_s;
@@ -1205,20 +970,15 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
                     pr[0]
                 }
             };
-            let (segs, pose_truth) =
-                build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            let (segs, pose_truth) = build_segments(&poses, &mut hold, scenario.slew_s, rate, rng);
             truth.poses = pose_truth;
-            let tremor = if scenario.tremor_deg > 0.0 {
-                Some(Tremor::new(scenario.tremor_deg, &mut rng))
-            } else {
-                None
-            };
+            let tremor = tremor(rng);
             Motion::Segments { segs, tremor }
         }
         TrajectoryKind::Bench => {
             let poses = match &scenario.attitudes {
                 Some(a) => a.clone(),
-                None => tumble_attitudes(scenario.pauses.max(1), &mut rng),
+                None => tumble_attitudes(scenario.pauses.max(1), rng),
             };
             let levels = if scenario.bench.levels.is_empty() {
                 vec![0.0]
@@ -1227,8 +987,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             };
             let hold_s = levels.len() as f64 * scenario.bench.level_s.max(1e-3);
             let mut hold = |_: &mut ChaCha8Rng| -> f64 { hold_s };
-            let (segs, pose_truth) =
-                build_segments(&poses, &mut hold, scenario.slew_s, rate, &mut rng);
+            let (segs, pose_truth) = build_segments(&poses, &mut hold, scenario.slew_s, rate, rng);
             for p in &pose_truth {
                 // Fisher-Yates shuffle of the levels for this attitude.
                 let mut order = levels.clone();
@@ -1239,128 +998,169 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
                 bench_schedule.push((p.t_start, p.t_end, order));
             }
             truth.poses = pose_truth;
-            let tremor = if scenario.tremor_deg > 0.0 {
-                Some(Tremor::new(scenario.tremor_deg, &mut rng))
-            } else {
-                None
-            };
+            let tremor = tremor(rng);
             Motion::Segments { segs, tremor }
         }
         TrajectoryKind::Flight => {
-            let p = FlightPlan::new(scenario.duration_s.unwrap_or(80.0), &mut rng);
-            let q0 = crate::attitude::euler_zyx_deg(&p.attitude(0.0));
-            truth.poses = vec![PoseTruth {
-                t_start: 0.0,
-                t_end: p.t_up - 1.0,
-                roll_deg: q0[0],
-                pitch_deg: q0[1],
-                yaw_deg: q0[2],
-            }];
-            let qe = crate::attitude::euler_zyx_deg(&p.attitude(p.t_total));
-            truth.poses.push(PoseTruth {
-                t_start: p.t_down + p.t_climb + 1.0,
-                t_end: p.t_total,
-                roll_deg: qe[0],
-                pitch_deg: qe[1],
-                yaw_deg: qe[2],
-            });
+            let p = FlightPlan::new(scenario.duration_s.unwrap_or(80.0), rng);
+            let pose = |t_start: f64, t_end: f64, t: f64| {
+                let e = crate::attitude::euler_zyx_deg(&p.attitude(t));
+                PoseTruth {
+                    t_start,
+                    t_end,
+                    roll_deg: e[0],
+                    pitch_deg: e[1],
+                    yaw_deg: e[2],
+                }
+            };
+            truth.poses = vec![
+                pose(0.0, p.t_up - 1.0, 0.0),
+                pose(p.t_down + p.t_climb + 1.0, p.t_total, p.t_total),
+            ];
             Motion::Flight(p)
         }
+        TrajectoryKind::Cruise => Motion::Cruise(CruisePlan::new(
+            scenario.duration_s.unwrap_or(300.0),
+            &scenario.cruise,
+            truth.world.gravity_mps2,
+            rng,
+        )),
     };
-    let mut end = motion.end();
-    if let Some(d) = scenario.duration_s {
-        end = end.min(d);
+    (motion, bench_schedule)
+}
+
+/// The random streams of a simulation (ChaCha8 of the seed): stream 0 draws the trajectory,
+/// stream 1 the sensor noise, stream 2 the reference attitude's noise and the bench's current
+/// noise (drawn only when used, so scenarios without them see exactly the same numbers).
+struct Streams {
+    trajectory: rand_chacha::ChaCha8Rng,
+    noise: rand_chacha::ChaCha8Rng,
+    extra: rand_chacha::ChaCha8Rng,
+}
+
+impl Streams {
+    fn new(seed: u64) -> Streams {
+        use rand::SeedableRng;
+        let stream = |k: u64| {
+            let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            r.set_stream(k);
+            r
+        };
+        Streams {
+            trajectory: stream(0),
+            noise: stream(1),
+            extra: stream(2),
+        }
     }
-    let n = (end * rate - 1e-6).ceil().max(0.0) as usize;
-    let g_ned = Vector3::new(0.0, 0.0, truth.world.gravity_mps2);
-    let f = truth.world.field_ned_ut;
-    let field = Vector3::new(f[0], f[1], f[2]);
-    let mut samples = Vec::with_capacity(n);
-    let mut att = Vec::with_capacity(n);
-    let fx = &scenario.effects;
-    let bench = scenario.kind == TrajectoryKind::Bench;
-    let mag_rot = fx.mag_accel_rotation_deg.map(|w| {
-        crate::model::rotation_from_vector(&Vector3::new(
-            w[0].to_radians(),
-            w[1].to_radians(),
-            w[2].to_radians(),
-        ))
-    });
-    let field_strength = truth.world.field_strength_ut();
-    let gravity = truth.world.gravity_mps2;
-    for i in 0..n {
-        let t = i as f64 / rate;
-        let q = motion.attitude(t);
-        let qi = q.inverse();
-        let a_ned = motion.accel_ned(t);
-        let mut acc = qi * (a_ned - g_ned);
-        let mut mag = qi * field;
-        let gyr = motion.body_rate(t);
-        let temp = if bench {
-            scenario.temp_c
-                + scenario.bench.temp_swing_c * (std::f64::consts::PI * t / end.max(1e-9)).sin()
+}
+
+/// A standard normal draw.
+fn gauss<R: rand::Rng>(rng: &mut R) -> f64 {
+    use rand_distr::Distribution;
+    rand_distr::StandardNormal.sample(rng)
+}
+
+/// What stays fixed while [`simulate`] steps through the samples.
+struct Stepper<'a> {
+    scenario: &'a Scenario,
+    truth: &'a Truth,
+    motion: &'a Motion,
+    bench_schedule: &'a BenchSchedule,
+    end: f64,
+    field_ned: Vector3<f64>,
+    mag_rot: Option<Matrix3<f64>>,
+    /// Emit the reference attitude (and position) every this many samples.
+    reference_every: usize,
+}
+
+impl Stepper<'_> {
+    fn temperature(&self, t: f64) -> f64 {
+        let sc = self.scenario;
+        if sc.kind == TrajectoryKind::Bench {
+            sc.temp_c
+                + sc.bench.temp_swing_c * (std::f64::consts::PI * t / self.end.max(1e-9)).sin()
         } else {
-            scenario.temp_c + scenario.temp_drift_c * (1.0 - (-t / 120.0).exp())
-        };
-        let bench_throttle = if bench {
-            let k = bench_schedule.partition_point(|(_, t1, _)| *t1 <= t);
-            match bench_schedule.get(k) {
-                Some((t0, t1, lv)) if t >= *t0 => {
-                    let j = (((t - t0) / (t1 - t0)) * lv.len() as f64).floor() as usize;
-                    lv[j.min(lv.len() - 1)]
-                }
-                _ => 0.0,
+            sc.temp_c + sc.temp_drift_c * (1.0 - (-t / 120.0).exp())
+        }
+    }
+
+    fn bench_throttle(&self, t: f64) -> f64 {
+        if self.scenario.kind != TrajectoryKind::Bench {
+            return 0.0;
+        }
+        let k = self.bench_schedule.partition_point(|(_, t1, _)| *t1 <= t);
+        match self.bench_schedule.get(k) {
+            Some((t0, t1, lv)) if t >= *t0 => {
+                let j = (((t - t0) / (t1 - t0)) * lv.len() as f64).floor() as usize;
+                lv[j.min(lv.len() - 1)]
             }
-        } else {
-            0.0
-        };
+            _ => 0.0,
+        }
+    }
+
+    /// The sample `i` at time `t` and the true attitude (body -> NED).
+    fn sample(&self, i: usize, t: f64, rng: &mut Streams) -> (Sample, Quat) {
+        let (sc, truth, fx) = (self.scenario, self.truth, &self.scenario.effects);
+        let q = self.motion.attitude(t);
+        let qi = q.inverse();
+        let a_ned = self.motion.accel_ned(t);
+        let mut acc = qi * (a_ned - Vector3::new(0.0, 0.0, truth.world.gravity_mps2));
+        let mut mag = qi * self.field_ned;
+        let gyr = self.motion.body_rate(t);
+        let temp = self.temperature(t);
+        let bench_throttle = self.bench_throttle(t);
         // Effects acting on the sensed vector before the calibration errors.
-        if let Some(r) = &mag_rot {
+        if let Some(r) = &self.mag_rot {
             mag = r.transpose() * mag;
         }
         if let Some(c) = &fx.scale_cubic {
+            let (f, g) = (truth.world.field_strength_ut(), truth.world.gravity_mps2);
             for k in 0..3 {
-                mag[k] += c.mag[k] * mag[k].powi(3) / (field_strength * field_strength);
-                acc[k] += c.accel[k] * acc[k].powi(3) / (gravity * gravity);
+                mag[k] += c.mag[k] * mag[k].powi(3) / (f * f);
+                acc[k] += c.accel[k] * acc[k].powi(3) / (g * g);
             }
         }
         let mut s = Sample {
             t_s: t,
-            accel_mps2: Some(raw_with_noise(&truth.accel, &acc, &mut noise_rng)),
-            gyro_rad_s: Some(raw_with_noise(&truth.gyro, &gyr, &mut noise_rng)),
-            mag_ut: Some(raw_with_noise(&truth.mag, &mag, &mut noise_rng)),
+            accel_mps2: Some(raw_with_noise(&truth.accel, &acc, &mut rng.noise)),
+            gyro_rad_s: Some(raw_with_noise(&truth.gyro, &gyr, &mut rng.noise)),
+            mag_ut: Some(raw_with_noise(&truth.mag, &mag, &mut rng.noise)),
             temp_c: Some(temp),
             throttle: Some(bench_throttle),
             ..Default::default()
         };
-        if bench && scenario.bench.log_current {
-            use rand_distr::Distribution;
-            let z: f64 = rand_distr::StandardNormal.sample(&mut extra_rng);
+        if sc.kind == TrajectoryKind::Bench && sc.bench.log_current {
+            let z = gauss(&mut rng.extra);
             s.current_a = Some(0.3 + 30.0 * bench_throttle.powf(1.5) + 0.05 * z);
         }
-        if let Motion::Flight(p) = &motion {
-            use rand_distr::Distribution;
-            let z: f64 = rand_distr::StandardNormal.sample(&mut noise_rng);
-            let th = p.throttle(t, &a_ned, truth.world.gravity_mps2);
-            let th = if th > 0.0 {
-                (th + 0.005 * z).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            s.throttle = Some(th);
-            s.current_a = Some(0.3 + 30.0 * th.powf(1.5));
+        match self.motion {
+            Motion::Flight(p) => {
+                let z = gauss(&mut rng.noise);
+                let th = p.throttle(t, &a_ned, truth.world.gravity_mps2);
+                let th = if th > 0.0 {
+                    (th + 0.005 * z).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                s.throttle = Some(th);
+                s.current_a = Some(0.3 + 30.0 * th.powf(1.5));
+            }
+            Motion::Cruise(p) => {
+                let c = p.current_a(t);
+                s.current_a = Some(c);
+                s.throttle = Some((c / p.max_current_a).clamp(0.0, 1.0).powf(2.0 / 3.0));
+            }
+            Motion::Segments { .. } => {}
         }
         // Effects added to the raw readings.
         if !fx.is_none() {
             apply_raw_effects(fx, &mut s, t, temp);
         }
-        if let Some(sd) = scenario.reference_noise_deg {
-            use rand_distr::Distribution;
-            let mut w = Vector3::zeros();
-            for k in 0..3 {
-                let z: f64 = rand_distr::StandardNormal.sample(&mut extra_rng);
-                w[k] = sd.to_radians() * z;
-            }
+        if let Some(sd) = sc
+            .reference_noise_deg
+            .filter(|_| i.is_multiple_of(self.reference_every))
+        {
+            let w = Vector3::from_fn(|_, _| sd.to_radians() * gauss(&mut rng.extra));
             let psi = fx.heading_offset_deg.unwrap_or(0.0).to_radians();
             // The reference sees a body yawed by -psi from the sensor (sensor heading = reference + psi).
             let q_ref = q
@@ -1369,6 +1169,72 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
             let q_enu = ned_to_enu() * q_ref;
             s.ref_q = Some([q_enu.w, q_enu.i, q_enu.j, q_enu.k]);
         }
+        (s, q)
+    }
+}
+
+/// Latitude and longitude moved by a north/east displacement (m) on a sphere of the earth's mean
+/// radius: plenty for a field model over a flight.
+fn displaced(p: &crate::attitude::Place, north_m: f64, east_m: f64) -> crate::types::GeoPoint {
+    const EARTH_RADIUS_M: f64 = 6_371_000.0;
+    let lat = p.latitude_deg + (north_m / EARTH_RADIUS_M).to_degrees();
+    let coslat = p.latitude_deg.to_radians().cos().max(1e-6);
+    crate::types::GeoPoint {
+        lat_deg: lat,
+        lon_deg: p.longitude_deg + (east_m / (EARTH_RADIUS_M * coslat)).to_degrees(),
+        alt_m: p.altitude_m,
+    }
+}
+
+/// Run a scenario. Deterministic for a seed (see [`Streams`]).
+pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
+    let mut rng = Streams::new(seed);
+    let mut truth = scenario.truth.clone();
+    let rate = if truth.rate_hz.is_finite() && truth.rate_hz > 0.0 {
+        truth.rate_hz
+    } else {
+        100.0
+    };
+    // A place the scenario was validated with; the world's field otherwise.
+    if let Ok(f) = scenario.field_ned_ut() {
+        truth.world.field_ned_ut = f;
+    }
+    let (motion, bench_schedule) = build_motion(scenario, rate, &mut truth, &mut rng.trajectory);
+    let mut end = motion.end();
+    if let Some(d) = scenario.duration_s {
+        end = end.min(d);
+    }
+    let n = (end * rate - 1e-6).ceil().max(0.0) as usize;
+    let f = truth.world.field_ned_ut;
+    let stepper = Stepper {
+        scenario,
+        truth: &truth,
+        motion: &motion,
+        bench_schedule: &bench_schedule,
+        end,
+        field_ned: Vector3::new(f[0], f[1], f[2]),
+        mag_rot: scenario.effects.mag_accel_rotation_deg.map(|w| {
+            crate::model::rotation_from_vector(&Vector3::new(
+                w[0].to_radians(),
+                w[1].to_radians(),
+                w[2].to_radians(),
+            ))
+        }),
+        reference_every: scenario
+            .reference_rate_hz
+            .map_or(1, |r| (rate / r).round().max(1.0) as usize),
+    };
+    let mut samples = Vec::with_capacity(n);
+    let mut att = Vec::with_capacity(n);
+    // North/east travelled, m (the velocity integrated sample by sample).
+    let mut travelled = Vector3::zeros();
+    for i in 0..n {
+        let t = i as f64 / rate;
+        let (mut s, q) = stepper.sample(i, t, &mut rng);
+        if let (Some(p), true) = (&scenario.place, i.is_multiple_of(stepper.reference_every)) {
+            s.position = Some(displaced(p, travelled[0], travelled[1]));
+        }
+        travelled += motion.velocity_ned(t) / rate;
         samples.push(s);
         att.push(crate::attitude::euler_zyx_deg(&q));
     }
@@ -1443,6 +1309,10 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
     if reference {
         header.push_str(",ref_qw,ref_qx,ref_qy,ref_qz");
     }
+    let position = samples.iter().any(|s| s.position.is_some());
+    if position {
+        header.push_str(",lat,lon,alt");
+    }
     writeln!(w, "{header}")?;
     let mut line = String::with_capacity(256);
     for s in samples {
@@ -1477,6 +1347,14 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
                 None => line.push_str(",,,,"),
             }
         }
+        if position {
+            match s.position {
+                Some(p) => {
+                    let _ = write!(line, ",{},{},{}", p.lat_deg, p.lon_deg, p.alt_m);
+                }
+                None => line.push_str(",,,"),
+            }
+        }
         line.push('\n');
         w.write_all(line.as_bytes())?;
     }
@@ -1484,7 +1362,7 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
 }
 
 /// Write samples as CSV (`t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle`, then `current` (A) and
-/// `ref_qw,ref_qx,ref_qy,ref_qz` (sensor -> ENU) when some sample has them; SI units: s, m/s^2, rad/s,
+/// `ref_qw,ref_qx,ref_qy,ref_qz` (sensor -> ENU) and `lat,lon,alt` (deg, deg, m) when some sample has them; SI units: s, m/s^2, rad/s,
 /// uT, deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
 pub fn write_csv(path: &std::path::Path, samples: &[Sample]) -> Result<(), Error> {
     let gz = path.to_string_lossy().to_ascii_lowercase().ends_with(".gz");
@@ -1902,6 +1780,44 @@ mod tests {
     }
 
     #[test]
+    fn cruise_shape_reference_rate_place_and_current() {
+        let sc = Scenario::named("cruise").unwrap();
+        sc.validate().unwrap();
+        let out = simulate(&sc, 7);
+        assert_eq!(out.samples.len(), 30_000);
+        // The earth field is the World Magnetic Model's at the place (about 48 uT, dip 63 deg).
+        let f = sc.field_ned_ut().unwrap();
+        assert_eq!(out.truth.world.field_ned_ut, f);
+        assert!(
+            (out.truth.world.inclination_deg() - 63.5).abs() < 1.5,
+            "{f:?}"
+        );
+        let (mut max_roll, mut max_pitch, mut bins) = (0.0f64, 0.0f64, [false; 12]);
+        for a in &out.true_attitude {
+            max_roll = max_roll.max(a[0].abs());
+            max_pitch = max_pitch.max(a[1].abs());
+            bins[(a[2] / 30.0) as usize % 12] = true;
+        }
+        assert!((15.0..30.0).contains(&max_roll), "{max_roll}");
+        assert!(max_pitch < 5.0, "{max_pitch}");
+        assert!(bins.iter().all(|b| *b), "headings {bins:?}");
+        // Reference attitude and position at 10 Hz on a 100 Hz stream.
+        for (i, s) in out.samples.iter().enumerate() {
+            assert_eq!(s.ref_q.is_some(), i.is_multiple_of(10), "{i}");
+            assert_eq!(s.position.is_some(), i.is_multiple_of(10), "{i}");
+        }
+        // 15 m/s for 300 s travels at most 4.5 km: within 0.05 deg of the place.
+        let p = out.samples[29_990].position.unwrap();
+        assert!((p.lat_deg - 47.3769).abs() < 0.05 && (p.lon_deg - 8.5417).abs() < 0.07);
+        assert!(p != out.samples[0].position.unwrap());
+        let c: Vec<f64> = out.samples.iter().map(|s| s.current_a.unwrap()).collect();
+        let (lo, hi) = c
+            .iter()
+            .fold((f64::MAX, 0.0f64), |(a, b), x| (a.min(*x), b.max(*x)));
+        assert!(lo < 10.0 && hi > 45.0 && hi <= 60.0, "{lo} {hi}");
+    }
+
+    #[test]
     fn flight_shape() {
         let sc = noise_free(Scenario::named("flight").unwrap());
         let out = simulate(&sc, 4);
@@ -2039,6 +1955,32 @@ mod tests {
                 .unwrap(),
             "0.5,,,,,,,1,2,3,,"
         );
+    }
+
+    #[test]
+    fn reference_and_position_survive_the_csv() {
+        let mut sc = Scenario::named("cruise").unwrap();
+        sc.duration_s = Some(2.0);
+        let out = simulate(&sc, 3);
+        let dir = tmpdir();
+        let p = dir.path().join("cruise.csv");
+        write_csv(&p, &out.samples).unwrap();
+        let text = std::fs::read_to_string(&p).unwrap();
+        assert!(text
+            .lines()
+            .next()
+            .unwrap()
+            .ends_with(",ref_qw,ref_qx,ref_qy,ref_qz,lat,lon,alt"));
+        let mut stats = crate::decode::DecodeStats::default();
+        let back = crate::decode::decode_csv(&text, &Default::default(), &mut stats).unwrap();
+        assert_eq!(back.len(), out.samples.len());
+        for (a, b) in back.iter().zip(&out.samples) {
+            assert_eq!(
+                (a.ref_q, a.position, a.mag_ut),
+                (b.ref_q, b.position, b.mag_ut)
+            );
+        }
+        assert_eq!(back.iter().filter(|s| s.position.is_some()).count(), 20);
     }
 
     /// Split a tlog into (timestamp, frame) records by hand, checking each frame's framing.
