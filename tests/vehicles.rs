@@ -8,6 +8,7 @@
 //! calibration directory; its own block in the report and its own JSON lines.
 
 use imucald::config::{Config, SourceConfig};
+use imucald::daemon::RunSummary;
 use imucald::mavout::MavEncoder;
 use imucald::sim::{simulate, Scenario, SimOutput};
 use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
@@ -35,6 +36,63 @@ fn udp_port() -> u16 {
         .local_addr()
         .unwrap()
         .port()
+}
+
+/// A service configuration listening on UDP `ports` (one link each), keeping its calibration in
+/// `cal_dir` and publishing JSON lines to `sink`.
+fn service_config(
+    cal_dir: &std::path::Path,
+    ports: &[u16],
+    sink: &tokio::net::UdpSocket,
+) -> Config {
+    let mut cfg = Config::default();
+    cfg.daemon.sources = ports
+        .iter()
+        .map(|p| SourceConfig {
+            address: format!("udpin:127.0.0.1:{p}"),
+            payload: "mavlink".into(),
+            fields: vec![],
+            scales: Default::default(),
+        })
+        .collect();
+    cfg.daemon.calibration_dir = cal_dir.display().to_string();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    cfg
+}
+
+/// Run the service on `cfg`, send the first `n` samples of `sim` as system 1 to `port`, stop it.
+async fn feed_and_stop(cfg: Config, port: u16, sim: &SimOutput, n: usize) -> RunSummary {
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut enc = MavEncoder::new(1, 1);
+    for s in &sim.samples[..n] {
+        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+        peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
+            .await
+            .unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    stop_tx.send(true).unwrap();
+    tokio::time::timeout(Duration::from_secs(2), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap()
+}
+
+/// The JSON lines waiting at `sink`.
+async fn lines(sink: &tokio::net::UdpSocket) -> Vec<serde_json::Value> {
+    let mut out = vec![];
+    let mut buf = vec![0u8; 65536];
+    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
+    {
+        for line in String::from_utf8_lossy(&buf[..n]).lines() {
+            out.push(serde_json::from_str(line).unwrap());
+        }
+    }
+    out
 }
 
 /// The last MAG_CAL_REPORT a peer received, keyed by the sender's (system, component) ids.
@@ -82,19 +140,8 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         let ports = [udp_port(), udp_port()];
         let links = if shared_link { 1 } else { 2 };
         let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-        let mut cfg = Config::default();
-        cfg.daemon.sources = ports[..links]
-            .iter()
-            .map(|p| SourceConfig {
-                address: format!("udpin:127.0.0.1:{p}"),
-                payload: "mavlink".into(),
-                fields: vec![],
-                scales: Default::default(),
-            })
-            .collect();
         let cal_dir = dir.path().join("cal");
-        cfg.daemon.calibration_dir = cal_dir.display().to_string();
-        cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+        let mut cfg = service_config(&cal_dir, &ports[..links], &sink);
         cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
@@ -215,18 +262,12 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         assert_eq!(vehicles[0]["input"]["samples"], n);
 
         // Its own JSON lines: a further vehicle's say which it is.
-        let mut buf = vec![0u8; 65536];
-        let mut calibrated = std::collections::BTreeSet::new();
-        while let Ok(Ok(n)) =
-            tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
-        {
-            for line in String::from_utf8_lossy(&buf[..n]).lines() {
-                let v: serde_json::Value = serde_json::from_str(line).unwrap();
-                if v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok" {
-                    calibrated.insert(v["vehicle"]["system_id"].as_u64());
-                }
-            }
-        }
+        let calibrated: std::collections::BTreeSet<_> = lines(&sink)
+            .await
+            .iter()
+            .filter(|v| v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok")
+            .map(|v| v["vehicle"]["system_id"].as_u64())
+            .collect();
         assert_eq!(
             calibrated.into_iter().collect::<Vec<_>>(),
             vec![None, Some(sys_b as u64)],
@@ -248,47 +289,13 @@ async fn restart_with_the_other_vehicle_first(
 ) {
     let before = std::fs::read_to_string(cal_dir.join("calibration.json")).unwrap();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = ports
-        .iter()
-        .map(|p| SourceConfig {
-            address: format!("udpin:127.0.0.1:{p}"),
-            payload: "mavlink".into(),
-            fields: vec![],
-            scales: Default::default(),
-        })
-        .collect();
-    cfg.daemon.calibration_dir = cal_dir.display().to_string();
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut enc = MavEncoder::new(1, 1);
-    for s in &b.samples[..200] {
-        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
-        peer.send_to(&enc.encode(&msg), ("127.0.0.1", ports[1]))
-            .await
-            .unwrap();
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    stop_tx.send(true).unwrap();
-    tokio::time::timeout(Duration::from_secs(2), daemon)
+    feed_and_stop(service_config(cal_dir, ports, &sink), ports[1], b, 200).await;
+    let said: Vec<String> = lines(&sink)
         .await
-        .expect("stops")
-        .unwrap()
-        .unwrap();
-    let mut said = vec![];
-    let mut buf = vec![0u8; 65536];
-    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
-    {
-        for line in String::from_utf8_lossy(&buf[..n]).lines() {
-            let v: serde_json::Value = serde_json::from_str(line).unwrap();
-            if v["type"] == "status" {
-                said.push(v["text"].as_str().unwrap_or("").to_string());
-            }
-        }
-    }
+        .iter()
+        .filter(|v| v["type"] == "status")
+        .map(|v| v["text"].as_str().unwrap_or("").to_string())
+        .collect();
     assert!(
         said.iter()
             .any(|t| t.contains("vehicle-1-1") && t.contains("(resumed)")),
@@ -315,15 +322,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     let dir = tempfile::tempdir().unwrap();
     let port = udp_port();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = vec![SourceConfig {
-        address: format!("udpin:127.0.0.1:{port}"),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
-    cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    let mut cfg = service_config(&dir.path().join("cal"), &[port], &sink);
     cfg.daemon.heartbeat_rate_hz = 0.0;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
@@ -384,14 +383,10 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     );
     // The runs restarted: one per vehicle for its own command, one each for the broadcast.
     let mut started = BTreeMap::new();
-    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
-    {
-        for line in String::from_utf8_lossy(&buf[..n]).lines() {
-            let v: serde_json::Value = serde_json::from_str(line).unwrap();
-            if v["type"] == "status" && v["text"] == "mag calibration run started" {
-                let sys = v["vehicle"]["system_id"].as_u64().unwrap_or(1);
-                *started.entry(sys).or_insert(0) += 1;
-            }
+    for v in lines(&sink).await {
+        if v["type"] == "status" && v["text"] == "mag calibration run started" {
+            let sys = v["vehicle"]["system_id"].as_u64().unwrap_or(1);
+            *started.entry(sys).or_insert(0) += 1;
         }
     }
     assert_eq!(started, BTreeMap::from([(1, 2), (2, 2)]));
@@ -402,36 +397,8 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
 async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, a: &SimOutput) {
     let new_port = udp_port();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = [new_port, port_b]
-        .iter()
-        .map(|p| SourceConfig {
-            address: format!("udpin:127.0.0.1:{p}"),
-            payload: "mavlink".into(),
-            fields: vec![],
-            scales: Default::default(),
-        })
-        .collect();
-    cfg.daemon.calibration_dir = cal_dir.display().to_string();
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut enc = MavEncoder::new(1, 1);
-    for s in &a.samples[..200] {
-        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
-        peer.send_to(&enc.encode(&msg), ("127.0.0.1", new_port))
-            .await
-            .unwrap();
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    stop_tx.send(true).unwrap();
-    let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
-        .await
-        .expect("stops")
-        .unwrap()
-        .unwrap();
+    let cfg = service_config(cal_dir, &[new_port, port_b], &sink);
+    let summary = feed_and_stop(cfg, new_port, a, 200).await;
     // Taken by the first calibration (the summary counts its samples), not a further vehicle's.
     assert_eq!(summary.samples, 200, "{summary:?}");
     let store = imucald::daemon::load_store(cal_dir).unwrap().unwrap();
