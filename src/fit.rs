@@ -1,15 +1,16 @@
-//! Fitting: Levenberg-Marquardt on fixed-size normal equations, an algebraic ellipsoid start that
-//! needs no datasheet, parameter uncertainties, acceptance checks and automatic model choice.
+//! Fitting: Levenberg-Marquardt ([`crate::lm`]) on fixed-size normal equations with analytic
+//! gradients, an algebraic ellipsoid start that needs no datasheet, parameter uncertainties, acceptance checks and automatic model choice.
 //! Pure math: no I/O.
 //!
 //! The scalar (norm) residual of seeds 000 and 002: for each point `r_i = |A (x_i - p)| - 1` on data
 //! normalised by the starting centre and radius, so the same tolerances hold for counts, uT or m/s^2.
 
+use crate::lm::{cholesky, LmOptions, LmShortcuts};
 use crate::model::{
     a_from_params, mat_to_rows, n_norm_params, params_from_a, Calibration, ModelKind,
 };
 use crate::types::Vec3;
-use nalgebra::{Cholesky, Const, Matrix3, SMatrix, SVector, Vector3};
+use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 
 mod kernel;
 use serde::{Deserialize, Serialize};
@@ -52,176 +53,6 @@ impl FitFailure {
             FitFailure::HeldOut => "held_out",
             FitFailure::NeedsCalibration => "needs_calibration",
         }
-    }
-}
-
-/// The Cholesky factor `L L^T = a` of a symmetric positive-definite matrix (its lower triangle is
-/// read): the one factorisation every fit here solves and inverts with. `None` unless every entry
-/// is finite and every pivot positive, i.e. unless `a` is positive definite to working precision
-/// (nalgebra refuses a pivot that is not positive; from finite entries a pivot cannot grow past the
-/// diagonal entry it starts from, so the factor is then finite).
-fn cholesky<const N: usize>(a: &SMatrix<f64, N, N>) -> Option<Cholesky<f64, Const<N>>> {
-    if !a.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    a.cholesky()
-}
-
-/// Outcome of a Levenberg-Marquardt run.
-#[derive(Debug, Clone)]
-pub struct LmOutcome<const N: usize> {
-    pub params: SVector<f64, N>,
-    /// Sum of squared residuals at the solution.
-    pub ssr: f64,
-    pub iterations: usize,
-    /// J^T J at the solution (for uncertainties), or with [`LmShortcuts`] at a point within
-    /// `reuse_jtj` plus the last, unevaluated step of it.
-    pub jtj: SMatrix<f64, N, N>,
-    pub converged: bool,
-}
-
-/// Levenberg-Marquardt with Marquardt's diagonal scaling (Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" eq. 13) on residuals given point by
-/// point: `prepare(p)` runs once per parameter vector and its result is handed to every
-/// `resid(prepared, p, i, grad)` call (a matrix built from the parameters, say), which returns residual
-/// `i` and writes its gradient. Normal equations are accumulated point by point, so memory is O(N^2)
-/// whatever the number of points; the iteration itself is [`levenberg_marquardt_batch`].
-pub fn levenberg_marquardt_prepared<const N: usize, P>(
-    x0: SVector<f64, N>,
-    n_points: usize,
-    max_iter: usize,
-    prepare: impl Fn(&SVector<f64, N>) -> P,
-    resid: impl Fn(&P, &SVector<f64, N>, usize, &mut SVector<f64, N>) -> f64,
-) -> LmOutcome<N> {
-    let eval = |x: &SVector<f64, N>| {
-        // (J^T J is summed in the same loop as J^T r, so it is always formed.)
-        let mut jtj = SMatrix::<f64, N, N>::zeros();
-        let mut jtr = SVector::<f64, N>::zeros();
-        let mut g = SVector::<f64, N>::zeros();
-        let mut ssr = 0.0;
-        let prep = prepare(x);
-        for i in 0..n_points {
-            let r = resid(&prep, x, i, &mut g);
-            ssr += r * r;
-            jtr += g * r;
-            // Symmetric rank-1 update, upper triangle only.
-            for c in 0..N {
-                let gc = g[c];
-                for rr in 0..=c {
-                    jtj[(rr, c)] += g[rr] * gc;
-                }
-            }
-        }
-        for c in 0..N {
-            for rr in 0..c {
-                jtj[(c, rr)] = jtj[(rr, c)];
-            }
-        }
-        (ssr, Some(jtj), jtr)
-    };
-    levenberg_marquardt_batch(x0, max_iter, LmShortcuts::default(), |x, _| eval(x))
-}
-
-/// Work a Levenberg-Marquardt run may skip near the solution, where it would only confirm what
-/// the linear model already says. Both 0 (the default) skip nothing.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct LmShortcuts {
-    /// When the reduction the linear model predicts for the next step is at most this fraction of
-    /// the sum of squares, the step is taken without evaluating where it lands, and the sum of
-    /// squares becomes the predicted one. Norm fits pass `1e-6 / dof`: the step is then at most a
-    /// thousandth of a standard error long (`predicted / s^2 = step^T J^T J step / s^2`), where the
-    /// quadratic model is exact to far below anything a fit can resolve, so the evaluation would
-    /// only confirm it.
-    pub last_step: f64,
-    /// While the parameters are within this distance (largest component, summed over the steps
-    /// taken since) of the point where J^T J was last formed, evaluations form only the sum of
-    /// squares and J^T r, and the steps use that J^T J. The steps then still lead to the point where
-    /// J^T r = 0, the same minimum; J^T J, and so the covariance, comes from a point this close to
-    /// it, which for parameters of order 1 changes it by a relative amount of about this size.
-    pub reuse_jtj: f64,
-}
-
-/// The Levenberg-Marquardt iteration on whole normal equations: `eval(p, with_jtj)` returns the sum
-/// of squared residuals, J^T J and J^T r at `p` (however it builds them). J^T J is asked for
-/// (`with_jtj`) unless `shortcuts` lets the run keep an earlier one; `None` then keeps it.
-pub fn levenberg_marquardt_batch<const N: usize>(
-    x0: SVector<f64, N>,
-    max_iter: usize,
-    shortcuts: LmShortcuts,
-    mut eval: impl FnMut(&SVector<f64, N>, bool) -> (f64, Option<SMatrix<f64, N, N>>, SVector<f64, N>),
-) -> LmOutcome<N> {
-    let mut x = x0;
-    let (mut ssr, jtj0, mut jtr) = eval(&x, true);
-    let mut jtj = jtj0.unwrap_or_else(SMatrix::zeros);
-    // Distance walked since J^T J was formed.
-    let mut drift = 0.0;
-    let mut lambda = 1e-3;
-    let mut converged = false;
-    let mut it = 0;
-    while it < max_iter {
-        it += 1;
-        let mut a = jtj;
-        for k in 0..N {
-            a[(k, k)] += lambda * jtj[(k, k)].max(1e-12);
-        }
-        let step = match cholesky(&a) {
-            Some(ch) => ch.solve(&(-jtr)),
-            None => {
-                lambda *= 10.0;
-                if lambda > 1e12 {
-                    break;
-                }
-                continue;
-            }
-        };
-        // Reduction the linear model predicts for the step: when even that is below the tolerance,
-        // we are at the minimum to working precision and another evaluation would not move us.
-        let predicted = -(2.0 * step.dot(&jtr) + (jtj * step).dot(&step));
-        if predicted.abs() <= 1e-14 * ssr.max(1e-300) {
-            converged = true;
-            break;
-        }
-        if predicted >= 0.0 && predicted <= shortcuts.last_step * ssr && lambda <= 1e-2 {
-            x += step;
-            ssr = (ssr - predicted).max(0.0);
-            converged = true;
-            break;
-        }
-        let x_new = x + step;
-        let reuse = drift + step.amax() <= shortcuts.reuse_jtj;
-        let (ssr_new, jtj_new, jtr_new) = eval(&x_new, !reuse);
-        if ssr_new.is_finite() && ssr_new <= ssr {
-            let small_step = step.norm() <= 1e-12 * (x.norm() + 1e-12);
-            let small_gain = ssr - ssr_new <= 1e-14 * ssr.max(1e-300);
-            x = x_new;
-            ssr = ssr_new;
-            jtr = jtr_new;
-            match jtj_new {
-                Some(m) => {
-                    jtj = m;
-                    drift = 0.0;
-                }
-                None => drift += step.amax(),
-            }
-            lambda = (lambda * 0.1).max(1e-15);
-            if small_step || small_gain || ssr == 0.0 {
-                converged = true;
-                break;
-            }
-        } else {
-            lambda *= 10.0;
-            if lambda > 1e12 {
-                // No descent direction left: we are at a minimum to working precision.
-                converged = jtr.norm() <= 1e-8 * (1.0 + ssr.sqrt());
-                break;
-            }
-        }
-    }
-    LmOutcome {
-        params: x,
-        ssr,
-        iterations: it,
-        jtj,
-        converged,
     }
 }
 
@@ -477,6 +308,10 @@ fn condition_number<const N: usize>(
 /// solution. The ellipsoid start usually lands this close, so the last evaluation forms no J^T J.
 pub const NORM_REUSE_JTJ: f64 = 1e-4;
 
+/// [`LmOptions::stop_rel_gain`] of norm fits and the dip rotation fit: analytic gradients, so the
+/// fit can go on to a relative gain near rounding.
+pub const NORM_STOP_REL_GAIN: f64 = 1e-14;
+
 fn solve_norm<const K: u8, const N: usize>(
     pts: &kernel::Soa,
     scratch: &mut kernel::Scratch,
@@ -485,11 +320,15 @@ fn solve_norm<const K: u8, const N: usize>(
 ) -> NormSolution {
     let x0v = SVector::<f64, N>::from_column_slice(x0);
     let dof = pts.n.saturating_sub(N).max(1) as f64;
-    let shortcuts = LmShortcuts {
-        last_step: 1e-6 / dof,
-        reuse_jtj: NORM_REUSE_JTJ,
+    let opts = LmOptions {
+        max_iter,
+        stop_rel_gain: NORM_STOP_REL_GAIN,
+        shortcuts: LmShortcuts {
+            last_step: 1e-6 / dof,
+            reuse_jtj: NORM_REUSE_JTJ,
+        },
     };
-    let out = levenberg_marquardt_batch::<N>(x0v, max_iter, shortcuts, |p, with_jtj| {
+    let out = crate::lm::minimise_normal(x0v, &opts, |p, with_jtj| {
         kernel::norm_normal_equations::<K, N>(p, pts, scratch, with_jtj)
     });
     let inv = cholesky(&out.jtj).map(|c| c.inverse());
@@ -792,10 +631,10 @@ pub fn fit_dip_rotation(
         .collect();
     let mean_dot = g.iter().zip(&m).map(|(a, b)| a.dot(b)).sum::<f64>() / n as f64;
     let x0 = SVector::<f64, 4>::new(0.0, 0.0, 0.0, mean_dot);
-    let out = levenberg_marquardt_prepared::<4, _>(
+    let out = crate::lm::minimise_pointwise::<4, _>(
         x0,
         n,
-        100,
+        &LmOptions::new(100, NORM_STOP_REL_GAIN),
         |p| crate::model::rotation_from_vector(&Vector3::new(p[0], p[1], p[2])),
         |r, p, i, grad| {
             let rm = r * m[i];
@@ -904,28 +743,6 @@ mod tests {
         check::<9>();
     }
 
-    /// Not positive definite, or not finite: no factor.
-    #[test]
-    fn cholesky_refuses_what_is_not_positive_definite() {
-        let mut a = SMatrix::<f64, 4, 4>::identity();
-        a[(2, 2)] = 0.0;
-        assert!(cholesky(&a).is_none());
-        a[(2, 2)] = -1.0;
-        assert!(cholesky(&a).is_none());
-        a[(2, 2)] = f64::NAN;
-        assert!(cholesky(&a).is_none());
-        a[(2, 2)] = f64::INFINITY;
-        assert!(cholesky(&a).is_none());
-        let mut b = SMatrix::<f64, 4, 4>::identity();
-        b[(3, 1)] = f64::NAN;
-        b[(1, 3)] = f64::NAN;
-        assert!(cholesky(&b).is_none());
-        // Finite entries whose factor would overflow.
-        let c = SMatrix::<f64, 2, 2>::new(1e-300, 0.0, 1e300, 1.0);
-        assert!(cholesky(&c).is_none());
-        assert!(cholesky(&SMatrix::<f64, 4, 4>::identity()).is_some());
-    }
-
     /// 300 points on a slightly sheared, shifted unit sphere with uniform noise of `noise`.
     fn noisy_ellipsoid(seed: u64, noise: f64, rng: &mut rand_chacha::ChaCha8Rng) -> Vec<Vec3> {
         let m = Matrix3::new(1.06, 0.03, -0.02, 0.03, 0.95, 0.04, -0.02, 0.04, 1.02);
@@ -944,11 +761,16 @@ mod tests {
         pts: &[Vec3],
         x0: &SVector<f64, 9>,
         shortcuts: LmShortcuts,
-    ) -> (LmOutcome<9>, usize, usize) {
+    ) -> (crate::lm::LmOutcome<nalgebra::Const<9>>, usize, usize) {
         let soa = kernel::Soa::normalised(pts, [0.0; 3], 1.0);
         let mut scratch = kernel::Scratch::new(soa.padded);
         let (mut evals, mut formed) = (0, 0);
-        let out = levenberg_marquardt_batch::<9>(*x0, 200, shortcuts, |p, with_jtj| {
+        let opts = LmOptions {
+            max_iter: 200,
+            stop_rel_gain: NORM_STOP_REL_GAIN,
+            shortcuts,
+        };
+        let out = crate::lm::minimise_normal(*x0, &opts, |p, with_jtj| {
             evals += 1;
             formed += usize::from(with_jtj);
             kernel::norm_normal_equations::<{ kernel::SYM9 }, 9>(p, &soa, &mut scratch, with_jtj)

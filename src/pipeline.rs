@@ -8,7 +8,9 @@
 
 use crate::config::{AcceptLimits, Config};
 use crate::coverage::{coverage, Coverage, DirectionBins, Progress, ProgressReport};
-use crate::fit::{fit_norm, significantly_better, six_position, FitFailure, NormFitOptions};
+use crate::fit::{
+    fit_norm, significantly_better, six_position, FitFailure, NormFit, NormFitOptions,
+};
 use crate::gate::{Pose, Prefilter3, StaticDetector};
 use crate::model::{Calibration, ModelKind};
 use crate::report::{Candidate, GyroCalibration, RefitReport, SensorCalibration};
@@ -800,15 +802,6 @@ fn lmeds_inliers(points: &[Vec3]) -> Option<Vec<bool>> {
 
 /// Candidate models, automatic choice, acceptance checks, on the points as given.
 fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
-    let opts = NormFitOptions {
-        target_norm: spec.target_norm,
-        ..Default::default()
-    };
-    let kinds: Vec<ModelKind> = match spec.model {
-        "auto" => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
-        "six_position" => vec![],
-        m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
-    };
     // The candidate fits share their set-up; its sphere fit is the centre for the "before" coverage.
     let mut fitter = crate::fit::NormFitter::new(points);
     let raw_centre = fitter.sphere_centre().unwrap_or([0.0; 3]);
@@ -823,25 +816,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         })
         .collect();
     let cov_before = coverage(&dirs_before, &[0.0; 3]);
-
-    let mut fits = Vec::new();
-    for k in &kinds {
-        if let Ok(f) = fitter.fit(*k, &opts) {
-            fits.push(f);
-        }
-    }
-    // Six-position accel when asked, or when the log holds only a handful of poses near the axes.
-    let mut six = None;
-    if spec.is_accel
-        && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12))
-    {
-        six = six_position(
-            points,
-            spec.target_norm
-                .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2),
-            15.0,
-        );
-    }
+    let fits = candidate_fits(&mut fitter, spec);
     let n = points.len();
     let mut candidates: Vec<Candidate> = fits
         .iter()
@@ -852,7 +827,58 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             chosen: false,
         })
         .collect();
-    // Simplest model that a richer one does not beat significantly.
+    let (cal, mut report) = if let Some(cal) = six_position_fit(points, spec) {
+        (cal, six_position_report(points, &cal, spec, candidates))
+    } else {
+        let Some(ci) = choose_model(&fits, n) else {
+            let (why, detail) = no_fit_reason(n, &cov_before, spec);
+            return empty_result(failed(spec.model, spec.units, why, detail), points);
+        };
+        candidates[ci].chosen = true;
+        (
+            fits[ci].calibration,
+            norm_fit_report(&fits[ci], spec, candidates),
+        )
+    };
+    let dirs_after: Vec<Vec3> = points.iter().map(|p| cal.apply(p)).collect();
+    let residuals: Vec<f64> = dirs_after.iter().map(|c| norm(c) - report.radius).collect();
+    let cov_after = coverage(&dirs_after, &[0.0; 3]);
+    if report.status == "ok" {
+        check_limits(&mut report, &cal, &cov_after, spec);
+    }
+    blame_coverage(&mut report, &cov_before, spec);
+    let calibration = (report.status == "ok").then_some(cal);
+    SensorResult {
+        report,
+        calibration,
+        coverage_before: cov_before,
+        coverage_after: cov_after,
+        dirs_before,
+        dirs_after,
+        residuals,
+        held_out: vec![],
+    }
+}
+
+/// The norm fits of the models `spec` asks for (every one for "auto"), those that succeed.
+fn candidate_fits(fitter: &mut crate::fit::NormFitter, spec: &SensorSpec) -> Vec<NormFit> {
+    let opts = NormFitOptions {
+        target_norm: spec.target_norm,
+        ..Default::default()
+    };
+    let kinds: Vec<ModelKind> = match spec.model {
+        "auto" => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
+        "six_position" => vec![],
+        m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
+    };
+    kinds
+        .iter()
+        .filter_map(|k| fitter.fit(*k, &opts).ok())
+        .collect()
+}
+
+/// The simplest of `fits` (ordered simplest first) that a richer one does not beat significantly.
+fn choose_model(fits: &[NormFit], n: usize) -> Option<usize> {
     let mut chosen: Option<usize> = if fits.is_empty() { None } else { Some(0) };
     for i in 1..fits.len() {
         let c = chosen.expect("set");
@@ -869,108 +895,133 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             chosen = Some(i);
         }
     }
-    let (cal, mut report) = if let Some(cal) = six {
-        let g = spec
-            .target_norm
-            .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2);
-        let res: Vec<f64> = points.iter().map(|p| norm(&cal.apply(p)) - g).collect();
-        let rms = (res.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
-        candidates.push(Candidate {
-            model: "six_position".into(),
-            rms_residual: rms,
-            params: 12,
-            chosen: true,
-        });
-        let rep = SensorCalibration {
-            status: "ok".into(),
-            failure: None,
-            detail: None,
-            model: "six_position".into(),
-            units: spec.units.into(),
-            offset: cal.offset,
-            matrix: cal.matrix,
-            radius: g,
-            rms_residual: rms,
-            offset_sigma: [f64::NAN; 3],
-            samples_used: n,
-            iterations: 1,
-            candidates: candidates.clone(),
-            outliers_rejected: 0,
-            method: None,
-        };
-        (cal, rep)
+    chosen
+}
+
+/// Six-position accelerometer calibration when asked, or when the log holds only a handful of
+/// poses near the axes.
+fn six_position_fit(points: &[Vec3], spec: &SensorSpec) -> Option<Calibration> {
+    if spec.is_accel
+        && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12))
+    {
+        six_position(
+            points,
+            spec.target_norm
+                .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2),
+            15.0,
+        )
     } else {
-        let Some(ci) = chosen else {
-            let (why, detail) = if n >= 7 && cov_before.filled < spec.limits.min_filled_regions {
-                (
-                    FitFailure::Coverage,
-                    format!(
-                        "{} of 100 sphere regions filled, need {}",
-                        cov_before.filled, spec.limits.min_filled_regions
-                    ),
-                )
-            } else if n < 7 {
-                (
-                    FitFailure::NotEnoughSamples,
-                    format!("{n} points; need at least 7 (more for richer models)"),
-                )
-            } else {
-                (
-                    FitFailure::NotIdentifiable,
-                    format!(
-                        "no model could be fitted to {n} points (all on a plane or a small cap?)"
-                    ),
-                )
-            };
-            return empty_result(failed(spec.model, spec.units, why, detail), points);
-        };
-        candidates[ci].chosen = true;
-        let f = &fits[ci];
-        let rep = SensorCalibration {
-            status: "ok".into(),
-            failure: None,
-            detail: None,
-            model: f.calibration.model.name().into(),
-            units: spec.units.into(),
-            offset: f.calibration.offset,
-            matrix: f.calibration.matrix,
-            radius: f.radius,
-            rms_residual: f.rms_residual,
-            offset_sigma: f.offset_sigma,
-            samples_used: f.samples_used,
-            iterations: f.iterations,
-            candidates: candidates.clone(),
-            outliers_rejected: 0,
-            method: None,
-        };
-        // Identifiability and convergence come from the fit itself.
-        let mut rep = rep;
-        if !f.converged {
-            set_fail(
-                &mut rep,
-                FitFailure::DidNotConverge,
-                format!("no convergence in {} iterations", f.iterations),
-            );
-        } else if !f.condition.is_finite()
-            || f.condition > 1e12
-            || f.offset_sigma.iter().any(|s| !(*s <= 0.05 * f.raw_radius))
-        {
-            set_fail(
-                &mut rep,
-                FitFailure::NotIdentifiable,
-                format!("offset sigma {:?} vs radius {:.3}, condition {:.2e}: rotate through more orientations", f.offset_sigma, f.raw_radius, f.condition),
-            );
-        }
-        (f.calibration, rep)
-    };
-    let dirs_after: Vec<Vec3> = points.iter().map(|p| cal.apply(p)).collect();
-    let residuals: Vec<f64> = dirs_after.iter().map(|c| norm(c) - report.radius).collect();
-    let cov_after = coverage(&dirs_after, &[0.0; 3]);
-    if report.status == "ok" {
-        check_limits(&mut report, &cal, &cov_after, spec);
+        None
     }
-    // A fit that failed for numerical reasons on data that covers too little of the sphere failed
-    // because of the coverage: say so, since that is what the user can fix.
+}
+
+/// The report of a six-position calibration, added to the norm fit `candidates` as the chosen one.
+fn six_position_report(
+    points: &[Vec3],
+    cal: &Calibration,
+    spec: &SensorSpec,
+    mut candidates: Vec<Candidate>,
+) -> SensorCalibration {
+    let n = points.len();
+    let g = spec
+        .target_norm
+        .unwrap_or(crate::types::STANDARD_GRAVITY_MPS2);
+    let res: Vec<f64> = points.iter().map(|p| norm(&cal.apply(p)) - g).collect();
+    let rms = (res.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+    candidates.push(Candidate {
+        model: "six_position".into(),
+        rms_residual: rms,
+        params: 12,
+        chosen: true,
+    });
+    SensorCalibration {
+        status: "ok".into(),
+        failure: None,
+        detail: None,
+        model: "six_position".into(),
+        units: spec.units.into(),
+        offset: cal.offset,
+        matrix: cal.matrix,
+        radius: g,
+        rms_residual: rms,
+        offset_sigma: [f64::NAN; 3],
+        samples_used: n,
+        iterations: 1,
+        candidates,
+        outliers_rejected: 0,
+        method: None,
+    }
+}
+
+/// Why no norm model could be fitted to `n` points.
+fn no_fit_reason(n: usize, cov_before: &Coverage, spec: &SensorSpec) -> (FitFailure, String) {
+    if n >= 7 && cov_before.filled < spec.limits.min_filled_regions {
+        (
+            FitFailure::Coverage,
+            format!(
+                "{} of 100 sphere regions filled, need {}",
+                cov_before.filled, spec.limits.min_filled_regions
+            ),
+        )
+    } else if n < 7 {
+        (
+            FitFailure::NotEnoughSamples,
+            format!("{n} points; need at least 7 (more for richer models)"),
+        )
+    } else {
+        (
+            FitFailure::NotIdentifiable,
+            format!("no model could be fitted to {n} points (all on a plane or a small cap?)"),
+        )
+    }
+}
+
+/// The report of the chosen norm fit `f`, failed when it did not converge or is not identifiable
+/// (both come from the fit itself).
+fn norm_fit_report(
+    f: &NormFit,
+    spec: &SensorSpec,
+    candidates: Vec<Candidate>,
+) -> SensorCalibration {
+    let mut rep = SensorCalibration {
+        status: "ok".into(),
+        failure: None,
+        detail: None,
+        model: f.calibration.model.name().into(),
+        units: spec.units.into(),
+        offset: f.calibration.offset,
+        matrix: f.calibration.matrix,
+        radius: f.radius,
+        rms_residual: f.rms_residual,
+        offset_sigma: f.offset_sigma,
+        samples_used: f.samples_used,
+        iterations: f.iterations,
+        candidates,
+        outliers_rejected: 0,
+        method: None,
+    };
+    if !f.converged {
+        set_fail(
+            &mut rep,
+            FitFailure::DidNotConverge,
+            format!("no convergence in {} iterations", f.iterations),
+        );
+    } else if !f.condition.is_finite()
+        || f.condition > 1e12
+        || f.offset_sigma.iter().any(|s| !(*s <= 0.05 * f.raw_radius))
+    {
+        set_fail(
+            &mut rep,
+            FitFailure::NotIdentifiable,
+            format!("offset sigma {:?} vs radius {:.3}, condition {:.2e}: rotate through more orientations", f.offset_sigma, f.raw_radius, f.condition),
+        );
+    }
+    rep
+}
+
+/// A fit that failed for numerical reasons on data that covers too little of the sphere failed
+/// because of the coverage: say so, since that is what the user can fix.
+fn blame_coverage(report: &mut SensorCalibration, cov_before: &Coverage, spec: &SensorSpec) {
     let numeric = matches!(
         report.failure.as_deref(),
         Some("did_not_converge") | Some("not_identifiable")
@@ -980,18 +1031,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             "{} of 100 sphere regions filled, need {}: rotate through the missing directions",
             cov_before.filled, spec.limits.min_filled_regions
         );
-        set_fail(&mut report, FitFailure::Coverage, d);
-    }
-    let calibration = (report.status == "ok").then_some(cal);
-    SensorResult {
-        report,
-        calibration,
-        coverage_before: cov_before,
-        coverage_after: cov_after,
-        dirs_before,
-        dirs_after,
-        residuals,
-        held_out: vec![],
+        set_fail(report, FitFailure::Coverage, d);
     }
 }
 

@@ -40,17 +40,96 @@ pub fn replay(
         path: path.to_path_buf(),
         source,
     })?;
+    let mut run = run_pipelines(&bytes, path, cfg, opts, progress)?;
+    let mut results = run.pipe.finish().clone();
+    let (scale, failure) = gyro_scale(&run.log.samples, &run.pipe, &results);
+    results.gyro.scale = scale;
+    results.gyro.scale_failure = failure;
+    mag_method(&mut results, &run.log, &run.pipe, cfg);
+    let declination = cfg.declination_deg()?;
+    let report = full_report(path, &mut run, &results, declination);
+    let (pipe, log) = (&run.pipe, &run.log);
+    let mut written = vec![];
+    if let Some(p) = &opts.report {
+        crate::publish::write_json(p, &report)?;
+        written.push(p.clone());
+    }
+    if let Some(p) = &opts.calibrated_out {
+        write_calibrated(p, &log.samples, pipe, &results, cfg, declination)?;
+        written.push(p.clone());
+    }
+    if let Some(dir) = &opts.export_dir {
+        written.extend(write_exports(dir, &report, &results)?);
+    }
+    if let Some(dir) = &opts.plot_dir {
+        written.extend(write_plots(dir, pipe, &log.samples, &results)?);
+    }
+    if let Some(p) = &opts.html {
+        write_html(p, &mut run, &report, &results, opts)?;
+        written.push(p.clone());
+    }
+    Ok(ReplayOutcome {
+        report,
+        results,
+        written,
+    })
+}
+
+/// The self-contained HTML page of the run at `p` ([`crate::ui::html`]).
+fn write_html(
+    p: &Path,
+    run: &mut Run,
+    report: &Report,
+    results: &FitResults,
+    opts: &ReplayOptions,
+) -> Result<(), Error> {
+    let others = run.log.instances.iter().zip(run.others.iter_mut());
+    let others = others.filter_map(|(i, o)| Some((i.name.clone(), o.as_mut()?.finish().clone())));
+    let views = crate::ui::html::Views::new(report, results, others.collect());
+    crate::ui::html::write(p, report, &views, opts.diagnosis.as_deref())
+}
+
+/// The primary magnetometer's method: the vector fit when the log carries an attitude and the
+/// place is known and it determines the offset, else the sphere fit ([`crate::magmethod`]).
+fn mag_method(results: &mut FitResults, log: &crate::sources::Log, pipe: &Pipeline, cfg: &Config) {
+    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
+    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    crate::magmethod::choose(
+        &mut results.mag,
+        &log.samples,
+        &body_mag,
+        gps,
+        cfg.place.as_ref(),
+    );
+}
+
+/// A log run through the pipelines: the primary's, the other instances' and the decoded log (with
+/// the primary's samples).
+struct Run {
+    pipe: Pipeline,
+    /// The other IMU instances of a MAVLink log, each through a pipeline of its own.
+    others: Vec<Option<Pipeline>>,
+    log: crate::sources::Log,
+}
+
+/// Decode `bytes` and push every sample through its instance's pipeline.
+fn run_pipelines(
+    bytes: &[u8],
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<Run, Error> {
     let mut pipe = Pipeline::new(cfg)?;
     // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
     // the same order as from a whole-file decode, so the result is the same.
     let mut samples = Vec::new();
-    // The other IMU instances of a MAVLink log, each through a pipeline of its own.
     let mut others: Vec<Option<Pipeline>> = Vec::new();
     let decoded = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::sources::Batch>(4);
         let decoder = scope.spawn(move || {
-            crate::sources::decode_log_batched(&bytes, path, opts.format, cfg, &mut |b| {
+            crate::sources::decode_log_batched(bytes, path, opts.format, cfg, &mut |b| {
                 // The receiver only goes away on a panic; nothing then to hand on to.
                 let _ = tx.send(b);
             })
@@ -83,13 +162,17 @@ pub fn replay(
     });
     let mut log = decoded?;
     log.samples = samples;
-    let total = log.samples.len() as u64;
-    let mut results = pipe.finish().clone();
-    let (scale, failure) = gyro_scale(&log.samples, &pipe, &results);
-    results.gyro.scale = scale;
-    results.gyro.scale_failure = failure;
-    mag_method(&mut results, &log, &pipe, cfg);
-    let declination = cfg.declination_deg()?;
+    Ok(Run { pipe, others, log })
+}
+
+/// The report of a run: input, calibrations, the other instances and the onboard comparison.
+fn full_report(
+    path: &Path,
+    run: &mut Run,
+    results: &FitResults,
+    declination: Option<f64>,
+) -> Report {
+    let log = &run.log;
     let duration = match (log.samples.first(), log.samples.last()) {
         (Some(a), Some(b)) => b.t_s - a.t_s,
         _ => 0.0,
@@ -99,119 +182,97 @@ pub fn replay(
         Some(path.display().to_string()),
         log.instance.clone(),
         &log.stats,
-        total,
+        log.samples.len() as u64,
         duration,
     );
-    let mut report = make_report(input, &pipe, &results, declination);
-    report.instances = instance_reports(&log, &report, &mut others);
+    let mut report = make_report(input, &run.pipe, results, declination);
+    report.instances = instance_reports(log, &report, &mut run.others);
     if let Some(f) = &log.flight {
         report.input.sensors = f.sensors.clone();
         let mut onboard = f.onboard.clone();
-        onboard.comparison = onboard_comparison(f, &onboard, &log.samples, &pipe, &results);
+        onboard.comparison = onboard_comparison(f, &onboard, &log.samples, &run.pipe, results);
         report.onboard = Some(onboard);
     }
-    let mut written = vec![];
-    if let Some(p) = &opts.report {
-        crate::publish::write_json(p, &report)?;
-        written.push(p.clone());
-    }
-    if let Some(p) = &opts.calibrated_out {
-        let mut cal = Calibrator::new(&results, declination);
-        // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
-        // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
-        let gyro_k = match (&results.gyro.scale, results.gyro.units.as_str()) {
-            (Some(k), _) => Some(crate::model::rows_to_mat(&k.matrix)),
-            (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
-            _ => None,
-        };
-        let fcfg = cfg.fusion_config(declination);
-        let mut filter = gyro_k.map(|k| (k, crate::fusion::OrientationFilter::new(fcfg)));
-        let dt = crate::fusion::median_dt(&log.samples);
-        let mut text = String::with_capacity(log.samples.len() * 180);
-        text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,");
-        text.push_str("qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg\n");
-        for s in &log.samples {
-            let mut c = cal.apply(&pipe.to_body(s));
-            let mut fused = None;
-            if let Some((k, f)) = filter.as_mut() {
-                c.gyro_rad_s = c.gyro_rad_s.map(|g| {
-                    let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
-                    [w.x, w.y, w.z]
-                });
-                f.update_sample(&c.as_sample(), dt);
-                fused = f.initialized().then(|| f.orientation());
-            }
-            write_row(&mut text, &c, fused.as_ref());
-        }
-        crate::publish::write_atomic(p, text.as_bytes())?;
-        written.push(p.clone());
-    }
-    if let Some(dir) = &opts.export_dir {
-        std::fs::create_dir_all(dir).map_err(|source| Error::Write {
-            path: dir.clone(),
-            source,
-        })?;
-        let (m, a) = (
-            results
-                .mag
-                .calibration
-                .as_ref()
-                .filter(|_| report.calibration.mag.units == "uT"),
-            results.accel.calibration.as_ref(),
-        );
-        // Every compass of the log under its own index (COMPASS_OFS2, CAL_MAG1 ...).
-        let primary_id = report
-            .instances
-            .iter()
-            .find(|i| i.primary)
-            .map_or(0, |i| i.compass_id);
-        let mut mags: Vec<(usize, crate::model::Calibration)> =
-            m.map(|c| (primary_id as usize, *c)).into_iter().collect();
-        for i in report.instances.iter().filter(|i| !i.primary) {
-            if let Some(c) = i.calibration.mag.calibration_ut() {
-                mags.push((i.compass_id as usize, c));
-            }
-        }
-        for (name, text) in [
-            ("ardupilot.parm", crate::export::ardupilot_file(&mags, a)),
-            ("px4.params", crate::export::px4_file(&mags, a)),
-            ("fusion.h", crate::export::fusion_file(m, a)),
-        ] {
-            let p = dir.join(name);
-            crate::publish::write_atomic(&p, text.as_bytes())?;
-            written.push(p);
-        }
-    }
-    if let Some(dir) = &opts.plot_dir {
-        written.extend(write_plots(dir, &pipe, &log.samples, &results)?);
-    }
-    if let Some(p) = &opts.html {
-        let others = log.instances.iter().zip(others.iter_mut());
-        let others =
-            others.filter_map(|(i, o)| Some((i.name.clone(), o.as_mut()?.finish().clone())));
-        let views = crate::ui::html::Views::new(&report, &results, others.collect());
-        crate::ui::html::write(p, &report, &views, opts.diagnosis.as_deref())?;
-        written.push(p.clone());
-    }
-    Ok(ReplayOutcome {
-        report,
-        results,
-        written,
-    })
+    report
 }
 
-/// The primary magnetometer's method: the vector fit when the log carries an attitude and the
-/// place is known and it determines the offset, else the sphere fit ([`crate::magmethod`]).
-fn mag_method(results: &mut FitResults, log: &crate::sources::Log, pipe: &Pipeline, cfg: &Config) {
-    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
-    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
-    crate::magmethod::choose(
-        &mut results.mag,
-        &log.samples,
-        &body_mag,
-        gps,
-        cfg.place.as_ref(),
+/// The calibrated samples as CSV at `p`, with the attitude from them and the fused attitude.
+fn write_calibrated(
+    p: &Path,
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+    cfg: &Config,
+    declination: Option<f64>,
+) -> Result<(), Error> {
+    let mut cal = Calibrator::new(results, declination);
+    // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
+    // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
+    let gyro_k = match (&results.gyro.scale, results.gyro.units.as_str()) {
+        (Some(k), _) => Some(crate::model::rows_to_mat(&k.matrix)),
+        (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
+        _ => None,
+    };
+    let fcfg = cfg.fusion_config(declination);
+    let mut filter = gyro_k.map(|k| (k, crate::fusion::OrientationFilter::new(fcfg)));
+    let dt = crate::fusion::median_dt(samples);
+    let mut text = String::with_capacity(samples.len() * 180);
+    text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,");
+    text.push_str("qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg\n");
+    for s in samples {
+        let mut c = cal.apply(&pipe.to_body(s));
+        let mut fused = None;
+        if let Some((k, f)) = filter.as_mut() {
+            c.gyro_rad_s = c.gyro_rad_s.map(|g| {
+                let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
+                [w.x, w.y, w.z]
+            });
+            f.update_sample(&c.as_sample(), dt);
+            fused = f.initialized().then(|| f.orientation());
+        }
+        write_row(&mut text, &c, fused.as_ref());
+    }
+    crate::publish::write_atomic(p, text.as_bytes())
+}
+
+/// ArduPilot, PX4 and Fusion parameter files in `dir`: every compass of the log under its own
+/// index (COMPASS_OFS2, CAL_MAG1 ...).
+fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let (m, a) = (
+        results
+            .mag
+            .calibration
+            .as_ref()
+            .filter(|_| report.calibration.mag.units == "uT"),
+        results.accel.calibration.as_ref(),
     );
+    let primary_id = report
+        .instances
+        .iter()
+        .find(|i| i.primary)
+        .map_or(0, |i| i.compass_id);
+    let mut mags: Vec<(usize, crate::model::Calibration)> =
+        m.map(|c| (primary_id as usize, *c)).into_iter().collect();
+    for i in report.instances.iter().filter(|i| !i.primary) {
+        if let Some(c) = i.calibration.mag.calibration_ut() {
+            mags.push((i.compass_id as usize, c));
+        }
+    }
+    let mut written = vec![];
+    for (name, text) in [
+        ("ardupilot.parm", crate::export::ardupilot_file(&mags, a)),
+        ("px4.params", crate::export::px4_file(&mags, a)),
+        ("fusion.h", crate::export::fusion_file(m, a)),
+    ] {
+        let p = dir.join(name);
+        crate::publish::write_atomic(&p, text.as_bytes())?;
+        written.push(p);
+    }
+    Ok(written)
 }
 
 /// Gyro scale and misalignment from the rotations between the log's static poses (see

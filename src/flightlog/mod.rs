@@ -534,33 +534,95 @@ pub fn decode_dataflash_with(
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> FlightLog {
     let mut rd = dataflash::DfReader::new(bytes);
-    let mut asm = Assembler::new();
-    let mut params = BTreeMap::<String, f64>::new();
-    let mut first_params = BTreeMap::<String, f64>::new();
-    // (sensor 0 mag / 1 accel, instance) -> message name, for the onboard report.
-    let mut sources = BTreeMap::<(u8, u8), String>::new();
-    let mut undone = std::collections::BTreeSet::new();
-    let mut gps: Option<[f64; 3]> = None;
+    let mut conv = DfConv::new();
     // Column indices of the fields used ([`DF_FIELDS`]) per type id, found once per definition.
     let mut cols: Vec<Option<Vec<Option<usize>>>> = vec![None; 256];
-    // Records per type id, and per (type id, instance) for instanced types.
-    let mut type_counts = [0u64; 256];
-    let mut inst_counts = BTreeMap::<(u8, u8), u64>::new();
-    let mut names: BTreeMap<(u8, Option<u8>), String> = BTreeMap::new();
     while let Some(rec) = rd.next_record() {
+        let c = cols[rec.format.type_id as usize]
+            .get_or_insert_with(|| DF_FIELDS.iter().map(|f| rec.format.column(f)).collect());
+        let f = DfFields { c, rec };
+        let (base, k) = conv.count(&rec);
+        if base == "FMT" {
+            // A type (re)defined: its columns are looked up again.
+            if let Some(t) = f.get(DfField::Type).filter(|t| (0.0..256.0).contains(t)) {
+                cols[t as usize] = None;
+            }
+            continue;
+        }
+        let out = conv.sample(base, k, &f);
+        let read = rd.position();
+        if let Some((gi, s)) = out {
+            emit(gi, s, read, conv.asm.primary);
+        }
+    }
+    conv.finish(&rd, bytes.len(), emit)
+}
+
+/// One DataFlash record with the columns of the fields the conversion reads.
+struct DfFields<'a> {
+    c: &'a [Option<usize>],
+    rec: dataflash::Record<'a>,
+}
+
+impl DfFields<'_> {
+    fn get(&self, f: DfField) -> Option<f64> {
+        self.c[f as usize].and_then(|k| self.rec.value(k))
+    }
+
+    /// The three consecutive fields from `f` (a vector's axes).
+    fn get3(&self, f: DfField) -> Option<Vec3> {
+        let k = f as usize;
+        let v = |i: usize| self.c[i].and_then(|c| self.rec.value(c));
+        Some([v(k)?, v(k + 1)?, v(k + 2)?])
+    }
+
+    /// `TimeUS`, or `TimeMS` * 1000 (older logs), us.
+    fn time_us(&self) -> Option<u64> {
+        self.get(DfField::TimeUs)
+            .or_else(|| self.get(DfField::TimeMs).map(|t| t * 1000.0))
+            .filter(|t| *t >= 0.0)
+            .map(|t| t as u64)
+    }
+}
+
+/// The DataFlash conversion between records: the samples being assembled, the parameters, and
+/// what the onboard report and the message counts need at the end.
+struct DfConv {
+    asm: Assembler,
+    params: BTreeMap<String, f64>,
+    /// Each parameter's first value (the onboard report states the calibration the log began with).
+    first_params: BTreeMap<String, f64>,
+    /// (sensor 0 mag / 1 accel, instance) -> message name, for the onboard report.
+    sources: BTreeMap<(u8, u8), String>,
+    /// Magnetometer streams whose correction was undone.
+    undone: std::collections::BTreeSet<String>,
+    gps: Option<[f64; 3]>,
+    /// Records per type id, and per (type id, instance) for instanced types.
+    type_counts: [u64; 256],
+    inst_counts: BTreeMap<(u8, u8), u64>,
+    /// (type id, instance of an instanced type) -> its name (`MAG[1]`, `MAG2`).
+    names: BTreeMap<(u8, Option<u8>), String>,
+}
+
+impl DfConv {
+    fn new() -> Self {
+        DfConv {
+            asm: Assembler::new(),
+            params: BTreeMap::new(),
+            first_params: BTreeMap::new(),
+            sources: BTreeMap::new(),
+            undone: std::collections::BTreeSet::new(),
+            gps: None,
+            type_counts: [0; 256],
+            inst_counts: BTreeMap::new(),
+            names: BTreeMap::new(),
+        }
+    }
+
+    /// Count `rec` under its name; its base name (`IMU` for `IMU2`) and instance.
+    fn count<'r>(&mut self, rec: &dataflash::Record<'r>) -> (&'r str, u8) {
         let name = rec.format.name.as_str();
         let id = rec.format.type_id;
-        let c = cols[id as usize]
-            .get_or_insert_with(|| DF_FIELDS.iter().map(|f| rec.format.column(f)).collect());
-        let get = |f: DfField| c[f as usize].and_then(|k| rec.value(k));
-        let get3 = |f: DfField| {
-            let k = f as usize;
-            Some([
-                c[k].and_then(|i| rec.value(i))?,
-                c[k + 1].and_then(|i| rec.value(i))?,
-                c[k + 2].and_then(|i| rec.value(i))?,
-            ])
-        };
         let inst_col = rec.format.instance.is_some();
         let (base, k) = if inst_col {
             (name, rec.instance())
@@ -572,156 +634,184 @@ pub fn decode_dataflash_with(
             (name, 0)
         };
         if inst_col {
-            *inst_counts.entry((id, k)).or_insert(0) += 1;
-            names
+            *self.inst_counts.entry((id, k)).or_insert(0) += 1;
+            self.names
                 .entry((id, Some(k)))
                 .or_insert_with(|| format!("{name}[{k}]"));
         } else {
-            type_counts[id as usize] += 1;
-            if type_counts[id as usize] == 1 {
-                names.insert((id, None), name.to_string());
+            self.type_counts[id as usize] += 1;
+            if self.type_counts[id as usize] == 1 {
+                self.names.insert((id, None), name.to_string());
             }
         }
-        let t_us = get(DfField::TimeUs)
-            .or_else(|| get(DfField::TimeMs).map(|t| t * 1000.0))
-            .filter(|t| *t >= 0.0)
-            .map(|t| t as u64);
-        let out = match base {
-            "FMT" => {
-                // A type (re)defined: its columns are looked up again.
-                if let Some(t) = get(DfField::Type).filter(|t| (0.0..256.0).contains(t)) {
-                    cols[t as usize] = None;
-                }
-                None
-            }
+        (base, k)
+    }
+
+    /// Convert one record (base name `base`, instance `k`): the sample it completes.
+    fn sample(&mut self, base: &str, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        match base {
             "PARM" => {
-                if let (Some(n), Some(v)) = (rec.text("Name"), get(DfField::Value)) {
-                    if params.len() < 16384 || params.contains_key(&n) {
-                        first_params.entry(n.clone()).or_insert(v);
-                        params.insert(n, v);
+                if let (Some(n), Some(v)) = (f.rec.text("Name"), f.get(DfField::Value)) {
+                    if self.params.len() < 16384 || self.params.contains_key(&n) {
+                        self.first_params.entry(n.clone()).or_insert(v);
+                        self.params.insert(n, v);
                     }
                 }
                 None
             }
-            "IMU" => {
-                let (Some(t), Some(a), Some(g)) = (t_us, get3(DfField::AccX), get3(DfField::GyrX))
-                else {
-                    asm.stats.skip("bad_record");
-                    continue;
-                };
-                let src = names
-                    .get(&(id, inst_col.then_some(k)))
-                    .map(String::as_str)
-                    .unwrap_or(name);
-                asm.stream(Sensor::Accel, k, src, None);
-                asm.stream(Sensor::Gyro, k, src, None);
-                sources.entry((1, k)).or_insert_with(|| src.to_string());
-                let Some(gi) = asm.group(u16::from(k), || df_group_name(inst_col, k)) else {
-                    continue;
-                };
-                asm.accel(gi, t, a, Some(g), get(DfField::T))
-            }
-            "MAG" => {
-                let (Some(t), Some(m)) = (t_us, get3(DfField::MagX)) else {
-                    asm.stats.skip("bad_record");
-                    continue;
-                };
-                let src = names
-                    .get(&(id, inst_col.then_some(k)))
-                    .map(String::as_str)
-                    .unwrap_or(name);
-                asm.stream(Sensor::Mag, k, src, ap_dev_id(&params, k));
-                sources.entry((0, k)).or_insert_with(|| src.to_string());
-                let ofs = get3(DfField::OfsX);
-                let mofs = get3(DfField::MOfsX);
-                let Some(raw) = ap_undo(&params, k, m, ofs, mofs) else {
-                    asm.stats.skip("not_undone");
-                    continue;
-                };
-                if !undone.contains(src) {
-                    undone.insert(src.to_string());
-                }
-                let Some(gi) = asm.group(u16::from(k), || df_group_name(inst_col, k)) else {
-                    continue;
-                };
-                asm.mag(gi, t, raw)
-            }
+            "IMU" => self.imu(k, f),
+            "MAG" => self.mag(k, f),
             "ATT" => {
                 if let (Some(t), Some(r), Some(p), Some(y)) = (
-                    t_us,
-                    get(DfField::Roll),
-                    get(DfField::Pitch),
-                    get(DfField::Yaw),
+                    f.time_us(),
+                    f.get(DfField::Roll),
+                    f.get(DfField::Pitch),
+                    f.get(DfField::Yaw),
                 ) {
                     let q = quat_from_euler(r.to_radians(), p.to_radians(), y.to_radians());
-                    asm.attitude = ned_to_enu(q).map(|q| (t, q));
+                    self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
                 }
                 None
             }
             "RCOU" => {
                 // Channel 3 is the throttle by ArduPilot's default RCMAP.
-                if let Some(pwm) = get(DfField::C3).filter(|p| *p >= 900.0 && *p <= 2200.0) {
-                    asm.throttle = Some(((pwm - 1000.0) / 1000.0).clamp(0.0, 1.5));
+                if let Some(pwm) = f.get(DfField::C3).filter(|p| *p >= 900.0 && *p <= 2200.0) {
+                    self.asm.throttle = Some(((pwm - 1000.0) / 1000.0).clamp(0.0, 1.5));
                 }
                 None
             }
             "CTUN" => {
                 // Copter logs ThO (0..1); Plane ThrOut (percent).
-                if let Some(v) = get(DfField::ThO).filter(|v| v.is_finite()) {
-                    asm.throttle = Some(v.clamp(0.0, 1.5));
-                } else if let Some(v) = get(DfField::ThrOut).filter(|v| v.is_finite()) {
-                    asm.throttle = Some((v / 100.0).clamp(0.0, 1.5));
+                if let Some(v) = f.get(DfField::ThO).filter(|v| v.is_finite()) {
+                    self.asm.throttle = Some(v.clamp(0.0, 1.5));
+                } else if let Some(v) = f.get(DfField::ThrOut).filter(|v| v.is_finite()) {
+                    self.asm.throttle = Some((v / 100.0).clamp(0.0, 1.5));
                 }
                 None
             }
             "BAT" | "CURR" if k == 0 => {
-                if let Some(c) = get(DfField::Curr).filter(|c| c.is_finite()) {
-                    asm.current_a = Some(c);
+                if let Some(c) = f.get(DfField::Curr).filter(|c| c.is_finite()) {
+                    self.asm.current_a = Some(c);
                 }
                 None
             }
-            "GPS" if k == 0 && gps.is_none() => {
-                let status = get(DfField::Status).unwrap_or(0.0);
-                if let (Some(lat), Some(lng), Some(alt)) =
-                    (get(DfField::Lat), get(DfField::Lng), get(DfField::Alt))
-                {
-                    if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
-                        gps = Some([lat, lng, alt]);
-                    }
-                }
+            "GPS" if k == 0 && self.gps.is_none() => {
+                self.gps_fix(f);
                 None
             }
             _ => None,
+        }
+    }
+
+    /// An IMU record: accelerometer and gyroscope of instance `k`.
+    fn imu(&mut self, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        let (Some(t), Some(a), Some(g)) =
+            (f.time_us(), f.get3(DfField::AccX), f.get3(DfField::GyrX))
+        else {
+            self.asm.stats.skip("bad_record");
+            return None;
         };
-        let read = rd.position();
-        if let Some((gi, s)) = out {
-            emit(gi, s, read, asm.primary);
+        let src = df_source(&self.names, &f.rec, k);
+        self.asm.stream(Sensor::Accel, k, src, None);
+        self.asm.stream(Sensor::Gyro, k, src, None);
+        self.sources
+            .entry((1, k))
+            .or_insert_with(|| src.to_string());
+        let inst_col = f.rec.format.instance.is_some();
+        let gi = self
+            .asm
+            .group(u16::from(k), || df_group_name(inst_col, k))?;
+        self.asm.accel(gi, t, a, Some(g), f.get(DfField::T))
+    }
+
+    /// A MAG record of instance `k`: ArduPilot's correction undone, uT.
+    fn mag(&mut self, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        let (Some(t), Some(m)) = (f.time_us(), f.get3(DfField::MagX)) else {
+            self.asm.stats.skip("bad_record");
+            return None;
+        };
+        let src = df_source(&self.names, &f.rec, k);
+        self.asm
+            .stream(Sensor::Mag, k, src, ap_dev_id(&self.params, k));
+        self.sources
+            .entry((0, k))
+            .or_insert_with(|| src.to_string());
+        let ofs = f.get3(DfField::OfsX);
+        let mofs = f.get3(DfField::MOfsX);
+        let Some(raw) = ap_undo(&self.params, k, m, ofs, mofs) else {
+            self.asm.stats.skip("not_undone");
+            return None;
+        };
+        if !self.undone.contains(src) {
+            self.undone.insert(src.to_string());
+        }
+        let inst_col = f.rec.format.instance.is_some();
+        let gi = self
+            .asm
+            .group(u16::from(k), || df_group_name(inst_col, k))?;
+        self.asm.mag(gi, t, raw)
+    }
+
+    /// The first GPS record with a 3D fix: the position for the field model.
+    fn gps_fix(&mut self, f: &DfFields) {
+        let status = f.get(DfField::Status).unwrap_or(0.0);
+        if let (Some(lat), Some(lng), Some(alt)) = (
+            f.get(DfField::Lat),
+            f.get(DfField::Lng),
+            f.get(DfField::Alt),
+        ) {
+            if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
+                self.gps = Some([lat, lng, alt]);
+            }
         }
     }
-    for (gi, s) in asm.flush() {
-        emit(gi, s, bytes.len(), asm.primary);
-    }
-    let mut onboard = ap_onboard(&first_params, &sources);
-    onboard.undone = undone
-        .into_iter()
-        .map(|s| format!("{s}: COMPASS_OFS/DIA/ODI/SCALE and the logged motor term removed"))
-        .collect();
-    onboard.gps = gps;
-    let skips = rd.stats.skipped.clone();
-    let primary_mag = sources.get(&(0, 0)).cloned();
-    let mut log = asm.finish(onboard, &skips);
-    log.primary_mag_source = primary_mag;
-    for (id, n) in type_counts.iter().enumerate() {
-        if let (true, Some(name)) = (*n > 0, names.get(&(id as u8, None))) {
-            *log.messages.entry(name.clone()).or_insert(0) += n;
+
+    /// Emit what is still held, and the log with its onboard report and message counts.
+    fn finish(
+        mut self,
+        rd: &dataflash::DfReader<'_>,
+        n_bytes: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> FlightLog {
+        for (gi, s) in self.asm.flush() {
+            emit(gi, s, n_bytes, self.asm.primary);
         }
-    }
-    for ((id, k), n) in inst_counts {
-        if let Some(name) = names.get(&(id, Some(k))) {
-            *log.messages.entry(name.clone()).or_insert(0) += n;
+        let mut onboard = ap_onboard(&self.first_params, &self.sources);
+        onboard.undone = self
+            .undone
+            .iter()
+            .map(|s| format!("{s}: COMPASS_OFS/DIA/ODI/SCALE and the logged motor term removed"))
+            .collect();
+        onboard.gps = self.gps;
+        let skips = rd.stats.skipped.clone();
+        let primary_mag = self.sources.get(&(0, 0)).cloned();
+        let mut log = self.asm.finish(onboard, &skips);
+        log.primary_mag_source = primary_mag;
+        for (id, n) in self.type_counts.iter().enumerate() {
+            if let (true, Some(name)) = (*n > 0, self.names.get(&(id as u8, None))) {
+                *log.messages.entry(name.clone()).or_insert(0) += n;
+            }
         }
+        for ((id, k), n) in &self.inst_counts {
+            if let Some(name) = self.names.get(&(*id, Some(*k))) {
+                *log.messages.entry(name.clone()).or_insert(0) += n;
+            }
+        }
+        log
     }
-    log
+}
+
+/// The name a DataFlash record's stream is reported under (`IMU[1]`, `MAG2`).
+fn df_source<'a>(
+    names: &'a BTreeMap<(u8, Option<u8>), String>,
+    rec: &dataflash::Record<'a>,
+    k: u8,
+) -> &'a str {
+    let inst_col = rec.format.instance.is_some();
+    names
+        .get(&(rec.format.type_id, inst_col.then_some(k)))
+        .map(String::as_str)
+        .unwrap_or(rec.format.name.as_str())
 }
 
 /// The DataFlash fields the conversion reads, in [`DF_FIELDS`] order; a vector's three axes are
@@ -928,16 +1018,10 @@ pub fn decode_ulog_with(
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> Option<FlightLog> {
     let mut rd = ulog::UlogReader::new(bytes)?;
-    let mut asm = Assembler::new();
-    let mut undo: Option<Option<Px4Undo>> = None;
-    let mut prime_source: Option<String> = None;
-    let mut mag_ids = BTreeMap::<u8, u32>::new();
-    let mut accel_ids = BTreeMap::<u8, u32>::new();
-    let mut gps: Option<[f64; 3]> = None;
-    let mut not_undone = false;
+    let mut conv = UlogConv::new();
     let mut cols = BTreeMap::<u16, UlogCols>::new();
     loop {
-        let params_ready = undo.is_some();
+        let params_ready = conv.undo.is_some();
         let Some(d) = rd.next_data() else {
             break;
         };
@@ -949,26 +1033,59 @@ pub fn decode_ulog_with(
             cols.insert(id, UlogCols::new(d.sub));
         }
         let c = &cols[&id];
+        let r = UlogRecord::read(c, &d);
+        let read = rd.position();
+        if !params_ready {
+            // The definitions section (parameters included) precedes the first data record.
+            conv.params_known(rd.params());
+        }
+        let Some(t) = t_us else {
+            conv.asm.stats.skip("bad_record");
+            continue;
+        };
+        if let Some((gi, s)) = conv.sample(r, multi, &c.source, t, read, emit) {
+            emit(gi, s, read, conv.asm.primary);
+        }
+    }
+    Some(conv.finish(&rd, bytes.len(), emit))
+}
+
+/// What the conversion takes from one ULog record.
+enum UlogRecord {
+    /// `sensor_combined`: accelerometer, gyroscope and magnetometer (gauss), each when logged.
+    Combined(Option<Vec3>, Option<Vec3>, Option<Vec3>),
+    /// `sensor_accel[k]`: m/s^2, temperature, device id.
+    Accel(Vec3, Option<f64>, Option<u32>),
+    /// `sensor_gyro[k]`: rad/s, device id.
+    Gyro(Vec3, Option<u32>),
+    /// `sensor_mag[k]`: gauss, device id.
+    Mag(Vec3, Option<u32>),
+    /// `vehicle_magnetometer[0]`: the corrected field, gauss.
+    VMag(Vec3),
+    /// `vehicle_attitude[0]`: w, x, y, z (body FRD -> NED).
+    Att([f64; 4]),
+    /// `actuator_controls_0[0]` control 3.
+    Throttle(f64),
+    /// `battery_status[0]`, A.
+    Current(f64),
+    /// `vehicle_gps_position[0]`: lat, lon (1e-7 deg), alt (mm), fix type.
+    Gps(f64, f64, f64, f64),
+    None,
+}
+
+impl UlogRecord {
+    /// The fields of `d` the conversion uses, by its subscription's columns `c`.
+    fn read(c: &UlogCols, d: &ulog::Data<'_>) -> UlogRecord {
+        use UlogRecord as R;
+        let multi = d.sub.multi_id;
         let val = |k: usize| c.idx[k].and_then(|i| d.value(i));
         let get = |f: UlField| val(f as usize);
         let v3 = |f: UlField| {
             let k = f as usize;
             Some([val(k)?, val(k + 1)?, val(k + 2)?])
         };
-        enum R {
-            Combined(Option<Vec3>, Option<Vec3>, Option<Vec3>),
-            Accel(Vec3, Option<f64>, Option<u32>),
-            Gyro(Vec3, Option<u32>),
-            Mag(Vec3, Option<u32>),
-            VMag(Vec3),
-            Att([f64; 4]),
-            Throttle(f64),
-            Current(f64),
-            Gps(f64, f64, f64, f64),
-            None,
-        }
         let dev = get(UlField::DeviceId).map(|v| v as u32);
-        let r = match c.topic {
+        match c.topic {
             Topic::Combined => {
                 R::Combined(v3(UlField::Acc0), v3(UlField::Gyro0), v3(UlField::MagGa0))
             }
@@ -1015,158 +1132,213 @@ pub fn decode_ulog_with(
                 _ => R::None,
             },
             _ => R::None,
-        };
-        let src: &str = &c.source;
-        let read = rd.position();
-        if !params_ready {
-            // The definitions section (parameters included) precedes the first data record.
-            let p = rd.params();
-            let slot = px4_prime_slot(p);
-            undo = Some(slot.and_then(|n| Px4Undo::new(p, n)));
         }
-        let Some(t) = t_us else {
-            asm.stats.skip("bad_record");
-            continue;
-        };
-        let out = match r {
-            R::Combined(a, g, m) => {
-                let Some(gi) = asm.group(0, || "sensor_combined".into()) else {
-                    continue;
-                };
-                // The magnetometer rides on this record's accelerometer sample.
-                asm.groups[gi].has_accel |= a.is_some();
-                if let Some(m) = m {
-                    asm.stream(Sensor::Mag, 0, "sensor_combined.magnetometer_ga", None);
-                    prime_source.get_or_insert_with(|| "sensor_combined.magnetometer_ga".into());
-                    match undo
-                        .as_ref()
-                        .and_then(|u| u.as_ref())
-                        .and_then(|u| u.apply(m))
-                    {
-                        Some(raw) => {
-                            if let Some((g2, s2)) = asm.mag(gi, t, raw) {
-                                emit(g2, s2, read, asm.primary);
-                            }
-                        }
-                        None => not_undone = true,
-                    }
-                }
-                if g.is_some() {
-                    asm.stream(Sensor::Gyro, 0, "sensor_combined", None);
-                }
-                match a {
-                    Some(a) => {
-                        asm.stream(Sensor::Accel, 0, "sensor_combined", None);
-                        asm.accel(gi, t, a, g, None)
-                    }
-                    None => g.and_then(|g| asm.gyro(gi, t, g)),
-                }
-            }
-            R::VMag(m) => {
-                asm.stream(Sensor::Mag, 0, "vehicle_magnetometer[0]", None);
-                prime_source.get_or_insert_with(|| "vehicle_magnetometer[0]".into());
-                let Some(gi) = asm.group(0, || "sensor_combined".into()) else {
-                    continue;
-                };
-                match undo
-                    .as_ref()
-                    .and_then(|u| u.as_ref())
-                    .and_then(|u| u.apply(m))
-                {
-                    Some(raw) => asm.mag(gi, t, raw),
-                    None => {
-                        not_undone = true;
-                        None
-                    }
-                }
-            }
-            R::Accel(a, temp, dev) => {
-                asm.stream(Sensor::Accel, multi, src, dev);
+    }
+}
+
+/// The ULog conversion between records: the samples being assembled and what the onboard report
+/// needs at the end.
+struct UlogConv {
+    asm: Assembler,
+    /// The prime compass's correction undone; `None` until the parameters are read, `Some(None)`
+    /// when they do not allow it.
+    undo: Option<Option<Px4Undo>>,
+    /// The stream the corrected (prime) field came from.
+    prime_source: Option<String>,
+    /// Device id per `sensor_mag` / `sensor_accel` instance.
+    mag_ids: BTreeMap<u8, u32>,
+    accel_ids: BTreeMap<u8, u32>,
+    gps: Option<[f64; 3]>,
+    /// A corrected field could not be undone.
+    not_undone: bool,
+}
+
+impl UlogConv {
+    fn new() -> Self {
+        UlogConv {
+            asm: Assembler::new(),
+            undo: None,
+            prime_source: None,
+            mag_ids: BTreeMap::new(),
+            accel_ids: BTreeMap::new(),
+            gps: None,
+            not_undone: false,
+        }
+    }
+
+    /// The parameters are read: the prime compass's correction, if it can be undone.
+    fn params_known(&mut self, params: &BTreeMap<String, f64>) {
+        let slot = px4_prime_slot(params);
+        self.undo = Some(slot.and_then(|n| Px4Undo::new(params, n)));
+    }
+
+    /// Convert one record of instance `multi` from stream `src` at `t_us`: the sample it completes.
+    /// A combined record's magnetometer sample goes to `emit` here, with `read` bytes read.
+    fn sample(
+        &mut self,
+        r: UlogRecord,
+        multi: u8,
+        src: &str,
+        t_us: u64,
+        read: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> Option<(usize, Sample)> {
+        let t = t_us;
+        match r {
+            UlogRecord::Combined(a, g, m) => self.combined(a, g, m, t, read, emit),
+            UlogRecord::VMag(m) => self.vehicle_mag(m, t),
+            UlogRecord::Accel(a, temp, dev) => {
+                self.asm.stream(Sensor::Accel, multi, src, dev);
                 if let Some(d) = dev {
-                    accel_ids.insert(multi, d);
+                    self.accel_ids.insert(multi, d);
                 }
-                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
-                else {
-                    continue;
-                };
-                asm.accel(gi, t, a, None, temp)
+                let gi = self.sensor_group(multi)?;
+                self.asm.accel(gi, t, a, None, temp)
             }
-            R::Gyro(g, dev) => {
-                asm.stream(Sensor::Gyro, multi, src, dev);
-                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
-                else {
-                    continue;
-                };
-                asm.gyro(gi, t, g)
+            UlogRecord::Gyro(g, dev) => {
+                self.asm.stream(Sensor::Gyro, multi, src, dev);
+                let gi = self.sensor_group(multi)?;
+                self.asm.gyro(gi, t, g)
             }
-            R::Mag(m, dev) => {
-                asm.stream(Sensor::Mag, multi, src, dev);
+            UlogRecord::Mag(m, dev) => {
+                self.asm.stream(Sensor::Mag, multi, src, dev);
                 if let Some(d) = dev {
-                    mag_ids.insert(multi, d);
+                    self.mag_ids.insert(multi, d);
                 }
-                let Some(gi) = asm.group(PX4_SENSOR_KEY + multi as u16, || px4_group_name(multi))
-                else {
-                    continue;
-                };
-                asm.mag(gi, t, m.map(|x| x * 100.0))
+                let gi = self.sensor_group(multi)?;
+                self.asm.mag(gi, t, m.map(|x| x * 100.0))
             }
-            R::Att(q) => {
-                asm.attitude = ned_to_enu(q).map(|q| (t, q));
+            UlogRecord::Att(q) => {
+                self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
                 None
             }
-            R::Throttle(v) => {
+            UlogRecord::Throttle(v) => {
                 if v.is_finite() {
-                    asm.throttle = Some(v.clamp(0.0, 1.5));
+                    self.asm.throttle = Some(v.clamp(0.0, 1.5));
                 }
                 None
             }
-            R::Current(c) => {
+            UlogRecord::Current(c) => {
                 if c.is_finite() && c >= 0.0 {
-                    asm.current_a = Some(c);
+                    self.asm.current_a = Some(c);
                 }
                 None
             }
-            R::Gps(lat, lon, alt, fix) => {
-                if gps.is_none() && fix >= 3.0 {
-                    gps = Some([lat * 1e-7, lon * 1e-7, alt * 1e-3]);
+            UlogRecord::Gps(lat, lon, alt, fix) => {
+                if self.gps.is_none() && fix >= 3.0 {
+                    self.gps = Some([lat * 1e-7, lon * 1e-7, alt * 1e-3]);
                 }
                 None
             }
-            R::None => None,
-        };
-        if let Some((gi, s)) = out {
-            emit(gi, s, read, asm.primary);
+            UlogRecord::None => None,
         }
     }
-    for (gi, s) in asm.flush() {
-        emit(gi, s, bytes.len(), asm.primary);
+
+    /// The instance of `sensor_accel[k]`, `sensor_gyro[k]` and `sensor_mag[k]`.
+    fn sensor_group(&mut self, k: u8) -> Option<usize> {
+        self.asm
+            .group(PX4_SENSOR_KEY + k as u16, || px4_group_name(k))
     }
-    let params = rd.params().clone();
-    let mut onboard = px4_onboard(&params, &mag_ids, &accel_ids, prime_source.as_deref());
-    if let (Some(src), Some(n)) = (prime_source.as_ref(), px4_prime_slot(&params)) {
-        if not_undone {
-            onboard.not_undone.push(format!(
-                "{src}: CAL_MAG{n} rotation not one this reader undoes, or its parameters incomplete"
-            ));
-        } else {
-            onboard.undone.push(format!(
-                "{src}: CAL_MAG{n} offsets, scales and rotation removed"
-            ));
+
+    /// A `sensor_combined` record; its magnetometer reading (emitted here) rides on the record's
+    /// accelerometer sample (returned).
+    fn combined(
+        &mut self,
+        a: Option<Vec3>,
+        g: Option<Vec3>,
+        m: Option<Vec3>,
+        t: u64,
+        read: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> Option<(usize, Sample)> {
+        let gi = self.asm.group(0, || "sensor_combined".into())?;
+        self.asm.groups[gi].has_accel |= a.is_some();
+        if let Some(m) = m {
+            const SRC: &str = "sensor_combined.magnetometer_ga";
+            self.asm.stream(Sensor::Mag, 0, SRC, None);
+            self.prime_source.get_or_insert_with(|| SRC.into());
+            if let Some(raw) = self.undo_prime(m) {
+                if let Some((g2, s2)) = self.asm.mag(gi, t, raw) {
+                    emit(g2, s2, read, self.asm.primary);
+                }
+            }
+        }
+        if g.is_some() {
+            self.asm.stream(Sensor::Gyro, 0, "sensor_combined", None);
+        }
+        match a {
+            Some(a) => {
+                self.asm.stream(Sensor::Accel, 0, "sensor_combined", None);
+                self.asm.accel(gi, t, a, g, None)
+            }
+            None => g.and_then(|g| self.asm.gyro(gi, t, g)),
         }
     }
-    onboard.gps = gps;
-    let mut skips = rd.stats.skipped.clone();
-    if rd.stats.dropouts > 0 {
-        skips.insert("dropouts".into(), rd.stats.dropouts);
+
+    /// A `vehicle_magnetometer[0]` record: the corrected field, undone onto the primary instance.
+    fn vehicle_mag(&mut self, m: Vec3, t: u64) -> Option<(usize, Sample)> {
+        self.asm
+            .stream(Sensor::Mag, 0, "vehicle_magnetometer[0]", None);
+        self.prime_source
+            .get_or_insert_with(|| "vehicle_magnetometer[0]".into());
+        let gi = self.asm.group(0, || "sensor_combined".into())?;
+        let raw = self.undo_prime(m)?;
+        self.asm.mag(gi, t, raw)
     }
-    let mut log = asm.finish(onboard, &skips);
-    log.primary_mag_source = prime_source;
-    for sub in rd.subscriptions().filter(|s| s.records > 0) {
-        *log.messages
-            .entry(format!("{}[{}]", sub.name, sub.multi_id))
-            .or_insert(0) += sub.records;
+
+    /// The prime compass's correction undone from `m` (gauss), uT; `None` (noted) when it cannot be.
+    fn undo_prime(&mut self, m: Vec3) -> Option<Vec3> {
+        let raw = self
+            .undo
+            .as_ref()
+            .and_then(|u| u.as_ref())
+            .and_then(|u| u.apply(m));
+        self.not_undone |= raw.is_none();
+        raw
     }
-    Some(log)
+
+    /// Emit what is still held, and the log with its onboard report and message counts.
+    fn finish(
+        mut self,
+        rd: &ulog::UlogReader<'_>,
+        n_bytes: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> FlightLog {
+        for (gi, s) in self.asm.flush() {
+            emit(gi, s, n_bytes, self.asm.primary);
+        }
+        let params = rd.params();
+        let mut onboard = px4_onboard(
+            params,
+            &self.mag_ids,
+            &self.accel_ids,
+            self.prime_source.as_deref(),
+        );
+        if let (Some(src), Some(n)) = (self.prime_source.as_ref(), px4_prime_slot(params)) {
+            if self.not_undone {
+                onboard.not_undone.push(format!(
+                    "{src}: CAL_MAG{n} rotation not one this reader undoes, or its parameters incomplete"
+                ));
+            } else {
+                onboard.undone.push(format!(
+                    "{src}: CAL_MAG{n} offsets, scales and rotation removed"
+                ));
+            }
+        }
+        onboard.gps = self.gps;
+        let mut skips = rd.stats.skipped.clone();
+        if rd.stats.dropouts > 0 {
+            skips.insert("dropouts".into(), rd.stats.dropouts);
+        }
+        let mut log = self.asm.finish(onboard, &skips);
+        log.primary_mag_source = self.prime_source;
+        for sub in rd.subscriptions().filter(|s| s.records > 0) {
+            *log.messages
+                .entry(format!("{}[{}]", sub.name, sub.multi_id))
+                .or_insert(0) += sub.records;
+        }
+        log
+    }
 }
 
 /// The ULog topics the conversion reads.
