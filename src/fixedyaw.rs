@@ -32,14 +32,19 @@ pub struct FixedYawSettings {
     pub max_tilt_deg: f64,
 }
 
+impl FixedYawSettings {
+    /// The defaults, as a constant (the live service sizes its sample buffers with it).
+    pub const DEFAULT: FixedYawSettings = FixedYawSettings {
+        window_samples: 100,
+        max_accel_sd_mps2: 0.15,
+        max_mag_sd_ut: 1.0,
+        max_tilt_deg: 60.0,
+    };
+}
+
 impl Default for FixedYawSettings {
     fn default() -> Self {
-        FixedYawSettings {
-            window_samples: 100,
-            max_accel_sd_mps2: 0.15,
-            max_mag_sd_ut: 1.0,
-            max_tilt_deg: 60.0,
-        }
+        Self::DEFAULT
     }
 }
 

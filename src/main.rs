@@ -32,6 +32,11 @@ enum Cmd {
     /// log carries (ref_qw..ref_qz, sensor -> ENU, e.g. BROAD's optical motion capture): total,
     /// heading and inclination RMSE over the movement phase, by BROAD's definitions.
     Eval(EvalArgs),
+    /// Magnetometer offsets of a vehicle resting at a known yaw (for vehicles that cannot be
+    /// tumbled): tilt from the accelerometer, the earth field from the World Magnetic Model at the
+    /// place, the soft iron left as it is. The live service does the same for
+    /// MAV_CMD_FIXED_MAG_CAL_YAW.
+    FixedYaw(FixedYawArgs),
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
     /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
     Simulate(SimulateArgs),
@@ -139,6 +144,29 @@ struct EvalArgs {
 }
 
 #[derive(Args)]
+struct FixedYawArgs {
+    /// The log file (any format `replay` reads).
+    log: PathBuf,
+    /// The vehicle's true yaw while it rested, degrees clockwise from true north.
+    #[arg(long)]
+    yaw_deg: f64,
+    /// Where it rested (degrees); without both, `[place]` from the config.
+    #[arg(long, requires = "lon", allow_hyphen_values = true)]
+    lat: Option<f64>,
+    #[arg(long, requires = "lat", allow_hyphen_values = true)]
+    lon: Option<f64>,
+    /// The rest ends at this time of the log (s, as the report's times); default: the log's end.
+    #[arg(long)]
+    at_s: Option<f64>,
+    /// TOML configuration (see config/): input mapping, sensor orientation, `[place]`.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
+    #[arg(long)]
+    format: Option<String>,
+}
+
+#[derive(Args)]
 struct SimulateArgs {
     /// A built-in scenario (turntable, tumble, flight, bench, cruise) or a scenario TOML file.
     #[arg(long, default_value = "tumble")]
@@ -210,6 +238,7 @@ fn main() -> Result<()> {
         Cmd::Run(a) => run_cmd(a),
         Cmd::Diagnose(a) => diagnose_cmd(a),
         Cmd::Eval(a) => eval_cmd(a),
+        Cmd::FixedYaw(a) => fixed_yaw_cmd(a),
         Cmd::Simulate(a) => simulate_cmd(a),
     }
 }
@@ -422,6 +451,65 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
     if let Some(path) = report {
         imucald::publish::write_json(&path, &r)?;
         println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
+    let cfg = load_config(a.config.as_ref())?;
+    let format = parse_format(a.format.as_deref())?;
+    let place = match (a.lat, a.lon) {
+        (Some(lat), Some(lon)) => imucald::attitude::Place {
+            latitude_deg: lat,
+            longitude_deg: lon,
+            altitude_m: 0.0,
+            date: None,
+        },
+        _ => cfg
+            .place
+            .clone()
+            .context("no place: give --lat and --lon, or [place] in the config")?,
+    };
+    let field = imucald::attitude::earth_field(&place).map_err(|e| anyhow::anyhow!(e))?;
+    let log = imucald::sources::read_log(&a.log, format, &cfg)
+        .with_context(|| format!("reading {}", a.log.display()))?;
+    let pipe = imucald::pipeline::Pipeline::new(&cfg)?;
+    let end_s = a.at_s.unwrap_or(f64::INFINITY);
+    let pairs: Vec<_> = log
+        .samples
+        .iter()
+        .filter(|s| s.t_s <= end_s)
+        .filter_map(|s| {
+            let b = pipe.to_body(s);
+            Some((b.mag_ut?, b.accel_mps2?))
+        })
+        .collect();
+    let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let settings = imucald::fixedyaw::FixedYawSettings::default();
+    let fy = imucald::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
+        .map_err(|e| {
+        anyhow::anyhow!(
+            "{}: {e} (--at-s picks the end of the rest)",
+            a.log.display()
+        )
+    })?;
+    let o = fy.offset_ut;
+    println!(
+        "fixed yaw {:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT ({} samples): offset [{:.2}, {:.2}, {:.2}] uT",
+        a.yaw_deg, fy.roll_deg, fy.pitch_deg, field.total_ut, fy.samples, o[0], o[1], o[2]
+    );
+    let cal = imucald::model::Calibration {
+        model: imucald::model::ModelKind::Sphere,
+        offset: o,
+        matrix: identity,
+    };
+    for p in imucald::export::ardupilot_mag(&cal, 0)
+        .0
+        .iter()
+        .chain(imucald::export::px4_mag(&cal, 0).0.iter())
+        .filter(|(name, _)| name.contains("OFS") || name.contains("OFF"))
+    {
+        println!("{} {}", p.0, p.1);
     }
     Ok(())
 }

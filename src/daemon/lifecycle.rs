@@ -301,6 +301,12 @@ impl State {
         let Some(&first) = takers.first() else {
             return;
         };
+        if cmd.command == MavCmd::MAV_CMD_FIXED_MAG_CAL_YAW {
+            for c in takers {
+                self.fixed_yaw(c, frame, cmd).await;
+            }
+            return;
+        }
         let ev = match cmd.command {
             MavCmd::MAV_CMD_DO_START_MAG_CAL => MagCalEvent::Start {
                 opts: mavout::MagCalStart::from_command(cmd),
@@ -357,7 +363,124 @@ impl State {
     }
 }
 
+impl State {
+    /// MAV_CMD_FIXED_MAG_CAL_YAW for calibrated vehicle `c`, as ArduPilot answers it: param1 the
+    /// vehicle's true yaw (deg), param2 the compass mask (0: all), param3/param4 latitude and
+    /// longitude (deg; both 0: `[place]`). Each compass of the mask with magnetometer data in uT
+    /// gets the offsets [`crate::fixedyaw`] finds from its latest samples, installed, reported
+    /// (MAG_CAL_REPORT) and written; one COMMAND_ACK: accepted when a compass was calibrated.
+    async fn fixed_yaw(&mut self, c: usize, frame: &crate::decode::Frame, cmd: &COMMAND_LONG_DATA) {
+        let (lat, lon) = (cmd.param3 as f64, cmd.param4 as f64);
+        let place = if lat == 0.0 && lon == 0.0 {
+            self.cfg.place.clone()
+        } else {
+            Some(crate::attitude::Place {
+                latitude_deg: lat,
+                longitude_deg: lon,
+                altitude_m: 0.0,
+                date: None,
+            })
+        };
+        let field = match place.as_ref().map(crate::attitude::earth_field) {
+            Some(Ok(f)) => Ok(f),
+            Some(Err(e)) => Err(e),
+            None => Err("no position: give the latitude and longitude in the command (param3, param4) or set [place]".to_string()),
+        };
+        let mask = mavout::mask_param(cmd.param2);
+        let mut calibrated = 0;
+        for i in 0..self.cals[c].tracks.len() {
+            let t = &self.cals[c].tracks[i];
+            if !mavout::mask_selects(mask, t.compass_id) || t.mag_samples == 0 {
+                continue;
+            }
+            let outcome = match &field {
+                Ok(f) => self.cals[c].fixed_yaw_of(i, cmd.param1 as f64, f),
+                Err(e) => Err(e.clone()),
+            };
+            let label = self.cals[c].compass_label(i);
+            match outcome {
+                Ok(cal) => {
+                    let id = self.cals[c].tracks[i].compass_id;
+                    let text = format!(
+                        "mag calibrated at a fixed yaw of {:.1} deg{label}: offset [{:.2}, {:.2}, {:.2}] uT",
+                        cmd.param1, cal.offset[0], cal.offset[1], cal.offset[2]
+                    );
+                    let msg = mavout::mag_cal_report_autosaved(id, &cal, true);
+                    self.cals[c].install_mag(i, cal.clone());
+                    self.cals[c].tracks[i].reported_mag = Some(cal);
+                    self.send_mav(To::Cal(c), &[msg]).await;
+                    self.status_for(c, 6, text).await;
+                    calibrated += 1;
+                }
+                Err(why) => {
+                    let text = format!("fixed-yaw calibration refused{label}: {why}");
+                    self.status_for(c, 4, text).await;
+                }
+            }
+        }
+        let result = if calibrated > 0 {
+            MavResult::MAV_RESULT_ACCEPTED
+        } else {
+            MavResult::MAV_RESULT_FAILED
+        };
+        let ack = mavout::command_ack(cmd.command, result, frame.system_id, frame.component_id);
+        self.send_mav(To::Cal(c), &[ack]).await;
+        if calibrated > 0 {
+            self.store_changed(c);
+            if self.cfg.daemon.write_params {
+                self.cals[c].start_param_write(self.cfg.daemon.param_target);
+            }
+        }
+    }
+}
+
 impl Cal {
+    /// Track `i`'s magnetometer calibration from its latest samples at true yaw `yaw_deg` in
+    /// `field`: the offset found, the soft iron and model of the calibration in use kept. Err: why
+    /// not, in words for the user.
+    fn fixed_yaw_of(
+        &self,
+        i: usize,
+        yaw_deg: f64,
+        field: &crate::attitude::EarthField,
+    ) -> Result<SensorCalibration, String> {
+        let t = &self.tracks[i];
+        if t.pipe.mag_units != Unit::Si {
+            return Err("the magnetometer's units are not known (uT needed)".into());
+        }
+        let current = self.in_use(i, Sensor::Mag).filter(|m| m.units == "uT");
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let matrix = current.map_or(identity, |m| m.matrix);
+        let accel = self.in_use(i, Sensor::Accel).and_then(|a| a.calibration());
+        let samples: Vec<(Vec3, Vec3)> = t
+            .recent
+            .iter()
+            .map(|(m, a)| (*m, accel.as_ref().map_or(*a, |c| c.apply(a))))
+            .collect();
+        let fy = crate::fixedyaw::fixed_yaw_offset(&samples, yaw_deg, field, &matrix, &FIXED_YAW)
+            .map_err(|e| e.to_string())?;
+        Ok(SensorCalibration {
+            status: "ok".into(),
+            failure: None,
+            detail: Some(format!(
+                "fixed yaw {yaw_deg:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT",
+                fy.roll_deg, fy.pitch_deg, field.total_ut
+            )),
+            model: current.map_or_else(|| "sphere".into(), |m| m.model.clone()),
+            units: "uT".into(),
+            offset: fy.offset_ut,
+            matrix,
+            radius: field.total_ut,
+            rms_residual: 0.0,
+            offset_sigma: [0.0; 3],
+            samples_used: fy.samples,
+            iterations: 0,
+            candidates: vec![],
+            outliers_rejected: 0,
+            method: None,
+        })
+    }
+
     /// Write every compass's calibration in use to the flight controller (`daemon.write_params`).
     pub(super) fn start_param_write(&mut self, convention: ParamTarget) {
         let params: Vec<_> = self

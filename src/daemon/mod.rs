@@ -147,6 +147,9 @@ struct Track {
     last_results: Option<FitResults>,
     /// A refit is due (its pipeline said so since the last fit started).
     refit_wanted: bool,
+    /// The latest (magnetometer uT, specific force m/s^2) pairs in body axes, before calibration:
+    /// what a fixed-yaw calibration averages ([`crate::fixedyaw`]).
+    recent: std::collections::VecDeque<(Vec3, Vec3)>,
 }
 
 impl Track {
@@ -169,6 +172,7 @@ impl Track {
             reported_mag: None,
             last_results: None,
             refit_wanted: false,
+            recent: std::collections::VecDeque::with_capacity(FIXED_YAW.window_samples),
         })
     }
 
@@ -176,6 +180,15 @@ impl Track {
     fn push(&mut self, s: &Sample) -> bool {
         if s.mag_ut.is_some() {
             self.mag_samples += 1;
+        }
+        if let (Some(_), Some(_)) = (s.mag_ut, s.accel_mps2) {
+            let b = self.pipe.to_body(s);
+            if let (Some(m), Some(a)) = (b.mag_ut, b.accel_mps2) {
+                if self.recent.len() == FIXED_YAW.window_samples {
+                    self.recent.pop_front();
+                }
+                self.recent.push_back((m, a));
+            }
         }
         let due = self.pipe.push(s);
         self.refit_wanted |= due;
@@ -272,6 +285,9 @@ struct State {
     start: tokio::time::Instant,
     declination: Option<f64>,
 }
+
+/// How still and level a fixed-yaw calibration wants the vehicle, over how many samples.
+const FIXED_YAW: crate::fixedyaw::FixedYawSettings = crate::fixedyaw::FixedYawSettings::DEFAULT;
 
 /// Time step of the orientation filter's first sample and of samples whose clock jumps, s.
 const FUSION_DEFAULT_DT_S: f64 = 0.01;
