@@ -96,6 +96,18 @@ pub struct Place {
     pub date: Option<String>,
 }
 
+impl Place {
+    /// A place on the ground (altitude 0) at latitude and longitude (deg), today.
+    pub fn at(latitude_deg: f64, longitude_deg: f64) -> Place {
+        Place {
+            latitude_deg,
+            longitude_deg,
+            altitude_m: 0.0,
+            date: None,
+        }
+    }
+}
+
 /// The earth field at a place (WMM2025).
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct EarthField {

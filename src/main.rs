@@ -459,12 +459,7 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
     let cfg = load_config(a.config.as_ref())?;
     let format = parse_format(a.format.as_deref())?;
     let place = match (a.lat, a.lon) {
-        (Some(lat), Some(lon)) => imucald::attitude::Place {
-            latitude_deg: lat,
-            longitude_deg: lon,
-            altitude_m: 0.0,
-            date: None,
-        },
+        (Some(lat), Some(lon)) => imucald::attitude::Place::at(lat, lon),
         _ => cfg
             .place
             .clone()
@@ -484,7 +479,7 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
             Some((b.mag_ut?, b.accel_mps2?))
         })
         .collect();
-    let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let identity = imucald::model::IDENTITY;
     let settings = imucald::fixedyaw::FixedYawSettings::default();
     let fy = imucald::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
         .map_err(|e| {

@@ -36,7 +36,7 @@ struct Browser {
     to: std::fs::File,
     from: mpsc::Receiver<Value>,
     next_id: u64,
-    session: String,
+    cdp_target: String,
     /// Events seen while waiting for answers.
     events: Vec<Value>,
     _profile: tempfile::TempDir,
@@ -122,7 +122,7 @@ impl Browser {
             to,
             from,
             next_id: 0,
-            session: String::new(),
+            cdp_target: String::new(),
             events: vec![],
             _profile: profile,
         };
@@ -133,16 +133,16 @@ impl Browser {
             "Target.attachToTarget",
             json!({"targetId": target, "flatten": true}),
         );
-        b.session = s["sessionId"].as_str().unwrap().to_string();
+        b.cdp_target = s["sessionId"].as_str().unwrap().to_string();
         b
     }
 
     /// A command; its result (panics on an error answer or no answer in 30 s).
-    fn call(&mut self, session: Option<&str>, method: &str, params: Value) -> Value {
+    fn call(&mut self, cdp_target: Option<&str>, method: &str, params: Value) -> Value {
         self.next_id += 1;
         let id = self.next_id;
         let mut msg = json!({"id": id, "method": method, "params": params});
-        if let Some(s) = session {
+        if let Some(s) = cdp_target {
             msg["sessionId"] = json!(s);
         }
         let mut bytes = serde_json::to_vec(&msg).unwrap();
@@ -164,7 +164,7 @@ impl Browser {
     }
 
     fn page(&mut self, method: &str, params: Value) -> Value {
-        let s = self.session.clone();
+        let s = self.cdp_target.clone();
         self.call(Some(&s), method, params)
     }
 

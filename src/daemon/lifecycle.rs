@@ -374,12 +374,7 @@ impl State {
         let place = if lat == 0.0 && lon == 0.0 {
             self.cfg.place.clone()
         } else {
-            Some(crate::attitude::Place {
-                latitude_deg: lat,
-                longitude_deg: lon,
-                altitude_m: 0.0,
-                date: None,
-            })
+            Some(crate::attitude::Place::at(lat, lon))
         };
         let field = match place.as_ref().map(crate::attitude::earth_field) {
             Some(Ok(f)) => Ok(f),
@@ -449,13 +444,20 @@ impl Cal {
             return Err("the magnetometer's units are not known (uT needed)".into());
         }
         let current = self.in_use(i, Sensor::Mag).filter(|m| m.units == "uT");
-        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-        let matrix = current.map_or(identity, |m| m.matrix);
+        let matrix = current.map_or(crate::model::IDENTITY, |m| m.matrix);
         let accel = self.in_use(i, Sensor::Accel).and_then(|a| a.calibration());
         let samples: Vec<(Vec3, Vec3)> = t
             .recent
             .iter()
-            .map(|(m, a)| (*m, accel.as_ref().map_or(*a, |c| c.apply(a))))
+            .map(|&(m, a)| {
+                let b = t.pipe.to_body(&Sample {
+                    mag_ut: Some(m),
+                    accel_mps2: Some(a),
+                    ..Sample::default()
+                });
+                let (m, a) = (b.mag_ut.unwrap_or(m), b.accel_mps2.unwrap_or(a));
+                (m, accel.as_ref().map_or(a, |c| c.apply(&a)))
+            })
             .collect();
         let fy = crate::fixedyaw::fixed_yaw_offset(&samples, yaw_deg, field, &matrix, &FIXED_YAW)
             .map_err(|e| e.to_string())?;

@@ -147,8 +147,9 @@ struct Track {
     last_results: Option<FitResults>,
     /// A refit is due (its pipeline said so since the last fit started).
     refit_wanted: bool,
-    /// The latest (magnetometer uT, specific force m/s^2) pairs in body axes, before calibration:
-    /// what a fixed-yaw calibration averages ([`crate::fixedyaw`]).
+    /// The latest (magnetometer uT, specific force m/s^2) pairs in sensor axes, before
+    /// calibration: what a fixed-yaw calibration averages ([`crate::fixedyaw`]; turned to body
+    /// axes only then, not per sample).
     recent: std::collections::VecDeque<(Vec3, Vec3)>,
 }
 
@@ -181,14 +182,11 @@ impl Track {
         if s.mag_ut.is_some() {
             self.mag_samples += 1;
         }
-        if let (Some(_), Some(_)) = (s.mag_ut, s.accel_mps2) {
-            let b = self.pipe.to_body(s);
-            if let (Some(m), Some(a)) = (b.mag_ut, b.accel_mps2) {
-                if self.recent.len() == FIXED_YAW.window_samples {
-                    self.recent.pop_front();
-                }
-                self.recent.push_back((m, a));
+        if let (Some(m), Some(a)) = (s.mag_ut, s.accel_mps2) {
+            if self.recent.len() == FIXED_YAW.window_samples {
+                self.recent.pop_front();
             }
+            self.recent.push_back((m, a));
         }
         let due = self.pipe.push(s);
         self.refit_wanted |= due;
