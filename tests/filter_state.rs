@@ -70,7 +70,9 @@ async fn filter_state_is_saved_and_restored() {
         .gyro_bias_rad_s
         .iter()
         .fold(0.0f64, |m, b| m.max(b.abs()));
-    assert!(left < 5e-3, "residual bias {:?}", learnt.gyro_bias_rad_s);
+    // With the filter settings tuned on BROAD the estimate settles more slowly: measured up to
+    // 5.5e-3 rad/s. The bound must still catch the bias removed twice (0.014).
+    assert!(left < 1e-2, "residual bias {:?}", learnt.gyro_bias_rad_s);
 
     // A restored bias is where the next run's filter starts: set a known one, run again.
     let planted = [0.02, -0.03, 0.01];
