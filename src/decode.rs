@@ -319,8 +319,10 @@ impl FrameDecoder {
 // ---------------------------------------------------------------------------------------------
 // Messages to samples
 
-/// Which IMU instance to take samples from.
+/// Which IMU instance to take samples from (the `input.instance` setting, read and written as
+/// its text: "auto" or the instance's name).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum InstanceChoice {
     /// The first instance seen that carries a magnetometer (the default).
     Auto,
@@ -328,13 +330,41 @@ pub enum InstanceChoice {
     Named(String),
 }
 
-impl InstanceChoice {
-    /// From the `input.instance` setting: "auto", or an instance name.
-    pub fn from_setting(s: &str) -> InstanceChoice {
+impl std::str::FromStr for InstanceChoice {
+    type Err = String;
+
+    /// "auto", or the name of an instance of a kind the converter reads (an id from 0 to 255).
+    fn from_str(s: &str) -> Result<InstanceChoice, String> {
         if s == "auto" {
-            InstanceChoice::Auto
+            return Ok(InstanceChoice::Auto);
+        }
+        let named = ["scaled_imu", "scaled_imu2", "scaled_imu3"].contains(&s)
+            || s.strip_prefix("highres_imu:")
+                .or(s.strip_prefix("raw_imu:"))
+                .is_some_and(|n| n.parse::<u8>().is_ok());
+        if named {
+            Ok(InstanceChoice::Named(s.to_string()))
         } else {
-            InstanceChoice::Named(s.to_string())
+            Err(format!(
+                "`{s}` is not auto, highres_imu:N, scaled_imu, scaled_imu2, scaled_imu3 or raw_imu:N"
+            ))
+        }
+    }
+}
+
+impl TryFrom<String> for InstanceChoice {
+    type Error = String;
+
+    fn try_from(s: String) -> Result<InstanceChoice, String> {
+        s.parse()
+    }
+}
+
+impl From<InstanceChoice> for String {
+    fn from(c: InstanceChoice) -> String {
+        match c {
+            InstanceChoice::Auto => "auto".into(),
+            InstanceChoice::Named(n) => n,
         }
     }
 }

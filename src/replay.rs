@@ -3,8 +3,11 @@
 use crate::config::Config;
 use crate::decode::Format;
 use crate::error::Error;
+use crate::fit::FitFailure;
 use crate::pipeline::{Calibrated, Calibrator, FitResults, Pipeline};
-use crate::report::{CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA};
+use crate::report::{
+    CalStatus, CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA,
+};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -250,7 +253,7 @@ fn gyro_scale(
     Option<crate::report::GyroScaleReport>,
     Option<crate::gyro::ScaleFailure>,
 ) {
-    if results.gyro.status != "ok" {
+    if results.gyro.status != CalStatus::Ok {
         return (None, None);
     }
     let Some(bias) = crate::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
@@ -591,12 +594,12 @@ pub fn summary(r: &Report) -> String {
     }
     for i in r.instances.iter().filter(|i| !i.primary) {
         let m = &i.calibration.mag;
-        let what = match m.status.as_str() {
-            "ok" => format!(
+        let what = match m.status {
+            CalStatus::Ok => format!(
                 "offset [{:.4}, {:.4}, {:.4}] {}, rms residual {:.4}",
                 m.offset[0], m.offset[1], m.offset[2], m.units, m.rms_residual
             ),
-            _ => format!("FAILED ({})", m.failure.as_deref().unwrap_or("?")),
+            CalStatus::Failed => format!("FAILED ({})", m.failure.map_or("?", FitFailure::name)),
         };
         let _ = writeln!(
             s,
@@ -611,7 +614,7 @@ pub fn summary(r: &Report) -> String {
         r.coverage.mag.filled, r.coverage.accel.filled
     );
     for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
-        if c.status == "ok" {
+        if c.status == CalStatus::Ok {
             let _ = writeln!(
                 s,
                 "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
@@ -621,13 +624,13 @@ pub fn summary(r: &Report) -> String {
             let _ = writeln!(
                 s,
                 "{name:5}: FAILED ({}): {}",
-                c.failure.as_deref().unwrap_or("?"),
+                c.failure.map_or("?", FitFailure::name),
                 c.detail.as_deref().unwrap_or("")
             );
         }
     }
     let g = &r.calibration.gyro;
-    if g.status == "ok" {
+    if g.status == CalStatus::Ok {
         let _ = writeln!(
             s,
             "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",

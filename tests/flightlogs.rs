@@ -10,6 +10,7 @@ use imucald::config::Config;
 use imucald::flightlog::dataflash::DfReader;
 use imucald::flightlog::ulog::UlogReader;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::report::Report;
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -581,7 +582,7 @@ fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
             ("mag", &r.calibration.mag, &sim.truth.mag),
             ("accel", &r.calibration.accel, &sim.truth.accel),
         ] {
-            assert_eq!(fit.status, "ok", "{ext} {name}: {:?}", fit.detail);
+            assert_eq!(fit.status, CalStatus::Ok, "{ext} {name}: {:?}", fit.detail);
             let off = (0..3)
                 .map(|k| (fit.offset[k] - truth.offset[k]).abs())
                 .fold(0.0, f64::max);

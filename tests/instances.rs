@@ -8,6 +8,7 @@
 
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use mavlink::dialects::ardupilotmega::MavMessage;
 
@@ -83,7 +84,7 @@ fn two_compasses_in_one_log_are_calibrated_each_against_its_own_truth() {
         assert_eq!(inst.samples as usize, sim.samples.len());
         assert_eq!(inst.time.segments, 1, "compass {id}: {:?}", inst.time);
         let m = &inst.calibration.mag;
-        assert_eq!(m.status, "ok", "compass {id}: {:?}", m.detail);
+        assert_eq!(m.status, CalStatus::Ok, "compass {id}: {:?}", m.detail);
         // COMPASS_OFS (mGauss, added) from ours and from the truth: 1 uT = 10 mGauss.
         let ofs = |o: &[f64; 3]| o.map(|x| -10.0 * x);
         let (got, want) = (ofs(&m.offset), ofs(&sim.truth.mag.offset));
@@ -113,7 +114,7 @@ fn a_config_can_still_pick_one_instance() {
     let log = dir.path().join("two.tlog");
     write_tlog(&log, &[(&a, 0), (&b, 1)]);
     let mut cfg = Config::default();
-    cfg.input.instance = "highres_imu:1".into();
+    cfg.input.instance = "highres_imu:1".parse().unwrap();
     let out = replay(&log, &cfg, &ReplayOptions::default(), &mut |_, _| {}).unwrap();
     let r = &out.report;
     assert!(r.instances.is_empty());

@@ -2,7 +2,9 @@
 #![allow(clippy::needless_range_loop)]
 
 use imucald::config::Config;
+use imucald::fit::FitFailure;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use std::path::{Path, PathBuf};
 
 /// Return early from a test (with a plain message) when the shared data is absent; a failure instead
@@ -44,7 +46,13 @@ mod real_data {
                 &Config::default(),
             );
             let m = &out.report.calibration.mag;
-            assert_eq!(m.status, "ok", "{set}: {:?} {:?}", m.failure, m.detail);
+            assert_eq!(
+                m.status,
+                CalStatus::Ok,
+                "{set}: {:?} {:?}",
+                m.failure,
+                m.detail
+            );
             let r = reference_hard_iron(&data.join(format!("tyrex/{set}.reference.json")));
             for k in 0..3 {
                 let d = (m.offset[k] - r[k]).abs();
@@ -111,7 +119,7 @@ mod real_data {
             a.model, a.rms_residual
         );
         assert!(poses >= 34, "{poses} static poses");
-        assert_eq!(a.status, "ok", "{:?}", a.detail);
+        assert_eq!(a.status, CalStatus::Ok, "{:?}", a.detail);
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
         assert_eq!(a.units, "m/s^2");
         assert_eq!(out.report.calibration.gyro.units, "counts");
@@ -153,10 +161,10 @@ mod real_data {
             &Config::default(),
         );
         assert_eq!(
-            out.report.calibration.mag.failure.as_deref(),
-            Some("coverage")
+            out.report.calibration.mag.failure,
+            Some(FitFailure::Coverage)
         );
-        assert_eq!(out.report.calibration.accel.status, "ok");
+        assert_eq!(out.report.calibration.accel.status, CalStatus::Ok);
     }
 }
 
@@ -268,8 +276,8 @@ mod simulated {
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
         let out = run(path, &Config::default());
         let (m, a) = (&out.report.calibration.mag, &out.report.calibration.accel);
-        assert_eq!(m.status, "ok", "{what} mag: {:?}", m.detail);
-        assert_eq!(a.status, "ok", "{what} accel: {:?}", a.detail);
+        assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
+        assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
         let (mo, mm) = errors(m, &truth.mag);
         let (ao, am) = errors(a, &truth.accel);
         eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
@@ -366,7 +374,7 @@ mod fixtures {
             (&r.calibration.mag, &truth.mag),
             (&r.calibration.accel, &truth.accel),
         ] {
-            assert_eq!(fit.status, "ok");
+            assert_eq!(fit.status, CalStatus::Ok);
             assert_eq!(fit.model, "sym9");
             for k in 0..3 {
                 assert!(
@@ -688,12 +696,12 @@ mod full12 {
         let p = dir.path().join("rot.tlog");
         write_tlog(&p, &sim.samples, &TlogWriteOptions::default()).unwrap();
         let mut cfg = Config::default();
-        cfg.fit.mag_model = "full12".into();
+        cfg.fit.mag_model = imucald::config::MagModelChoice::Full12;
         let out = run(&p, &cfg);
         let m = &out.report.calibration.mag;
         assert_eq!(
-            (m.status.as_str(), m.model.as_str()),
-            ("ok", "full12"),
+            (m.status, m.model.as_str()),
+            (CalStatus::Ok, "full12"),
             "{:?}",
             m.detail
         );
@@ -707,7 +715,7 @@ mod full12 {
         eprintln!("full12 matrix error {err:.5}");
         assert!(err < 0.002, "full12 matrix error {err}: {got} vs {want}");
         // sym9 alone cannot see the rotation: its error is the rotation's size.
-        cfg.fit.mag_model = "sym9".into();
+        cfg.fit.mag_model = imucald::config::MagModelChoice::Sym9;
         let sym = run(&p, &cfg)
             .results
             .mag
@@ -838,7 +846,7 @@ mod live {
         let store = imucald::daemon::load_store(&d.join("cal"))
             .unwrap()
             .expect("calibration file");
-        assert_eq!(store.mag.unwrap().status, "ok");
+        assert_eq!(store.mag.unwrap().status, CalStatus::Ok);
     }
 
     /// A pymavlink ground station drives the magnetometer calibration with ArduPilot's commands
@@ -1170,7 +1178,7 @@ mod faults {
                 m.outliers_rejected
             );
             if share <= 0.2 {
-                assert_eq!(m.status, "ok", "{:?}", m.detail);
+                assert_eq!(m.status, CalStatus::Ok, "{:?}", m.detail);
                 assert!(m.outliers_rejected > 0);
                 // Measured: at most 0.014 uT off (6 uT magnet, 20% of the run).
                 for k in 0..3 {
@@ -1182,7 +1190,8 @@ mod faults {
                 }
             } else {
                 assert_eq!(
-                    m.status, "failed",
+                    m.status,
+                    CalStatus::Failed,
                     "a half-disturbed run was accepted: {m:?}"
                 );
             }
@@ -1244,7 +1253,7 @@ mod faults {
                 &r.calibration.accel
             };
             eprintln!("{what}: {:?}: {:?}", c.failure, c.detail);
-            assert_eq!(c.failure.as_deref(), Some("axis_fault"), "{what}: {c:?}");
+            assert_eq!(c.failure, Some(FitFailure::AxisFault), "{what}: {c:?}");
             assert!(
                 c.detail.as_deref().unwrap_or("").contains(words),
                 "{what}: {:?}",
@@ -1256,7 +1265,7 @@ mod faults {
             } else {
                 &r.calibration.mag
             };
-            assert_eq!(o.status, "ok", "{what}");
+            assert_eq!(o.status, CalStatus::Ok, "{what}");
         }
     }
 
@@ -1358,7 +1367,7 @@ mod live_serial {
             .unwrap()
             .expect("calibrated before the unplug");
         let before = store.mag.clone().unwrap();
-        assert_eq!(before.status, "ok");
+        assert_eq!(before.status, CalStatus::Ok);
         // Unplug, wait, plug a new device at the same path, stream a little more.
         drop(master);
         tokio::time::sleep(Duration::from_millis(700)).await;
@@ -1382,7 +1391,7 @@ mod live_serial {
             .unwrap()
             .mag
             .unwrap();
-        assert_eq!(after.status, "ok");
+        assert_eq!(after.status, CalStatus::Ok);
         eprintln!(
             "after the replug: offset {:?}, truth {:?}",
             after.offset, sim.truth.mag.offset
@@ -2046,7 +2055,7 @@ mod live_attitude {
 
     fn stored(t: &SensorTruth, units: &str, radius: f64) -> SensorCalibration {
         SensorCalibration {
-            status: "ok".into(),
+            status: CalStatus::Ok,
             failure: None,
             detail: None,
             model: "sym9".into(),
@@ -2144,7 +2153,7 @@ mod live_attitude {
             mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
             accel: Some(stored(&truth.accel, "m/s^2", g)),
             gyro: Some(GyroCalibration {
-                status: "ok".into(),
+                status: CalStatus::Ok,
                 failure: None,
                 units: "rad/s".into(),
                 bias: truth.gyro.offset,
@@ -2751,7 +2760,7 @@ mod honest_progress {
         // Without a calibration: no centre, no region. With one (a restart resumes from the
         // stored calibration): the one or two regions the field points into.
         let stored = SensorCalibration {
-            status: "ok".into(),
+            status: CalStatus::Ok,
             failure: None,
             detail: None,
             model: "sphere".into(),
@@ -2803,7 +2812,7 @@ mod gyro_scale_checked {
             .map(|i| [((i * 40) % 360) as f64 - 180.0, 20.0, 0.0])
             .collect();
         let g = turntable_replay(att).calibration.gyro;
-        assert_eq!(g.status, "ok", "the bias is still known");
+        assert_eq!(g.status, CalStatus::Ok, "the bias is still known");
         assert!(g.scale.is_none(), "published: {:?}", g.scale);
         let f = g.scale_failure.expect("a named reason");
         eprintln!("turntable about one axis: {f}");
@@ -2827,7 +2836,7 @@ mod gyro_scale_checked {
         ];
         att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
         let r = turntable_replay(att);
-        assert_eq!(r.calibration.accel.status, "ok");
+        assert_eq!(r.calibration.accel.status, CalStatus::Ok);
         let g = r.calibration.gyro;
         assert!(g.scale.is_none(), "published: {:?}", g.scale);
         let f = g.scale_failure.expect("a named reason");

@@ -10,6 +10,7 @@
 
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use imucald::types::Sample;
 use mavlink::dialects::ardupilotmega::{self as apm, MavMessage};
@@ -171,8 +172,8 @@ fn errors(
 fn assert_recovered(cal: &imucald::report::CalibrationReport, what: &str) {
     let truth = &tumble().truth;
     let (m, a) = (&cal.mag, &cal.accel);
-    assert_eq!(m.status, "ok", "{what} mag: {:?}", m.detail);
-    assert_eq!(a.status, "ok", "{what} accel: {:?}", a.detail);
+    assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
+    assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
     let (mo, mm) = errors(m, &truth.mag);
     let (ao, am) = errors(a, &truth.accel);
     eprintln!("{what}: mag offset err {mo:.4} uT, matrix {mm:.5}; accel offset {ao:.5} m/s^2, matrix {am:.5}");
@@ -298,7 +299,8 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
     std::fs::write(&log, bytes).unwrap();
     let r = replay_checked(&log, "wrap");
     assert_eq!(
-        r.calibration.mag.status, "ok",
+        r.calibration.mag.status,
+        CalStatus::Ok,
         "{:?}",
         r.calibration.mag.detail
     );

@@ -97,7 +97,7 @@ impl State {
                 "calibration not replaced: {why}"
             ),
         }
-        if i == 0 && results.gyro.status == "ok" {
+        if i == 0 && results.gyro.status == crate::report::CalStatus::Ok {
             let before = self.calibrator.gyro_bias.unwrap_or([0.0; 3]);
             let now = results.gyro.bias;
             self.fusion
