@@ -6,6 +6,8 @@
 //! calibrations, each near its own truth, in ArduPilot's COMPASS_OFS convention (mGauss, added:
 //! COMPASS_OFS = -offset).
 
+mod common;
+
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
 use imucald::report::CalStatus;
@@ -143,20 +145,8 @@ async fn live_service_reports_each_compass_on_its_own() {
     let dir = tempfile::tempdir().unwrap();
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = vec![imucald::config::SourceConfig {
-        address: format!("udpin:127.0.0.1:{port}"),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
+    let (port, mut cfg) = common::udpin_config(dir.path());
     let cal_dir = dir.path().join("cal");
-    cfg.daemon.calibration_dir = cal_dir.display().to_string();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
     cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
     cfg.fit.refit_every_s = 5.0;

@@ -1,6 +1,9 @@
 //! The one integration-test binary: real recordings, simulated logs with known truth, the CLI.
 #![allow(clippy::needless_range_loop)]
 
+mod common;
+
+use common::{free_udp_port, mavlink_source, python_with, udpin_config};
 use imucald::config::Config;
 use imucald::fit::FitFailure;
 use imucald::replay::{replay, ReplayOptions};
@@ -729,33 +732,11 @@ mod full12 {
 /// Live-service tests: a real MAVLink peer (pymavlink), a serial pseudo-terminal, kill -9 during writes.
 mod live {
     use super::*;
-    use std::process::{Command, Stdio};
+    use std::process::{Command, Output, Stdio};
     use std::time::{Duration, Instant};
 
     fn bin() -> &'static str {
         env!("CARGO_BIN_EXE_imucald")
-    }
-
-    /// The Python with pymavlink that scripts/test installs (.venv), or IMUCALD_PYTHON.
-    fn python() -> String {
-        let p = std::env::var("IMUCALD_PYTHON").unwrap_or_else(|_| {
-            concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string()
-        });
-        let ok = Command::new(&p)
-            .args(["-c", "import pymavlink"])
-            .output()
-            .map(|o| o.status.success())
-            .unwrap_or(false);
-        assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
-        p
-    }
-
-    fn free_udp_port() -> u16 {
-        std::net::UdpSocket::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
     }
 
     fn sigterm(pid: u32) {
@@ -779,14 +760,68 @@ mod live {
         None
     }
 
-    #[test]
-    fn interop_pymavlink_streams_a_tumble_over_udp() {
-        let py = python();
-        let dir = tempfile::tempdir().unwrap();
-        let d = dir.path();
-        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 1);
+    /// A simulated tumble (`seed`) as `tumble.csv` in `d` and its truth as `truth.json`, for the
+    /// pymavlink peer to stream and judge by.
+    fn tumble_for_peer(d: &Path, seed: u64) -> imucald::sim::SimOutput {
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), seed);
         imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
         imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        sim
+    }
+
+    /// `imucald run --config CONFIG` plus `extra`, its stderr piped, given 300 ms to bind.
+    fn start_service(config: &Path, extra: &[&std::ffi::OsStr]) -> std::process::Child {
+        let child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(config)
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        child
+    }
+
+    /// The pymavlink peer (`tests/interop/pymavlink_peer.py`) on `port`, streaming `d`'s
+    /// `tumble.csv` judged by `truth.json` at `speed` times its pace, with `extra` arguments.
+    fn run_peer(py: &str, port: u16, d: &Path, speed: &str, extra: &[&std::ffi::OsStr]) -> Output {
+        Command::new(py)
+            .arg(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/interop/pymavlink_peer.py"
+            ))
+            .arg(port.to_string())
+            .arg(d.join("tumble.csv"))
+            .arg(d.join("truth.json"))
+            .arg(speed)
+            .args(extra)
+            .output()
+            .unwrap()
+    }
+
+    /// SIGTERM to the service: its exit status (`None` when it did not exit within 5 s) and what it
+    /// wrote on stderr.
+    fn stop_service(child: &mut std::process::Child) -> (Option<std::process::ExitStatus>, String) {
+        sigterm(child.id());
+        let status = wait_exit(child, Duration::from_secs(5));
+        let mut err = String::new();
+        use std::io::Read;
+        child
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut err)
+            .unwrap();
+        (status, err)
+    }
+
+    #[test]
+    fn interop_pymavlink_streams_a_tumble_over_udp() {
+        let py = python_with("pymavlink");
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        tumble_for_peer(d, 1);
         let port = free_udp_port();
         // The peer streams at 10x and judges each heading by when it arrives, so the UDP poll
         // period is a tenth of the default too (5 ms of wall clock is the default's 50 ms of
@@ -797,39 +832,15 @@ mod live {
             d.join("cal").display()
         );
         std::fs::write(d.join("live.toml"), cfg).unwrap();
-        let mut child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(d.join("live.toml"))
-            .arg("--report")
-            .arg(d.join("report.json"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let peer = Command::new(&py)
-            .arg(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/tests/interop/pymavlink_peer.py"
-            ))
-            .arg(port.to_string())
-            .arg(d.join("tumble.csv"))
-            .arg(d.join("truth.json"))
-            .arg("10")
-            .output()
-            .unwrap();
+        let report = d.join("report.json");
+        let mut child = start_service(
+            &d.join("live.toml"),
+            &["--report".as_ref(), report.as_os_str()],
+        );
+        let peer = run_peer(&py, port, d, "10", &[]);
         let t_term = Instant::now();
-        sigterm(child.id());
-        let status = wait_exit(&mut child, Duration::from_secs(5));
+        let (status, err) = stop_service(&mut child);
         let stop_s = t_term.elapsed().as_secs_f64();
-        let mut err = String::new();
-        use std::io::Read;
-        child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut err)
-            .unwrap();
         let seen = String::from_utf8_lossy(&peer.stdout);
         eprintln!(
             "peer: {seen}\npeer stderr: {}\nimucald stopped {stop_s:.2} s after SIGTERM",
@@ -854,12 +865,10 @@ mod live {
     /// nothing on disk -> ACCEPT -> ACK -> written; a second run cancelled leaves the file as it was.
     #[test]
     fn interop_pymavlink_ground_station_starts_accepts_and_cancels_a_calibration() {
-        let py = python();
+        let py = python_with("pymavlink");
         let dir = tempfile::tempdir().unwrap();
         let d = dir.path();
-        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 2);
-        imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
-        imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        let sim = tumble_for_peer(d, 2);
         let port = free_udp_port();
         // A commanded run ends on a passing fit once progress says 100 %: one pass of the tumble
         // filled 95-100 % of the default 80 regions in runs here, so 70 count as full.
@@ -868,37 +877,10 @@ mod live {
             d.join("cal").display()
         );
         std::fs::write(d.join("gcs.toml"), cfg).unwrap();
-        let mut child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(d.join("gcs.toml"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let peer = Command::new(&py)
-            .arg(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/tests/interop/pymavlink_peer.py"
-            ))
-            .arg(port.to_string())
-            .arg(d.join("tumble.csv"))
-            .arg(d.join("truth.json"))
-            .arg("20")
-            .arg("gcs")
-            .arg(d.join("cal"))
-            .output()
-            .unwrap();
-        sigterm(child.id());
-        let status = wait_exit(&mut child, Duration::from_secs(5));
-        let mut err = String::new();
-        use std::io::Read;
-        child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut err)
-            .unwrap();
+        let mut child = start_service(&d.join("gcs.toml"), &[]);
+        let cal = d.join("cal");
+        let peer = run_peer(&py, port, d, "20", &["gcs".as_ref(), cal.as_os_str()]);
+        let (status, err) = stop_service(&mut child);
         let seen = String::from_utf8_lossy(&peer.stdout);
         eprintln!(
             "peer: {seen}\npeer stderr: {}",
@@ -1939,25 +1921,6 @@ mod fuzz_regressions {
 /// `.tlog` of HIGHRES_IMU (with the default sensor errors of the simulator), the true calibration
 /// stored, a place with a large declination. The run is on tokio's paused clock, so the publication
 /// times are exact.
-/// A service config with one `udpin:` MAVLink source on a free loopback port (returned) and its
-/// calibration directory under `dir`.
-fn udpin_config(dir: &Path) -> (u16, Config) {
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = vec![imucald::config::SourceConfig {
-        address: format!("udpin:127.0.0.1:{port}"),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
-    cfg.daemon.calibration_dir = dir.join("cal").display().to_string();
-    (port, cfg)
-}
-
 mod live_attitude {
     use super::*;
 
@@ -2169,19 +2132,9 @@ mod live_attitude {
         let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let rate_hz = 20.0;
         cfg.daemon.sources = vec![
-            imucald::config::SourceConfig {
-                address: format!("file:{}", log.display()),
-                payload: "mavlink".into(),
-                fields: vec![],
-                scales: Default::default(),
-            },
+            mavlink_source(format!("file:{}", log.display())),
             // The link the attitude goes back on.
-            imucald::config::SourceConfig {
-                address: format!("udpout:{}", fc.local_addr().unwrap()),
-                payload: "mavlink".into(),
-                fields: vec![],
-                scales: Default::default(),
-            },
+            mavlink_source(format!("udpout:{}", fc.local_addr().unwrap())),
         ];
         cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
         cfg.daemon.calibration_dir = cal_dir.display().to_string();

@@ -8,6 +8,8 @@
 //! the same seed measures mag offset 0.0058 uT, matrix 0.00022; accel 0.00024 m/s^2, 0.00006):
 //! see `assert_recovered`.
 
+mod common;
+
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
 use imucald::report::CalStatus;
@@ -433,18 +435,6 @@ proptest! {
     }
 }
 
-/// Python with pymavlink (`./scripts/test` installs it into `.venv`; `IMUCALD_PYTHON` overrides).
-fn python() -> String {
-    let p = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = std::process::Command::new(&p)
-        .args(["-c", "import pymavlink"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
-    p
-}
-
 #[test]
 fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
     // The same tumble, framed by pymavlink as a ground station records it: a clock from zero, a
@@ -456,7 +446,7 @@ fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
         env!("CARGO_MANIFEST_DIR"),
         "/tests/interop/pymavlink_tlog.py"
     );
-    let py = python();
+    let py = common::python_with("pymavlink");
     let write = |mode: &str| {
         let out = dir.path().join(format!("{mode}.tlog"));
         let st = std::process::Command::new(&py)
