@@ -2,7 +2,7 @@
 //! name the key, and `validate` checks ranges with messages that say what to fix.
 
 use crate::attitude::Place;
-use crate::decode::{CsvMapping, RawImuScale};
+use crate::decode::{CsvMapping, Format, InstanceChoice, RawImuScale};
 use crate::error::Error;
 use crate::gate::GateConfig;
 use serde::{Deserialize, Serialize};
@@ -176,12 +176,12 @@ impl Default for DaemonConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct InputConfig {
     /// "auto" (from content), "tlog" or "csv". Default: "auto".
-    pub format: String,
+    pub format: InputFormat,
     /// IMU instance in MAVLink logs: "auto" (default: every instance, each calibrated on its own in
     /// `replay`, the first with a magnetometer primary; the live service takes the primary), or one
     /// instance only: "highres_imu:0", "scaled_imu", "scaled_imu2", "scaled_imu3", "raw_imu:0".
     /// Default: "auto".
-    pub instance: String,
+    pub instance: InstanceChoice,
     /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them). Default: all 0.
     pub raw_imu_scale: RawImuScale,
     /// Column mapping and unit scales for users' own CSV files. Default: imucald's own column
@@ -189,17 +189,122 @@ pub struct InputConfig {
     pub csv: CsvMapping,
     /// Accelerometer units: "auto" (m/s^2 when the static norm is near g, else counts), "si", "counts".
     /// Default: "auto".
-    pub accel_units: String,
+    pub accel_units: AccelUnits,
+}
+
+/// `input.format`: how the format of a log is found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InputFormat {
+    /// From the file's content.
+    Auto,
+    Tlog,
+    Csv,
+}
+
+impl InputFormat {
+    /// The format asked for; `None` for "auto".
+    pub fn format(self) -> Option<Format> {
+        match self {
+            InputFormat::Auto => None,
+            InputFormat::Tlog => Some(Format::Tlog),
+            InputFormat::Csv => Some(Format::Csv),
+        }
+    }
+}
+
+/// `input.accel_units`: the accelerometer's units.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AccelUnits {
+    /// m/s^2 when the static norm is near g, else counts.
+    Auto,
+    /// m/s^2.
+    Si,
+    Counts,
+}
+
+/// `fit.accel_model`, and the model a norm fit is asked for: one model, the simplest the data
+/// support ("auto"), or six-position (accelerometer only).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelChoice {
+    /// The simplest of sphere, diag6 and sym9 the data support (nested F-test).
+    Auto,
+    Sphere,
+    Diag6,
+    Sym9,
+    Full12,
+    /// Six static poses near the axes (accelerometer only).
+    SixPosition,
+}
+
+impl ModelChoice {
+    /// The name in the configuration and the report.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelChoice::Auto => "auto",
+            ModelChoice::SixPosition => "six_position",
+            m => m.kind().map_or("?", crate::model::ModelKind::name),
+        }
+    }
+
+    /// The one model asked for, if one is.
+    pub fn kind(self) -> Option<crate::model::ModelKind> {
+        use crate::model::ModelKind;
+        match self {
+            ModelChoice::Auto | ModelChoice::SixPosition => None,
+            ModelChoice::Sphere => Some(ModelKind::Sphere),
+            ModelChoice::Diag6 => Some(ModelKind::Diag6),
+            ModelChoice::Sym9 => Some(ModelKind::Sym9),
+            ModelChoice::Full12 => Some(ModelKind::Full12),
+        }
+    }
+}
+
+/// `fit.mag_model`: [`ModelChoice`] without six-position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MagModelChoice {
+    Auto,
+    Sphere,
+    Diag6,
+    Sym9,
+    Full12,
+}
+
+impl From<MagModelChoice> for ModelChoice {
+    fn from(m: MagModelChoice) -> ModelChoice {
+        match m {
+            MagModelChoice::Auto => ModelChoice::Auto,
+            MagModelChoice::Sphere => ModelChoice::Sphere,
+            MagModelChoice::Diag6 => ModelChoice::Diag6,
+            MagModelChoice::Sym9 => ModelChoice::Sym9,
+            MagModelChoice::Full12 => ModelChoice::Full12,
+        }
+    }
+}
+
+impl From<crate::model::ModelKind> for MagModelChoice {
+    fn from(k: crate::model::ModelKind) -> MagModelChoice {
+        use crate::model::ModelKind;
+        match k {
+            ModelKind::Sphere => MagModelChoice::Sphere,
+            ModelKind::Diag6 => MagModelChoice::Diag6,
+            ModelKind::Sym9 => MagModelChoice::Sym9,
+            ModelKind::Full12 => MagModelChoice::Full12,
+        }
+    }
 }
 
 impl Default for InputConfig {
     fn default() -> Self {
         InputConfig {
-            format: "auto".into(),
-            instance: "auto".into(),
+            format: InputFormat::Auto,
+            instance: InstanceChoice::Auto,
             raw_imu_scale: RawImuScale::default(),
             csv: CsvMapping::default(),
-            accel_units: "auto".into(),
+            accel_units: AccelUnits::Auto,
         }
     }
 }
@@ -209,9 +314,9 @@ impl Default for InputConfig {
 pub struct FitConfig {
     /// Magnetometer model: "auto" (the simplest the data support, by a nested F-test), "sphere",
     /// "diag6", "sym9", "full12". Default: "auto".
-    pub mag_model: String,
+    pub mag_model: MagModelChoice,
     /// Accelerometer model: as `mag_model`, or "six_position". Default: "auto".
-    pub accel_model: String,
+    pub accel_model: ModelChoice,
     /// Refit every this many seconds of data, s. Default: 10.
     pub refit_every_s: f64,
     /// Local gravity, m/s^2 (the accelerometer's calibrated norm). Default: 9.80665.
@@ -237,8 +342,8 @@ pub struct FitConfig {
 impl Default for FitConfig {
     fn default() -> Self {
         FitConfig {
-            mag_model: "auto".into(),
-            accel_model: "auto".into(),
+            mag_model: MagModelChoice::Auto,
+            accel_model: ModelChoice::Auto,
             refit_every_s: 10.0,
             gravity_mps2: crate::types::STANDARD_GRAVITY_MPS2,
             min_separation_deg: 1.0,
@@ -545,7 +650,6 @@ impl Config {
 
     /// Range and name checks; each error names the key and the fix.
     pub fn validate(&self) -> Result<(), Error> {
-        self.validate_input()?;
         self.validate_fit()?;
         self.validate_daemon()?;
         self.validate_ui()?;
@@ -573,61 +677,8 @@ impl Config {
         Ok(())
     }
 
-    /// `[input]`: names the keys it refuses.
-    fn validate_input(&self) -> Result<(), Error> {
-        if !["auto", "tlog", "csv"].contains(&self.input.format.as_str()) {
-            return Err(err(
-                "input.format",
-                format!("`{}` is not one of auto, tlog, csv", self.input.format),
-            ));
-        }
-        let inst = self.input.instance.as_str();
-        let inst_ok = inst == "auto"
-            || ["scaled_imu", "scaled_imu2", "scaled_imu3"].contains(&inst)
-            || inst
-                .strip_prefix("highres_imu:")
-                .or(inst.strip_prefix("raw_imu:"))
-                .is_some_and(|n| n.parse::<u8>().is_ok());
-        if !inst_ok {
-            return Err(err("input.instance", format!("`{inst}` is not auto, highres_imu:N, scaled_imu, scaled_imu2, scaled_imu3 or raw_imu:N")));
-        }
-        if !["auto", "si", "counts"].contains(&self.input.accel_units.as_str()) {
-            return Err(err(
-                "input.accel_units",
-                format!(
-                    "`{}` is not one of auto, si, counts",
-                    self.input.accel_units
-                ),
-            ));
-        }
-        Ok(())
-    }
-
     /// `[fit]`, `[gate]` and `[accept]`.
     fn validate_fit(&self) -> Result<(), Error> {
-        let models = ["auto", "sphere", "diag6", "sym9", "full12"];
-        if !models.contains(&self.fit.mag_model.as_str()) {
-            return Err(err(
-                "fit.mag_model",
-                format!(
-                    "`{}` is not one of {}",
-                    self.fit.mag_model,
-                    models.join(", ")
-                ),
-            ));
-        }
-        if !models.contains(&self.fit.accel_model.as_str())
-            && self.fit.accel_model != "six_position"
-        {
-            return Err(err(
-                "fit.accel_model",
-                format!(
-                    "`{}` is not one of {}, six_position",
-                    self.fit.accel_model,
-                    models.join(", ")
-                ),
-            ));
-        }
         positive("fit.refit_every_s", self.fit.refit_every_s)?;
         positive("fit.gravity_mps2", self.fit.gravity_mps2)?;
         positive("fit.min_separation_deg", self.fit.min_separation_deg)?;

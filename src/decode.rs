@@ -319,8 +319,10 @@ impl FrameDecoder {
 // ---------------------------------------------------------------------------------------------
 // Messages to samples
 
-/// Which IMU instance to take samples from.
+/// Which IMU instance to take samples from (the `input.instance` setting, read and written as
+/// its text: "auto" or the instance's name).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum InstanceChoice {
     /// The first instance seen that carries a magnetometer (the default).
     Auto,
@@ -328,13 +330,41 @@ pub enum InstanceChoice {
     Named(String),
 }
 
-impl InstanceChoice {
-    /// From the `input.instance` setting: "auto", or an instance name.
-    pub fn from_setting(s: &str) -> InstanceChoice {
+impl std::str::FromStr for InstanceChoice {
+    type Err = String;
+
+    /// "auto", or the name of an instance of a kind the converter reads (an id from 0 to 255).
+    fn from_str(s: &str) -> Result<InstanceChoice, String> {
         if s == "auto" {
-            InstanceChoice::Auto
+            return Ok(InstanceChoice::Auto);
+        }
+        let named = ["scaled_imu", "scaled_imu2", "scaled_imu3"].contains(&s)
+            || s.strip_prefix("highres_imu:")
+                .or(s.strip_prefix("raw_imu:"))
+                .is_some_and(|n| n.parse::<u8>().is_ok());
+        if named {
+            Ok(InstanceChoice::Named(s.to_string()))
         } else {
-            InstanceChoice::Named(s.to_string())
+            Err(format!(
+                "`{s}` is not auto, highres_imu:N, scaled_imu, scaled_imu2, scaled_imu3 or raw_imu:N"
+            ))
+        }
+    }
+}
+
+impl TryFrom<String> for InstanceChoice {
+    type Error = String;
+
+    fn try_from(s: String) -> Result<InstanceChoice, String> {
+        s.parse()
+    }
+}
+
+impl From<InstanceChoice> for String {
+    fn from(c: InstanceChoice) -> String {
+        match c {
+            InstanceChoice::Auto => "auto".into(),
+            InstanceChoice::Named(n) => n,
         }
     }
 }
@@ -941,25 +971,37 @@ pub fn maybe_gunzip(bytes: &[u8]) -> std::io::Result<std::borrow::Cow<'_, [u8]>>
     }
 }
 
-/// Decode CSV text (header row first). Columns may come in any order and subset; empty cells mean
-/// "no reading". Rows with the wrong number of cells or unparsable numbers are counted and skipped.
+/// Decode CSV text (header row first; blank lines and `#` lines before it are skipped). Cells
+/// may be quoted (RFC 4180). Columns may come in any order and subset; empty cells mean "no
+/// reading". Rows with the wrong number of cells or unparsable numbers are counted and skipped.
 pub fn decode_csv(
     text: &str,
     mapping: &CsvMapping,
     stats: &mut DecodeStats,
 ) -> Result<Vec<Sample>, String> {
-    let mut lines = text.lines();
+    let mut start = 0;
     let header = loop {
-        match lines.next() {
-            Some(l) if l.trim().is_empty() || l.starts_with('#') => continue,
-            Some(l) => break l,
-            None => return Err("empty file: no header row".into()),
+        let Some(l) = text[start..].split_inclusive('\n').next() else {
+            return Err("empty file: no header row".into());
+        };
+        let line = l.trim_end_matches(['\n', '\r']);
+        if line.trim().is_empty() || line.starts_with('#') {
+            start += l.len();
+            continue;
         }
+        break line;
     };
-    let cols: Vec<String> = header
-        .split(',')
-        .map(|c| c.trim().trim_matches('"').to_string())
-        .collect();
+    let mut rows = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .flexible(true)
+        .trim(csv::Trim::All)
+        .from_reader(&text.as_bytes()[start..]);
+    let mut row = csv::StringRecord::new();
+    // (The header line is read whole above, so the reader's first record is the header.)
+    if !matches!(rows.read_record(&mut row), Ok(true)) {
+        return Err("empty file: no header row".into());
+    }
+    let cols: Vec<String> = row.iter().map(|c| c.to_string()).collect();
     // field index -> column index
     let mut idx = [usize::MAX; FIELDS.len()];
     for (fi, f) in FIELDS.iter().enumerate() {
@@ -1000,15 +1042,21 @@ pub fn decode_csv(
     });
     let mut last: Option<Sample> = None;
     let mut row_no = 0u64;
-    let mut cells: Vec<&str> = Vec::with_capacity(cols.len());
-    for line in lines {
-        if line.trim().is_empty() {
+    loop {
+        match rows.read_record(&mut row) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(_) => {
+                stats.skip("bad_row");
+                continue;
+            }
+        }
+        // A line of blanks only (an empty line the reader skips itself).
+        if row.len() == 1 && row[0].is_empty() {
             continue;
         }
         row_no += 1;
-        cells.clear();
-        cells.extend(line.split(','));
-        if cells.len() != cols.len() {
+        if row.len() != cols.len() {
             stats.skip("bad_row");
             continue;
         }
@@ -1019,7 +1067,7 @@ pub fn decode_csv(
             if ci == usize::MAX {
                 continue;
             }
-            let c = cells[ci].trim();
+            let c = &row[ci];
             if c.is_empty() {
                 continue;
             }
@@ -1115,8 +1163,8 @@ pub fn sample_from_fields(
     }
 }
 
-/// Input formats.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+/// Input formats (also the command line's `--format`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Format {
     Tlog,
@@ -1128,15 +1176,6 @@ pub enum Format {
 }
 
 impl Format {
-    pub fn parse(s: &str) -> Option<Format> {
-        match s {
-            "tlog" => Some(Format::Tlog),
-            "csv" => Some(Format::Csv),
-            "bin" => Some(Format::Bin),
-            "ulg" => Some(Format::Ulg),
-            _ => None,
-        }
-    }
     pub fn name(self) -> &'static str {
         match self {
             Format::Tlog => "tlog",

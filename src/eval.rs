@@ -46,8 +46,9 @@ pub struct EvalResult {
     pub misalignment_deg: f64,
 }
 
-/// Which constant offsets [`evaluate_with`] estimates and removes before the metrics.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+/// Which constant offsets [`evaluate_with`] estimates and removes before the metrics (the command
+/// line's `--align`: `none`, `heading` or `heading-and-misalignment`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Alignment {
     /// None: the reference is already aligned (BROAD's published data).
@@ -56,19 +57,8 @@ pub enum Alignment {
     /// A constant heading offset between the reference and the estimate world frames.
     Heading,
     /// The heading offset and a constant sensor-to-marker misalignment.
+    #[value(alias = "heading_and_misalignment", alias = "full")]
     HeadingAndMisalignment,
-}
-
-impl Alignment {
-    /// `none`, `heading` or `heading-and-misalignment` (also with `_`).
-    pub fn parse(s: &str) -> Option<Alignment> {
-        match s.trim().to_ascii_lowercase().replace('_', "-").as_str() {
-            "none" => Some(Alignment::None),
-            "heading" => Some(Alignment::Heading),
-            "heading-and-misalignment" | "full" => Some(Alignment::HeadingAndMisalignment),
-            _ => None,
-        }
-    }
 }
 
 /// What `imucald eval LOG` reports: the metrics of imucald's orientation filter on a log with a

@@ -37,6 +37,12 @@ pub enum FitFailure {
     NeedsCalibration,
 }
 
+impl std::fmt::Display for FitFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 impl FitFailure {
     pub fn name(self) -> &'static str {
         match self {

@@ -268,7 +268,7 @@ fn decide(
 /// The vector fit as the sensor's result: calibrated = A^-1 (raw - o).
 fn install(mag: &mut SensorResult, v: &VectorFit) {
     let r = &mut mag.report;
-    r.status = "ok".into();
+    r.status = crate::report::CalStatus::Ok;
     r.failure = None;
     r.detail = None;
     r.model = ModelKind::Full12.name().into();

@@ -1,9 +1,10 @@
 //! The `imucald` binary: a thin edge over the library (anyhow lives only here).
 
 use anyhow::{Context, Result};
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use imucald::config::Config;
 use imucald::decode::Format;
+use imucald::eval::Alignment;
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -50,8 +51,8 @@ struct ReplayArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-    #[arg(long)]
-    format: Option<String>,
+    #[arg(long, value_enum)]
+    format: Option<Format>,
     /// Write the JSON report here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -102,11 +103,11 @@ struct DiagnoseArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-    #[arg(long)]
-    format: Option<String>,
+    #[arg(long, value_enum)]
+    format: Option<Format>,
     /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
-    #[arg(long, default_value = "diag6")]
-    base_model: String,
+    #[arg(long, value_enum, default_value_t = BaseModel::Diag6)]
+    base_model: BaseModel,
     /// Family-wise significance level of each round.
     #[arg(long, default_value_t = 0.01)]
     alpha: f64,
@@ -129,12 +130,12 @@ struct EvalArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-    #[arg(long)]
-    format: Option<String>,
+    #[arg(long, value_enum)]
+    format: Option<Format>,
     /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
     /// heading, or heading-and-misalignment.
-    #[arg(long, default_value = "none")]
-    align: String,
+    #[arg(long, value_enum, ignore_case = true, default_value_t = Alignment::None)]
+    align: Alignment,
     /// Without the magnetometer (6D: heading from the gyro alone).
     #[arg(long)]
     no_mag: bool,
@@ -162,8 +163,8 @@ struct FixedYawArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
-    #[arg(long)]
-    format: Option<String>,
+    #[arg(long, value_enum)]
+    format: Option<Format>,
 }
 
 #[derive(Args)]
@@ -180,19 +181,27 @@ struct SimulateArgs {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// IMU message in a .tlog: highres_imu or scaled_imu.
-    #[arg(long, default_value = "highres_imu")]
-    message: String,
+    #[arg(long, value_enum, default_value_t = Message::HighresImu)]
+    message: Message,
     /// MAVLink version of the frames in a .tlog (1 or 2).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
     mavlink_version: u8,
 }
 
-/// `--format`: none (detect from the content), tlog, csv, bin or ulg.
-fn parse_format(f: Option<&str>) -> Result<Option<Format>> {
-    f.map(|f| {
-        Format::parse(f).with_context(|| format!("--format `{f}`: use tlog, csv, bin or ulg"))
-    })
-    .transpose()
+/// `diagnose --base-model`.
+#[derive(Clone, Copy, ValueEnum)]
+enum BaseModel {
+    Diag6,
+    Sym9,
+}
+
+/// `simulate --message`.
+#[derive(Clone, Copy, ValueEnum)]
+enum Message {
+    #[value(name = "highres_imu")]
+    HighresImu,
+    #[value(name = "scaled_imu")]
+    ScaledImu,
 }
 
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {
@@ -256,7 +265,6 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         diagnosis,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let format = parse_format(format.as_deref())?;
     let log = log.unwrap_or_else(|| {
         PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
     });
@@ -378,10 +386,9 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
         plot,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let format = parse_format(format.as_deref())?;
-    let base = match imucald::model::ModelKind::parse(&base_model) {
-        Some(m @ (imucald::model::ModelKind::Diag6 | imucald::model::ModelKind::Sym9)) => m,
-        _ => anyhow::bail!("--base-model `{base_model}`: use diag6 or sym9"),
+    let base = match base_model {
+        BaseModel::Diag6 => imucald::model::ModelKind::Diag6,
+        BaseModel::Sym9 => imucald::model::ModelKind::Sym9,
     };
     anyhow::ensure!(
         alpha > 0.0 && alpha < 1.0,
@@ -429,10 +436,7 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let format = parse_format(format.as_deref())?;
-    let alignment = imucald::eval::Alignment::parse(&align).with_context(|| {
-        format!("--align `{align}`: use none, heading or heading-and-misalignment")
-    })?;
+    let alignment = align;
     let input = imucald::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
     let fcfg = imucald::fusion::FusionConfig {
@@ -457,7 +461,7 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
 
 fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
     let cfg = load_config(a.config.as_ref())?;
-    let format = parse_format(a.format.as_deref())?;
+    let format = a.format;
     let place = match (a.lat, a.lon) {
         (Some(lat), Some(lon)) => imucald::attitude::Place::at(lat, lon),
         _ => cfg
@@ -534,15 +538,10 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
     let sim = simulate(&sc, seed);
     let name = out.to_string_lossy().to_lowercase();
     if name.ends_with(".tlog") {
-        let message = match message.as_str() {
-            "highres_imu" => ImuMessage::HighresImu,
-            "scaled_imu" => ImuMessage::ScaledImu,
-            m => anyhow::bail!("--message `{m}`: use highres_imu or scaled_imu"),
+        let message = match message {
+            Message::HighresImu => ImuMessage::HighresImu,
+            Message::ScaledImu => ImuMessage::ScaledImu,
         };
-        anyhow::ensure!(
-            mavlink_version == 1 || mavlink_version == 2,
-            "--mavlink-version must be 1 or 2"
-        );
         write_tlog(
             &out,
             &sim.samples,

@@ -48,8 +48,9 @@
 //! {"schema":"imucald.live/1","type":"status","level":"info","text":"mag calibrated"}
 //! ```
 
+use crate::fit::FitFailure;
 use crate::model::{rows_to_mat, Calibration, ModelKind};
-use crate::report::SensorCalibration;
+use crate::report::{CalStatus, SensorCalibration};
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
     MagCalStatus, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavParamType, MavResult,
@@ -618,14 +619,14 @@ pub fn command_ack(
 /// (MAG_CAL_FAILED_OFFSETS), diagonal_scaling 9 (MAG_CAL_FAILED_DIAG_SCALING), residuals 10
 /// (MAG_CAL_FAILED_RESIDUALS_HIGH), anything else 5 (MAG_CAL_FAILED).
 pub fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
-    if cal.status == "ok" {
+    if cal.status == CalStatus::Ok {
         return 4;
     }
-    match cal.failure.as_deref() {
-        Some("radius") => 7,
-        Some("offsets") => 8,
-        Some("diagonal_scaling") => 9,
-        Some("residuals") => 10,
+    match cal.failure {
+        Some(FitFailure::Radius) => 7,
+        Some(FitFailure::Offsets) => 8,
+        Some(FitFailure::DiagonalScaling) => 9,
+        Some(FitFailure::Residuals) => 10,
         _ => 5,
     }
 }
@@ -1193,8 +1194,8 @@ pub enum LiveEvent {
         sensor: String,
         /// The IMU instance's compass id (MAG_CAL_* `compass_id`).
         instance: u8,
-        status: String,
-        failure: Option<String>,
+        status: CalStatus,
+        failure: Option<FitFailure>,
         model: String,
         offset: Vec3,
         /// 1-sigma of `offset`.
@@ -1215,8 +1216,8 @@ impl LiveEvent {
         LiveEvent::Calibration {
             sensor: sensor.to_string(),
             instance,
-            status: cal.status.clone(),
-            failure: cal.failure.clone(),
+            status: cal.status,
+            failure: cal.failure,
             model: cal.model.clone(),
             offset: cal.offset,
             offset_sigma: cal.offset_sigma,
@@ -1303,7 +1304,7 @@ mod tests {
 
     fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
         Box::new(SensorCalibration {
-            status: "ok".into(),
+            status: CalStatus::Ok,
             failure: None,
             detail: None,
             model: "sym9".into(),
@@ -1603,10 +1604,10 @@ mod tests {
         2.0 * num.atan2(den)
     }
 
-    fn sensor_cal(status: &str, failure: Option<&str>) -> SensorCalibration {
+    fn sensor_cal(status: CalStatus, failure: Option<FitFailure>) -> SensorCalibration {
         SensorCalibration {
-            status: status.into(),
-            failure: failure.map(String::from),
+            status,
+            failure,
             detail: None,
             model: "sym9".into(),
             units: "uT".into(),
@@ -1778,7 +1779,7 @@ mod tests {
 
     #[test]
     fn report_in_ardupilot_units_and_signs() {
-        let cal = sensor_cal("ok", None);
+        let cal = sensor_cal(CalStatus::Ok, None);
         let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report(0, &cal) else {
             panic!()
         };
@@ -1826,15 +1827,15 @@ mod tests {
     #[test]
     fn report_failure_codes_reach_the_wire_including_8_to_10() {
         for (failure, code) in [
-            (Some("radius"), 7u8),
-            (Some("offsets"), 8),
-            (Some("diagonal_scaling"), 9),
-            (Some("residuals"), 10),
-            (Some("coverage"), 5),
-            (Some("did_not_converge"), 5),
+            (Some(FitFailure::Radius), 7u8),
+            (Some(FitFailure::Offsets), 8),
+            (Some(FitFailure::DiagonalScaling), 9),
+            (Some(FitFailure::Residuals), 10),
+            (Some(FitFailure::Coverage), 5),
+            (Some(FitFailure::DidNotConverge), 5),
             (None, 5),
         ] {
-            let cal = sensor_cal("failed", failure);
+            let cal = sensor_cal(CalStatus::Failed, failure);
             assert_eq!(mag_cal_status_code(&cal), code);
             let bytes = MavEncoder::default().encode(&mag_cal_report(0, &cal));
             // MAVLink 2 header is 10 bytes; cal_status is payload byte 42 (after 10 floats, id, mask).
@@ -1847,7 +1848,7 @@ mod tests {
                 other => panic!("{other:?}"),
             }
         }
-        assert_eq!(mag_cal_status_code(&sensor_cal("ok", None)), 4);
+        assert_eq!(mag_cal_status_code(&sensor_cal(CalStatus::Ok, None)), 4);
     }
 
     #[test]
@@ -2196,7 +2197,11 @@ mod tests {
                 regions: crate::coverage::regions_hex(&[true; 45]),
                 direction: [0.6, 0.0, 0.8],
             },
-            LiveEvent::calibration("mag", 0, &sensor_cal("failed", Some("residuals"))),
+            LiveEvent::calibration(
+                "mag",
+                0,
+                &sensor_cal(CalStatus::Failed, Some(FitFailure::Residuals)),
+            ),
             LiveEvent::Status {
                 level: severity_name(6).into(),
                 text: "line\nbreak \"quoted\"".into(),

@@ -6,14 +6,14 @@
 //! magnetometer direction bins. Per refit: norm fits of mag (bin means) and accel (pose means),
 //! automatic model choice, acceptance checks, gyro bias from poses.
 
-use crate::config::{AcceptLimits, Config};
+use crate::config::{AccelUnits, AcceptLimits, Config, MagModelChoice, ModelChoice};
 use crate::coverage::{coverage, Coverage, DirectionBins, Progress, ProgressReport};
 use crate::fit::{
     fit_norm, significantly_better, six_position, FitFailure, NormFit, NormFitOptions,
 };
 use crate::gate::{Pose, Prefilter3, StaticDetector};
 use crate::model::{Calibration, ModelKind};
-use crate::report::{Candidate, GyroCalibration, RefitReport, SensorCalibration};
+use crate::report::{CalStatus, Candidate, GyroCalibration, RefitReport, SensorCalibration};
 use crate::types::{norm, Sample, Unit, Vec3};
 use nalgebra::Matrix3;
 
@@ -24,8 +24,8 @@ pub struct FitInput {
     pub poses: Vec<Pose>,
     pub mag_units: Unit,
     pub gyro_units: Unit,
-    /// From config: "auto", "si", "counts".
-    pub accel_units: String,
+    /// From config.
+    pub accel_units: AccelUnits,
     /// Hold every this-many-th magnetometer point and pose out of the fits (0: fit on all); see
     /// [`hold_out`].
     pub hold_out_every: usize,
@@ -271,7 +271,7 @@ impl Pipeline {
             poses,
             mag_units: self.mag_units,
             gyro_units: self.gyro_units,
-            accel_units: self.cfg.input.accel_units.clone(),
+            accel_units: self.cfg.input.accel_units,
             hold_out_every: self.hold_out_every,
         }
     }
@@ -285,8 +285,8 @@ impl Pipeline {
                 t_s,
                 sensor: name.into(),
                 model: r.report.model.clone(),
-                status: r.report.status.clone(),
-                failure: r.report.failure.clone(),
+                status: r.report.status,
+                failure: r.report.failure,
                 rms_residual: r.report.rms_residual,
             });
         }
@@ -429,8 +429,8 @@ pub const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
 fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> SensorCalibration {
     SensorCalibration {
-        status: "failed".into(),
-        failure: Some(failure.name().into()),
+        status: CalStatus::Failed,
+        failure: Some(failure),
         detail: Some(detail),
         model: model.into(),
         units: units.into(),
@@ -449,7 +449,7 @@ fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> Sens
 
 /// Which sensor a norm fit is for, and what its output must look like.
 struct SensorSpec<'a> {
-    model: &'a str,
+    model: ModelChoice,
     target_norm: Option<f64>,
     units: &'a str,
     /// Check radius and offsets in physical units.
@@ -491,7 +491,7 @@ pub const MAX_OUTLIER_SHARE: f64 = 0.25;
 fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     if let Some(d) = axis_fault(points) {
         return empty_result(
-            failed(spec.model, spec.units, FitFailure::AxisFault, d),
+            failed(spec.model.name(), spec.units, FitFailure::AxisFault, d),
             points,
         );
     }
@@ -500,15 +500,17 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     // disturbed cluster: look for outliers then too.
     let suspicious = has_outliers(&plain.residuals)
         || matches!(
-            plain.report.failure.as_deref(),
-            Some("residuals")
-                | Some("did_not_converge")
-                | Some("not_identifiable")
-                | Some("radius")
+            plain.report.failure,
+            Some(
+                FitFailure::Residuals
+                    | FitFailure::DidNotConverge
+                    | FitFailure::NotIdentifiable
+                    | FitFailure::Radius
+            )
         );
     // Too little of the sphere even before calibration: leaving points out cannot add any, so the
     // robust pass (several more fits, slow ones on a small cap) would only confirm the failure.
-    let raw_coverage_short = plain.report.failure.as_deref() == Some("coverage")
+    let raw_coverage_short = plain.report.failure == Some(FitFailure::Coverage)
         && plain.coverage_before.filled < spec.limits.min_filled_regions;
     if spec.is_accel || points.len() < 30 || !suspicious || raw_coverage_short {
         return plain;
@@ -832,7 +834,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     } else {
         let Some(ci) = choose_model(&fits, n) else {
             let (why, detail) = no_fit_reason(n, &cov_before, spec);
-            return empty_result(failed(spec.model, spec.units, why, detail), points);
+            return empty_result(failed(spec.model.name(), spec.units, why, detail), points);
         };
         candidates[ci].chosen = true;
         (
@@ -843,11 +845,11 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     let dirs_after: Vec<Vec3> = points.iter().map(|p| cal.apply(p)).collect();
     let residuals: Vec<f64> = dirs_after.iter().map(|c| norm(c) - report.radius).collect();
     let cov_after = coverage(&dirs_after, &[0.0; 3]);
-    if report.status == "ok" {
+    if report.status == CalStatus::Ok {
         check_limits(&mut report, &cal, &cov_after, spec);
     }
     blame_coverage(&mut report, &cov_before, spec);
-    let calibration = (report.status == "ok").then_some(cal);
+    let calibration = (report.status == CalStatus::Ok).then_some(cal);
     SensorResult {
         report,
         calibration,
@@ -867,9 +869,8 @@ fn candidate_fits(fitter: &mut crate::fit::NormFitter, spec: &SensorSpec) -> Vec
         ..Default::default()
     };
     let kinds: Vec<ModelKind> = match spec.model {
-        "auto" => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
-        "six_position" => vec![],
-        m => vec![ModelKind::parse(m).unwrap_or(ModelKind::Sym9)],
+        ModelChoice::Auto => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
+        m => m.kind().into_iter().collect(),
     };
     kinds
         .iter()
@@ -902,7 +903,8 @@ fn choose_model(fits: &[NormFit], n: usize) -> Option<usize> {
 /// poses near the axes.
 fn six_position_fit(points: &[Vec3], spec: &SensorSpec) -> Option<Calibration> {
     if spec.is_accel
-        && (spec.model == "six_position" || (spec.model == "auto" && points.len() < 12))
+        && (spec.model == ModelChoice::SixPosition
+            || (spec.model == ModelChoice::Auto && points.len() < 12))
     {
         six_position(
             points,
@@ -935,7 +937,7 @@ fn six_position_report(
         chosen: true,
     });
     SensorCalibration {
-        status: "ok".into(),
+        status: CalStatus::Ok,
         failure: None,
         detail: None,
         model: "six_position".into(),
@@ -984,7 +986,7 @@ fn norm_fit_report(
     candidates: Vec<Candidate>,
 ) -> SensorCalibration {
     let mut rep = SensorCalibration {
-        status: "ok".into(),
+        status: CalStatus::Ok,
         failure: None,
         detail: None,
         model: f.calibration.model.name().into(),
@@ -1023,8 +1025,8 @@ fn norm_fit_report(
 /// because of the coverage: say so, since that is what the user can fix.
 fn blame_coverage(report: &mut SensorCalibration, cov_before: &Coverage, spec: &SensorSpec) {
     let numeric = matches!(
-        report.failure.as_deref(),
-        Some("did_not_converge") | Some("not_identifiable")
+        report.failure,
+        Some(FitFailure::DidNotConverge | FitFailure::NotIdentifiable)
     );
     if numeric && cov_before.filled < spec.limits.min_filled_regions {
         let d = format!(
@@ -1036,8 +1038,8 @@ fn blame_coverage(report: &mut SensorCalibration, cov_before: &Coverage, spec: &
 }
 
 fn set_fail(rep: &mut SensorCalibration, why: FitFailure, detail: String) {
-    rep.status = "failed".into();
-    rep.failure = Some(why.name().into());
+    rep.status = CalStatus::Failed;
+    rep.failure = Some(why);
     rep.detail = Some(detail);
 }
 
@@ -1128,8 +1130,8 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
     let units = if counts { "counts" } else { "rad/s" }.to_string();
     if g.len() < 2 {
         return GyroCalibration {
-            status: "failed".into(),
-            failure: Some("not_enough_samples".into()),
+            status: CalStatus::Failed,
+            failure: Some(FitFailure::NotEnoughSamples),
             units,
             bias: [0.0; 3],
             bias_sigma: [0.0; 3],
@@ -1152,7 +1154,7 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
         }
     }
     GyroCalibration {
-        status: "ok".into(),
+        status: CalStatus::Ok,
         failure: None,
         units,
         bias: mean,
@@ -1167,11 +1169,11 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
 const MAX_FRESH_MAG: usize = 4096;
 
 /// Detect accelerometer units from the static norms: near g means m/s^2, otherwise counts.
-pub fn accel_units(poses: &[Pose], setting: &str) -> Unit {
+pub fn accel_units(poses: &[Pose], setting: AccelUnits) -> Unit {
     match setting {
-        "si" => Unit::Si,
-        "counts" => Unit::Counts,
-        _ => {
+        AccelUnits::Si => Unit::Si,
+        AccelUnits::Counts => Unit::Counts,
+        AccelUnits::Auto => {
             let mut norms: Vec<f64> = poses.iter().map(|p| norm(&p.accel)).collect();
             if norms.is_empty() {
                 return Unit::Si;
@@ -1211,16 +1213,16 @@ pub fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) {
 
 /// All fits from a snapshot. Pure; may run on any thread.
 pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
-    let au = accel_units(&input.poses, &input.accel_units);
-    let mag_full12 = cfg.fit.mag_model == "full12";
+    let au = accel_units(&input.poses, input.accel_units);
+    let mag_full12 = cfg.fit.mag_model == MagModelChoice::Full12;
     let (mag_fit, mag_held) = hold_out(&input.mag_points, input.hold_out_every);
     let mut mag = fit_sensor(
         &mag_fit,
         &SensorSpec {
             model: if mag_full12 {
-                "sym9"
+                ModelChoice::Sym9
             } else {
-                &cfg.fit.mag_model
+                cfg.fit.mag_model.into()
             },
             target_norm: None,
             units: if input.mag_units == Unit::Si {
@@ -1239,7 +1241,7 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
     let mut accel = fit_sensor(
         &accel_fit,
         &SensorSpec {
-            model: &cfg.fit.accel_model,
+            model: cfg.fit.accel_model,
             target_norm: Some(cfg.fit.gravity_mps2),
             units: "m/s^2",
             units_known: au == Unit::Si,
@@ -1312,7 +1314,7 @@ impl Calibrator {
         Calibrator {
             accel: results.accel.calibration,
             mag: results.mag.calibration,
-            gyro_bias: (results.gyro.status == "ok").then_some(results.gyro.bias),
+            gyro_bias: (results.gyro.status == CalStatus::Ok).then_some(results.gyro.bias),
             declination_deg,
             last_accel: None,
             last_mag: None,

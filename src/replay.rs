@@ -3,8 +3,11 @@
 use crate::config::Config;
 use crate::decode::Format;
 use crate::error::Error;
+use crate::fit::FitFailure;
 use crate::pipeline::{Calibrated, Calibrator, FitResults, Pipeline};
-use crate::report::{CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA};
+use crate::report::{
+    CalStatus, CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA,
+};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -216,9 +219,12 @@ fn write_calibrated(
     let fcfg = cfg.fusion_config(declination);
     let mut filter = gyro_k.map(|k| (k, crate::fusion::OrientationFilter::new(fcfg)));
     let dt = crate::fusion::median_dt(samples);
-    let mut text = String::with_capacity(samples.len() * 180);
-    text.push_str("t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,");
-    text.push_str("qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg\n");
+    let mut out = csv::Writer::from_writer(Vec::with_capacity(samples.len() * 180));
+    let write_err = |e: csv::Error| Error::Write {
+        path: p.to_path_buf(),
+        source: e.into(),
+    };
+    out.write_record(CALIBRATED_COLUMNS).map_err(write_err)?;
     for s in samples {
         let mut c = cal.apply(&pipe.to_body(s));
         let mut fused = None;
@@ -230,9 +236,12 @@ fn write_calibrated(
             f.update_sample(&c.as_sample(), dt);
             fused = f.initialized().then(|| f.orientation());
         }
-        write_row(&mut text, &c, fused.as_ref());
+        write_row(&mut out, &c, fused.as_ref()).map_err(write_err)?;
     }
-    crate::publish::write_atomic(p, text.as_bytes())
+    let bytes = out
+        .into_inner()
+        .map_err(|e| write_err(e.into_error().into()))?;
+    crate::publish::write_atomic(p, &bytes)
 }
 
 /// ArduPilot, PX4 and Fusion parameter files in `dir`: every compass of the log under its own
@@ -287,7 +296,7 @@ fn gyro_scale(
     Option<crate::report::GyroScaleReport>,
     Option<crate::gyro::ScaleFailure>,
 ) {
-    if results.gyro.status != "ok" {
+    if results.gyro.status != CalStatus::Ok {
         return (None, None);
     }
     let Some(bias) = crate::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
@@ -553,40 +562,67 @@ fn shown_coverage(r: &crate::pipeline::SensorResult) -> crate::coverage::Coverag
     }
 }
 
-fn opt3(out: &mut String, v: Option<[f64; 3]>) {
-    match v {
-        Some(v) => {
-            let _ = write!(out, ",{:.6},{:.6},{:.6}", v[0], v[1], v[2]);
-        }
-        None => out.push_str(",,,"),
-    }
-}
+/// The columns of the calibrated CSV (`replay --calibrated-out`).
+const CALIBRATED_COLUMNS: [&str; 20] = [
+    "t",
+    "ax",
+    "ay",
+    "az",
+    "gx",
+    "gy",
+    "gz",
+    "mx",
+    "my",
+    "mz",
+    "roll_deg",
+    "pitch_deg",
+    "heading_deg",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "fused_roll_deg",
+    "fused_pitch_deg",
+    "fused_heading_deg",
+];
 
-fn write_row(out: &mut String, c: &Calibrated, fused: Option<&crate::fusion::Orientation>) {
-    let _ = write!(out, "{:.6}", c.t_s);
-    opt3(out, c.accel_mps2);
-    opt3(out, c.gyro_rad_s);
-    opt3(out, c.mag_ut);
-    for v in [c.roll_deg, c.pitch_deg, c.heading_deg] {
-        match v {
-            Some(x) => {
-                let _ = write!(out, ",{x:.4}");
-            }
-            None => out.push(','),
+/// One calibrated sample as a row of [`CALIBRATED_COLUMNS`]: empty cells for what it lacks.
+fn write_row(
+    out: &mut csv::Writer<Vec<u8>>,
+    c: &Calibrated,
+    fused: Option<&crate::fusion::Orientation>,
+) -> Result<(), csv::Error> {
+    let mut cells: [Option<(f64, usize)>; 20] = [None; 20];
+    cells[0] = Some((c.t_s, 6));
+    for (k, v) in [c.accel_mps2, c.gyro_rad_s, c.mag_ut].iter().enumerate() {
+        for i in 0..3 {
+            cells[1 + 3 * k + i] = v.map(|v| (v[i], 6));
         }
     }
-    match fused {
-        Some(o) => {
-            let q = o.q.quaternion();
-            let _ = write!(
-                out,
-                ",{:.7},{:.7},{:.7},{:.7},{:.4},{:.4},{:.4}",
-                q.w, q.i, q.j, q.k, o.roll_deg, o.pitch_deg, o.heading_deg
-            );
-        }
-        None => out.push_str(",,,,,,,"),
+    for (i, v) in [c.roll_deg, c.pitch_deg, c.heading_deg].iter().enumerate() {
+        cells[10 + i] = v.map(|x| (x, 4));
     }
-    out.push('\n');
+    if let Some(o) = fused {
+        let q = o.q.quaternion();
+        for (i, v) in [q.w, q.i, q.j, q.k].into_iter().enumerate() {
+            cells[13 + i] = Some((v, 7));
+        }
+        for (i, v) in [o.roll_deg, o.pitch_deg, o.heading_deg]
+            .into_iter()
+            .enumerate()
+        {
+            cells[17 + i] = Some((v, 4));
+        }
+    }
+    let mut text = String::new();
+    for cell in cells {
+        text.clear();
+        if let Some((v, digits)) = cell {
+            let _ = write!(text, "{v:.digits$}");
+        }
+        out.write_field(&text)?;
+    }
+    out.write_record(None::<&[u8]>)
 }
 
 /// A terminal summary of a report.
@@ -629,12 +665,12 @@ pub fn summary(r: &Report) -> String {
     }
     for i in r.instances.iter().filter(|i| !i.primary) {
         let m = &i.calibration.mag;
-        let what = match m.status.as_str() {
-            "ok" => format!(
+        let what = match m.status {
+            CalStatus::Ok => format!(
                 "offset [{:.4}, {:.4}, {:.4}] {}, rms residual {:.4}",
                 m.offset[0], m.offset[1], m.offset[2], m.units, m.rms_residual
             ),
-            _ => format!("FAILED ({})", m.failure.as_deref().unwrap_or("?")),
+            CalStatus::Failed => format!("FAILED ({})", m.failure.map_or("?", FitFailure::name)),
         };
         let _ = writeln!(
             s,
@@ -649,7 +685,7 @@ pub fn summary(r: &Report) -> String {
         r.coverage.mag.filled, r.coverage.accel.filled
     );
     for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
-        if c.status == "ok" {
+        if c.status == CalStatus::Ok {
             let _ = writeln!(
                 s,
                 "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
@@ -659,7 +695,7 @@ pub fn summary(r: &Report) -> String {
             let _ = writeln!(
                 s,
                 "{name:5}: FAILED ({}): {}",
-                c.failure.as_deref().unwrap_or("?"),
+                c.failure.map_or("?", FitFailure::name),
                 c.detail.as_deref().unwrap_or("")
             );
         }
@@ -668,7 +704,7 @@ pub fn summary(r: &Report) -> String {
         let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
     }
     let g = &r.calibration.gyro;
-    if g.status == "ok" {
+    if g.status == CalStatus::Ok {
         let _ = writeln!(
             s,
             "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",

@@ -2,6 +2,7 @@
 
 use crate::coverage::Coverage;
 use crate::decode::DecodeStats;
+use crate::fit::FitFailure;
 use crate::gate::Pose;
 use crate::types::Vec3;
 use serde::{Deserialize, Serialize};
@@ -248,14 +249,37 @@ pub struct CalibrationReport {
     pub gyro: GyroCalibration,
 }
 
+/// Whether a calibration passed: "ok" or "failed" in the report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalStatus {
+    Ok,
+    Failed,
+}
+
+impl std::fmt::Display for CalStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl CalStatus {
+    /// The report's name of the status.
+    pub fn name(self) -> &'static str {
+        match self {
+            CalStatus::Ok => "ok",
+            CalStatus::Failed => "failed",
+        }
+    }
+}
+
 /// One sensor's calibration result.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct SensorCalibration {
-    /// "ok" or "failed".
-    pub status: String,
-    /// Null or the reason: not_enough_samples, not_identifiable, coverage, radius, offsets,
-    /// diagonal_scaling, residuals, did_not_converge.
-    pub failure: Option<String>,
+    pub status: CalStatus,
+    /// Null or the reason ([`FitFailure`]): not_enough_samples, not_identifiable, coverage, radius,
+    /// offsets, diagonal_scaling, residuals, did_not_converge, disturbed, axis_fault, held_out.
+    pub failure: Option<FitFailure>,
     /// Human-readable detail of the failure.
     pub detail: Option<String>,
     pub model: String,
@@ -287,7 +311,7 @@ impl SensorCalibration {
     /// know reads as the general one (full12), which applies the stored matrix as it is.
     pub fn calibration(&self) -> Option<crate::model::Calibration> {
         use crate::model::ModelKind;
-        (self.status == "ok").then(|| crate::model::Calibration {
+        (self.status == CalStatus::Ok).then(|| crate::model::Calibration {
             model: ModelKind::parse(&self.model).unwrap_or(ModelKind::Full12),
             offset: self.offset,
             matrix: self.matrix,
@@ -311,9 +335,9 @@ pub struct Candidate {
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct GyroCalibration {
-    /// "ok" or "failed".
-    pub status: String,
-    pub failure: Option<String>,
+    pub status: CalStatus,
+    /// Null or not_enough_samples.
+    pub failure: Option<FitFailure>,
     pub units: String,
     /// Bias = mean gyro over the static poses, rad/s.
     pub bias: Vec3,
@@ -351,7 +375,7 @@ pub struct RefitReport {
     pub t_s: f64,
     pub sensor: String,
     pub model: String,
-    pub status: String,
-    pub failure: Option<String>,
+    pub status: CalStatus,
+    pub failure: Option<FitFailure>,
     pub rms_residual: f64,
 }

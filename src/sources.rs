@@ -1,7 +1,7 @@
 //! Sources: the only layer that knows where bytes come from. For now, files (`file:` addresses and
 //! plain paths) decoded whole; live transports build on the same decoders.
 
-use crate::config::Config;
+use crate::config::{AccelUnits, Config};
 use crate::decode::{
     decode_csv, decode_tlog_with, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
     InstanceInfo, MessageConverter,
@@ -133,7 +133,7 @@ pub fn decode_log_batched(
         path: path.to_path_buf(),
         message: format!("gzip: {e}"),
     })?;
-    let cfg_format = Format::parse(&cfg.input.format);
+    let cfg_format = cfg.input.format.format();
     let format = match format.or(cfg_format).or_else(|| detect_format(&data)) {
         Some(f) => f,
         None => {
@@ -145,7 +145,7 @@ pub fn decode_log_batched(
     };
     match format {
         Format::Tlog => {
-            let choice = InstanceChoice::from_setting(&cfg.input.instance);
+            let choice = cfg.input.instance.clone();
             let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
             if conv.choice == InstanceChoice::Auto {
                 conv = conv.with_other_instances();
@@ -193,9 +193,9 @@ pub fn decode_log_batched(
                     path: path.to_path_buf(),
                     message,
                 })?;
-            let accel_units = match cfg.input.accel_units.as_str() {
-                "counts" => Unit::Counts,
-                _ => Unit::Si,
+            let accel_units = match cfg.input.accel_units {
+                AccelUnits::Counts => Unit::Counts,
+                AccelUnits::Auto | AccelUnits::Si => Unit::Si,
             };
             let units = Units {
                 accel: accel_units,

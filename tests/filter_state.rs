@@ -1,7 +1,9 @@
 //! The live service keeps what its orientation filter learnt (residual gyro bias, field reference)
 //! in the calibration file and starts from it the next time, instead of learning it again.
 
-use imucald::config::{Config, SourceConfig};
+mod common;
+
+use imucald::config::Config;
 use imucald::daemon::load_store;
 use std::path::Path;
 use std::time::Duration;
@@ -11,12 +13,7 @@ use std::time::Duration;
 async fn run_tumble(cal_dir: &Path) -> Vec<[f64; 3]> {
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut cfg = Config::default();
-    cfg.daemon.sources = vec![SourceConfig {
-        address: "sim:tumble?seed=3&speed=0".into(),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
+    cfg.daemon.sources = vec![common::mavlink_source("sim:tumble?seed=3&speed=0")];
     cfg.daemon.calibration_dir = cal_dir.display().to_string();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
     cfg.daemon.attitude_every_samples = 500;

@@ -4,24 +4,17 @@
 //! MAG_CAL_REPORT and writes the calibration. The peer (`tests/interop/pymavlink_fixed_yaw.py`) is
 //! written against pymavlink; `./scripts/test` installs it into `.venv`.
 
+mod common;
+
 use imucald::attitude::{earth_field, Place};
 use std::process::{Command, Stdio};
 use std::time::Duration;
-
-fn python() -> String {
-    std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string())
-}
 
 #[test]
 fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("cal");
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = common::free_udp_port();
     let cfg = dir.path().join("svc.toml");
     // On command only: a resting vehicle never fills the sphere, and nothing else may install a
     // calibration meanwhile.
@@ -53,7 +46,7 @@ fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
     let b = earth_field(&place).unwrap().field_ned_ut();
     let hard = [14.0, -27.5, 33.0];
     let (yaw, roll, pitch) = (123.0, 3.0, -2.0);
-    let out = Command::new(python())
+    let out = Command::new(common::python_with("pymavlink"))
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/interop/pymavlink_fixed_yaw.py"

@@ -6,10 +6,13 @@
 //! unless `IMUCALD_REQUIRE_DATA=1`, when they fail.
 #![allow(clippy::needless_range_loop)]
 
+mod common;
+
 use imucald::config::Config;
 use imucald::flightlog::dataflash::DfReader;
 use imucald::flightlog::ulog::UlogReader;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::report::Report;
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -42,22 +45,6 @@ macro_rules! require_data {
             None => return,
         }
     };
-}
-
-/// The Python with pyulog that scripts/test installs (.venv), or IMUCALD_PYTHON.
-fn python_with_pyulog() -> String {
-    let p = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = Command::new(&p)
-        .args(["-c", "import pyulog"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false);
-    assert!(
-        ok,
-        "no Python with pyulog at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON"
-    );
-    p
 }
 
 fn run_replay(path: &Path) -> Report {
@@ -265,7 +252,7 @@ fn dataflash_mag_is_the_raw_field_with_the_onboard_correction_undone() {
 // ULog against pyulog
 
 fn pyulog(path: &Path) -> Value {
-    let out = Command::new(python_with_pyulog())
+    let out = Command::new(common::python_with("pyulog"))
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/interop/pyulog_dump.py"
@@ -581,7 +568,7 @@ fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
             ("mag", &r.calibration.mag, &sim.truth.mag),
             ("accel", &r.calibration.accel, &sim.truth.accel),
         ] {
-            assert_eq!(fit.status, "ok", "{ext} {name}: {:?}", fit.detail);
+            assert_eq!(fit.status, CalStatus::Ok, "{ext} {name}: {:?}", fit.detail);
             let off = (0..3)
                 .map(|k| (fit.offset[k] - truth.offset[k]).abs())
                 .fold(0.0, f64::max);

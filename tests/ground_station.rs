@@ -5,15 +5,15 @@
 //! prints the MAG_CAL_REPORT and answers it with DO_ACCEPT_MAG_CAL, and the service writes the
 //! calibration. `./scripts/test` installs MAVProxy into `.venv`.
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 fn mavproxy() -> PathBuf {
-    let py = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let p = PathBuf::from(py).with_file_name("mavproxy.py");
+    let p = PathBuf::from(common::python_path()).with_file_name("mavproxy.py");
     assert!(
         p.exists(),
         "no MAVProxy at {}: run ./scripts/test (it installs MAVProxy into .venv)",
@@ -22,20 +22,12 @@ fn mavproxy() -> PathBuf {
     p
 }
 
-fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 #[test]
 fn mavproxy_magcal_start_calibrates_and_accepts() {
     let mp = mavproxy();
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("cal");
-    let port = free_udp_port();
+    let port = common::free_udp_port();
     let cfg = dir.path().join("svc.toml");
     std::fs::write(
         &cfg,

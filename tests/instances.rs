@@ -6,8 +6,11 @@
 //! calibrations, each near its own truth, in ArduPilot's COMPASS_OFS convention (mGauss, added:
 //! COMPASS_OFS = -offset).
 
+mod common;
+
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use mavlink::dialects::ardupilotmega::MavMessage;
 
@@ -83,7 +86,7 @@ fn two_compasses_in_one_log_are_calibrated_each_against_its_own_truth() {
         assert_eq!(inst.samples as usize, sim.samples.len());
         assert_eq!(inst.time.segments, 1, "compass {id}: {:?}", inst.time);
         let m = &inst.calibration.mag;
-        assert_eq!(m.status, "ok", "compass {id}: {:?}", m.detail);
+        assert_eq!(m.status, CalStatus::Ok, "compass {id}: {:?}", m.detail);
         // COMPASS_OFS (mGauss, added) from ours and from the truth: 1 uT = 10 mGauss.
         let ofs = |o: &[f64; 3]| o.map(|x| -10.0 * x);
         let (got, want) = (ofs(&m.offset), ofs(&sim.truth.mag.offset));
@@ -113,7 +116,7 @@ fn a_config_can_still_pick_one_instance() {
     let log = dir.path().join("two.tlog");
     write_tlog(&log, &[(&a, 0), (&b, 1)]);
     let mut cfg = Config::default();
-    cfg.input.instance = "highres_imu:1".into();
+    cfg.input.instance = "highres_imu:1".parse().unwrap();
     let out = replay(&log, &cfg, &ReplayOptions::default(), &mut |_, _| {}).unwrap();
     let r = &out.report;
     assert!(r.instances.is_empty());
@@ -142,20 +145,8 @@ async fn live_service_reports_each_compass_on_its_own() {
     let dir = tempfile::tempdir().unwrap();
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = vec![imucald::config::SourceConfig {
-        address: format!("udpin:127.0.0.1:{port}"),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
+    let (port, mut cfg) = common::udpin_config(dir.path());
     let cal_dir = dir.path().join("cal");
-    cfg.daemon.calibration_dir = cal_dir.display().to_string();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
     cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
     cfg.fit.refit_every_s = 5.0;

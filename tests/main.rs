@@ -1,8 +1,13 @@
 //! The one integration-test binary: real recordings, simulated logs with known truth, the CLI.
 #![allow(clippy::needless_range_loop)]
 
+mod common;
+
+use common::{free_udp_port, mavlink_source, python_with, udpin_config};
 use imucald::config::Config;
+use imucald::fit::FitFailure;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use std::path::{Path, PathBuf};
 
 /// Return early from a test (with a plain message) when the shared data is absent; a failure instead
@@ -44,7 +49,13 @@ mod real_data {
                 &Config::default(),
             );
             let m = &out.report.calibration.mag;
-            assert_eq!(m.status, "ok", "{set}: {:?} {:?}", m.failure, m.detail);
+            assert_eq!(
+                m.status,
+                CalStatus::Ok,
+                "{set}: {:?} {:?}",
+                m.failure,
+                m.detail
+            );
             let r = reference_hard_iron(&data.join(format!("tyrex/{set}.reference.json")));
             for k in 0..3 {
                 let d = (m.offset[k] - r[k]).abs();
@@ -111,7 +122,7 @@ mod real_data {
             a.model, a.rms_residual
         );
         assert!(poses >= 34, "{poses} static poses");
-        assert_eq!(a.status, "ok", "{:?}", a.detail);
+        assert_eq!(a.status, CalStatus::Ok, "{:?}", a.detail);
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
         assert_eq!(a.units, "m/s^2");
         assert_eq!(out.report.calibration.gyro.units, "counts");
@@ -153,10 +164,10 @@ mod real_data {
             &Config::default(),
         );
         assert_eq!(
-            out.report.calibration.mag.failure.as_deref(),
-            Some("coverage")
+            out.report.calibration.mag.failure,
+            Some(FitFailure::Coverage)
         );
-        assert_eq!(out.report.calibration.accel.status, "ok");
+        assert_eq!(out.report.calibration.accel.status, CalStatus::Ok);
     }
 }
 
@@ -268,8 +279,8 @@ mod simulated {
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
         let out = run(path, &Config::default());
         let (m, a) = (&out.report.calibration.mag, &out.report.calibration.accel);
-        assert_eq!(m.status, "ok", "{what} mag: {:?}", m.detail);
-        assert_eq!(a.status, "ok", "{what} accel: {:?}", a.detail);
+        assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
+        assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
         let (mo, mm) = errors(m, &truth.mag);
         let (ao, am) = errors(a, &truth.accel);
         eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
@@ -366,7 +377,7 @@ mod fixtures {
             (&r.calibration.mag, &truth.mag),
             (&r.calibration.accel, &truth.accel),
         ] {
-            assert_eq!(fit.status, "ok");
+            assert_eq!(fit.status, CalStatus::Ok);
             assert_eq!(fit.model, "sym9");
             for k in 0..3 {
                 assert!(
@@ -688,12 +699,12 @@ mod full12 {
         let p = dir.path().join("rot.tlog");
         write_tlog(&p, &sim.samples, &TlogWriteOptions::default()).unwrap();
         let mut cfg = Config::default();
-        cfg.fit.mag_model = "full12".into();
+        cfg.fit.mag_model = imucald::config::MagModelChoice::Full12;
         let out = run(&p, &cfg);
         let m = &out.report.calibration.mag;
         assert_eq!(
-            (m.status.as_str(), m.model.as_str()),
-            ("ok", "full12"),
+            (m.status, m.model.as_str()),
+            (CalStatus::Ok, "full12"),
             "{:?}",
             m.detail
         );
@@ -707,7 +718,7 @@ mod full12 {
         eprintln!("full12 matrix error {err:.5}");
         assert!(err < 0.002, "full12 matrix error {err}: {got} vs {want}");
         // sym9 alone cannot see the rotation: its error is the rotation's size.
-        cfg.fit.mag_model = "sym9".into();
+        cfg.fit.mag_model = imucald::config::MagModelChoice::Sym9;
         let sym = run(&p, &cfg)
             .results
             .mag
@@ -721,33 +732,11 @@ mod full12 {
 /// Live-service tests: a real MAVLink peer (pymavlink), a serial pseudo-terminal, kill -9 during writes.
 mod live {
     use super::*;
-    use std::process::{Command, Stdio};
+    use std::process::{Command, Output, Stdio};
     use std::time::{Duration, Instant};
 
     fn bin() -> &'static str {
         env!("CARGO_BIN_EXE_imucald")
-    }
-
-    /// The Python with pymavlink that scripts/test installs (.venv), or IMUCALD_PYTHON.
-    fn python() -> String {
-        let p = std::env::var("IMUCALD_PYTHON").unwrap_or_else(|_| {
-            concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string()
-        });
-        let ok = Command::new(&p)
-            .args(["-c", "import pymavlink"])
-            .output()
-            .map(|o| o.status.success())
-            .unwrap_or(false);
-        assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
-        p
-    }
-
-    fn free_udp_port() -> u16 {
-        std::net::UdpSocket::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
     }
 
     fn sigterm(pid: u32) {
@@ -771,14 +760,68 @@ mod live {
         None
     }
 
-    #[test]
-    fn interop_pymavlink_streams_a_tumble_over_udp() {
-        let py = python();
-        let dir = tempfile::tempdir().unwrap();
-        let d = dir.path();
-        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 1);
+    /// A simulated tumble (`seed`) as `tumble.csv` in `d` and its truth as `truth.json`, for the
+    /// pymavlink peer to stream and judge by.
+    fn tumble_for_peer(d: &Path, seed: u64) -> imucald::sim::SimOutput {
+        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), seed);
         imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
         imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        sim
+    }
+
+    /// `imucald run --config CONFIG` plus `extra`, its stderr piped, given 300 ms to bind.
+    fn start_service(config: &Path, extra: &[&std::ffi::OsStr]) -> std::process::Child {
+        let child = Command::new(bin())
+            .args(["run", "--config"])
+            .arg(config)
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        child
+    }
+
+    /// The pymavlink peer (`tests/interop/pymavlink_peer.py`) on `port`, streaming `d`'s
+    /// `tumble.csv` judged by `truth.json` at `speed` times its pace, with `extra` arguments.
+    fn run_peer(py: &str, port: u16, d: &Path, speed: &str, extra: &[&std::ffi::OsStr]) -> Output {
+        Command::new(py)
+            .arg(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/tests/interop/pymavlink_peer.py"
+            ))
+            .arg(port.to_string())
+            .arg(d.join("tumble.csv"))
+            .arg(d.join("truth.json"))
+            .arg(speed)
+            .args(extra)
+            .output()
+            .unwrap()
+    }
+
+    /// SIGTERM to the service: its exit status (`None` when it did not exit within 5 s) and what it
+    /// wrote on stderr.
+    fn stop_service(child: &mut std::process::Child) -> (Option<std::process::ExitStatus>, String) {
+        sigterm(child.id());
+        let status = wait_exit(child, Duration::from_secs(5));
+        let mut err = String::new();
+        use std::io::Read;
+        child
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut err)
+            .unwrap();
+        (status, err)
+    }
+
+    #[test]
+    fn interop_pymavlink_streams_a_tumble_over_udp() {
+        let py = python_with("pymavlink");
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        tumble_for_peer(d, 1);
         let port = free_udp_port();
         // The peer streams at 10x and judges each heading by when it arrives, so the UDP poll
         // period is a tenth of the default too (5 ms of wall clock is the default's 50 ms of
@@ -789,39 +832,15 @@ mod live {
             d.join("cal").display()
         );
         std::fs::write(d.join("live.toml"), cfg).unwrap();
-        let mut child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(d.join("live.toml"))
-            .arg("--report")
-            .arg(d.join("report.json"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let peer = Command::new(&py)
-            .arg(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/tests/interop/pymavlink_peer.py"
-            ))
-            .arg(port.to_string())
-            .arg(d.join("tumble.csv"))
-            .arg(d.join("truth.json"))
-            .arg("10")
-            .output()
-            .unwrap();
+        let report = d.join("report.json");
+        let mut child = start_service(
+            &d.join("live.toml"),
+            &["--report".as_ref(), report.as_os_str()],
+        );
+        let peer = run_peer(&py, port, d, "10", &[]);
         let t_term = Instant::now();
-        sigterm(child.id());
-        let status = wait_exit(&mut child, Duration::from_secs(5));
+        let (status, err) = stop_service(&mut child);
         let stop_s = t_term.elapsed().as_secs_f64();
-        let mut err = String::new();
-        use std::io::Read;
-        child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut err)
-            .unwrap();
         let seen = String::from_utf8_lossy(&peer.stdout);
         eprintln!(
             "peer: {seen}\npeer stderr: {}\nimucald stopped {stop_s:.2} s after SIGTERM",
@@ -838,7 +857,7 @@ mod live {
         let store = imucald::daemon::load_store(&d.join("cal"))
             .unwrap()
             .expect("calibration file");
-        assert_eq!(store.mag.unwrap().status, "ok");
+        assert_eq!(store.mag.unwrap().status, CalStatus::Ok);
     }
 
     /// A pymavlink ground station drives the magnetometer calibration with ArduPilot's commands
@@ -846,12 +865,10 @@ mod live {
     /// nothing on disk -> ACCEPT -> ACK -> written; a second run cancelled leaves the file as it was.
     #[test]
     fn interop_pymavlink_ground_station_starts_accepts_and_cancels_a_calibration() {
-        let py = python();
+        let py = python_with("pymavlink");
         let dir = tempfile::tempdir().unwrap();
         let d = dir.path();
-        let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 2);
-        imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
-        imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        let sim = tumble_for_peer(d, 2);
         let port = free_udp_port();
         // A commanded run ends on a passing fit once progress says 100 %: one pass of the tumble
         // filled 95-100 % of the default 80 regions in runs here, so 70 count as full.
@@ -860,37 +877,10 @@ mod live {
             d.join("cal").display()
         );
         std::fs::write(d.join("gcs.toml"), cfg).unwrap();
-        let mut child = Command::new(bin())
-            .args(["run", "--config"])
-            .arg(d.join("gcs.toml"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let peer = Command::new(&py)
-            .arg(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/tests/interop/pymavlink_peer.py"
-            ))
-            .arg(port.to_string())
-            .arg(d.join("tumble.csv"))
-            .arg(d.join("truth.json"))
-            .arg("20")
-            .arg("gcs")
-            .arg(d.join("cal"))
-            .output()
-            .unwrap();
-        sigterm(child.id());
-        let status = wait_exit(&mut child, Duration::from_secs(5));
-        let mut err = String::new();
-        use std::io::Read;
-        child
-            .stderr
-            .take()
-            .unwrap()
-            .read_to_string(&mut err)
-            .unwrap();
+        let mut child = start_service(&d.join("gcs.toml"), &[]);
+        let cal = d.join("cal");
+        let peer = run_peer(&py, port, d, "20", &["gcs".as_ref(), cal.as_os_str()]);
+        let (status, err) = stop_service(&mut child);
         let seen = String::from_utf8_lossy(&peer.stdout);
         eprintln!(
             "peer: {seen}\npeer stderr: {}",
@@ -1170,7 +1160,7 @@ mod faults {
                 m.outliers_rejected
             );
             if share <= 0.2 {
-                assert_eq!(m.status, "ok", "{:?}", m.detail);
+                assert_eq!(m.status, CalStatus::Ok, "{:?}", m.detail);
                 assert!(m.outliers_rejected > 0);
                 // Measured: at most 0.014 uT off (6 uT magnet, 20% of the run).
                 for k in 0..3 {
@@ -1182,7 +1172,8 @@ mod faults {
                 }
             } else {
                 assert_eq!(
-                    m.status, "failed",
+                    m.status,
+                    CalStatus::Failed,
                     "a half-disturbed run was accepted: {m:?}"
                 );
             }
@@ -1244,7 +1235,7 @@ mod faults {
                 &r.calibration.accel
             };
             eprintln!("{what}: {:?}: {:?}", c.failure, c.detail);
-            assert_eq!(c.failure.as_deref(), Some("axis_fault"), "{what}: {c:?}");
+            assert_eq!(c.failure, Some(FitFailure::AxisFault), "{what}: {c:?}");
             assert!(
                 c.detail.as_deref().unwrap_or("").contains(words),
                 "{what}: {:?}",
@@ -1256,7 +1247,7 @@ mod faults {
             } else {
                 &r.calibration.mag
             };
-            assert_eq!(o.status, "ok", "{what}");
+            assert_eq!(o.status, CalStatus::Ok, "{what}");
         }
     }
 
@@ -1358,7 +1349,7 @@ mod live_serial {
             .unwrap()
             .expect("calibrated before the unplug");
         let before = store.mag.clone().unwrap();
-        assert_eq!(before.status, "ok");
+        assert_eq!(before.status, CalStatus::Ok);
         // Unplug, wait, plug a new device at the same path, stream a little more.
         drop(master);
         tokio::time::sleep(Duration::from_millis(700)).await;
@@ -1382,7 +1373,7 @@ mod live_serial {
             .unwrap()
             .mag
             .unwrap();
-        assert_eq!(after.status, "ok");
+        assert_eq!(after.status, CalStatus::Ok);
         eprintln!(
             "after the replug: offset {:?}, truth {:?}",
             after.offset, sim.truth.mag.offset
@@ -1930,25 +1921,6 @@ mod fuzz_regressions {
 /// `.tlog` of HIGHRES_IMU (with the default sensor errors of the simulator), the true calibration
 /// stored, a place with a large declination. The run is on tokio's paused clock, so the publication
 /// times are exact.
-/// A service config with one `udpin:` MAVLink source on a free loopback port (returned) and its
-/// calibration directory under `dir`.
-fn udpin_config(dir: &Path) -> (u16, Config) {
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut cfg = Config::default();
-    cfg.daemon.sources = vec![imucald::config::SourceConfig {
-        address: format!("udpin:127.0.0.1:{port}"),
-        payload: "mavlink".into(),
-        fields: vec![],
-        scales: Default::default(),
-    }];
-    cfg.daemon.calibration_dir = dir.join("cal").display().to_string();
-    (port, cfg)
-}
-
 mod live_attitude {
     use super::*;
 
@@ -2046,7 +2018,7 @@ mod live_attitude {
 
     fn stored(t: &SensorTruth, units: &str, radius: f64) -> SensorCalibration {
         SensorCalibration {
-            status: "ok".into(),
+            status: CalStatus::Ok,
             failure: None,
             detail: None,
             model: "sym9".into(),
@@ -2146,7 +2118,7 @@ mod live_attitude {
             mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
             accel: Some(stored(&truth.accel, "m/s^2", g)),
             gyro: Some(GyroCalibration {
-                status: "ok".into(),
+                status: CalStatus::Ok,
                 failure: None,
                 units: "rad/s".into(),
                 bias: truth.gyro.offset,
@@ -2162,19 +2134,9 @@ mod live_attitude {
         let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let rate_hz = 20.0;
         cfg.daemon.sources = vec![
-            imucald::config::SourceConfig {
-                address: format!("file:{}", log.display()),
-                payload: "mavlink".into(),
-                fields: vec![],
-                scales: Default::default(),
-            },
+            mavlink_source(format!("file:{}", log.display())),
             // The link the attitude goes back on.
-            imucald::config::SourceConfig {
-                address: format!("udpout:{}", fc.local_addr().unwrap()),
-                payload: "mavlink".into(),
-                fields: vec![],
-                scales: Default::default(),
-            },
+            mavlink_source(format!("udpout:{}", fc.local_addr().unwrap())),
         ];
         cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
         cfg.daemon.calibration_dir = cal_dir.display().to_string();
@@ -2753,7 +2715,7 @@ mod honest_progress {
         // Without a calibration: no centre, no region. With one (a restart resumes from the
         // stored calibration): the one or two regions the field points into.
         let stored = SensorCalibration {
-            status: "ok".into(),
+            status: CalStatus::Ok,
             failure: None,
             detail: None,
             model: "sphere".into(),
@@ -2806,7 +2768,7 @@ mod gyro_scale_checked {
             .map(|i| [((i * 40) % 360) as f64 - 180.0, 20.0, 0.0])
             .collect();
         let g = turntable_replay(att).calibration.gyro;
-        assert_eq!(g.status, "ok", "the bias is still known");
+        assert_eq!(g.status, CalStatus::Ok, "the bias is still known");
         assert!(g.scale.is_none(), "published: {:?}", g.scale);
         let f = g.scale_failure.expect("a named reason");
         eprintln!("turntable about one axis: {f}");
@@ -2830,7 +2792,7 @@ mod gyro_scale_checked {
         ];
         att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
         let r = turntable_replay(att);
-        assert_eq!(r.calibration.accel.status, "ok");
+        assert_eq!(r.calibration.accel.status, CalStatus::Ok);
         let g = r.calibration.gyro;
         assert!(g.scale.is_none(), "published: {:?}", g.scale);
         let f = g.scale_failure.expect("a named reason");

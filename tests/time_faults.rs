@@ -8,8 +8,11 @@
 //! the same seed measures mag offset 0.0058 uT, matrix 0.00022; accel 0.00024 m/s^2, 0.00006):
 //! see `assert_recovered`.
 
+mod common;
+
 use imucald::config::Config;
 use imucald::replay::{replay, ReplayOptions};
+use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use imucald::types::Sample;
 use mavlink::dialects::ardupilotmega::{self as apm, MavMessage};
@@ -171,8 +174,8 @@ fn errors(
 fn assert_recovered(cal: &imucald::report::CalibrationReport, what: &str) {
     let truth = &tumble().truth;
     let (m, a) = (&cal.mag, &cal.accel);
-    assert_eq!(m.status, "ok", "{what} mag: {:?}", m.detail);
-    assert_eq!(a.status, "ok", "{what} accel: {:?}", a.detail);
+    assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
+    assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
     let (mo, mm) = errors(m, &truth.mag);
     let (ao, am) = errors(a, &truth.accel);
     eprintln!("{what}: mag offset err {mo:.4} uT, matrix {mm:.5}; accel offset {ao:.5} m/s^2, matrix {am:.5}");
@@ -298,7 +301,8 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
     std::fs::write(&log, bytes).unwrap();
     let r = replay_checked(&log, "wrap");
     assert_eq!(
-        r.calibration.mag.status, "ok",
+        r.calibration.mag.status,
+        CalStatus::Ok,
         "{:?}",
         r.calibration.mag.detail
     );
@@ -431,18 +435,6 @@ proptest! {
     }
 }
 
-/// Python with pymavlink (`./scripts/test` installs it into `.venv`; `IMUCALD_PYTHON` overrides).
-fn python() -> String {
-    let p = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = std::process::Command::new(&p)
-        .args(["-c", "import pymavlink"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    assert!(ok, "no Python with pymavlink at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON");
-    p
-}
-
 #[test]
 fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
     // The same tumble, framed by pymavlink as a ground station records it: a clock from zero, a
@@ -454,7 +446,7 @@ fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
         env!("CARGO_MANIFEST_DIR"),
         "/tests/interop/pymavlink_tlog.py"
     );
-    let py = python();
+    let py = common::python_with("pymavlink");
     let write = |mode: &str| {
         let out = dir.path().join(format!("{mode}.tlog"));
         let st = std::process::Command::new(&py)

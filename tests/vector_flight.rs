@@ -63,7 +63,7 @@ fn cruise_offset_within_1_ut_by_the_vector_method_the_sphere_fails_or_is_far_wor
         "{:?}",
         v.offset_sigma_ut
     );
-    assert_eq!(m.status, "ok");
+    assert_eq!(m.status, imucald::report::CalStatus::Ok);
     // The sphere fit on the same data fails: 16 of 100 coverage regions (needs 25).
     assert!(
         choice

@@ -7,7 +7,10 @@
 //! link, within 1 mGauss of its own truth in ArduPilot's COMPASS_OFS convention; its own
 //! calibration directory; its own block in the report and its own JSON lines.
 
-use imucald::config::{Config, SourceConfig};
+mod common;
+
+use common::{free_udp_port, mavlink_source};
+use imucald::config::Config;
 use imucald::daemon::RunSummary;
 use imucald::mavout::MavEncoder;
 use imucald::sim::{simulate, Scenario, SimOutput};
@@ -30,14 +33,6 @@ fn two_vehicles() -> (SimOutput, SimOutput) {
     (a, simulate(&sc2, 11))
 }
 
-fn udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// A service configuration listening on UDP `ports` (one link each), keeping its calibration in
 /// `cal_dir` and publishing JSON lines to `sink`.
 fn service_config(
@@ -48,12 +43,7 @@ fn service_config(
     let mut cfg = Config::default();
     cfg.daemon.sources = ports
         .iter()
-        .map(|p| SourceConfig {
-            address: format!("udpin:127.0.0.1:{p}"),
-            payload: "mavlink".into(),
-            fields: vec![],
-            scales: Default::default(),
-        })
+        .map(|p| mavlink_source(format!("udpin:127.0.0.1:{p}")))
         .collect();
     cfg.daemon.calibration_dir = cal_dir.display().to_string();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
@@ -137,7 +127,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
     let (a, b) = two_vehicles();
     for shared_link in [false, true] {
         let dir = tempfile::tempdir().unwrap();
-        let ports = [udp_port(), udp_port()];
+        let ports = [free_udp_port(), free_udp_port()];
         let links = if shared_link { 1 } else { 2 };
         let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let cal_dir = dir.path().join("cal");
@@ -320,7 +310,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     use mavlink::dialects::ardupilotmega::{MavCmd, COMMAND_LONG_DATA};
     let (a, b) = two_vehicles();
     let dir = tempfile::tempdir().unwrap();
-    let port = udp_port();
+    let port = free_udp_port();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut cfg = service_config(&dir.path().join("cal"), &[port], &sink);
     cfg.daemon.heartbeat_rate_hz = 0.0;
@@ -395,7 +385,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
 /// After a restart with vehicle A's link address edited (a new port): A, same system id, still gets
 /// the configured directory's calibration, and the store records the new address.
 async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, a: &SimOutput) {
-    let new_port = udp_port();
+    let new_port = free_udp_port();
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let cfg = service_config(cal_dir, &[new_port, port_b], &sink);
     let summary = feed_and_stop(cfg, new_port, a, 200).await;

@@ -132,7 +132,7 @@ impl State {
                 "calibration not replaced: {why}"
             ),
         }
-        if i == 0 && results.gyro.status == "ok" {
+        if i == 0 && results.gyro.status == crate::report::CalStatus::Ok {
             let before = cal.calibrator.gyro_bias.unwrap_or([0.0; 3]);
             let now = results.gyro.bias;
             cal.fusion
@@ -462,7 +462,7 @@ impl Cal {
         let fy = crate::fixedyaw::fixed_yaw_offset(&samples, yaw_deg, field, &matrix, &FIXED_YAW)
             .map_err(|e| e.to_string())?;
         Ok(SensorCalibration {
-            status: "ok".into(),
+            status: crate::report::CalStatus::Ok,
             failure: None,
             detail: Some(format!(
                 "fixed yaw {yaw_deg:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT",

@@ -397,7 +397,12 @@ mod tests {
             .copied()
             .collect();
         assert_eq!(r.mag.held_out, every_fifth);
-        assert_eq!(r.mag.report.status, "ok", "{:?}", r.mag.report.detail);
+        assert_eq!(
+            r.mag.report.status,
+            crate::report::CalStatus::Ok,
+            "{:?}",
+            r.mag.report.detail
+        );
         let truth = &sim.truth.mag;
         let current = |offset: Vec3| SensorCalibration {
             offset,
@@ -437,7 +442,7 @@ mod tests {
         // A failed fit never replaces anything.
         let mut failed = r.mag.clone();
         failed.calibration = None;
-        failed.report.failure = Some("coverage".into());
+        failed.report.failure = Some(crate::fit::FitFailure::Coverage);
         assert!(matches!(
             accept(&failed, None),
             Err(NotReplaced::Failed { .. })

@@ -124,7 +124,7 @@ impl State {
         sinks: Vec<Sink>,
     ) -> Result<State, Error> {
         let d = cfg.daemon.clone();
-        let choice = InstanceChoice::from_setting(&cfg.input.instance);
+        let choice = cfg.input.instance.clone();
         let mut new_converter = MessageConverter::new(choice, cfg.input.raw_imu_scale);
         if new_converter.choice == InstanceChoice::Auto {
             // Every compass of the calibrated vehicle, each on its own track.

@@ -14,7 +14,7 @@ impl Cal {
         c.gyro_bias = store
             .gyro
             .as_ref()
-            .filter(|g| g.status == "ok")
+            .filter(|g| g.status == crate::report::CalStatus::Ok)
             .map(|g| g.bias);
         c
     }

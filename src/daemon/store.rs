@@ -3,6 +3,8 @@
 //! run loop.
 
 use super::*;
+use crate::fit::FitFailure;
+use crate::report::CalStatus;
 
 /// What is kept on disk between runs (`calibration.json`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -171,17 +173,20 @@ pub const ACCEPT_MARGIN: f64 = 0.02;
 /// sphere, about a known centre) and the fit still failed for a reason other than still collecting.
 pub fn failure_report_due(mag: &SensorCalibration, completion_pct: u8) -> bool {
     let collecting = matches!(
-        mag.failure.as_deref(),
-        Some("coverage") | Some("not_enough_samples")
+        mag.failure,
+        Some(FitFailure::Coverage | FitFailure::NotEnoughSamples)
     );
-    mag.status != "ok" && !collecting && completion_pct >= 100
+    mag.status != CalStatus::Ok && !collecting && completion_pct >= 100
 }
 
 /// Why a new calibration did not replace the current one.
 #[derive(Debug, Clone, PartialEq)]
 pub enum NotReplaced {
     /// The fit failed a check (`failure`: the report's reason).
-    Failed { failure: String, detail: String },
+    Failed {
+        failure: Option<FitFailure>,
+        detail: String,
+    },
     /// A calibration is in use and the new fit had no points held out to compare them on.
     NothingHeldOut,
     /// Worse than the current calibration on the held-out points (RMS of |calibrated| - radius).
@@ -195,7 +200,9 @@ pub enum NotReplaced {
 impl std::fmt::Display for NotReplaced {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            NotReplaced::Failed { failure, detail } => write!(f, "failed {failure}: {detail}"),
+            NotReplaced::Failed { failure, detail } => {
+                write!(f, "failed {}: {detail}", failure.map_or("?", FitFailure::name))
+            }
             NotReplaced::NothingHeldOut => {
                 write!(f, "too few points to hold out a comparison with the current calibration")
             }
@@ -217,7 +224,7 @@ impl std::fmt::Display for NotReplaced {
 pub fn accept(new: &SensorResult, current: Option<&SensorCalibration>) -> Result<(), NotReplaced> {
     let Some(nc) = new.calibration else {
         return Err(NotReplaced::Failed {
-            failure: new.report.failure.clone().unwrap_or_else(|| "?".into()),
+            failure: new.report.failure,
             detail: new.report.detail.clone().unwrap_or_default(),
         });
     };

@@ -873,8 +873,9 @@ pub(super) fn context(
                 matrix: r.matrix,
             })
     };
-    let acc_free =
-        n_static_acc >= MIN_STATIC_ACC_UNITS && acc_cal.is_some() && acc_res.report.status == "ok";
+    let acc_free = n_static_acc >= MIN_STATIC_ACC_UNITS
+        && acc_cal.is_some()
+        && acc_res.report.status == crate::report::CalStatus::Ok;
     let mut ch = [false; NCH];
     ch[Ch::MagNorm.i()] = mstart.is_some();
     ch[Ch::AccNorm.i()] = acc_free;
@@ -898,7 +899,7 @@ pub(super) fn context(
         ch,
         acc_free,
         fixed_acc: acc_cal
-            .filter(|_| acc_res.report.status == "ok")
+            .filter(|_| acc_res.report.status == crate::report::CalStatus::Ok)
             .unwrap_or_else(Calibration::identity),
         g,
         c0m,

@@ -71,8 +71,8 @@ pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MIN_STATIC_MAG_UNITS, WINDOW_BLOCK, WINDOW_S,
 };
 pub use report::{
-    summary_table, CandidateReport, ChannelRms, DiagnosisReport, EvidenceSummary, ParamEstimate,
-    ResidualSeries, RoundReport,
+    summary_table, CandidateReport, ChannelRms, Decision, DiagnosisReport, EvidenceSummary,
+    ParamEstimate, ResidualSeries, RoundReport,
 };
 pub use rounds::EXCESS_RATIO;
 

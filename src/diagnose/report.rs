@@ -32,14 +32,49 @@ pub struct CandidateReport {
     pub note: String,
 }
 
+/// How a round of the search ended: "named", "none", "unexplained" or "not_identifiable" in the
+/// report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Decision {
+    /// An effect passed every test and joins the model.
+    Named,
+    /// No candidate is significant (or the significant ones failed a check), and no channel's
+    /// residual is well above its noise.
+    #[serde(rename = "none")]
+    NoEffect,
+    /// Nothing named, but some channel's residual variance is well above its noise.
+    Unexplained,
+    /// A significant candidate cannot be told apart: a degenerate joint fit, or collinear with
+    /// another candidate.
+    NotIdentifiable,
+}
+
+impl Decision {
+    /// The report's name of the decision.
+    pub fn name(self) -> &'static str {
+        match self {
+            Decision::Named => "named",
+            Decision::NoEffect => "none",
+            Decision::Unexplained => "unexplained",
+            Decision::NotIdentifiable => "not_identifiable",
+        }
+    }
+}
+
+impl std::fmt::Display for Decision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// One round of the search.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RoundReport {
     pub round: usize,
-    /// "named", "none", "unexplained" or "not_identifiable".
-    pub decision: String,
+    pub decision: Decision,
     /// The effect named (or the one that could not be told apart, for not_identifiable).
-    pub effect: Option<String>,
+    pub effect: Option<Effect>,
     pub detail: String,
     pub candidates: Vec<CandidateReport>,
 }
@@ -86,7 +121,7 @@ pub struct DiagnosisReport {
     pub base_model: String,
     pub evidence: EvidenceSummary,
     /// Effects named, in the order they were added (empty when none).
-    pub found: Vec<String>,
+    pub found: Vec<Effect>,
     pub rounds: Vec<RoundReport>,
     /// RMS of the held-out residuals of the base model, in units of the expected noise (all channels).
     pub rms_before: f64,
@@ -134,7 +169,7 @@ impl DiagnosisReport {
             found: vec![],
             rounds: vec![RoundReport {
                 round: 1,
-                decision: "not_identifiable".into(),
+                decision: Decision::NotIdentifiable,
                 effect: None,
                 detail: why.clone(),
                 candidates: vec![],
@@ -291,7 +326,7 @@ pub(super) fn assemble(
             }),
             accel_fitted: run.ctx.acc_free,
         },
-        found: sel.found.iter().map(|e| e.name().to_string()).collect(),
+        found: sel.found.clone(),
         rounds: sel.rounds,
         rms_before: rb,
         rms_after: ra,
@@ -422,8 +457,7 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
             rd.round,
             rd.decision,
             rd.effect
-                .as_deref()
-                .map(|x| format!(" {x}"))
+                .map(|x| format!(" {}", x.name()))
                 .unwrap_or_default(),
             rd.detail
         );
@@ -462,7 +496,11 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         if r.found.is_empty() {
             "nothing".to_string()
         } else {
-            r.found.join(", ")
+            r.found
+                .iter()
+                .map(|e| e.name())
+                .collect::<Vec<_>>()
+                .join(", ")
         }
     );
     let ratio = r.rms_before / r.rms_after;

@@ -7,7 +7,7 @@ use super::layout::{
     applicable, build_layout, carry_params, decode, eval_units, plausibility, residuals, tags, Ch,
     Ctx, Layout, ALL_CH, NCH,
 };
-use super::report::{CandidateReport, RoundReport};
+use super::report::{CandidateReport, Decision, RoundReport};
 use super::stats::{columns, condition, explained, f_sf, mean_sd, select_cols, t_sf};
 use super::{DiagnoseOptions, Effect};
 use crate::config::Config;
@@ -297,7 +297,7 @@ pub(super) fn prepare(
     notes: &mut Vec<String>,
 ) -> Result<Prepared, String> {
     let mut cfg2 = cfg.clone();
-    cfg2.fit.mag_model = base.name().into();
+    cfg2.fit.mag_model = base.into();
     let mut pipe = Pipeline::new(&cfg2).map_err(|e| format!("configuration: {e}"))?;
     let mut sorted: Vec<Sample> = samples
         .iter()
@@ -689,7 +689,7 @@ impl Cand {
 /// How the refits of a round ended: an effect named, a decision without one, or neither (with the
 /// significant candidates that failed a check).
 struct Verdict {
-    decision: Option<(String, Option<Effect>, String)>,
+    decision: Option<(Decision, Option<Effect>, String)>,
     named: Option<(Effect, Layout, DVector<f64>)>,
     failed_sig: Vec<String>,
 }
@@ -969,7 +969,7 @@ fn judge(
                 c.e.name()
             );
             return Verdict {
-                decision: Some(("not_identifiable".into(), Some(c.e), d)),
+                decision: Some((Decision::NotIdentifiable, Some(c.e), d)),
                 named: None,
                 failed_sig,
             };
@@ -994,7 +994,7 @@ fn judge(
                 o.name()
             );
             return Verdict {
-                decision: Some(("not_identifiable".into(), Some(c.e), d)),
+                decision: Some((Decision::NotIdentifiable, Some(c.e), d)),
                 named: None,
                 failed_sig,
             };
@@ -1021,7 +1021,7 @@ fn no_effect_decision(
     noise_known: &[bool; NCH],
     failed_sig: &[String],
     (alpha, n_ident, thresh): (f64, usize, f64),
-) -> (String, Option<Effect>, String) {
+) -> (Decision, Option<Effect>, String) {
     let ev = run.ev;
     let res = residuals(&run.ctx, &sel.lay, ev, &run.fit_units, cur_p.as_slice());
     let tg = tags(&run.ctx, &sel.lay, cur_p, ev, &run.fit_units);
@@ -1055,7 +1055,7 @@ fn no_effect_decision(
                 failed_sig.join(", ")
             ));
         }
-        ("unexplained".to_string(), None, d)
+        (Decision::Unexplained, None, d)
     } else {
         let d = if failed_sig.is_empty() {
             format!(
@@ -1065,7 +1065,7 @@ fn no_effect_decision(
         } else {
             format!("significant but rejected: {}", failed_sig.join(", "))
         };
-        ("none".to_string(), None, d)
+        (Decision::NoEffect, None, d)
     }
 }
 
@@ -1132,8 +1132,8 @@ fn one_round(
         );
         let report = RoundReport {
             round,
-            decision: "named".into(),
-            effect: Some(e.name().into()),
+            decision: Decision::Named,
+            effect: Some(e),
             detail,
             candidates: reports,
         };
@@ -1153,7 +1153,7 @@ fn one_round(
     let report = RoundReport {
         round,
         decision: dec,
-        effect: eff.map(|e| e.name().to_string()),
+        effect: eff,
         detail,
         candidates: reports,
     };

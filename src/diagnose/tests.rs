@@ -360,7 +360,7 @@ fn scale_effect(case: Case, sc: &mut Scenario, base: &Scenario, k: f64) {
 pub(super) fn score(case: Case, r: &DiagnosisReport) -> (bool, bool) {
     let named_ok = match case {
         Case::Nothing => r.found.is_empty(),
-        Case::Hide(e) => r.found == vec![e.name().to_string()],
+        Case::Hide(e) => r.found == vec![e],
     };
     let shrink_ok = case == Case::Nothing || r.rms_before / r.rms_after >= 2.0;
     (named_ok, shrink_ok)
@@ -468,7 +468,7 @@ fn with_throttle(samples: &[Sample], seed: u64, k: Option<[f64; 3]>) -> Vec<Samp
 }
 
 fn named(r: &DiagnosisReport, e: Effect) -> bool {
-    r.found.iter().any(|f| f == e.name())
+    r.found.contains(&e)
 }
 
 #[test]
@@ -697,7 +697,12 @@ fn effect_outside_the_catalogue_is_unexplained() {
         );
         let last = r.rounds.last().unwrap();
         assert!(r.found.is_empty(), "seed {seed}: {:?}", r.found);
-        assert_eq!(last.decision, "unexplained", "seed {seed}: {}", last.detail);
+        assert_eq!(
+            last.decision,
+            Decision::Unexplained,
+            "seed {seed}: {}",
+            last.detail
+        );
         assert!(last.detail.contains("mag_norm"), "{}", last.detail);
     }
 }
@@ -713,7 +718,8 @@ fn collinear_drivers_are_not_identifiable() {
         let last = r.rounds.last().unwrap();
         assert!(r.found.is_empty(), "seed {seed}: {:?}", r.found);
         assert_eq!(
-            last.decision, "not_identifiable",
+            last.decision,
+            Decision::NotIdentifiable,
             "seed {seed}: {}",
             last.detail
         );
@@ -773,7 +779,7 @@ fn report_json_contract() {
 fn nothing_to_compare_is_reported_not_panicked() {
     let r = diagnose(&[], &Config::default(), &DiagnoseOptions::default());
     assert!(r.found.is_empty());
-    assert_eq!(r.rounds[0].decision, "not_identifiable");
+    assert_eq!(r.rounds[0].decision, Decision::NotIdentifiable);
     // Sym9 base: cross_axis is part of the base, not a candidate.
     let b = generate(Case::Nothing, 1);
     let r = diagnose(

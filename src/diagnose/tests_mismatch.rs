@@ -167,13 +167,16 @@ fn tally(form: Form, n: u64) -> Tally {
                 ..Default::default()
             },
         );
-        let e = form.effect().name();
-        let exact = r.found == vec![e.to_string()];
-        let among = r.found.iter().any(|f| f == e);
+        let e = form.effect();
+        let exact = r.found == vec![e];
+        let among = r.found.contains(&e);
         t.exact += exact as usize;
         t.among += among as usize;
-        t.wrong += r.found.iter().any(|f| f != e) as usize;
-        t.unexplained += r.rounds.last().is_some_and(|x| x.decision == "unexplained") as usize;
+        t.wrong += r.found.iter().any(|f| *f != e) as usize;
+        t.unexplained += r
+            .rounds
+            .last()
+            .is_some_and(|x| x.decision == Decision::Unexplained) as usize;
         t.n += 1;
         t.shrink.push(r.rms_before / r.rms_after);
         if !exact || std::env::var("MISMATCH_VERBOSE").is_ok() {
