@@ -1,6 +1,6 @@
 //! `cargo bench --bench broad` (or `scripts/bench`, which also installs the Python peer): imucald's
 //! orientation filter against VQF (PyPI `vqf`, default parameters, 9D) on the BROAD trials in
-//! `../shared/data/broad`, both evaluated by `imucald::eval` (BROAD's total / heading / inclination
+//! `../shared/data/broad`, both evaluated by `imucald::attitude::eval` (BROAD's total / heading / inclination
 //! RMSE over the movement phase). Prints a per-trial table, a per-class table, the means and ratios,
 //! and the cost per sample of both filters (imucald's `OrientationFilter::update_sample` against
 //! VQF's C++ batch update on the same data); figures, not assertions.
@@ -21,10 +21,10 @@
 
 #![allow(dead_code)]
 
+use imucald::attitude::eval::{errors, evaluate, reference, EvalResult};
+use imucald::attitude::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
 use imucald::config::Config;
-use imucald::eval::{errors, evaluate, reference, EvalResult};
-use imucald::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
-use imucald::sources::read_log;
+use imucald::io::sources::read_log;
 use imucald::types::Sample;
 use nalgebra::{Quaternion, UnitQuaternion};
 use std::path::{Path, PathBuf};

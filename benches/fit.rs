@@ -3,8 +3,8 @@
 //! run, and replay throughput against pymavlink parsing the same tlog. Figures, not assertions.
 //! `IMUCALD_BENCH_ONLY=fit` or `=replay` runs one of the two.
 
-use imucald::fit::{fit_norm, NormFitOptions};
-use imucald::model::ModelKind;
+use imucald::calib::fit::{fit_norm, NormFitOptions};
+use imucald::calib::model::ModelKind;
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -167,12 +167,12 @@ fn bench_replay(py: Option<&str>) {
     imucald::sim::write_tlog(&log, &samples, &imucald::sim::TlogWriteOptions::default())
         .expect("write tlog");
     let cfg = imucald::config::Config::default();
-    let opts = imucald::replay::ReplayOptions::default();
+    let opts = imucald::app::replay::ReplayOptions::default();
     let mut best = f64::INFINITY;
     let mut n = 0;
     for _ in 0..5 {
         let t0 = Instant::now();
-        let out = imucald::replay::replay(&log, &cfg, &opts, &mut |_, _| {}).expect("replay");
+        let out = imucald::app::replay::replay(&log, &cfg, &opts, &mut |_, _| {}).expect("replay");
         best = best.min(t0.elapsed().as_secs_f64());
         n = out.report.input.samples;
     }

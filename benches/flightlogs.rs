@@ -11,7 +11,7 @@
 #![allow(dead_code)]
 
 use imucald::config::Config;
-use imucald::decode::Format;
+use imucald::io::decode::Format;
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Instant;
@@ -61,7 +61,7 @@ fn ours(bytes: &[u8], format: Format) -> (f64, usize) {
     let mut n = 0;
     for _ in 0..5 {
         let t = Instant::now();
-        let log = imucald::sources::decode_log(bytes, Path::new("bench"), Some(format), &cfg)
+        let log = imucald::io::sources::decode_log(bytes, Path::new("bench"), Some(format), &cfg)
             .expect("decodes");
         best = best.min(t.elapsed().as_secs_f64());
         n = log.samples.len();

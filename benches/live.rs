@@ -24,7 +24,7 @@
 
 #![allow(dead_code)]
 
-use imucald::mavout::MavEncoder;
+use imucald::io::mavout::MavEncoder;
 use imucald::sim::{highres_imu, simulate, Scenario};
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
@@ -397,7 +397,7 @@ fn latency(seconds: f64) {
     samples.truncate(n);
     // Whether a datagram holds an ATTITUDE_QUATERNION (id 31): messages due together share one.
     let has_attitude_q = |mut b: &[u8]| -> bool {
-        use imucald::decode::{parse_frame, FrameParse};
+        use imucald::io::decode::{parse_frame, FrameParse};
         use mavlink::Message;
         while !b.is_empty() {
             match parse_frame(b) {

@@ -5,12 +5,12 @@
 // Plain `//` comments only: this file is `include!`d.
 
 use imucald::config::Config;
-use imucald::decode::TlogRecords;
-use imucald::decode::{
+use imucald::io::decode::TlogRecords;
+use imucald::io::decode::{
     decode_csv, decode_tlog, detect_format, maybe_gunzip, CsvMapping, DecodeStats, FrameDecoder,
     InstanceChoice, MessageConverter, RawImuScale,
 };
-use imucald::link::{parse_motioncal_line, CsvLineParser, LineBuffer, MAX_LINE};
+use imucald::io::link::{parse_motioncal_line, CsvLineParser, LineBuffer, MAX_LINE};
 use imucald::types::Sample;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -72,7 +72,7 @@ fn converter(kind: usize) -> MessageConverter {
 pub fn tlog(data: &[u8]) -> (Vec<Sample>, DecodeStats) {
     static CFG: OnceLock<Config> = OnceLock::new();
     let cfg = CFG.get_or_init(Config::default);
-    if let Ok(log) = imucald::sources::decode_log(data, Path::new("fuzz.tlog"), None, cfg) {
+    if let Ok(log) = imucald::io::sources::decode_log(data, Path::new("fuzz.tlog"), None, cfg) {
         assert_eq!(log.samples.len() as u64, log.stats.records);
         log.samples.iter().for_each(check_sample);
     }
@@ -261,7 +261,7 @@ pub fn config(data: &[u8]) -> Result<Config, (String, String)> {
             cfg.validate().expect("an accepted config validates");
             let _ = cfg.declination_deg();
             for s in &cfg.daemon.sources {
-                imucald::link::Address::parse(&s.address).expect("validated address");
+                imucald::io::link::Address::parse(&s.address).expect("validated address");
             }
             Ok(cfg)
         }
@@ -278,7 +278,7 @@ pub fn config(data: &[u8]) -> Result<Config, (String, String)> {
 
 // Check a flight-log decode: every sample is finite, each instance's count is what the summary
 // says, and the primary's count is its `records`.
-pub fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], primary: u64) {
+pub fn check_flight(log: &imucald::io::flightlog::FlightLog, per_instance: &[u64], primary: u64) {
     assert!(per_instance.len() <= log.instances.len());
     for (k, i) in log.instances.iter().enumerate() {
         assert_eq!(
@@ -300,12 +300,12 @@ pub fn check_flight(log: &imucald::flightlog::FlightLog, per_instance: &[u64], p
 pub type FlightDecode = fn(
     &[u8],
     &mut dyn FnMut(usize, Sample, usize, Option<usize>),
-) -> Option<imucald::flightlog::FlightLog>;
+) -> Option<imucald::io::flightlog::FlightLog>;
 
 pub fn decode_flight(
     f: FlightDecode,
     bytes: &[u8],
-) -> Option<(imucald::flightlog::FlightLog, Vec<Sample>)> {
+) -> Option<(imucald::io::flightlog::FlightLog, Vec<Sample>)> {
     let mut per_instance = Vec::<u64>::new();
     let mut primary = Vec::new();
     let mut last_read = 0usize;
@@ -328,8 +328,8 @@ pub fn decode_flight(
 pub fn dataflash_some(
     bytes: &[u8],
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
-) -> Option<imucald::flightlog::FlightLog> {
-    Some(imucald::flightlog::decode_dataflash_with(bytes, emit))
+) -> Option<imucald::io::flightlog::FlightLog> {
+    Some(imucald::io::flightlog::decode_dataflash_with(bytes, emit))
 }
 
 // Target `dataflash`: the DataFlash reader on arbitrary bytes (records in order: each payload its
@@ -338,7 +338,7 @@ pub fn dataflash_some(
 pub fn dataflash(data: &[u8]) -> Vec<Sample> {
     static CFG: OnceLock<Config> = OnceLock::new();
     let cfg = CFG.get_or_init(Config::default);
-    let mut rd = imucald::flightlog::dataflash::DfReader::new(data);
+    let mut rd = imucald::io::flightlog::dataflash::DfReader::new(data);
     let mut pos = 0;
     while let Some(rec) = rd.next_record() {
         assert_eq!(rec.payload.len() + 3, rec.format.length);
@@ -351,10 +351,10 @@ pub fn dataflash(data: &[u8]) -> Vec<Sample> {
         pos = p;
     }
     let (_, samples) = decode_flight(dataflash_some, data).expect("DataFlash always decodes");
-    if let Ok(log) = imucald::sources::decode_log(
+    if let Ok(log) = imucald::io::sources::decode_log(
         data,
         Path::new("fuzz.bin"),
-        Some(imucald::decode::Format::Bin),
+        Some(imucald::io::decode::Format::Bin),
         cfg,
     ) {
         assert_eq!(log.samples, samples);
@@ -369,16 +369,16 @@ pub fn ulog(data: &[u8]) -> Vec<Sample> {
     static CFG: OnceLock<Config> = OnceLock::new();
     let cfg = CFG.get_or_init(Config::default);
     let owned;
-    let bytes: &[u8] = if imucald::flightlog::ulog::looks_like(data) {
+    let bytes: &[u8] = if imucald::io::flightlog::ulog::looks_like(data) {
         data
     } else {
-        let mut v = imucald::flightlog::ulog::MAGIC.to_vec();
+        let mut v = imucald::io::flightlog::ulog::MAGIC.to_vec();
         v.extend([1, 0, 0, 0, 0, 0, 0, 0, 0]);
         v.extend_from_slice(data);
         owned = v;
         &owned
     };
-    if let Some(mut rd) = imucald::flightlog::ulog::UlogReader::new(bytes) {
+    if let Some(mut rd) = imucald::io::flightlog::ulog::UlogReader::new(bytes) {
         let mut pos = rd.position();
         while let Some(d) = rd.next_data() {
             for k in 0..d.sub.fields.len() {
@@ -389,16 +389,16 @@ pub fn ulog(data: &[u8]) -> Vec<Sample> {
             assert!(p > pos && p <= bytes.len());
             pos = p;
         }
-        assert!(rd.params().len() <= imucald::flightlog::ulog::MAX_PARAMS);
+        assert!(rd.params().len() <= imucald::io::flightlog::ulog::MAX_PARAMS);
     }
-    let samples = match decode_flight(imucald::flightlog::decode_ulog_with, bytes) {
+    let samples = match decode_flight(imucald::io::flightlog::decode_ulog_with, bytes) {
         Some((_, s)) => s,
         None => Vec::new(),
     };
-    if let Ok(log) = imucald::sources::decode_log(
+    if let Ok(log) = imucald::io::sources::decode_log(
         bytes,
         Path::new("fuzz.ulg"),
-        Some(imucald::decode::Format::Ulg),
+        Some(imucald::io::decode::Format::Ulg),
         cfg,
     ) {
         assert_eq!(log.samples, samples);

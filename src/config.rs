@@ -2,9 +2,9 @@
 //! name the key, and `validate` checks ranges with messages that say what to fix.
 
 use crate::attitude::Place;
-use crate::decode::{CsvMapping, Format, InstanceChoice, RawImuScale};
+use crate::calib::gate::GateConfig;
 use crate::error::Error;
-use crate::gate::GateConfig;
+use crate::io::decode::{CsvMapping, Format, InstanceChoice, RawImuScale};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Default)]
@@ -245,13 +245,13 @@ impl ModelChoice {
         match self {
             ModelChoice::Auto => "auto",
             ModelChoice::SixPosition => "six_position",
-            m => m.kind().map_or("?", crate::model::ModelKind::name),
+            m => m.kind().map_or("?", crate::calib::model::ModelKind::name),
         }
     }
 
     /// The one model asked for, if one is.
-    pub fn kind(self) -> Option<crate::model::ModelKind> {
-        use crate::model::ModelKind;
+    pub fn kind(self) -> Option<crate::calib::model::ModelKind> {
+        use crate::calib::model::ModelKind;
         match self {
             ModelChoice::Auto | ModelChoice::SixPosition => None,
             ModelChoice::Sphere => Some(ModelKind::Sphere),
@@ -285,9 +285,9 @@ impl From<MagModelChoice> for ModelChoice {
     }
 }
 
-impl From<crate::model::ModelKind> for MagModelChoice {
-    fn from(k: crate::model::ModelKind) -> MagModelChoice {
-        use crate::model::ModelKind;
+impl From<crate::calib::model::ModelKind> for MagModelChoice {
+    fn from(k: crate::calib::model::ModelKind) -> MagModelChoice {
+        use crate::calib::model::ModelKind;
         match k {
             ModelKind::Sphere => MagModelChoice::Sphere,
             ModelKind::Diag6 => MagModelChoice::Diag6,
@@ -327,7 +327,7 @@ pub struct FitConfig {
     /// bins) is taken from the kept points once they spread enough: their standard deviation along
     /// their narrowest direction at least this many field radii (0.25: about a cap reaching 80 deg
     /// from its middle, filled; a still or barely turned sensor stays far below), and they lie on
-    /// one sphere (see [`crate::pipeline::Pipeline::mag_centre`]). Field radii. Default: 0.15.
+    /// one sphere (see [`crate::calib::pipeline::Pipeline::mag_centre`]). Field radii. Default: 0.15.
     pub centre_min_spread_radii: f64,
     /// The scalar Kalman prefilter of Ren and Liu, "Calibration of MEMS Accelerometers and
     /// Magnetometers for Rotor UAV Attitude Estimation", on accel and mag before gating and
@@ -626,9 +626,12 @@ impl Config {
 
     /// The orientation filter's settings for this configuration: world NED, the given declination
     /// (true north) or none (magnetic north), gravity as the fit's. Used by `run` and `replay`.
-    pub fn fusion_config(&self, declination_deg: Option<f64>) -> crate::fusion::FusionConfig {
-        crate::fusion::FusionConfig {
-            world: crate::fusion::WorldFrame::Ned,
+    pub fn fusion_config(
+        &self,
+        declination_deg: Option<f64>,
+    ) -> crate::attitude::fusion::FusionConfig {
+        crate::attitude::fusion::FusionConfig {
+            world: crate::attitude::fusion::WorldFrame::Ned,
             use_mag: true,
             declination_deg: declination_deg.unwrap_or(0.0),
             gravity_mps2: self.fit.gravity_mps2,
@@ -714,7 +717,7 @@ impl Config {
             if !(l.min_diag < l.max_diag) {
                 return Err(err(&format!("{name}.min_diag"), "must be below max_diag"));
             }
-            if l.min_filled_regions > crate::coverage::REGIONS {
+            if l.min_filled_regions > crate::calib::coverage::REGIONS {
                 return Err(err(
                     &format!("{name}.min_filled_regions"),
                     "there are only 100 regions",
@@ -728,7 +731,7 @@ impl Config {
     fn validate_daemon(&self) -> Result<(), Error> {
         let d = &self.daemon;
         for (i, src) in d.sources.iter().enumerate() {
-            crate::link::Address::parse(&src.address)
+            crate::io::link::Address::parse(&src.address)
                 .map_err(|e| err(&format!("daemon.sources[{i}].address"), e.to_string()))?;
             if !["mavlink", "motioncal", "csv"].contains(&src.payload.as_str()) {
                 return Err(err(
@@ -835,8 +838,16 @@ mod tests {
                     "UiConfig",
                 ],
             ),
-            ("gate.rs", include_str!("gate.rs"), &["GateConfig"]),
-            ("fusion.rs", include_str!("fusion.rs"), &["FusionConfig"]),
+            (
+                "calib/gate.rs",
+                include_str!("calib/gate.rs"),
+                &["GateConfig"],
+            ),
+            (
+                "attitude/fusion.rs",
+                include_str!("attitude/fusion.rs"),
+                &["FusionConfig"],
+            ),
         ];
         let mut fields = 0;
         for (file, text, structs) in files {
@@ -869,7 +880,7 @@ mod tests {
         let mut cfg = Config::default();
         cfg.fit.gravity_mps2 = 9.81;
         let f = cfg.fusion_config(Some(12.5));
-        assert_eq!(f.world, crate::fusion::WorldFrame::Ned);
+        assert_eq!(f.world, crate::attitude::fusion::WorldFrame::Ned);
         assert_eq!(f.declination_deg, 12.5);
         assert_eq!(f.gravity_mps2, 9.81);
         assert!(f.use_mag);

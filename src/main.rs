@@ -2,9 +2,9 @@
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use imucald::attitude::eval::Alignment;
 use imucald::config::Config;
-use imucald::decode::Format;
-use imucald::eval::Alignment;
+use imucald::io::decode::Format;
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -268,7 +268,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
     let log = log.unwrap_or_else(|| {
         PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
     });
-    let opts = imucald::replay::ReplayOptions {
+    let opts = imucald::app::replay::ReplayOptions {
         format,
         report,
         calibrated_out,
@@ -284,13 +284,13 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         )
         .expect("template"),
     );
-    let out = imucald::replay::replay(&log, &cfg, &opts, &mut |done, total| {
+    let out = imucald::app::replay::replay(&log, &cfg, &opts, &mut |done, total| {
         bar.set_length(total);
         bar.set_position(done);
     })
     .with_context(|| format!("replay of {}", log.display()))?;
     bar.finish_and_clear();
-    print!("{}", imucald::replay::summary(&out.report));
+    print!("{}", imucald::app::replay::summary(&out.report));
     for p in &out.written {
         println!("wrote {}", p.display());
     }
@@ -361,7 +361,7 @@ fn run_cmd(args: RunArgs) -> Result<()> {
         // The service runs as a task, not as the `block_on` future itself: waking that
         // future goes through the I/O driver (an eventfd write and one more epoll_wait),
         // while waking a task from another task on this thread only queues it.
-        let r = tokio::spawn(imucald::daemon::run(cfg, rx))
+        let r = tokio::spawn(imucald::app::daemon::run(cfg, rx))
             .await
             .context("service task")?;
         anyhow::Ok(r?)
@@ -387,14 +387,14 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
     } = args;
     let cfg = load_config(config.as_ref())?;
     let base = match base_model {
-        BaseModel::Diag6 => imucald::model::ModelKind::Diag6,
-        BaseModel::Sym9 => imucald::model::ModelKind::Sym9,
+        BaseModel::Diag6 => imucald::calib::model::ModelKind::Diag6,
+        BaseModel::Sym9 => imucald::calib::model::ModelKind::Sym9,
     };
     anyhow::ensure!(
         alpha > 0.0 && alpha < 1.0,
         "--alpha {alpha}: must be between 0 and 1"
     );
-    let input = imucald::sources::read_log(&log, format, &cfg)
+    let input = imucald::io::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
     let spinner = indicatif::ProgressBar::new_spinner();
     spinner.set_message(format!(
@@ -413,11 +413,11 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
     spinner.finish_and_clear();
     print!("{}", imucald::diagnose::summary_table(&r));
     if let Some(path) = report {
-        imucald::publish::write_json(&path, &r)?;
+        imucald::io::publish::write_json(&path, &r)?;
         println!("wrote {}", path.display());
     }
     if let Some(dir) = plot {
-        for p in imucald::plot::diagnosis(&dir, &r)
+        for p in imucald::app::plot::diagnosis(&dir, &r)
             .with_context(|| format!("plots into {}", dir.display()))?
         {
             println!("wrote {}", p.display());
@@ -437,13 +437,13 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
     } = args;
     let cfg = load_config(config.as_ref())?;
     let alignment = align;
-    let input = imucald::sources::read_log(&log, format, &cfg)
+    let input = imucald::io::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
-    let fcfg = imucald::fusion::FusionConfig {
+    let fcfg = imucald::attitude::fusion::FusionConfig {
         use_mag: !no_mag,
         ..Default::default()
     };
-    let r = imucald::eval::evaluate_filter(&input.samples, &fcfg, alignment)
+    let r = imucald::attitude::eval::evaluate_filter(&input.samples, &fcfg, alignment)
             .with_context(|| {
                 format!(
                     "{}: no sample has a reference orientation (ref_qw, ref_qx, ref_qy, ref_qz columns) \
@@ -453,7 +453,7 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
             })?;
     print!("{}", r.to_text());
     if let Some(path) = report {
-        imucald::publish::write_json(&path, &r)?;
+        imucald::io::publish::write_json(&path, &r)?;
         println!("wrote {}", path.display());
     }
     Ok(())
@@ -470,9 +470,9 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
             .context("no place: give --lat and --lon, or [place] in the config")?,
     };
     let field = imucald::attitude::earth_field(&place).map_err(|e| anyhow::anyhow!(e))?;
-    let log = imucald::sources::read_log(&a.log, format, &cfg)
+    let log = imucald::io::sources::read_log(&a.log, format, &cfg)
         .with_context(|| format!("reading {}", a.log.display()))?;
-    let pipe = imucald::pipeline::Pipeline::new(&cfg)?;
+    let pipe = imucald::calib::pipeline::Pipeline::new(&cfg)?;
     let end_s = a.at_s.unwrap_or(f64::INFINITY);
     let pairs: Vec<_> = log
         .samples
@@ -483,29 +483,30 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
             Some((b.mag_ut?, b.accel_mps2?))
         })
         .collect();
-    let identity = imucald::model::IDENTITY;
-    let settings = imucald::fixedyaw::FixedYawSettings::default();
-    let fy = imucald::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
-        .map_err(|e| {
-        anyhow::anyhow!(
-            "{}: {e} (--at-s picks the end of the rest)",
-            a.log.display()
-        )
-    })?;
+    let identity = imucald::calib::model::IDENTITY;
+    let settings = imucald::calib::fixedyaw::FixedYawSettings::default();
+    let fy =
+        imucald::calib::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
+            .map_err(|e| {
+                anyhow::anyhow!(
+                    "{}: {e} (--at-s picks the end of the rest)",
+                    a.log.display()
+                )
+            })?;
     let o = fy.offset_ut;
     println!(
         "fixed yaw {:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT ({} samples): offset [{:.2}, {:.2}, {:.2}] uT",
         a.yaw_deg, fy.roll_deg, fy.pitch_deg, field.total_ut, fy.samples, o[0], o[1], o[2]
     );
-    let cal = imucald::model::Calibration {
-        model: imucald::model::ModelKind::Sphere,
+    let cal = imucald::calib::model::Calibration {
+        model: imucald::calib::model::ModelKind::Sphere,
         offset: o,
         matrix: identity,
     };
-    for p in imucald::export::ardupilot_mag(&cal, 0)
+    for p in imucald::calib::export::ardupilot_mag(&cal, 0)
         .0
         .iter()
-        .chain(imucald::export::px4_mag(&cal, 0).0.iter())
+        .chain(imucald::calib::export::px4_mag(&cal, 0).0.iter())
         .filter(|(name, _)| name.contains("OFS") || name.contains("OFF"))
     {
         println!("{} {}", p.0, p.1);
@@ -556,8 +557,8 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
     } else if name.ends_with(".bin") || name.ends_with(".ulg") {
         // The magnetometer logged corrected by a known onboard calibration, as flight
         // controllers log it; replay undoes it from the log's parameters.
-        let onboard = imucald::flightlog::write::OnboardMag::example();
-        imucald::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+        let onboard = imucald::io::flightlog::write::OnboardMag::example();
+        imucald::io::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
         println!(
             "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
             onboard.offset_ut, onboard.matrix
@@ -576,7 +577,7 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
         sc.name
     );
     if let Some(t) = truth {
-        imucald::publish::write_json(&t, &sim.truth)?;
+        imucald::io::publish::write_json(&t, &sim.truth)?;
         println!("wrote {}", t.display());
     }
     Ok(())

@@ -1,9 +1,9 @@
 //! The replay/run report (`imucald.report/1`), as serialisable data. Field names are the contract.
 
-use crate::coverage::Coverage;
-use crate::decode::DecodeStats;
-use crate::fit::FitFailure;
-use crate::gate::Pose;
+use crate::calib::coverage::Coverage;
+use crate::calib::fit::FitFailure;
+use crate::calib::gate::Pose;
+use crate::io::decode::DecodeStats;
 use crate::types::Vec3;
 use serde::{Deserialize, Serialize};
 
@@ -121,7 +121,7 @@ pub struct InstanceReport {
     pub primary: bool,
     pub samples: u64,
     /// Its clock ([`InputReport::time`]).
-    pub time: crate::clock::TimeStats,
+    pub time: crate::io::clock::TimeStats,
     pub calibration: CalibrationReport,
 }
 
@@ -184,7 +184,7 @@ pub struct InputReport {
     pub duration_s: f64,
     /// The source's clock: which one (`message` or `receive`), time segments, faults by kind.
     #[serde(default)]
-    pub time: crate::clock::TimeStats,
+    pub time: crate::io::clock::TimeStats,
     /// Every sensor stream of a flight-controller log; empty for other inputs.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub sensors: Vec<SensorStream>,
@@ -301,17 +301,17 @@ pub struct SensorCalibration {
     #[serde(default)]
     pub outliers_rejected: usize,
     /// Magnetometer of a replay: `method` ("vector" or "sphere"), `method_reason`, and the vector
-    /// fit (`vector`) when one was made ([`crate::magmethod`]).
+    /// fit (`vector`) when one was made ([`crate::calib::magmethod`]).
     #[serde(flatten)]
-    pub method: Option<crate::magmethod::MethodChoice>,
+    pub method: Option<crate::calib::magmethod::MethodChoice>,
 }
 
 impl SensorCalibration {
     /// The calibration to apply when it passed (`status` "ok"); a model name this build does not
     /// know reads as the general one (full12), which applies the stored matrix as it is.
-    pub fn calibration(&self) -> Option<crate::model::Calibration> {
-        use crate::model::ModelKind;
-        (self.status == CalStatus::Ok).then(|| crate::model::Calibration {
+    pub fn calibration(&self) -> Option<crate::calib::model::Calibration> {
+        use crate::calib::model::ModelKind;
+        (self.status == CalStatus::Ok).then(|| crate::calib::model::Calibration {
             model: ModelKind::parse(&self.model).unwrap_or(ModelKind::Full12),
             offset: self.offset,
             matrix: self.matrix,
@@ -320,7 +320,7 @@ impl SensorCalibration {
 
     /// [`SensorCalibration::calibration`] of a magnetometer in uT (what flight-stack parameters
     /// can hold).
-    pub fn calibration_ut(&self) -> Option<crate::model::Calibration> {
+    pub fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
         self.calibration().filter(|_| self.units == "uT")
     }
 }
@@ -351,7 +351,7 @@ pub struct GyroCalibration {
     /// Why no scale is published: `failure` (not_enough_samples, not_identifiable, held_out,
     /// needs_calibration), `detail`, and `held_out` figures when that check was made.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub scale_failure: Option<crate::gyro::ScaleFailure>,
+    pub scale_failure: Option<crate::calib::gyro::ScaleFailure>,
 }
 
 /// The 12-parameter gyro calibration `omega_rad_s = matrix (raw - bias)` and how well it carries the
@@ -366,7 +366,7 @@ pub struct GyroScaleReport {
     pub rms_before_deg: f64,
     pub rms_after_deg: f64,
     /// The same on every other rotation, left out of a second fit (the check the scale passed).
-    pub held_out: Option<crate::gyro::HeldOut>,
+    pub held_out: Option<crate::calib::gyro::HeldOut>,
     pub conditioning: f64,
 }
 

@@ -13,7 +13,7 @@ pub type Vec3 = [f64; 3];
 pub struct Sample {
     /// Time since the start of the recording, seconds; never decreases along a stream.
     pub t_s: f64,
-    /// Time segment ([`crate::clock`]): a new one starts wherever the source's time broke (a
+    /// Time segment ([`crate::io::clock`]): a new one starts wherever the source's time broke (a
     /// reboot, logs joined, a gap). Nothing integrates over time across a change.
     pub segment: u32,
     /// Specific force, m/s^2 (FRD sensor axes), or counts when `Units::accel` says so.

@@ -3,8 +3,8 @@
 
 mod common;
 
+use imucald::app::daemon::load_store;
 use imucald::config::Config;
-use imucald::daemon::load_store;
 use std::path::Path;
 use std::time::Duration;
 
@@ -35,10 +35,13 @@ async fn run_tumble(cal_dir: &Path) -> Vec<[f64; 3]> {
         out
     });
     let (_stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    tokio::time::timeout(Duration::from_secs(120), imucald::daemon::run(cfg, stop_rx))
-        .await
-        .expect("the simulated source ends")
-        .unwrap();
+    tokio::time::timeout(
+        Duration::from_secs(120),
+        imucald::app::daemon::run(cfg, stop_rx),
+    )
+    .await
+    .expect("the simulated source ends")
+    .unwrap();
     collect.await.unwrap()
 }
 
@@ -73,16 +76,16 @@ async fn filter_state_is_saved_and_restored() {
 
     // A restored bias is where the next run's filter starts: set a known one, run again.
     let planted = [0.02, -0.03, 0.01];
-    store.filter = Some(imucald::fusion::FilterState {
+    store.filter = Some(imucald::attitude::fusion::FilterState {
         gyro_bias_rad_s: planted,
         ..learnt
     });
-    imucald::daemon::save_store(&cal_dir, &store).unwrap();
+    imucald::app::daemon::save_store(&cal_dir, &store).unwrap();
     let restored = run_tumble(&cal_dir).await;
     // Without the state, the same run starts from zero residual bias.
     let mut store = load_store(&cal_dir).unwrap().unwrap();
     store.filter = None;
-    imucald::daemon::save_store(&cal_dir, &store).unwrap();
+    imucald::app::daemon::save_store(&cal_dir, &store).unwrap();
     let fresh = run_tumble(&cal_dir).await;
     let first = |lines: &[[f64; 3]]| {
         let b = lines.first().copied().expect("an attitude line");

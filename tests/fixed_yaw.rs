@@ -75,7 +75,9 @@ fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
     let e = v["ofs_error_mgauss"].as_f64().unwrap();
     assert!(e < 0.15, "report {e} mGauss off");
     // Written: the calibration file holds the offset found.
-    let store = imucald::daemon::load_store(&cal).unwrap().expect("written");
+    let store = imucald::app::daemon::load_store(&cal)
+        .unwrap()
+        .expect("written");
     let m = store.mag.expect("a magnetometer calibration");
     let err = (0..3)
         .map(|k| (m.offset[k] - hard[k]).abs())

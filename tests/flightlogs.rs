@@ -8,10 +8,10 @@
 
 mod common;
 
+use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
-use imucald::flightlog::dataflash::DfReader;
-use imucald::flightlog::ulog::UlogReader;
-use imucald::replay::{replay, ReplayOptions};
+use imucald::io::flightlog::dataflash::DfReader;
+use imucald::io::flightlog::ulog::UlogReader;
 use imucald::report::CalStatus;
 use imucald::report::Report;
 use serde_json::Value;
@@ -221,7 +221,7 @@ fn dataflash_mag_is_the_raw_field_with_the_onboard_correction_undone() {
     let dir = require_data!();
     let bin = std::fs::read(dir.join("ardupilot_plane_pixracer.bin")).unwrap();
     let cfg = Config::default();
-    let log = imucald::sources::decode_log(&bin, Path::new("x.bin"), None, &cfg).unwrap();
+    let log = imucald::io::sources::decode_log(&bin, Path::new("x.bin"), None, &cfg).unwrap();
     let on = log.flight.as_ref().unwrap().onboard.clone();
     let mut rd = DfReader::new(&bin);
     let mut logged = vec![];
@@ -515,7 +515,7 @@ fn damaged_flight_logs_are_read_without_panics() {
                 fuzz_entry::ulog(&b)
             };
             let cfg = Config::default();
-            if let Ok(log) = imucald::sources::decode_log(&b, Path::new(file), None, &cfg) {
+            if let Ok(log) = imucald::io::sources::decode_log(&b, Path::new(file), None, &cfg) {
                 assert_eq!(log.samples, samples, "{file} round {round}");
                 damaged_counted += (!log.stats.skipped.is_empty()) as usize;
             }
@@ -537,7 +537,7 @@ fn damaged_flight_logs_are_read_without_panics() {
 /// 0.1 uT and 0.002; here about 3x what was measured).
 #[test]
 fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
-    use imucald::flightlog::write::{write_flight_log, OnboardMag};
+    use imucald::io::flightlog::write::{write_flight_log, OnboardMag};
     use imucald::sim::{simulate, Scenario};
     let dir = tempfile::tempdir().unwrap();
     let mut sc = Scenario::named("tumble").unwrap();
@@ -546,8 +546,8 @@ fn simulated_flight_logs_recover_the_true_calibration_under_an_onboard_one() {
     let sim = simulate(&sc, 3);
     let onboard = OnboardMag::example();
     let norm = |m: &[[f64; 3]; 3]| {
-        imucald::model::Calibration {
-            model: imucald::model::ModelKind::Full12,
+        imucald::calib::model::Calibration {
+            model: imucald::calib::model::ModelKind::Full12,
             offset: [0.0; 3],
             matrix: *m,
         }

@@ -8,8 +8,8 @@
 
 mod common;
 
+use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
-use imucald::replay::{replay, ReplayOptions};
 use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use mavlink::dialects::ardupilotmega::MavMessage;
@@ -138,7 +138,7 @@ fn a_config_can_still_pick_one_instance() {
 /// parameter names in the exports (COMPASS_OFS / COMPASS_OFS2, CAL_MAG0 / CAL_MAG1).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn live_service_reports_each_compass_on_its_own() {
-    use imucald::mavout::MavEncoder;
+    use imucald::io::mavout::MavEncoder;
     use std::collections::BTreeMap;
     use std::time::Duration;
     let (a, b) = two_compasses();
@@ -152,7 +152,7 @@ async fn live_service_reports_each_compass_on_its_own() {
     cfg.fit.refit_every_s = 5.0;
     cfg.validate().unwrap();
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
     tokio::time::sleep(Duration::from_millis(200)).await;
 
     // What comes back from the service: the last MAG_CAL_REPORT and the progress per compass.
@@ -163,7 +163,7 @@ async fn live_service_reports_each_compass_on_its_own() {
         let peer_tx = peer_rx.clone();
         let (reports, progress) = (reports.clone(), progress.clone());
         let task = tokio::spawn(async move {
-            let mut dec = imucald::decode::FrameDecoder::new();
+            let mut dec = imucald::io::decode::FrameDecoder::new();
             let mut buf = vec![0u8; 4096];
             while let Ok((n, _)) = peer_rx.recv_from(&mut buf).await {
                 for f in dec.push(&buf[..n]) {
@@ -257,7 +257,7 @@ async fn live_service_reports_each_compass_on_its_own() {
     assert_eq!(instances.into_iter().collect::<Vec<_>>(), vec![0, 1]);
 
     // Its own entry in the calibration file, and its own parameter names.
-    let store = imucald::daemon::load_store(&cal_dir).unwrap().unwrap();
+    let store = imucald::app::daemon::load_store(&cal_dir).unwrap().unwrap();
     assert_eq!(store.compass_id, 0);
     assert_eq!(store.instances.len(), 1);
     assert_eq!(store.instances[0].compass_id, 1);

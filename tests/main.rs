@@ -4,9 +4,9 @@
 mod common;
 
 use common::{free_udp_port, mavlink_source, python_with, udpin_config};
+use imucald::app::replay::{replay, ReplayOptions};
+use imucald::calib::fit::FitFailure;
 use imucald::config::Config;
-use imucald::fit::FitFailure;
-use imucald::replay::{replay, ReplayOptions};
 use imucald::report::CalStatus;
 use std::path::{Path, PathBuf};
 
@@ -21,7 +21,7 @@ macro_rules! require_data {
     };
 }
 
-fn run(path: &Path, cfg: &Config) -> imucald::replay::ReplayOutcome {
+fn run(path: &Path, cfg: &Config) -> imucald::app::replay::ReplayOutcome {
     replay(path, cfg, &ReplayOptions::default(), &mut |_, _| {})
         .unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
 }
@@ -191,13 +191,13 @@ mod config_files {
 mod simulated {
     use super::*;
     use imucald::attitude::{angle_diff_deg, attitude_deg};
-    use imucald::model::Calibration;
+    use imucald::calib::model::Calibration;
     use imucald::report::SensorCalibration;
     use imucald::sim::{simulate, write_csv, write_tlog, Scenario, SensorTruth, TlogWriteOptions};
 
     fn normalised(m: &[[f64; 3]; 3]) -> nalgebra::Matrix3<f64> {
         Calibration {
-            model: imucald::model::ModelKind::Sym9,
+            model: imucald::calib::model::ModelKind::Sym9,
             offset: [0.0; 3],
             matrix: *m,
         }
@@ -236,7 +236,7 @@ mod simulated {
         let header: Vec<&str> = lines.next().unwrap().split(',').collect();
         let col = |n: &str| header.iter().position(|h| *h == n).unwrap();
         let (qw, fh) = (col("qw"), col("fused_heading_deg"));
-        let ned = imucald::fusion::enu_to_ned();
+        let ned = imucald::attitude::fusion::enu_to_ned();
         let (mut sq_tot, mut sq_head, mut n, mut moving) = (0.0, 0.0, 0usize, 0usize);
         for (line, s) in lines.zip(&sim.samples) {
             let c: Vec<&str> = line.split(',').collect();
@@ -252,7 +252,7 @@ mod simulated {
                 * nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
                     r[0], r[1], r[2], r[3],
                 ));
-            let (tot, head, _) = imucald::eval::errors(&q, &q_ref);
+            let (tot, head, _) = imucald::attitude::eval::errors(&q, &q_ref);
             sq_tot += tot.powi(2);
             sq_head += head.powi(2);
             n += 1;
@@ -691,9 +691,10 @@ mod full12 {
     #[test]
     fn mag_full12_recovers_rotation_from_dip() {
         let mut sc = Scenario::named("tumble").unwrap();
-        let s = imucald::model::rows_to_mat(&sc.truth.mag.matrix);
-        let r = imucald::model::rotation_from_vector(&nalgebra::Vector3::new(0.03, -0.02, 0.04));
-        sc.truth.mag.matrix = imucald::model::mat_to_rows(&(r * s));
+        let s = imucald::calib::model::rows_to_mat(&sc.truth.mag.matrix);
+        let r =
+            imucald::calib::model::rotation_from_vector(&nalgebra::Vector3::new(0.03, -0.02, 0.04));
+        sc.truth.mag.matrix = imucald::calib::model::mat_to_rows(&(r * s));
         let sim = simulate(&sc, 5);
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("rot.tlog");
@@ -709,7 +710,7 @@ mod full12 {
             m.detail
         );
         let got = out.results.mag.calibration.unwrap().normalised_matrix();
-        let want = imucald::model::Calibration {
+        let want = imucald::calib::model::Calibration {
             matrix: sc.truth.mag.matrix,
             ..out.results.mag.calibration.unwrap()
         }
@@ -765,7 +766,7 @@ mod live {
     fn tumble_for_peer(d: &Path, seed: u64) -> imucald::sim::SimOutput {
         let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), seed);
         imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
-        imucald::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
+        imucald::io::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
         sim
     }
 
@@ -854,7 +855,7 @@ mod live {
         assert!(status.success(), "exit {status:?}: {err}");
         assert!(stop_s < 1.0, "shutdown took {stop_s} s");
         // The calibration was flushed and reloads.
-        let store = imucald::daemon::load_store(&d.join("cal"))
+        let store = imucald::app::daemon::load_store(&d.join("cal"))
             .unwrap()
             .expect("calibration file");
         assert_eq!(store.mag.unwrap().status, CalStatus::Ok);
@@ -894,7 +895,7 @@ mod live {
             .expect("imucald did not exit after SIGTERM")
             .success());
         // The accepted calibration is what a restart loads (the cancelled run changed nothing).
-        let store = imucald::daemon::load_store(&d.join("cal"))
+        let store = imucald::app::daemon::load_store(&d.join("cal"))
             .unwrap()
             .expect("calibration file");
         let mag = store.mag.expect("mag calibration");
@@ -955,7 +956,7 @@ mod live {
             "only {checked} runs had written a calibration before the kill"
         );
         // A restart resumes from the file that is there.
-        assert!(imucald::daemon::load_store(&cal).unwrap().is_some());
+        assert!(imucald::app::daemon::load_store(&cal).unwrap().is_some());
     }
 }
 
@@ -1341,11 +1342,11 @@ mod live_serial {
         cfg.gate.min_pose_s = 0.1;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
         tokio::time::sleep(Duration::from_millis(300)).await;
         stream(&mut master, &sim.samples, 10.0).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
-        let store = imucald::daemon::load_store(&d.join("cal"))
+        let store = imucald::app::daemon::load_store(&d.join("cal"))
             .unwrap()
             .expect("calibrated before the unplug");
         let before = store.mag.clone().unwrap();
@@ -1368,7 +1369,7 @@ mod live_serial {
             "samples after the replug arrived: {}",
             summary.samples
         );
-        let after = imucald::daemon::load_store(&d.join("cal"))
+        let after = imucald::app::daemon::load_store(&d.join("cal"))
             .unwrap()
             .unwrap()
             .mag
@@ -1394,8 +1395,8 @@ mod live_serial {
 /// streams (as ArduPilot does), answers PARAM_REQUEST_READ and echoes PARAM_SET.
 mod live_ardupilot {
     use super::*;
-    use imucald::decode::FrameDecoder;
-    use imucald::mavout::MavEncoder;
+    use imucald::io::decode::FrameDecoder;
+    use imucald::io::mavout::MavEncoder;
     use mavlink::dialects::ardupilotmega::*;
     use mavlink::types::CharArray;
     use std::collections::BTreeMap;
@@ -1428,7 +1429,7 @@ mod live_ardupilot {
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
         tokio::time::sleep(Duration::from_millis(200)).await;
 
         // The FC's current calibration, in ArduPilot's convention (mGauss, added).
@@ -1447,7 +1448,7 @@ mod live_ardupilot {
         ] {
             params.insert(n.into(), v);
         }
-        let mut ap = imucald::mavout::ApCompassParams::default();
+        let mut ap = imucald::io::mavout::ApCompassParams::default();
         let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 6);
         let mut enc = MavEncoder::new(1, 1);
         let mut dec = FrameDecoder::new();
@@ -1564,7 +1565,7 @@ mod fuzz_regressions {
     //! nasty inputs, through the fuzz targets' own entry points (`fuzz/entry.rs`, included here).
     include!(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/entry.rs"));
 
-    use imucald::decode::Format;
+    use imucald::io::decode::Format;
     use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA, RAW_IMU_DATA};
     use mavlink::{MavHeader, MavlinkVersion};
 
@@ -1641,7 +1642,7 @@ mod fuzz_regressions {
             let s = dataflash(d);
             assert!(s.is_empty());
         }
-        let head = imucald::flightlog::ulog::MAGIC
+        let head = imucald::io::flightlog::ulog::MAGIC
             .iter()
             .copied()
             .chain([1, 0, 0, 0, 0, 0, 0, 0, 0])
@@ -1741,7 +1742,7 @@ mod fuzz_regressions {
 
         // The file path: gzip (whole and cut), a bare gzip magic, all magic bytes, nothing.
         let cfg = Config::default();
-        let read = |b: &[u8]| imucald::sources::decode_log(b, Path::new("nasty"), None, &cfg);
+        let read = |b: &[u8]| imucald::io::sources::decode_log(b, Path::new("nasty"), None, &cfg);
         let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
         std::io::Write::write_all(&mut gz, &good).unwrap();
         let gz = gz.finish().unwrap();
@@ -1928,7 +1929,7 @@ mod live_attitude {
     /// next sample, not when something else next wakes it.
     #[tokio::test]
     async fn per_sample_attitude_leaves_before_the_next_sample_arrives() {
-        use imucald::mavout::MavEncoder;
+        use imucald::io::mavout::MavEncoder;
         use mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA;
         let dir = tempfile::tempdir().unwrap();
         let (port, mut cfg) = udpin_config(dir.path());
@@ -1941,7 +1942,7 @@ mod live_attitude {
         cfg.daemon.heartbeat_rate_hz = 0.0;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
         tokio::time::sleep(Duration::from_millis(300)).await;
         let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         fc.connect(("127.0.0.1", port)).await.unwrap();
@@ -2006,8 +2007,8 @@ mod live_attitude {
         stop_tx.send(true).unwrap();
         daemon.await.unwrap().unwrap();
     }
-    use imucald::daemon::{save_store, StoredCalibration, STORE_SCHEMA};
-    use imucald::decode::FrameDecoder;
+    use imucald::app::daemon::{save_store, StoredCalibration, STORE_SCHEMA};
+    use imucald::io::decode::FrameDecoder;
     use imucald::report::{GyroCalibration, SensorCalibration};
     use imucald::sim::SensorTruth;
     use mavlink::dialects::ardupilotmega::MavMessage;
@@ -2147,7 +2148,7 @@ mod live_attitude {
         let fc_rx = collect(fc);
         let json_rx = collect(json);
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
         tokio::time::sleep(Duration::from_secs(31)).await;
         stop_tx.send(true).unwrap();
         let summary = daemon.await.unwrap().unwrap();
@@ -2266,8 +2267,8 @@ mod live_consumers {
     //! The live service against consumers that misbehave, and as a MAVLink component: spawned as the
     //! built binary, fed by a Rust MAVLink peer over UDP.
     use super::*;
-    use imucald::decode::FrameDecoder;
-    use imucald::mavout::MavEncoder;
+    use imucald::io::decode::FrameDecoder;
+    use imucald::io::mavout::MavEncoder;
     use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA};
     use std::process::{Command, Stdio};
     use std::sync::atomic::{AtomicBool, Ordering};
@@ -2594,9 +2595,9 @@ mod live_consumers {
 /// pure parts (pipeline, progress, acceptance) driven in-process over simulated data.
 mod honest_progress {
     use super::*;
-    use imucald::coverage::{Progress, ProgressReport};
-    use imucald::daemon::{accept, failure_report_due, HOLD_OUT_EVERY};
-    use imucald::pipeline::{fit_all, Pipeline};
+    use imucald::app::daemon::{accept, failure_report_due, HOLD_OUT_EVERY};
+    use imucald::calib::coverage::{Progress, ProgressReport};
+    use imucald::calib::pipeline::{fit_all, Pipeline};
     use imucald::report::SensorCalibration;
     use imucald::types::Sample;
 
@@ -2655,7 +2656,7 @@ mod honest_progress {
         assert!(!reports.is_empty());
         // Honest: never more regions than the data fill about the true centre (up to a couple
         // counted about an estimated centre a little off).
-        let mut truth_map = imucald::coverage::CoverageMap::new(sim.truth.mag.offset);
+        let mut truth_map = imucald::calib::coverage::CoverageMap::new(sim.truth.mag.offset);
         let mut i = 0;
         for (t, p, _) in &reports {
             while i < sim.samples.len() && sim.samples[i].t_s - sim.samples[0].t_s <= *t {
@@ -2747,7 +2748,7 @@ mod honest_progress {
 /// The gyro scale is published only when its held-out check passes (`replay`).
 mod gyro_scale_checked {
     use super::*;
-    use imucald::fit::FitFailure;
+    use imucald::calib::fit::FitFailure;
     use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
 
     /// A turntable log with these attitudes, replayed.

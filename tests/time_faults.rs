@@ -10,8 +10,8 @@
 
 mod common;
 
+use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
-use imucald::replay::{replay, ReplayOptions};
 use imucald::report::CalStatus;
 use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
 use imucald::types::Sample;
@@ -157,8 +157,8 @@ fn errors(
     truth: &imucald::sim::SensorTruth,
 ) -> (f64, f64) {
     let norm = |m: &[[f64; 3]; 3]| {
-        imucald::model::Calibration {
-            model: imucald::model::ModelKind::Sym9,
+        imucald::calib::model::Calibration {
+            model: imucald::calib::model::ModelKind::Sym9,
             offset: [0.0; 3],
             matrix: *m,
         }
@@ -308,7 +308,10 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
     );
     assert_eq!(r.input.time.segments, 1, "{:?}", r.input.time);
     assert_eq!(
-        r.input.time.faults.get(&imucald::clock::TimeFault::Wrap),
+        r.input
+            .time
+            .faults
+            .get(&imucald::io::clock::TimeFault::Wrap),
         Some(&1)
     );
 }
@@ -424,11 +427,11 @@ proptest! {
         assert_recovered(&r.calibration, &what);
         prop_assert_eq!(r.input.time.segments, segments_expected(&faults), "{} {:?}", what, r.input.time);
         let dups: usize = faults.iter().map(|(_, f)| if let Fault::Duplicate { n } = f { *n } else { 0 }).sum();
-        let counted = r.input.time.faults.get(&imucald::clock::TimeFault::Duplicate).copied().unwrap_or(0);
+        let counted = r.input.time.faults.get(&imucald::io::clock::TimeFault::Duplicate).copied().unwrap_or(0);
         prop_assert_eq!(counted as usize, dups);
         // diagnose on the same samples: a report, not a panic.
         let cfg = Config::default();
-        let logd = imucald::sources::read_log(&log, None, &cfg).unwrap();
+        let logd = imucald::io::sources::read_log(&log, None, &cfg).unwrap();
         let samples: Vec<Sample> = logd.samples;
         let d = imucald::diagnose::diagnose(&samples, &cfg, &imucald::diagnose::DiagnoseOptions::default());
         prop_assert!(serde_json::to_string(&d).is_ok());

@@ -2,9 +2,9 @@
 //! scenario: legs and banked turns, attitude at 10 Hz with 0.5 deg of noise, the WMM2025 field at
 //! the place and date, hidden hard and soft iron), against the sphere fit on the same data.
 
+use imucald::app::replay::{replay, ReplayOptions};
+use imucald::calib::magmethod::MagMethod;
 use imucald::config::Config;
-use imucald::magmethod::MagMethod;
-use imucald::replay::{replay, ReplayOptions};
 use imucald::sim::{simulate, write_csv, Scenario};
 use imucald::types::Vec3;
 

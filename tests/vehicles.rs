@@ -10,9 +10,9 @@
 mod common;
 
 use common::{free_udp_port, mavlink_source};
+use imucald::app::daemon::RunSummary;
 use imucald::config::Config;
-use imucald::daemon::RunSummary;
-use imucald::mavout::MavEncoder;
+use imucald::io::mavout::MavEncoder;
 use imucald::sim::{simulate, Scenario, SimOutput};
 use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
 use std::collections::BTreeMap;
@@ -53,7 +53,7 @@ fn service_config(
 /// Run the service on `cfg`, send the first `n` samples of `sim` as system 1 to `port`, stop it.
 async fn feed_and_stop(cfg: Config, port: u16, sim: &SimOutput, n: usize) -> RunSummary {
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
     tokio::time::sleep(Duration::from_millis(200)).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
@@ -92,7 +92,7 @@ fn listen(peer: Arc<tokio::net::UdpSocket>) -> (Reports, tokio::task::JoinHandle
     let reports: Reports = Default::default();
     let r = reports.clone();
     let task = tokio::spawn(async move {
-        let mut dec = imucald::decode::FrameDecoder::new();
+        let mut dec = imucald::io::decode::FrameDecoder::new();
         let mut buf = vec![0u8; 4096];
         while let Ok((n, _)) = peer.recv_from(&mut buf).await {
             for f in dec.push(&buf[..n]) {
@@ -113,7 +113,7 @@ fn ofs_error_mgauss(r: &MAG_CAL_REPORT_DATA, sim: &SimOutput) -> f64 {
 }
 
 fn stored_error_ut(dir: &std::path::Path, sim: &SimOutput) -> f64 {
-    let store = imucald::daemon::load_store(dir)
+    let store = imucald::app::daemon::load_store(dir)
         .unwrap()
         .unwrap_or_else(|| panic!("nothing stored in {}", dir.display()));
     let m = store.mag.expect("a magnetometer calibration");
@@ -136,7 +136,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
         tokio::time::sleep(Duration::from_millis(200)).await;
 
         // Vehicle A: system 1 on link 0. Vehicle B: system 1 on link 1, or system 2 on link 0.
@@ -315,7 +315,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     let mut cfg = service_config(&dir.path().join("cal"), &[port], &sink);
     cfg.daemon.heartbeat_rate_hz = 0.0;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::daemon::run(cfg, stop_rx));
+    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
     tokio::time::sleep(Duration::from_millis(200)).await;
     let peer = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
     let (mut v1, mut v2, mut gcs) = (
@@ -335,7 +335,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     // Who answers each command: the (system, component) of every COMMAND_ACK.
     let mut answers = vec![];
-    let mut dec = imucald::decode::FrameDecoder::new();
+    let mut dec = imucald::io::decode::FrameDecoder::new();
     let mut buf = vec![0u8; 65536];
     for target in [2u8, 1, 0] {
         let start = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
@@ -391,7 +391,7 @@ async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, 
     let summary = feed_and_stop(cfg, new_port, a, 200).await;
     // Taken by the first calibration (the summary counts its samples), not a further vehicle's.
     assert_eq!(summary.samples, 200, "{summary:?}");
-    let store = imucald::daemon::load_store(cal_dir).unwrap().unwrap();
+    let store = imucald::app::daemon::load_store(cal_dir).unwrap().unwrap();
     let v = store.vehicle.expect("vehicle recorded");
     assert_eq!(
         (v.link, v.system_id),

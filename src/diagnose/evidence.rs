@@ -195,7 +195,7 @@ type RawUnit = (usize, Vec<usize>, bool);
 fn static_units(
     body: &[Sample],
     times: &[f64],
-    poses: &[crate::gate::Pose],
+    poses: &[crate::calib::gate::Pose],
     drv: &[Option<f64>],
     split: f64,
     in_pose: &mut [bool],
@@ -453,7 +453,7 @@ fn centre(units: &mut [Unit]) -> Centred {
 /// Build the evidence units from body-frame samples and the pipeline's poses.
 pub(super) fn build_evidence(
     body: Vec<Sample>,
-    poses: &[crate::gate::Pose],
+    poses: &[crate::calib::gate::Pose],
     rot_sensor_to_body: &Matrix3<f64>,
 ) -> Evidence {
     let n = body.len();

@@ -4,7 +4,7 @@
 
 use super::evidence::{v3, Driver, Evidence, MagObs, MIN_TEMP_RANGE_C};
 use super::Effect;
-use crate::model::{a_from_params, rotation_from_vector, Calibration, ModelKind};
+use crate::calib::model::{a_from_params, rotation_from_vector, Calibration, ModelKind};
 use crate::types::Vec3;
 use nalgebra::{DVector, Matrix3, Vector3};
 
@@ -769,18 +769,20 @@ pub(super) fn plausibility(ctx: &Ctx, lay: &Layout, p: &DVector<f64>, e: Effect)
 
 /// Start calibrations from the pipeline, falling back to a fit of the static means.
 pub(super) fn mag_start(
-    res: &crate::pipeline::SensorResult,
+    res: &crate::calib::pipeline::SensorResult,
     points: &[Vec3],
     base: ModelKind,
 ) -> Option<(Vector3<f64>, f64, Matrix3<f64>)> {
     let r = &res.report;
     if r.radius > 0.0 && r.offset.iter().all(|x| x.is_finite()) {
-        let m = crate::model::rows_to_mat(&r.matrix);
+        let m = crate::calib::model::rows_to_mat(&r.matrix);
         if m.determinant() > 0.0 {
             return Some((v3(&r.offset), r.radius, m / m.determinant().cbrt()));
         }
     }
-    let f = crate::fit::fit_norm(points, base, &crate::fit::NormFitOptions::default()).ok()?;
+    let f =
+        crate::calib::fit::fit_norm(points, base, &crate::calib::fit::NormFitOptions::default())
+            .ok()?;
     Some((
         v3(&f.calibration.offset),
         f.radius,
@@ -840,7 +842,7 @@ fn gyro_temp_separable(ev: &Evidence) -> bool {
 /// Err: no channel at all.
 pub(super) fn context(
     ev: &Evidence,
-    results: &crate::pipeline::FitResults,
+    results: &crate::calib::pipeline::FitResults,
     base: ModelKind,
     g: f64,
     notes: &mut Vec<String>,
@@ -865,7 +867,7 @@ pub(super) fn context(
     let acc_res = &results.accel;
     let acc_cal = {
         let r = &acc_res.report;
-        let m = crate::model::rows_to_mat(&r.matrix);
+        let m = crate::calib::model::rows_to_mat(&r.matrix);
         (r.radius > 0.0 && m.determinant() > 0.0 && r.offset.iter().all(|x| x.is_finite()))
             .then_some(Calibration {
                 model: base,

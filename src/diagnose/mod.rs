@@ -6,7 +6,7 @@
 //! # Evidence
 //! The unit of evidence is the mean of a static segment, not a single sample (time series residuals are
 //! autocorrelated and each sample's noise is not what the model is about):
-//! * **static units**: the pipeline's static poses ([`crate::gate`]) that are really still (accel
+//! * **static units**: the pipeline's static poses ([`crate::calib::gate`]) that are really still (accel
 //!   direction spread <= [`MAX_STILL_SPREAD_DEG`], gyro scatter <= [`MAX_STILL_GYRO_RAD_S`]; the
 //!   detector's automatic threshold, learned on a continuous tumble, passes slow rotations), each split
 //!   where the motor driver (current when the log has it, else throttle) steps, so a bench run that steps
@@ -53,7 +53,7 @@
 //! It owns the evidence units ([`evidence`]), the forward model with its catalogue of effects as
 //! switchable terms ([`layout`]), the tests ([`stats`]), the nested selection rounds ([`rounds`]) and
 //! the `imucald.diagnosis/1` report ([`report`]). It runs the calibration pipeline
-//! ([`crate::pipeline`]) for the static poses and the start fits, and solves with [`crate::lm`]. It does
+//! ([`crate::calib::pipeline`]) for the static poses and the start fits, and solves with [`crate::calib::lm`]. It does
 //! no I/O (the caller reads the log and writes the report) and knows nothing of tokio; it never
 //! changes a calibration in use.
 
@@ -76,8 +76,8 @@ pub use report::{
 };
 pub use rounds::EXCESS_RATIO;
 
+use crate::calib::model::ModelKind;
 use crate::config::Config;
-use crate::model::ModelKind;
 use crate::types::Sample;
 use serde::{Deserialize, Serialize};
 

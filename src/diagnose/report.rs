@@ -5,7 +5,7 @@ use super::evidence::Driver;
 use super::layout::{decode, residuals, tags, Layout, ALL_CH, NCH};
 use super::rounds::{median_count, Run, Selection, Split};
 use super::{Effect, SCHEMA};
-use crate::model::ModelKind;
+use crate::calib::model::ModelKind;
 use nalgebra::{DVector, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

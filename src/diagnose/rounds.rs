@@ -10,10 +10,10 @@ use super::layout::{
 use super::report::{CandidateReport, Decision, RoundReport};
 use super::stats::{columns, condition, explained, f_sf, mean_sd, select_cols, t_sf};
 use super::{DiagnoseOptions, Effect};
+use crate::calib::lm::LmFit;
+use crate::calib::model::{params_from_a, ModelKind};
+use crate::calib::pipeline::Pipeline;
 use crate::config::Config;
-use crate::lm::LmFit;
-use crate::model::{params_from_a, ModelKind};
-use crate::pipeline::Pipeline;
 use crate::types::Sample;
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use std::collections::BTreeMap;
@@ -97,7 +97,7 @@ impl Run<'_> {
                 out.push(r * w[c.i()] * self.rel[ui][c.i()])
             });
         };
-        crate::lm::minimise(&f, p0, &lay.typ, LM_MAX_ITER)
+        crate::calib::lm::minimise(&f, p0, &lay.typ, LM_MAX_ITER)
     }
 
     pub(super) fn jac(
@@ -116,7 +116,7 @@ impl Run<'_> {
         };
         let mut r0 = Vec::new();
         f(p.as_slice(), &mut r0);
-        (crate::lm::jacobian(&f, p, &r0, &lay.typ), r0)
+        (crate::calib::lm::jacobian(&f, p, &r0, &lay.typ), r0)
     }
 
     /// Channel weights: 1 / residual RMS of each channel on the fit units (dof-corrected).
@@ -285,7 +285,7 @@ impl Run<'_> {
 /// into evidence units. Err: why there is nothing to compare.
 pub(super) struct Prepared {
     pub ev: Evidence,
-    pub results: crate::pipeline::FitResults,
+    pub results: crate::calib::pipeline::FitResults,
     /// Sensor -> body rotation.
     pub rot: Matrix3<f64>,
 }

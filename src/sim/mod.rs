@@ -5,8 +5,8 @@
 //! Frames: body FRD, world NED, attitude body -> NED (ZYX Euler: yaw, pitch, roll). The accelerometer
 //! reads specific force `R^T (a_ned - g_ned)`: (0, 0, -g) at rest and level.
 
+use crate::calib::model::{mat_to_rows, rows_to_mat, Calibration, ModelKind};
 use crate::error::Error;
-use crate::model::{mat_to_rows, rows_to_mat, Calibration, ModelKind};
 use crate::types::{Sample, Sensor, Vec3, STANDARD_GRAVITY_MPS2};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
@@ -1214,7 +1214,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
         end,
         field_ned: Vector3::new(f[0], f[1], f[2]),
         mag_rot: scenario.effects.mag_accel_rotation_deg.map(|w| {
-            crate::model::rotation_from_vector(&Vector3::new(
+            crate::calib::model::rotation_from_vector(&Vector3::new(
                 w[0].to_radians(),
                 w[1].to_radians(),
                 w[2].to_radians(),
@@ -1366,7 +1366,7 @@ fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result
 /// uT, deg C, 0..1; empty cells for absent fields), gzip-compressed if the path ends in `.gz`. Atomic.
 pub fn write_csv(path: &std::path::Path, samples: &[Sample]) -> Result<(), Error> {
     let gz = path.to_string_lossy().to_ascii_lowercase().ends_with(".gz");
-    crate::publish::write_atomic_with(path, |file| {
+    crate::io::publish::write_atomic_with(path, |file| {
         let buf = std::io::BufWriter::with_capacity(1 << 16, file);
         if gz {
             let mut enc = flate2::write::GzEncoder::new(buf, flate2::Compression::default());
@@ -1573,7 +1573,7 @@ pub fn write_tlog(
             message: format!("must be 1 or 2, got {}", opts.mavlink_version),
         });
     }
-    crate::publish::write_atomic_with(path, |file| {
+    crate::io::publish::write_atomic_with(path, |file| {
         let mut buf = std::io::BufWriter::with_capacity(1 << 16, file);
         tlog_records(&mut buf, samples, opts)?;
         std::io::Write::flush(&mut buf)
@@ -1971,8 +1971,8 @@ mod tests {
             .next()
             .unwrap()
             .ends_with(",ref_qw,ref_qx,ref_qy,ref_qz,lat,lon,alt"));
-        let mut stats = crate::decode::DecodeStats::default();
-        let back = crate::decode::decode_csv(&text, &Default::default(), &mut stats).unwrap();
+        let mut stats = crate::io::decode::DecodeStats::default();
+        let back = crate::io::decode::decode_csv(&text, &Default::default(), &mut stats).unwrap();
         assert_eq!(back.len(), out.samples.len());
         for (a, b) in back.iter().zip(&out.samples) {
             assert_eq!(
@@ -2233,7 +2233,7 @@ mod tests {
         b.effects.heading_offset_deg = Some(2.0);
         b.effects.mag_accel_rotation_deg = Some([1.0, -2.0, 0.5]);
         let out = simulate(&b, 5);
-        let rm = crate::model::rotation_from_vector(&Vector3::new(
+        let rm = crate::calib::model::rotation_from_vector(&Vector3::new(
             1f64.to_radians(),
             -2f64.to_radians(),
             0.5f64.to_radians(),

@@ -1,0 +1,458 @@
+//! The calibration kept on disk (`calibration.json` and its exports), the acceptance of a new
+//! calibration against the one in use (held-out points), and the files the service writes off the
+//! run loop.
+
+use super::*;
+use crate::calib::fit::FitFailure;
+use crate::report::CalStatus;
+
+/// What is kept on disk between runs (`calibration.json`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StoredCalibration {
+    pub schema: String,
+    /// The primary instance's compass id (the index its flight-stack parameters are named for:
+    /// COMPASS_OFS / CAL_MAG0 for 0, COMPASS_OFS2 / CAL_MAG1 for 1 ...).
+    #[serde(default)]
+    pub compass_id: u8,
+    pub mag: Option<SensorCalibration>,
+    pub accel: Option<SensorCalibration>,
+    pub gyro: Option<GyroCalibration>,
+    /// The stream's other IMU instances, each calibrated on its own (a vehicle with several
+    /// compasses).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub instances: Vec<StoredInstance>,
+    /// What the orientation filter had learnt (residual gyro bias, field reference), restored on
+    /// start.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub filter: Option<crate::attitude::fusion::FilterState>,
+    /// The vehicle this calibration belongs to (the live service, MAVLink links): after a restart
+    /// it goes to that vehicle again, whichever vehicle is heard first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle: Option<StoredVehicle>,
+}
+
+/// A vehicle as the live service knows it: the link it is heard on and its system id.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
+pub struct StoredVehicle {
+    /// The link's address as configured (`udpin:0.0.0.0:14550`, `serial:/dev/ttyACM0:115200`).
+    pub link: String,
+    /// Its MAVLink system id.
+    pub system_id: u8,
+}
+
+/// The calibration in use of an IMU instance other than the primary.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StoredInstance {
+    /// `highres_imu:1`, `scaled_imu2`, ...
+    pub instance: String,
+    /// MAG_CAL_* `compass_id`, and the index of its flight-stack parameters.
+    pub compass_id: u8,
+    pub mag: Option<SensorCalibration>,
+    pub accel: Option<SensorCalibration>,
+}
+
+pub const STORE_SCHEMA: &str = "imucald.calibration/1";
+pub const STORE_FILE: &str = "calibration.json";
+
+impl StoredCalibration {
+    pub(super) fn empty() -> Self {
+        StoredCalibration {
+            schema: STORE_SCHEMA.into(),
+            compass_id: 0,
+            mag: None,
+            accel: None,
+            gyro: None,
+            instances: Vec::new(),
+            filter: None,
+            vehicle: None,
+        }
+    }
+    pub fn mag_cal(&self) -> Option<Calibration> {
+        self.mag.as_ref()?.calibration()
+    }
+    pub fn accel_cal(&self) -> Option<Calibration> {
+        self.accel.as_ref()?.calibration()
+    }
+    /// Every compass's magnetometer calibration in uT with its compass id (what parameters hold).
+    pub fn mags_ut(&self) -> Vec<(usize, Calibration)> {
+        let primary = self.mag.as_ref().and_then(|m| m.calibration_ut());
+        let others = self.instances.iter().filter_map(|i| {
+            let c = i.mag.as_ref()?.calibration_ut()?;
+            Some((i.compass_id as usize, c))
+        });
+        primary
+            .map(|c| (self.compass_id as usize, c))
+            .into_iter()
+            .chain(others)
+            .collect()
+    }
+    /// The stored entry of the instance with compass id `compass_id` (made when missing).
+    pub(super) fn instance_mut(&mut self, name: &str, compass_id: u8) -> &mut StoredInstance {
+        let k = match self
+            .instances
+            .iter()
+            .position(|i| i.compass_id == compass_id)
+        {
+            Some(k) => k,
+            None => {
+                self.instances.push(StoredInstance {
+                    instance: name.to_string(),
+                    compass_id,
+                    mag: None,
+                    accel: None,
+                });
+                self.instances.len() - 1
+            }
+        };
+        &mut self.instances[k]
+    }
+}
+
+/// Load the last good calibration; a missing file is no calibration, a damaged one is an error that
+/// says which file.
+pub fn load_store(dir: &Path) -> Result<Option<StoredCalibration>, Error> {
+    let p = dir.join(STORE_FILE);
+    match std::fs::read_to_string(&p) {
+        Ok(text) => serde_json::from_str(&text)
+            .map(Some)
+            .map_err(|e| Error::Format {
+                path: p,
+                message: format!("not a calibration file ({e}); move it away to start fresh"),
+            }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(source) => Err(Error::Read { path: p, source }),
+    }
+}
+
+/// Write the calibration and its exports atomically into `dir`.
+pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let (m, a) = (store.mag_cal(), store.accel_cal());
+    let mags = store.mags_ut();
+    crate::io::publish::write_atomic(
+        &dir.join("ardupilot.parm"),
+        crate::calib::export::ardupilot_file(&mags, a.as_ref()).as_bytes(),
+    )?;
+    crate::io::publish::write_atomic(
+        &dir.join("px4.params"),
+        crate::calib::export::px4_file(&mags, a.as_ref()).as_bytes(),
+    )?;
+    crate::io::publish::write_atomic(
+        &dir.join("fusion.h"),
+        crate::calib::export::fusion_file(m.as_ref(), a.as_ref()).as_bytes(),
+    )?;
+    // The JSON last: it is what a restart loads.
+    crate::io::publish::write_json(&dir.join(STORE_FILE), store)
+}
+
+/// RMS of |calibrated| - radius over points (calibrated units).
+fn rms_on(cal: &Calibration, radius: f64, pts: &[Vec3]) -> f64 {
+    if pts.is_empty() {
+        return f64::INFINITY;
+    }
+    (pts.iter()
+        .map(|p| (norm(&cal.apply(p)) - radius).powi(2))
+        .sum::<f64>()
+        / pts.len() as f64)
+        .sqrt()
+}
+
+/// The live service holds every this-many-th kept magnetometer point and pose out of its fits
+/// ([`crate::calib::pipeline::hold_out`]): a new calibration is judged on those against the current one.
+pub const HOLD_OUT_EVERY: usize = 5;
+
+/// How much worse (relative RMS) on the held-out points than the current calibration a new one may
+/// be and still replace it (two fits of the same field differ by noise).
+pub const ACCEPT_MARGIN: f64 = 0.02;
+
+/// Whether a failed magnetometer fit is reported (MAG_CAL_REPORT with a failure status), as
+/// ArduPilot's calibrator does: only once the run's completion reached 100 % (the data covered the
+/// sphere, about a known centre) and the fit still failed for a reason other than still collecting.
+pub fn failure_report_due(mag: &SensorCalibration, completion_pct: u8) -> bool {
+    let collecting = matches!(
+        mag.failure,
+        Some(FitFailure::Coverage | FitFailure::NotEnoughSamples)
+    );
+    mag.status != CalStatus::Ok && !collecting && completion_pct >= 100
+}
+
+/// Why a new calibration did not replace the current one.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NotReplaced {
+    /// The fit failed a check (`failure`: the report's reason).
+    Failed {
+        failure: Option<FitFailure>,
+        detail: String,
+    },
+    /// A calibration is in use and the new fit had no points held out to compare them on.
+    NothingHeldOut,
+    /// Worse than the current calibration on the held-out points (RMS of |calibrated| - radius).
+    WorseOnHeldOut {
+        points: usize,
+        rms_new: f64,
+        rms_current: f64,
+    },
+}
+
+impl std::fmt::Display for NotReplaced {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            NotReplaced::Failed { failure, detail } => {
+                write!(f, "failed {}: {detail}", failure.map_or("?", FitFailure::name))
+            }
+            NotReplaced::NothingHeldOut => {
+                write!(f, "too few points to hold out a comparison with the current calibration")
+            }
+            NotReplaced::WorseOnHeldOut {
+                points,
+                rms_new,
+                rms_current,
+            } => write!(
+                f,
+                "worse than the current calibration on {points} points held out of the fit (rms {rms_new:.4} vs {rms_current:.4})"
+            ),
+        }
+    }
+}
+
+/// Whether a new fit replaces the current calibration: it passed its checks, and (when there is a
+/// current one) it is better on the points held out of its fit, or worse by at most
+/// [`ACCEPT_MARGIN`].
+pub fn accept(new: &SensorResult, current: Option<&SensorCalibration>) -> Result<(), NotReplaced> {
+    let Some(nc) = new.calibration else {
+        return Err(NotReplaced::Failed {
+            failure: new.report.failure,
+            detail: new.report.detail.clone().unwrap_or_default(),
+        });
+    };
+    let Some((cur, cc)) = current.and_then(|c| c.calibration().map(|cc| (c, cc))) else {
+        return Ok(());
+    };
+    let held = &new.held_out;
+    if held.is_empty() {
+        return Err(NotReplaced::NothingHeldOut);
+    }
+    let rms_new = rms_on(&nc, new.report.radius, held);
+    let rms_current = rms_on(&cc, cur.radius, held);
+    if rms_new > rms_current * (1.0 + ACCEPT_MARGIN) + 1e-12 {
+        return Err(NotReplaced::WorseOnHeldOut {
+            points: held.len(),
+            rms_new,
+            rms_current,
+        });
+    }
+    Ok(())
+}
+/// A file the service writes: the calibration store, or the report.
+pub(super) enum WriteJob {
+    Store(PathBuf, Box<StoredCalibration>),
+    Report(PathBuf, Box<crate::report::Report>),
+}
+
+/// Which file a finished write was.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) enum Written {
+    /// The calibration in this directory.
+    Calibration(PathBuf),
+    Report,
+}
+
+impl WriteJob {
+    /// Write it (blocking: temp file, fsync, rename). Returns which file it was, and how it went.
+    pub(super) fn run(self) -> (Written, Result<(), Error>) {
+        match self {
+            WriteJob::Store(dir, store) => {
+                let r = save_store(&dir, &store);
+                (Written::Calibration(dir), r)
+            }
+            WriteJob::Report(path, report) => (
+                Written::Report,
+                crate::io::publish::write_json(&path, &report),
+            ),
+        }
+    }
+}
+
+/// Files kept up to date off the run loop: at most one write in flight on the blocking pool;
+/// content asked for meanwhile waits, and newer content for the same file replaces it (only the
+/// latest is written; one waiting write per file, so the queue is as long as the vehicles' files).
+/// An fsync on a slow card can take a good part of a second; the live outputs must not wait for it.
+#[derive(Default)]
+pub(super) struct Writes {
+    pub(super) job: Option<tokio::task::JoinHandle<(Written, Result<(), Error>)>>,
+    pub(super) next: Vec<WriteJob>,
+}
+
+impl WriteJob {
+    fn path(&self) -> &Path {
+        match self {
+            WriteJob::Store(dir, _) => dir,
+            WriteJob::Report(path, _) => path,
+        }
+    }
+}
+
+impl Writes {
+    pub(super) fn want(&mut self, job: WriteJob) {
+        match self.next.iter().position(|j| j.path() == job.path()) {
+            Some(k) => self.next[k] = job,
+            None => self.next.push(job),
+        }
+    }
+
+    /// Start the oldest waiting write if none is in flight.
+    pub(super) fn start(&mut self) {
+        if self.job.is_none() && !self.next.is_empty() {
+            let job = self.next.remove(0);
+            self.job = Some(tokio::task::spawn_blocking(move || job.run()));
+        }
+    }
+
+    /// The write in flight (polled only when there is one).
+    pub(super) async fn done(
+        &mut self,
+    ) -> Result<(Written, Result<(), Error>), tokio::task::JoinError> {
+        match self.job.as_mut() {
+            Some(j) => {
+                let r = j.await;
+                self.job = None;
+                r
+            }
+            None => std::future::pending().await,
+        }
+    }
+}
+impl State {
+    /// Write calibrated vehicle `c`'s store now (at shutdown; while running, `store_writes`
+    /// does it).
+    pub(super) async fn save(&mut self, c: usize) {
+        let cal = &mut self.cals[c];
+        cal.store.filter = cal.filter_state();
+        let job = WriteJob::Store(cal.cal_dir.clone(), Box::new(cal.store.clone()));
+        let r = tokio::task::spawn_blocking(move || job.run()).await;
+        self.written(r).await;
+    }
+
+    /// Say what came of a background write: a calibration that could not be written is reported
+    /// (the previous file is kept: writes are atomic), a report only logged.
+    pub(super) async fn written(
+        &mut self,
+        r: Result<(Written, Result<(), Error>), tokio::task::JoinError>,
+    ) {
+        match r {
+            Ok((Written::Calibration(dir), Ok(()))) => {
+                tracing::info!("calibration written to {}", dir.display())
+            }
+            Ok((Written::Calibration(_), Err(e))) => {
+                self.status(
+                    3,
+                    format!("calibration not written (the previous file is kept): {e}"),
+                )
+                .await
+            }
+            Ok((Written::Report, Ok(()))) => {}
+            Ok((Written::Report, Err(e))) => tracing::warn!("report not written: {e}"),
+            Err(e) => tracing::error!("file write task failed: {e}"),
+        }
+    }
+
+    /// Write the report now (at shutdown).
+    pub(super) async fn write_report(&mut self) {
+        if let Some(job) = self.report_job() {
+            let r = tokio::task::spawn_blocking(move || job.run()).await;
+            self.written(r).await;
+        }
+    }
+
+    /// The report as it stands, ready to be written (none without `--report` or before a fit):
+    /// the first vehicle's, with a block per further vehicle.
+    pub(super) fn report_job(&self) -> Option<WriteJob> {
+        let path = self.report.clone()?;
+        let mut report = self.vehicle_report(0).1?;
+        report.outputs = Some(self.outputs_report());
+        report.vehicles = (1..self.cals.len())
+            .filter_map(|c| {
+                let tag = self.vehicle_tag(c)?;
+                let (input, r) = self.vehicle_report(c);
+                Some(crate::report::VehicleReport {
+                    link: tag.link,
+                    system_id: tag.system_id,
+                    calibration_dir: self.cals[c].cal_dir.display().to_string(),
+                    input,
+                    calibration: r.as_ref().map(|r| r.calibration.clone()),
+                    instances: r.map(|r| r.instances).unwrap_or_default(),
+                })
+            })
+            .collect();
+        Some(WriteJob::Report(path, Box::new(report)))
+    }
+
+    /// Calibrated vehicle `c`'s input, and its report (none before its first fit). The first
+    /// vehicle's input also counts what the service as a whole read and skipped (text lines,
+    /// other links, queues, echoes).
+    fn vehicle_report(
+        &self,
+        c: usize,
+    ) -> (crate::report::InputReport, Option<crate::report::Report>) {
+        let cal = &self.cals[c];
+        let vehicle = cal.vehicle.map(|v| &self.vehicles[v]);
+        let mut stats = vehicle.map(|v| v.conv.stats.clone()).unwrap_or_default();
+        stats.skip_n("mag_awaiting_params", cal.mag_awaiting_params);
+        let label = if c == 0 {
+            self.service_input(&mut stats);
+            let labels: Vec<_> = self.links.iter().map(|l| l.label.clone()).collect();
+            labels.join(",")
+        } else {
+            let l = vehicle.map_or(0, |v| v.key.0);
+            self.links
+                .get(l)
+                .map(|l| l.label.clone())
+                .unwrap_or_default()
+        };
+        let pipe = &cal.tracks[0].pipe;
+        let input = crate::report::InputReport::new(
+            "live",
+            Some(label),
+            vehicle.and_then(|v| v.conv.instance()).map(String::from),
+            &stats,
+            pipe.samples,
+            pipe.last_t,
+        );
+        let Some(results) = cal.tracks[0].last_results.as_ref() else {
+            return (input, None);
+        };
+        let mut report =
+            crate::app::replay::make_report(input.clone(), pipe, results, self.declination);
+        report.instances = self.instance_reports(c, &report.calibration);
+        (input, Some(report))
+    }
+
+    /// What the service as a whole read and skipped, added to `stats`.
+    fn service_input(&self, stats: &mut crate::io::decode::DecodeStats) {
+        stats.records += self.line_stats.records;
+        stats.counts.add(&self.line_stats.counts);
+        stats.skip_n("other_vehicle", self.other_vehicle_samples);
+        stats.skip_n("too_many_instances", self.other_instance_samples);
+        for l in &self.links {
+            if let Ok(d) = l.handle.decode_stats.lock() {
+                for (k, v) in &d.skipped {
+                    *stats.skipped.entry(k.clone()).or_insert(0) += v;
+                }
+                stats.time.add(&d.time);
+            }
+            let dropped = l
+                .handle
+                .counters
+                .inbound_dropped
+                .load(std::sync::atomic::Ordering::Relaxed);
+            stats.skip_n("queue_full", dropped);
+        }
+        for c in &self.sample_clocks {
+            stats.time.add(&c.stats);
+        }
+        stats.skip_n("own_echo", self.own_echo);
+    }
+}

@@ -1,0 +1,740 @@
+//! `replay`: a captured log through the same pipeline as the live service, as fast as it goes.
+
+use crate::calib::fit::FitFailure;
+use crate::calib::pipeline::{Calibrated, Calibrator, FitResults, Pipeline};
+use crate::config::Config;
+use crate::error::Error;
+use crate::io::decode::Format;
+use crate::report::{
+    CalStatus, CalibrationReport, CoverageReport, InputReport, PoseReport, Report, SCHEMA,
+};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// What to write besides the report.
+#[derive(Debug, Clone, Default)]
+pub struct ReplayOptions {
+    pub format: Option<Format>,
+    pub report: Option<PathBuf>,
+    pub calibrated_out: Option<PathBuf>,
+    pub plot_dir: Option<PathBuf>,
+    /// Directory for ArduPilot/PX4/Fusion exports.
+    pub export_dir: Option<PathBuf>,
+    /// A self-contained HTML page of the result (`crate::app::ui::html`).
+    pub html: Option<PathBuf>,
+    /// A diagnosis report (imucald.diagnosis/1) to show in the HTML page.
+    pub diagnosis: Option<PathBuf>,
+}
+
+pub struct ReplayOutcome {
+    pub report: Report,
+    pub results: FitResults,
+    pub written: Vec<PathBuf>,
+}
+
+/// Run a log through the pipeline. `progress(bytes_done, bytes_total)` is called now and then.
+pub fn replay(
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<ReplayOutcome, Error> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut run = run_pipelines(&bytes, path, cfg, opts, progress)?;
+    let mut results = run.pipe.finish().clone();
+    let (scale, failure) = gyro_scale(&run.log.samples, &run.pipe, &results);
+    results.gyro.scale = scale;
+    results.gyro.scale_failure = failure;
+    mag_method(&mut results, &run.log, &run.pipe, cfg);
+    let declination = cfg.declination_deg()?;
+    let report = full_report(path, &mut run, &results, declination);
+    let (pipe, log) = (&run.pipe, &run.log);
+    let mut written = vec![];
+    if let Some(p) = &opts.report {
+        crate::io::publish::write_json(p, &report)?;
+        written.push(p.clone());
+    }
+    if let Some(p) = &opts.calibrated_out {
+        write_calibrated(p, &log.samples, pipe, &results, cfg, declination)?;
+        written.push(p.clone());
+    }
+    if let Some(dir) = &opts.export_dir {
+        written.extend(write_exports(dir, &report, &results)?);
+    }
+    if let Some(dir) = &opts.plot_dir {
+        written.extend(write_plots(dir, pipe, &log.samples, &results)?);
+    }
+    if let Some(p) = &opts.html {
+        write_html(p, &mut run, &report, &results, opts)?;
+        written.push(p.clone());
+    }
+    Ok(ReplayOutcome {
+        report,
+        results,
+        written,
+    })
+}
+
+/// The self-contained HTML page of the run at `p` ([`crate::app::ui::html`]).
+fn write_html(
+    p: &Path,
+    run: &mut Run,
+    report: &Report,
+    results: &FitResults,
+    opts: &ReplayOptions,
+) -> Result<(), Error> {
+    let others = run.log.instances.iter().zip(run.others.iter_mut());
+    let others = others.filter_map(|(i, o)| Some((i.name.clone(), o.as_mut()?.finish().clone())));
+    let views = crate::app::ui::html::Views::new(report, results, others.collect());
+    crate::app::ui::html::write(p, report, &views, opts.diagnosis.as_deref())
+}
+
+/// The primary magnetometer's method: the vector fit when the log carries an attitude and the
+/// place is known and it determines the offset, else the sphere fit ([`crate::calib::magmethod`]).
+fn mag_method(
+    results: &mut FitResults,
+    log: &crate::io::sources::Log,
+    pipe: &Pipeline,
+    cfg: &Config,
+) {
+    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
+    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    crate::calib::magmethod::choose(
+        &mut results.mag,
+        &log.samples,
+        &body_mag,
+        gps,
+        cfg.place.as_ref(),
+    );
+}
+
+/// A log run through the pipelines: the primary's, the other instances' and the decoded log (with
+/// the primary's samples).
+struct Run {
+    pipe: Pipeline,
+    /// The other IMU instances of a MAVLink log, each through a pipeline of its own.
+    others: Vec<Option<Pipeline>>,
+    log: crate::io::sources::Log,
+}
+
+/// Decode `bytes` and push every sample through its instance's pipeline.
+fn run_pipelines(
+    bytes: &[u8],
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<Run, Error> {
+    let mut pipe = Pipeline::new(cfg)?;
+    // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
+    // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
+    // the same order as from a whole-file decode, so the result is the same.
+    let mut samples = Vec::new();
+    let mut others: Vec<Option<Pipeline>> = Vec::new();
+    let decoded = std::thread::scope(|scope| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
+        let decoder = scope.spawn(move || {
+            crate::io::sources::decode_log_batched(bytes, path, opts.format, cfg, &mut |b| {
+                // The receiver only goes away on a panic; nothing then to hand on to.
+                let _ = tx.send(b);
+            })
+        });
+        let mut first = true;
+        for batch in rx {
+            if first {
+                pipe.mag_units = batch.units.mag;
+                pipe.gyro_units = batch.units.gyro;
+                first = false;
+            }
+            for s in &batch.samples {
+                if pipe.push(s) {
+                    pipe.refit();
+                }
+            }
+            for &(k, ref s) in &batch.others {
+                if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
+                    if p.push(s) {
+                        p.refit();
+                    }
+                }
+            }
+            progress(batch.bytes_read as u64, batch.bytes_total as u64);
+            samples.extend_from_slice(&batch.samples);
+        }
+        decoder
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    });
+    let mut log = decoded?;
+    log.samples = samples;
+    Ok(Run { pipe, others, log })
+}
+
+/// The report of a run: input, calibrations, the other instances and the onboard comparison.
+fn full_report(
+    path: &Path,
+    run: &mut Run,
+    results: &FitResults,
+    declination: Option<f64>,
+) -> Report {
+    let log = &run.log;
+    let duration = match (log.samples.first(), log.samples.last()) {
+        (Some(a), Some(b)) => b.t_s - a.t_s,
+        _ => 0.0,
+    };
+    let input = InputReport::new(
+        log.format.name(),
+        Some(path.display().to_string()),
+        log.instance.clone(),
+        &log.stats,
+        log.samples.len() as u64,
+        duration,
+    );
+    let mut report = make_report(input, &run.pipe, results, declination);
+    report.instances = instance_reports(log, &report, &mut run.others);
+    if let Some(f) = &log.flight {
+        report.input.sensors = f.sensors.clone();
+        let mut onboard = f.onboard.clone();
+        onboard.comparison = onboard_comparison(f, &onboard, &log.samples, &run.pipe, results);
+        report.onboard = Some(onboard);
+    }
+    report
+}
+
+/// The calibrated samples as CSV at `p`, with the attitude from them and the fused attitude.
+fn write_calibrated(
+    p: &Path,
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+    cfg: &Config,
+    declination: Option<f64>,
+) -> Result<(), Error> {
+    let mut cal = Calibrator::new(results, declination);
+    // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
+    // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
+    let gyro_k = match (&results.gyro.scale, results.gyro.units.as_str()) {
+        (Some(k), _) => Some(crate::calib::model::rows_to_mat(&k.matrix)),
+        (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
+        _ => None,
+    };
+    let fcfg = cfg.fusion_config(declination);
+    let mut filter = gyro_k.map(|k| (k, crate::attitude::fusion::OrientationFilter::new(fcfg)));
+    let dt = crate::attitude::fusion::median_dt(samples);
+    let mut out = csv::Writer::from_writer(Vec::with_capacity(samples.len() * 180));
+    let write_err = |e: csv::Error| Error::Write {
+        path: p.to_path_buf(),
+        source: e.into(),
+    };
+    out.write_record(CALIBRATED_COLUMNS).map_err(write_err)?;
+    for s in samples {
+        let mut c = cal.apply(&pipe.to_body(s));
+        let mut fused = None;
+        if let Some((k, f)) = filter.as_mut() {
+            c.gyro_rad_s = c.gyro_rad_s.map(|g| {
+                let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
+                [w.x, w.y, w.z]
+            });
+            f.update_sample(&c.as_sample(), dt);
+            fused = f.initialized().then(|| f.orientation());
+        }
+        write_row(&mut out, &c, fused.as_ref()).map_err(write_err)?;
+    }
+    let bytes = out
+        .into_inner()
+        .map_err(|e| write_err(e.into_error().into()))?;
+    crate::io::publish::write_atomic(p, &bytes)
+}
+
+/// ArduPilot, PX4 and Fusion parameter files in `dir`: every compass of the log under its own
+/// index (COMPASS_OFS2, CAL_MAG1 ...).
+fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let (m, a) = (
+        results
+            .mag
+            .calibration
+            .as_ref()
+            .filter(|_| report.calibration.mag.units == "uT"),
+        results.accel.calibration.as_ref(),
+    );
+    let primary_id = report
+        .instances
+        .iter()
+        .find(|i| i.primary)
+        .map_or(0, |i| i.compass_id);
+    let mut mags: Vec<(usize, crate::calib::model::Calibration)> =
+        m.map(|c| (primary_id as usize, *c)).into_iter().collect();
+    for i in report.instances.iter().filter(|i| !i.primary) {
+        if let Some(c) = i.calibration.mag.calibration_ut() {
+            mags.push((i.compass_id as usize, c));
+        }
+    }
+    let mut written = vec![];
+    for (name, text) in [
+        (
+            "ardupilot.parm",
+            crate::calib::export::ardupilot_file(&mags, a),
+        ),
+        ("px4.params", crate::calib::export::px4_file(&mags, a)),
+        ("fusion.h", crate::calib::export::fusion_file(m, a)),
+    ] {
+        let p = dir.join(name);
+        crate::io::publish::write_atomic(&p, text.as_bytes())?;
+        written.push(p);
+    }
+    Ok(written)
+}
+
+/// Gyro scale and misalignment from the rotations between the log's static poses (see
+/// [`crate::calib::gyro::fit_scale`]). `(None, None)` when the log has no gyro; a refusal says why. Without
+/// an accelerometer calibration the rotations are still looked at (with the raw accelerometer
+/// directions): about one axis or in one plane only, the scale could not be determined with one.
+fn gyro_scale(
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+) -> (
+    Option<crate::report::GyroScaleReport>,
+    Option<crate::calib::gyro::ScaleFailure>,
+) {
+    if results.gyro.status != CalStatus::Ok {
+        return (None, None);
+    }
+    let Some(bias) = crate::calib::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
+        return (None, None);
+    };
+    let body: Vec<crate::types::Sample> = samples.iter().map(|s| pipe.to_body(s)).collect();
+    let opt = crate::calib::gyro::ScaleOptions {
+        raw_in_counts: results.gyro.units == "counts",
+        ..Default::default()
+    };
+    let Some(accel) = results.accel.calibration.as_ref() else {
+        let raw = crate::calib::model::Calibration {
+            model: crate::calib::model::ModelKind::Sphere,
+            offset: [0.0; 3],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let span = crate::calib::gyro::rotation_axes(&body, pipe.poses(), &bias, &raw, &opt);
+        let failure = match span.and_then(|(s, n)| s.failure(n)) {
+            Some(f) => f,
+            None => crate::calib::gyro::ScaleFailure {
+                failure: crate::calib::fit::FitFailure::NeedsCalibration,
+                detail: "needs an accelerometer calibration (the gravity directions of the poses)"
+                    .into(),
+                held_out: None,
+            },
+        };
+        return (None, Some(failure));
+    };
+    match crate::calib::gyro::fit_scale(&body, pipe.poses(), &bias, accel, &opt) {
+        Ok(f) => (
+            Some(crate::report::GyroScaleReport {
+                matrix: f.matrix,
+                segments: f.segments,
+                rms_before_deg: f.rms_before_deg,
+                rms_after_deg: f.rms_after_deg,
+                held_out: f.held_out,
+                conditioning: f.conditioning,
+            }),
+            None,
+        ),
+        Err(e) => (None, Some(e)),
+    }
+}
+
+/// imucald's primary magnetometer calibration against the onboard one of the same compass: the
+/// offsets, and the headings the two give for the same raw readings at the flight controller's
+/// roll and pitch. `None` unless imucald's fit passed and the compass has an onboard calibration.
+fn onboard_comparison(
+    f: &crate::io::flightlog::FlightLog,
+    onboard: &crate::report::OnboardReport,
+    samples: &[crate::types::Sample],
+    pipe: &Pipeline,
+    results: &FitResults,
+) -> Option<crate::report::OnboardComparison> {
+    let ours = results.mag.calibration.as_ref()?;
+    let source = f.primary_mag_source.clone()?;
+    let slot = onboard.mag.iter().find(|c| c.sources.contains(&source))?;
+    let theirs = crate::calib::model::Calibration {
+        model: crate::calib::model::ModelKind::Full12,
+        offset: slot.offset,
+        matrix: slot.matrix,
+    };
+    let (mut sq, mut max, mut n) = (0.0, 0.0f64, 0usize);
+    for s in samples {
+        let (Some(m), Some(q)) = (pipe.to_body(s).mag_ut, s.ref_q) else {
+            continue;
+        };
+        let Some((roll, pitch)) = crate::io::flightlog::roll_pitch_of_ref_q(q) else {
+            continue;
+        };
+        let a = crate::attitude::heading_deg(&ours.apply(&m), roll, pitch);
+        let b = crate::attitude::heading_deg(&theirs.apply(&m), roll, pitch);
+        let d = crate::attitude::angle_diff_deg(a, b);
+        if d.is_finite() {
+            sq += d * d;
+            max = max.max(d.abs());
+            n += 1;
+        }
+    }
+    Some(crate::report::OnboardComparison {
+        instance: slot.instance,
+        source,
+        offset_diff_ut: [0, 1, 2].map(|i| ours.offset[i] - slot.offset[i]),
+        heading_diff_rms_deg: if n > 0 { (sq / n as f64).sqrt() } else { 0.0 },
+        heading_diff_max_deg: max,
+        samples: n,
+    })
+}
+
+/// The pipeline of instance `k` (not the primary), made on its first sample with the instance's
+/// units; `None` when it cannot be (a configuration the primary's pipeline took, so not here).
+fn other_pipeline<'a>(
+    pipes: &'a mut Vec<Option<Pipeline>>,
+    k: usize,
+    batch: &crate::io::sources::Batch,
+    cfg: &Config,
+) -> Option<&'a mut Pipeline> {
+    if pipes.len() <= k {
+        pipes.resize_with(k + 1, || None);
+    }
+    if pipes[k].is_none() {
+        let mut p = Pipeline::new(cfg).ok()?;
+        if let Some(i) = batch.instances.get(k) {
+            p.mag_units = i.units.mag;
+            p.gyro_units = i.units.gyro;
+        }
+        pipes[k] = Some(p);
+    }
+    pipes[k].as_mut()
+}
+
+/// A block per IMU instance of the log: the primary's is the report's own calibration, the
+/// others' come from their pipelines. Empty when the log has one instance or none.
+fn instance_reports(
+    log: &crate::io::sources::Log,
+    report: &Report,
+    others: &mut [Option<Pipeline>],
+) -> Vec<crate::report::InstanceReport> {
+    if log.instances.len() < 2 {
+        return Vec::new();
+    }
+    let primary = log.instance.as_deref();
+    log.instances
+        .iter()
+        .enumerate()
+        .filter_map(|(k, i)| {
+            let is_primary = primary == Some(i.name.as_str());
+            let calibration = if is_primary {
+                report.calibration.clone()
+            } else {
+                let r = others.get_mut(k)?.as_mut()?.finish();
+                CalibrationReport {
+                    mag: r.mag.report.clone(),
+                    accel: r.accel.report.clone(),
+                    gyro: r.gyro.clone(),
+                }
+            };
+            Some(crate::report::InstanceReport {
+                instance: i.name.clone(),
+                compass_id: i.compass_id,
+                primary: is_primary,
+                samples: i.samples,
+                time: i.time.clone(),
+                calibration,
+            })
+        })
+        .collect()
+}
+
+/// The report for a pipeline's current state.
+pub fn make_report(
+    input: InputReport,
+    pipe: &Pipeline,
+    results: &FitResults,
+    declination_deg: Option<f64>,
+) -> Report {
+    Report {
+        schema: SCHEMA.into(),
+        input,
+        static_poses: pipe.poses().iter().map(PoseReport::from).collect(),
+        coverage: CoverageReport {
+            mag: shown_coverage(&results.mag),
+            accel: shown_coverage(&results.accel),
+        },
+        calibration: CalibrationReport {
+            mag: results.mag.report.clone(),
+            accel: results.accel.report.clone(),
+            gyro: results.gyro.clone(),
+        },
+        declination_deg,
+        refits: pipe.refits.clone(),
+        instances: Vec::new(),
+        outputs: None,
+        vehicles: Vec::new(),
+        onboard: None,
+    }
+}
+
+/// Coverage maps (the (theta, phi) projection of Camps, Harasse and Monin, "Numerical calibration
+/// for 3-axis accelerometers and magnetometers" (2009), before and after) and residual plots.
+fn write_plots(
+    dir: &Path,
+    pipe: &Pipeline,
+    samples: &[crate::types::Sample],
+    r: &FitResults,
+) -> Result<Vec<PathBuf>, Error> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let mut out = vec![];
+    for (name, s) in [("mag", &r.mag), ("accel", &r.accel)] {
+        if s.dirs_before.is_empty() {
+            continue;
+        }
+        for ext in ["png", "svg"] {
+            let p = dir.join(format!("{name}_coverage.{ext}"));
+            let title = format!(
+                "{name} coverage: {} ({}), before and after calibration",
+                s.report.model, s.report.status
+            );
+            crate::app::plot::coverage_map(
+                &p,
+                &title,
+                &s.dirs_before,
+                &s.dirs_after,
+                &s.coverage_before.filled_mask,
+                &s.coverage_after.filled_mask,
+            )?;
+            out.push(p);
+        }
+    }
+    // Field-magnitude residual of every magnetometer sample over time, and of every accel pose.
+    let (mut tm, mut rm) = (vec![], vec![]);
+    if let Some(c) = r.mag.calibration {
+        for s in samples {
+            if let Some(m) = pipe.to_body(s).mag_ut {
+                tm.push(s.t_s);
+                rm.push(crate::types::norm(&c.apply(&m)) - r.mag.report.radius);
+            }
+        }
+    }
+    let (mut ta, mut ra) = (vec![], vec![]);
+    if let Some(c) = r.accel.calibration {
+        for p in pipe.poses() {
+            ta.push(0.5 * (p.t_start + p.t_end));
+            ra.push(crate::types::norm(&c.apply(&p.accel)) - r.accel.report.radius);
+        }
+    }
+    for (name, t, res, unit) in [
+        ("mag", &tm, &rm, r.mag.report.units.as_str()),
+        ("accel", &ta, &ra, "m/s^2"),
+    ] {
+        if t.is_empty() {
+            continue;
+        }
+        for ext in ["png", "svg"] {
+            let p = dir.join(format!("{name}_residuals.{ext}"));
+            let label = format!("|calibrated| - radius ({unit})");
+            let series_name = if name == "mag" {
+                "every sample"
+            } else {
+                "static poses"
+            };
+            crate::app::plot::residuals(
+                &p,
+                &format!("{name} norm residual after calibration"),
+                &label,
+                &[(series_name, t.as_slice(), res.as_slice())],
+            )?;
+            out.push(p);
+        }
+    }
+    Ok(out)
+}
+
+/// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise.
+fn shown_coverage(r: &crate::calib::pipeline::SensorResult) -> crate::calib::coverage::Coverage {
+    if r.calibration.is_some() {
+        r.coverage_after.clone()
+    } else {
+        r.coverage_before.clone()
+    }
+}
+
+/// The columns of the calibrated CSV (`replay --calibrated-out`).
+const CALIBRATED_COLUMNS: [&str; 20] = [
+    "t",
+    "ax",
+    "ay",
+    "az",
+    "gx",
+    "gy",
+    "gz",
+    "mx",
+    "my",
+    "mz",
+    "roll_deg",
+    "pitch_deg",
+    "heading_deg",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "fused_roll_deg",
+    "fused_pitch_deg",
+    "fused_heading_deg",
+];
+
+/// One calibrated sample as a row of [`CALIBRATED_COLUMNS`]: empty cells for what it lacks.
+fn write_row(
+    out: &mut csv::Writer<Vec<u8>>,
+    c: &Calibrated,
+    fused: Option<&crate::attitude::fusion::Orientation>,
+) -> Result<(), csv::Error> {
+    let mut cells: [Option<(f64, usize)>; 20] = [None; 20];
+    cells[0] = Some((c.t_s, 6));
+    for (k, v) in [c.accel_mps2, c.gyro_rad_s, c.mag_ut].iter().enumerate() {
+        for i in 0..3 {
+            cells[1 + 3 * k + i] = v.map(|v| (v[i], 6));
+        }
+    }
+    for (i, v) in [c.roll_deg, c.pitch_deg, c.heading_deg].iter().enumerate() {
+        cells[10 + i] = v.map(|x| (x, 4));
+    }
+    if let Some(o) = fused {
+        let q = o.q.quaternion();
+        for (i, v) in [q.w, q.i, q.j, q.k].into_iter().enumerate() {
+            cells[13 + i] = Some((v, 7));
+        }
+        for (i, v) in [o.roll_deg, o.pitch_deg, o.heading_deg]
+            .into_iter()
+            .enumerate()
+        {
+            cells[17 + i] = Some((v, 4));
+        }
+    }
+    let mut text = String::new();
+    for cell in cells {
+        text.clear();
+        if let Some((v, digits)) = cell {
+            let _ = write!(text, "{v:.digits$}");
+        }
+        out.write_field(&text)?;
+    }
+    out.write_record(None::<&[u8]>)
+}
+
+/// A terminal summary of a report.
+pub fn summary(r: &Report) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "input: {} ({}), {} samples over {:.1} s{}",
+        r.input.path.as_deref().unwrap_or("-"),
+        r.input.format,
+        r.input.samples,
+        r.input.duration_s,
+        r.input
+            .instance
+            .as_ref()
+            .map(|i| format!(", instance {i}"))
+            .unwrap_or_default()
+    );
+    if !r.input.skipped.is_empty() {
+        let _ = writeln!(
+            s,
+            "skipped: {}",
+            r.input
+                .skipped
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let t = &r.input.time;
+    if t.segments > 1 || !t.faults.is_empty() {
+        let faults: Vec<String> = t.faults.iter().map(|(k, n)| format!("{k:?} {n}")).collect();
+        let _ = writeln!(
+            s,
+            "time: {} segments ({})",
+            t.segments,
+            faults.join(", ").to_lowercase()
+        );
+    }
+    for i in r.instances.iter().filter(|i| !i.primary) {
+        let m = &i.calibration.mag;
+        let what = match m.status {
+            CalStatus::Ok => format!(
+                "offset [{:.4}, {:.4}, {:.4}] {}, rms residual {:.4}",
+                m.offset[0], m.offset[1], m.offset[2], m.units, m.rms_residual
+            ),
+            CalStatus::Failed => format!("FAILED ({})", m.failure.map_or("?", FitFailure::name)),
+        };
+        let _ = writeln!(
+            s,
+            "instance {} (compass {}): {} samples, mag {what}; accel {}",
+            i.instance, i.compass_id, i.samples, i.calibration.accel.status
+        );
+    }
+    let _ = writeln!(s, "static poses: {}", r.static_poses.len());
+    let _ = writeln!(
+        s,
+        "coverage: mag {}/100 regions, accel {}/100",
+        r.coverage.mag.filled, r.coverage.accel.filled
+    );
+    for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
+        if c.status == CalStatus::Ok {
+            let _ = writeln!(
+                s,
+                "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
+                c.model, c.offset[0], c.offset[1], c.offset[2], c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "{name:5}: FAILED ({}): {}",
+                c.failure.map_or("?", FitFailure::name),
+                c.detail.as_deref().unwrap_or("")
+            );
+        }
+    }
+    if let Some(m) = &r.calibration.mag.method {
+        let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
+    }
+    let g = &r.calibration.gyro;
+    if g.status == CalStatus::Ok {
+        let _ = writeln!(
+            s,
+            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",
+            g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used
+        );
+        if let Some(k) = &g.scale {
+            let _ = write!(
+                s,
+                "gyro : scale {:.6} {:.6} {:.6} (rad/s per {}), gravity direction between poses {:.2} -> {:.2} deg over {} rotations",
+                k.matrix[0][0], k.matrix[1][1], k.matrix[2][2], g.units, k.rms_before_deg, k.rms_after_deg, k.segments
+            );
+            if let Some(h) = &k.held_out {
+                let _ = write!(
+                    s,
+                    "; held out {:.2} -> {:.2} deg over {}",
+                    h.rms_before_deg, h.rms_after_deg, h.segments
+                );
+            }
+            s.push('\n');
+        } else if let Some(f) = &g.scale_failure {
+            let _ = writeln!(s, "gyro : no scale fit: {f}");
+        }
+    }
+    s
+}

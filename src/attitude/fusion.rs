@@ -1,0 +1,1310 @@
+//! Orientation filter for 9D (gyro + accel + mag) and 6D (gyro + accel) data: a unit quaternion
+//! sensor -> world per sample (world ENU or NED, selectable), plus roll/pitch/heading. Pure math, no I/O.
+//!
+//! # Design
+//! The starting point is the linear quaternion Kalman filter of Chu et al., "Magnetic Orientation
+//! System Based on Magnetometer, Accelerometer and Gyroscope": the gyroscope drives the prediction
+//! and a quaternion built from accelerometer (tilt) and magnetometer (heading) is the measurement. Here
+//! that filter is written in error-state form: the state is the small rotation `dtheta` (world axes)
+//! that takes the predicted attitude to the measured one, plus the gyro bias error. With the measurement
+//! quaternion split into its tilt part and its rotation about the vertical, the measurement equations
+//! stay linear (H is a selection matrix, as in Chu et al.) and no Jacobian is needed:
+//!
+//! * tilt: `z = (a_w.y, -a_w.x) / g = (dtheta_x, dtheta_y)` with `a_w` the specific force rotated into
+//!   the world frame by the prediction. Applied every accelerometer sample, the Kalman update averages
+//!   the horizontal specific force **in the world frame**, where a bounded motion's linear acceleration
+//!   averages out (it is the derivative of a bounded velocity), not in the sensor frame where it does not.
+//! * heading: `z = azimuth(m_w) - declination = dtheta_z`, the azimuth of the horizontal field.
+//!
+//! Around that core, for robustness:
+//! * **rest detection** (gyro and accel within thresholds of their low-passed values for `rest_min_s`):
+//!   at rest, each gyro sample is a direct measurement of the bias (`z = omega - b`), and the tilt
+//!   and heading measurements are trusted more (`acc_rest_noise_mps2`, `mag_rest_heading_noise_deg`:
+//!   no linear acceleration and no magnetometer timing error then);
+//! * **online gyro bias estimation** in motion through the Kalman cross-covariance between attitude
+//!   error and bias (tilt observes the two horizontal world axes, heading the vertical one);
+//! * **linear acceleration**: the tilt noise grows with the slow RMS deviation of |f| from g and with
+//!   the RMS of the world-frame linear acceleration `R f - g z` (`acc_lin_gain`, `acc_lin_tau_s`), and
+//!   samples far from g are skipped. The second term is what sees sustained horizontal translation
+//!   and vibration, which change |f| only to second order. Both are mean squares, even in the
+//!   acceleration, so over a back-and-forth motion the weights do not favour one direction and the
+//!   world-frame average the tilt correction relies on stays unbiased. Laidig, Caruso, Cereatti and
+//!   Seel ("BROAD - A Benchmark for Robust Inertial Orientation Estimation", 2021) show that the
+//!   inclination of filters with a fixed accelerometer gain suffers most in the translation and
+//!   vibration trials; VQF (Laidig and Seel, "VQF: Highly Accurate IMU Orientation Estimation with
+//!   Bias Estimation and Magnetic Disturbance Rejection", 2023) low-passes the accelerometer in an
+//!   almost-inertial frame instead; the adaptive noise here is the Kalman counterpart;
+//! * **magnetic disturbance**: field norm and dip (with the current tilt) are compared with reference
+//!   values learned from the data (initialised from the first seconds, then tracked slowly while
+//!   undisturbed); a disturbed field is not used, and a new steady field is accepted after a while
+//!   (as VQF's norm and dip tests); a gate on the heading innovation (`mag_gate_deg` plus
+//!   `mag_gate_sigma` standard deviations of the heading state) rejects what slips through, for
+//!   `mag_gate_timeout_s` at most;
+//! * **heading only about the vertical**: the heading update's gain is zero on the two tilt states, and
+//!   the tilt update's gain is zero on the heading state, so a bad field cannot tilt the inclination and
+//!   a linear acceleration cannot turn the heading;
+//! * **rotation-rate dependent process noise**: gyro scale and misalignment errors grow with the rate;
+//! * **magnetometer latency**: the field is rotated into the world with the attitude of `mag_delay_s`
+//!   ago (many IMUs deliver the magnetometer late); the delay is a setting or estimated online from the
+//!   IMU data alone (the world-frame field must not move with the rotation rate).
+//!
+//! Internally the world frame is ENU (z up): at rest the specific force points up, `(0, 0, +g)`.
+//! The sensor frame is whatever the sensor's axes are (FRD for a flight controller's body, z up for
+//! BROAD's sensor): only the specific-force convention matters (an accelerometer at rest reads +g along
+//! the axis that points up). NED output is `C * q_enu` with `C` the ENU -> NED rotation (180 deg about
+//! (1, 1, 0)/sqrt(2)).
+
+use crate::types::{Sample, Vec3, STANDARD_GRAVITY_MPS2};
+use nalgebra::{Matrix6, RowVector6, UnitQuaternion, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+
+/// The world frame of the output quaternion.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum WorldFrame {
+    /// North, East, Down (the project's convention; MAVLink ATTITUDE).
+    #[default]
+    Ned,
+    /// East, North, Up (BROAD's reference).
+    Enu,
+}
+
+/// Filter settings. Defaults work for a 100-1000 Hz MEMS IMU held in the hand or on a vehicle; the
+/// tuned ones were chosen by `cargo bench --bench broad -- --tune` (a cross-validated coordinate
+/// search on the BROAD trials, see that bench), not by hand.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FusionConfig {
+    /// World frame of [`OrientationFilter::quaternion`]. Default: NED.
+    pub world: WorldFrame,
+    /// Use the magnetometer (9D); false = 6D, heading from the gyro alone. Default: true.
+    pub use_mag: bool,
+    /// Magnetic declination, degrees east: the world's north is true north when set, magnetic when 0.
+    /// Default: 0.
+    pub declination_deg: f64,
+    /// Gravity magnitude, m/s^2. Default: 9.80665.
+    pub gravity_mps2: f64,
+    /// Gyro white noise density for the process noise, rad/s/sqrt(Hz). Default: 0.00256.
+    pub gyro_noise_density: f64,
+    /// Extra process noise proportional to the (slow RMS) rotation rate (scale and misalignment
+    /// errors), sqrt(s). Default: 0.0032.
+    pub gyro_rate_noise: f64,
+    /// Time constant of the motion intensity (mean squares of rate and of | |f| - g |) that sets the
+    /// noise levels, s. Slow on purpose: weights that follow the instantaneous acceleration would
+    /// bias the world-frame average that the tilt correction relies on. Default: 15.
+    pub intensity_tau_s: f64,
+    /// Standard deviation of one gyro sample at rest (the bias measurement noise), rad/s.
+    /// Default: 0.004.
+    pub gyro_sample_sd: f64,
+    /// Initial bias uncertainty, rad/s. Default: 0.5 deg/s (0.0087).
+    pub bias_sigma_init: f64,
+    /// Bias random walk, rad/s/sqrt(s), in motion. Default: 0.0001 deg/s/sqrt(s).
+    pub bias_walk: f64,
+    /// Largest bias magnitude per axis, rad/s. Default: 5 deg/s (0.087).
+    pub bias_clip: f64,
+    /// Tilt measurement noise in motion: horizontal specific force in the world frame, m/s^2.
+    /// Default: 1.5625.
+    pub acc_noise_mps2: f64,
+    /// Tilt measurement noise at rest, m/s^2. Default: 0.5.
+    pub acc_rest_noise_mps2: f64,
+    /// Extra tilt noise per m/s^2 of the slow RMS of | |f| - g | (adaptive gain).
+    /// Default: 0.61035.
+    pub acc_norm_gain: f64,
+    /// Extra tilt noise per m/s^2 of the RMS linear acceleration `|R f - g z|` (the specific
+    /// force rotated into the world, gravity removed), averaged with `acc_lin_tau_s`: sustained
+    /// translation or vibration, which the norm of the specific force barely shows when it is
+    /// horizontal, lowers the weight of the tilt correction. Default: 1.5625.
+    pub acc_lin_gain: f64,
+    /// Time constant of that RMS linear acceleration, s. Default: 0.875.
+    pub acc_lin_tau_s: f64,
+    /// Accelerometer samples with | |f| - g | above this are not used, m/s^2. Default: 50.
+    pub acc_reject_mps2: f64,
+    /// Accelerometer latency behind the gyro, s (negative: ahead), for rotating it into the world.
+    /// Default: 0.
+    pub acc_delay_s: f64,
+    /// Heading measurement noise of an undisturbed field, degrees. Default: 120.
+    pub mag_heading_noise_deg: f64,
+    /// Heading measurement noise of an undisturbed field while the rest detector sees the sensor
+    /// still, degrees. (Tuned above the value in motion: BROAD's rests gain nothing from a faster
+    /// heading correction.) Default: 187.5.
+    pub mag_rest_heading_noise_deg: f64,
+    /// Extra heading noise per rad/s of the slow RMS rotation rate (magnetometer timing), s.
+    /// Default: 0.
+    pub mag_rate_noise_s: f64,
+    /// Relative field-norm deviation from the reference that counts as disturbed. Default: 0.05.
+    pub mag_norm_tol: f64,
+    /// Dip deviation from the reference that counts as disturbed, degrees. Default: 12.5.
+    pub mag_dip_tol_deg: f64,
+    /// Time constant of the reference norm/dip tracking while undisturbed, s. Default: 30.
+    pub mag_ref_tau_s: f64,
+    /// A steady new field is accepted as the reference after this long disturbed, s. Default: 5.
+    pub mag_new_field_s: f64,
+    /// Heading innovation gate: a heading innovation larger than `mag_gate_deg` plus this many
+    /// standard deviations of the heading state is not used, standard deviations. (The
+    /// measurement noise is left out of the gate on purpose: it is large to make the correction
+    /// slow, not because a single field reading is that uncertain.) Default: 4.
+    pub mag_gate_sigma: f64,
+    /// Floor of the heading innovation gate, degrees: the field errors that pass the norm and dip
+    /// checks (a magnet approaching, a field that moves with the sensor) but turn the heading by
+    /// more than this are not used. Default: 17.5.
+    pub mag_gate_deg: f64,
+    /// After this long with every heading innovation gated out, the gate opens until an innovation
+    /// is within it again (a real heading error that grew beyond the gate is corrected after all),
+    /// s. Default: 10.
+    pub mag_gate_timeout_s: f64,
+    /// Magnetometer latency behind the gyro, s: `Some(d)` fixed, `None` estimated online.
+    /// Default: none (estimated).
+    pub mag_delay_s: Option<f64>,
+    /// Largest magnetometer latency considered by the online estimate, s. Default: 0.05.
+    pub mag_delay_max_s: f64,
+    /// Rest: gyro deviation threshold, rad/s. Default: 4 deg/s (0.070).
+    pub rest_gyro_rad_s: f64,
+    /// Rest: accel deviation threshold, m/s^2. Default: 0.5.
+    pub rest_acc_mps2: f64,
+    /// Rest: shortest still time before rest counts, s. Default: 1.5.
+    pub rest_min_s: f64,
+}
+
+impl Default for FusionConfig {
+    fn default() -> Self {
+        FusionConfig {
+            world: WorldFrame::Ned,
+            use_mag: true,
+            declination_deg: 0.0,
+            gravity_mps2: STANDARD_GRAVITY_MPS2,
+            gyro_noise_density: 0.00256,
+            gyro_rate_noise: 0.0032,
+            intensity_tau_s: 15.0,
+            gyro_sample_sd: 0.004,
+            bias_sigma_init: 0.5f64.to_radians(),
+            bias_walk: 0.0001f64.to_radians(),
+            bias_clip: 5.0f64.to_radians(),
+            acc_noise_mps2: 1.5625,
+            acc_rest_noise_mps2: 0.5,
+            acc_norm_gain: 0.6103515625,
+            acc_lin_gain: 1.5625,
+            acc_lin_tau_s: 0.875,
+            acc_reject_mps2: 50.0,
+            acc_delay_s: 0.0,
+            mag_heading_noise_deg: 120.0,
+            mag_rest_heading_noise_deg: 187.5,
+            mag_rate_noise_s: 0.0,
+            mag_norm_tol: 0.05,
+            mag_dip_tol_deg: 12.5,
+            mag_ref_tau_s: 30.0,
+            mag_new_field_s: 5.0,
+            mag_gate_sigma: 4.0,
+            mag_gate_deg: 17.5,
+            mag_gate_timeout_s: 10.0,
+            mag_delay_s: None,
+            mag_delay_max_s: 0.05,
+            rest_gyro_rad_s: 4.0f64.to_radians(),
+            rest_acc_mps2: 0.5,
+            rest_min_s: 1.5,
+        }
+    }
+}
+
+/// One output of the filter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Orientation {
+    /// Sensor -> world rotation in the configured world frame.
+    pub q: UnitQuaternion<f64>,
+    /// Roll, pitch, heading (deg; heading in [0, 360)): ZYX angles of the sensor -> NED rotation.
+    pub roll_deg: f64,
+    pub pitch_deg: f64,
+    pub heading_deg: f64,
+}
+
+/// Sensor -> ENU to sensor -> NED: `q_ned = C * q_enu`, C = 180 deg about (1, 1, 0)/sqrt(2).
+pub fn enu_to_ned() -> UnitQuaternion<f64> {
+    let s = std::f64::consts::FRAC_1_SQRT_2;
+    UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(0.0, s, s, 0.0))
+}
+
+fn v3(v: &Vec3) -> Vector3<f64> {
+    Vector3::new(v[0], v[1], v[2])
+}
+
+/// Shortest rotation taking unit vector `a` onto unit vector `b`.
+fn rotation_between(a: &Vector3<f64>, b: &Vector3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::rotation_between(a, b).unwrap_or_else(|| {
+        // Opposite vectors: 180 deg about any axis perpendicular to `a`.
+        let axis = if a.x.abs() < 0.9 {
+            a.cross(&Vector3::x())
+        } else {
+            a.cross(&Vector3::y())
+        };
+        UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(axis), std::f64::consts::PI)
+    })
+}
+
+/// First-order low-pass of a 3-vector with time constant tau.
+#[derive(Debug, Clone, Copy, Default)]
+struct Lp3 {
+    v: Vector3<f64>,
+    init: bool,
+}
+
+impl Lp3 {
+    fn update(&mut self, x: &Vector3<f64>, dt: f64, tau: f64) -> Vector3<f64> {
+        if !self.init {
+            self.v = *x;
+            self.init = true;
+        } else {
+            let a = (dt / tau.max(dt)).min(1.0);
+            self.v += (x - self.v) * a;
+        }
+        self.v
+    }
+}
+
+/// Rest detector: gyro and accel stay within thresholds of their low-passed values for `rest_min_s`.
+#[derive(Debug, Clone, Default)]
+struct Rest {
+    gyr_lp: Lp3,
+    acc_lp: Lp3,
+    still_s: f64,
+    rest: bool,
+}
+
+const REST_TAU_S: f64 = 0.5;
+
+impl Rest {
+    fn update(
+        &mut self,
+        gyr: Option<&Vector3<f64>>,
+        acc: Option<&Vector3<f64>>,
+        dt: f64,
+        cfg: &FusionConfig,
+    ) {
+        let mut still = true;
+        if let Some(g) = gyr {
+            let lp = self.gyr_lp.update(g, dt, REST_TAU_S);
+            // Still, and not turning steadily either (up to the largest bias allowed).
+            still &= (g - lp).norm() < cfg.rest_gyro_rad_s
+                && lp.norm() < cfg.rest_gyro_rad_s + cfg.bias_clip * 3f64.sqrt();
+        }
+        if let Some(a) = acc {
+            let lp = self.acc_lp.update(a, dt, REST_TAU_S);
+            still &= (a - lp).norm() < cfg.rest_acc_mps2
+                && (a.norm() - cfg.gravity_mps2).abs() < cfg.rest_acc_mps2 * 2.0;
+        }
+        if still {
+            self.still_s += dt;
+        } else {
+            self.still_s = 0.0;
+        }
+        self.rest = self.still_s >= cfg.rest_min_s;
+    }
+}
+
+/// Reference field (norm, dip) and disturbance state.
+#[derive(Debug, Clone, Default)]
+struct MagRef {
+    /// Reference norm and dip (rad), once known.
+    norm: f64,
+    dip: f64,
+    known: bool,
+    /// Time the reference has been learning, s.
+    learn_s: f64,
+    /// Low-passed current norm and dip.
+    cur_norm: f64,
+    cur_dip: f64,
+    cur_init: bool,
+    /// Candidate new field and how long it has been steady while disturbed.
+    cand_norm: f64,
+    cand_dip: f64,
+    cand_s: f64,
+    disturbed: bool,
+    disturbed_s: f64,
+}
+
+const MAG_CUR_TAU_S: f64 = 0.05;
+const MAG_CAND_TAU_S: f64 = 1.0;
+
+impl MagRef {
+    /// Feed one field measurement (norm, dip in rad); returns whether the field is undisturbed.
+    fn update(&mut self, norm: f64, dip: f64, dt: f64, cfg: &FusionConfig) -> bool {
+        let lp = |x: &mut f64, v: f64, tau: f64| *x += (v - *x) * (dt / tau.max(dt)).min(1.0);
+        if !self.cur_init {
+            self.cur_norm = norm;
+            self.cur_dip = dip;
+            self.cand_norm = norm;
+            self.cand_dip = dip;
+            self.cur_init = true;
+        } else {
+            lp(&mut self.cur_norm, norm, MAG_CUR_TAU_S);
+            lp(&mut self.cur_dip, dip, MAG_CUR_TAU_S);
+        }
+        if !self.known {
+            self.norm = self.cur_norm;
+            self.dip = self.cur_dip;
+            self.known = true;
+            self.learn_s = 0.0;
+        }
+        let tol_dip = cfg.mag_dip_tol_deg.to_radians();
+        let dev_n = (self.cur_norm / self.norm - 1.0).abs();
+        let dev_d = (self.cur_dip - self.dip).abs();
+        self.disturbed = !(dev_n <= cfg.mag_norm_tol && dev_d <= tol_dip);
+        if !self.disturbed {
+            // Learn: a running mean at first, then a slow low-pass.
+            self.learn_s += dt;
+            let tau = self.learn_s.min(cfg.mag_ref_tau_s);
+            lp(&mut self.norm, self.cur_norm, tau);
+            lp(&mut self.dip, self.cur_dip, tau);
+            self.disturbed_s = 0.0;
+            self.cand_s = 0.0;
+            self.cand_norm = self.cur_norm;
+            self.cand_dip = self.cur_dip;
+        } else {
+            self.disturbed_s += dt;
+            // Is the field steady around a candidate?
+            let steady = (self.cur_norm / self.cand_norm - 1.0).abs() <= cfg.mag_norm_tol * 0.5
+                && (self.cur_dip - self.cand_dip).abs() <= tol_dip * 0.5;
+            if steady {
+                self.cand_s += dt;
+            } else {
+                self.cand_s = 0.0;
+                self.cand_norm = self.cur_norm;
+                self.cand_dip = self.cur_dip;
+            }
+            lp(&mut self.cand_norm, self.cur_norm, MAG_CAND_TAU_S);
+            lp(&mut self.cand_dip, self.cur_dip, MAG_CAND_TAU_S);
+            if self.cand_s >= cfg.mag_new_field_s {
+                self.norm = self.cand_norm;
+                self.dip = self.cand_dip;
+                self.learn_s = 0.0;
+                self.disturbed = false;
+                self.disturbed_s = 0.0;
+                self.cand_s = 0.0;
+            }
+        }
+        !self.disturbed
+    }
+}
+
+/// Online estimate of the magnetometer latency behind the gyro: with a delay `d` the world-frame field
+/// reads `H + d (omega_w x H)` (to first order), so `d` is the least-squares slope of the high-passed
+/// world field on `omega_w x m_w`. Accumulated with exponential forgetting. The high-pass on the
+/// field only makes this an effective latency weighted toward fast rotations (on BROAD's IMU: about
+/// 10 ms in fast trials, 5-12 ms in slow ones), which is what the heading needs there.
+#[derive(Debug, Clone, Default)]
+struct DelayEst {
+    sxy: f64,
+    sxx: f64,
+    mean: Lp3,
+    /// The last step and its forgetting factor (steps repeat: one `exp` per new step, not per sample).
+    forget: (f64, f64),
+}
+
+const DELAY_FORGET_S: f64 = 60.0;
+const DELAY_HP_TAU_S: f64 = 0.5;
+
+impl DelayEst {
+    fn update(&mut self, m_w: &Vector3<f64>, w_w: &Vector3<f64>, dt: f64) {
+        // The field high-passed (slow field changes do not enter); the regressor is not, which
+        // weights fast rotations (where the latency matters) over slow ones.
+        let y = m_w - self.mean.update(m_w, dt, DELAY_HP_TAU_S);
+        let x = w_w.cross(m_w);
+        if !(self.forget.0 == dt && dt > 0.0) {
+            self.forget = (dt, (-dt / DELAY_FORGET_S).exp());
+        }
+        let f = self.forget.1;
+        self.sxy = self.sxy * f + x.dot(&y);
+        self.sxx = self.sxx * f + x.dot(&x);
+    }
+    fn estimate(&self, max: f64) -> f64 {
+        // Needs enough rotation before it is trusted: ~ (1 rad/s * 40 uT)^2 for a second at 100 Hz.
+        if self.sxx < 1.0e5 {
+            return 0.0;
+        }
+        (self.sxy / self.sxx).clamp(0.0, max)
+    }
+}
+
+/// What the filter has learnt that outlives it (as VQF's `getState`/`setState`): the gyro bias and
+/// its uncertainty, and the magnetic reference. The live service saves it with the calibration and
+/// restores it on start, and keeps the bias when a new magnetometer calibration makes it restart
+/// the filter.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FilterState {
+    /// Gyro bias, rad/s, sensor axes (what is left after the gyro calibration the filter is fed).
+    pub gyro_bias_rad_s: Vec3,
+    /// 1-sigma of the bias per axis, rad/s.
+    pub gyro_bias_sigma_rad_s: Vec3,
+    /// Reference field norm (input units, uT) and dip (deg), once learnt: the field the
+    /// magnetometer calibration in use gives. `None`: not learnt (or the calibration changed).
+    pub mag_reference: Option<(f64, f64)>,
+}
+
+/// Smallest bias uncertainty a restored state starts with, rad/s (0.01 deg/s): a bias moves
+/// between runs (temperature, turn-on repeatability), so a saved one is never taken as exact.
+pub const RESTORED_BIAS_SIGMA_MIN_RAD_S: f64 = 1.75e-4;
+
+/// The orientation filter. Feed samples in time order with [`OrientationFilter::update`].
+#[derive(Debug, Clone)]
+pub struct OrientationFilter {
+    cfg: FusionConfig,
+    /// Sensor -> ENU.
+    q: UnitQuaternion<f64>,
+    /// Gyro bias, rad/s, sensor axes.
+    bias: Vector3<f64>,
+    /// Covariance of [dtheta (world), dbias (sensor)].
+    p: Matrix6<f64>,
+    tilt_init: bool,
+    heading_init: bool,
+    rest: Rest,
+    mag_ref: MagRef,
+    delay: DelayEst,
+    /// Recent (time, attitude) for the magnetometer latency.
+    history: VecDeque<(f64, UnitQuaternion<f64>)>,
+    /// Time and time segment of the last sample.
+    last_t: Option<(f64, u32)>,
+    last_gyro: Vector3<f64>,
+    t: f64,
+    mag_used: bool,
+    /// How long every heading innovation has been gated out, s.
+    gated_s: f64,
+    /// Slow mean squares of the rotation rate and of | |f| - g |, for the noise levels.
+    rate_ms: f64,
+    acc_ms: f64,
+    /// Mean square of the world-frame linear acceleration, (m/s^2)^2 (`acc_lin_tau_s`).
+    lin_ms: f64,
+}
+
+impl OrientationFilter {
+    pub fn new(cfg: FusionConfig) -> Self {
+        let mut p = Matrix6::zeros();
+        for i in 0..3 {
+            p[(i, i)] = 1.0;
+            p[(i + 3, i + 3)] = cfg.bias_sigma_init.powi(2);
+        }
+        OrientationFilter {
+            cfg,
+            q: UnitQuaternion::identity(),
+            bias: Vector3::zeros(),
+            p,
+            tilt_init: false,
+            heading_init: false,
+            rest: Rest::default(),
+            mag_ref: MagRef::default(),
+            delay: DelayEst::default(),
+            history: VecDeque::new(),
+            last_t: None,
+            last_gyro: Vector3::zeros(),
+            t: 0.0,
+            mag_used: false,
+            gated_s: 0.0,
+            rate_ms: 0.0,
+            acc_ms: 0.0,
+            lin_ms: 0.0,
+        }
+    }
+
+    pub fn config(&self) -> &FusionConfig {
+        &self.cfg
+    }
+
+    /// Feed one sample: the time step is taken from `t_s` (the first sample, the first of a new
+    /// time segment and steps outside (0, 1] s use `default_dt`).
+    pub fn update_sample(&mut self, s: &Sample, default_dt: f64) {
+        let dt = match self.last_t {
+            Some((t0, seg)) if seg == s.segment && s.t_s - t0 > 0.0 && s.t_s - t0 <= 1.0 => {
+                s.t_s - t0
+            }
+            _ => default_dt,
+        };
+        self.last_t = Some((s.t_s, s.segment));
+        self.update(
+            dt,
+            s.gyro_rad_s.as_ref(),
+            s.accel_mps2.as_ref(),
+            s.mag_ut.as_ref(),
+        );
+    }
+
+    /// Feed one instant: `dt` since the previous one, and whichever readings are new.
+    /// Gyro in rad/s, accel specific force in m/s^2, mag in any unit (uT).
+    pub fn update(&mut self, dt: f64, gyro: Option<&Vec3>, acc: Option<&Vec3>, mag: Option<&Vec3>) {
+        let dt = if dt.is_finite() && dt > 0.0 { dt } else { 0.01 };
+        self.t += dt;
+        let gyro = gyro.filter(|g| crate::types::is_finite3(g)).map(v3);
+        let acc = acc.filter(|a| crate::types::is_finite3(a)).map(v3);
+        let mag = mag
+            .filter(|m| crate::types::is_finite3(m) && self.cfg.use_mag)
+            .map(v3);
+        self.rest.update(gyro.as_ref(), acc.as_ref(), dt, &self.cfg);
+        let a_int = (dt / self.cfg.intensity_tau_s.max(dt)).min(1.0);
+        if let Some(g) = gyro {
+            self.last_gyro = g;
+            self.rate_ms += (g.norm_squared() - self.rate_ms) * a_int;
+        }
+        if let Some(a) = acc {
+            self.acc_ms += ((a.norm() - self.cfg.gravity_mps2).powi(2) - self.acc_ms) * a_int;
+        }
+        if !self.tilt_init {
+            match acc {
+                Some(a) if a.norm() > 1e-6 => self.init_tilt(&a),
+                _ => return,
+            }
+        } else {
+            self.predict(dt);
+            if let Some(a) = acc {
+                let lin = self.q * a - Vector3::new(0.0, 0.0, self.cfg.gravity_mps2);
+                let a_lin = (dt / self.cfg.acc_lin_tau_s.max(dt)).min(1.0);
+                self.lin_ms += (lin.norm_squared() - self.lin_ms) * a_lin;
+                self.tilt_update(&a);
+            }
+        }
+        if self.rest.rest {
+            if let Some(g) = gyro {
+                self.bias_update(&g);
+            }
+        }
+        // Keep the attitude history for the magnetometer latency.
+        self.history.push_back((self.t, self.q));
+        let keep = self
+            .cfg
+            .mag_delay_max_s
+            .max(self.cfg.mag_delay_s.unwrap_or(0.0))
+            + 2.0 * dt;
+        while self
+            .history
+            .front()
+            .is_some_and(|(t, _)| self.t - *t > keep)
+        {
+            self.history.pop_front();
+        }
+        self.mag_used = false;
+        if let Some(m) = mag {
+            self.mag_update(&m, dt);
+        }
+    }
+
+    fn init_tilt(&mut self, a: &Vector3<f64>) {
+        self.q = rotation_between(&a.normalize(), &Vector3::z());
+        self.tilt_init = true;
+        let s2 = 0.05f64.powi(2);
+        self.p[(0, 0)] = s2;
+        self.p[(1, 1)] = s2;
+        // Heading is free until the first field measurement (kept small in 6D: it is unobservable).
+        self.p[(2, 2)] = if self.cfg.use_mag { 1.0 } else { 1e-6 };
+    }
+
+    fn predict(&mut self, dt: f64) {
+        let w = self.last_gyro - self.bias;
+        let r = self.q.to_rotation_matrix().into_inner();
+        self.q *= UnitQuaternion::from_scaled_axis(w * dt);
+        // Error dynamics (world-frame attitude error): dtheta' = -R dbias, so F = [[I, B], [0, I]]
+        // with B = -R dt. F P F^T by blocks (P = [[P11, P12], [P12^T, P22]]):
+        //   P11' = P11 + B P12^T + P12 B^T + B P22 B^T,  P12' = P12 + B P22,  P22' = P22,
+        // the same product at a fraction of the cost of the full 6 x 6 one.
+        let b = -r * dt;
+        let p11 = self.p.fixed_view::<3, 3>(0, 0).into_owned();
+        let p12 = self.p.fixed_view::<3, 3>(0, 3).into_owned();
+        let p22 = self.p.fixed_view::<3, 3>(3, 3).into_owned();
+        let bp22 = b * p22;
+        let bp12t = b * p12.transpose();
+        let n12 = p12 + bp22;
+        let n11 = p11 + bp12t + bp12t.transpose() + bp22 * b.transpose();
+        let qa = (self.cfg.gyro_noise_density.powi(2)
+            + self.cfg.gyro_rate_noise.powi(2) * self.rate_ms)
+            * dt;
+        let qb = self.cfg.bias_walk.powi(2) * dt;
+        self.p.fixed_view_mut::<3, 3>(0, 0).copy_from(&n11);
+        self.p.fixed_view_mut::<3, 3>(0, 3).copy_from(&n12);
+        self.p
+            .fixed_view_mut::<3, 3>(3, 0)
+            .copy_from(&n12.transpose());
+        for i in 0..3 {
+            self.p[(i, i)] += qa;
+            self.p[(i + 3, i + 3)] += qb;
+        }
+    }
+
+    /// Scalar Kalman update with measurement row `h`, innovation `y`, variance `r`; entries of the gain
+    /// listed in `frozen` are forced to zero (Joseph form keeps P consistent for that gain).
+    fn scalar_update(&mut self, h: &RowVector6<f64>, y: f64, r: f64, frozen: &[usize]) -> f64 {
+        let ph = self.p * h.transpose();
+        let s = (h * ph)[(0, 0)] + r;
+        let mut k = ph / s;
+        for &i in frozen {
+            k[i] = 0.0;
+        }
+        // Joseph form (I - K h) P (I - K h)^T + r K K^T, expanded with a = P h^T and
+        // s = h P h^T + r: P - K a^T - a K^T + s K K^T (exact for any K, so also with frozen
+        // entries; O(36) instead of two 6 x 6 products).
+        let ka = k * ph.transpose();
+        self.p += k * k.transpose() * s - ka - ka.transpose();
+        let dx: Vector6<f64> = k * y;
+        self.apply(&dx);
+        s
+    }
+
+    fn apply(&mut self, dx: &Vector6<f64>) {
+        let dtheta = Vector3::new(dx[0], dx[1], dx[2]);
+        // A bias-only update (attitude gains frozen) leaves the attitude exactly as it is.
+        if dtheta != Vector3::zeros() {
+            self.q = UnitQuaternion::from_scaled_axis(dtheta) * self.q;
+        }
+        self.bias += Vector3::new(dx[3], dx[4], dx[5]);
+        let c = self.cfg.bias_clip;
+        self.bias = self.bias.map(|b| b.clamp(-c, c));
+    }
+
+    fn tilt_update(&mut self, a: &Vector3<f64>) {
+        let g = self.cfg.gravity_mps2;
+        let dev = (a.norm() - g).abs();
+        if dev > self.cfg.acc_reject_mps2 && !self.rest.rest {
+            return;
+        }
+        let sigma = if self.rest.rest {
+            self.cfg.acc_rest_noise_mps2
+        } else {
+            (self.cfg.acc_noise_mps2.powi(2)
+                + self.cfg.acc_norm_gain.powi(2) * self.acc_ms
+                + self.cfg.acc_lin_gain.powi(2) * self.lin_ms)
+                .sqrt()
+        };
+        let r = (sigma / g).powi(2);
+        // The accelerometer's timing against the gyro: rotate it with the attitude `acc_delay_s` ago
+        // (a negative delay, an accelerometer ahead of the gyro, extrapolates with the current rate).
+        // (No delay, the default: the reading as it is, not a rotation by zero.)
+        let a_shifted = if self.cfg.acc_delay_s == 0.0 {
+            *a
+        } else {
+            UnitQuaternion::from_scaled_axis((self.last_gyro - self.bias) * (-self.cfg.acc_delay_s))
+                * a
+        };
+        for i in 0..2 {
+            let mut h = RowVector6::zeros();
+            h[i] = 1.0;
+            // Recomputed after the first row's correction.
+            let aw = self.q * a_shifted;
+            let y = if i == 0 { aw.y / g } else { -aw.x / g };
+            self.scalar_update(&h, y, r, &[2]);
+        }
+    }
+
+    fn bias_update(&mut self, g: &Vector3<f64>) {
+        let r = self.cfg.gyro_sample_sd.powi(2);
+        for i in 0..3 {
+            let mut h = RowVector6::zeros();
+            h[i + 3] = 1.0;
+            let y = g[i] - self.bias[i];
+            self.scalar_update(&h, y, r, &[0, 1, 2]);
+        }
+    }
+
+    /// The attitude `d` seconds ago (interpolated from the history; the current one if none).
+    fn attitude_at_delay(&self, d: f64) -> UnitQuaternion<f64> {
+        if d <= 0.0 || self.history.is_empty() {
+            return self.q;
+        }
+        let target = self.t - d;
+        let mut prev: Option<&(f64, UnitQuaternion<f64>)> = None;
+        for item in self.history.iter().rev() {
+            if item.0 <= target {
+                return match prev {
+                    Some(n) if n.0 > item.0 => {
+                        let u = ((target - item.0) / (n.0 - item.0)).clamp(0.0, 1.0);
+                        item.1.slerp(&n.1, u)
+                    }
+                    _ => item.1,
+                };
+            }
+            prev = Some(item);
+        }
+        self.history.front().map(|x| x.1).unwrap_or(self.q)
+    }
+
+    fn mag_update(&mut self, m: &Vector3<f64>, dt: f64) {
+        let n = m.norm();
+        if !(n > 0.0) {
+            return;
+        }
+        let rate_w = self.q * (self.last_gyro - self.bias);
+        let d = match self.cfg.mag_delay_s {
+            Some(d) => d,
+            None => self.delay.estimate(self.cfg.mag_delay_max_s),
+        };
+        let q_m = self.attitude_at_delay(d);
+        let mw = q_m * m;
+        if self.cfg.mag_delay_s.is_none() {
+            // Undelayed world field for the latency estimate (uses the current attitude).
+            let mw_now = self.q * m;
+            if !self.mag_ref.disturbed {
+                self.delay.update(&mw_now, &rate_w, dt);
+            }
+        }
+        let h = (mw.x * mw.x + mw.y * mw.y).sqrt();
+        let dip = (-mw.z).atan2(h);
+        let ok = self.mag_ref.update(n, dip, dt, &self.cfg);
+        if h < 1e-3 * n {
+            return;
+        }
+        let decl = self.cfg.declination_deg.to_radians();
+        let azimuth = mw.x.atan2(mw.y);
+        if !azimuth.is_finite() {
+            return;
+        }
+        if !self.heading_init {
+            // First field: set the heading directly.
+            let rz = UnitQuaternion::from_axis_angle(
+                &Vector3::z_axis(),
+                crate::attitude::wrap_pi(azimuth - decl),
+            );
+            self.q = rz * self.q;
+            for x in self.history.iter_mut() {
+                x.1 = rz * x.1;
+            }
+            self.heading_init = true;
+            self.p[(2, 2)] = self.cfg.mag_heading_noise_deg.to_radians().powi(2);
+            for i in [0, 1, 3, 4, 5] {
+                self.p[(2, i)] = 0.0;
+                self.p[(i, 2)] = 0.0;
+            }
+            return;
+        }
+        if !ok {
+            return;
+        }
+        let sd = if self.rest.rest {
+            self.cfg.mag_rest_heading_noise_deg
+        } else {
+            self.cfg.mag_heading_noise_deg
+        }
+        .to_radians();
+        let r = sd * sd + self.cfg.mag_rate_noise_s.powi(2) * self.rate_ms;
+        let y = crate::attitude::wrap_pi(azimuth - decl);
+        let mut hrow = RowVector6::zeros();
+        hrow[2] = 1.0;
+        let gate =
+            self.cfg.mag_gate_deg.to_radians() + self.cfg.mag_gate_sigma * self.p[(2, 2)].sqrt();
+        if y.abs() <= gate {
+            self.gated_s = 0.0;
+        } else if self.gated_s < self.cfg.mag_gate_timeout_s {
+            self.gated_s += dt;
+            return;
+        }
+        // (Timed out: open until an innovation is within the gate again.)
+        self.scalar_update(&hrow, y, r, &[0, 1]);
+        self.mag_used = true;
+    }
+
+    /// Sensor -> world quaternion in the configured world frame.
+    pub fn quaternion(&self) -> UnitQuaternion<f64> {
+        match self.cfg.world {
+            WorldFrame::Enu => self.q,
+            WorldFrame::Ned => enu_to_ned() * self.q,
+        }
+    }
+
+    /// Sensor -> ENU quaternion whatever the configured frame.
+    pub fn quaternion_enu(&self) -> UnitQuaternion<f64> {
+        self.q
+    }
+
+    /// The current output (quaternion and roll/pitch/heading).
+    pub fn orientation(&self) -> Orientation {
+        let e = crate::attitude::euler_zyx_deg(&(enu_to_ned() * self.q));
+        Orientation {
+            q: self.quaternion(),
+            roll_deg: e[0],
+            pitch_deg: e[1],
+            heading_deg: e[2],
+        }
+    }
+
+    /// Gyro bias estimate, rad/s, sensor axes.
+    pub fn bias(&self) -> Vec3 {
+        [self.bias.x, self.bias.y, self.bias.z]
+    }
+
+    /// 1-sigma of the bias estimate per axis, rad/s.
+    pub fn bias_sigma(&self) -> Vec3 {
+        [
+            self.p[(3, 3)].sqrt(),
+            self.p[(4, 4)].sqrt(),
+            self.p[(5, 5)].sqrt(),
+        ]
+    }
+
+    /// True while the rest detector sees the sensor still.
+    pub fn at_rest(&self) -> bool {
+        self.rest.rest
+    }
+
+    /// True while the field is judged disturbed (norm or dip off the reference).
+    pub fn mag_disturbed(&self) -> bool {
+        self.mag_ref.disturbed
+    }
+
+    /// Whether the last magnetometer sample corrected the heading.
+    pub fn mag_used(&self) -> bool {
+        self.mag_used
+    }
+
+    /// Reference field norm (input units) and dip (deg), once learned.
+    pub fn mag_reference(&self) -> Option<(f64, f64)> {
+        self.mag_ref
+            .known
+            .then(|| (self.mag_ref.norm, self.mag_ref.dip.to_degrees()))
+    }
+
+    /// The magnetometer latency in use, s.
+    pub fn mag_delay_s(&self) -> f64 {
+        self.cfg
+            .mag_delay_s
+            .unwrap_or_else(|| self.delay.estimate(self.cfg.mag_delay_max_s))
+    }
+
+    /// True once the first accelerometer sample has set the tilt.
+    pub fn initialized(&self) -> bool {
+        self.tilt_init
+    }
+
+    /// The gyro fed to the filter has `removed_rad_s` more bias taken out from now on (a new gyro
+    /// calibration upstream): the residual bias estimate moves by as much the other way, its
+    /// uncertainty unchanged, so the filter neither removes the bias twice nor learns it again.
+    pub fn gyro_bias_removed(&mut self, removed_rad_s: &Vec3) {
+        if crate::types::is_finite3(removed_rad_s) {
+            self.bias -= v3(removed_rad_s);
+        }
+    }
+
+    /// What the filter has learnt, to save ([`OrientationFilter::set_state`] restores it).
+    pub fn state(&self) -> FilterState {
+        FilterState {
+            gyro_bias_rad_s: self.bias(),
+            gyro_bias_sigma_rad_s: self.bias_sigma(),
+            mag_reference: self.mag_reference(),
+        }
+    }
+
+    /// Restore what a filter had learnt: the gyro bias with its uncertainty (not below
+    /// [`RESTORED_BIAS_SIGMA_MIN_RAD_S`]), and the magnetic reference when given (taken as learnt for
+    /// `mag_ref_tau_s`, so it changes only slowly from here). The attitude is not part of it: the
+    /// next samples set it as they would in a new filter. Values that are not finite are ignored.
+    pub fn set_state(&mut self, s: &FilterState) {
+        let finite = |v: &Vec3| v.iter().all(|x| x.is_finite());
+        if finite(&s.gyro_bias_rad_s) && finite(&s.gyro_bias_sigma_rad_s) {
+            self.bias = v3(&s.gyro_bias_rad_s);
+            for i in 0..3 {
+                let sd = s.gyro_bias_sigma_rad_s[i].max(RESTORED_BIAS_SIGMA_MIN_RAD_S);
+                for j in 0..6 {
+                    self.p[(i + 3, j)] = 0.0;
+                    self.p[(j, i + 3)] = 0.0;
+                }
+                self.p[(i + 3, i + 3)] = sd * sd;
+            }
+        }
+        if let Some((norm, dip_deg)) = s.mag_reference {
+            if norm.is_finite() && norm > 0.0 && dip_deg.is_finite() {
+                self.mag_ref = MagRef {
+                    norm,
+                    dip: dip_deg.to_radians(),
+                    known: true,
+                    learn_s: self.cfg.mag_ref_tau_s,
+                    ..MagRef::default()
+                };
+            }
+        }
+    }
+}
+
+/// Run the filter over a log: one orientation per sample (identity until the first accel sample).
+/// The nominal step for the first sample is the median sample interval.
+pub fn run(samples: &[Sample], cfg: &FusionConfig) -> Vec<Orientation> {
+    let dt = median_dt(samples);
+    let mut f = OrientationFilter::new(*cfg);
+    samples
+        .iter()
+        .map(|s| {
+            f.update_sample(s, dt);
+            f.orientation()
+        })
+        .collect()
+}
+
+/// Median interval between consecutive sample times (0.01 s when it cannot be told).
+pub fn median_dt(samples: &[Sample]) -> f64 {
+    let mut d: Vec<f64> = samples
+        .windows(2)
+        .take(2000)
+        .map(|w| w[1].t_s - w[0].t_s)
+        .filter(|x| x.is_finite() && *x > 0.0)
+        .collect();
+    if d.is_empty() {
+        return 0.01;
+    }
+    d.sort_by(|a, b| a.total_cmp(b));
+    d[d.len() / 2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::{simulate, Scenario};
+
+    const DT: f64 = 0.01;
+
+    /// Angle between two rotations, degrees.
+    fn angle_deg(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
+        a.angle_to(b).to_degrees()
+    }
+
+    /// Body (FRD) readings for a body -> NED attitude: specific force at rest and the field.
+    fn readings(q_ned: &UnitQuaternion<f64>, field_ned: &Vector3<f64>) -> (Vec3, Vec3) {
+        let f = q_ned.inverse() * Vector3::new(0.0, 0.0, -STANDARD_GRAVITY_MPS2);
+        let m = q_ned.inverse() * field_ned;
+        ([f.x, f.y, f.z], [m.x, m.y, m.z])
+    }
+
+    #[test]
+    fn enu_ned_conversion_and_euler_angles() {
+        // A level FRD body facing north at rest: roll = pitch = heading = 0 and q_ned = identity.
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let mut f = OrientationFilter::new(FusionConfig::default());
+        let (a, m) = readings(&UnitQuaternion::identity(), &field);
+        for _ in 0..10 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m));
+        }
+        let o = f.orientation();
+        assert!(
+            angle_deg(&o.q, &UnitQuaternion::identity()) < 1e-6,
+            "{:?}",
+            o.q
+        );
+        // The same attitude in ENU maps FRD x (north) to ENU y.
+        let n = f.quaternion_enu() * Vector3::x();
+        assert!((n - Vector3::y()).norm() < 1e-6);
+        let d = f.quaternion_enu() * Vector3::z();
+        assert!((d + Vector3::z()).norm() < 1e-6, "FRD down is ENU -up");
+        // An attitude with roll 10, pitch -20, yaw 135 (deg) is reported as such.
+        let q = UnitQuaternion::from_euler_angles(
+            10f64.to_radians(),
+            -20f64.to_radians(),
+            135f64.to_radians(),
+        );
+        let mut f = OrientationFilter::new(FusionConfig::default());
+        let (a, m) = readings(&q, &field);
+        for _ in 0..10 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m));
+        }
+        let o = f.orientation();
+        assert!((o.roll_deg - 10.0).abs() < 1e-6, "{o:?}");
+        assert!((o.pitch_deg + 20.0).abs() < 1e-6, "{o:?}");
+        assert!((o.heading_deg - 135.0).abs() < 1e-6, "{o:?}");
+        assert!(angle_deg(&o.q, &q) < 1e-6);
+        // Declination: the heading is true when it is given.
+        let cfg = FusionConfig {
+            declination_deg: 5.0,
+            ..FusionConfig::default()
+        };
+        let mut f = OrientationFilter::new(cfg);
+        for _ in 0..10 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m));
+        }
+        assert!((f.orientation().heading_deg - 140.0).abs() < 1e-6);
+    }
+
+    /// What a filter learnt (gyro bias, field reference) survives a save and restore: the restored
+    /// filter starts with the bias instead of learning it again, and judges a field against the
+    /// saved reference from its first sample.
+    #[test]
+    fn state_saved_and_restored() {
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let bias = [0.01, -0.02, 0.005];
+        let (a, m) = readings(&UnitQuaternion::identity(), &field);
+        let mut f = OrientationFilter::new(FusionConfig::default());
+        for _ in 0..6000 {
+            f.update(DT, Some(&bias), Some(&a), Some(&m));
+        }
+        let saved = f.state();
+        let err = (0..3)
+            .map(|k| (saved.gyro_bias_rad_s[k] - bias[k]).abs())
+            .fold(0.0, f64::max);
+        // Measured 9.5e-8 rad/s after 60 s at rest.
+        assert!(err < 3e-7, "learnt bias off by {err} rad/s: {saved:?}");
+        let (norm, dip) = saved.mag_reference.unwrap();
+        assert!(
+            // Dip measured 63.448 deg against atan2(40, 20) = 63.435.
+            (norm - field.norm()).abs() < 1e-6 && (dip - 63.435).abs() < 0.04,
+            "{saved:?}"
+        );
+        // Through the calibration file's JSON and back.
+        let text = serde_json::to_string(&saved).unwrap();
+        let back: FilterState = serde_json::from_str(&text).unwrap();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(1.0);
+        assert!((0..3).all(|k| close(back.gyro_bias_rad_s[k], saved.gyro_bias_rad_s[k])));
+        assert!(close(back.mag_reference.unwrap().0, norm));
+        let mut g = OrientationFilter::new(FusionConfig::default());
+        g.set_state(&back);
+        assert_eq!(g.bias(), back.gyro_bias_rad_s);
+        assert!(g.bias_sigma()[0] >= RESTORED_BIAS_SIGMA_MIN_RAD_S);
+        // A gyro calibration upstream that removes the bias: the residual goes with it.
+        let mut k = g.clone();
+        k.gyro_bias_removed(&back.gyro_bias_rad_s);
+        assert!(k.bias().iter().all(|b| b.abs() < 1e-12), "{:?}", k.bias());
+        assert_eq!(k.bias_sigma(), g.bias_sigma());
+        // A field 30 % stronger than the saved reference is a disturbance from the first sample;
+        // a new filter would take it as its reference.
+        let (_, strong) = readings(&UnitQuaternion::identity(), &(field * 1.3));
+        g.update(DT, Some(&bias), Some(&a), Some(&strong));
+        assert!(g.mag_disturbed());
+        let mut fresh = OrientationFilter::new(FusionConfig::default());
+        fresh.update(DT, Some(&bias), Some(&a), Some(&strong));
+        assert!(!fresh.mag_disturbed());
+        // Values that are not finite are ignored.
+        let mut h = OrientationFilter::new(FusionConfig::default());
+        h.set_state(&FilterState {
+            gyro_bias_rad_s: [f64::NAN, 0.0, 0.0],
+            gyro_bias_sigma_rad_s: [0.0; 3],
+            mag_reference: Some((f64::INFINITY, 10.0)),
+        });
+        assert_eq!(h.bias(), [0.0; 3]);
+        assert!(h.mag_reference().is_none());
+    }
+
+    /// Simulated hand tumble (calibrated sensors, gyro bias kept): the filter tracks the true attitude.
+    #[test]
+    fn tracks_simulated_tumble_9d_and_6d() {
+        let mut sc = Scenario::named("tumble").unwrap();
+        sc.pauses = 12;
+        let out = simulate(&sc, 7);
+        let truth = &out.truth;
+        let acal = truth.accel.calibration();
+        let mcal = truth.mag.calibration();
+        // Gyro: scale corrected, bias left for the filter to find.
+        let gm = crate::calib::model::rows_to_mat(&truth.gyro.matrix);
+        let samples: Vec<Sample> = out
+            .samples
+            .iter()
+            .map(|s| {
+                let g = s.gyro_rad_s.unwrap();
+                let g = gm * Vector3::new(g[0], g[1], g[2]);
+                Sample {
+                    accel_mps2: s.accel_mps2.map(|a| acal.apply(&a)),
+                    mag_ut: s.mag_ut.map(|m| mcal.apply(&m)),
+                    gyro_rad_s: Some([g.x, g.y, g.z]),
+                    ..*s
+                }
+            })
+            .collect();
+        for use_mag in [true, false] {
+            let cfg = FusionConfig {
+                use_mag,
+                ..FusionConfig::default()
+            };
+            let est = run(&samples, &cfg);
+            let (mut tilt2, mut head2, mut n) = (0.0, 0.0, 0.0);
+            for (o, t) in est.iter().zip(&out.true_attitude).skip(500) {
+                let q_true = crate::sim::quat_from_euler_deg(t[0], t[1], t[2]);
+                let (_, h, i) = crate::attitude::eval::errors(&o.q, &q_true);
+                tilt2 += i * i;
+                head2 += h * h;
+                n += 1.0;
+            }
+            let tilt = (tilt2 / n).sqrt().to_degrees();
+            let head = (head2 / n).sqrt().to_degrees();
+            eprintln!(
+                "sim tumble use_mag={use_mag}: inclination {tilt:.3} deg, heading {head:.3} deg"
+            );
+            assert!(tilt < 1.0, "inclination RMSE {tilt}");
+            if use_mag {
+                assert!(head < 2.0, "heading RMSE {head}");
+            }
+        }
+        // The bias is found from the rests.
+        let mut f = OrientationFilter::new(FusionConfig::default());
+        for s in &samples {
+            f.update_sample(s, 0.01);
+        }
+        let b = f.bias();
+        for k in 0..3 {
+            let truth_b = gm * Vector3::from(truth.gyro.offset);
+            assert!(
+                (b[k] - truth_b[k]).abs() < 0.002,
+                "bias {b:?} vs {truth_b:?}"
+            );
+        }
+    }
+
+    /// A level sensor turning about the vertical, then a strong disturbance that changes norm and dip:
+    /// the heading keeps following the gyro and the inclination is untouched.
+    #[test]
+    fn rejects_magnetic_disturbance_and_keeps_inclination() {
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        // The disturbance lasts 15 s: longer than it takes to accept a steady new field.
+        let cfg = FusionConfig {
+            mag_new_field_s: 20.0,
+            ..FusionConfig::default()
+        };
+        let mut f = OrientationFilter::new(cfg);
+        let rate = 0.3; // rad/s about down (FRD z)
+        let mut yaw: f64 = 0.0;
+        let mut worst_tilt: f64 = 0.0;
+        let mut worst_head: f64 = 0.0;
+        for i in 0..6000 {
+            let t = i as f64 * DT;
+            let moving = t > 10.0;
+            let w = if moving { rate } else { 0.0 };
+            yaw += w * DT;
+            let q = UnitQuaternion::from_euler_angles(0.0, 0.0, yaw);
+            let (a, mut m) = readings(&q, &field);
+            if (25.0..40.0).contains(&t) {
+                // A magnet close by, moving with the body: +15 uT along its x, +25 uT along its z.
+                m[0] += 15.0;
+                m[2] += 25.0;
+            }
+            f.update(DT, Some(&[0.0, 0.0, w]), Some(&a), Some(&m));
+            if t > 1.0 {
+                let (_, h, inc) = crate::attitude::eval::errors(&f.quaternion(), &q);
+                worst_tilt = worst_tilt.max(inc.to_degrees());
+                worst_head = worst_head.max(h.to_degrees());
+            }
+            if (26.0..40.0).contains(&t) {
+                assert!(f.mag_disturbed(), "t {t}: disturbance not detected");
+            }
+        }
+        eprintln!(
+            "disturbance: inclination moved {worst_tilt:.2e} deg, heading {worst_head:.2e} deg"
+        );
+        // Measured: inclination 0, heading 2.6e-11 deg (rounding only: the rejected field does not
+        // reach the state). Bounds at a rounding level, not 3x of it, so other FPUs pass.
+        assert!(worst_tilt < 1e-6, "inclination moved by {worst_tilt} deg");
+        assert!(worst_head < 1e-6, "heading error {worst_head} deg");
+    }
+
+    /// A bad field that passes the norm and dip checks (a heading-only error) still cannot tilt.
+    #[test]
+    fn heading_correction_is_only_about_the_vertical() {
+        let q = UnitQuaternion::from_euler_angles(0.4, -0.3, 1.0);
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let (a, _) = readings(&q, &field);
+        // The field seen as if the body were turned by 40 deg about down.
+        let turned = UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7) * q;
+        let (_, m_bad) = readings(&turned, &field);
+        let (_, m_good) = readings(&q, &field);
+        let cfg = FusionConfig {
+            mag_gate_sigma: 1e9,
+            ..FusionConfig::default()
+        };
+        let mut f = OrientationFilter::new(cfg);
+        for _ in 0..200 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m_good));
+        }
+        for _ in 0..3000 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m_bad));
+        }
+        let (_, h, inc) = crate::attitude::eval::errors(&f.quaternion(), &q);
+        assert!(inc.to_degrees() < 1e-6, "tilted by {}", inc.to_degrees());
+        assert!(h.to_degrees() > 10.0, "the heading follows the field");
+    }
+
+    /// Sustained back-and-forth translation (5 m/s^2 along x at 0.5 Hz) of a level, still-turned
+    /// sensor: the world-frame linear acceleration term lowers the tilt correction's weight, so the
+    /// inclination swings less than with that term off.
+    #[test]
+    fn linear_acceleration_weighs_the_tilt_down() {
+        let worst = |gain: f64| {
+            let cfg = FusionConfig {
+                world: WorldFrame::Enu,
+                acc_lin_gain: gain,
+                use_mag: false,
+                ..FusionConfig::default()
+            };
+            let mut f = OrientationFilter::new(cfg);
+            let g = cfg.gravity_mps2;
+            let mut worst: f64 = 0.0;
+            for i in 0..12_000 {
+                let t = i as f64 * DT;
+                let ax = if t > 20.0 {
+                    5.0 * (std::f64::consts::PI * t).sin()
+                } else {
+                    0.0
+                };
+                f.update(DT, Some(&[0.0; 3]), Some(&[ax, 0.0, g]), None);
+                if t > 40.0 {
+                    let (_, _, inc) = crate::attitude::eval::errors(
+                        &f.quaternion_enu(),
+                        &UnitQuaternion::identity(),
+                    );
+                    worst = worst.max(inc.to_degrees());
+                }
+            }
+            worst
+        };
+        let (on, off) = (worst(FusionConfig::default().acc_lin_gain), worst(0.0));
+        eprintln!("translation: inclination swing {on:.3} deg with the term, {off:.3} without");
+        // Measured 0.480 deg against 1.481.
+        assert!(on < 0.6 * off, "{on} vs {off}");
+    }
+
+    /// A field that keeps norm and dip but turns the heading by 40 deg (a magnet moving with the
+    /// sensor could do that) is gated out, and used after `mag_gate_timeout_s` of nothing but it.
+    #[test]
+    fn heading_gate_and_its_timeout() {
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let q = UnitQuaternion::identity();
+        let (a, m_good) = readings(&q, &field);
+        let turned = UnitQuaternion::from_euler_angles(0.0, 0.0, 0.7) * q;
+        let (_, m_bad) = readings(&turned, &field);
+        let cfg = FusionConfig::default();
+        let mut f = OrientationFilter::new(cfg);
+        // Long enough for the heading state's uncertainty to shrink well inside the 40 deg.
+        for _ in 0..6000 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m_good));
+        }
+        let steps = (cfg.mag_gate_timeout_s / DT) as usize;
+        for _ in 0..steps - 10 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m_bad));
+            assert!(!f.mag_used());
+        }
+        let (_, h, _) = crate::attitude::eval::errors(&f.quaternion(), &q);
+        assert!(h.to_degrees() < 1e-6, "heading moved by {}", h.to_degrees());
+        for _ in 0..3000 {
+            f.update(DT, Some(&[0.0; 3]), Some(&a), Some(&m_bad));
+        }
+        let (_, h, _) = crate::attitude::eval::errors(&f.quaternion(), &q);
+        assert!(
+            h.to_degrees() > 5.0,
+            "the heading follows the field after the timeout"
+        );
+    }
+
+    /// Real data: BROAD trial 02 against its optical reference, BROAD's metric.
+    #[test]
+    fn broad_trial_02_real_data() {
+        let Some(data) = crate::testdata::shared_data() else {
+            return;
+        };
+        let path = data.join("broad/02_undisturbed_slow_rotation_B.csv.gz");
+        let log =
+            crate::io::sources::read_log(&path, None, &crate::config::Config::default()).unwrap();
+        let cfg = FusionConfig {
+            world: WorldFrame::Enu,
+            ..FusionConfig::default()
+        };
+        let q: Vec<_> = run(&log.samples, &cfg).iter().map(|o| o.q).collect();
+        let e = crate::attitude::eval::evaluate(&log.samples, &q);
+        eprintln!("BROAD 02: {e:?}");
+        let fe = crate::attitude::eval::evaluate_filter(
+            &log.samples,
+            &cfg,
+            crate::attitude::eval::Alignment::None,
+        )
+        .unwrap();
+        assert_eq!(fe.metrics, e);
+        // The magnetometer of this IMU lags its gyro (by about 3 samples, 10 ms, against the optical
+        // reference): the online estimate finds 5 ms at the end of this slow trial.
+        assert!((0.003..0.015).contains(&fe.mag_delay_s), "{fe:?}");
+        // Measured 1.20 / 1.12 / 0.43 deg (VQF 1.38 / 1.31 / 0.43 with the same metric).
+        assert!(e.total_rmse_deg < 1.5, "{e:?}");
+        assert!(e.inclination_rmse_deg < 0.8, "{e:?}");
+        assert!(e.samples > 30_000);
+    }
+}

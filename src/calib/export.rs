@@ -1,0 +1,334 @@
+//! Exports of a calibration in flight-stack conventions (from the ArduPilot
+//! and PX4 sources' correction code):
+//!
+//! * ArduPilot: mag += COMPASS_OFS (mGauss, so OFS = -offset); mag = S mag with
+//!   S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]].
+//!   Accel: (raw - INS_ACCOFFS) * INS_ACCSCAL per axis (m/s^2).
+//! * PX4: corrected = S (raw - CAL_MAG0_*OFF) in gauss, S from CAL_MAG0_[XYZ]SCALE and
+//!   CAL_MAG0_[XYZ]ODIAG (same layout as ArduPilot's ODI). Accel: (raw - CAL_ACC0_*OFF) * CAL_ACC0_*SCALE.
+//! * x-io Fusion: m_c = S (m_u - h) (softIronMatrix, hardIronOffset); inertial
+//!   misalignment * ((u - offset) * sensitivity) with accel in g.
+//!
+//! Pure formatting: the caller writes the text to disk.
+
+use crate::calib::model::Calibration;
+use crate::types::STANDARD_GRAVITY_MPS2;
+
+/// A parameter name and value.
+pub type Param = (String, f64);
+
+/// Warnings about what a target cannot represent (asymmetric matrix, cross-axis terms dropped).
+fn representability(cal: &Calibration, allow_offdiag: bool) -> Vec<String> {
+    let m = cal.matrix;
+    let mut w = vec![];
+    let asym = (m[0][1] - m[1][0])
+        .abs()
+        .max((m[0][2] - m[2][0]).abs())
+        .max((m[1][2] - m[2][1]).abs());
+    if asym > 1e-6 {
+        w.push(format!(
+            "matrix is not symmetric (max asymmetry {asym:.2e}); its symmetric part is exported"
+        ));
+    }
+    if !allow_offdiag {
+        let off = m[0][1].abs().max(m[0][2].abs()).max(m[1][2].abs());
+        if off > 1e-3 {
+            w.push(format!(
+                "off-diagonal terms up to {off:.4} cannot be stored by this target and are dropped"
+            ));
+        }
+    }
+    w
+}
+
+fn sym(m: &[[f64; 3]; 3], i: usize, j: usize) -> f64 {
+    0.5 * (m[i][j] + m[j][i])
+}
+
+/// ArduPilot's name of a compass parameter: `COMPASS_OFS_X` for compass index 0, `COMPASS_OFS2_X`
+/// for index 1, `COMPASS_DIA3_Z` ...
+pub fn ardupilot_compass_param(base: &str, compass_index: usize, axis: &str) -> String {
+    if compass_index == 0 {
+        format!("COMPASS_{base}_{axis}")
+    } else {
+        format!("COMPASS_{base}{}_{axis}", compass_index + 1)
+    }
+}
+
+/// ArduPilot compass parameters from a magnetometer calibration in uT (1 uT = 10 mGauss).
+pub fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Vec<String>) {
+    let name = |base: &str, axis: &str| ardupilot_compass_param(base, compass_index, axis);
+    let m = &cal.matrix;
+    let params = vec![
+        (name("OFS", "X"), -cal.offset[0] * 10.0),
+        (name("OFS", "Y"), -cal.offset[1] * 10.0),
+        (name("OFS", "Z"), -cal.offset[2] * 10.0),
+        (name("DIA", "X"), m[0][0]),
+        (name("DIA", "Y"), m[1][1]),
+        (name("DIA", "Z"), m[2][2]),
+        (name("ODI", "X"), sym(m, 0, 1)),
+        (name("ODI", "Y"), sym(m, 0, 2)),
+        (name("ODI", "Z"), sym(m, 1, 2)),
+    ];
+    (params, representability(cal, true))
+}
+
+/// ArduPilot accelerometer parameters from an accel calibration in m/s^2.
+pub fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
+    let m = &cal.matrix;
+    let params = vec![
+        ("INS_ACCOFFS_X".into(), cal.offset[0]),
+        ("INS_ACCOFFS_Y".into(), cal.offset[1]),
+        ("INS_ACCOFFS_Z".into(), cal.offset[2]),
+        ("INS_ACCSCAL_X".into(), m[0][0]),
+        ("INS_ACCSCAL_Y".into(), m[1][1]),
+        ("INS_ACCSCAL_Z".into(), m[2][2]),
+    ];
+    (params, representability(cal, false))
+}
+
+/// PX4 magnetometer parameters of calibration slot `index` (CAL_MAG0_*, CAL_MAG1_* ...; gauss,
+/// 1 uT = 0.01 gauss).
+pub fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
+    let m = &cal.matrix;
+    let n = |field: &str| format!("CAL_MAG{index}_{field}");
+    let params = vec![
+        (n("XOFF"), cal.offset[0] * 0.01),
+        (n("YOFF"), cal.offset[1] * 0.01),
+        (n("ZOFF"), cal.offset[2] * 0.01),
+        (n("XSCALE"), m[0][0]),
+        (n("YSCALE"), m[1][1]),
+        (n("ZSCALE"), m[2][2]),
+        (n("XODIAG"), sym(m, 0, 1)),
+        (n("YODIAG"), sym(m, 0, 2)),
+        (n("ZODIAG"), sym(m, 1, 2)),
+    ];
+    (params, representability(cal, true))
+}
+
+/// PX4 accelerometer parameters (m/s^2).
+pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
+    let m = &cal.matrix;
+    let params = vec![
+        ("CAL_ACC0_XOFF".into(), cal.offset[0]),
+        ("CAL_ACC0_YOFF".into(), cal.offset[1]),
+        ("CAL_ACC0_ZOFF".into(), cal.offset[2]),
+        ("CAL_ACC0_XSCALE".into(), m[0][0]),
+        ("CAL_ACC0_YSCALE".into(), m[1][1]),
+        ("CAL_ACC0_ZSCALE".into(), m[2][2]),
+    ];
+    (params, representability(cal, false))
+}
+
+/// Magnetometer calibrations (uT) with the compass index each is for (0 for COMPASS_OFS and
+/// CAL_MAG0, 1 for COMPASS_OFS2 and CAL_MAG1 ...).
+pub type CompassCalibrations = [(usize, Calibration)];
+
+/// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
+pub fn ardupilot_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
+    let mut out =
+        String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
+    let mags = mags.iter().map(|(k, c)| ardupilot_mag(c, *k));
+    for (params, warns) in mags.chain(accel.map(ardupilot_accel)) {
+        for w in warns {
+            out += &format!("# warning: {w}\n");
+        }
+        for (n, v) in params {
+            out += &format!("{n} {v:.6}\n");
+        }
+    }
+    out
+}
+
+/// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
+pub fn px4_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
+    let mut out = String::from("# imucald calibration for PX4 (QGroundControl parameter file)\n# Vehicle-Id\tComponent-Id\tName\tValue\tType\n");
+    let mags = mags.iter().map(|(k, c)| px4_mag(c, *k));
+    for (params, warns) in mags.chain(accel.map(px4_accel)) {
+        for w in warns {
+            out += &format!("# warning: {w}\n");
+        }
+        for (n, v) in params {
+            out += &format!("1\t1\t{n}\t{v:.9}\t9\n");
+        }
+    }
+    out
+}
+
+/// x-io Fusion C snippet: the magnetometer soft/hard iron and the accelerometer inertial model.
+pub fn fusion_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
+    let mat = |m: &[[f64; 3]; 3]| {
+        format!(
+            "{{{:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f}}",
+            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]
+        )
+    };
+    let vec = |v: [f64; 3]| format!("{{{:.9}f, {:.9}f, {:.9}f}}", v[0], v[1], v[2]);
+    let mut out = String::from("// imucald calibration for x-io Fusion. Magnetometer in the input's units (uT),\n// accelerometer in g: FusionCalibrationInertial(u, accelerometerMisalignment, accelerometerSensitivity, accelerometerOffset).\n");
+    if let Some(c) = mag {
+        out += &format!("const FusionMatrix softIronMatrix = {};\n", mat(&c.matrix));
+        out += &format!("const FusionVector hardIronOffset = {};\n", vec(c.offset));
+    }
+    if let Some(c) = accel {
+        out += &format!(
+            "const FusionMatrix accelerometerMisalignment = {};\n",
+            mat(&c.matrix)
+        );
+        out += "const FusionVector accelerometerSensitivity = {1.0f, 1.0f, 1.0f};\n";
+        out += &format!(
+            "const FusionVector accelerometerOffset = {};\n",
+            vec(c.offset.map(|o| o / STANDARD_GRAVITY_MPS2))
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::model::ModelKind;
+
+    fn cal() -> Calibration {
+        Calibration {
+            model: ModelKind::Sym9,
+            offset: [12.0, -30.0, 45.0],
+            matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]],
+        }
+    }
+
+    fn get(p: &[Param], n: &str) -> f64 {
+        p.iter()
+            .find(|(k, _)| k == n)
+            .unwrap_or_else(|| panic!("{n} missing"))
+            .1
+    }
+
+    #[test]
+    fn ardupilot_mag_reproduces_correct_field() {
+        let c = cal();
+        let (p, w) = ardupilot_mag(&c, 0);
+        assert!(w.is_empty());
+        let raw_ut = [40.0, 5.0, -20.0];
+        // AP_Compass_Backend::correct_field, in mGauss: mag += OFS; mag = S * mag.
+        let mut m = raw_ut.map(|v| v * 10.0);
+        for (k, a) in ["X", "Y", "Z"].iter().enumerate() {
+            m[k] += get(&p, &format!("COMPASS_OFS_{a}"));
+        }
+        let s = [
+            [
+                get(&p, "COMPASS_DIA_X"),
+                get(&p, "COMPASS_ODI_X"),
+                get(&p, "COMPASS_ODI_Y"),
+            ],
+            [
+                get(&p, "COMPASS_ODI_X"),
+                get(&p, "COMPASS_DIA_Y"),
+                get(&p, "COMPASS_ODI_Z"),
+            ],
+            [
+                get(&p, "COMPASS_ODI_Y"),
+                get(&p, "COMPASS_ODI_Z"),
+                get(&p, "COMPASS_DIA_Z"),
+            ],
+        ];
+        let ours = c.apply(&raw_ut);
+        for i in 0..3 {
+            let ap = s[i][0] * m[0] + s[i][1] * m[1] + s[i][2] * m[2];
+            assert!(
+                (ap - ours[i] * 10.0).abs() < 1e-9,
+                "axis {i}: {ap} vs {}",
+                ours[i] * 10.0
+            );
+        }
+        let (p2, _) = ardupilot_mag(&c, 1);
+        assert!(
+            p2.iter().any(|(n, _)| n == "COMPASS_OFS2_X")
+                && p2.iter().any(|(n, _)| n == "COMPASS_DIA2_Z")
+        );
+    }
+
+    #[test]
+    fn px4_mag_reproduces_its_correction_in_gauss() {
+        let c = cal();
+        let (p, _) = px4_mag(&c, 0);
+        let raw_g = [0.40, 0.05, -0.20];
+        let off = [
+            get(&p, "CAL_MAG0_XOFF"),
+            get(&p, "CAL_MAG0_YOFF"),
+            get(&p, "CAL_MAG0_ZOFF"),
+        ];
+        let d = [raw_g[0] - off[0], raw_g[1] - off[1], raw_g[2] - off[2]];
+        let s = [
+            [
+                get(&p, "CAL_MAG0_XSCALE"),
+                get(&p, "CAL_MAG0_XODIAG"),
+                get(&p, "CAL_MAG0_YODIAG"),
+            ],
+            [
+                get(&p, "CAL_MAG0_XODIAG"),
+                get(&p, "CAL_MAG0_YSCALE"),
+                get(&p, "CAL_MAG0_ZODIAG"),
+            ],
+            [
+                get(&p, "CAL_MAG0_YODIAG"),
+                get(&p, "CAL_MAG0_ZODIAG"),
+                get(&p, "CAL_MAG0_ZSCALE"),
+            ],
+        ];
+        let ours = c.apply(&raw_g.map(|v| v * 100.0));
+        for i in 0..3 {
+            let px = s[i][0] * d[0] + s[i][1] * d[1] + s[i][2] * d[2];
+            assert!((px * 100.0 - ours[i]).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn accel_exports_subtract_offsets_then_scale_and_warn_on_cross_axis() {
+        let c = Calibration {
+            model: ModelKind::Diag6,
+            offset: [0.1, -0.2, 0.3],
+            matrix: [[1.01, 0.0, 0.0], [0.0, 0.99, 0.0], [0.0, 0.0, 1.02]],
+        };
+        let raw = [0.5, -9.0, 1.0];
+        let ours = c.apply(&raw);
+        for (params, _) in [ardupilot_accel(&c), px4_accel(&c)] {
+            let (o, s): (Vec<f64>, Vec<f64>) = if params[0].0.starts_with("INS") {
+                (
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("INS_ACCOFFS_{a}")))
+                        .collect(),
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("INS_ACCSCAL_{a}")))
+                        .collect(),
+                )
+            } else {
+                (
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("CAL_ACC0_{a}OFF")))
+                        .collect(),
+                    ["X", "Y", "Z"]
+                        .iter()
+                        .map(|a| get(&params, &format!("CAL_ACC0_{a}SCALE")))
+                        .collect(),
+                )
+            };
+            for i in 0..3 {
+                assert!(((raw[i] - o[i]) * s[i] - ours[i]).abs() < 1e-12);
+            }
+        }
+        assert_eq!(ardupilot_accel(&cal()).1.len(), 1);
+    }
+
+    #[test]
+    fn fusion_snippet_is_row_major_with_offset_subtracted() {
+        let t = fusion_file(Some(&cal()), None);
+        assert!(
+            t.contains("softIronMatrix = {1.050000000f, 0.020000000f, -0.010000000f, 0.020000000f"),
+            "{t}"
+        );
+        assert!(t.contains("hardIronOffset = {12.000000000f, -30.000000000f, 45.000000000f}"));
+    }
+}

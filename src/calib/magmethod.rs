@@ -1,0 +1,289 @@
+//! Which magnetometer calibration a replay reports: the sphere fit of the pipeline (the field's
+//! norm only), or the vector fit ([`crate::calib::vector`]) when the input carries an attitude and the
+//! place is known (a GPS position in the log, else `[place]` in the configuration). The choice
+//! and its reason go into the report (`calibration.mag.method`, `method_reason`, and the vector
+//! fit's uncertainties and identifiability under `vector`).
+//!
+//! The vector fit is chosen when it determines the offset; otherwise the sphere fit stays, and the
+//! reason names what the attitudes could not determine. Pure: no I/O (the date is the
+//! configured one, else today's, as everywhere the World Magnetic Model is used).
+
+use crate::attitude::Place;
+use crate::calib::model::{Calibration, ModelKind};
+use crate::calib::pipeline::SensorResult;
+use crate::calib::vector::{VectorFit, VectorPoint};
+use crate::types::{GeoPoint, Sample};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// The current term is fitted only when the logged current varies at least this much (standard
+/// deviation, A): a constant current cannot be told from the offset.
+pub const MIN_CURRENT_SD_A: f64 = 1.0;
+
+/// A rotation within the vector fit's soft iron above this is named in the reason, deg.
+pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
+
+/// How the magnetometer calibration was made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MagMethod {
+    /// From the attitude and the earth field ([`crate::calib::vector`]).
+    Vector,
+    /// From the field's norm (the pipeline's fit).
+    Sphere,
+}
+
+/// The method chosen and why (flattened into `calibration.mag`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MethodChoice {
+    pub method: MagMethod,
+    pub method_reason: String,
+    /// The vector fit, when one was made (chosen or not).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vector: Option<VectorFit>,
+    /// The sphere fit's offset (uT) when it passed but the vector fit was chosen.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sphere_offset: Option<crate::types::Vec3>,
+}
+
+/// Where the field is evaluated, and where that came from.
+#[derive(Debug, Clone, PartialEq)]
+struct Where {
+    place: Place,
+    source: &'static str,
+}
+
+/// The place of the World Magnetic Model: the first position the samples carry, else the log's
+/// first GPS fix, else the configured place; the date is the configured one (today without).
+fn place_of(samples: &[Sample], log_gps: Option<[f64; 3]>, cfg: Option<&Place>) -> Option<Where> {
+    let date = cfg.and_then(|p| p.date.clone());
+    let at = |p: GeoPoint, source| Where {
+        place: Place {
+            latitude_deg: p.lat_deg,
+            longitude_deg: p.lon_deg,
+            altitude_m: p.alt_m,
+            date: date.clone(),
+        },
+        source,
+    };
+    if let Some(p) = samples.iter().find_map(|s| s.position) {
+        return Some(at(p, "the log's position"));
+    }
+    if let Some([lat_deg, lon_deg, alt_m]) = log_gps {
+        return Some(at(
+            GeoPoint {
+                lat_deg,
+                lon_deg,
+                alt_m,
+            },
+            "the log's GPS",
+        ));
+    }
+    cfg.map(|p| Where {
+        place: p.clone(),
+        source: "[place]",
+    })
+}
+
+/// Body -> NED from a reference attitude (sensor -> ENU, as [`Sample::ref_q`]): NED -> ENU is a
+/// half turn about (1, 1, 0)/sqrt(2), its own inverse.
+pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<UnitQuaternion<f64>> {
+    if !q.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    let raw = Quaternion::new(q[0], q[1], q[2], q[3]);
+    if raw.norm() < 0.5 {
+        return None;
+    }
+    let half = UnitQuaternion::from_axis_angle(
+        &nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0)),
+        std::f64::consts::PI,
+    );
+    Some(half * UnitQuaternion::from_quaternion(raw))
+}
+
+/// The vector fit's points: readings (body axes) with an attitude, the expected field at it.
+pub fn points(
+    samples: &[Sample],
+    body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
+    b_ned: &[f64; 3],
+) -> Vec<VectorPoint> {
+    samples
+        .iter()
+        .filter_map(|s| {
+            let q = body_ned_of_ref_q(s.ref_q?)?;
+            Some(VectorPoint {
+                raw_ut: body_mag(s)?,
+                expected_ut: crate::calib::vector::expected_field(&q, b_ned),
+                current_a: s.current_a,
+            })
+        })
+        .collect()
+}
+
+fn current_varies(points: &[VectorPoint]) -> bool {
+    let c: Vec<f64> = points.iter().filter_map(|p| p.current_a).collect();
+    if c.len() < points.len() || c.is_empty() {
+        return false;
+    }
+    let m = c.iter().sum::<f64>() / c.len() as f64;
+    let var = c.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / c.len() as f64;
+    var.sqrt() >= MIN_CURRENT_SD_A
+}
+
+/// The sphere fit's state in a few words, for the reason.
+fn sphere_words(sphere: &SensorResult) -> String {
+    match &sphere.report.failure {
+        None => format!(
+            "the sphere fit passed ({}, offset [{:.2}, {:.2}, {:.2}] uT)",
+            sphere.report.model,
+            sphere.report.offset[0],
+            sphere.report.offset[1],
+            sphere.report.offset[2]
+        ),
+        Some(f) => format!("the sphere fit failed ({f})"),
+    }
+}
+
+/// Choose the method for the primary magnetometer; with the vector method, replace the sphere
+/// fit's result by the vector fit's (report fields and the calibration applied downstream).
+/// `body_mag` gives a sample's reading in body axes (the pipeline's sensor rotation).
+pub fn choose(
+    mag: &mut SensorResult,
+    samples: &[Sample],
+    body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
+    log_gps: Option<[f64; 3]>,
+    cfg_place: Option<&Place>,
+) {
+    let choice = decide(mag, samples, body_mag, log_gps, cfg_place);
+    if choice.method == MagMethod::Vector {
+        if let Some(v) = &choice.vector {
+            install(mag, v);
+        }
+    }
+    mag.report.method = Some(choice);
+}
+
+fn decide(
+    mag: &SensorResult,
+    samples: &[Sample],
+    body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
+    log_gps: Option<[f64; 3]>,
+    cfg_place: Option<&Place>,
+) -> MethodChoice {
+    let sphere = |reason: String, vector: Option<VectorFit>| MethodChoice {
+        method: MagMethod::Sphere,
+        method_reason: reason,
+        vector,
+        sphere_offset: None,
+    };
+    if !samples
+        .iter()
+        .any(|s| s.ref_q.is_some() && s.mag_ut.is_some())
+    {
+        return sphere(
+            "the input carries no attitude with its magnetometer readings".into(),
+            None,
+        );
+    }
+    if mag.report.units != "uT" {
+        return sphere(
+            format!(
+                "the magnetometer is in {}, the vector method needs uT",
+                mag.report.units
+            ),
+            None,
+        );
+    }
+    let Some(w) = place_of(samples, log_gps, cfg_place) else {
+        return sphere(
+            "an attitude but no position (no GPS in the log, no [place] configured)".into(),
+            None,
+        );
+    };
+    let field = match crate::attitude::earth_field(&w.place) {
+        Ok(f) => f,
+        Err(e) => return sphere(format!("no earth field at {}: {e}", w.source), None),
+    };
+    let pts = points(samples, body_mag, &field.field_ned_ut());
+    let with_current = current_varies(&pts);
+    let v = match crate::calib::vector::fit(&pts, with_current) {
+        Ok(v) => v,
+        Err(e) => {
+            return sphere(
+                format!("the vector fit failed: {e}; {}", sphere_words(mag)),
+                None,
+            )
+        }
+    };
+    let at = format!(
+        "{} ({:.4}, {:.4}, {}), {:.1} uT",
+        w.source,
+        w.place.latitude_deg,
+        w.place.longitude_deg,
+        w.place.date.as_deref().unwrap_or("today"),
+        field.total_ut
+    );
+    let unknown: Vec<String> = v
+        .unidentified()
+        .map(|d| format!("{} (spread {:.3})", d.description, d.spread))
+        .collect();
+    if !v.offset_identifiable {
+        return sphere(
+            format!(
+                "the attitudes do not determine the offset (up to {:.1} uT rests on an assumed soft iron): {}; {}",
+                v.offset_assumption_ut,
+                unknown.join(", "),
+                sphere_words(mag)
+            ),
+            Some(v),
+        );
+    }
+    let rest = if unknown.is_empty() {
+        "every direction determined".to_string()
+    } else {
+        format!("not determined, held at nominal: {}", unknown.join(", "))
+    };
+    // A turn between the compass and the attitude's frame is kept in the matrix, and said.
+    let turned = if v.rotation_deg > MAX_SILENT_ROTATION_DEG {
+        format!(
+            "; the matrix turns the compass by {:.1} deg onto the attitude's body frame (a mounting the configuration does not give)",
+            v.rotation_deg
+        )
+    } else {
+        String::new()
+    };
+    MethodChoice {
+        method: MagMethod::Vector,
+        method_reason: format!(
+            "attitude and earth field: {} readings, field from {at}; {rest}; {}{turned}",
+            v.points,
+            sphere_words(mag)
+        ),
+        vector: Some(v),
+        sphere_offset: mag.calibration.map(|c| c.offset),
+    }
+}
+
+/// The vector fit as the sensor's result: calibrated = A^-1 (raw - o).
+fn install(mag: &mut SensorResult, v: &VectorFit) {
+    let r = &mut mag.report;
+    r.status = crate::report::CalStatus::Ok;
+    r.failure = None;
+    r.detail = None;
+    r.model = ModelKind::Full12.name().into();
+    r.offset = v.offset_ut;
+    r.matrix = v.matrix;
+    r.radius = v.field_ut;
+    r.rms_residual = v.rms_residual_ut;
+    r.offset_sigma = v.offset_sigma_ut;
+    r.samples_used = v.points;
+    r.iterations = 0;
+    r.candidates = Vec::new();
+    r.outliers_rejected = v.outliers_rejected;
+    mag.calibration = Some(Calibration {
+        model: ModelKind::Full12,
+        offset: v.offset_ut,
+        matrix: v.matrix,
+    });
+}

@@ -1,0 +1,23 @@
+//! Calibration as pure math: samples in, calibrations with their uncertainties and verdicts out.
+//!
+//! [`gate`] finds static poses, [`coverage`] tracks which directions they cover, [`model`] holds
+//! the calibration models (`calibrated = M (raw - offset)`), [`fit`] fits them with the one
+//! Levenberg-Marquardt solver ([`lm`]), [`pipeline`] composes these per sample for `replay` and the
+//! live service. Methods beside the sphere fit: [`vector`] (attitude and the earth field),
+//! [`fixedyaw`] (one known heading), chosen by [`magmethod`]; [`gyro`] for the gyroscope;
+//! [`export`] converts a calibration to flight-stack parameters.
+//!
+//! Must not: do I/O, know tokio, or read the clock. Fits are plain functions the live service
+//! runs off its executor.
+
+pub mod coverage;
+pub mod export;
+pub mod fit;
+pub mod fixedyaw;
+pub mod gate;
+pub mod gyro;
+pub mod lm;
+pub mod magmethod;
+pub mod model;
+pub mod pipeline;
+pub mod vector;

@@ -1,0 +1,1588 @@
+//! Flight-controller logs: ArduPilot DataFlash (`.bin`, [`dataflash`]) and PX4 ULog (`.ulg`,
+//! [`ulog`]) turned into [`Sample`] streams, one per sensor instance, and the onboard calibration
+//! their parameters record. Pure: bytes in, samples and reports out.
+//!
+//! Instances. DataFlash: instance k takes `IMU`k (accelerometer and gyroscope) and `MAG`k
+//! (`IMU`, `IMU2`, `IMU3`, `MAG`, `MAG2`, `MAG3`, or newer instanced messages with a field `I`);
+//! instance 0 is the primary. PX4: the primary takes `sensor_combined` (accelerometer, gyroscope)
+//! with `sensor_combined.magnetometer_ga` (older logs) or `vehicle_magnetometer[0]`; instance
+//! 1 + k takes `sensor_accel[k]`, `sensor_gyro[k]`, `sensor_mag[k]` (raw). Within an instance a
+//! sample is made per accelerometer reading, carrying the newest gyroscope and magnetometer
+//! readings since the last one (as a MAVLink IMU message does); an instance without an
+//! accelerometer gives a sample per reading. Each instance has its own [`SourceClock`].
+//!
+//! Onboard correction undone. ArduPilot logs `MAG` after
+//! `mag = S (scale (raw + OFS)) + MOfs` (mGauss): raw = (S^-1 (mag - MOfs)) / scale - OFS, with
+//! COMPASS_OFS/DIA/ODI/SCALE of that compass (the record's own OfsX/Y/Z where the parameter is
+//! absent or differs by more than 1 mGauss: an offset changed in flight). PX4's
+//! `vehicle_magnetometer` and `sensor_combined.magnetometer_ga` are `R S (raw - OFF)` (gauss) of
+//! the prime compass (CAL_MAG_PRIME = CAL_MAGn_ID), undone to the raw field in body axes,
+//! R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
+//! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations, else not undone and said
+//! so (`onboard.not_undone`). Onboard calibrations are reported in imucald's model, calibrated =
+//! M (raw - offset) in uT: ArduPilot's hard iron is -COMPASS_OFS/10, M = S (x scale); PX4's is
+//! CAL_MAGn_?OFF x 100, M = S (the CAL_MAGn_?COMP power compensation is not undone).
+//! `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
+//! board); their onboard calibration is reported, not undone.
+
+pub mod dataflash;
+pub mod ulog;
+pub mod write;
+
+use crate::io::clock::{ClockSettings, SourceClock};
+use crate::io::decode::{DecodeStats, InstanceInfo, MAX_INSTANCES};
+use crate::report::{OnboardCal, OnboardReport, SensorStream};
+use crate::types::{Sample, Sensor, Unit, Units, Vec3};
+use nalgebra::{Matrix3, Vector3};
+use std::collections::BTreeMap;
+
+/// What a flight-controller log gave besides its samples.
+#[derive(Debug, Clone, Default)]
+pub struct FlightLog {
+    /// Every instance, as [`crate::io::decode::MessageConverter::instances`] lists tlog instances.
+    pub instances: Vec<InstanceInfo>,
+    /// The index of the primary instance in `instances`.
+    pub primary: Option<usize>,
+    /// Every sensor stream read.
+    pub sensors: Vec<SensorStream>,
+    pub onboard: OnboardReport,
+    /// The primary's counts and clock, with the reader's skips.
+    pub stats: DecodeStats,
+    /// Records per message type and instance (`MAG[2]`, `sensor_mag[1]`), as read.
+    pub messages: BTreeMap<String, u64>,
+    /// The stream the primary's magnetometer readings come from (`MAG`, `vehicle_magnetometer[0]`).
+    pub primary_mag_source: Option<String>,
+}
+
+/// One instance being assembled.
+#[derive(Debug, Clone)]
+struct Group {
+    /// DataFlash: the instance k; ULog: 0 for the primary, [`PX4_SENSOR_KEY`] + k for sensor k.
+    key: u16,
+    name: String,
+    clock: SourceClock,
+    has_accel: bool,
+    gyro: Option<Vec3>,
+    /// A magnetometer reading waiting for the next accelerometer sample, and its time (us).
+    mag: Option<(u64, Vec3)>,
+    samples: u64,
+}
+
+/// Turns readings into samples per instance.
+#[derive(Debug, Clone)]
+struct Assembler {
+    groups: Vec<Group>,
+    primary: Option<usize>,
+    throttle: Option<f64>,
+    current_a: Option<f64>,
+    /// The newest reference attitude (sensor -> ENU) and its time, us.
+    attitude: Option<(u64, [f64; 4])>,
+    stats: DecodeStats,
+    /// (sensor order, instance, source, readings, device id); a handful, searched in place.
+    sensors: Vec<(u8, u8, String, u64, Option<u32>)>,
+    messages: BTreeMap<String, u64>,
+}
+
+/// Group keys of PX4 sensor instances start here (a `multi_id` is a u8).
+const PX4_SENSOR_KEY: u16 = 256;
+
+/// An attitude older than this is not attached to a sample, us.
+const ATTITUDE_MAX_AGE_US: u64 = 50_000;
+
+fn sensor_order(s: Sensor) -> u8 {
+    match s {
+        Sensor::Mag => 0,
+        Sensor::Accel => 1,
+        Sensor::Gyro => 2,
+    }
+}
+
+fn finite3(v: Vec3) -> Option<Vec3> {
+    v.iter().all(|x| x.is_finite()).then_some(v)
+}
+
+impl Assembler {
+    fn new() -> Self {
+        Assembler {
+            groups: Vec::new(),
+            primary: None,
+            throttle: None,
+            current_a: None,
+            attitude: None,
+            stats: DecodeStats::default(),
+            sensors: Vec::new(),
+            messages: BTreeMap::new(),
+        }
+    }
+
+    /// Count a reading of a sensor stream.
+    fn stream(&mut self, s: Sensor, instance: u8, source: &str, device_id: Option<u32>) {
+        let o = sensor_order(s);
+        if let Some(e) = self
+            .sensors
+            .iter_mut()
+            .find(|e| e.0 == o && e.1 == instance && e.2 == source)
+        {
+            e.3 += 1;
+            if device_id.is_some() {
+                e.4 = device_id;
+            }
+        } else if self.sensors.len() < 256 {
+            self.sensors
+                .push((o, instance, source.to_string(), 1, device_id));
+        }
+    }
+
+    /// The group of instance `key`, made on first use (at most [`MAX_INSTANCES`]).
+    fn group(&mut self, key: u16, name: impl FnOnce() -> String) -> Option<usize> {
+        if let Some(k) = self.groups.iter().position(|g| g.key == key) {
+            return Some(k);
+        }
+        if self.groups.len() >= MAX_INSTANCES {
+            self.stats.skip("too_many_instances");
+            return None;
+        }
+        self.groups.push(Group {
+            key,
+            name: name(),
+            clock: SourceClock::new(ClockSettings::default()),
+            has_accel: false,
+            gyro: None,
+            mag: None,
+            samples: 0,
+        });
+        let k = self.groups.len() - 1;
+        if key == 0 {
+            self.primary = Some(k);
+        }
+        Some(k)
+    }
+
+    /// An accelerometer reading (with the gyroscope when the same record has it): a sample.
+    fn accel(
+        &mut self,
+        k: usize,
+        t_us: u64,
+        acc: Vec3,
+        gyro: Option<Vec3>,
+        temp: Option<f64>,
+    ) -> Option<(usize, Sample)> {
+        let g = &mut self.groups[k];
+        g.has_accel = true;
+        let gyro = gyro.or(g.gyro.take());
+        let mag = g.mag.take().map(|(_, m)| m);
+        self.emit(k, t_us, Some(acc), gyro, mag, temp)
+    }
+
+    fn gyro(&mut self, k: usize, t_us: u64, gyro: Vec3) -> Option<(usize, Sample)> {
+        let g = &mut self.groups[k];
+        if g.has_accel {
+            g.gyro = Some(gyro);
+            return None;
+        }
+        self.emit(k, t_us, None, Some(gyro), None, None)
+    }
+
+    fn mag(&mut self, k: usize, t_us: u64, mag: Vec3) -> Option<(usize, Sample)> {
+        let g = &mut self.groups[k];
+        if g.has_accel {
+            // Two readings with no accelerometer sample between: the older goes on its own.
+            let (t0, m0) = g.mag.replace((t_us, mag))?;
+            return self.emit(k, t0, None, None, Some(m0), None);
+        }
+        self.emit(k, t_us, None, None, Some(mag), None)
+    }
+
+    /// Magnetometer readings still waiting at the end of the log, as samples of their own.
+    fn flush(&mut self) -> Vec<(usize, Sample)> {
+        let mut out = Vec::new();
+        for k in 0..self.groups.len() {
+            if let Some((t, m)) = self.groups[k].mag.take() {
+                out.extend(self.emit(k, t, None, None, Some(m), None));
+            }
+        }
+        out
+    }
+
+    fn emit(
+        &mut self,
+        k: usize,
+        t_us: u64,
+        acc: Option<Vec3>,
+        gyro: Option<Vec3>,
+        mag: Option<Vec3>,
+        temp: Option<f64>,
+    ) -> Option<(usize, Sample)> {
+        let primary = Some(k) == self.primary;
+        let g = &mut self.groups[k];
+        let stamp = g
+            .clock
+            .stamp(Some(crate::io::clock::us_from_u64(t_us)), None, None);
+        g.samples += 1;
+        let mut s = Sample {
+            t_s: stamp.t_s,
+            segment: stamp.segment,
+            throttle: self.throttle,
+            current_a: self.current_a,
+            ..Default::default()
+        };
+        let mut bad = false;
+        let mut take = |v: Option<Vec3>| {
+            let v = v?;
+            let r = finite3(v);
+            bad |= r.is_none();
+            r
+        };
+        s.accel_mps2 = take(acc);
+        s.gyro_rad_s = take(gyro);
+        s.mag_ut = take(mag);
+        s.temp_c = temp.filter(|x| x.is_finite());
+        if primary {
+            if let Some((ta, q)) = self.attitude {
+                if t_us.abs_diff(ta) <= ATTITUDE_MAX_AGE_US {
+                    s.ref_q = Some(q);
+                }
+            }
+            if bad {
+                self.stats.skip("non_finite");
+            }
+            self.stats.records += 1;
+            self.stats.count_sample(&s);
+            self.stats.time = self.groups[k].clock.stats.clone();
+        }
+        Some((k, s))
+    }
+
+    fn finish(self, onboard: OnboardReport, extra_skips: &BTreeMap<String, u64>) -> FlightLog {
+        let mut stats = self.stats;
+        for (why, n) in extra_skips {
+            stats.skip_n(why, *n);
+        }
+        FlightLog {
+            instances: self
+                .groups
+                .iter()
+                .map(|g| InstanceInfo {
+                    name: g.name.clone(),
+                    compass_id: (if g.key >= PX4_SENSOR_KEY {
+                        g.key - PX4_SENSOR_KEY
+                    } else {
+                        g.key
+                    }) as u8,
+                    samples: g.samples,
+                    units: Units {
+                        accel: Unit::Si,
+                        gyro: Unit::Si,
+                        mag: Unit::Si,
+                    },
+                    time: g.clock.stats.clone(),
+                })
+                .collect(),
+            primary: self.primary,
+            sensors: {
+                let mut v = self.sensors;
+                v.sort_by(|a, b| (a.0, a.1, &a.2).cmp(&(b.0, b.1, &b.2)));
+                v
+            }
+            .into_iter()
+            .map(|(s, instance, source, samples, device_id)| SensorStream {
+                sensor: match s {
+                    0 => "mag",
+                    1 => "accel",
+                    _ => "gyro",
+                }
+                .to_string(),
+                instance,
+                source,
+                samples,
+                device_id,
+            })
+            .collect(),
+            onboard,
+            stats,
+            messages: self.messages,
+            primary_mag_source: None,
+        }
+    }
+}
+
+/// Quaternion (w, x, y, z) of body -> NED from roll, pitch, yaw (rad), Euler ZYX.
+fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
+    let (sr, cr) = (0.5 * roll).sin_cos();
+    let (sp, cp) = (0.5 * pitch).sin_cos();
+    let (sy, cy) = (0.5 * yaw).sin_cos();
+    [
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]
+}
+
+/// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
+/// the rotation of 180 deg about (1, 1, 0)/sqrt(2).
+fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let a = [0.0, h, h, 0.0];
+    let r = [
+        a[0] * q[0] - a[1] * q[1] - a[2] * q[2] - a[3] * q[3],
+        a[0] * q[1] + a[1] * q[0] + a[2] * q[3] - a[3] * q[2],
+        a[0] * q[2] - a[1] * q[3] + a[2] * q[0] + a[3] * q[1],
+        a[0] * q[3] + a[1] * q[2] - a[2] * q[1] + a[3] * q[0],
+    ];
+    let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+    (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
+}
+
+/// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
+pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
+    // ENU -> NED is the same half-turn as NED -> ENU.
+    let b = ned_to_enu(q)?;
+    let (w, x, y, z) = (b[0], b[1], b[2], b[3]);
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    Some((roll.to_degrees(), pitch.to_degrees()))
+}
+
+fn mat3(rows: [[f64; 3]; 3]) -> Matrix3<f64> {
+    crate::calib::model::rows_to_mat(&rows)
+}
+
+fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
+    crate::calib::model::mat_to_rows(m)
+}
+
+/// The symmetric soft-iron matrix both stacks use: diagonal `d`, off-diagonal (xy, xz, yz) `o`.
+fn soft_iron(d: [f64; 3], o: [f64; 3]) -> Matrix3<f64> {
+    mat3([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+}
+
+// ---------------------------------------------------------------------------------------------
+// ArduPilot
+
+/// The compass parameter suffix of compass k: `COMPASS_OFS_X`, `COMPASS_OFS2_X`, `COMPASS_OFS3_X`.
+fn ap_suffix(k: u8) -> Option<&'static str> {
+    ["", "2", "3"].get(k as usize).copied()
+}
+
+/// ArduPilot's correction of compass k from its parameters: (OFS mGauss, S, scale).
+fn ap_compass(params: &BTreeMap<String, f64>, k: u8) -> Option<([f64; 3], Matrix3<f64>, f64)> {
+    let s = ap_suffix(k)?;
+    let get3 = |what: &str| -> Option<[f64; 3]> {
+        let mut v = [0.0; 3];
+        for (i, ax) in ["X", "Y", "Z"].iter().enumerate() {
+            v[i] = *params.get(&format!("COMPASS_{what}{s}_{ax}"))?;
+        }
+        Some(v)
+    };
+    let ofs = get3("OFS")?;
+    let mut dia = get3("DIA").unwrap_or([1.0; 3]);
+    if dia.iter().all(|d| *d == 0.0) {
+        dia = [1.0; 3];
+    }
+    let odi = get3("ODI").unwrap_or([0.0; 3]);
+    // ArduPilot applies COMPASS_SCALE only within 1/1.5..1.5.
+    let scale = match params.get(&format!("COMPASS_SCALE{s}")) {
+        Some(&k) if (1.0 / 1.5..=1.5).contains(&k) => k,
+        _ => 1.0,
+    };
+    Some((ofs, soft_iron(dia, odi), scale))
+}
+
+fn ap_param_names(k: u8) -> Vec<String> {
+    let Some(s) = ap_suffix(k) else {
+        return Vec::new();
+    };
+    let mut n = Vec::new();
+    for what in ["OFS", "DIA", "ODI", "MOT"] {
+        for ax in ["X", "Y", "Z"] {
+            n.push(format!("COMPASS_{what}{s}_{ax}"));
+        }
+    }
+    let (orient, dev, ext) = match k {
+        0 => ("COMPASS_ORIENT", "COMPASS_DEV_ID", "COMPASS_EXTERNAL"),
+        1 => ("COMPASS_ORIENT2", "COMPASS_DEV_ID2", "COMPASS_EXTERN2"),
+        _ => ("COMPASS_ORIENT3", "COMPASS_DEV_ID3", "COMPASS_EXTERN3"),
+    };
+    n.extend(
+        [orient, dev, ext]
+            .iter()
+            .map(|x| x.to_string())
+            .chain([format!("COMPASS_SCALE{s}"), format!("COMPASS_USE{}", s)]),
+    );
+    n
+}
+
+fn ap_onboard(
+    params: &BTreeMap<String, f64>,
+    sources: &BTreeMap<(u8, u8), String>,
+) -> OnboardReport {
+    let mut r = OnboardReport {
+        stack: "ardupilot".into(),
+        ..Default::default()
+    };
+    for k in 0..3u8 {
+        let Some((ofs, sm, scale)) = ap_compass(params, k) else {
+            continue;
+        };
+        let pick = |names: Vec<String>| -> BTreeMap<String, f64> {
+            names
+                .into_iter()
+                .filter_map(|n| params.get(&n).map(|v| (n, *v)))
+                .collect()
+        };
+        let p = pick(ap_param_names(k));
+        r.mag.push(OnboardCal {
+            instance: k,
+            device_id: ap_dev_id(params, k),
+            sources: sources.get(&(0, k)).cloned().into_iter().collect(),
+            offset: ofs.map(|o| -o / 10.0),
+            matrix: rows(&(sm * scale)),
+            units: "uT".into(),
+            params: p,
+        });
+    }
+    for k in 0..3u8 {
+        let s = ["", "2", "3"][k as usize];
+        let get3 = |what: &str| -> Option<[f64; 3]> {
+            let mut v = [0.0; 3];
+            for (i, ax) in ["X", "Y", "Z"].iter().enumerate() {
+                v[i] = *params.get(&format!("INS_ACC{s}{what}_{ax}"))?;
+            }
+            Some(v)
+        };
+        let Some(offs) = get3("OFFS") else {
+            continue;
+        };
+        let scal = get3("SCAL").unwrap_or([1.0; 3]);
+        let mut p = BTreeMap::new();
+        for what in ["OFFS", "SCAL"] {
+            for ax in ["X", "Y", "Z"] {
+                let n = format!("INS_ACC{s}{what}_{ax}");
+                if let Some(v) = params.get(&n) {
+                    p.insert(n, *v);
+                }
+            }
+        }
+        // AP_InertialSensor: accel = scale * (raw - offset), per axis.
+        r.accel.push(OnboardCal {
+            instance: k,
+            device_id: None,
+            sources: sources.get(&(1, k)).cloned().into_iter().collect(),
+            offset: offs,
+            matrix: rows(&Matrix3::from_diagonal(&Vector3::from(scal))),
+            units: "m/s^2".into(),
+            params: p,
+        });
+    }
+    r
+}
+
+fn ap_dev_id(params: &BTreeMap<String, f64>, k: u8) -> Option<u32> {
+    let n = match k {
+        0 => "COMPASS_DEV_ID",
+        1 => "COMPASS_DEV_ID2",
+        _ => "COMPASS_DEV_ID3",
+    };
+    params
+        .get(n)
+        .filter(|v| **v > 0.0 && **v < u32::MAX as f64)
+        .map(|v| *v as u32)
+}
+
+/// Undo ArduPilot's correction of one MAG record (mGauss in, uT out). `rec_ofs` is the record's
+/// OfsX/Y/Z and `mofs` its MOfsX/Y/Z when logged.
+fn ap_undo(
+    params: &BTreeMap<String, f64>,
+    k: u8,
+    mag_mg: Vec3,
+    rec_ofs: Option<Vec3>,
+    mofs: Option<Vec3>,
+) -> Option<Vec3> {
+    let (mut ofs, sm, scale) = match ap_compass(params, k) {
+        Some(c) => c,
+        // No parameters: the record's offsets, no soft iron.
+        None => (rec_ofs?, Matrix3::identity(), 1.0),
+    };
+    if let Some(r) = rec_ofs {
+        if (0..3).any(|i| (r[i] - ofs[i]).abs() > 1.0) {
+            ofs = r;
+        }
+    }
+    let inv = sm.try_inverse()?;
+    let m = mofs.unwrap_or([0.0; 3]);
+    let c = Vector3::new(mag_mg[0] - m[0], mag_mg[1] - m[1], mag_mg[2] - m[2]);
+    let u = inv * c / scale;
+    finite3([0, 1, 2].map(|i| (u[i] - ofs[i]) / 10.0))
+}
+
+/// Which sensor instance a DataFlash message name is (old per-instance names), or `None`.
+fn df_name_instance(name: &str, base: &str) -> Option<u8> {
+    let rest = name.strip_prefix(base)?;
+    match rest {
+        "" => Some(0),
+        "2" => Some(1),
+        "3" => Some(2),
+        _ => None,
+    }
+}
+
+/// Read a DataFlash log, handing each sample of every instance to `emit(instance_index, sample,
+/// bytes_read, primary_index)`.
+pub fn decode_dataflash_with(
+    bytes: &[u8],
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> FlightLog {
+    let mut rd = dataflash::DfReader::new(bytes);
+    let mut conv = DfConv::new();
+    // Column indices of the fields used ([`DF_FIELDS`]) per type id, found once per definition.
+    let mut cols: Vec<Option<Vec<Option<usize>>>> = vec![None; 256];
+    while let Some(rec) = rd.next_record() {
+        let c = cols[rec.format.type_id as usize]
+            .get_or_insert_with(|| DF_FIELDS.iter().map(|f| rec.format.column(f)).collect());
+        let f = DfFields { c, rec };
+        let (base, k) = conv.count(&rec);
+        if base == "FMT" {
+            // A type (re)defined: its columns are looked up again.
+            if let Some(t) = f.get(DfField::Type).filter(|t| (0.0..256.0).contains(t)) {
+                cols[t as usize] = None;
+            }
+            continue;
+        }
+        let out = conv.sample(base, k, &f);
+        let read = rd.position();
+        if let Some((gi, s)) = out {
+            emit(gi, s, read, conv.asm.primary);
+        }
+    }
+    conv.finish(&rd, bytes.len(), emit)
+}
+
+/// One DataFlash record with the columns of the fields the conversion reads.
+struct DfFields<'a> {
+    c: &'a [Option<usize>],
+    rec: dataflash::Record<'a>,
+}
+
+impl DfFields<'_> {
+    fn get(&self, f: DfField) -> Option<f64> {
+        self.c[f as usize].and_then(|k| self.rec.value(k))
+    }
+
+    /// The three consecutive fields from `f` (a vector's axes).
+    fn get3(&self, f: DfField) -> Option<Vec3> {
+        let k = f as usize;
+        let v = |i: usize| self.c[i].and_then(|c| self.rec.value(c));
+        Some([v(k)?, v(k + 1)?, v(k + 2)?])
+    }
+
+    /// `TimeUS`, or `TimeMS` * 1000 (older logs), us.
+    fn time_us(&self) -> Option<u64> {
+        self.get(DfField::TimeUs)
+            .or_else(|| self.get(DfField::TimeMs).map(|t| t * 1000.0))
+            .filter(|t| *t >= 0.0)
+            .map(|t| t as u64)
+    }
+}
+
+/// The DataFlash conversion between records: the samples being assembled, the parameters, and
+/// what the onboard report and the message counts need at the end.
+struct DfConv {
+    asm: Assembler,
+    params: BTreeMap<String, f64>,
+    /// Each parameter's first value (the onboard report states the calibration the log began with).
+    first_params: BTreeMap<String, f64>,
+    /// (sensor 0 mag / 1 accel, instance) -> message name, for the onboard report.
+    sources: BTreeMap<(u8, u8), String>,
+    /// Magnetometer streams whose correction was undone.
+    undone: std::collections::BTreeSet<String>,
+    gps: Option<[f64; 3]>,
+    /// Records per type id, and per (type id, instance) for instanced types.
+    type_counts: [u64; 256],
+    inst_counts: BTreeMap<(u8, u8), u64>,
+    /// (type id, instance of an instanced type) -> its name (`MAG[1]`, `MAG2`).
+    names: BTreeMap<(u8, Option<u8>), String>,
+}
+
+impl DfConv {
+    fn new() -> Self {
+        DfConv {
+            asm: Assembler::new(),
+            params: BTreeMap::new(),
+            first_params: BTreeMap::new(),
+            sources: BTreeMap::new(),
+            undone: std::collections::BTreeSet::new(),
+            gps: None,
+            type_counts: [0; 256],
+            inst_counts: BTreeMap::new(),
+            names: BTreeMap::new(),
+        }
+    }
+
+    /// Count `rec` under its name; its base name (`IMU` for `IMU2`) and instance.
+    fn count<'r>(&mut self, rec: &dataflash::Record<'r>) -> (&'r str, u8) {
+        let name = rec.format.name.as_str();
+        let id = rec.format.type_id;
+        let inst_col = rec.format.instance.is_some();
+        let (base, k) = if inst_col {
+            (name, rec.instance())
+        } else if let Some(k) = df_name_instance(name, "IMU") {
+            ("IMU", k)
+        } else if let Some(k) = df_name_instance(name, "MAG") {
+            ("MAG", k)
+        } else {
+            (name, 0)
+        };
+        if inst_col {
+            *self.inst_counts.entry((id, k)).or_insert(0) += 1;
+            self.names
+                .entry((id, Some(k)))
+                .or_insert_with(|| format!("{name}[{k}]"));
+        } else {
+            self.type_counts[id as usize] += 1;
+            if self.type_counts[id as usize] == 1 {
+                self.names.insert((id, None), name.to_string());
+            }
+        }
+        (base, k)
+    }
+
+    /// Convert one record (base name `base`, instance `k`): the sample it completes.
+    fn sample(&mut self, base: &str, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        match base {
+            "PARM" => {
+                if let (Some(n), Some(v)) = (f.rec.text("Name"), f.get(DfField::Value)) {
+                    if self.params.len() < 16384 || self.params.contains_key(&n) {
+                        self.first_params.entry(n.clone()).or_insert(v);
+                        self.params.insert(n, v);
+                    }
+                }
+                None
+            }
+            "IMU" => self.imu(k, f),
+            "MAG" => self.mag(k, f),
+            "ATT" => {
+                if let (Some(t), Some(r), Some(p), Some(y)) = (
+                    f.time_us(),
+                    f.get(DfField::Roll),
+                    f.get(DfField::Pitch),
+                    f.get(DfField::Yaw),
+                ) {
+                    let q = quat_from_euler(r.to_radians(), p.to_radians(), y.to_radians());
+                    self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
+                }
+                None
+            }
+            "RCOU" => {
+                // Channel 3 is the throttle by ArduPilot's default RCMAP.
+                if let Some(pwm) = f.get(DfField::C3).filter(|p| *p >= 900.0 && *p <= 2200.0) {
+                    self.asm.throttle = Some(((pwm - 1000.0) / 1000.0).clamp(0.0, 1.5));
+                }
+                None
+            }
+            "CTUN" => {
+                // Copter logs ThO (0..1); Plane ThrOut (percent).
+                if let Some(v) = f.get(DfField::ThO).filter(|v| v.is_finite()) {
+                    self.asm.throttle = Some(v.clamp(0.0, 1.5));
+                } else if let Some(v) = f.get(DfField::ThrOut).filter(|v| v.is_finite()) {
+                    self.asm.throttle = Some((v / 100.0).clamp(0.0, 1.5));
+                }
+                None
+            }
+            "BAT" | "CURR" if k == 0 => {
+                if let Some(c) = f.get(DfField::Curr).filter(|c| c.is_finite()) {
+                    self.asm.current_a = Some(c);
+                }
+                None
+            }
+            "GPS" if k == 0 && self.gps.is_none() => {
+                self.gps_fix(f);
+                None
+            }
+            _ => None,
+        }
+    }
+
+    /// An IMU record: accelerometer and gyroscope of instance `k`.
+    fn imu(&mut self, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        let (Some(t), Some(a), Some(g)) =
+            (f.time_us(), f.get3(DfField::AccX), f.get3(DfField::GyrX))
+        else {
+            self.asm.stats.skip("bad_record");
+            return None;
+        };
+        let src = df_source(&self.names, &f.rec, k);
+        self.asm.stream(Sensor::Accel, k, src, None);
+        self.asm.stream(Sensor::Gyro, k, src, None);
+        self.sources
+            .entry((1, k))
+            .or_insert_with(|| src.to_string());
+        let inst_col = f.rec.format.instance.is_some();
+        let gi = self
+            .asm
+            .group(u16::from(k), || df_group_name(inst_col, k))?;
+        self.asm.accel(gi, t, a, Some(g), f.get(DfField::T))
+    }
+
+    /// A MAG record of instance `k`: ArduPilot's correction undone, uT.
+    fn mag(&mut self, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        let (Some(t), Some(m)) = (f.time_us(), f.get3(DfField::MagX)) else {
+            self.asm.stats.skip("bad_record");
+            return None;
+        };
+        let src = df_source(&self.names, &f.rec, k);
+        self.asm
+            .stream(Sensor::Mag, k, src, ap_dev_id(&self.params, k));
+        self.sources
+            .entry((0, k))
+            .or_insert_with(|| src.to_string());
+        let ofs = f.get3(DfField::OfsX);
+        let mofs = f.get3(DfField::MOfsX);
+        let Some(raw) = ap_undo(&self.params, k, m, ofs, mofs) else {
+            self.asm.stats.skip("not_undone");
+            return None;
+        };
+        if !self.undone.contains(src) {
+            self.undone.insert(src.to_string());
+        }
+        let inst_col = f.rec.format.instance.is_some();
+        let gi = self
+            .asm
+            .group(u16::from(k), || df_group_name(inst_col, k))?;
+        self.asm.mag(gi, t, raw)
+    }
+
+    /// The first GPS record with a 3D fix: the position for the field model.
+    fn gps_fix(&mut self, f: &DfFields) {
+        let status = f.get(DfField::Status).unwrap_or(0.0);
+        if let (Some(lat), Some(lng), Some(alt)) = (
+            f.get(DfField::Lat),
+            f.get(DfField::Lng),
+            f.get(DfField::Alt),
+        ) {
+            if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
+                self.gps = Some([lat, lng, alt]);
+            }
+        }
+    }
+
+    /// Emit what is still held, and the log with its onboard report and message counts.
+    fn finish(
+        mut self,
+        rd: &dataflash::DfReader<'_>,
+        n_bytes: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> FlightLog {
+        for (gi, s) in self.asm.flush() {
+            emit(gi, s, n_bytes, self.asm.primary);
+        }
+        let mut onboard = ap_onboard(&self.first_params, &self.sources);
+        onboard.undone = self
+            .undone
+            .iter()
+            .map(|s| format!("{s}: COMPASS_OFS/DIA/ODI/SCALE and the logged motor term removed"))
+            .collect();
+        onboard.gps = self.gps;
+        let skips = rd.stats.skipped.clone();
+        let primary_mag = self.sources.get(&(0, 0)).cloned();
+        let mut log = self.asm.finish(onboard, &skips);
+        log.primary_mag_source = primary_mag;
+        for (id, n) in self.type_counts.iter().enumerate() {
+            if let (true, Some(name)) = (*n > 0, self.names.get(&(id as u8, None))) {
+                *log.messages.entry(name.clone()).or_insert(0) += n;
+            }
+        }
+        for ((id, k), n) in &self.inst_counts {
+            if let Some(name) = self.names.get(&(*id, Some(*k))) {
+                *log.messages.entry(name.clone()).or_insert(0) += n;
+            }
+        }
+        log
+    }
+}
+
+/// The name a DataFlash record's stream is reported under (`IMU[1]`, `MAG2`).
+fn df_source<'a>(
+    names: &'a BTreeMap<(u8, Option<u8>), String>,
+    rec: &dataflash::Record<'a>,
+    k: u8,
+) -> &'a str {
+    let inst_col = rec.format.instance.is_some();
+    names
+        .get(&(rec.format.type_id, inst_col.then_some(k)))
+        .map(String::as_str)
+        .unwrap_or(rec.format.name.as_str())
+}
+
+/// The DataFlash fields the conversion reads, in [`DF_FIELDS`] order; a vector's three axes are
+/// consecutive.
+#[derive(Debug, Clone, Copy)]
+enum DfField {
+    TimeUs,
+    TimeMs,
+    AccX,
+    GyrX = 5,
+    T = 8,
+    MagX,
+    OfsX = 12,
+    MOfsX = 15,
+    Roll = 18,
+    Pitch,
+    Yaw,
+    C3,
+    ThO,
+    ThrOut,
+    Curr,
+    Status,
+    Lat,
+    Lng,
+    Alt,
+    Value,
+    Type,
+}
+
+const DF_FIELDS: [&str; 31] = [
+    "TimeUS", "TimeMS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ", "T", "MagX", "MagY",
+    "MagZ", "OfsX", "OfsY", "OfsZ", "MOfsX", "MOfsY", "MOfsZ", "Roll", "Pitch", "Yaw", "C3", "ThO",
+    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type",
+];
+
+fn df_group_name(instanced: bool, k: u8) -> String {
+    if instanced {
+        format!("IMU[{k}]+MAG[{k}]")
+    } else {
+        let s = ["", "2", "3"].get(k as usize).copied().unwrap_or("?");
+        format!("IMU{s}+MAG{s}")
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// PX4
+
+/// PX4's rotation enum for the ids this reader undoes: 0-7 yaw by 45 deg steps, 8-15 roll 180
+/// then yaw.
+fn px4_rotation(id: i64) -> Option<Matrix3<f64>> {
+    let name = match id {
+        0 => "NONE".to_string(),
+        1..=7 => format!("YAW_{}", id * 45),
+        8 => "ROLL_180".to_string(),
+        9..=15 => format!("ROLL_180_YAW_{}", (id - 8) * 45),
+        _ => return None,
+    };
+    crate::attitude::sensor_rotation(&name).ok()
+}
+
+/// PX4's magnetometer calibration n: (OFF gauss, S, device id).
+fn px4_mag_cal(params: &BTreeMap<String, f64>, n: u8) -> Option<([f64; 3], Matrix3<f64>, u32)> {
+    let p = |s: &str| params.get(&format!("CAL_MAG{n}_{s}")).copied();
+    let id = p("ID").filter(|v| *v > 0.0 && *v < u32::MAX as f64)? as u32;
+    let off = [p("XOFF")?, p("YOFF")?, p("ZOFF")?];
+    let d = [
+        p("XSCALE").unwrap_or(1.0),
+        p("YSCALE").unwrap_or(1.0),
+        p("ZSCALE").unwrap_or(1.0),
+    ];
+    let o = [
+        p("XODIAG").unwrap_or(0.0),
+        p("YODIAG").unwrap_or(0.0),
+        p("ZODIAG").unwrap_or(0.0),
+    ];
+    Some((off, soft_iron(d, o), id))
+}
+
+/// The rotation PX4 applies to calibration n's compass (CAL_MAGn_ROT, -1: the board's).
+fn px4_mag_rotation(params: &BTreeMap<String, f64>, n: u8) -> Option<Matrix3<f64>> {
+    let rot = params
+        .get(&format!("CAL_MAG{n}_ROT"))
+        .copied()
+        .unwrap_or(-1.0);
+    let id = if rot < 0.0 {
+        params.get("SENS_BOARD_ROT").copied().unwrap_or(0.0)
+    } else {
+        rot
+    };
+    px4_rotation(id as i64)
+}
+
+/// The calibration slot of the compass whose corrected field the vehicle logs (CAL_MAG_PRIME).
+fn px4_prime_slot(params: &BTreeMap<String, f64>) -> Option<u8> {
+    let prime = params.get("CAL_MAG_PRIME").copied();
+    (0..4u8).find(|n| {
+        let id = params.get(&format!("CAL_MAG{n}_ID")).copied();
+        match prime {
+            Some(p) if p != 0.0 => id == Some(p),
+            _ => *n == 0 && id.is_some(),
+        }
+    })
+}
+
+/// The PX4 correction of slot n undone: gauss (corrected, body) in, uT out.
+struct Px4Undo {
+    inv: Matrix3<f64>,
+    /// R OFF, gauss.
+    off_body: Vector3<f64>,
+}
+
+impl Px4Undo {
+    fn new(params: &BTreeMap<String, f64>, n: u8) -> Option<Px4Undo> {
+        let (off, s, _) = px4_mag_cal(params, n)?;
+        let r = px4_mag_rotation(params, n)?;
+        let inv = (r * s * r.transpose()).try_inverse()?;
+        Some(Px4Undo {
+            inv,
+            off_body: r * Vector3::from(off),
+        })
+    }
+
+    fn apply(&self, m_ga: Vec3) -> Option<Vec3> {
+        let u = self.inv * Vector3::from(m_ga) + self.off_body;
+        finite3([u[0] * 100.0, u[1] * 100.0, u[2] * 100.0])
+    }
+}
+
+fn px4_onboard(
+    params: &BTreeMap<String, f64>,
+    mag_ids: &BTreeMap<u8, u32>,
+    accel_ids: &BTreeMap<u8, u32>,
+    prime_source: Option<&str>,
+) -> OnboardReport {
+    let mut r = OnboardReport {
+        stack: "px4".into(),
+        ..Default::default()
+    };
+    let prime = px4_prime_slot(params);
+    let pick = |prefix: &str| -> BTreeMap<String, f64> {
+        params
+            .range(prefix.to_string()..)
+            .take_while(|(k, _)| k.starts_with(prefix))
+            .map(|(k, v)| (k.clone(), *v))
+            .collect()
+    };
+    for n in 0..4u8 {
+        let Some((off, s, id)) = px4_mag_cal(params, n) else {
+            continue;
+        };
+        let mut sources: Vec<String> = mag_ids
+            .iter()
+            .filter(|(_, d)| **d == id)
+            .map(|(k, _)| format!("sensor_mag[{k}]"))
+            .collect();
+        if prime == Some(n) {
+            sources.extend(prime_source.map(String::from));
+        }
+        r.mag.push(OnboardCal {
+            instance: n,
+            device_id: Some(id),
+            sources,
+            offset: off.map(|o| o * 100.0),
+            matrix: rows(&s),
+            units: "uT".into(),
+            params: pick(&format!("CAL_MAG{n}_")),
+        });
+    }
+    for n in 0..4u8 {
+        let p = |s: &str| params.get(&format!("CAL_ACC{n}_{s}")).copied();
+        let Some(id) = p("ID").filter(|v| *v > 0.0 && *v < u32::MAX as f64) else {
+            continue;
+        };
+        let (Some(x), Some(y), Some(z)) = (p("XOFF"), p("YOFF"), p("ZOFF")) else {
+            continue;
+        };
+        let d = [
+            p("XSCALE").unwrap_or(1.0),
+            p("YSCALE").unwrap_or(1.0),
+            p("ZSCALE").unwrap_or(1.0),
+        ];
+        let id = id as u32;
+        r.accel.push(OnboardCal {
+            instance: n,
+            device_id: Some(id),
+            sources: accel_ids
+                .iter()
+                .filter(|(_, d)| **d == id)
+                .map(|(k, _)| format!("sensor_accel[{k}]"))
+                .collect(),
+            offset: [x, y, z],
+            matrix: rows(&Matrix3::from_diagonal(&Vector3::from(d))),
+            units: "m/s^2".into(),
+            params: pick(&format!("CAL_ACC{n}_")),
+        });
+    }
+    r
+}
+
+/// Read a ULog file, handing each sample of every instance to `emit(instance_index, sample,
+/// bytes_read, primary_index)`. `None` when the bytes are not a ULog file.
+pub fn decode_ulog_with(
+    bytes: &[u8],
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> Option<FlightLog> {
+    let mut rd = ulog::UlogReader::new(bytes)?;
+    let mut conv = UlogConv::new();
+    let mut cols = BTreeMap::<u16, UlogCols>::new();
+    loop {
+        let params_ready = conv.undo.is_some();
+        let Some(d) = rd.next_data() else {
+            break;
+        };
+        let multi = d.sub.multi_id;
+        let t_us = d.timestamp_us();
+        // The topic and its columns, found once per subscription.
+        let id = d.sub.msg_id;
+        if cols.get(&id).is_none_or(|c| c.serial != d.sub.serial) {
+            cols.insert(id, UlogCols::new(d.sub));
+        }
+        let c = &cols[&id];
+        let r = UlogRecord::read(c, &d);
+        let read = rd.position();
+        if !params_ready {
+            // The definitions section (parameters included) precedes the first data record.
+            conv.params_known(rd.params());
+        }
+        let Some(t) = t_us else {
+            conv.asm.stats.skip("bad_record");
+            continue;
+        };
+        if let Some((gi, s)) = conv.sample(r, multi, &c.source, t, read, emit) {
+            emit(gi, s, read, conv.asm.primary);
+        }
+    }
+    Some(conv.finish(&rd, bytes.len(), emit))
+}
+
+/// What the conversion takes from one ULog record.
+enum UlogRecord {
+    /// `sensor_combined`: accelerometer, gyroscope and magnetometer (gauss), each when logged.
+    Combined(Option<Vec3>, Option<Vec3>, Option<Vec3>),
+    /// `sensor_accel[k]`: m/s^2, temperature, device id.
+    Accel(Vec3, Option<f64>, Option<u32>),
+    /// `sensor_gyro[k]`: rad/s, device id.
+    Gyro(Vec3, Option<u32>),
+    /// `sensor_mag[k]`: gauss, device id.
+    Mag(Vec3, Option<u32>),
+    /// `vehicle_magnetometer[0]`: the corrected field, gauss.
+    VMag(Vec3),
+    /// `vehicle_attitude[0]`: w, x, y, z (body FRD -> NED).
+    Att([f64; 4]),
+    /// `actuator_controls_0[0]` control 3.
+    Throttle(f64),
+    /// `battery_status[0]`, A.
+    Current(f64),
+    /// `vehicle_gps_position[0]`: lat, lon (1e-7 deg), alt (mm), fix type.
+    Gps(f64, f64, f64, f64),
+    None,
+}
+
+impl UlogRecord {
+    /// The fields of `d` the conversion uses, by its subscription's columns `c`.
+    fn read(c: &UlogCols, d: &ulog::Data<'_>) -> UlogRecord {
+        use UlogRecord as R;
+        let multi = d.sub.multi_id;
+        let val = |k: usize| c.idx[k].and_then(|i| d.value(i));
+        let get = |f: UlField| val(f as usize);
+        let v3 = |f: UlField| {
+            let k = f as usize;
+            Some([val(k)?, val(k + 1)?, val(k + 2)?])
+        };
+        let dev = get(UlField::DeviceId).map(|v| v as u32);
+        match c.topic {
+            Topic::Combined => {
+                R::Combined(v3(UlField::Acc0), v3(UlField::Gyro0), v3(UlField::MagGa0))
+            }
+            Topic::Accel => match v3(UlField::X) {
+                Some(a) => R::Accel(a, get(UlField::Temperature), dev),
+                None => R::None,
+            },
+            Topic::Gyro => match v3(UlField::X) {
+                Some(g) => R::Gyro(g, dev),
+                None => R::None,
+            },
+            Topic::Mag => match v3(UlField::X) {
+                Some(m) => R::Mag(m, dev),
+                None => R::None,
+            },
+            Topic::VehicleMag if multi == 0 => match v3(UlField::MagGa0) {
+                Some(m) => R::VMag(m),
+                None => R::None,
+            },
+            Topic::Attitude if multi == 0 => match (
+                get(UlField::Q0),
+                get(UlField::Q1),
+                get(UlField::Q2),
+                get(UlField::Q3),
+            ) {
+                (Some(w), Some(x), Some(y), Some(z)) => R::Att([w, x, y, z]),
+                _ => R::None,
+            },
+            Topic::Actuators if multi == 0 => match get(UlField::Control3) {
+                Some(t) => R::Throttle(t),
+                None => R::None,
+            },
+            Topic::Battery if multi == 0 => match get(UlField::CurrentA) {
+                Some(c) => R::Current(c),
+                None => R::None,
+            },
+            Topic::Gps if multi == 0 => match (
+                get(UlField::Lat),
+                get(UlField::Lon),
+                get(UlField::Alt),
+                get(UlField::FixType),
+            ) {
+                (Some(a), Some(b), Some(c), Some(f)) => R::Gps(a, b, c, f),
+                _ => R::None,
+            },
+            _ => R::None,
+        }
+    }
+}
+
+/// The ULog conversion between records: the samples being assembled and what the onboard report
+/// needs at the end.
+struct UlogConv {
+    asm: Assembler,
+    /// The prime compass's correction undone; `None` until the parameters are read, `Some(None)`
+    /// when they do not allow it.
+    undo: Option<Option<Px4Undo>>,
+    /// The stream the corrected (prime) field came from.
+    prime_source: Option<String>,
+    /// Device id per `sensor_mag` / `sensor_accel` instance.
+    mag_ids: BTreeMap<u8, u32>,
+    accel_ids: BTreeMap<u8, u32>,
+    gps: Option<[f64; 3]>,
+    /// A corrected field could not be undone.
+    not_undone: bool,
+}
+
+impl UlogConv {
+    fn new() -> Self {
+        UlogConv {
+            asm: Assembler::new(),
+            undo: None,
+            prime_source: None,
+            mag_ids: BTreeMap::new(),
+            accel_ids: BTreeMap::new(),
+            gps: None,
+            not_undone: false,
+        }
+    }
+
+    /// The parameters are read: the prime compass's correction, if it can be undone.
+    fn params_known(&mut self, params: &BTreeMap<String, f64>) {
+        let slot = px4_prime_slot(params);
+        self.undo = Some(slot.and_then(|n| Px4Undo::new(params, n)));
+    }
+
+    /// Convert one record of instance `multi` from stream `src` at `t_us`: the sample it completes.
+    /// A combined record's magnetometer sample goes to `emit` here, with `read` bytes read.
+    fn sample(
+        &mut self,
+        r: UlogRecord,
+        multi: u8,
+        src: &str,
+        t_us: u64,
+        read: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> Option<(usize, Sample)> {
+        let t = t_us;
+        match r {
+            UlogRecord::Combined(a, g, m) => self.combined(a, g, m, t, read, emit),
+            UlogRecord::VMag(m) => self.vehicle_mag(m, t),
+            UlogRecord::Accel(a, temp, dev) => {
+                self.asm.stream(Sensor::Accel, multi, src, dev);
+                if let Some(d) = dev {
+                    self.accel_ids.insert(multi, d);
+                }
+                let gi = self.sensor_group(multi)?;
+                self.asm.accel(gi, t, a, None, temp)
+            }
+            UlogRecord::Gyro(g, dev) => {
+                self.asm.stream(Sensor::Gyro, multi, src, dev);
+                let gi = self.sensor_group(multi)?;
+                self.asm.gyro(gi, t, g)
+            }
+            UlogRecord::Mag(m, dev) => {
+                self.asm.stream(Sensor::Mag, multi, src, dev);
+                if let Some(d) = dev {
+                    self.mag_ids.insert(multi, d);
+                }
+                let gi = self.sensor_group(multi)?;
+                self.asm.mag(gi, t, m.map(|x| x * 100.0))
+            }
+            UlogRecord::Att(q) => {
+                self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
+                None
+            }
+            UlogRecord::Throttle(v) => {
+                if v.is_finite() {
+                    self.asm.throttle = Some(v.clamp(0.0, 1.5));
+                }
+                None
+            }
+            UlogRecord::Current(c) => {
+                if c.is_finite() && c >= 0.0 {
+                    self.asm.current_a = Some(c);
+                }
+                None
+            }
+            UlogRecord::Gps(lat, lon, alt, fix) => {
+                if self.gps.is_none() && fix >= 3.0 {
+                    self.gps = Some([lat * 1e-7, lon * 1e-7, alt * 1e-3]);
+                }
+                None
+            }
+            UlogRecord::None => None,
+        }
+    }
+
+    /// The instance of `sensor_accel[k]`, `sensor_gyro[k]` and `sensor_mag[k]`.
+    fn sensor_group(&mut self, k: u8) -> Option<usize> {
+        self.asm
+            .group(PX4_SENSOR_KEY + k as u16, || px4_group_name(k))
+    }
+
+    /// A `sensor_combined` record; its magnetometer reading (emitted here) rides on the record's
+    /// accelerometer sample (returned).
+    fn combined(
+        &mut self,
+        a: Option<Vec3>,
+        g: Option<Vec3>,
+        m: Option<Vec3>,
+        t: u64,
+        read: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> Option<(usize, Sample)> {
+        let gi = self.asm.group(0, || "sensor_combined".into())?;
+        self.asm.groups[gi].has_accel |= a.is_some();
+        if let Some(m) = m {
+            const SRC: &str = "sensor_combined.magnetometer_ga";
+            self.asm.stream(Sensor::Mag, 0, SRC, None);
+            self.prime_source.get_or_insert_with(|| SRC.into());
+            if let Some(raw) = self.undo_prime(m) {
+                if let Some((g2, s2)) = self.asm.mag(gi, t, raw) {
+                    emit(g2, s2, read, self.asm.primary);
+                }
+            }
+        }
+        if g.is_some() {
+            self.asm.stream(Sensor::Gyro, 0, "sensor_combined", None);
+        }
+        match a {
+            Some(a) => {
+                self.asm.stream(Sensor::Accel, 0, "sensor_combined", None);
+                self.asm.accel(gi, t, a, g, None)
+            }
+            None => g.and_then(|g| self.asm.gyro(gi, t, g)),
+        }
+    }
+
+    /// A `vehicle_magnetometer[0]` record: the corrected field, undone onto the primary instance.
+    fn vehicle_mag(&mut self, m: Vec3, t: u64) -> Option<(usize, Sample)> {
+        self.asm
+            .stream(Sensor::Mag, 0, "vehicle_magnetometer[0]", None);
+        self.prime_source
+            .get_or_insert_with(|| "vehicle_magnetometer[0]".into());
+        let gi = self.asm.group(0, || "sensor_combined".into())?;
+        let raw = self.undo_prime(m)?;
+        self.asm.mag(gi, t, raw)
+    }
+
+    /// The prime compass's correction undone from `m` (gauss), uT; `None` (noted) when it cannot be.
+    fn undo_prime(&mut self, m: Vec3) -> Option<Vec3> {
+        let raw = self
+            .undo
+            .as_ref()
+            .and_then(|u| u.as_ref())
+            .and_then(|u| u.apply(m));
+        self.not_undone |= raw.is_none();
+        raw
+    }
+
+    /// Emit what is still held, and the log with its onboard report and message counts.
+    fn finish(
+        mut self,
+        rd: &ulog::UlogReader<'_>,
+        n_bytes: usize,
+        emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    ) -> FlightLog {
+        for (gi, s) in self.asm.flush() {
+            emit(gi, s, n_bytes, self.asm.primary);
+        }
+        let params = rd.params();
+        let mut onboard = px4_onboard(
+            params,
+            &self.mag_ids,
+            &self.accel_ids,
+            self.prime_source.as_deref(),
+        );
+        if let (Some(src), Some(n)) = (self.prime_source.as_ref(), px4_prime_slot(params)) {
+            if self.not_undone {
+                onboard.not_undone.push(format!(
+                    "{src}: CAL_MAG{n} rotation not one this reader undoes, or its parameters incomplete"
+                ));
+            } else {
+                onboard.undone.push(format!(
+                    "{src}: CAL_MAG{n} offsets, scales and rotation removed"
+                ));
+            }
+        }
+        onboard.gps = self.gps;
+        let mut skips = rd.stats.skipped.clone();
+        if rd.stats.dropouts > 0 {
+            skips.insert("dropouts".into(), rd.stats.dropouts);
+        }
+        let mut log = self.asm.finish(onboard, &skips);
+        log.primary_mag_source = self.prime_source;
+        for sub in rd.subscriptions().filter(|s| s.records > 0) {
+            *log.messages
+                .entry(format!("{}[{}]", sub.name, sub.multi_id))
+                .or_insert(0) += sub.records;
+        }
+        log
+    }
+}
+
+/// The ULog topics the conversion reads.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Topic {
+    Combined,
+    Accel,
+    Gyro,
+    Mag,
+    VehicleMag,
+    Attitude,
+    Actuators,
+    Battery,
+    Gps,
+    Other,
+}
+
+/// The ULog fields the conversion reads, in [`UL_FIELDS`] order; a vector's axes are consecutive.
+#[derive(Debug, Clone, Copy)]
+enum UlField {
+    Acc0,
+    Gyro0 = 3,
+    MagGa0 = 6,
+    X = 9,
+    Temperature = 12,
+    DeviceId,
+    Q0,
+    Q1,
+    Q2,
+    Q3,
+    Control3,
+    CurrentA,
+    Lat,
+    Lon,
+    Alt,
+    FixType,
+}
+
+const UL_FIELDS: [&str; 24] = [
+    "accelerometer_m_s2[0]",
+    "accelerometer_m_s2[1]",
+    "accelerometer_m_s2[2]",
+    "gyro_rad[0]",
+    "gyro_rad[1]",
+    "gyro_rad[2]",
+    "magnetometer_ga[0]",
+    "magnetometer_ga[1]",
+    "magnetometer_ga[2]",
+    "x",
+    "y",
+    "z",
+    "temperature",
+    "device_id",
+    "q[0]",
+    "q[1]",
+    "q[2]",
+    "q[3]",
+    "control[3]",
+    "current_a",
+    "lat",
+    "lon",
+    "alt",
+    "fix_type",
+];
+
+/// A subscription's topic, the indices of [`UL_FIELDS`] in its fields, and its source name.
+struct UlogCols {
+    serial: u32,
+    topic: Topic,
+    idx: Vec<Option<usize>>,
+    source: String,
+}
+
+impl UlogCols {
+    fn new(sub: &ulog::Subscription) -> UlogCols {
+        let topic = match sub.name.as_str() {
+            "sensor_combined" => Topic::Combined,
+            "sensor_accel" => Topic::Accel,
+            "sensor_gyro" => Topic::Gyro,
+            "sensor_mag" => Topic::Mag,
+            "vehicle_magnetometer" => Topic::VehicleMag,
+            "vehicle_attitude" => Topic::Attitude,
+            "actuator_controls_0" => Topic::Actuators,
+            "battery_status" => Topic::Battery,
+            "vehicle_gps_position" => Topic::Gps,
+            _ => Topic::Other,
+        };
+        let idx = if topic == Topic::Other {
+            vec![None; UL_FIELDS.len()]
+        } else {
+            UL_FIELDS.iter().map(|f| sub.field(f)).collect()
+        };
+        UlogCols {
+            serial: sub.serial,
+            topic,
+            idx,
+            source: format!("{}[{}]", sub.name, sub.multi_id),
+        }
+    }
+}
+
+fn px4_group_name(k: u8) -> String {
+    format!("sensor_accel[{k}]+sensor_gyro[{k}]+sensor_mag[{k}]")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ardupilot_undo_inverts_its_correction() {
+        let mut p = BTreeMap::new();
+        for (n, v) in [
+            ("COMPASS_OFS2_X", -171.9),
+            ("COMPASS_OFS2_Y", 546.3),
+            ("COMPASS_OFS2_Z", -565.6),
+            ("COMPASS_DIA2_X", 1.02),
+            ("COMPASS_DIA2_Y", 0.98),
+            ("COMPASS_DIA2_Z", 1.14),
+            ("COMPASS_ODI2_X", -0.01),
+            ("COMPASS_ODI2_Y", 0.007),
+            ("COMPASS_ODI2_Z", 0.014),
+        ] {
+            p.insert(n.to_string(), v);
+        }
+        let raw_ut = [12.0, -30.0, 41.0];
+        let (ofs, s, scale) = ap_compass(&p, 1).unwrap();
+        let m = Vector3::new(
+            raw_ut[0] * 10.0 + ofs[0],
+            raw_ut[1] * 10.0 + ofs[1],
+            raw_ut[2] * 10.0 + ofs[2],
+        );
+        let c = s * m * scale;
+        let back = ap_undo(&p, 1, [c[0], c[1], c[2]], None, None).unwrap();
+        for i in 0..3 {
+            assert!((back[i] - raw_ut[i]).abs() < 1e-9, "{back:?}");
+        }
+        // The onboard model in imucald's convention gives the corrected field back from raw.
+        let r = ap_onboard(&p, &BTreeMap::new());
+        let cal = &r.mag[0];
+        assert_eq!(cal.instance, 1);
+        let mm = mat3(cal.matrix);
+        let d = Vector3::new(
+            raw_ut[0] - cal.offset[0],
+            raw_ut[1] - cal.offset[1],
+            raw_ut[2] - cal.offset[2],
+        );
+        let cal_ut = mm * d;
+        for i in 0..3 {
+            assert!((cal_ut[i] * 10.0 - c[i]).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn px4_undo_with_board_rotation() {
+        let mut p = BTreeMap::new();
+        for (n, v) in [
+            ("CAL_MAG0_ID", 1234.0),
+            ("CAL_MAG0_ROT", -1.0),
+            ("SENS_BOARD_ROT", 4.0),
+            ("CAL_MAG0_XOFF", 0.1),
+            ("CAL_MAG0_YOFF", -0.2),
+            ("CAL_MAG0_ZOFF", 0.3),
+            ("CAL_MAG0_XSCALE", 1.1),
+            ("CAL_MAG0_YSCALE", 0.9),
+            ("CAL_MAG0_ZSCALE", 1.0),
+            ("CAL_MAG0_XODIAG", 0.05),
+            ("CAL_MAG_PRIME", 1234.0),
+        ] {
+            p.insert(n.to_string(), v);
+        }
+        let raw_sensor = Vector3::new(0.2, 0.1, -0.4);
+        let (off, s, _) = px4_mag_cal(&p, 0).unwrap();
+        let r = px4_mag_rotation(&p, 0).unwrap();
+        let corrected = r * (s * (raw_sensor - Vector3::from(off)));
+        let u = Px4Undo::new(&p, px4_prime_slot(&p).unwrap()).unwrap();
+        let back = u.apply([corrected[0], corrected[1], corrected[2]]).unwrap();
+        let want = r * raw_sensor * 100.0;
+        for i in 0..3 {
+            assert!((back[i] - want[i]).abs() < 1e-9, "{back:?} {want:?}");
+        }
+    }
+
+    #[test]
+    fn attitude_quaternion_is_sensor_to_enu() {
+        // Level, heading north: body x (forward) points north = ENU y.
+        let q = ned_to_enu(quat_from_euler(0.0, 0.0, 0.0)).unwrap();
+        let v = rotate_q(q, [1.0, 0.0, 0.0]);
+        assert!((v[1] - 1.0).abs() < 1e-12, "{v:?}");
+        // Heading east (yaw 90): forward = ENU x; body z (down) = ENU -z.
+        let q = ned_to_enu(quat_from_euler(0.0, 0.0, 90f64.to_radians())).unwrap();
+        let v = rotate_q(q, [1.0, 0.0, 0.0]);
+        assert!((v[0] - 1.0).abs() < 1e-12, "{v:?}");
+        let v = rotate_q(q, [0.0, 0.0, 1.0]);
+        assert!((v[2] + 1.0).abs() < 1e-12, "{v:?}");
+    }
+
+    #[test]
+    fn ulog_sensor_instances_up_to_255_stay_apart() {
+        // A multi_id above 155 once overflowed the instance key (found by fuzzing).
+        use ulog::tests::{header, msg, sub};
+        let mut f = header();
+        f.extend(msg(
+            b'F',
+            b"sensor_mag:uint64_t timestamp;uint32_t device_id;float x;float y;float z;",
+        ));
+        f.extend(sub(0, 1, "sensor_mag"));
+        f.extend(sub(200, 2, "sensor_mag"));
+        for (id, t) in [(1u16, 10u64), (2, 11), (1, 20), (2, 21)] {
+            let mut b = id.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            b.extend(7u32.to_le_bytes());
+            for v in [0.2f32, 0.1, -0.4] {
+                b.extend(v.to_le_bytes());
+            }
+            f.extend(msg(b'D', &b));
+        }
+        let log = decode_ulog_with(&f, &mut |_, _, _, _| {}).unwrap();
+        let ids: Vec<(u8, u64)> = log
+            .instances
+            .iter()
+            .map(|i| (i.compass_id, i.samples))
+            .collect();
+        assert_eq!(ids, [(0, 2), (200, 2)]);
+    }
+
+    #[test]
+    fn roll_and_pitch_come_back_from_ref_q() {
+        let (r, p, y) = (20f64, -35f64, 250f64);
+        let q = ned_to_enu(quat_from_euler(
+            r.to_radians(),
+            p.to_radians(),
+            y.to_radians(),
+        ))
+        .unwrap();
+        let (r2, p2) = roll_pitch_of_ref_q(q).unwrap();
+        assert!((r2 - r).abs() < 1e-9 && (p2 - p).abs() < 1e-9, "{r2} {p2}");
+    }
+
+    fn rotate_q(q: [f64; 4], v: Vec3) -> Vec3 {
+        let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            q[0], q[1], q[2], q[3],
+        ));
+        let r = uq * Vector3::from(v);
+        [r[0], r[1], r[2]]
+    }
+}

@@ -1,0 +1,328 @@
+//! Writers of flight-controller logs from samples, for simulated tests: an ArduPilot DataFlash
+//! `.bin` and a PX4 `.ulg` whose magnetometer is logged **corrected** by a known onboard
+//! calibration, as the flight controllers log it, with that calibration in the parameters. A replay
+//! undoes the correction ([`crate::io::flightlog`]) and so sees the raw field again. A sample's
+//! reference attitude (`ref_q`) is written as the flight controller's (`ATT`, `vehicle_attitude`).
+
+use crate::error::Error;
+use crate::types::{Sample, Vec3};
+use nalgebra::{Matrix3, Vector3};
+
+/// The calibration a simulated flight controller applied, in imucald's model:
+/// corrected = matrix (raw - offset), uT. ArduPilot and PX4 both store a symmetric matrix.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OnboardMag {
+    pub offset_ut: Vec3,
+    pub matrix: [[f64; 3]; 3],
+}
+
+impl OnboardMag {
+    /// A plausible onboard calibration, deliberately not the truth of any scenario.
+    pub fn example() -> Self {
+        OnboardMag {
+            offset_ut: [12.0, -7.5, 20.0],
+            matrix: [
+                [1.04, 0.02, -0.01],
+                [0.02, 0.97, 0.015],
+                [-0.01, 0.015, 1.01],
+            ],
+        }
+    }
+
+    fn correct(&self, raw_ut: &Vec3) -> Vec3 {
+        let m = crate::calib::model::rows_to_mat(&self.matrix);
+        let d = Vector3::new(
+            raw_ut[0] - self.offset_ut[0],
+            raw_ut[1] - self.offset_ut[1],
+            raw_ut[2] - self.offset_ut[2],
+        );
+        let c: Vector3<f64> = m * d;
+        [c[0], c[1], c[2]]
+    }
+
+    fn symmetric(&self) -> bool {
+        let m = Matrix3::from_fn(|i, j| self.matrix[i][j]);
+        (m - m.transpose()).abs().max() < 1e-12
+    }
+}
+
+/// Roll, pitch, yaw (deg, Euler ZYX, body -> NED) of a sample's reference attitude (sensor -> ENU).
+fn body_ned_euler_deg(q_enu: [f64; 4]) -> Option<[f64; 3]> {
+    let q = super::ned_to_enu(q_enu)?;
+    let (w, x, y, z) = (q[0], q[1], q[2], q[3]);
+    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
+    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
+    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z));
+    Some([roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()])
+}
+
+/// Microseconds of `t_s = 0` in written logs (a flight controller's time since boot).
+const T0_US: u64 = 1_000_000;
+
+fn time_us(t_s: f64) -> u64 {
+    T0_US + (t_s.max(0.0) * 1e6).round() as u64
+}
+
+fn fmt_record(id: u8, name: &str, format: &str, cols: &str) -> Vec<u8> {
+    let len: usize = 3 + format
+        .bytes()
+        .map(|c| super::dataflash::Kind::from_char(c).map_or(0, |k| k.size()))
+        .sum::<usize>();
+    let mut r = vec![0xA3, 0x95, 0x80, id, len as u8];
+    for (s, n) in [(name, 4), (format, 16), (cols, 64)] {
+        let mut b = s.as_bytes().to_vec();
+        b.resize(n, 0);
+        r.extend(b);
+    }
+    r
+}
+
+/// ArduPilot DataFlash: FMT, PARM (COMPASS_OFS/DIA/ODI from `onboard`, INS offsets 0 and scales 1),
+/// then per sample `MAG` (mGauss, int16, after ArduPilot's correction `S (raw + OFS)`, with OfsX/Y/Z)
+/// and `IMU` (rad/s, m/s^2).
+pub fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
+    if !onboard.symmetric() {
+        return Err(Error::Other(
+            "ArduPilot's compass matrix is symmetric (DIA/ODI)".into(),
+        ));
+    }
+    let mut out = fmt_record(0x80, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns");
+    out.extend(fmt_record(129, "PARM", "QNf", "TimeUS,Name,Value"));
+    out.extend(fmt_record(
+        130,
+        "IMU",
+        "QffffffIIfBBHH",
+        "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+    ));
+    out.extend(fmt_record(
+        132,
+        "ATT",
+        "QccccCCCC",
+        "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw",
+    ));
+    out.extend(fmt_record(
+        131,
+        "MAG",
+        "QhhhhhhhhhBI",
+        "TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ,Health,S",
+    ));
+    // ArduPilot adds COMPASS_OFS (mGauss): OFS = -offset * 10.
+    let ofs = onboard.offset_ut.map(|o| -o * 10.0);
+    let m = &onboard.matrix;
+    let params: Vec<(String, f64)> = [
+        ("COMPASS_OFS_X", ofs[0]),
+        ("COMPASS_OFS_Y", ofs[1]),
+        ("COMPASS_OFS_Z", ofs[2]),
+        ("COMPASS_DIA_X", m[0][0]),
+        ("COMPASS_DIA_Y", m[1][1]),
+        ("COMPASS_DIA_Z", m[2][2]),
+        ("COMPASS_ODI_X", m[0][1]),
+        ("COMPASS_ODI_Y", m[0][2]),
+        ("COMPASS_ODI_Z", m[1][2]),
+        ("COMPASS_DEV_ID", 97539.0),
+        ("INS_ACCOFFS_X", 0.0),
+        ("INS_ACCOFFS_Y", 0.0),
+        ("INS_ACCOFFS_Z", 0.0),
+        ("INS_ACCSCAL_X", 1.0),
+        ("INS_ACCSCAL_Y", 1.0),
+        ("INS_ACCSCAL_Z", 1.0),
+    ]
+    .into_iter()
+    .map(|(n, v)| (n.to_string(), v))
+    .collect();
+    for (n, v) in &params {
+        out.extend([0xA3, 0x95, 129]);
+        out.extend(T0_US.to_le_bytes());
+        let mut name = n.as_bytes().to_vec();
+        name.resize(16, 0);
+        out.extend(name);
+        out.extend((*v as f32).to_le_bytes());
+    }
+    // The parameters as the flight controller uses them (float32).
+    let ofs32 = ofs.map(|o| o as f32 as f64);
+    let m32 = m.map(|r| r.map(|x| x as f32 as f64));
+    let used = OnboardMag {
+        offset_ut: ofs32.map(|o| -o / 10.0),
+        matrix: m32,
+    };
+    let i16_of = |x: f64| x.round().clamp(i16::MIN as f64, i16::MAX as f64) as i16;
+    for s in samples {
+        let t = time_us(s.t_s);
+        if let Some([r, p, y]) = s.ref_q.and_then(body_ned_euler_deg) {
+            out.extend([0xA3, 0x95, 132]);
+            out.extend(t.to_le_bytes());
+            let c = |x: f64| i16_of(x * 100.0).to_le_bytes();
+            let yaw = ((y.rem_euclid(360.0) * 100.0).round() as u16).min(35999);
+            out.extend(c(r));
+            out.extend(c(r));
+            out.extend(c(p));
+            out.extend(c(p));
+            out.extend(yaw.to_le_bytes());
+            out.extend(yaw.to_le_bytes());
+            out.extend([0u8; 4]);
+        }
+        if let Some(raw) = s.mag_ut {
+            let c = used.correct(&raw);
+            out.extend([0xA3, 0x95, 131]);
+            out.extend(t.to_le_bytes());
+            for v in c {
+                out.extend(i16_of(v * 10.0).to_le_bytes());
+            }
+            for v in ofs32 {
+                out.extend(i16_of(v).to_le_bytes());
+            }
+            out.extend([0u8; 6]);
+            out.push(1);
+            out.extend((t as u32).to_le_bytes());
+        }
+        if let (Some(a), Some(g)) = (s.accel_mps2, s.gyro_rad_s) {
+            out.extend([0xA3, 0x95, 130]);
+            out.extend(t.to_le_bytes());
+            for v in g.iter().chain(&a) {
+                out.extend((*v as f32).to_le_bytes());
+            }
+            out.extend([0u8; 8]);
+            out.extend((s.temp_c.unwrap_or(25.0) as f32).to_le_bytes());
+            out.extend([1, 1]);
+            out.extend(1000u16.to_le_bytes());
+            out.extend(1000u16.to_le_bytes());
+        }
+    }
+    Ok(out)
+}
+
+fn ulog_msg(out: &mut Vec<u8>, ty: u8, body: &[u8]) {
+    out.extend((body.len() as u16).to_le_bytes());
+    out.push(ty);
+    out.extend_from_slice(body);
+}
+
+fn ulog_param(out: &mut Vec<u8>, name: &str, v: f64, int: bool) {
+    let key = if int {
+        format!("int32_t {name}")
+    } else {
+        format!("float {name}")
+    };
+    let mut b = vec![key.len() as u8];
+    b.extend(key.as_bytes());
+    if int {
+        b.extend((v as i32).to_le_bytes());
+    } else {
+        b.extend((v as f32).to_le_bytes());
+    }
+    ulog_msg(out, b'P', &b);
+}
+
+/// PX4 ULog: CAL_MAG0_* from `onboard` (CAL_MAG_PRIME its id, no rotation), `sensor_combined`
+/// (gyroscope, accelerometer) and `vehicle_magnetometer` (gauss, after PX4's correction
+/// `S (raw - OFF)`).
+pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
+    if !onboard.symmetric() {
+        return Err(Error::Other(
+            "PX4's compass matrix is symmetric (SCALE/ODIAG)".into(),
+        ));
+    }
+    let mut out = super::ulog::MAGIC.to_vec();
+    out.push(1);
+    out.extend(0u64.to_le_bytes());
+    ulog_msg(&mut out, b'B', &[0u8; 40]);
+    ulog_msg(
+        &mut out,
+        b'F',
+        b"sensor_combined:uint64_t timestamp;float[3] gyro_rad;float[3] accelerometer_m_s2;",
+    );
+    ulog_msg(
+        &mut out,
+        b'F',
+        b"vehicle_magnetometer:uint64_t timestamp;float[3] magnetometer_ga;uint8_t[4] _padding0;",
+    );
+    ulog_msg(
+        &mut out,
+        b'F',
+        b"vehicle_attitude:uint64_t timestamp;float[4] q;",
+    );
+    const ID: f64 = 197_388.0;
+    let off = onboard.offset_ut.map(|o| o / 100.0);
+    let m = &onboard.matrix;
+    for (n, v, int) in [
+        ("CAL_MAG0_ID", ID, true),
+        ("CAL_MAG0_ROT", 0.0, true),
+        ("CAL_MAG_PRIME", ID, true),
+        ("SENS_BOARD_ROT", 0.0, true),
+        ("CAL_MAG0_XOFF", off[0], false),
+        ("CAL_MAG0_YOFF", off[1], false),
+        ("CAL_MAG0_ZOFF", off[2], false),
+        ("CAL_MAG0_XSCALE", m[0][0], false),
+        ("CAL_MAG0_YSCALE", m[1][1], false),
+        ("CAL_MAG0_ZSCALE", m[2][2], false),
+        ("CAL_MAG0_XODIAG", m[0][1], false),
+        ("CAL_MAG0_YODIAG", m[0][2], false),
+        ("CAL_MAG0_ZODIAG", m[1][2], false),
+    ] {
+        ulog_param(&mut out, n, v, int);
+    }
+    let used = OnboardMag {
+        offset_ut: off.map(|o| o as f32 as f64 * 100.0),
+        matrix: m.map(|r| r.map(|x| x as f32 as f64)),
+    };
+    let mut sub = |multi: u8, id: u16, name: &str| {
+        let mut b = vec![multi];
+        b.extend(id.to_le_bytes());
+        b.extend(name.as_bytes());
+        ulog_msg(&mut out, b'A', &b);
+    };
+    sub(0, 0, "sensor_combined");
+    sub(0, 1, "vehicle_magnetometer");
+    sub(0, 2, "vehicle_attitude");
+    for s in samples {
+        let t = time_us(s.t_s);
+        if let Some(q) = s.ref_q.and_then(super::ned_to_enu) {
+            let mut b = 2u16.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            for v in q {
+                b.extend((v as f32).to_le_bytes());
+            }
+            ulog_msg(&mut out, b'D', &b);
+        }
+        if let Some(raw) = s.mag_ut {
+            let c = used.correct(&raw);
+            let mut b = 1u16.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            for v in c {
+                b.extend(((v / 100.0) as f32).to_le_bytes());
+            }
+            b.extend([0u8; 4]);
+            ulog_msg(&mut out, b'D', &b);
+        }
+        if let (Some(a), Some(g)) = (s.accel_mps2, s.gyro_rad_s) {
+            let mut b = 0u16.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            for v in g.iter().chain(&a) {
+                b.extend((*v as f32).to_le_bytes());
+            }
+            ulog_msg(&mut out, b'D', &b);
+        }
+    }
+    Ok(out)
+}
+
+/// Write `samples` as a `.bin` or `.ulg` (by `path`'s extension) through
+/// [`crate::io::publish::write_atomic`].
+pub fn write_flight_log(
+    path: &std::path::Path,
+    samples: &[Sample],
+    onboard: &OnboardMag,
+) -> Result<(), Error> {
+    let name = path.to_string_lossy().to_ascii_lowercase();
+    let bytes = if name.ends_with(".bin") {
+        dataflash_bytes(samples, onboard)?
+    } else if name.ends_with(".ulg") {
+        ulog_bytes(samples, onboard)?
+    } else {
+        return Err(Error::Other(format!(
+            "{}: a flight-controller log is .bin or .ulg",
+            path.display()
+        )));
+    };
+    crate::io::publish::write_atomic(path, &bytes)
+}

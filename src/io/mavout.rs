@@ -1,0 +1,2359 @@
+//! Everything the daemon sends to a MAVLink link or a JSON-lines consumer, as pure functions and small
+//! state machines (no sockets, no tokio): the caller moves the bytes.
+//!
+//! * [`MavEncoder`]: one complete MAVLink frame per message, with its own sequence counter.
+//! * Being a MAVLink component: [`heartbeat`], and [`OwnIds`] to tell our own frames echoed back.
+//! * The ground station's calibration commands (ArduPilot's DO_START/ACCEPT/CANCEL_MAG_CAL): the
+//!   run's status [`MagCalRun`] with its one transition function [`MagCalRun::on`], [`command_ack`].
+//! * Calibration progress and result in ArduPilot's messages: [`section80`], [`completion_mask`],
+//!   [`mag_cal_progress`] (MAG_CAL_PROGRESS, 191) and [`mag_cal_report`] (MAG_CAL_REPORT, 192).
+//! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
+//! * Fused attitude from a quaternion (body FRD -> NED): [`attitude_quaternion`]
+//!   (ATTITUDE_QUATERNION, 31) and [`attitude_from_quaternion`] (ATTITUDE, 30).
+//! * Undoing ArduPilot's own compass correction on streamed telemetry: [`ApCompassParams`].
+//! * Writing parameters with read-back verification: [`ParamWriter`].
+//! * JSON lines for other consumers: [`LiveEvent`], [`json_line`] (schema [`JSON_SCHEMA`]).
+//!
+//! Units: our magnetometer numbers are in uT; MAVLink's MAG_CAL_* and ArduPilot's COMPASS_* are in
+//! mGauss (1 uT = 10 mGauss).
+//!
+//! # MAG_CAL_STATUS values 8-10
+//! MAVLink added MAG_CAL_FAILED_OFFSETS (8), MAG_CAL_FAILED_DIAG_SCALING (9) and
+//! MAG_CAL_FAILED_RESIDUALS_HIGH (10) in 2026. The `mavlink` 0.21 bindings this crate builds with
+//! already carry them in `MagCalStatus` (checked in the generated dialect), so [`mag_cal_report`]
+//! sets them through the enum and [`MavEncoder::encode`] writes them as the plain payload byte
+//! (MAG_CAL_REPORT payload offset 42); the tests read that byte back. Should an older binding lack a
+//! variant, [`mag_cal_status_code`] still gives the wire value to patch into the frame.
+//!
+//! # JSON lines: schema `imucald.live/1`
+//! One JSON object per line, terminated by `\n`. Every object starts with `"schema": "imucald.live/1"`
+//! and `"type"`; the other fields depend on the type. Numbers that are not finite are written as
+//! `null`. Times `t` are seconds since the start of the input (the sample clock). Frames are the
+//! sensor's FRD body axes.
+//!
+//! | type          | fields |
+//! |---------------|--------|
+//! | `attitude`    | `t` (s), `q` ([w,x,y,z], body FRD -> NED, from the gyro+accel+mag orientation filter), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, ZYX angles of `q`), `true_heading` (as for `heading`), `gyro_bias_rad_s` ([x,y,z] body: the stored gyro calibration plus the filter's residual estimate), `mag_disturbed` (bool: the field's norm or dip is off its reference, so the heading runs on the gyro) |
+//! | `heading`     | `t` (s), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, clockwise from north), `true_heading` (bool: true when the declination was added, i.e. from true north; false: magnetic north) |
+//! | `calibrated`  | `t` (s), `accel_mps2` ([x,y,z] m/s^2 or null), `gyro_rad_s` ([x,y,z] rad/s or null), `mag_ut` ([x,y,z] uT or null): the latest sample after calibration |
+//! | `progress`    | `sensor` ("mag"), `instance` (the compass: MAG_CAL_* `compass_id`; a stream with several compasses has a progress line per compass), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100), `regions` (which: 25 hex digits, region i is bit i%4 of digit i/4, regions as in `coverage`), `direction` ([x,y,z] of the latest point about the centre, body axes; zero while no centre is known) |
+//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `offset_sigma` (its 1-sigma), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
+//! | `status`      | `level` (emergency, alert, critical, error, warning, notice, info, debug), `text` |
+//!
+//! Example lines:
+//! ```text
+//! {"schema":"imucald.live/1","type":"heading","t":12.5,"roll_deg":1.2,"pitch_deg":-0.4,"heading_deg":273.9,"true_heading":true}
+//! {"schema":"imucald.live/1","type":"attitude","t":12.5,"q":[0.259,0.0,0.0,0.966],"roll_deg":0.0,"pitch_deg":0.0,"heading_deg":150.0,"true_heading":false,"gyro_bias_rad_s":[0.001,0.0,-0.002],"mag_disturbed":false}
+//! {"schema":"imucald.live/1","type":"progress","sensor":"mag","instance":0,"completion_pct":45.0,"filled_regions":45}
+//! {"schema":"imucald.live/1","type":"status","level":"info","text":"mag calibrated"}
+//! ```
+
+use crate::calib::fit::FitFailure;
+use crate::calib::model::{rows_to_mat, Calibration, ModelKind};
+use crate::report::{CalStatus, SensorCalibration};
+use crate::types::Vec3;
+use mavlink::dialects::ardupilotmega::{
+    MagCalStatus, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavParamType, MavResult,
+    MavSeverity, MavState, MavType, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA,
+    COMMAND_LONG_DATA, DEBUG_VECT_DATA, HEARTBEAT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA,
+    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
+};
+use mavlink::types::CharArray;
+use mavlink::{MavHeader, MavlinkVersion};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+// ---------------------------------------------------------------------------------------------
+// Framing
+
+/// Default component id of the daemon: MAV_COMP_ID_ONBOARD_COMPUTER.
+pub const DEFAULT_COMPONENT_ID: u8 = 191;
+
+/// Turns messages into complete MAVLink frames with an incrementing sequence number.
+#[derive(Debug, Clone)]
+pub struct MavEncoder {
+    pub system_id: u8,
+    /// 191 (onboard computer) by default.
+    pub component_id: u8,
+    pub version: MavlinkVersion,
+    seq: u8,
+}
+
+impl Default for MavEncoder {
+    fn default() -> Self {
+        MavEncoder::new(1, DEFAULT_COMPONENT_ID)
+    }
+}
+
+impl MavEncoder {
+    /// A MAVLink 2 encoder for the given sender ids.
+    pub fn new(system_id: u8, component_id: u8) -> Self {
+        MavEncoder {
+            system_id,
+            component_id,
+            version: MavlinkVersion::V2,
+            seq: 0,
+        }
+    }
+
+    /// Sequence number the next frame will carry.
+    pub fn seq(&self) -> u8 {
+        self.seq
+    }
+
+    /// One complete frame (header, payload, CRC) for `msg`; the sequence number then increments
+    /// (wrapping at 255). Returns an empty vector only if the bindings refuse the message.
+    pub fn encode(&mut self, msg: &MavMessage) -> Vec<u8> {
+        let header = MavHeader {
+            system_id: self.system_id as u32,
+            component_id: self.component_id,
+            sequence: self.seq,
+        };
+        let mut out = Vec::with_capacity(64);
+        if mavlink::write_versioned_msg(&mut out, self.version, header, msg).is_err() {
+            return Vec::new();
+        }
+        self.seq = self.seq.wrapping_add(1);
+        out
+    }
+}
+
+/// Our own MAVLink ids. A frame that carries both came from us: a router or a link that loops our
+/// output back. It is not a vehicle's, and is never taken as input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OwnIds {
+    pub system_id: u8,
+    pub component_id: u8,
+}
+
+impl OwnIds {
+    /// Whether a frame from `system_id`/`component_id` is our own (both must match: a flight
+    /// controller shares our system id on the same vehicle).
+    pub fn is_own(&self, system_id: u8, component_id: u8) -> bool {
+        system_id == self.system_id && component_id == self.component_id
+    }
+}
+
+/// Our HEARTBEAT: an onboard controller with no autopilot of its own, active. Sent at
+/// `daemon.heartbeat_rate_hz` (1 Hz) on every MAVLink link, so ground stations and routers
+/// (MAVProxy, mavlink-router, QGroundControl) list the component and route messages to it.
+pub fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
+}
+
+/// Copy `s` into a fixed MAVLink char array, cut at a UTF-8 character boundary so that at most `N`
+/// bytes are used (no NUL terminator when it fills the array, as MAVLink allows).
+fn char_array<const N: usize>(s: &str) -> CharArray<N> {
+    CharArray::from(&s[..utf8_prefix_len(s, N)])
+}
+
+/// Length in bytes of the longest prefix of `s` that is at most `max` bytes and ends on a char boundary.
+fn utf8_prefix_len(s: &str, max: usize) -> usize {
+    if s.len() <= max {
+        return s.len();
+    }
+    let mut n = max;
+    while !s.is_char_boundary(n) {
+        n -= 1;
+    }
+    n
+}
+
+/// The text of a MAVLink char array (up to the first NUL; lossy for invalid UTF-8).
+fn array_text<const N: usize>(a: &CharArray<N>) -> String {
+    let bytes: &[u8; N] = a;
+    let end = bytes.iter().position(|&b| b == 0).unwrap_or(N);
+    String::from_utf8_lossy(&bytes[..end]).into_owned()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Sphere sections (ArduPilot's geodesic grid)
+
+/// Golden ratio.
+const GOLDEN: f64 = 1.618_033_988_749_895;
+
+/// The 12 icosahedron vertices (0, +-1, +-g) and their cyclic permutations, named so that the faces
+/// below read in ArduPilot's `AP_GeodesicGrid` order.
+const ICO_V: [[f64; 3]; 12] = [
+    [-GOLDEN, 1.0, 0.0],  // 0
+    [-1.0, 0.0, -GOLDEN], // 1
+    [-GOLDEN, -1.0, 0.0], // 2
+    [0.0, -GOLDEN, -1.0], // 3
+    [0.0, -GOLDEN, 1.0],  // 4
+    [1.0, 0.0, -GOLDEN],  // 5
+    [GOLDEN, -1.0, 0.0],  // 6
+    [GOLDEN, 1.0, 0.0],   // 7
+    [0.0, GOLDEN, -1.0],  // 8
+    [-1.0, 0.0, GOLDEN],  // 9
+    [1.0, 0.0, GOLDEN],   // 10
+    [0.0, GOLDEN, 1.0],   // 11
+];
+
+/// The 20 faces (a, b, c) in the order and vertex order of ArduPilot's geodesic grid, so that our
+/// section numbers (and so the MAG_CAL_PROGRESS completion mask) mean the same sections as the
+/// firmware's and a ground station's drawing of them.
+const ICO_F: [[usize; 3]; 20] = [
+    [0, 1, 2],
+    [1, 2, 3],
+    [2, 3, 4],
+    [1, 3, 5],
+    [3, 4, 6],
+    [3, 5, 6],
+    [6, 5, 7],
+    [5, 7, 8],
+    [5, 8, 1],
+    [8, 0, 1],
+    [0, 9, 2],
+    [9, 2, 4],
+    [9, 4, 10],
+    [4, 10, 6],
+    [6, 10, 7],
+    [10, 7, 11],
+    [7, 11, 8],
+    [10, 11, 9],
+    [11, 8, 0],
+    [11, 0, 9],
+];
+
+/// Number of sphere sections in the completion mask.
+pub const SECTIONS: usize = 80;
+
+fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// Triple product a . (b x c).
+fn det3(a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> f64 {
+    dot(a, &cross(b, c))
+}
+
+fn unit(v: [f64; 3]) -> [f64; 3] {
+    let n = dot(&v, &v).sqrt();
+    [v[0] / n, v[1] / n, v[2] / n]
+}
+
+fn mid(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        0.5 * (a[0] + b[0]),
+        0.5 * (a[1] + b[1]),
+        0.5 * (a[2] + b[2]),
+    ]
+}
+
+/// Section (0..80) of a direction (any length, not zero): the icosahedron face `i` whose cone holds
+/// the direction, and the sub-triangle `j` of that face, as `4 i + j`.
+///
+/// Each face (a, b, c) is cut at its edge midpoints m_a = (a+b)/2, m_b = (b+c)/2, m_c = (c+a)/2 into
+/// W_0 = (m_a, m_b, m_c) (the middle), W_1 = (a, m_a, m_c), W_2 = (m_a, b, m_b), W_3 = (m_c, m_b, c),
+/// and the 80 flat triangles are projected from the centre onto the sphere (ArduPilot's numbering).
+/// For each icosahedron face (a, b, c): the rows `(b x c, c x a, a x b) / det(a, b, c)`, whose dot
+/// products with a direction are its barycentric coordinates in the face's plane (computed once).
+fn face_rows() -> &'static [[[f64; 3]; 3]; 20] {
+    static ROWS: std::sync::OnceLock<[[[f64; 3]; 3]; 20]> = std::sync::OnceLock::new();
+    ROWS.get_or_init(|| {
+        ICO_F.map(|f| {
+            let (a, b, c) = (&ICO_V[f[0]], &ICO_V[f[1]], &ICO_V[f[2]]);
+            let d = det3(a, b, c);
+            [cross(b, c), cross(c, a), cross(a, b)].map(|r| r.map(|x| x / d))
+        })
+    })
+}
+
+/// Write the ray through the face plane in barycentric coordinates (alpha, beta, gamma) of (a, b, c):
+/// the face holds the ray when all are >= 0, and the corner triangles are alpha >= 1/2, beta >= 1/2,
+/// gamma >= 1/2 respectively. On an edge the first face found wins.
+pub fn section80(dir: &[f64; 3]) -> Option<usize> {
+    if !dir.iter().all(|x| x.is_finite()) || !(dot(dir, dir) > 0.0) {
+        return None;
+    }
+    // Most-inside face: the largest smallest normalised barycentric coordinate. A face that holds the
+    // ray has it >= 0, so the search also closes any gap left by rounding on an edge.
+    let mut best: Option<(usize, [f64; 3])> = None;
+    let mut best_min = f64::NEG_INFINITY;
+    for (i, rows) in face_rows().iter().enumerate() {
+        // Cramer's rule with the face's determinants taken once: w_0 = det(dir, b, c) / det(a, b, c)
+        // = dir . (b x c) / det(a, b, c), and so on.
+        let w = rows.map(|r| dot(dir, &r));
+        let s = w[0] + w[1] + w[2];
+        if !(s > 0.0) {
+            continue; // the ray meets this face's plane behind the centre
+        }
+        let n = [w[0] / s, w[1] / s, w[2] / s];
+        let m = n[0].min(n[1]).min(n[2]);
+        if m > best_min {
+            best_min = m;
+            best = Some((i, n));
+            if m >= 0.0 {
+                break;
+            }
+        }
+    }
+    let (face, n) = best?;
+    let sub = if n[0] >= 0.5 {
+        1
+    } else if n[1] >= 0.5 {
+        2
+    } else if n[2] >= 0.5 {
+        3
+    } else {
+        0
+    };
+    Some(4 * face + sub)
+}
+
+/// The corners of a section on the unit sphere, in the order [`section80`] describes (for drawing
+/// the completion mask). None for an index of 80 or more.
+pub fn section80_triangle(section: usize) -> Option<[[f64; 3]; 3]> {
+    if section >= SECTIONS {
+        return None;
+    }
+    let f = ICO_F[section / 4];
+    let (a, b, c) = (ICO_V[f[0]], ICO_V[f[1]], ICO_V[f[2]]);
+    let (ma, mb, mc) = (mid(&a, &b), mid(&b, &c), mid(&c, &a));
+    let t = match section % 4 {
+        0 => [ma, mb, mc],
+        1 => [a, ma, mc],
+        2 => [ma, b, mb],
+        _ => [mc, mb, c],
+    };
+    Some(t.map(unit))
+}
+
+/// ArduPilot's 80-bit completion mask (section `s` sets bit `s % 8` of byte `s / 8`) of a set of
+/// directions, and how many sections hold at least one. Give directions about the current hard-iron
+/// centre (and preferably corrected), as ArduPilot does; zero or non-finite ones are ignored.
+pub fn completion_mask(dirs: impl IntoIterator<Item = [f64; 3]>) -> ([u8; 10], usize) {
+    let mut mask = [0u8; 10];
+    for d in dirs {
+        if let Some(s) = section80(&d) {
+            mask[s / 8] |= 1 << (s % 8);
+        }
+    }
+    let filled = mask.iter().map(|b| b.count_ones() as usize).sum();
+    (mask, filled)
+}
+
+/// Whether section `s` is set in a completion mask.
+pub fn mask_has(mask: &[u8; 10], s: usize) -> bool {
+    s < SECTIONS && mask[s / 8] & (1 << (s % 8)) != 0
+}
+
+/// `1 << compass_id` for the MAG_CAL_* `cal_mask` (0 for ids of 8 and more, which it cannot hold).
+fn cal_mask(compass_id: u8) -> u8 {
+    1u8.checked_shl(compass_id as u32).unwrap_or(0)
+}
+
+/// MAG_CAL_PROGRESS: `cal_status` is RUNNING_STEP_ONE below 100 % and RUNNING_STEP_TWO at 100 %
+/// (`completion_pct` is capped at 100); `direction` is the latest sample's direction for display.
+pub fn mag_cal_progress(
+    compass_id: u8,
+    completion_pct: u8,
+    mask: [u8; 10],
+    direction: [f32; 3],
+    attempt: u8,
+) -> MavMessage {
+    let pct = completion_pct.min(100);
+    MavMessage::MAG_CAL_PROGRESS(MAG_CAL_PROGRESS_DATA {
+        compass_id,
+        cal_mask: cal_mask(compass_id),
+        cal_status: if pct < 100 {
+            MagCalStatus::MAG_CAL_RUNNING_STEP_ONE
+        } else {
+            MagCalStatus::MAG_CAL_RUNNING_STEP_TWO
+        },
+        attempt,
+        completion_pct: pct,
+        completion_mask: mask,
+        direction_x: direction[0],
+        direction_y: direction[1],
+        direction_z: direction[2],
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Ground-station magnetometer calibration (MAV_CMD_DO_START/ACCEPT/CANCEL_MAG_CAL)
+
+/// MAV_CMD_DO_START_MAG_CAL's parameters, as ArduPilot reads them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MagCalStart {
+    /// p1: compasses to calibrate (bit i: compass i; 0: all).
+    pub mask: u8,
+    /// p2: after a failed fit, start again from zero coverage.
+    pub retry: bool,
+    /// p3: install and write a passing result at once; otherwise hold it for DO_ACCEPT_MAG_CAL.
+    pub autosave: bool,
+    /// p4: wait this long before collecting, s.
+    pub delay_s: f64,
+    /// p5: reboot after saving (taken, but there is nothing to reboot: the service installs live).
+    pub autoreboot: bool,
+}
+
+impl MagCalStart {
+    pub fn from_command(c: &COMMAND_LONG_DATA) -> MagCalStart {
+        MagCalStart {
+            mask: mask_param(c.param1),
+            retry: c.param2 != 0.0,
+            autosave: c.param3 != 0.0,
+            delay_s: if c.param4.is_finite() {
+                f64::from(c.param4).clamp(0.0, 3600.0)
+            } else {
+                0.0
+            },
+            autoreboot: c.param5 != 0.0,
+        }
+    }
+}
+
+/// A compass mask sent as a float parameter (0..255; anything else reads as 0, all compasses).
+pub fn mask_param(p: f32) -> u8 {
+    if p.is_finite() && (0.0..=255.0).contains(&p) {
+        p as u8
+    } else {
+        0
+    }
+}
+
+/// Whether a compass mask selects compass `compass_id`: 0 means all.
+pub fn mask_selects(mask: u8, compass_id: u8) -> bool {
+    mask == 0 || (compass_id < 8 && mask & (1 << compass_id) != 0)
+}
+
+/// Where the magnetometer calibration stands, in the manner of ArduPilot's compass calibrator:
+/// one status, changed only by [`MagCalRun::on`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalRun {
+    /// No commanded run: passing fits are installed as they come when the service calibrates
+    /// continuously (`daemon.mag_cal = "continuous"`), and not at all otherwise.
+    Idle,
+    /// Started with a delay: collecting from zero coverage begins at `start_at_s`.
+    Waiting { start_at_s: f64, opts: MagCalStart },
+    /// Collecting from zero coverage; the next passing fit ends the run.
+    Running { opts: MagCalStart },
+    /// Passed with autosave off: the result waits for DO_ACCEPT_MAG_CAL (not installed, not written).
+    Held { cal: Box<SensorCalibration> },
+    /// Failed with retry off; stays so until a new start or a cancel.
+    Failed,
+}
+
+/// What happens to a calibration run.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalEvent {
+    Start {
+        opts: MagCalStart,
+        now_s: f64,
+    },
+    Accept {
+        mask: u8,
+    },
+    Cancel {
+        mask: u8,
+    },
+    /// Time passes (for the start delay).
+    Tick {
+        now_s: f64,
+    },
+    /// A fit passed its checks (and is no worse than the calibration in use); `complete`: the data
+    /// covered the sphere (progress 100 %). A commanded run ends only on a complete one, as
+    /// ArduPilot's fits only once its sections are filled.
+    FitPassed {
+        cal: Box<SensorCalibration>,
+        complete: bool,
+    },
+    /// A fit failed after the data covered the sphere.
+    FitFailed,
+}
+
+/// What the service does on a transition.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MagCalEffect {
+    /// COMMAND_ACK with this result to the command's sender.
+    Ack(MavResult),
+    /// Drop what was collected: a new run from zero coverage.
+    Restart,
+    /// Install the calibration and write it.
+    Install(Box<SensorCalibration>),
+    /// MAG_CAL_REPORT of a passing fit; `commanded`: it ends a commanded run (always reported).
+    ReportSuccess {
+        cal: Box<SensorCalibration>,
+        autosaved: bool,
+        commanded: bool,
+    },
+    /// MAG_CAL_REPORT of the failed fit.
+    ReportFailure,
+}
+
+impl MagCalRun {
+    /// The transition function of compass `compass_id`'s run: the next status and what to do,
+    /// given whether the service calibrates without a command (`continuous`). Commands whose
+    /// compass mask leaves this compass out are refused (MAV_RESULT_FAILED) and change nothing.
+    pub fn on(
+        self,
+        ev: MagCalEvent,
+        continuous: bool,
+        compass_id: u8,
+    ) -> (MagCalRun, Vec<MagCalEffect>) {
+        let ours = |mask: u8| mask_selects(mask, compass_id);
+        use MagCalEffect as E;
+        use MagCalEvent as V;
+        use MagCalRun as R;
+        let ack = E::Ack;
+        match (self, ev) {
+            (s, V::Start { opts, .. }) if !ours(opts.mask) => {
+                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            (_, V::Start { opts, now_s }) if opts.delay_s > 0.0 => (
+                R::Waiting {
+                    start_at_s: now_s + opts.delay_s,
+                    opts,
+                },
+                vec![ack(MavResult::MAV_RESULT_ACCEPTED)],
+            ),
+            (_, V::Start { opts, .. }) => (
+                R::Running { opts },
+                vec![ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart],
+            ),
+            (R::Waiting { start_at_s, opts }, V::Tick { now_s }) if now_s >= start_at_s => {
+                (R::Running { opts }, vec![E::Restart])
+            }
+            (
+                R::Running { opts },
+                V::FitPassed {
+                    complete: false, ..
+                },
+            ) => (R::Running { opts }, vec![]),
+            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => (
+                R::Idle,
+                vec![
+                    E::Install(cal.clone()),
+                    E::ReportSuccess {
+                        cal,
+                        autosaved: true,
+                        commanded: true,
+                    },
+                ],
+            ),
+            (R::Running { .. }, V::FitPassed { cal, .. }) => (
+                R::Held { cal: cal.clone() },
+                vec![E::ReportSuccess {
+                    cal,
+                    autosaved: false,
+                    commanded: true,
+                }],
+            ),
+            (R::Idle, V::FitPassed { cal, .. }) if continuous => (
+                R::Idle,
+                vec![
+                    E::Install(cal.clone()),
+                    E::ReportSuccess {
+                        cal,
+                        autosaved: true,
+                        commanded: false,
+                    },
+                ],
+            ),
+            (R::Running { opts }, V::FitFailed) if opts.retry => {
+                (R::Running { opts }, vec![E::ReportFailure, E::Restart])
+            }
+            (R::Running { .. }, V::FitFailed) => (R::Failed, vec![E::ReportFailure]),
+            (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
+            (s, V::Accept { mask } | V::Cancel { mask }) if !ours(mask) => {
+                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            (R::Held { cal }, V::Accept { .. }) => (
+                R::Idle,
+                vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
+            ),
+            (s, V::Accept { .. }) => (s, vec![ack(MavResult::MAV_RESULT_FAILED)]),
+            (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
+            (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
+        }
+    }
+
+    /// Whether magnetometer progress is reported: during a commanded run, or while idle when the
+    /// service calibrates continuously.
+    pub fn reports_progress(&self, continuous: bool) -> bool {
+        match self {
+            MagCalRun::Running { .. } => true,
+            MagCalRun::Idle => continuous,
+            _ => false,
+        }
+    }
+}
+
+/// COMMAND_ACK for `command` to its sender.
+pub fn command_ack(
+    command: MavCmd,
+    result: MavResult,
+    target_system: u8,
+    target_component: u8,
+) -> MavMessage {
+    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command,
+        result,
+        target_system,
+        target_component,
+        ..Default::default()
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// MAG_CAL_REPORT
+
+/// Wire value of MAG_CAL_STATUS for a calibration result: 4 (MAG_CAL_SUCCESS) when the status is
+/// "ok"; for a failure, by reason: radius 7 (MAG_CAL_FAILED_RADIUS), offsets 8
+/// (MAG_CAL_FAILED_OFFSETS), diagonal_scaling 9 (MAG_CAL_FAILED_DIAG_SCALING), residuals 10
+/// (MAG_CAL_FAILED_RESIDUALS_HIGH), anything else 5 (MAG_CAL_FAILED).
+pub fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
+    if cal.status == CalStatus::Ok {
+        return 4;
+    }
+    match cal.failure {
+        Some(FitFailure::Radius) => 7,
+        Some(FitFailure::Offsets) => 8,
+        Some(FitFailure::DiagonalScaling) => 9,
+        Some(FitFailure::Residuals) => 10,
+        _ => 5,
+    }
+}
+
+fn mag_cal_status_enum(code: u8) -> MagCalStatus {
+    match code {
+        4 => MagCalStatus::MAG_CAL_SUCCESS,
+        7 => MagCalStatus::MAG_CAL_FAILED_RADIUS,
+        8 => MagCalStatus::MAG_CAL_FAILED_OFFSETS,
+        9 => MagCalStatus::MAG_CAL_FAILED_DIAG_SCALING,
+        10 => MagCalStatus::MAG_CAL_FAILED_RESIDUALS_HIGH,
+        _ => MagCalStatus::MAG_CAL_FAILED,
+    }
+}
+
+/// MAG_CAL_REPORT for a magnetometer calibration in uT, with `autosaved` = 0.
+/// See [`mag_cal_report_autosaved`].
+pub fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
+    mag_cal_report_autosaved(compass_id, cal, false)
+}
+
+/// MAG_CAL_REPORT in ArduPilot's conventions: `fitness` the RMS residual in mGauss; `ofs_*` as
+/// COMPASS_OFS (mGauss, added: -offset * 10); `diag_*`/`offdiag_*` as COMPASS_DIA/ODI from the
+/// symmetric part of the matrix (via [`crate::calib::export::ardupilot_mag`]); `cal_status` from
+/// [`mag_cal_status_code`]; `cal_mask` = 1 << compass_id; `scale_factor` 1.0; orientation fields
+/// unused (ROTATION_NONE, confidence 0). The calibration's numbers are taken to be in uT.
+pub fn mag_cal_report_autosaved(
+    compass_id: u8,
+    cal: &SensorCalibration,
+    autosaved: bool,
+) -> MavMessage {
+    let c = Calibration {
+        model: ModelKind::parse(&cal.model).unwrap_or(ModelKind::Sym9),
+        offset: cal.offset,
+        matrix: cal.matrix,
+    };
+    // Order: OFS X Y Z, DIA X Y Z, ODI X Y Z (the names do not matter here).
+    let (p, _) = crate::calib::export::ardupilot_mag(&c, 0);
+    let v: Vec<f32> = p.iter().map(|(_, x)| *x as f32).collect();
+    MavMessage::MAG_CAL_REPORT(MAG_CAL_REPORT_DATA {
+        fitness: (cal.rms_residual * 10.0) as f32,
+        ofs_x: v[0],
+        ofs_y: v[1],
+        ofs_z: v[2],
+        diag_x: v[3],
+        diag_y: v[4],
+        diag_z: v[5],
+        offdiag_x: v[6],
+        offdiag_y: v[7],
+        offdiag_z: v[8],
+        compass_id,
+        cal_mask: cal_mask(compass_id),
+        cal_status: mag_cal_status_enum(mag_cal_status_code(cal)),
+        autosaved: autosaved as u8,
+        scale_factor: 1.0,
+        ..Default::default()
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Heading, vectors, text
+
+/// NAMED_VALUE_FLOAT (name cut to 10 bytes), e.g. `named_float("HEADING", t, deg)`.
+pub fn named_float(name: &str, t_boot_ms: u32, value: f32) -> MavMessage {
+    MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
+        time_boot_ms: t_boot_ms,
+        value,
+        name: char_array(name),
+    })
+}
+
+/// DEBUG_VECT (name cut to 10 bytes).
+pub fn debug_vect(name: &str, time_usec: u64, v: [f32; 3]) -> MavMessage {
+    MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
+        time_usec,
+        x: v[0],
+        y: v[1],
+        z: v[2],
+        name: char_array(name),
+    })
+}
+
+/// MAVLink severity from its number (0 emergency .. 7 debug; larger numbers read as debug).
+pub fn severity(level: u8) -> MavSeverity {
+    match level {
+        0 => MavSeverity::MAV_SEVERITY_EMERGENCY,
+        1 => MavSeverity::MAV_SEVERITY_ALERT,
+        2 => MavSeverity::MAV_SEVERITY_CRITICAL,
+        3 => MavSeverity::MAV_SEVERITY_ERROR,
+        4 => MavSeverity::MAV_SEVERITY_WARNING,
+        5 => MavSeverity::MAV_SEVERITY_NOTICE,
+        6 => MavSeverity::MAV_SEVERITY_INFO,
+        _ => MavSeverity::MAV_SEVERITY_DEBUG,
+    }
+}
+
+/// The JSON `level` name of a MAVLink severity number.
+pub fn severity_name(level: u8) -> &'static str {
+    match level {
+        0 => "emergency",
+        1 => "alert",
+        2 => "critical",
+        3 => "error",
+        4 => "warning",
+        5 => "notice",
+        6 => "info",
+        _ => "debug",
+    }
+}
+
+static STATUSTEXT_ID: std::sync::atomic::AtomicU16 = std::sync::atomic::AtomicU16::new(1);
+
+fn next_statustext_id() -> u16 {
+    loop {
+        let id = STATUSTEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if id != 0 {
+            return id;
+        }
+    }
+}
+
+/// STATUSTEXT messages for a text. Up to 50 bytes: one message with `id` 0. Longer: chunks of at
+/// most 50 bytes (cut at character boundaries) sharing a non-zero `id` with `chunk_seq` 0, 1, ...;
+/// when the last chunk is exactly 50 bytes an empty chunk follows, since a receiver takes a chunk
+/// with a NUL in it as the last one. At most 256 chunks (longer text is cut).
+pub fn statustext(severity_level: u8, text: &str) -> Vec<MavMessage> {
+    const N: usize = 50;
+    let sev = severity(severity_level);
+    let msg = |t: &str, id: u16, chunk_seq: u8| {
+        MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+            severity: sev,
+            text: char_array(t),
+            id,
+            chunk_seq,
+        })
+    };
+    if text.len() <= N {
+        return vec![msg(text, 0, 0)];
+    }
+    let id = next_statustext_id();
+    let mut out = Vec::new();
+    let mut rest = text;
+    let mut last_len = 0;
+    while !rest.is_empty() && out.len() < 256 {
+        let n = utf8_prefix_len(rest, N).max(rest.chars().next().map_or(0, |c| c.len_utf8()));
+        out.push(msg(&rest[..n], id, out.len() as u8));
+        last_len = n;
+        rest = &rest[n..];
+    }
+    if last_len == N && out.len() < 256 {
+        out.push(msg("", id, out.len() as u8));
+    }
+    out
+}
+
+use crate::attitude::wrap_pi;
+
+/// ATTITUDE from Euler angles in degrees (ZYX, body FRD -> NED): radians, roll and yaw wrapped to
+/// (-pi, pi] (a heading of 270 deg is sent as -pi/2). Angular rates are sent as 0.
+pub fn attitude(t_boot_ms: u32, roll_deg: f64, pitch_deg: f64, yaw_deg: f64) -> MavMessage {
+    MavMessage::ATTITUDE(ATTITUDE_DATA {
+        time_boot_ms: t_boot_ms,
+        roll: wrap_pi(roll_deg.to_radians()) as f32,
+        pitch: pitch_deg.to_radians() as f32,
+        yaw: wrap_pi(yaw_deg.to_radians()) as f32,
+        ..Default::default()
+    })
+}
+
+/// A quaternion `[w, x, y, z]` scaled to unit length; `None` when it cannot be (not finite, or zero).
+fn unit_wxyz(q: [f64; 4]) -> Option<[f64; 4]> {
+    let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+    (n.is_finite() && n > 1e-9).then(|| q.map(|c| c / n))
+}
+
+/// Roll, pitch, yaw in radians (ZYX) of a body FRD -> NED quaternion `[w, x, y, z]`: roll and yaw in
+/// (-pi, pi], pitch in [-pi/2, pi/2]. `None` for a quaternion that is not finite or zero.
+pub fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
+    let [w, x, y, z] = unit_wxyz(q_wxyz)?;
+    let q = nalgebra::UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(w, x, y, z));
+    let [roll, pitch, yaw] = crate::attitude::euler_zyx_deg(&q).map(f64::to_radians);
+    Some([wrap_pi(roll), pitch, wrap_pi(yaw)])
+}
+
+/// ATTITUDE_QUATERNION: `q1..q4` = w, x, y, z of the body FRD -> NED rotation (normalised; the sign
+/// is chosen with w >= 0), body rates in rad/s; `repr_offset_q` is left at zero ("not supported").
+/// `None` for a quaternion that is not finite or zero.
+pub fn attitude_quaternion(
+    t_boot_ms: u32,
+    q_wxyz: [f64; 4],
+    rates_rad_s: Vec3,
+) -> Option<MavMessage> {
+    let q = unit_wxyz(q_wxyz)?;
+    let q = if q[0] < 0.0 { q.map(|c| -c) } else { q };
+    let r = rates_rad_s.map(|v| if v.is_finite() { v as f32 } else { 0.0 });
+    Some(MavMessage::ATTITUDE_QUATERNION(ATTITUDE_QUATERNION_DATA {
+        time_boot_ms: t_boot_ms,
+        q1: q[0] as f32,
+        q2: q[1] as f32,
+        q3: q[2] as f32,
+        q4: q[3] as f32,
+        rollspeed: r[0],
+        pitchspeed: r[1],
+        yawspeed: r[2],
+        ..Default::default()
+    }))
+}
+
+/// ATTITUDE from a body FRD -> NED quaternion `[w, x, y, z]`: roll, pitch, yaw radians (ZYX; yaw in
+/// (-pi, pi]) and body rates in rad/s. `None` for a quaternion that is not finite or zero.
+pub fn attitude_from_quaternion(
+    t_boot_ms: u32,
+    q_wxyz: [f64; 4],
+    rates_rad_s: Vec3,
+) -> Option<MavMessage> {
+    let [roll, pitch, yaw] = euler_from_quaternion(q_wxyz)?;
+    let r = rates_rad_s.map(|v| if v.is_finite() { v as f32 } else { 0.0 });
+    Some(MavMessage::ATTITUDE(ATTITUDE_DATA {
+        time_boot_ms: t_boot_ms,
+        roll: roll as f32,
+        pitch: pitch as f32,
+        yaw: yaw as f32,
+        rollspeed: r[0],
+        pitchspeed: r[1],
+        yawspeed: r[2],
+    }))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Undoing ArduPilot's correction
+
+/// ArduPilot's compass parameters in `correct_field` order, as (name part, axis).
+const AP_COMPASS_FIELDS: [(&str, &str); 9] = [
+    ("OFS", "X"),
+    ("OFS", "Y"),
+    ("OFS", "Z"),
+    ("DIA", "X"),
+    ("DIA", "Y"),
+    ("DIA", "Z"),
+    ("ODI", "X"),
+    ("ODI", "Y"),
+    ("ODI", "Z"),
+];
+
+/// Compasses whose ArduPilot parameters the service reads to undo their correction (COMPASS_OFS,
+/// COMPASS_OFS2, COMPASS_OFS3 ...: ArduPilot keeps three sets).
+pub const AP_COMPASSES: u8 = 3;
+
+/// The nine parameters of compass `compass` (0-based) in `correct_field` order, then its optional
+/// scale (`COMPASS_SCALE`, `COMPASS_SCALE2` ...: applied only when read and within ArduPilot's
+/// bounds).
+pub fn ap_compass_params(compass: u8) -> [String; 10] {
+    let name = |base: &str, axis: &str| {
+        crate::calib::export::ardupilot_compass_param(base, compass as usize, axis)
+    };
+    let scale = if compass == 0 {
+        "COMPASS_SCALE".to_string()
+    } else {
+        format!("COMPASS_SCALE{}", compass + 1)
+    };
+    let mut out: [String; 10] = Default::default();
+    for (k, (base, axis)) in AP_COMPASS_FIELDS.iter().enumerate() {
+        out[k] = name(base, axis);
+    }
+    out[9] = scale;
+    out
+}
+
+/// ArduPilot applies COMPASS_SCALE only within these bounds (COMPASS_MIN/MAX_SCALE_FACTOR).
+const AP_SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
+
+/// PARAM_REQUEST_READ by name (`param_index` -1) for the parameters of compasses 0 to
+/// [`AP_COMPASSES`] - 1 ([`ap_compass_params`]: ten per compass).
+pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
+    (0..AP_COMPASSES)
+        .flat_map(ap_compass_params)
+        .map(|name| {
+            MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+                param_index: -1,
+                target_system,
+                target_component,
+                param_id: char_array(&name),
+            })
+        })
+        .collect()
+}
+
+/// ArduPilot's compass corrections as read back from the vehicle, to undo them (one set per compass).
+///
+/// ArduPilot streams RAW_IMU / SCALED_IMU* magnetometer fields after
+/// `mag = S (scale (raw + OFS))` (mGauss; S from DIA/ODI, all-zero DIA read as 1; `scale` =
+/// COMPASS_SCALE when read and within 1/1.5..1.5, else 1). The motor term (COMPASS_MOT) is not undone:
+/// it needs throttle or current and is zero unless motor compensation is set up.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ApCompassParams {
+    values: BTreeMap<String, f32>,
+}
+
+impl ApCompassParams {
+    /// Take a PARAM_VALUE for one of the compasses' parameters ([`ap_compass_params`]); true when
+    /// it was one.
+    pub fn absorb(&mut self, msg: &MavMessage) -> bool {
+        let MavMessage::PARAM_VALUE(p) = msg else {
+            return false;
+        };
+        let name = array_text(&p.param_id);
+        let known = (0..AP_COMPASSES).any(|c| ap_compass_params(c).contains(&name));
+        if known && p.param_value.is_finite() {
+            self.values.insert(name, p.param_value);
+            true
+        } else {
+            false
+        }
+    }
+
+    /// Set a value directly (as if read).
+    pub fn set(&mut self, name: &str, value: f32) {
+        self.values.insert(name.to_string(), value);
+    }
+
+    /// A value read so far.
+    pub fn get(&self, name: &str) -> Option<f32> {
+        self.values.get(name).copied()
+    }
+
+    /// All nine offset and matrix parameters of `compass` have been read.
+    pub fn complete(&self, compass: u8) -> bool {
+        ap_compass_params(compass)[..9]
+            .iter()
+            .all(|n| self.values.contains_key(n))
+    }
+
+    /// (OFS in mGauss, S, scale) of `compass` as ArduPilot uses them.
+    fn parts(&self, compass: u8) -> Option<([f64; 3], [[f64; 3]; 3], f64)> {
+        if !self.complete(compass) {
+            return None;
+        }
+        let names = ap_compass_params(compass);
+        let v: Vec<f64> = names[..9].iter().map(|n| self.values[n] as f64).collect();
+        let ofs = [v[0], v[1], v[2]];
+        let mut dia = [v[3], v[4], v[5]];
+        if dia.iter().all(|d| *d == 0.0) {
+            dia = [1.0; 3];
+        }
+        let (odx, ody, odz) = (v[6], v[7], v[8]);
+        let s = [[dia[0], odx, ody], [odx, dia[1], odz], [ody, odz, dia[2]]];
+        let scale = match self.get(&names[9]).map(f64::from) {
+            Some(k) if k >= AP_SCALE_RANGE.0 && k <= AP_SCALE_RANGE.1 => k,
+            _ => 1.0,
+        };
+        Some((ofs, s, scale))
+    }
+
+    /// ArduPilot's forward correction of `compass`'s raw field (uT in, uT out). None until complete.
+    pub fn correct(&self, compass: u8, raw_ut: [f64; 3]) -> Option<[f64; 3]> {
+        let (ofs, s, scale) = self.parts(compass)?;
+        let m = [0, 1, 2].map(|i| scale * (raw_ut[i] * 10.0 + ofs[i]));
+        Some([0, 1, 2].map(|i| dot(&s[i], &m) / 10.0))
+    }
+
+    /// The raw field (uT) behind `compass`'s corrected one (uT): raw = S^-1 corrected / scale - OFS.
+    /// None until complete, or when S is singular or the input not finite.
+    pub fn undo(&self, compass: u8, corrected_ut: [f64; 3]) -> Option<[f64; 3]> {
+        if !corrected_ut.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        let (ofs, s, scale) = self.parts(compass)?;
+        let sm = rows_to_mat(&s);
+        if !(sm.determinant().abs() > 1e-9) {
+            return None;
+        }
+        let inv = sm.try_inverse()?;
+        let c = nalgebra::Vector3::new(
+            corrected_ut[0] * 10.0,
+            corrected_ut[1] * 10.0,
+            corrected_ut[2] * 10.0,
+        );
+        let m = inv * c / scale;
+        let raw = [0, 1, 2].map(|i| (m[i] - ofs[i]) / 10.0);
+        raw.iter().all(|x| x.is_finite()).then_some(raw)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing parameters
+
+/// Seconds before an unconfirmed PARAM_SET is sent again.
+pub const PARAM_RETRY_S: f64 = 1.0;
+/// Sends per parameter at most.
+pub const PARAM_MAX_TRIES: u8 = 3;
+
+#[derive(Debug, Clone)]
+struct ParamEntry {
+    name: String,
+    value: f64,
+    /// Can be sent: a name of at most 16 bytes and a value finite as f32.
+    valid: bool,
+    tries: u8,
+    last_sent: f64,
+    confirmed: bool,
+    /// Latest echoed value that did not match.
+    mismatch: Option<f32>,
+}
+
+/// Writes parameters with PARAM_SET (REAL32) and checks each against the PARAM_VALUE the flight
+/// controller echoes. Call [`next_messages`](Self::next_messages) periodically (it also advances the
+/// writer's clock) and feed every PARAM_VALUE to [`absorb`](Self::absorb).
+#[derive(Debug, Clone)]
+pub struct ParamWriter {
+    entries: Vec<ParamEntry>,
+    pub target_system: u8,
+    pub target_component: u8,
+    now: f64,
+}
+
+impl ParamWriter {
+    pub fn new(params: Vec<(String, f64)>, target_system: u8, target_component: u8) -> Self {
+        let entries = params
+            .into_iter()
+            .map(|(name, value)| ParamEntry {
+                valid: !name.is_empty() && name.len() <= 16 && (value as f32).is_finite(),
+                name,
+                value,
+                tries: 0,
+                last_sent: f64::NEG_INFINITY,
+                confirmed: false,
+                mismatch: None,
+            })
+            .collect();
+        ParamWriter {
+            entries,
+            target_system,
+            target_component,
+            now: f64::NEG_INFINITY,
+        }
+    }
+
+    /// PARAM_SET for every parameter not yet confirmed that is due: never sent, or last sent at least
+    /// [`PARAM_RETRY_S`] ago and sent fewer than [`PARAM_MAX_TRIES`] times.
+    pub fn next_messages(&mut self, now_s: f64) -> Vec<MavMessage> {
+        self.now = self.now.max(now_s);
+        let mut out = Vec::new();
+        for e in self.entries.iter_mut() {
+            if !e.valid || e.confirmed || e.tries >= PARAM_MAX_TRIES {
+                continue;
+            }
+            if e.tries == 0 || now_s - e.last_sent >= PARAM_RETRY_S {
+                e.tries += 1;
+                e.last_sent = now_s;
+                out.push(MavMessage::PARAM_SET(PARAM_SET_DATA {
+                    param_value: e.value as f32,
+                    target_system: self.target_system,
+                    target_component: self.target_component,
+                    param_id: char_array(&e.name),
+                    param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                }));
+            }
+        }
+        out
+    }
+
+    /// Take a PARAM_VALUE: one with a name being written and a value within 1e-4 (relative) of the
+    /// value sent confirms it; a different value is remembered as a mismatch (the parameter is sent
+    /// again while tries remain). Confirmation is final.
+    pub fn absorb(&mut self, msg: &MavMessage) {
+        let MavMessage::PARAM_VALUE(p) = msg else {
+            return;
+        };
+        let name = array_text(&p.param_id);
+        for e in self.entries.iter_mut().filter(|e| e.name == name) {
+            if e.confirmed {
+                continue;
+            }
+            let want = e.value as f32 as f64;
+            let got = p.param_value as f64;
+            if (got - want).abs() <= 1e-4 * want.abs().max(1e-6) {
+                e.confirmed = true;
+                e.mismatch = None;
+            } else {
+                e.mismatch = Some(p.param_value);
+            }
+        }
+    }
+
+    /// Nothing more to do: every parameter is confirmed, cannot be sent, or was sent
+    /// [`PARAM_MAX_TRIES`] times with the last try [`PARAM_RETRY_S`] old at the latest
+    /// `next_messages` time.
+    pub fn done(&self) -> bool {
+        self.entries.iter().all(|e| {
+            e.confirmed
+                || !e.valid
+                || (e.tries >= PARAM_MAX_TRIES && self.now - e.last_sent >= PARAM_RETRY_S)
+        })
+    }
+
+    /// Names not confirmed (never echoed, echoed with a different value, or not sendable). Final once
+    /// [`done`](Self::done).
+    pub fn failed(&self) -> Vec<String> {
+        self.entries
+            .iter()
+            .filter(|e| !e.confirmed)
+            .map(|e| e.name.clone())
+            .collect()
+    }
+
+    /// Names whose latest echo differed from the value sent, with that value.
+    pub fn mismatches(&self) -> Vec<(String, f32)> {
+        self.entries
+            .iter()
+            .filter(|e| !e.confirmed)
+            .filter_map(|e| e.mismatch.map(|v| (e.name.clone(), v)))
+            .collect()
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// JSON lines
+
+/// Schema name carried by every JSON line.
+pub const JSON_SCHEMA: &str = "imucald.live/1";
+
+/// One event of the JSON-lines stream (see the module documentation for the schema).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum LiveEvent {
+    /// The fused attitude of the orientation filter (see the module documentation).
+    Attitude {
+        t: f64,
+        /// Body FRD -> NED, `[w, x, y, z]`.
+        q: [f64; 4],
+        roll_deg: f64,
+        pitch_deg: f64,
+        heading_deg: f64,
+        true_heading: bool,
+        gyro_bias_rad_s: Vec3,
+        mag_disturbed: bool,
+    },
+    Heading {
+        t: f64,
+        roll_deg: f64,
+        pitch_deg: f64,
+        heading_deg: f64,
+        true_heading: bool,
+    },
+    Calibrated {
+        t: f64,
+        accel_mps2: Option<Vec3>,
+        gyro_rad_s: Option<Vec3>,
+        mag_ut: Option<Vec3>,
+    },
+    Progress {
+        sensor: String,
+        /// The compass (MAG_CAL_* `compass_id`) of the instance.
+        instance: u8,
+        completion_pct: f64,
+        filled_regions: usize,
+        /// The filled regions ([`crate::calib::coverage::regions_hex`]).
+        #[serde(default)]
+        regions: String,
+        /// Direction of the latest point about the centre, body axes (zero while no centre).
+        #[serde(default)]
+        direction: Vec3,
+    },
+    Calibration {
+        sensor: String,
+        /// The IMU instance's compass id (MAG_CAL_* `compass_id`).
+        instance: u8,
+        status: CalStatus,
+        failure: Option<FitFailure>,
+        model: String,
+        offset: Vec3,
+        /// 1-sigma of `offset`.
+        #[serde(default)]
+        offset_sigma: Vec3,
+        matrix: [[f64; 3]; 3],
+        rms_residual: f64,
+    },
+    Status {
+        level: String,
+        text: String,
+    },
+}
+
+impl LiveEvent {
+    /// A `calibration` event from a report entry of the instance with compass id `instance`.
+    pub fn calibration(sensor: &str, instance: u8, cal: &SensorCalibration) -> Self {
+        LiveEvent::Calibration {
+            sensor: sensor.to_string(),
+            instance,
+            status: cal.status,
+            failure: cal.failure,
+            model: cal.model.clone(),
+            offset: cal.offset,
+            offset_sigma: cal.offset_sigma,
+            matrix: cal.matrix,
+            rms_residual: cal.rms_residual,
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct Line<'a> {
+    schema: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    vehicle: Option<&'a VehicleTag>,
+    #[serde(flatten)]
+    event: &'a LiveEvent,
+}
+
+/// Which vehicle a JSON line is about, on lines about a vehicle other than the first the live
+/// service calibrates: `"vehicle": {"link": "udpin:0.0.0.0:14550", "system_id": 2}`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct VehicleTag {
+    /// The link it was heard on (its address as configured).
+    pub link: String,
+    /// Its MAVLink system id.
+    pub system_id: u8,
+}
+
+/// One JSON line (terminated by `\n`) for an event: `schema`, then `type`, then the event's fields.
+pub fn json_line(ev: &LiveEvent) -> String {
+    json_line_for(ev, None)
+}
+
+/// [`json_line`] for an event about a vehicle: `schema`, `vehicle` (when given), `type`, fields.
+pub fn json_line_for(ev: &LiveEvent, vehicle: Option<&VehicleTag>) -> String {
+    let mut s = serde_json::to_string(&Line {
+        schema: JSON_SCHEMA,
+        vehicle,
+        event: ev,
+    })
+    .unwrap_or_else(|e| {
+        // Not expected for these types; keep the stream well-formed anyway.
+        format!(
+            "{{\"schema\":\"{JSON_SCHEMA}\",\"type\":\"status\",\"level\":\"error\",\"text\":{}}}",
+            serde_json::Value::String(format!("event not serialisable: {e}"))
+        )
+    });
+    s.push('\n');
+    s
+}
+
+// ---------------------------------------------------------------------------------------------
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::decode::{parse_frame, Frame, FrameParse};
+    use mavlink::dialects::ardupilotmega::PARAM_VALUE_DATA;
+    use std::f64::consts::PI;
+
+    fn decode(bytes: &[u8]) -> Frame {
+        match parse_frame(bytes) {
+            FrameParse::Frame(f, n) => {
+                assert_eq!(n, bytes.len());
+                *f
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn mavout_heartbeat_says_onboard_controller_without_autopilot_with_our_ids() {
+        let mut enc = MavEncoder::new(42, 191);
+        let f = decode(&enc.encode(&heartbeat()));
+        assert_eq!((f.system_id, f.component_id), (42, 191));
+        let MavMessage::HEARTBEAT(h) = f.message else {
+            panic!("{:?}", f.message)
+        };
+        assert_eq!(h.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
+        assert_eq!(h.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        assert_eq!(h.system_status, MavState::MAV_STATE_ACTIVE);
+        assert_eq!(h.mavlink_version, 3);
+    }
+
+    fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
+        Box::new(SensorCalibration {
+            status: CalStatus::Ok,
+            failure: None,
+            detail: None,
+            model: "sym9".into(),
+            units: "uT".into(),
+            offset: [offset_x, 0.0, 0.0],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            radius: 50.0,
+            rms_residual: 0.1,
+            offset_sigma: [0.01; 3],
+            samples_used: 500,
+            iterations: 5,
+            candidates: vec![],
+            outliers_rejected: 0,
+            method: None,
+        })
+    }
+
+    #[test]
+    fn mavout_mag_cal_run_follows_the_ground_station_protocol() {
+        use MagCalEffect as E;
+        use MagCalEvent as V;
+        let accepted = E::Ack(MavResult::MAV_RESULT_ACCEPTED);
+        let failed = E::Ack(MavResult::MAV_RESULT_FAILED);
+        let opts = |autosave: bool, retry: bool, delay_s: f64| MagCalStart {
+            mask: 0,
+            retry,
+            autosave,
+            delay_s,
+            autoreboot: false,
+        };
+        // Autosave off: start -> ack + restart; a passing fit is held and reported (not saved);
+        // accept installs it.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(false, false, 0.0),
+                now_s: 5.0,
+            },
+            false,
+            0,
+        );
+        assert_eq!(fx, vec![accepted.clone(), E::Restart]);
+        assert!(s.reports_progress(false));
+        // A fit that passes before the data covers the sphere does not end the run.
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(2.0),
+                complete: false,
+            },
+            false,
+            0,
+        );
+        assert!(fx.is_empty() && matches!(s, MagCalRun::Running { .. }));
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(3.0),
+                complete: true,
+            },
+            false,
+            0,
+        );
+        assert_eq!(s, MagCalRun::Held { cal: run_cal(3.0) });
+        assert_eq!(
+            fx,
+            vec![E::ReportSuccess {
+                cal: run_cal(3.0),
+                autosaved: false,
+                commanded: true
+            }]
+        );
+        assert!(!s.reports_progress(true));
+        // Held: later fits change nothing.
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(4.0),
+                complete: true,
+            },
+            true,
+            0,
+        );
+        assert!(fx.is_empty() && s == MagCalRun::Held { cal: run_cal(3.0) });
+        let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
+        assert_eq!(s, MagCalRun::Idle);
+        assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
+        // Accept with nothing held fails; cancel always succeeds and discards the held result.
+        let (s, fx) = s.on(V::Accept { mask: 1 }, false, 0);
+        assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![failed.clone()]));
+        let (s, _) = s.on(
+            V::Start {
+                opts: opts(false, false, 0.0),
+                now_s: 0.0,
+            },
+            false,
+            0,
+        );
+        let (s, _) = s.on(
+            V::FitPassed {
+                cal: run_cal(3.0),
+                complete: true,
+            },
+            false,
+            0,
+        );
+        let (s, fx) = s.on(V::Cancel { mask: 0 }, false, 0);
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
+        // Autosave on: installed and reported as saved at once, back to idle.
+        let (s, _) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(true, false, 0.0),
+                now_s: 0.0,
+            },
+            false,
+            0,
+        );
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(1.0),
+                complete: true,
+            },
+            false,
+            0,
+        );
+        assert_eq!(s, MagCalRun::Idle);
+        assert_eq!(
+            fx,
+            vec![
+                E::Install(run_cal(1.0)),
+                E::ReportSuccess {
+                    cal: run_cal(1.0),
+                    autosaved: true,
+                    commanded: true
+                }
+            ]
+        );
+        // Delay: collecting starts (from zero) when it has passed.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: opts(true, false, 2.0),
+                now_s: 10.0,
+            },
+            false,
+            0,
+        );
+        assert_eq!(fx, vec![accepted.clone()]);
+        assert!(!s.reports_progress(true));
+        let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false, 0);
+        assert!(fx.is_empty() && matches!(s, MagCalRun::Waiting { .. }));
+        let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false, 0);
+        assert_eq!(fx, vec![E::Restart]);
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        // Failure: with retry, again from zero; without, failed until restarted or cancelled.
+        let (s, fx) = MagCalRun::Running {
+            opts: opts(true, true, 0.0),
+        }
+        .on(V::FitFailed, false, 0);
+        assert_eq!(fx, vec![E::ReportFailure, E::Restart]);
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        let (s, fx) = MagCalRun::Running {
+            opts: opts(true, false, 0.0),
+        }
+        .on(V::FitFailed, false, 0);
+        assert_eq!((s.clone(), fx), (MagCalRun::Failed, vec![E::ReportFailure]));
+        let (s, fx) = s.on(
+            V::FitPassed {
+                cal: run_cal(1.0),
+                complete: true,
+            },
+            true,
+            0,
+        );
+        assert!(fx.is_empty() && s == MagCalRun::Failed);
+        // A mask without compass 0 is refused and changes nothing.
+        let other = MagCalStart {
+            mask: 0b10,
+            ..opts(true, false, 0.0)
+        };
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: other,
+                now_s: 0.0,
+            },
+            false,
+            0,
+        );
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![failed.clone()]));
+        // ... and taken by compass 1's run, which it selects.
+        let (s, fx) = MagCalRun::Idle.on(
+            V::Start {
+                opts: other,
+                now_s: 0.0,
+            },
+            false,
+            1,
+        );
+        assert!(matches!(s, MagCalRun::Running { .. }));
+        assert_eq!(fx, vec![E::Ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart]);
+        assert!(mask_selects(0, 5) && mask_selects(0b100, 2) && !mask_selects(0b100, 1));
+        assert!(!mask_selects(0xff, 9));
+        // Idle: continuous installs and reports passing fits and reports failures; on command only,
+        // nothing happens without a run.
+        let (_, fx) = MagCalRun::Idle.on(
+            V::FitPassed {
+                cal: run_cal(2.0),
+                complete: true,
+            },
+            true,
+            0,
+        );
+        assert_eq!(
+            fx,
+            vec![
+                E::Install(run_cal(2.0)),
+                E::ReportSuccess {
+                    cal: run_cal(2.0),
+                    autosaved: true,
+                    commanded: false
+                }
+            ]
+        );
+        assert_eq!(
+            MagCalRun::Idle.on(V::FitFailed, true, 0).1,
+            vec![E::ReportFailure]
+        );
+        assert!(MagCalRun::Idle
+            .on(
+                V::FitPassed {
+                    cal: run_cal(2.0),
+                    complete: true
+                },
+                false,
+                0
+            )
+            .1
+            .is_empty());
+        assert!(MagCalRun::Idle.on(V::FitFailed, false, 0).1.is_empty());
+        assert!(MagCalRun::Idle.reports_progress(true) && !MagCalRun::Idle.reports_progress(false));
+    }
+
+    #[test]
+    fn mavout_start_mag_cal_parameters_as_ardupilot_reads_them() {
+        let c = COMMAND_LONG_DATA {
+            param1: 1.0,
+            param2: 1.0,
+            param3: 0.0,
+            param4: 2.5,
+            param5: 1.0,
+            command: MavCmd::MAV_CMD_DO_START_MAG_CAL,
+            ..Default::default()
+        };
+        let o = MagCalStart::from_command(&c);
+        assert_eq!(
+            o,
+            MagCalStart {
+                mask: 1,
+                retry: true,
+                autosave: false,
+                delay_s: 2.5,
+                autoreboot: true
+            }
+        );
+        let bad = COMMAND_LONG_DATA {
+            param1: f32::NAN,
+            param4: -3.0,
+            ..c
+        };
+        let o = MagCalStart::from_command(&bad);
+        assert_eq!((o.mask, o.delay_s), (0, 0.0));
+        assert_eq!(mask_param(300.0), 0);
+    }
+
+    #[test]
+    fn mavout_own_ids_match_only_both_ids() {
+        let own = OwnIds {
+            system_id: 1,
+            component_id: 191,
+        };
+        assert!(own.is_own(1, 191));
+        // The flight controller of the same vehicle, another computer, a ground station.
+        assert!(!own.is_own(1, 1));
+        assert!(!own.is_own(2, 191));
+        assert!(!own.is_own(255, 190));
+    }
+
+    fn fib_sphere(n: usize) -> impl Iterator<Item = [f64; 3]> {
+        let golden = PI * (3.0 - 5f64.sqrt());
+        (0..n).map(move |i| {
+            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - z * z).sqrt();
+            let p = golden * i as f64;
+            [r * p.cos(), r * p.sin(), z]
+        })
+    }
+
+    fn solid_angle(t: &[[f64; 3]; 3]) -> f64 {
+        let [a, b, c] = t;
+        let num = det3(a, b, c).abs();
+        let den = 1.0 + dot(a, b) + dot(b, c) + dot(c, a);
+        2.0 * num.atan2(den)
+    }
+
+    fn sensor_cal(status: CalStatus, failure: Option<FitFailure>) -> SensorCalibration {
+        SensorCalibration {
+            status,
+            failure,
+            detail: None,
+            model: "sym9".into(),
+            units: "uT".into(),
+            offset: [12.0, -30.0, 45.0],
+            matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.05, 1.01]],
+            radius: 50.0,
+            rms_residual: 0.8,
+            offset_sigma: [0.1; 3],
+            samples_used: 500,
+            iterations: 6,
+            candidates: vec![],
+            outliers_rejected: 0,
+            method: None,
+        }
+    }
+
+    fn param_value(name: &str, v: f32) -> MavMessage {
+        MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+            param_value: v,
+            param_id: char_array(name),
+            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+            ..Default::default()
+        })
+    }
+
+    #[test]
+    fn encoder_round_trips_through_parse_frame_and_counts_sequence() {
+        for version in [MavlinkVersion::V1, MavlinkVersion::V2] {
+            let mut enc = MavEncoder::new(7, DEFAULT_COMPONENT_ID);
+            enc.version = version;
+            let msg = named_float("HEADING", 1234, 271.5);
+            for k in 0..300u32 {
+                let b = enc.encode(&msg);
+                let seq = if version == MavlinkVersion::V2 {
+                    b[4]
+                } else {
+                    b[2]
+                };
+                assert_eq!(seq, (k % 256) as u8);
+                let f = decode(&b);
+                assert_eq!(f.version, version);
+                assert_eq!((f.system_id, f.component_id), (7, 191));
+                match f.message {
+                    MavMessage::NAMED_VALUE_FLOAT(d) => {
+                        assert_eq!(array_text(&d.name), "HEADING");
+                        assert_eq!(d.value, 271.5);
+                        assert_eq!(d.time_boot_ms, 1234);
+                    }
+                    other => panic!("{other:?}"),
+                }
+            }
+        }
+        assert_eq!(MavEncoder::default().component_id, 191);
+    }
+
+    #[test]
+    fn icosahedron_faces_are_well_formed_and_tile_the_sphere() {
+        for f in ICO_F.iter() {
+            for (i, j) in [(0, 1), (1, 2), (2, 0)] {
+                let (a, b) = (ICO_V[f[i]], ICO_V[f[j]]);
+                let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+                assert!((dot(&d, &d) - 4.0).abs() < 1e-12, "face {f:?} edge");
+            }
+        }
+        let total: f64 = (0..SECTIONS)
+            .map(|s| solid_angle(&section80_triangle(s).unwrap()))
+            .sum();
+        assert!((total - 4.0 * PI).abs() < 1e-9, "{total}");
+        assert!(section80_triangle(80).is_none());
+    }
+
+    #[test]
+    fn every_section_is_hit_and_numbered_like_its_triangle() {
+        for s in 0..SECTIONS {
+            let t = section80_triangle(s).unwrap();
+            let c = [0, 1, 2].map(|k| t[0][k] + t[1][k] + t[2][k]);
+            assert_eq!(section80(&c), Some(s), "centroid of section {s}");
+            assert_eq!(
+                section80(&c.map(|x| x * 37.5)),
+                Some(s),
+                "length does not matter"
+            );
+        }
+        // ArduPilot's layout: the middle of face 0 is section 0, near its first corner section 1.
+        let [a, b, c] = [ICO_V[0], ICO_V[1], ICO_V[2]];
+        let near_a = [0, 1, 2].map(|k| 0.8 * a[k] + 0.1 * b[k] + 0.1 * c[k]);
+        assert_eq!(section80(&near_a), Some(1));
+        let near_c = [0, 1, 2].map(|k| 0.1 * a[k] + 0.1 * b[k] + 0.8 * c[k]);
+        assert_eq!(section80(&near_c), Some(3));
+        assert_eq!(section80(&[0.0; 3]), None);
+        assert_eq!(section80(&[f64::NAN, 1.0, 0.0]), None);
+        // Vertices and edges still land somewhere.
+        for v in ICO_V.iter() {
+            assert!(section80(v).is_some());
+        }
+        for axis in [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]] {
+            assert!(section80(&axis).is_some());
+        }
+    }
+
+    #[test]
+    fn sections_have_near_equal_solid_angle() {
+        let mean = 4.0 * PI / SECTIONS as f64;
+        let areas: Vec<f64> = (0..SECTIONS)
+            .map(|s| solid_angle(&section80_triangle(s).unwrap()))
+            .collect();
+        for (s, a) in areas.iter().enumerate() {
+            assert!((a / mean - 1.0).abs() < 0.3, "section {s}: {}", a / mean);
+        }
+        // Uniform directions fall into sections in proportion to those solid angles.
+        let n = 400_000;
+        let mut counts = [0usize; SECTIONS];
+        for d in fib_sphere(n) {
+            counts[section80(&d).unwrap()] += 1;
+        }
+        for s in 0..SECTIONS {
+            let frac = counts[s] as f64 / n as f64;
+            let want = areas[s] / (4.0 * PI);
+            assert!(
+                (frac - want).abs() < 0.05 * want,
+                "section {s}: {frac} vs {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn completion_mask_sets_one_bit_per_section() {
+        let centroid = |s: usize| {
+            let t = section80_triangle(s).unwrap();
+            [0, 1, 2].map(|k| t[0][k] + t[1][k] + t[2][k])
+        };
+        let (mask, filled) = completion_mask([0, 2, 9, 79, 9].map(centroid));
+        assert_eq!(filled, 4);
+        assert_eq!(mask[0], 0b0000_0101);
+        assert_eq!(mask[1], 0b0000_0010);
+        assert_eq!(mask[9], 0b1000_0000);
+        assert!(mask[2..9].iter().all(|b| *b == 0));
+        assert!(mask_has(&mask, 79) && !mask_has(&mask, 78) && !mask_has(&mask, 80));
+        let (full, n) = completion_mask(fib_sphere(20_000));
+        assert_eq!(n, 80);
+        assert_eq!(full, [0xFF; 10]);
+        assert_eq!(completion_mask([[0.0; 3]]).1, 0);
+    }
+
+    #[test]
+    fn progress_message_status_and_round_trip() {
+        let mask = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10];
+        let m = mag_cal_progress(1, 42, mask, [0.1, -0.2, 0.97], 2);
+        let MavMessage::MAG_CAL_PROGRESS(d) = &m else {
+            panic!()
+        };
+        assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_ONE);
+        assert_eq!((d.cal_mask, d.compass_id, d.attempt), (2, 1, 2));
+        let MavMessage::MAG_CAL_PROGRESS(d) = mag_cal_progress(0, 120, mask, [0.0; 3], 1) else {
+            panic!()
+        };
+        assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_TWO);
+        assert_eq!(d.completion_pct, 100);
+        let f = decode(&MavEncoder::default().encode(&m));
+        match f.message {
+            MavMessage::MAG_CAL_PROGRESS(r) => {
+                assert_eq!(r.completion_mask, mask);
+                assert_eq!(r.completion_pct, 42);
+                assert_eq!(r.direction_z, 0.97);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn report_in_ardupilot_units_and_signs() {
+        let cal = sensor_cal(CalStatus::Ok, None);
+        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report(0, &cal) else {
+            panic!()
+        };
+        assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_SUCCESS);
+        assert!((d.fitness - 8.0).abs() < 1e-5);
+        assert_eq!([d.ofs_x, d.ofs_y, d.ofs_z], [-120.0, 300.0, -450.0]);
+        assert_eq!([d.diag_x, d.diag_y, d.diag_z], [1.05, 0.97, 1.01]);
+        // Symmetric part of the matrix: (0.03 + 0.05) / 2 for ODI_Z.
+        assert!((d.offdiag_x - 0.02).abs() < 1e-7);
+        assert!((d.offdiag_y + 0.01).abs() < 1e-7);
+        assert!((d.offdiag_z - 0.04).abs() < 1e-7);
+        assert_eq!((d.cal_mask, d.autosaved, d.scale_factor), (1, 0, 1.0));
+        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report_autosaved(2, &cal, true) else {
+            panic!()
+        };
+        assert_eq!((d.cal_mask, d.autosaved, d.compass_id), (4, 1, 2));
+
+        // ArduPilot's correct_field with these numbers equals our calibration (symmetric part).
+        let raw = [40.0, 5.0, -20.0];
+        let m = [
+            raw[0] * 10.0 + d.ofs_x as f64,
+            raw[1] * 10.0 + d.ofs_y as f64,
+            raw[2] * 10.0 + d.ofs_z as f64,
+        ];
+        let s = [
+            [d.diag_x, d.offdiag_x, d.offdiag_y],
+            [d.offdiag_x, d.diag_y, d.offdiag_z],
+            [d.offdiag_y, d.offdiag_z, d.diag_z],
+        ]
+        .map(|r| r.map(|x| x as f64));
+        let mut sym = cal.matrix;
+        sym[1][2] = 0.04;
+        sym[2][1] = 0.04;
+        let ours = Calibration {
+            model: ModelKind::Sym9,
+            offset: cal.offset,
+            matrix: sym,
+        }
+        .apply(&raw);
+        for i in 0..3 {
+            assert!((dot(&s[i], &m) - ours[i] * 10.0).abs() < 1e-3);
+        }
+    }
+
+    #[test]
+    fn report_failure_codes_reach_the_wire_including_8_to_10() {
+        for (failure, code) in [
+            (Some(FitFailure::Radius), 7u8),
+            (Some(FitFailure::Offsets), 8),
+            (Some(FitFailure::DiagonalScaling), 9),
+            (Some(FitFailure::Residuals), 10),
+            (Some(FitFailure::Coverage), 5),
+            (Some(FitFailure::DidNotConverge), 5),
+            (None, 5),
+        ] {
+            let cal = sensor_cal(CalStatus::Failed, failure);
+            assert_eq!(mag_cal_status_code(&cal), code);
+            let bytes = MavEncoder::default().encode(&mag_cal_report(0, &cal));
+            // MAVLink 2 header is 10 bytes; cal_status is payload byte 42 (after 10 floats, id, mask).
+            assert_eq!(bytes[10 + 42], code, "{failure:?}");
+            match decode(&bytes).message {
+                MavMessage::MAG_CAL_REPORT(r) => {
+                    assert_eq!(r.cal_status as u8, code);
+                    assert_eq!(r.scale_factor, 1.0);
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(mag_cal_status_code(&sensor_cal(CalStatus::Ok, None)), 4);
+    }
+
+    #[test]
+    fn names_are_cut_to_ten_bytes() {
+        let MavMessage::NAMED_VALUE_FLOAT(d) = named_float("HEADING_TRUE_X", 1, 2.0) else {
+            panic!()
+        };
+        assert_eq!(array_text(&d.name), "HEADING_TR");
+        let MavMessage::DEBUG_VECT(d) = debug_vect("MAG_UT", 99, [1.0, 2.0, 3.0]) else {
+            panic!()
+        };
+        assert_eq!(array_text(&d.name), "MAG_UT");
+        assert_eq!((d.time_usec, d.x, d.y, d.z), (99, 1.0, 2.0, 3.0));
+        // A multi-byte character is not split.
+        let MavMessage::DEBUG_VECT(d) = debug_vect("ABCDEFGHIé", 0, [0.0; 3]) else {
+            panic!()
+        };
+        assert_eq!(array_text(&d.name), "ABCDEFGHI");
+        let f = decode(&MavEncoder::default().encode(&debug_vect("ACC_MPS2", 5, [0.5, 0.0, -9.8])));
+        assert!(
+            matches!(f.message, MavMessage::DEBUG_VECT(v) if v.z == -9.8 && array_text(&v.name) == "ACC_MPS2")
+        );
+    }
+
+    #[test]
+    fn statustext_chunks_long_text() {
+        let short = statustext(6, "mag calibrated");
+        assert_eq!(short.len(), 1);
+        let MavMessage::STATUSTEXT(d) = &short[0] else {
+            panic!()
+        };
+        assert_eq!(
+            (d.id, d.chunk_seq, d.severity),
+            (0, 0, MavSeverity::MAV_SEVERITY_INFO)
+        );
+        assert_eq!(array_text(&d.text), "mag calibrated");
+
+        let long: String = (0..120)
+            .map(|i| char::from(b'a' + (i % 26) as u8))
+            .collect();
+        let msgs = statustext(3, &long);
+        assert_eq!(msgs.len(), 3);
+        let mut joined = String::new();
+        let mut ids = vec![];
+        for (k, m) in msgs.iter().enumerate() {
+            let MavMessage::STATUSTEXT(d) = m else {
+                panic!()
+            };
+            assert_eq!(d.chunk_seq as usize, k);
+            assert_eq!(d.severity, MavSeverity::MAV_SEVERITY_ERROR);
+            ids.push(d.id);
+            joined += &array_text(&d.text);
+        }
+        assert!(ids[0] != 0 && ids.iter().all(|i| *i == ids[0]));
+        assert_eq!(joined, long);
+
+        // Exactly 100 bytes: two full chunks and an empty terminating one.
+        let msgs = statustext(4, &long[..100]);
+        assert_eq!(msgs.len(), 3);
+        let MavMessage::STATUSTEXT(d) = &msgs[2] else {
+            panic!()
+        };
+        assert_eq!(array_text(&d.text), "");
+        // Exactly 50 bytes: a single message.
+        assert_eq!(statustext(4, &long[..50]).len(), 1);
+        // A second long text gets another id.
+        let MavMessage::STATUSTEXT(d2) = &statustext(3, &long)[0] else {
+            panic!()
+        };
+        assert_ne!(d2.id, ids[0]);
+        // Multi-byte characters are kept whole.
+        let text = "é".repeat(40);
+        let msgs = statustext(6, &text);
+        let joined: String = msgs
+            .iter()
+            .map(|m| match m {
+                MavMessage::STATUSTEXT(d) => array_text(&d.text),
+                _ => unreachable!(),
+            })
+            .collect();
+        assert_eq!(joined, text);
+    }
+
+    #[test]
+    fn attitude_in_radians_with_yaw_wrapped() {
+        let MavMessage::ATTITUDE(a) = attitude(10, 10.0, -5.0, 270.0) else {
+            panic!()
+        };
+        assert!((a.roll - 10f32.to_radians()).abs() < 1e-6);
+        assert!((a.pitch + 5f32.to_radians()).abs() < 1e-6);
+        assert!((a.yaw + std::f32::consts::FRAC_PI_2).abs() < 1e-6);
+        assert_eq!(a.time_boot_ms, 10);
+        for (deg, want) in [
+            (180.0, PI),
+            (-180.0, PI),
+            (0.0, 0.0),
+            (359.0, -1f64.to_radians()),
+            (540.0, PI),
+            (-190.0, 170f64.to_radians()),
+        ] {
+            let MavMessage::ATTITUDE(a) = attitude(0, 0.0, 0.0, deg) else {
+                panic!()
+            };
+            assert!((a.yaw as f64 - want).abs() < 1e-6, "{deg}: {}", a.yaw);
+            let y = wrap_pi(deg.to_radians());
+            assert!(y > -PI && y <= PI);
+        }
+    }
+
+    fn ap_params(values: [f32; 9]) -> ApCompassParams {
+        let mut p = ApCompassParams::default();
+        for (n, v) in ap_compass_params(0).iter().zip(values) {
+            assert!(p.absorb(&param_value(n, v)));
+        }
+        p
+    }
+
+    #[test]
+    fn ardupilot_correction_is_undone() {
+        let reqs = param_request_reads(1, 1);
+        assert_eq!(reqs.len(), 30);
+        let names: Vec<String> = (0..AP_COMPASSES).flat_map(ap_compass_params).collect();
+        assert_eq!(names[0], "COMPASS_OFS_X");
+        assert_eq!(names[9], "COMPASS_SCALE");
+        assert_eq!(names[10], "COMPASS_OFS2_X");
+        assert_eq!(names[18], "COMPASS_ODI2_Z");
+        assert_eq!(names[29], "COMPASS_SCALE3");
+        for (m, n) in reqs.iter().zip(&names) {
+            let MavMessage::PARAM_REQUEST_READ(r) = m else {
+                panic!()
+            };
+            assert_eq!(
+                (r.param_index, r.target_system, r.target_component),
+                (-1, 1, 1)
+            );
+            assert_eq!(array_text(&r.param_id), *n);
+        }
+
+        let mut p = ApCompassParams::default();
+        assert!(!p.absorb(&param_value("COMPASS_OFS4_X", 1.0)));
+        assert!(!p.absorb(&named_float("COMPASS_OF", 0, 1.0)));
+        assert!(p.undo(0, [1.0, 2.0, 3.0]).is_none());
+        p = ap_params([-120.0, 300.0, -450.0, 1.05, 0.97, 1.01, 0.02, -0.01, 0.04]);
+        assert!(p.complete(0) && !p.complete(1));
+        let raw = [40.0, 5.0, -20.0];
+        // ArduPilot's correct_field, written out in mGauss.
+        let m = [400.0 - 120.0, 50.0 + 300.0, -200.0 - 450.0];
+        let s = [[1.05, 0.02, -0.01], [0.02, 0.97, 0.04], [-0.01, 0.04, 1.01]];
+        let corrected = [0, 1, 2].map(|i| dot(&s[i], &m) / 10.0);
+        let fwd = p.correct(0, raw).unwrap();
+        for i in 0..3 {
+            assert!((fwd[i] - corrected[i]).abs() < 1e-4);
+        }
+        let back = p.undo(0, corrected).unwrap();
+        for i in 0..3 {
+            assert!((back[i] - raw[i]).abs() < 1e-4, "{back:?}");
+        }
+        // The undone field is what our own calibration with export's parameters corrects.
+        let cal = Calibration {
+            model: ModelKind::Sym9,
+            offset: [12.0, -30.0, 45.0],
+            matrix: s,
+        };
+        let (exp, _) = crate::calib::export::ardupilot_mag(&cal, 0);
+        let mut q = ApCompassParams::default();
+        for (n, v) in exp.iter() {
+            q.set(n, *v as f32);
+        }
+        let c = cal.apply(&raw);
+        let u = q.undo(0, c).unwrap();
+        assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
+
+        // COMPASS_SCALE is applied when ArduPilot would.
+        p.absorb(&param_value("COMPASS_SCALE", 1.2));
+        let c = p.correct(0, raw).unwrap();
+        assert!((c[0] - 1.2 * corrected[0]).abs() < 1e-3);
+        let back = p.undo(0, c).unwrap();
+        assert!((0..3).all(|i| (back[i] - raw[i]).abs() < 1e-4));
+        p.absorb(&param_value("COMPASS_SCALE", 3.0));
+        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
+
+        // The second compass has parameters of its own, undone apart from the first's.
+        let (exp2, _) = crate::calib::export::ardupilot_mag(&cal, 1);
+        for (n, v) in exp2.iter() {
+            assert!(p.absorb(&param_value(n, *v as f32)), "{n}");
+        }
+        assert!(p.complete(1));
+        let u = p.undo(1, cal.apply(&raw)).unwrap();
+        assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
+        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
+    }
+
+    #[test]
+    fn zero_diagonals_read_as_one_and_singular_is_refused() {
+        let p = ap_params([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        assert_eq!(p.undo(0, [5.0, 1.0, 2.0]).unwrap(), [4.0, 1.0, 2.0]);
+        let p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
+        assert!(p.undo(0, [5.0, 1.0, 2.0]).is_none());
+        let mut p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+        assert!(p.undo(0, [f64::NAN, 0.0, 0.0]).is_none());
+        p.values.remove("COMPASS_ODI_Z");
+        assert!(!p.complete(0));
+    }
+
+    fn sets(msgs: &[MavMessage]) -> Vec<(String, f32)> {
+        msgs.iter()
+            .map(|m| match m {
+                MavMessage::PARAM_SET(s) => {
+                    assert_eq!(s.param_type, MavParamType::MAV_PARAM_TYPE_REAL32);
+                    assert_eq!((s.target_system, s.target_component), (1, 1));
+                    (array_text(&s.param_id), s.param_value)
+                }
+                other => panic!("{other:?}"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn param_writer_confirms_echoes() {
+        let cal = Calibration {
+            model: ModelKind::Sym9,
+            offset: [12.0, -30.0, 45.0],
+            matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.01]],
+        };
+        let (params, _) = crate::calib::export::ardupilot_mag(&cal, 0);
+        let mut w = ParamWriter::new(params.clone(), 1, 1);
+        let sent = sets(&w.next_messages(0.0));
+        assert_eq!(sent.len(), 9);
+        assert_eq!(sent[0], ("COMPASS_OFS_X".to_string(), -120.0));
+        assert!(!w.done());
+        // Nothing due again before a second has passed.
+        assert!(w.next_messages(0.5).is_empty());
+        for (n, v) in sent.iter() {
+            w.absorb(&param_value(n, *v));
+        }
+        assert!(w.done());
+        assert!(w.failed().is_empty());
+        assert!(w.next_messages(5.0).is_empty());
+        // The frames survive encoding.
+        let mut w = ParamWriter::new(params, 1, 1);
+        let mut enc = MavEncoder::default();
+        for m in w.next_messages(0.0) {
+            assert!(matches!(
+                decode(&enc.encode(&m)).message,
+                MavMessage::PARAM_SET(_)
+            ));
+        }
+    }
+
+    #[test]
+    fn param_writer_retries_then_gives_up() {
+        let mut w = ParamWriter::new(
+            vec![
+                ("COMPASS_OFS_X".into(), -120.0),
+                ("COMPASS_OFS_Y".into(), 300.0),
+            ],
+            1,
+            1,
+        );
+        assert_eq!(w.next_messages(0.0).len(), 2);
+        w.absorb(&param_value("COMPASS_OFS_Y", 300.00002)); // within 1e-4 relative
+        assert_eq!(
+            sets(&w.next_messages(1.0)),
+            vec![("COMPASS_OFS_X".to_string(), -120.0)]
+        );
+        assert!(w.next_messages(1.5).is_empty());
+        assert_eq!(w.next_messages(2.0).len(), 1);
+        // Three tries: no more sends, and done once the last try has had its second.
+        assert!(w.next_messages(2.5).is_empty());
+        assert!(!w.done());
+        assert!(w.next_messages(3.0).is_empty());
+        assert!(w.done());
+        assert_eq!(w.failed(), vec!["COMPASS_OFS_X".to_string()]);
+
+        // A late echo after a retry still confirms.
+        let mut w = ParamWriter::new(vec![("COMPASS_DIA_X".into(), 1.05)], 1, 1);
+        w.next_messages(0.0);
+        w.next_messages(1.0);
+        w.absorb(&param_value("COMPASS_DIA_X", 1.05));
+        assert!(w.done() && w.failed().is_empty());
+    }
+
+    #[test]
+    fn param_writer_reports_mismatch_and_unsendable() {
+        let mut w = ParamWriter::new(
+            vec![
+                ("COMPASS_ODI_X".into(), 0.02),
+                ("COMPASS_ODI_Y".into(), 0.0),
+                ("A_NAME_LONGER_THAN_16".into(), 1.0),
+                ("COMPASS_DIA_Z".into(), f64::NAN),
+            ],
+            1,
+            1,
+        );
+        assert_eq!(w.next_messages(0.0).len(), 2);
+        w.absorb(&param_value("COMPASS_ODI_X", 0.0201));
+        w.absorb(&param_value("COMPASS_ODI_Y", 0.0));
+        assert_eq!(w.mismatches(), vec![("COMPASS_ODI_X".to_string(), 0.0201)]);
+        let mut t = 1.0;
+        while !w.done() {
+            for m in w.next_messages(t) {
+                // The vehicle keeps storing a different value (e.g. it clamps it).
+                if let MavMessage::PARAM_SET(s) = m {
+                    w.absorb(&param_value(&array_text(&s.param_id), 0.0201));
+                }
+            }
+            t += 0.25;
+            assert!(t < 10.0);
+        }
+        assert_eq!(
+            w.failed(),
+            vec![
+                "COMPASS_ODI_X".to_string(),
+                "A_NAME_LONGER_THAN_16".into(),
+                "COMPASS_DIA_Z".into()
+            ]
+        );
+        // A PARAM_VALUE with a matching value but another name does not confirm.
+        let mut w = ParamWriter::new(vec![("COMPASS_OFS_Z".into(), 5.0)], 1, 1);
+        w.next_messages(0.0);
+        w.absorb(&param_value("COMPASS_OFS_X", 5.0));
+        assert_eq!(w.failed(), vec!["COMPASS_OFS_Z".to_string()]);
+    }
+
+    #[test]
+    fn json_lines_carry_schema_and_type_first() {
+        let events = [
+            LiveEvent::Heading {
+                t: 12.5,
+                roll_deg: 1.2,
+                pitch_deg: -0.4,
+                heading_deg: 273.9,
+                true_heading: true,
+            },
+            LiveEvent::Calibrated {
+                t: 1.0,
+                accel_mps2: Some([0.0, 0.0, -9.8]),
+                gyro_rad_s: None,
+                mag_ut: Some([20.0, 1.0, 40.0]),
+            },
+            LiveEvent::Progress {
+                sensor: "mag".into(),
+                instance: 1,
+                completion_pct: 45.0,
+                filled_regions: 45,
+                regions: crate::calib::coverage::regions_hex(&[true; 45]),
+                direction: [0.6, 0.0, 0.8],
+            },
+            LiveEvent::calibration(
+                "mag",
+                0,
+                &sensor_cal(CalStatus::Failed, Some(FitFailure::Residuals)),
+            ),
+            LiveEvent::Status {
+                level: severity_name(6).into(),
+                text: "line\nbreak \"quoted\"".into(),
+            },
+            LiveEvent::Attitude {
+                t: 3.25,
+                q: [0.5, -0.5, 0.5, 0.5],
+                roll_deg: -90.0,
+                pitch_deg: 0.0,
+                heading_deg: 90.0,
+                true_heading: false,
+                gyro_bias_rad_s: [0.001, 0.0, -0.002],
+                mag_disturbed: true,
+            },
+        ];
+        let types = [
+            "heading",
+            "calibrated",
+            "progress",
+            "calibration",
+            "status",
+            "attitude",
+        ];
+        for (ev, ty) in events.iter().zip(types) {
+            let line = json_line(ev);
+            assert!(line.ends_with('\n'));
+            assert_eq!(line.matches('\n').count(), 1, "{line}");
+            assert!(
+                line.starts_with(&format!(
+                    "{{\"schema\":\"imucald.live/1\",\"type\":\"{ty}\","
+                )),
+                "{line}"
+            );
+            let v: serde_json::Value = serde_json::from_str(&line).unwrap();
+            assert_eq!(v["schema"], JSON_SCHEMA);
+            let back: LiveEvent = serde_json::from_str(&line).unwrap();
+            assert_eq!(&back, ev);
+        }
+        let v: serde_json::Value = serde_json::from_str(&json_line(&events[3])).unwrap();
+        assert_eq!(v["failure"], "residuals");
+        assert_eq!(v["matrix"][2][1], 0.05);
+        let v: serde_json::Value = serde_json::from_str(&json_line(&events[1])).unwrap();
+        assert!(v["gyro_rad_s"].is_null());
+        let nan = LiveEvent::Heading {
+            t: 0.0,
+            roll_deg: f64::NAN,
+            pitch_deg: 0.0,
+            heading_deg: 0.0,
+            true_heading: false,
+        };
+        let v: serde_json::Value = serde_json::from_str(&json_line(&nan)).unwrap();
+        assert!(v["roll_deg"].is_null());
+        let v: serde_json::Value = serde_json::from_str(&json_line(&events[5])).unwrap();
+        assert_eq!(v["q"][1], -0.5);
+        assert_eq!(v["gyro_bias_rad_s"][2], -0.002);
+        assert_eq!(v["mag_disturbed"], true);
+    }
+
+    /// Body FRD -> NED quaternion `[w, x, y, z]` of ZYX angles in degrees.
+    fn q_of(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
+        let q = nalgebra::UnitQuaternion::from_euler_angles(
+            roll.to_radians(),
+            pitch.to_radians(),
+            yaw.to_radians(),
+        );
+        [q.w, q.i, q.j, q.k]
+    }
+
+    #[test]
+    fn euler_from_quaternion_is_zyx_with_yaw_wrapped() {
+        for (r, p, y) in [
+            (0.0, 0.0, 0.0),
+            (20.0, -10.0, 250.0),
+            (-170.0, 45.0, 90.0),
+            (5.0, 80.0, -30.0),
+            (179.0, -60.0, 181.0),
+        ] {
+            let e = euler_from_quaternion(q_of(r, p, y)).unwrap();
+            let want = [r, p, y].map(|d: f64| wrap_pi(d.to_radians()));
+            for k in 0..3 {
+                assert!(
+                    (e[k] - want[k]).abs() < 1e-9,
+                    "{r} {p} {y}: {e:?} vs {want:?}"
+                );
+            }
+            assert!(e[2] > -PI && e[2] <= PI);
+            // The same angles as the orientation filter's own conversion.
+            let q = q_of(r, p, y);
+            let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                q[0], q[1], q[2], q[3],
+            ));
+            let f = crate::attitude::euler_zyx_deg(&uq);
+            assert!((f[0] - e[0].to_degrees()).abs() < 1e-6);
+            assert!((f[1] - e[1].to_degrees()).abs() < 1e-6);
+            assert!((f[2] - e[2].to_degrees().rem_euclid(360.0)).abs() < 1e-6);
+        }
+        // Scale does not matter; junk is refused, not turned into NaN angles.
+        let q = q_of(10.0, 20.0, 30.0).map(|c| 3.0 * c);
+        let e = euler_from_quaternion(q).unwrap();
+        assert!((e[2] - 30f64.to_radians()).abs() < 1e-9);
+        assert!(euler_from_quaternion([0.0; 4]).is_none());
+        assert!(euler_from_quaternion([f64::NAN, 0.0, 0.0, 1.0]).is_none());
+        assert!(euler_from_quaternion([f64::INFINITY, 0.0, 0.0, 1.0]).is_none());
+    }
+
+    #[test]
+    fn attitude_quaternion_and_attitude_from_one_quaternion() {
+        let q = q_of(20.0, -10.0, 250.0);
+        let rates = [0.1, -0.2, 0.3];
+        let MavMessage::ATTITUDE_QUATERNION(a) = attitude_quaternion(1234, q, rates).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!(a.time_boot_ms, 1234);
+        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+        for (got, want) in [a.q1, a.q2, a.q3, a.q4].iter().zip(q) {
+            assert!((*got as f64 - sign * want).abs() < 1e-6);
+        }
+        assert!(a.q1 >= 0.0);
+        assert_eq!([a.rollspeed, a.pitchspeed, a.yawspeed], [0.1, -0.2, 0.3]);
+        // -q is the same rotation: sent with w >= 0.
+        let MavMessage::ATTITUDE_QUATERNION(b) =
+            attitude_quaternion(0, q.map(|c| -c), rates).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!([a.q1, a.q2, a.q3, a.q4], [b.q1, b.q2, b.q3, b.q4]);
+        let MavMessage::ATTITUDE(e) = attitude_from_quaternion(1234, q, rates).unwrap() else {
+            panic!()
+        };
+        assert!((e.roll - 20f32.to_radians()).abs() < 1e-5);
+        assert!((e.pitch + 10f32.to_radians()).abs() < 1e-5);
+        assert!((e.yaw + 110f32.to_radians()).abs() < 1e-5, "{}", e.yaw);
+        assert_eq!([e.rollspeed, e.pitchspeed, e.yawspeed], [0.1, -0.2, 0.3]);
+        // Non-finite rates go out as 0, a broken quaternion not at all.
+        let MavMessage::ATTITUDE(e) =
+            attitude_from_quaternion(0, q, [f64::NAN, 1.0, f64::INFINITY]).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!([e.rollspeed, e.pitchspeed, e.yawspeed], [0.0, 1.0, 0.0]);
+        assert!(attitude_quaternion(0, [f64::NAN; 4], rates).is_none());
+        assert!(attitude_from_quaternion(0, [0.0; 4], rates).is_none());
+        // Both encode to frames that decode back (ids 31 and 30).
+        let mut enc = MavEncoder::new(1, 191);
+        for (m, id) in [
+            (attitude_quaternion(5, q, rates).unwrap(), 31u32),
+            (attitude_from_quaternion(5, q, rates).unwrap(), 30),
+        ] {
+            let message = decode(&enc.encode(&m)).message;
+            assert_eq!(mavlink::Message::message_id(&message), id);
+            assert_eq!(message, m);
+        }
+    }
+}

@@ -1,0 +1,290 @@
+//! Sources: the only layer that knows where bytes come from. For now, files (`file:` addresses and
+//! plain paths) decoded whole; live transports build on the same decoders.
+
+use crate::config::{AccelUnits, Config};
+use crate::error::Error;
+use crate::io::decode::{
+    decode_csv, decode_tlog_with, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
+    InstanceInfo, MessageConverter,
+};
+use crate::types::{Sample, Unit, Units};
+use std::path::Path;
+
+/// A decoded log.
+#[derive(Debug, Clone)]
+pub struct Log {
+    pub format: Format,
+    pub samples: Vec<Sample>,
+    pub stats: DecodeStats,
+    pub instance: Option<String>,
+    pub units: Units,
+    /// Every IMU instance read (MAVLink and flight-controller logs), the primary among them.
+    pub instances: Vec<InstanceInfo>,
+    /// Flight-controller logs (`.bin`, `.ulg`): sensor streams, onboard calibration, message
+    /// counts (`instances` and `stats` above are its own).
+    pub flight: Option<crate::io::flightlog::FlightLog>,
+}
+
+/// Read and decode a log file (`.tlog`, `.csv`, `.csv.gz`). `format` overrides detection.
+pub fn read_log(path: &Path, format: Option<Format>, cfg: &Config) -> Result<Log, Error> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    decode_log(&bytes, path, format, cfg)
+}
+
+/// Decode the bytes of a log file (gzip or not, tlog or CSV); `path` only names it in errors.
+/// Any bytes give a log or an error, never a panic (fuzzed: `fuzz/fuzz_targets/tlog.rs`).
+pub fn decode_log(
+    bytes: &[u8],
+    path: &Path,
+    format: Option<Format>,
+    cfg: &Config,
+) -> Result<Log, Error> {
+    let mut samples = Vec::new();
+    let mut log = decode_log_batched(bytes, path, format, cfg, &mut |batch| {
+        samples.extend_from_slice(&batch.samples)
+    })?;
+    log.samples = samples;
+    Ok(log)
+}
+
+/// Samples handed on while a log is decoded, with what is known so far.
+pub struct Batch {
+    /// Samples of the primary instance.
+    pub samples: Vec<Sample>,
+    /// Samples of the other instances (MAVLink logs with `input.instance = "auto"`), with their
+    /// index among [`Log::instances`].
+    pub others: Vec<(usize, Sample)>,
+    /// The instances read so far (names, units), indexed as in `others`.
+    pub instances: Vec<InstanceInfo>,
+    /// Units of the samples (fixed once the first sample is decoded).
+    pub units: Units,
+    /// Bytes of the (decompressed) log read so far, and in all.
+    pub bytes_read: usize,
+    pub bytes_total: usize,
+}
+
+/// Samples per [`Batch`].
+pub const BATCH_SAMPLES: usize = 8192;
+
+/// Gathers decoded samples into [`Batch`]es of [`BATCH_SAMPLES`]: the primary instance's in
+/// `samples`, the others' in `others`.
+struct Batcher {
+    samples: Vec<Sample>,
+    others: Vec<(usize, Sample)>,
+    /// A primary sample was handed on.
+    any: bool,
+}
+
+impl Batcher {
+    fn new() -> Batcher {
+        Batcher {
+            samples: Vec::with_capacity(BATCH_SAMPLES),
+            others: Vec::new(),
+            any: false,
+        }
+    }
+
+    /// Take a sample of instance `k`; true when a batch is full.
+    fn push(&mut self, k: usize, s: Sample, primary: Option<usize>) -> bool {
+        if Some(k) == primary {
+            self.samples.push(s);
+        } else {
+            self.others.push((k, s));
+        }
+        self.samples.len() + self.others.len() >= BATCH_SAMPLES
+    }
+
+    /// Hand on what was gathered (nothing when empty).
+    fn flush(
+        &mut self,
+        sink: &mut dyn FnMut(Batch),
+        info: (Vec<InstanceInfo>, Units),
+        read: (usize, usize),
+    ) {
+        if self.samples.is_empty() && self.others.is_empty() {
+            return;
+        }
+        self.any |= !self.samples.is_empty();
+        sink(Batch {
+            samples: std::mem::replace(&mut self.samples, Vec::with_capacity(BATCH_SAMPLES)),
+            others: std::mem::take(&mut self.others),
+            instances: info.0,
+            units: info.1,
+            bytes_read: read.0,
+            bytes_total: read.1,
+        });
+    }
+}
+
+/// As [`decode_log`], handing the samples on in batches of [`BATCH_SAMPLES`] as they are decoded
+/// (a tlog; a CSV comes as one batch), so a consumer can work while decoding goes on. The returned
+/// [`Log`] has everything but the samples.
+pub fn decode_log_batched(
+    bytes: &[u8],
+    path: &Path,
+    format: Option<Format>,
+    cfg: &Config,
+    sink: &mut dyn FnMut(Batch),
+) -> Result<Log, Error> {
+    let data = maybe_gunzip(bytes).map_err(|e| Error::Format {
+        path: path.to_path_buf(),
+        message: format!("gzip: {e}"),
+    })?;
+    let cfg_format = cfg.input.format.format();
+    let format = match format.or(cfg_format).or_else(|| detect_format(&data)) {
+        Some(f) => f,
+        None => {
+            return Err(Error::Format {
+                path: path.to_path_buf(),
+                message: "cannot tell the format: neither a MAVLink .tlog (u64 timestamp + frame), an ArduPilot DataFlash .bin, a PX4 .ulg nor CSV with a header row; use --format tlog|csv|bin|ulg".into(),
+            })
+        }
+    };
+    match format {
+        Format::Tlog => {
+            let choice = cfg.input.instance.clone();
+            let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
+            if conv.choice == InstanceChoice::Auto {
+                conv = conv.with_other_instances();
+            }
+            let total = data.len();
+            let mut b = Batcher::new();
+            decode_tlog_with(&data, &mut conv, &mut |k, s, read, conv| {
+                if b.push(k, s, conv.primary_index()) {
+                    // Units are fixed by the instance, which the first sample locked.
+                    b.flush(sink, (conv.instances(), conv.units()), (read, total));
+                }
+            });
+            b.flush(sink, (conv.instances(), conv.units()), (total, total));
+            if !b.any {
+                let what = match &conv.choice {
+                    InstanceChoice::Auto => {
+                        "no IMU message with a magnetometer (HIGHRES_IMU, SCALED_IMU*, RAW_IMU)"
+                            .to_string()
+                    }
+                    InstanceChoice::Named(n) => format!(
+                        "no messages of instance `{n}` (set input.instance to one the log has)"
+                    ),
+                };
+                return Err(Error::Format {
+                    path: path.to_path_buf(),
+                    message: format!("{what}; skipped: {:?}", conv.stats.skipped),
+                });
+            }
+            let units = conv.units();
+            Ok(Log {
+                format,
+                samples: Vec::new(),
+                instance: conv.instance().map(String::from),
+                instances: conv.instances(),
+                stats: conv.stats,
+                units,
+                flight: None,
+            })
+        }
+        Format::Csv => {
+            let text = String::from_utf8_lossy(&data);
+            let mut stats = DecodeStats::default();
+            let samples =
+                decode_csv(&text, &cfg.input.csv, &mut stats).map_err(|message| Error::Format {
+                    path: path.to_path_buf(),
+                    message,
+                })?;
+            let accel_units = match cfg.input.accel_units {
+                AccelUnits::Counts => Unit::Counts,
+                AccelUnits::Auto | AccelUnits::Si => Unit::Si,
+            };
+            let units = Units {
+                accel: accel_units,
+                gyro: Unit::Si,
+                mag: Unit::Si,
+            };
+            sink(Batch {
+                samples,
+                others: Vec::new(),
+                instances: Vec::new(),
+                units,
+                bytes_read: data.len(),
+                bytes_total: data.len(),
+            });
+            Ok(Log {
+                format,
+                samples: Vec::new(),
+                stats,
+                instance: None,
+                instances: Vec::new(),
+                units,
+                flight: None,
+            })
+        }
+        Format::Bin | Format::Ulg => decode_flight_log(&data, path, format, sink),
+    }
+}
+
+/// A DataFlash or ULog file: samples of every instance handed on in batches, as for a tlog.
+fn decode_flight_log(
+    data: &[u8],
+    path: &Path,
+    format: Format,
+    sink: &mut dyn FnMut(Batch),
+) -> Result<Log, Error> {
+    let total = data.len();
+    let mut b = Batcher::new();
+    // Instance names are known only at the end; batches carry placeholders with SI units
+    // (flight-controller logs are in physical units throughout).
+    let placeholder = |n: usize| -> (Vec<InstanceInfo>, Units) {
+        let info = (0..n)
+            .map(|k| InstanceInfo {
+                name: format!("instance {k}"),
+                compass_id: 0,
+                samples: 0,
+                units: Units::default(),
+                time: Default::default(),
+            })
+            .collect();
+        (info, Units::default())
+    };
+    let mut seen = 0usize;
+    let mut emit = |k: usize, s: Sample, read: usize, primary: Option<usize>| {
+        seen = seen.max(k + 1);
+        if b.push(k, s, primary) {
+            b.flush(sink, placeholder(seen), (read, total));
+        }
+    };
+    let flight = match format {
+        Format::Bin => Some(crate::io::flightlog::decode_dataflash_with(data, &mut emit)),
+        _ => crate::io::flightlog::decode_ulog_with(data, &mut emit),
+    };
+    let Some(flight) = flight else {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: "not a ULog file (no `ULog` header)".into(),
+        });
+    };
+    b.flush(sink, placeholder(seen), (total, total));
+    if !b.any {
+        let what = match format {
+            Format::Bin => "no IMU or MAG record with a known layout (FMT) in the DataFlash log",
+            _ => "no sensor_combined, vehicle_magnetometer or sensor_* data in the ULog file",
+        };
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: format!("{what}; skipped: {:?}", flight.stats.skipped),
+        });
+    }
+    Ok(Log {
+        format,
+        samples: Vec::new(),
+        stats: flight.stats.clone(),
+        instance: flight
+            .primary
+            .and_then(|k| flight.instances.get(k))
+            .map(|i| i.name.clone()),
+        instances: flight.instances.clone(),
+        units: Units::default(),
+        flight: Some(flight),
+    })
+}
