@@ -2,6 +2,8 @@
 //! scenario: legs and banked turns, attitude at 10 Hz with 0.5 deg of noise, the WMM2025 field at
 //! the place and date, hidden hard and soft iron), against the sphere fit on the same data.
 
+mod common;
+
 use imucald::app::replay::{replay, ReplayOptions};
 use imucald::calib::magmethod::MagMethod;
 use imucald::config::Config;
@@ -192,4 +194,90 @@ fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
     let onboard = &out.report.onboard.as_ref().unwrap().mag[0];
     let d = dist(&v.offset_ut, &onboard.offset);
     assert!(d < 3.0, "{:?} against {:?}", v.offset_ut, onboard.offset);
+}
+
+/// The live service learns the vector calibration continuously from the stream a flight
+/// controller sends: HIGHRES_IMU with ATTITUDE_QUATERNION (10 Hz, 0.5 deg noise),
+/// GLOBAL_POSITION_INT and BATTERY_STATUS (5 Hz), no `[place]`. The sphere fit fails for coverage
+/// all flight long; the vector fit is installed, written and reported as `"method": "vector"`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_service_learns_the_vector_calibration_in_flight() {
+    use imucald::io::mavout::MavEncoder;
+    use std::time::Duration;
+    let sc = Scenario::named("cruise").unwrap();
+    let sim = simulate(&sc, 1);
+    let dir = tempfile::tempdir().unwrap();
+    let (port, mut cfg) = common::udpin_config(dir.path());
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut enc = MavEncoder::new(1, 1);
+    let mut state = imucald::sim::VehicleStateStream::default();
+    let mut lines = Vec::new();
+    let mut buf = vec![0u8; 65536];
+    for (k, s) in sim.samples.iter().enumerate() {
+        let boot_us = 10_000_000 + (s.t_s * 1e6).round() as u64;
+        let mut msgs = state.messages(s, boot_us);
+        msgs.push(imucald::sim::highres_imu(s, boot_us));
+        for m in msgs {
+            peer.send_to(&enc.encode(&m), ("127.0.0.1", port))
+                .await
+                .unwrap();
+        }
+        // Paced like a fast link (the service's queue is bounded), and the JSON lines read.
+        if k % 200 == 199 {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+            while let Ok(n) = sink.try_recv(&mut buf) {
+                lines.extend(
+                    String::from_utf8_lossy(&buf[..n])
+                        .lines()
+                        .map(str::to_string),
+                );
+            }
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    stop_tx.send(true).unwrap();
+    tokio::time::timeout(Duration::from_secs(5), daemon)
+        .await
+        .expect("stops")
+        .unwrap()
+        .unwrap();
+    while let Ok(n) = sink.try_recv(&mut buf) {
+        lines.extend(
+            String::from_utf8_lossy(&buf[..n])
+                .lines()
+                .map(str::to_string),
+        );
+    }
+    let store = imucald::app::daemon::load_store(&dir.path().join("cal"))
+        .unwrap()
+        .expect("a calibration stored");
+    let m = store.mag.expect("a magnetometer calibration");
+    let choice = m.method.as_ref().expect("the method is recorded");
+    assert_eq!(choice.method, MagMethod::Vector, "{}", choice.method_reason);
+    assert!(
+        choice.method_reason.contains("learnt live") && choice.method_reason.contains("GPS"),
+        "{}",
+        choice.method_reason
+    );
+    let err = dist(&m.offset, &sc.truth.mag.offset);
+    println!(
+        "live vector offset {:?} against {:?}: {err:.3} uT; {}",
+        m.offset, sc.truth.mag.offset, choice.method_reason
+    );
+    // Measured: 0.415 uT ([12.09, -25.19, 40.36]; the replay of the same flight: 0.43 uT). The
+    // bound is the figure promised for ordinary flights.
+    assert!(err < 1.0, "live vector offset {err} uT off");
+    // The JSON calibration lines say the method too.
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.contains("\"type\":\"calibration\"") && l.contains("\"vector\"")),
+        "no calibration line with the vector method among {} lines",
+        lines.len()
+    );
 }

@@ -13,6 +13,34 @@ use crate::types::Vec3;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// Quaternion (w, x, y, z) of body -> NED from roll, pitch, yaw (rad), Euler ZYX.
+pub fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
+    let (sr, cr) = (0.5 * roll).sin_cos();
+    let (sp, cp) = (0.5 * pitch).sin_cos();
+    let (sy, cy) = (0.5 * yaw).sin_cos();
+    [
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]
+}
+
+/// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
+/// the rotation of 180 deg about (1, 1, 0)/sqrt(2).
+pub fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let a = [0.0, h, h, 0.0];
+    let r = [
+        a[0] * q[0] - a[1] * q[1] - a[2] * q[2] - a[3] * q[3],
+        a[0] * q[1] + a[1] * q[0] + a[2] * q[3] - a[3] * q[2],
+        a[0] * q[2] - a[1] * q[3] + a[2] * q[0] + a[3] * q[1],
+        a[0] * q[3] + a[1] * q[2] - a[2] * q[1] + a[3] * q[0],
+    ];
+    let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+    (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
+}
+
 /// Roll, pitch (deg) from calibrated specific force `f` (FRD; reads (0, 0, -g) level at rest).
 pub fn roll_pitch_deg(f: &Vec3) -> (f64, f64) {
     let pitch = f[0].atan2((f[1] * f[1] + f[2] * f[2]).sqrt());

@@ -265,6 +265,25 @@ fn decide(
     }
 }
 
+/// The live service's learnt vector fit ([`crate::calib::learn`]) as the sensor's result, with
+/// the method and its reason in the report (the sphere fit's failure kept in the reason).
+pub fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer) {
+    let v = &offer.fit;
+    let reason = format!(
+        "learnt live from {} readings with the vehicle's attitude, field from {}; {}",
+        v.points,
+        offer.field_from,
+        sphere_words(mag)
+    );
+    install(mag, v);
+    mag.report.method = Some(MethodChoice {
+        method: MagMethod::Vector,
+        method_reason: reason,
+        vector: Some(v.clone()),
+        sphere_offset: None,
+    });
+}
+
 /// The vector fit as the sensor's result: calibrated = A^-1 (raw - o).
 fn install(mag: &mut SensorResult, v: &VectorFit) {
     let r = &mut mag.report;

@@ -4,7 +4,8 @@
 //! the calibration models (`calibrated = M (raw - offset)`), [`fit`] fits them with the one
 //! Levenberg-Marquardt solver ([`lm`]), [`pipeline`] composes these per sample for `replay` and the
 //! live service. Methods beside the sphere fit: [`vector`] (attitude and the earth field),
-//! [`fixedyaw`] (one known heading), chosen by [`magmethod`]; [`gyro`] for the gyroscope;
+//! [`fixedyaw`] (one known heading), chosen by [`magmethod`], and [`learn`] (the vector fit
+//! learnt continuously by the live service); [`gyro`] for the gyroscope;
 //! [`export`] converts a calibration to flight-stack parameters.
 //!
 //! Must not: do I/O, know tokio, or read the clock. Fits are plain functions the live service
@@ -16,6 +17,7 @@ pub mod fit;
 pub mod fixedyaw;
 pub mod gate;
 pub mod gyro;
+pub mod learn;
 pub mod lm;
 pub mod magmethod;
 pub mod model;

@@ -157,7 +157,7 @@ pub fn fit(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, Vecto
             && (!fit_current || p.current_a.is_some_and(f64::is_finite))
     };
     let mut kept: Vec<VectorPoint> = points.iter().filter(usable).copied().collect();
-    let first = solve(&kept, fit_current)?;
+    let first = solve_batch(&kept, fit_current)?;
     let r = residual_norms(&kept, &first);
     let mut sorted = r.clone();
     sorted.sort_by(f64::total_cmp);
@@ -174,12 +174,133 @@ pub fn fit(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, Vecto
     if rejected == 0 {
         return Ok(first);
     }
-    let mut f = solve(&kept, fit_current)?;
+    let mut f = solve_batch(&kept, fit_current)?;
     f.outliers_rejected = rejected;
     Ok(f)
 }
 
+/// The points' scales (mean field strength, largest current), then their sums.
+fn solve_batch(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorFailure> {
+    let need = MIN_POINTS.max(2 * if fit_current { 5 } else { 4 });
+    if points.len() < need {
+        return Err(VectorFailure::NotEnoughPoints {
+            have: points.len(),
+            need,
+        });
+    }
+    let n = points.len() as f64;
+    let field_ut = points
+        .iter()
+        .map(|p| crate::types::norm(&p.expected_ut))
+        .sum::<f64>()
+        / n;
+    let current_max_a = points
+        .iter()
+        .filter_map(|p| p.current_a)
+        .fold(0.0f64, |a, c| a.max(c.abs()))
+        .max(1e-9);
+    let mut acc = VectorAccumulator::new(field_ut, fit_current.then_some(current_max_a))?;
+    for p in points {
+        acc.push(p);
+    }
+    acc.solve()
+}
+
+/// The fit's sufficient statistics: the normal matrix and right-hand sides of the linear least
+/// squares, summed point by point, so a fit needs no stored points. [`fit`] fills one from a batch
+/// of points; the live service keeps one per compass and adds each reading as it comes
+/// (recursive least squares), with [`VectorAccumulator::forget`] discounting old readings.
+/// Memory and the cost of [`VectorAccumulator::solve`] do not grow with the points.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VectorAccumulator {
+    reg: Regressors,
+    /// Sum of the points' weights.
+    weight: f64,
+    /// Points added (weights aside).
+    points: usize,
+    /// `sum w u u^T`, `sum w u y^T` (one column per raw axis) and `sum w y_j^2`, with
+    /// `y = raw - h`.
+    nm: DMatrix<f64>,
+    g: DMatrix<f64>,
+    yy: Vec3,
+}
+
+impl VectorAccumulator {
+    /// An empty accumulator for fields of about `field_ut` (the regressors' scale, uT) and, with
+    /// `current_scale_a` (A, the largest current expected), the current term.
+    pub fn new(field_ut: f64, current_scale_a: Option<f64>) -> Result<Self, VectorFailure> {
+        if !(field_ut.is_finite() && field_ut > 0.0) {
+            return Err(VectorFailure::NoField);
+        }
+        let current_max_a = current_scale_a.filter(|c| c.is_finite() && *c > 0.0);
+        let k = if current_scale_a.is_some() { 5 } else { 4 };
+        Ok(VectorAccumulator {
+            reg: Regressors {
+                field_ut,
+                current_max_a: current_max_a.unwrap_or(1.0),
+                k,
+            },
+            weight: 0.0,
+            points: 0,
+            nm: DMatrix::zeros(k, k),
+            g: DMatrix::zeros(k, 3),
+            yy: [0.0; 3],
+        })
+    }
+
+    /// Add one reading. Returns false (and adds nothing) when a value is not finite or, with the
+    /// current term, the reading has no current.
+    pub fn push(&mut self, p: &VectorPoint) -> bool {
+        let with_current = self.reg.k > 4;
+        if !(crate::types::is_finite3(&p.raw_ut)
+            && crate::types::is_finite3(&p.expected_ut)
+            && (!with_current || p.current_a.is_some_and(f64::is_finite)))
+        {
+            return false;
+        }
+        let u = self.reg.of(p);
+        self.nm += &u * u.transpose();
+        for j in 0..3 {
+            let y = p.raw_ut[j] - p.expected_ut[j];
+            for r in 0..self.reg.k {
+                self.g[(r, j)] += u[r] * y;
+            }
+            self.yy[j] += y * y;
+        }
+        self.weight += 1.0;
+        self.points += 1;
+        true
+    }
+
+    /// Discount everything added so far by `factor` (0..=1): a reading's weight halves every
+    /// ln 2 / -ln factor calls. Identifiability and uncertainties follow the weights left.
+    pub fn forget(&mut self, factor: f64) {
+        let f = factor.clamp(0.0, 1.0);
+        self.nm *= f;
+        self.g *= f;
+        self.yy = self.yy.map(|v| v * f);
+        self.weight *= f;
+    }
+
+    /// Readings added so far (before any discount).
+    pub fn points(&self) -> usize {
+        self.points
+    }
+
+    /// The weight of the readings left after discounting (the number of readings without it).
+    pub fn weight(&self) -> f64 {
+        self.weight
+    }
+
+    /// The fit of what was added: a small eigen-decomposition and solve of the `k x k` normal
+    /// matrix (k = 4 or 5), whatever the number of readings.
+    pub fn solve(&self) -> Result<VectorFit, VectorFailure> {
+        solve(self)
+    }
+}
+
 /// The model's parameters: per raw axis, the coefficients of `raw_j - h_j` on the regressors.
+#[derive(Debug, Clone, PartialEq)]
 struct Regressors {
     field_ut: f64,
     current_max_a: f64,
@@ -233,46 +354,23 @@ fn describe(weights: &[f64], terms: &[String]) -> String {
         .join(" ")
 }
 
-fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorFailure> {
-    let k = if fit_current { 5 } else { 4 };
-    if points.len() < MIN_POINTS.max(2 * k) {
+fn solve(acc: &VectorAccumulator) -> Result<VectorFit, VectorFailure> {
+    let k = acc.reg.k;
+    let fit_current = k > 4;
+    let need = MIN_POINTS.max(2 * k);
+    // With discounting, the weight left is what counts.
+    let have = acc.weight.min(acc.points as f64);
+    if have < need as f64 {
         return Err(VectorFailure::NotEnoughPoints {
-            have: points.len(),
-            need: MIN_POINTS.max(2 * k),
+            have: have as usize,
+            need,
         });
     }
-    let n = points.len() as f64;
-    let field_ut = points
-        .iter()
-        .map(|p| crate::types::norm(&p.expected_ut))
-        .sum::<f64>()
-        / n;
-    if !(field_ut.is_finite() && field_ut > 0.0) {
-        return Err(VectorFailure::NoField);
-    }
-    let current_max_a = points
-        .iter()
-        .filter_map(|p| p.current_a)
-        .fold(0.0f64, |a, c| a.max(c.abs()))
-        .max(1e-9);
-    let reg = Regressors {
-        field_ut,
-        current_max_a,
-        k,
-    };
+    let n = acc.weight;
+    let (field_ut, current_max_a) = (acc.reg.field_ut, acc.reg.current_max_a);
     // Normal matrix and right-hand sides (one column per raw axis), both divided by n.
-    let mut nm = DMatrix::<f64>::zeros(k, k);
-    let mut g = DMatrix::<f64>::zeros(k, 3);
-    for p in points {
-        let u = reg.of(p);
-        nm += &u * u.transpose() / n;
-        for j in 0..3 {
-            let y = p.raw_ut[j] - p.expected_ut[j];
-            for r in 0..k {
-                g[(r, j)] += u[r] * y / n;
-            }
-        }
-    }
+    let nm = &acc.nm / n;
+    let g = &acc.g / n;
     let eig = nalgebra::SymmetricEigen::new(nm.clone());
     let mut order: Vec<usize> = (0..k).collect();
     order.sort_by(|a, b| eig.eigenvalues[*a].total_cmp(&eig.eigenvalues[*b]));
@@ -324,14 +422,13 @@ fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorF
         }
     }
     let beta = &l * &q * &g;
-    // Residuals per axis with the final parameters.
+    // Residuals per axis with the final parameters, from the sums:
+    // sum (y - b.u)^2 = sum y^2 - 2 b.(sum u y) + b^T (sum u u^T) b.
     let mut ssr = [0.0; 3];
-    for p in points {
-        let u = reg.of(p);
-        for j in 0..3 {
-            let r = p.raw_ut[j] - p.expected_ut[j] - beta.column(j).dot(&u);
-            ssr[j] += r * r;
-        }
+    for j in 0..3 {
+        let b = beta.column(j);
+        let quad = (b.transpose() * &acc.nm * b)[(0, 0)];
+        ssr[j] = (acc.yy[j] - 2.0 * b.dot(&acc.g.column(j)) + quad).max(0.0);
     }
     let dof = (n - (k - v_un.len()) as f64).max(1.0);
     let cov_unit = &l * &q * l.transpose() / n;
@@ -377,7 +474,7 @@ fn solve(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, VectorF
         current_identifiable,
         field_ut,
         rms_residual_ut: ((ssr[0] + ssr[1] + ssr[2]) / (3.0 * n)).sqrt(),
-        points: points.len(),
+        points: acc.points,
         outliers_rejected: 0,
         terms,
         directions,

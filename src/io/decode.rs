@@ -433,10 +433,21 @@ pub struct MessageConverter {
     /// Take the other instances too.
     others: bool,
     throttle: Option<f64>,
+    /// The newest vehicle attitude (ATTITUDE_QUATERNION or ATTITUDE; sensor -> ENU, as
+    /// [`Sample::ref_q`]) and when it was received (us, 0 when unknown).
+    attitude: Option<(u64, [f64; 4])>,
+    /// The newest position fix (GLOBAL_POSITION_INT, or GPS_RAW_INT with a 3-D fix).
+    position: Option<crate::types::GeoPoint>,
+    /// The newest battery current (BATTERY_STATUS or SYS_STATUS), A.
+    current_a: Option<f64>,
     time_revision: u64,
     /// The primary instance's counts; `stats.time` is its clock's.
     pub stats: DecodeStats,
 }
+
+/// An attitude received longer before a sample than this is not attached to it, us: ArduPilot and
+/// PX4 stream ATTITUDE at 10 Hz or more, so this lets one message be lost.
+pub const ATTITUDE_MAX_AGE_US: u64 = 250_000;
 
 /// Instances of one stream a converter keeps apart; more are skipped (`too_many_instances`).
 pub const MAX_INSTANCES: usize = 8;
@@ -496,6 +507,9 @@ impl MessageConverter {
             primary: None,
             others: false,
             throttle: None,
+            attitude: None,
+            position: None,
+            current_a: None,
             time_revision: u64::MAX,
             stats: DecodeStats::default(),
         }
@@ -593,6 +607,52 @@ impl MessageConverter {
         Some(k)
     }
 
+    /// Keep what the vehicle says about itself for the samples that follow: its attitude (body
+    /// FRD -> NED in MAVLink, kept as sensor -> ENU with the body taken as the sensor frame), its
+    /// position and its battery current. Values that are not finite or say "unknown" are ignored.
+    fn vehicle_state(&mut self, msg: &MavMessage, time_us: u64) {
+        match msg {
+            MavMessage::ATTITUDE_QUATERNION(d) => {
+                let q = [d.q1, d.q2, d.q3, d.q4].map(f64::from);
+                if let Some(q) = crate::attitude::ned_to_enu(q) {
+                    self.attitude = Some((time_us, q));
+                }
+            }
+            MavMessage::ATTITUDE(d) => {
+                let q = crate::attitude::quat_from_euler(
+                    f64::from(d.roll),
+                    f64::from(d.pitch),
+                    f64::from(d.yaw),
+                );
+                if let Some(q) = crate::attitude::ned_to_enu(q) {
+                    self.attitude = Some((time_us, q));
+                }
+            }
+            MavMessage::GLOBAL_POSITION_INT(d) if d.lat != 0 || d.lon != 0 => {
+                self.position = Some(crate::types::GeoPoint {
+                    lat_deg: f64::from(d.lat) * 1e-7,
+                    lon_deg: f64::from(d.lon) * 1e-7,
+                    alt_m: f64::from(d.alt) * 1e-3,
+                });
+            }
+            MavMessage::GPS_RAW_INT(d) if (d.fix_type as u32) >= 3 => {
+                self.position = Some(crate::types::GeoPoint {
+                    lat_deg: f64::from(d.lat) * 1e-7,
+                    lon_deg: f64::from(d.lon) * 1e-7,
+                    alt_m: f64::from(d.alt) * 1e-3,
+                });
+            }
+            // Centiamperes; -1 is "not measured".
+            MavMessage::BATTERY_STATUS(d) if d.current_battery >= 0 => {
+                self.current_a = Some(f64::from(d.current_battery) / 100.0);
+            }
+            MavMessage::SYS_STATUS(d) if d.current_battery >= 0 => {
+                self.current_a = Some(f64::from(d.current_battery) / 100.0);
+            }
+            _ => {}
+        }
+    }
+
     /// Convert one message of the primary instance (see [`MessageConverter::convert_any`]).
     pub fn convert(&mut self, msg: &MavMessage, time_us: u64) -> Option<Sample> {
         match self.convert_any(msg, time_us)? {
@@ -616,6 +676,15 @@ impl MessageConverter {
                 } else {
                     None
                 };
+                return None;
+            }
+            MavMessage::ATTITUDE_QUATERNION(_)
+            | MavMessage::ATTITUDE(_)
+            | MavMessage::GLOBAL_POSITION_INT(_)
+            | MavMessage::GPS_RAW_INT(_)
+            | MavMessage::BATTERY_STATUS(_)
+            | MavMessage::SYS_STATUS(_) => {
+                self.vehicle_state(msg, time_us);
                 return None;
             }
             MavMessage::HIGHRES_IMU(d) => {
@@ -715,10 +784,19 @@ impl MessageConverter {
         let stamp = t.clock.stamp(Some(msg_us), recv_us, wrap_us);
         t.samples += 1;
         self.sync_time_stats();
+        let ref_q = self
+            .attitude
+            .filter(|(at, _)| {
+                *at == 0 || time_us == 0 || time_us.abs_diff(*at) <= ATTITUDE_MAX_AGE_US
+            })
+            .map(|(_, q)| q);
         let mut s = Sample {
             t_s: stamp.t_s,
             segment: stamp.segment,
             throttle,
+            current_a: self.current_a,
+            ref_q,
+            position: self.position,
             ..Default::default()
         };
         let mut bad = false;

@@ -37,7 +37,7 @@
 //! | `heading`     | `t` (s), `roll_deg`, `pitch_deg`, `heading_deg` (0..360, clockwise from north), `true_heading` (bool: true when the declination was added, i.e. from true north; false: magnetic north) |
 //! | `calibrated`  | `t` (s), `accel_mps2` ([x,y,z] m/s^2 or null), `gyro_rad_s` ([x,y,z] rad/s or null), `mag_ut` ([x,y,z] uT or null): the latest sample after calibration |
 //! | `progress`    | `sensor` ("mag"), `instance` (the compass: MAG_CAL_* `compass_id`; a stream with several compasses has a progress line per compass), `completion_pct` (0..100), `filled_regions` (sphere regions holding a sample, of 100), `regions` (which: 25 hex digits, region i is bit i%4 of digit i/4, regions as in `coverage`), `direction` ([x,y,z] of the latest point about the centre, body axes; zero while no centre is known) |
-//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `offset_sigma` (its 1-sigma), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units) |
+//! | `calibration` | `sensor` ("mag" or "accel"), `instance` (the IMU instance's compass id, as for `progress`), `status` ("ok" or "failed"), `failure` (null or a reason: not_enough_samples, not_identifiable, coverage, radius, offsets, diagonal_scaling, residuals, did_not_converge), `model` (sphere, diag6, sym9, full12), `offset` ([x,y,z] raw units), `offset_sigma` (its 1-sigma), `matrix` (3x3 row-major; calibrated = matrix * (raw - offset)), `rms_residual` (calibrated units), `method` (magnetometer: "vector" when learnt from the vehicle's attitude, "sphere"; absent otherwise) |
 //! | `status`      | `level` (emergency, alert, critical, error, warning, notice, info, debug), `text` |
 //!
 //! Example lines:
@@ -1203,6 +1203,9 @@ pub enum LiveEvent {
         offset_sigma: Vec3,
         matrix: [[f64; 3]; 3],
         rms_residual: f64,
+        /// The magnetometer's method ("vector" or "sphere") when one was chosen.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        method: Option<crate::calib::magmethod::MagMethod>,
     },
     Status {
         level: String,
@@ -1223,6 +1226,7 @@ impl LiveEvent {
             offset_sigma: cal.offset_sigma,
             matrix: cal.matrix,
             rms_residual: cal.rms_residual,
+            method: cal.method.as_ref().map(|m| m.method),
         }
     }
 }

@@ -1463,6 +1463,7 @@ fn tlog_records<W: std::io::Write>(
         mavlink_version: 3,
     });
     let mut next_heartbeat_s = f64::NEG_INFINITY;
+    let mut state = VehicleStateStream::default();
     for s in samples {
         if !s.t_s.is_finite() {
             continue;
@@ -1487,6 +1488,9 @@ fn tlog_records<W: std::io::Write>(
                 ..Default::default()
             };
             put(w, stamp, &apm::MavMessage::VFR_HUD(hud))?;
+        }
+        for msg in state.messages(s, TLOG_BOOT_OFFSET_US + t_us) {
+            put(w, stamp, &msg)?;
         }
         let a = s.accel_mps2.unwrap_or([0.0; 3]);
         let gy = s.gyro_rad_s.unwrap_or([0.0; 3]);
@@ -1559,9 +1563,73 @@ pub fn highres_imu(s: &Sample, time_usec: u64) -> mavlink::dialects::ardupilotme
     apm::MavMessage::HIGHRES_IMU(d)
 }
 
+/// What a flight controller streams about itself beside its IMU messages, made from the samples'
+/// reference attitude, position and current: ATTITUDE_QUATERNION whenever the attitude changes
+/// (at the reference's own rate), GLOBAL_POSITION_INT and BATTERY_STATUS at most every
+/// [`VehicleStateStream::PERIOD_S`]. Used by the `.tlog` writer and by tests that play a vehicle.
+#[derive(Debug, Clone, Default)]
+pub struct VehicleStateStream {
+    last_q: Option<[f64; 4]>,
+    next_slow_s: f64,
+}
+
+impl VehicleStateStream {
+    /// Period of the position and battery messages, s (5 Hz).
+    pub const PERIOD_S: f64 = 0.2;
+
+    /// The messages due before sample `s`; `boot_us` is its time since boot.
+    pub fn messages(
+        &mut self,
+        s: &Sample,
+        boot_us: u64,
+    ) -> Vec<mavlink::dialects::ardupilotmega::MavMessage> {
+        use mavlink::dialects::ardupilotmega as apm;
+        let mut out = Vec::new();
+        let boot_ms = (boot_us / 1000) as u32;
+        if let Some(q) = s.ref_q.filter(|q| Some(*q) != self.last_q) {
+            self.last_q = Some(q);
+            // sensor -> ENU back to body -> NED: the same half-turn.
+            if let Some(b) = crate::attitude::ned_to_enu(q) {
+                out.push(apm::MavMessage::ATTITUDE_QUATERNION(
+                    apm::ATTITUDE_QUATERNION_DATA {
+                        time_boot_ms: boot_ms,
+                        q1: b[0] as f32,
+                        q2: b[1] as f32,
+                        q3: b[2] as f32,
+                        q4: b[3] as f32,
+                        ..Default::default()
+                    },
+                ));
+            }
+        }
+        if s.t_s >= self.next_slow_s {
+            self.next_slow_s = s.t_s + Self::PERIOD_S;
+            if let Some(p) = s.position {
+                out.push(apm::MavMessage::GLOBAL_POSITION_INT(
+                    apm::GLOBAL_POSITION_INT_DATA {
+                        time_boot_ms: boot_ms,
+                        lat: (p.lat_deg * 1e7).round() as i32,
+                        lon: (p.lon_deg * 1e7).round() as i32,
+                        alt: (p.alt_m * 1e3).round() as i32,
+                        ..Default::default()
+                    },
+                ));
+            }
+            if let Some(c) = s.current_a.filter(|c| c.is_finite()) {
+                out.push(apm::MavMessage::BATTERY_STATUS(apm::BATTERY_STATUS_DATA {
+                    current_battery: (c * 100.0).round().clamp(0.0, 32767.0) as i16,
+                    ..Default::default()
+                }));
+            }
+        }
+        out
+    }
+}
+
 /// Write samples as a `.tlog`: per record a big-endian u64 Unix time in microseconds
 /// ([`TLOG_EPOCH_US`] + t_s) then one raw MAVLink frame. A HEARTBEAT (quadrotor, PX4) every second,
-/// a VFR_HUD before each sample that has a throttle, and the IMU message of `opts`. Atomic.
+/// a VFR_HUD before each sample that has a throttle, the vehicle's attitude, position and current
+/// where the samples carry them ([`VehicleStateStream`]), and the IMU message of `opts`. Atomic.
 pub fn write_tlog(
     path: &std::path::Path,
     samples: &[Sample],

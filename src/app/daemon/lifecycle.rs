@@ -92,9 +92,11 @@ impl Cal {
 
 impl State {
     /// A refit of calibrated vehicle `c`'s track `i` came back: decide, store, publish.
-    pub(super) async fn on_fit(&mut self, c: usize, i: usize, t: f64, results: FitResults) {
+    pub(super) async fn on_fit(&mut self, c: usize, i: usize, t: f64, mut results: FitResults) {
         let mut changed = false;
         let cal = &mut self.cals[c];
+        // The vector fit needs no coverage: once it determines the offset, the run is complete.
+        let by_vector = cal.tracks[i].take_vector(&mut results);
         let id = cal.tracks[i].compass_id;
         // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
         // result is reported whatever the calibration in use (accepting it is the ground
@@ -147,7 +149,7 @@ impl State {
         if mag_passed {
             let ev = MagCalEvent::FitPassed {
                 cal: Box::new(mag.clone()),
-                complete: completion >= 100,
+                complete: completion >= 100 || by_vector,
             };
             changed |= self.mag_event(c, i, ev).await.0;
         } else if failure_report_due(mag, completion) {

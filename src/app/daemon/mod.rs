@@ -37,6 +37,7 @@ use store::{WriteJob, Writes};
 
 use crate::attitude::fusion::OrientationFilter;
 use crate::calib::coverage::Progress;
+use crate::calib::learn::{LearnSettings, VectorLearner};
 use crate::calib::model::Calibration;
 use crate::calib::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
 use crate::config::{
@@ -151,6 +152,11 @@ struct Track {
     /// calibration: what a fixed-yaw calibration averages ([`crate::calib::fixedyaw`]; turned to body
     /// axes only then, not per sample).
     recent: std::collections::VecDeque<(Vec3, Vec3)>,
+    /// The vector fit learnt from every reading that comes with the vehicle's attitude
+    /// ([`crate::calib::learn`]); it stands in for a failed sphere fit once it determines the offset.
+    learner: VectorLearner,
+    /// `[place]`: where the earth field is evaluated when the vehicle sends no position.
+    place: Option<crate::attitude::Place>,
 }
 
 impl Track {
@@ -174,6 +180,8 @@ impl Track {
             last_results: None,
             refit_wanted: false,
             recent: std::collections::VecDeque::with_capacity(FIXED_YAW.window_samples),
+            learner: VectorLearner::new(LearnSettings::DEFAULT),
+            place: cfg.place.clone(),
         })
     }
 
@@ -188,9 +196,38 @@ impl Track {
             }
             self.recent.push_back((m, a));
         }
+        if let (Some(_), Some(q)) = (s.mag_ut, s.ref_q) {
+            if let (Some(m), Some(q)) = (
+                self.pipe.to_body(s).mag_ut,
+                crate::calib::magmethod::body_ned_of_ref_q(q),
+            ) {
+                self.learner
+                    .push(s.t_s, &m, &q, s.current_a, s.position, self.place.as_ref());
+            }
+        }
         let due = self.pipe.push(s);
         self.refit_wanted |= due;
         due
+    }
+}
+
+impl Track {
+    /// When the sphere fit failed and the vector fit learnt so far determines the offset and
+    /// passes its checks ([`crate::calib::learn::acceptable`]), the vector fit takes the
+    /// magnetometer's place in `results`, as `replay` does. Returns whether it did.
+    fn take_vector(&self, results: &mut FitResults) -> bool {
+        if results.mag.calibration.is_some() || results.mag.report.units != "uT" {
+            return false;
+        }
+        let Some(offer) = self.learner.offer() else {
+            return false;
+        };
+        if let Err(why) = crate::calib::learn::acceptable(&offer.fit) {
+            tracing::debug!(compass = self.compass_id, "vector fit not offered: {why}");
+            return false;
+        }
+        crate::calib::magmethod::install_learnt(&mut results.mag, &offer);
+        true
     }
 }
 

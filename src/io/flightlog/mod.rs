@@ -306,38 +306,10 @@ impl Assembler {
     }
 }
 
-/// Quaternion (w, x, y, z) of body -> NED from roll, pitch, yaw (rad), Euler ZYX.
-fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
-    let (sr, cr) = (0.5 * roll).sin_cos();
-    let (sp, cp) = (0.5 * pitch).sin_cos();
-    let (sy, cy) = (0.5 * yaw).sin_cos();
-    [
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ]
-}
-
-/// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
-/// the rotation of 180 deg about (1, 1, 0)/sqrt(2).
-fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
-    let h = std::f64::consts::FRAC_1_SQRT_2;
-    let a = [0.0, h, h, 0.0];
-    let r = [
-        a[0] * q[0] - a[1] * q[1] - a[2] * q[2] - a[3] * q[3],
-        a[0] * q[1] + a[1] * q[0] + a[2] * q[3] - a[3] * q[2],
-        a[0] * q[2] - a[1] * q[3] + a[2] * q[0] + a[3] * q[1],
-        a[0] * q[3] + a[1] * q[2] - a[2] * q[1] + a[3] * q[0],
-    ];
-    let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
-    (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
-}
-
 /// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
 pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
     // ENU -> NED is the same half-turn as NED -> ENU.
-    let b = ned_to_enu(q)?;
+    let b = crate::attitude::ned_to_enu(q)?;
     let (w, x, y, z) = (b[0], b[1], b[2], b[3]);
     let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
     let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
@@ -668,8 +640,12 @@ impl DfConv {
                     f.get(DfField::Pitch),
                     f.get(DfField::Yaw),
                 ) {
-                    let q = quat_from_euler(r.to_radians(), p.to_radians(), y.to_radians());
-                    self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
+                    let q = crate::attitude::quat_from_euler(
+                        r.to_radians(),
+                        p.to_radians(),
+                        y.to_radians(),
+                    );
+                    self.asm.attitude = crate::attitude::ned_to_enu(q).map(|q| (t, q));
                 }
                 None
             }
@@ -1209,7 +1185,7 @@ impl UlogConv {
                 self.asm.mag(gi, t, m.map(|x| x * 100.0))
             }
             UlogRecord::Att(q) => {
-                self.asm.attitude = ned_to_enu(q).map(|q| (t, q));
+                self.asm.attitude = crate::attitude::ned_to_enu(q).map(|q| (t, q));
                 None
             }
             UlogRecord::Throttle(v) => {
@@ -1525,11 +1501,17 @@ mod tests {
     #[test]
     fn attitude_quaternion_is_sensor_to_enu() {
         // Level, heading north: body x (forward) points north = ENU y.
-        let q = ned_to_enu(quat_from_euler(0.0, 0.0, 0.0)).unwrap();
+        let q =
+            crate::attitude::ned_to_enu(crate::attitude::quat_from_euler(0.0, 0.0, 0.0)).unwrap();
         let v = rotate_q(q, [1.0, 0.0, 0.0]);
         assert!((v[1] - 1.0).abs() < 1e-12, "{v:?}");
         // Heading east (yaw 90): forward = ENU x; body z (down) = ENU -z.
-        let q = ned_to_enu(quat_from_euler(0.0, 0.0, 90f64.to_radians())).unwrap();
+        let q = crate::attitude::ned_to_enu(crate::attitude::quat_from_euler(
+            0.0,
+            0.0,
+            90f64.to_radians(),
+        ))
+        .unwrap();
         let v = rotate_q(q, [1.0, 0.0, 0.0]);
         assert!((v[0] - 1.0).abs() < 1e-12, "{v:?}");
         let v = rotate_q(q, [0.0, 0.0, 1.0]);
@@ -1568,7 +1550,7 @@ mod tests {
     #[test]
     fn roll_and_pitch_come_back_from_ref_q() {
         let (r, p, y) = (20f64, -35f64, 250f64);
-        let q = ned_to_enu(quat_from_euler(
+        let q = crate::attitude::ned_to_enu(crate::attitude::quat_from_euler(
             r.to_radians(),
             p.to_radians(),
             y.to_radians(),

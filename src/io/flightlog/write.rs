@@ -48,7 +48,7 @@ impl OnboardMag {
 
 /// Roll, pitch, yaw (deg, Euler ZYX, body -> NED) of a sample's reference attitude (sensor -> ENU).
 fn body_ned_euler_deg(q_enu: [f64; 4]) -> Option<[f64; 3]> {
-    let q = super::ned_to_enu(q_enu)?;
+    let q = crate::attitude::ned_to_enu(q_enu)?;
     let (w, x, y, z) = (q[0], q[1], q[2], q[3]);
     let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
     let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
@@ -276,7 +276,7 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
     sub(0, 2, "vehicle_attitude");
     for s in samples {
         let t = time_us(s.t_s);
-        if let Some(q) = s.ref_q.and_then(super::ned_to_enu) {
+        if let Some(q) = s.ref_q.and_then(crate::attitude::ned_to_enu) {
             let mut b = 2u16.to_le_bytes().to_vec();
             b.extend(t.to_le_bytes());
             for v in q {
