@@ -436,6 +436,10 @@ pub struct MessageConverter {
     /// The newest vehicle attitude (ATTITUDE_QUATERNION or ATTITUDE; sensor -> ENU, as
     /// [`Sample::ref_q`]) and when it was received (us, 0 when unknown).
     attitude: Option<(u64, [f64; 4])>,
+    /// Attitude messages taken so far: each instance attaches an attitude to its first sample
+    /// after it arrives only (as a CSV carries `ref_q` on the rows where it was measured), so a
+    /// reading is never paired with an attitude older than the one before it.
+    attitude_count: u64,
     /// The newest position fix (GLOBAL_POSITION_INT, or GPS_RAW_INT with a 3-D fix).
     position: Option<crate::types::GeoPoint>,
     /// The newest battery current (BATTERY_STATUS or SYS_STATUS), A.
@@ -462,6 +466,8 @@ struct Track {
     /// The last frame's time and readings (to tell a repeated frame).
     last_frame: Option<(MsgTime, Vec3, Vec3, Vec3)>,
     samples: u64,
+    /// The converter's `attitude_count` when this instance last took an attitude.
+    attitudes_taken: u64,
 }
 
 /// An IMU instance a converter took samples from.
@@ -508,6 +514,7 @@ impl MessageConverter {
             others: false,
             throttle: None,
             attitude: None,
+            attitude_count: 0,
             position: None,
             current_a: None,
             time_revision: u64::MAX,
@@ -598,6 +605,7 @@ impl MessageConverter {
             name: inst.name(),
             clock: SourceClock::new(ClockSettings::default()),
             last_frame: None,
+            attitudes_taken: 0,
             samples: 0,
         });
         let k = self.tracks.len() - 1;
@@ -616,6 +624,7 @@ impl MessageConverter {
                 let q = [d.q1, d.q2, d.q3, d.q4].map(f64::from);
                 if let Some(q) = crate::attitude::ned_to_enu(q) {
                     self.attitude = Some((time_us, q));
+                    self.attitude_count += 1;
                 }
             }
             MavMessage::ATTITUDE(d) => {
@@ -626,6 +635,7 @@ impl MessageConverter {
                 );
                 if let Some(q) = crate::attitude::ned_to_enu(q) {
                     self.attitude = Some((time_us, q));
+                    self.attitude_count += 1;
                 }
             }
             MavMessage::GLOBAL_POSITION_INT(d) if d.lat != 0 || d.lon != 0 => {
@@ -784,10 +794,12 @@ impl MessageConverter {
         let stamp = t.clock.stamp(Some(msg_us), recv_us, wrap_us);
         t.samples += 1;
         self.sync_time_stats();
+        let fresh = self.tracks[k].attitudes_taken < self.attitude_count;
+        self.tracks[k].attitudes_taken = self.attitude_count;
         let ref_q = self
             .attitude
             .filter(|(at, _)| {
-                *at == 0 || time_us == 0 || time_us.abs_diff(*at) <= ATTITUDE_MAX_AGE_US
+                fresh && (*at == 0 || time_us == 0 || time_us.abs_diff(*at) <= ATTITUDE_MAX_AGE_US)
             })
             .map(|(_, q)| q);
         let mut s = Sample {
