@@ -323,6 +323,17 @@ impl SensorCalibration {
     pub fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
         self.calibration().filter(|_| self.units == "uT")
     }
+
+    /// The field per ampere of battery current (uT/A, raw body axes) of a vector calibration in
+    /// use whose data determined it: what the motor-compensation parameters export.
+    pub fn motor_ut_per_a(&self) -> Option<Vec3> {
+        let m = self.method.as_ref()?;
+        let v = m.vector.as_ref()?;
+        (m.method == crate::calib::magmethod::MagMethod::Vector
+            && self.calibration_ut().is_some()
+            && v.current_identifiable == Some(true))
+        .then_some(v.current_ut_per_a)?
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

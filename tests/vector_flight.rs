@@ -159,6 +159,25 @@ fn current_interference_fitted_jointly_within_a_percent() {
         "{:?}",
         m.offset
     );
+    // Exported as ArduPilot COMPASS_MOT (after the soft iron, mGauss/A) and PX4 CAL_MAG0_?COMP
+    // (before the offset, G/kA), each by its stack's sign: the truth's would be -(M k) x 10 and -k x 10.
+    assert_eq!(m.motor_ut_per_a(), Some(k));
+    let ap = imucald::calib::export::ardupilot_motor(&k, &m.matrix, 0);
+    let px = imucald::calib::export::px4_motor(&k, 0);
+    for (j, axis) in ["X", "Y", "Z"].iter().enumerate() {
+        let mk: f64 = (0..3).map(|c| m.matrix[j][c] * k_true[c]).sum();
+        let got = |p: &[(String, f64)], n: String| p.iter().find(|(q, _)| *q == n).unwrap().1;
+        let a = got(&ap, format!("COMPASS_MOT_{axis}"));
+        assert!(
+            (a + 10.0 * mk).abs() < 0.01 * (10.0 * mk).abs(),
+            "COMPASS_MOT_{axis} {a}"
+        );
+        let p = got(&px, format!("CAL_MAG0_{axis}COMP"));
+        assert!(
+            (p + 10.0 * k_true[j]).abs() < 0.01 * (10.0 * k_true[j]).abs(),
+            "{axis}COMP {p}"
+        );
+    }
 }
 
 /// PX4 log of a short flight (AUAV-X21): `vehicle_attitude` at 100 Hz, yaw only between -48 and

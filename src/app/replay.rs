@@ -276,13 +276,23 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
             mags.push((i.compass_id as usize, c));
         }
     }
+    let motors: Vec<(usize, crate::types::Vec3)> = report
+        .calibration
+        .mag
+        .motor_ut_per_a()
+        .map(|k| (primary_id as usize, k))
+        .into_iter()
+        .collect();
     let mut written = vec![];
     for (name, text) in [
         (
             "ardupilot.parm",
-            crate::calib::export::ardupilot_file(&mags, a),
+            crate::calib::export::ardupilot_file(&mags, &motors, a),
         ),
-        ("px4.params", crate::calib::export::px4_file(&mags, a)),
+        (
+            "px4.params",
+            crate::calib::export::px4_file(&mags, &motors, a),
+        ),
         ("fusion.h", crate::calib::export::fusion_file(m, a)),
     ] {
         let p = dir.join(name);

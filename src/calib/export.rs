@@ -11,8 +11,8 @@
 //!
 //! Pure formatting: the caller writes the text to disk.
 
-use crate::calib::model::Calibration;
-use crate::types::STANDARD_GRAVITY_MPS2;
+use crate::calib::model::{Calibration, IDENTITY};
+use crate::types::{Vec3, STANDARD_GRAVITY_MPS2};
 
 /// A parameter name and value.
 pub type Param = (String, f64);
@@ -120,15 +120,61 @@ pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
     (params, representability(cal, false))
 }
 
+/// ArduPilot's motor compensation from the field per ampere of battery current `k_ut_per_a`
+/// (the vector fit's `k` of raw = A h + o + k c, uT/A) and the calibration's matrix `m`.
+/// ArduPilot adds COMPASS_MOT x current after the soft-iron matrix (mGauss), so
+/// COMPASS_MOT = -(M k) x 10 in mGauss/A, with COMPASS_MOTCT = 2 (current-based).
+pub fn ardupilot_motor(k_ut_per_a: &Vec3, m: &[[f64; 3]; 3], compass_index: usize) -> Vec<Param> {
+    let name = |axis: &str| ardupilot_compass_param("MOT", compass_index, axis);
+    let mk = |r: usize| (0..3).map(|c| m[r][c] * k_ut_per_a[c]).sum::<f64>();
+    vec![
+        (name("X"), -mk(0) * 10.0),
+        (name("Y"), -mk(1) * 10.0),
+        (name("Z"), -mk(2) * 10.0),
+        ("COMPASS_MOTCT".into(), 2.0),
+    ]
+}
+
+/// PX4's power compensation of slot `index` from the field per ampere `k_ut_per_a` (uT/A). PX4
+/// adds CAL_MAGn_[XYZ]COMP x current to the raw reading before the offset is subtracted, in
+/// gauss per kiloampere: XCOMP = -k x 10 (1 uT/A = 0.01 G/A = 10 G/kA), with
+/// CAL_MAG_COMP_TYP = 2 (current-based).
+pub fn px4_motor(k_ut_per_a: &Vec3, index: usize) -> Vec<Param> {
+    let n = |axis: &str| format!("CAL_MAG{index}_{axis}COMP");
+    vec![
+        (n("X"), -k_ut_per_a[0] * 10.0),
+        (n("Y"), -k_ut_per_a[1] * 10.0),
+        (n("Z"), -k_ut_per_a[2] * 10.0),
+        ("CAL_MAG_COMP_TYP".into(), 2.0),
+    ]
+}
+
+/// Motor (battery current) interference per compass index, uT/A: what [`ardupilot_motor`] and
+/// [`px4_motor`] export beside the calibrations.
+pub type CompassMotors = [(usize, Vec3)];
+
 /// Magnetometer calibrations (uT) with the compass index each is for (0 for COMPASS_OFS and
 /// CAL_MAG0, 1 for COMPASS_OFS2 and CAL_MAG1 ...).
 pub type CompassCalibrations = [(usize, Calibration)];
 
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
-pub fn ardupilot_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
+pub fn ardupilot_file(
+    mags: &CompassCalibrations,
+    motors: &CompassMotors,
+    accel: Option<&Calibration>,
+) -> String {
     let mut out =
         String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
-    let mags = mags.iter().map(|(k, c)| ardupilot_mag(c, *k));
+    let motor = |k: usize| {
+        let m = mags.iter().find(|(i, _)| *i == k).map(|(_, c)| c.matrix);
+        motors
+            .iter()
+            .filter(move |(i, _)| *i == k)
+            .map(move |(_, v)| (ardupilot_motor(v, &m.unwrap_or(IDENTITY), k), vec![]))
+    };
+    let mags = mags
+        .iter()
+        .flat_map(|(k, c)| std::iter::once(ardupilot_mag(c, *k)).chain(motor(*k)));
     for (params, warns) in mags.chain(accel.map(ardupilot_accel)) {
         for w in warns {
             out += &format!("# warning: {w}\n");
@@ -141,9 +187,21 @@ pub fn ardupilot_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -
 }
 
 /// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
-pub fn px4_file(mags: &CompassCalibrations, accel: Option<&Calibration>) -> String {
+pub fn px4_file(
+    mags: &CompassCalibrations,
+    motors: &CompassMotors,
+    accel: Option<&Calibration>,
+) -> String {
     let mut out = String::from("# imucald calibration for PX4 (QGroundControl parameter file)\n# Vehicle-Id\tComponent-Id\tName\tValue\tType\n");
-    let mags = mags.iter().map(|(k, c)| px4_mag(c, *k));
+    let motor = |k: usize| {
+        motors
+            .iter()
+            .filter(move |(i, _)| *i == k)
+            .map(|(i, v)| (px4_motor(v, *i), vec![]))
+    };
+    let mags = mags
+        .iter()
+        .flat_map(|(k, c)| std::iter::once(px4_mag(c, *k)).chain(motor(*k)));
     for (params, warns) in mags.chain(accel.map(px4_accel)) {
         for w in warns {
             out += &format!("# warning: {w}\n");
@@ -187,6 +245,67 @@ pub fn fusion_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> St
 mod tests {
     use super::*;
     use crate::calib::model::ModelKind;
+
+    /// The motor terms by each stack's correction formula: a reading raw = A h + o + k c
+    /// (uT, c in A) must come out as the earth field h.
+    #[test]
+    fn motor_compensation_restores_the_field_in_each_stacks_formula() {
+        let a = [[1.04, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.03, 1.02]];
+        let m = crate::calib::model::mat_to_rows(
+            &crate::calib::model::rows_to_mat(&a).try_inverse().unwrap(),
+        );
+        let (o, k, h, c) = (
+            [12.0, -30.0, 45.0],
+            [0.3, -0.2, 0.45],
+            [20.0, 1.5, 43.0],
+            37.0,
+        );
+        let raw: Vec3 =
+            std::array::from_fn(|r| (0..3).map(|j| a[r][j] * h[j]).sum::<f64>() + o[r] + k[r] * c);
+        let cal = Calibration {
+            model: ModelKind::Full12,
+            offset: o,
+            matrix: m,
+        };
+        // ArduPilot, mGauss: S (raw + OFS) + MOT c.
+        let (p, _) = ardupilot_mag(&cal, 1);
+        let mot = ardupilot_motor(&k, &m, 1);
+        assert_eq!(get(&mot, "COMPASS_MOTCT"), 2.0);
+        let axes = ["X", "Y", "Z"];
+        let plus: Vec3 =
+            std::array::from_fn(|r| raw[r] * 10.0 + get(&p, &format!("COMPASS_OFS2_{}", axes[r])));
+        for r in 0..3 {
+            let s_row: f64 = (0..3).map(|j| m[r][j] * plus[j]).sum();
+            let got = s_row + get(&mot, &format!("COMPASS_MOT2_{}", axes[r])) * c;
+            assert!(
+                (got - h[r] * 10.0).abs() < 1e-9,
+                "ArduPilot axis {r}: {got}"
+            );
+        }
+        // PX4, gauss: S ((raw + COMP c / 1000) - OFF).
+        let (p, _) = px4_mag(&cal, 0);
+        let comp = px4_motor(&k, 0);
+        assert_eq!(get(&comp, "CAL_MAG_COMP_TYP"), 2.0);
+        let inner: Vec3 = std::array::from_fn(|r| {
+            raw[r] * 0.01 + get(&comp, &format!("CAL_MAG0_{}COMP", axes[r])) * c / 1000.0
+                - get(&p, &format!("CAL_MAG0_{}OFF", axes[r]))
+        });
+        for r in 0..3 {
+            let got: f64 = (0..3).map(|j| m[r][j] * inner[j]).sum();
+            assert!((got - h[r] * 0.01).abs() < 1e-12, "PX4 axis {r}: {got}");
+        }
+        // Both files carry them beside the calibration.
+        let ap = ardupilot_file(&[(1, cal)], &[(1, k)], None);
+        assert!(
+            ap.contains("COMPASS_MOT2_X") && ap.contains("COMPASS_MOTCT 2"),
+            "{ap}"
+        );
+        let px = px4_file(&[(0, cal)], &[(0, k)], None);
+        assert!(
+            px.contains("CAL_MAG0_XCOMP") && px.contains("CAL_MAG_COMP_TYP"),
+            "{px}"
+        );
+    }
 
     fn cal() -> Calibration {
         Calibration {

@@ -132,13 +132,21 @@ pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
     })?;
     let (m, a) = (store.mag_cal(), store.accel_cal());
     let mags = store.mags_ut();
+    // The primary compass's motor term, when its vector calibration determined one.
+    let motors: Vec<(usize, crate::types::Vec3)> = store
+        .mag
+        .as_ref()
+        .and_then(|m| m.motor_ut_per_a())
+        .map(|k| (store.compass_id as usize, k))
+        .into_iter()
+        .collect();
     crate::io::publish::write_atomic(
         &dir.join("ardupilot.parm"),
-        crate::calib::export::ardupilot_file(&mags, a.as_ref()).as_bytes(),
+        crate::calib::export::ardupilot_file(&mags, &motors, a.as_ref()).as_bytes(),
     )?;
     crate::io::publish::write_atomic(
         &dir.join("px4.params"),
-        crate::calib::export::px4_file(&mags, a.as_ref()).as_bytes(),
+        crate::calib::export::px4_file(&mags, &motors, a.as_ref()).as_bytes(),
     )?;
     crate::io::publish::write_atomic(
         &dir.join("fusion.h"),
