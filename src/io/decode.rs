@@ -671,32 +671,11 @@ impl MessageConverter {
         }
     }
 
-    /// Convert one message: the instance's index among [`MessageConverter::instances`] and the
-    /// sample. `time_us` is the receive time (tlog record time or the link's clock, 0 when
-    /// unknown), which the instance's [`SourceClock`] falls back on when the message's own time is
-    /// unusable. A repeated frame (same time and readings) gives `None`, counted in its clock's
-    /// statistics.
-    pub fn convert_any(&mut self, msg: &MavMessage, time_us: u64) -> Option<(usize, Sample)> {
-        type Raw = (Instance, MsgTime, Vec3, Vec3, Vec3, Option<f64>, bool);
-        let (name, t_us, acc, gyr, mag, temp, has_mag): Raw = match msg {
-            MavMessage::VFR_HUD(d) => {
-                let th = d.throttle as f64 / 100.0;
-                self.throttle = if th.is_finite() {
-                    Some(th.clamp(0.0, 1.5))
-                } else {
-                    None
-                };
-                return None;
-            }
-            MavMessage::ATTITUDE_QUATERNION(_)
-            | MavMessage::ATTITUDE(_)
-            | MavMessage::GLOBAL_POSITION_INT(_)
-            | MavMessage::GPS_RAW_INT(_)
-            | MavMessage::BATTERY_STATUS(_)
-            | MavMessage::SYS_STATUS(_) => {
-                self.vehicle_state(msg, time_us);
-                return None;
-            }
+    /// The readings of an IMU message: instance, its own time, accelerometer, gyroscope,
+    /// magnetometer (in the units [`MessageConverter::units`] gives), temperature, and whether the
+    /// message carries a magnetometer. `None` for other messages.
+    fn imu_reading(&self, msg: &MavMessage) -> Option<ImuReading> {
+        Some(match msg {
             MavMessage::HIGHRES_IMU(d) => {
                 let m = [
                     d.xmag as f64 * 100.0,
@@ -774,6 +753,35 @@ impl MessageConverter {
                 )
             }
             _ => return None,
+        })
+    }
+
+    /// Convert one message: the instance's index among [`MessageConverter::instances`] and the
+    /// sample. `time_us` is the receive time (tlog record time or the link's clock, 0 when
+    /// unknown), which the instance's [`SourceClock`] falls back on when the message's own time is
+    /// unusable. A repeated frame (same time and readings) gives `None`, counted in its clock's
+    /// statistics.
+    pub fn convert_any(&mut self, msg: &MavMessage, time_us: u64) -> Option<(usize, Sample)> {
+        let (name, t_us, acc, gyr, mag, temp, has_mag) = match msg {
+            MavMessage::VFR_HUD(d) => {
+                let th = d.throttle as f64 / 100.0;
+                self.throttle = if th.is_finite() {
+                    Some(th.clamp(0.0, 1.5))
+                } else {
+                    None
+                };
+                return None;
+            }
+            MavMessage::ATTITUDE_QUATERNION(_)
+            | MavMessage::ATTITUDE(_)
+            | MavMessage::GLOBAL_POSITION_INT(_)
+            | MavMessage::GPS_RAW_INT(_)
+            | MavMessage::BATTERY_STATUS(_)
+            | MavMessage::SYS_STATUS(_) => {
+                self.vehicle_state(msg, time_us);
+                return None;
+            }
+            _ => self.imu_reading(msg)?,
         };
         let k = self.track_for(name, has_mag)?;
         let throttle = self.throttle;
@@ -831,6 +839,9 @@ impl MessageConverter {
         Some((k, s))
     }
 }
+
+/// An IMU message's readings (see [`MessageConverter::imu_reading`]).
+type ImuReading = (Instance, MsgTime, Vec3, Vec3, Vec3, Option<f64>, bool);
 
 /// A message's own time field.
 #[derive(Debug, Clone, Copy, PartialEq)]
