@@ -29,6 +29,7 @@ pub mod lm;
 pub mod magmethod;
 pub mod mavout;
 pub mod model;
+pub mod mounting;
 pub mod pipeline;
 pub mod plot;
 pub mod publish;

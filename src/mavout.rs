@@ -1319,6 +1319,7 @@ mod tests {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         })
     }
 
@@ -1621,6 +1622,7 @@ mod tests {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         }
     }
 

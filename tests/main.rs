@@ -2033,6 +2033,7 @@ mod live_attitude {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         }
     }
 
@@ -2730,6 +2731,7 @@ mod honest_progress {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         };
         for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
             let reports = live_progress(&sim.samples, &cfg, stored);

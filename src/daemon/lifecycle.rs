@@ -480,6 +480,7 @@ impl Cal {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         })
     }
 
