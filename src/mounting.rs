@@ -383,7 +383,8 @@ impl Prepared {
 }
 
 fn prepare(points: &[MountPoint], field: Option<&EarthField>) -> Prepared {
-    let good: Vec<(Vector3<f64>, Vector3<f64>, Option<UnitQuaternion<f64>>)> = points
+    type Good = (Vector3<f64>, Vector3<f64>, Option<UnitQuaternion<f64>>);
+    let good: Vec<Good> = points
         .iter()
         .filter_map(|p| Some((unit(&p.mag)?, unit(&p.specific_force_mps2)?, p.body_to_ned)))
         .collect();
@@ -471,14 +472,18 @@ fn best_custom(p: &Prepared) -> Scored {
 /// Score every standard rotation and the custom yaws on the poses and judge the configured
 /// mounting (`configured`, body = R sensor, named `configured_name`). `points` carry the
 /// magnetometer in the compass's own axes; `field` is the earth field where the data were taken
-/// (its direction is used with the attitude; its inclination is reported).
+/// (its direction is used with the attitude; its inclination is reported). `None` when no point
+/// has a usable (finite, non-zero) field and specific force.
 pub fn detect(
     points: &[MountPoint],
     field: Option<&EarthField>,
     configured: &Matrix3<f64>,
     configured_name: &str,
-) -> MountingReport {
+) -> Option<MountingReport> {
     let p = prepare(points, field);
+    if p.m.is_empty() {
+        return None;
+    }
     let basis = if p.expected.is_some() {
         Basis::Attitude
     } else {
@@ -503,7 +508,7 @@ pub fn detect(
         .filter(|(_, r)| rotation_angle_deg(r, &top) < SAME_ROTATION_DEG)
         .min_by_key(|(s, _)| s.mounting.ardupilot_compass_orient())
         .cloned();
-    let custom = (!p.m.is_empty()).then(|| best_custom(&p));
+    let custom = Some(best_custom(&p));
     let (mut best, mut best_r) = first.unwrap_or_else(|| scored[0].clone());
     if let Some(c) = &custom {
         if c.score_deg * CUSTOM_GAIN_RATIO < best.score_deg {
@@ -566,7 +571,7 @@ pub fn detect(
             },
         }
     };
-    MountingReport {
+    Some(MountingReport {
         basis,
         poses: p.m.len(),
         spread_deg: spread,
@@ -579,7 +584,7 @@ pub fn detect(
         field_to_up_deg,
         expected_field_to_up_deg: field.map(|f| 90.0 + f.inclination_deg),
         verdict,
-    }
+    })
 }
 
 /// The symmetric part of a calibration matrix (polar decomposition `M = U P`, `P = sqrt(M^T M)`):
@@ -739,7 +744,7 @@ mod tests {
         for &(number, name) in &ORIENTATIONS {
             let truth = crate::attitude::sensor_rotation(name).unwrap();
             let (pts, _incl) = tumble_points(&truth, 1 + number as u64, false);
-            let rep = detect(&pts, None, &Matrix3::identity(), "ROTATION_NONE");
+            let rep = detect(&pts, None, &Matrix3::identity(), "ROTATION_NONE").unwrap();
             assert_eq!(rep.basis, Basis::GravityAngle);
             let got = rep.best.mounting.matrix();
             let ok = rotation_angle_deg(&got, &truth) < SAME_ROTATION_DEG;
@@ -770,7 +775,7 @@ mod tests {
         for &(number, name) in &ORIENTATIONS {
             let truth = crate::attitude::sensor_rotation(name).unwrap();
             let (pts, f) = tumble_points(&truth, 100 + number as u64, true);
-            let rep = detect(&pts, Some(&f), &truth, name);
+            let rep = detect(&pts, Some(&f), &truth, name).unwrap();
             assert_eq!(rep.basis, Basis::Attitude);
             assert_eq!(rep.verdict, Verdict::Matches, "{name}: {rep:?}");
             min_ratio = min_ratio.min(rep.margin_ratio.unwrap());
@@ -789,7 +794,7 @@ mod tests {
         let mut worst: f64 = 0.0;
         for seed in 1..=4 {
             let (pts, _) = tumble_points(&truth, seed, false);
-            let rep = detect(&pts, None, &Matrix3::identity(), "ROTATION_NONE");
+            let rep = detect(&pts, None, &Matrix3::identity(), "ROTATION_NONE").unwrap();
             let Verdict::Differs { set } = &rep.verdict else {
                 panic!("{rep:?}")
             };
@@ -810,7 +815,8 @@ mod tests {
     fn few_or_level_poses_are_undetermined() {
         let truth = Mounting::standard(2).unwrap().matrix();
         let (pts, _) = tumble_points(&truth, 3, false);
-        let rep = detect(&pts[..4], None, &Matrix3::identity(), "ROTATION_NONE");
+        let rep = detect(&pts[..4], None, &Matrix3::identity(), "ROTATION_NONE").unwrap();
+        assert!(detect(&[], None, &Matrix3::identity(), "ROTATION_NONE").is_none());
         assert!(matches!(
             rep.verdict,
             Verdict::Undetermined {
@@ -829,7 +835,7 @@ mod tests {
                 }
             })
             .collect();
-        let rep = detect(&level, None, &Matrix3::identity(), "ROTATION_NONE");
+        let rep = detect(&level, None, &Matrix3::identity(), "ROTATION_NONE").unwrap();
         assert!(
             matches!(
                 rep.verdict,

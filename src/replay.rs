@@ -169,7 +169,11 @@ fn mounting_check(
         .collect();
     let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
     let field = crate::magmethod::earth_field_of(&log.samples, gps, cfg.place.as_ref());
-    let rep = crate::mounting::detect(&points, field.as_ref(), &r_cfg, &cfg.orientation.sensor);
+    let Some(rep) =
+        crate::mounting::detect(&points, field.as_ref(), &r_cfg, &cfg.orientation.sensor)
+    else {
+        return;
+    };
     let index = log
         .instances
         .iter()
