@@ -278,7 +278,8 @@ impl CalStatus {
 pub struct SensorCalibration {
     pub status: CalStatus,
     /// Null or the reason ([`FitFailure`]): not_enough_samples, not_identifiable, coverage, radius,
-    /// offsets, diagonal_scaling, residuals, did_not_converge, disturbed, axis_fault, held_out.
+    /// offsets, diagonal_scaling, residuals, did_not_converge, disturbed, axis_fault, held_out,
+    /// orientation.
     pub failure: Option<FitFailure>,
     /// Human-readable detail of the failure.
     pub detail: Option<String>,
@@ -304,6 +305,10 @@ pub struct SensorCalibration {
     /// fit (`vector`) when one was made ([`crate::calib::magmethod`]).
     #[serde(flatten)]
     pub method: Option<crate::calib::magmethod::MethodChoice>,
+    /// Magnetometer of a replay: the mounting found from the static poses and the verdict on the
+    /// configured one ([`crate::calib::mounting`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mounting: Option<crate::calib::mounting::MountingReport>,
 }
 
 impl SensorCalibration {

@@ -2034,6 +2034,7 @@ mod live_attitude {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         }
     }
 
@@ -2731,6 +2732,7 @@ mod honest_progress {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         };
         for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
             let reports = live_progress(&sim.samples, &cfg, stored);

@@ -49,6 +49,7 @@ pub fn replay(
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
     mag_method(&mut results, &run.log, &run.pipe, cfg);
+    mounting_check(&mut results, &run.log, &run.pipe, cfg);
     let declination = cfg.declination_deg()?;
     let report = full_report(path, &mut run, &results, declination);
     let (pipe, log) = (&run.pipe, &run.log);
@@ -109,6 +110,88 @@ fn mag_method(
         gps,
         cfg.place.as_ref(),
     );
+}
+
+/// The primary compass's mounting from the static poses ([`crate::calib::mounting`]), into
+/// `calibration.mag.mounting`; a mounting clearly other than `orientation.sensor` refuses the
+/// calibration (failure `orientation`) and names the parameter to set. The readings are
+/// corrected with the calibration's offset and its soft iron without rotation, and turned back
+/// into the compass's axes.
+fn mounting_check(
+    results: &mut FitResults,
+    log: &crate::io::sources::Log,
+    pipe: &Pipeline,
+    cfg: &Config,
+) {
+    use crate::calib::mounting::MountPoint;
+    let Some(cal) = results.mag.calibration else {
+        return;
+    };
+    let Ok(r_cfg) = crate::attitude::sensor_rotation(&cfg.orientation.sensor) else {
+        return;
+    };
+    let soft = crate::calib::mounting::symmetric_part(&cal.matrix);
+    let accel = results.accel.calibration;
+    let poses = pipe.poses();
+    // The attitude nearest each pose's middle (samples and poses both in arrival order).
+    let mut att: Vec<Option<(f64, [f64; 4])>> = vec![None; poses.len()];
+    let mut k = 0;
+    for s in &log.samples {
+        while k < poses.len()
+            && (s.segment > poses[k].segment
+                || (s.segment == poses[k].segment && s.t_s > poses[k].t_end))
+        {
+            k += 1;
+        }
+        let (Some(p), Some(q)) = (poses.get(k), s.ref_q) else {
+            continue;
+        };
+        if s.segment == p.segment && s.t_s >= p.t_start {
+            let d = (s.t_s - 0.5 * (p.t_start + p.t_end)).abs();
+            if att[k].is_none_or(|(best, _)| d < best) {
+                att[k] = Some((d, q));
+            }
+        }
+    }
+    let points: Vec<MountPoint> = poses
+        .iter()
+        .zip(&att)
+        .filter_map(|(p, a)| {
+            let m = p.mag?;
+            let c = soft
+                * nalgebra::Vector3::new(
+                    m[0] - cal.offset[0],
+                    m[1] - cal.offset[1],
+                    m[2] - cal.offset[2],
+                );
+            let c = r_cfg.transpose() * c;
+            Some(MountPoint {
+                mag: [c[0], c[1], c[2]],
+                specific_force_mps2: accel.map_or(p.accel, |a| a.apply(&p.accel)),
+                body_to_ned: a.and_then(|(_, q)| crate::calib::magmethod::body_ned_of_ref_q(q)),
+            })
+        })
+        .collect();
+    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
+    let field = crate::calib::magmethod::earth_field_of(&log.samples, gps, cfg.place.as_ref());
+    let Some(rep) =
+        crate::calib::mounting::detect(&points, field.as_ref(), &r_cfg, &cfg.orientation.sensor)
+    else {
+        return;
+    };
+    let index = log
+        .instances
+        .iter()
+        .find(|i| log.instance.as_deref() == Some(i.name.as_str()))
+        .map_or(0, |i| i.compass_id as usize);
+    if let Some(why) = rep.refusal(index) {
+        let r = &mut results.mag.report;
+        r.status = crate::report::CalStatus::Failed;
+        r.failure = Some(crate::calib::fit::FitFailure::Orientation);
+        r.detail = Some(why);
+        results.mag.calibration = None;
+    }
+    results.mag.report.mounting = Some(rep);
 }
 
 /// A log run through the pipelines: the primary's, the other instances' and the decoded log (with

@@ -37,6 +37,8 @@ pub enum FitFailure {
     HeldOut,
     /// Needs another sensor's calibration first (the gyro scale: the accelerometer's).
     NeedsCalibration,
+    /// The data say the compass is mounted otherwise than configured ([`crate::calib::mounting`]).
+    Orientation,
 }
 
 impl std::fmt::Display for FitFailure {
@@ -60,6 +62,7 @@ impl FitFailure {
             FitFailure::AxisFault => "axis_fault",
             FitFailure::HeldOut => "held_out",
             FitFailure::NeedsCalibration => "needs_calibration",
+            FitFailure::Orientation => "orientation",
         }
     }
 }

@@ -85,6 +85,15 @@ fn place_of(samples: &[Sample], log_gps: Option<[f64; 3]>, cfg: Option<&Place>) 
     })
 }
 
+/// The earth field where the log was taken (the place as for the vector fit), if known.
+pub fn earth_field_of(
+    samples: &[Sample],
+    log_gps: Option<[f64; 3]>,
+    cfg_place: Option<&Place>,
+) -> Option<crate::attitude::EarthField> {
+    crate::attitude::earth_field(&place_of(samples, log_gps, cfg_place)?.place).ok()
+}
+
 /// Body -> NED from a reference attitude (sensor -> ENU, as [`Sample::ref_q`]): NED -> ENU is a
 /// half turn about (1, 1, 0)/sqrt(2), its own inverse.
 pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<UnitQuaternion<f64>> {

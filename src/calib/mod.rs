@@ -21,5 +21,6 @@ pub mod learn;
 pub mod lm;
 pub mod magmethod;
 pub mod model;
+pub mod mounting;
 pub mod pipeline;
 pub mod vector;

@@ -444,6 +444,7 @@ fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> Sens
         candidates: vec![],
         outliers_rejected: 0,
         method: None,
+        mounting: None,
     }
 }
 
@@ -952,6 +953,7 @@ fn six_position_report(
         candidates,
         outliers_rejected: 0,
         method: None,
+        mounting: None,
     }
 }
 
@@ -1001,6 +1003,7 @@ fn norm_fit_report(
         candidates,
         outliers_rejected: 0,
         method: None,
+        mounting: None,
     };
     if !f.converged {
         set_fail(

@@ -1323,6 +1323,7 @@ mod tests {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         })
     }
 
@@ -1625,6 +1626,7 @@ mod tests {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         }
     }
 

@@ -488,6 +488,7 @@ impl Cal {
             candidates: vec![],
             outliers_rejected: 0,
             method: None,
+            mounting: None,
         })
     }
 
