@@ -30,6 +30,7 @@ pub mod magmethod;
 pub mod mavout;
 pub mod model;
 pub mod pipeline;
+pub mod planar;
 pub mod plot;
 pub mod publish;
 pub mod replay;

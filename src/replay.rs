@@ -96,11 +96,11 @@ fn write_html(
 /// place is known and it determines the offset, else the sphere fit ([`crate::magmethod`]).
 fn mag_method(results: &mut FitResults, log: &crate::sources::Log, pipe: &Pipeline, cfg: &Config) {
     let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
-    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    let body = |s: &crate::types::Sample| pipe.to_body(s);
     crate::magmethod::choose(
         &mut results.mag,
         &log.samples,
-        &body_mag,
+        &body,
         gps,
         cfg.place.as_ref(),
     );
