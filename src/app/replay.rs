@@ -102,11 +102,11 @@ fn mag_method(
     cfg: &Config,
 ) {
     let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
-    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    let body = |s: &crate::types::Sample| pipe.to_body(s);
     crate::calib::magmethod::choose(
         &mut results.mag,
         &log.samples,
-        &body_mag,
+        &body,
         gps,
         cfg.place.as_ref(),
     );

@@ -4,8 +4,9 @@
 //! and its reason go into the report (`calibration.mag.method`, `method_reason`, and the vector
 //! fit's uncertainties and identifiability under `vector`).
 //!
-//! The vector fit is chosen when it determines the offset; otherwise the sphere fit stays, and the
-//! reason names what the attitudes could not determine. Pure: no I/O (the date is the
+//! The vector fit is chosen when it determines the offset; otherwise the planar fit
+//! ([`crate::calib::planar`]) when the vehicle stays near level and turns about the vertical only,
+//! else the sphere fit stays, and the reason names what could not be determined. Pure: no I/O (the date is the
 //! configured one, else today's, as everywhere the World Magnetic Model is used).
 
 use crate::attitude::Place;
@@ -23,6 +24,12 @@ pub const MIN_CURRENT_SD_A: f64 = 1.0;
 /// A rotation within the vector fit's soft iron above this is named in the reason, deg.
 pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
 
+/// The planar method is taken when 95 % of the readings are within this of level (by the logged
+/// attitude when there is one, else by the accelerometer) and the turns' mean bank is within
+/// it, deg: too little tilt for the sphere (or the vector fit) to see the body-z axis, and no
+/// banked turns.
+pub const PLANAR_MAX_TILT_P95_DEG: f64 = 15.0;
+
 /// How the magnetometer calibration was made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -31,6 +38,9 @@ pub enum MagMethod {
     Vector,
     /// From the field's norm (the pipeline's fit).
     Sphere,
+    /// In the horizontal plane with a heading deviation curve ([`crate::calib::planar`]): a vehicle
+    /// that only turns about the vertical.
+    Planar,
 }
 
 /// The method chosen and why (flattened into `calibration.mag`).
@@ -41,6 +51,9 @@ pub struct MethodChoice {
     /// The vector fit, when one was made (chosen or not).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vector: Option<VectorFit>,
+    /// The 2-D fit, when the planar method was chosen.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub planar: Option<crate::calib::planar::PlanarFit>,
     /// The sphere fit's offset (uT) when it passed but the vector fit was chosen.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sphere_offset: Option<crate::types::Vec3>,
@@ -156,24 +169,158 @@ fn sphere_words(sphere: &SensorResult) -> String {
 
 /// Choose the method for the primary magnetometer; with the vector method, replace the sphere
 /// fit's result by the vector fit's (report fields and the calibration applied downstream).
-/// `body_mag` gives a sample's reading in body axes (the pipeline's sensor rotation).
+/// `body` gives a sample in body axes (the pipeline's sensor rotation).
 pub fn choose(
     mag: &mut SensorResult,
     samples: &[Sample],
-    body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
+    body: &dyn Fn(&Sample) -> Sample,
     log_gps: Option<[f64; 3]>,
     cfg_place: Option<&Place>,
 ) {
-    let choice = decide(mag, samples, body_mag, log_gps, cfg_place);
-    if choice.method == MagMethod::Vector {
-        if let Some(v) = &choice.vector {
-            install(mag, v);
+    let body_mag = |s: &Sample| body(s).mag_ut;
+    let choice = decide_vector(mag, samples, &body_mag, log_gps, cfg_place);
+    let choice = if choice.method == MagMethod::Vector {
+        choice
+    } else {
+        planar_or(choice, mag, samples, body, log_gps, cfg_place)
+    };
+    match choice.method {
+        MagMethod::Vector => {
+            if let Some(v) = &choice.vector {
+                install(mag, v);
+            }
         }
+        MagMethod::Planar => {
+            if let Some(p) = &choice.planar {
+                install_planar(mag, p);
+            }
+        }
+        MagMethod::Sphere => {}
     }
     mag.report.method = Some(choice);
 }
 
-fn decide(
+/// The planar fit instead of `other` (the vector fit was not chosen) when the readings stay
+/// within [`PLANAR_MAX_TILT_P95_DEG`] of level and turn through enough of the circle; `other`
+/// otherwise, its reason saying why the planar method was not taken when it was tried.
+fn planar_or(
+    other: MethodChoice,
+    mag: &SensorResult,
+    samples: &[Sample],
+    body: &dyn Fn(&Sample) -> Sample,
+    log_gps: Option<[f64; 3]>,
+    cfg_place: Option<&Place>,
+) -> MethodChoice {
+    let pts = crate::calib::planar::points_from_samples(samples, body);
+    if pts.is_empty() {
+        return other;
+    }
+    let field = place_of(samples, log_gps, cfg_place)
+        .filter(|_| mag.report.units == "uT")
+        .and_then(|w| crate::attitude::earth_field(&w.place).ok());
+    let earth = field.map(|f| {
+        let ned = f.field_ned_ut();
+        crate::calib::planar::PlanarEarth {
+            horizontal: ned[0].hypot(ned[1]),
+            vertical: ned[2],
+            declination_deg: f.declination_deg,
+        }
+    });
+    let settings = crate::calib::planar::PlanarSettings::default();
+    let with = |mut c: MethodChoice, why: String| {
+        c.method_reason = format!("{}; planar not taken: {why}", c.method_reason);
+        c
+    };
+    let p = match crate::calib::planar::fit(&pts, earth.as_ref(), &settings) {
+        Ok(p) => p,
+        Err(e) => return with(other, e.to_string()),
+    };
+    let tilt_p95_deg = reference_tilt_p95_deg(samples).unwrap_or(p.tilt_p95_deg);
+    if tilt_p95_deg > PLANAR_MAX_TILT_P95_DEG {
+        // Tilted enough for the sphere: no need to say more.
+        return other;
+    }
+    if let Some(bank) = p
+        .turn_bank_deg
+        .filter(|b| b.abs() > PLANAR_MAX_TILT_P95_DEG)
+    {
+        return with(
+            other,
+            format!("the turns are banked by {bank:.1} deg on average"),
+        );
+    }
+    let unknown: Vec<&str> = p.undetermined.iter().map(|u| u.describe()).collect();
+    let deviation = match &p.deviation {
+        Some(d) => format!(
+            "deviation curve from {} readings with {:?} heading ({:.2} deg RMS after, {:.2} before)",
+            d.points, d.source, d.rms_deg, d.rms_before_deg
+        ),
+        None => p
+            .deviation_skipped
+            .clone()
+            .unwrap_or_else(|| "no heading reference".into()),
+    };
+    let reason = format!(
+        "turns about the vertical only: 95 % of {} readings within {:.1} deg of level (the sphere needs tilt), headings in {} of {} sectors; {}; not determined: {}; {}",
+        p.points,
+        tilt_p95_deg,
+        p.yaw_sectors,
+        crate::calib::planar::YAW_SECTORS,
+        deviation,
+        unknown.join(", "),
+        other.method_reason
+    );
+    MethodChoice {
+        method: MagMethod::Planar,
+        method_reason: reason,
+        vector: other.vector,
+        planar: Some(p),
+        sphere_offset: None,
+    }
+}
+
+/// 95th percentile of the logged attitude's tilt from level, deg (None without an attitude):
+/// unlike the accelerometer's, it is not fooled by a coordinated turn.
+fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
+    let mut t: Vec<f64> = samples
+        .iter()
+        .filter_map(|s| {
+            let e = crate::attitude::euler_zyx_deg(&body_ned_of_ref_q(s.ref_q?)?);
+            let c = e[0].to_radians().cos() * e[1].to_radians().cos();
+            Some(c.clamp(-1.0, 1.0).acos().to_degrees())
+        })
+        .collect();
+    t.sort_by(|a, b| a.total_cmp(b));
+    let k = ((t.len() as f64 * 0.95) as usize).min(t.len().checked_sub(1)?);
+    t.get(k).copied()
+}
+
+/// The planar fit as the sensor's result, the undetermined z terms at nominal.
+fn install_planar(mag: &mut SensorResult, p: &crate::calib::planar::PlanarFit) {
+    let (offset, matrix) = p.calibration();
+    let r = &mut mag.report;
+    r.status = crate::report::CalStatus::Ok;
+    r.failure = None;
+    r.detail = None;
+    r.model = ModelKind::Full12.name().into();
+    r.offset = offset;
+    r.matrix = matrix;
+    r.radius = p.horizontal.hypot(p.vertical);
+    r.rms_residual = p.rms_residual;
+    // z held at nominal, not fitted (named in `planar.undetermined`).
+    r.offset_sigma = [p.offset_sigma_xy[0], p.offset_sigma_xy[1], 0.0];
+    r.samples_used = p.points;
+    r.iterations = 0;
+    r.candidates = Vec::new();
+    r.outliers_rejected = p.outliers_rejected;
+    mag.calibration = Some(Calibration {
+        model: ModelKind::Full12,
+        offset,
+        matrix,
+    });
+}
+
+fn decide_vector(
     mag: &SensorResult,
     samples: &[Sample],
     body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
@@ -184,6 +331,7 @@ fn decide(
         method: MagMethod::Sphere,
         method_reason: reason,
         vector,
+        planar: None,
         sphere_offset: None,
     };
     if !samples
@@ -270,6 +418,7 @@ fn decide(
             sphere_words(mag)
         ),
         vector: Some(v),
+        planar: None,
         sphere_offset: mag.calibration.map(|c| c.offset),
     }
 }
@@ -290,6 +439,7 @@ pub fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer
         method_reason: reason,
         vector: Some(v.clone()),
         sphere_offset: None,
+        planar: None,
     });
 }
 

@@ -4,7 +4,7 @@
 //! the calibration models (`calibrated = M (raw - offset)`), [`fit`] fits them with the one
 //! Levenberg-Marquardt solver ([`lm`]), [`pipeline`] composes these per sample for `replay` and the
 //! live service. Methods beside the sphere fit: [`vector`] (attitude and the earth field),
-//! [`fixedyaw`] (one known heading), chosen by [`magmethod`], and [`learn`] (the vector fit
+//! [`fixedyaw`] (one known heading), [`planar`] (ground vehicles), chosen by [`magmethod`], and [`learn`] (the vector fit
 //! learnt continuously by the live service); [`gyro`] for the gyroscope;
 //! [`export`] converts a calibration to flight-stack parameters.
 //!
@@ -23,4 +23,5 @@ pub mod magmethod;
 pub mod model;
 pub mod mounting;
 pub mod pipeline;
+pub mod planar;
 pub mod vector;

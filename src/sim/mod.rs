@@ -12,7 +12,9 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 mod trajectory;
-use trajectory::{build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, Tremor};
+use trajectory::{
+    build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan, Tremor,
+};
 pub use trajectory::{quat_from_euler_deg, turntable_attitudes};
 
 /// True calibration of one sensor: `raw = matrix^-1 * true + offset + noise`.
@@ -187,6 +189,9 @@ pub enum TrajectoryKind {
     /// An ordinary fixed-wing-like flight: straight legs joined by coordinated banked turns (bank
     /// within `cruise.bank_deg`, pitch within +-5 deg), the battery current changing leg by leg.
     Cruise,
+    /// A ground vehicle: straight stretches, loops and figure-eights at walking pace on gently
+    /// rolling ground (roll and pitch within `rover.terrain_deg`), yaw over the full circle.
+    Rover,
 }
 
 impl TrajectoryKind {
@@ -197,6 +202,7 @@ impl TrajectoryKind {
             TrajectoryKind::Flight => "flight",
             TrajectoryKind::Bench => "bench",
             TrajectoryKind::Cruise => "cruise",
+            TrajectoryKind::Rover => "rover",
         }
     }
     pub fn parse(s: &str) -> Option<TrajectoryKind> {
@@ -206,12 +212,13 @@ impl TrajectoryKind {
             "flight" => Some(TrajectoryKind::Flight),
             "bench" => Some(TrajectoryKind::Bench),
             "cruise" => Some(TrajectoryKind::Cruise),
+            "rover" => Some(TrajectoryKind::Rover),
             _ => None,
         }
     }
 }
 
-const SCENARIO_NAMES: [&str; 5] = ["turntable", "tumble", "flight", "bench", "cruise"];
+const SCENARIO_NAMES: [&str; 6] = ["turntable", "tumble", "flight", "bench", "cruise", "rover"];
 
 /// A named simulation scenario: truth parameters plus the trajectory and its knobs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -259,6 +266,40 @@ pub struct Scenario {
     /// Knobs of the `cruise` trajectory.
     #[serde(default)]
     pub cruise: CruiseSettings,
+    /// Knobs of the `rover` trajectory.
+    #[serde(default)]
+    pub rover: RoverSettings,
+}
+
+/// Settings of the `rover` trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RoverSettings {
+    /// Ground speed, m/s.
+    pub speed_mps: f64,
+    /// Radius of the tightest part of a turn, m (the turn rate peaks at speed / radius).
+    pub turn_radius_m: f64,
+    /// Range of a straight stretch's length, s.
+    pub leg_s: [f64; 2],
+    /// Range of a loop's heading change, deg (left or right at random).
+    pub turn_deg: [f64; 2],
+    /// Share of the manoeuvres that are figure-eights (a full circle each way), 0..1.
+    pub figure_eight_share: f64,
+    /// Roll and pitch from the terrain reach at most this, deg.
+    pub terrain_deg: f64,
+}
+
+impl Default for RoverSettings {
+    fn default() -> Self {
+        RoverSettings {
+            speed_mps: 1.5,
+            turn_radius_m: 4.0,
+            leg_s: [3.0, 8.0],
+            turn_deg: [180.0, 450.0],
+            figure_eight_share: 0.4,
+            terrain_deg: 3.0,
+        }
+    }
 }
 
 /// Settings of the `cruise` trajectory.
@@ -521,6 +562,7 @@ impl Scenario {
             reference_rate_hz: None,
             place: None,
             cruise: CruiseSettings::default(),
+            rover: RoverSettings::default(),
         };
         match kind {
             TrajectoryKind::Turntable => {
@@ -563,6 +605,20 @@ impl Scenario {
                     latitude_deg: 47.3769,
                     longitude_deg: 8.5417,
                     altitude_m: 600.0,
+                    date: Some("2026-06-01".into()),
+                });
+            }
+            TrajectoryKind::Rover => {
+                // Five minutes on a field near Zurich in mid-2026, the vehicle's attitude estimate
+                // at 10 Hz with 0.5 deg of noise per axis, the default hard iron (z included).
+                sc.tremor_deg = 0.0;
+                sc.duration_s = Some(300.0);
+                sc.reference_noise_deg = Some(0.5);
+                sc.reference_rate_hz = Some(10.0);
+                sc.place = Some(crate::attitude::Place {
+                    latitude_deg: 47.3769,
+                    longitude_deg: 8.5417,
+                    altitude_m: 450.0,
                     date: Some("2026-06-01".into()),
                 });
             }
@@ -631,6 +687,7 @@ struct ScenarioFile {
     reference_rate_hz: Option<f64>,
     place: Option<crate::attitude::Place>,
     cruise: Option<CruiseSettings>,
+    rover: Option<RoverSettings>,
 }
 
 /// The key a toml/serde error message names (`unknown field `x``), if any.
@@ -728,6 +785,9 @@ impl Scenario {
         }
         if let Some(c) = f.cruise {
             sc.cruise = c;
+        }
+        if let Some(c) = f.rover {
+            sc.rover = c;
         }
         sc.validate()?;
         Ok(sc)
@@ -832,6 +892,7 @@ impl Scenario {
             })?;
         }
         self.validate_cruise()?;
+        self.validate_rover()?;
         let b = &self.bench;
         if self.kind == TrajectoryKind::Bench {
             if b.levels.is_empty()
@@ -892,6 +953,28 @@ impl Scenario {
             });
         }
         Ok(())
+    }
+
+    fn validate_rover(&self) -> Result<(), Error> {
+        let c = &self.rover;
+        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| {
+            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+                Ok(())
+            } else {
+                Err(Error::Config {
+                    key: format!("rover.{key}"),
+                    message: format!(
+                        "must be [min, max] with {lo} <= min <= max <= {hi}, got {r:?}"
+                    ),
+                })
+            }
+        };
+        range("speed_mps", [c.speed_mps; 2], 0.1, 30.0)?;
+        range("turn_radius_m", [c.turn_radius_m; 2], 0.5, 1000.0)?;
+        range("leg_s", c.leg_s, 0.5, 3600.0)?;
+        range("turn_deg", c.turn_deg, 1.0, 1080.0)?;
+        range("figure_eight_share", [c.figure_eight_share; 2], 0.0, 1.0)?;
+        range("terrain_deg", [c.terrain_deg; 2], 0.0, 30.0)
     }
 
     /// The earth field in NED, uT: the World Magnetic Model's at `place`, else `truth.world`'s.
@@ -1025,6 +1108,11 @@ fn build_motion(
             truth.world.gravity_mps2,
             rng,
         )),
+        TrajectoryKind::Rover => Motion::Rover(RoverPlan::new(
+            scenario.duration_s.unwrap_or(300.0),
+            &scenario.rover,
+            rng,
+        )),
     };
     (motion, bench_schedule)
 }
@@ -1150,7 +1238,7 @@ impl Stepper<'_> {
                 s.current_a = Some(c);
                 s.throttle = Some((c / p.max_current_a).clamp(0.0, 1.0).powf(2.0 / 3.0));
             }
-            Motion::Segments { .. } => {}
+            Motion::Segments { .. } | Motion::Rover(_) => {}
         }
         // Effects added to the raw readings.
         if !fx.is_none() {

@@ -1,6 +1,6 @@
 //! Trajectories of the scenarios: attitude (body -> NED) and motion as functions of time.
 
-use super::{CruiseSettings, PoseTruth};
+use super::{CruiseSettings, PoseTruth, RoverSettings};
 use nalgebra::{UnitQuaternion, Vector3};
 
 pub(super) type Quat = UnitQuaternion<f64>;
@@ -248,17 +248,7 @@ impl CruisePlan {
 
     /// Heading (rad) and its rate (rad/s).
     pub(super) fn heading(&self, t: f64) -> (f64, f64) {
-        let (mut psi, mut rate) = (self.yaw0_rad, 0.0);
-        for &(t0, t1, delta) in &self.turns {
-            let d = t1 - t0;
-            let u = ((t - t0) / d).clamp(0.0, 1.0);
-            let w = std::f64::consts::TAU * u;
-            psi += delta * (u - w.sin() / std::f64::consts::TAU);
-            if (t0..t1).contains(&t) {
-                rate += delta / d * (1.0 - w.cos());
-            }
-        }
-        (psi, rate)
+        smooth_turns(self.yaw0_rad, &self.turns, t)
     }
 
     pub(super) fn attitude(&self, t: f64) -> Quat {
@@ -292,6 +282,106 @@ impl CruisePlan {
     }
 }
 
+/// The rover trajectory: a ground vehicle at constant speed driving straight stretches, loops
+/// and figure-eights on gently rolling ground; heading and tilt as closed-form functions of time.
+#[derive(Debug, Clone)]
+pub(super) struct RoverPlan {
+    pub(super) t_total: f64,
+    speed_mps: f64,
+    yaw0_rad: f64,
+    /// (t0, t1, heading change rad), as the cruise's turns (smooth rate, zero at both ends).
+    turns: Vec<(f64, f64, f64)>,
+    /// (amplitude deg, wavelength m, phase): roll and pitch from the terrain along the track.
+    roll: Vec<(f64, f64, f64)>,
+    pitch: Vec<(f64, f64, f64)>,
+}
+
+impl RoverPlan {
+    pub(super) fn new<R: rand::Rng>(total: f64, c: &RoverSettings, rng: &mut R) -> RoverPlan {
+        let pick = |r: [f64; 2], rng: &mut R| {
+            if r[1] > r[0] {
+                rng.random_range(r[0]..r[1])
+            } else {
+                r[0]
+            }
+        };
+        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
+        // Peak rate 2 |delta| / T = speed / radius.
+        let peak_rate = c.speed_mps / c.turn_radius_m;
+        let mut turns = Vec::new();
+        let mut t = 0.0;
+        while t < total {
+            t += pick(c.leg_s, rng);
+            let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            let mut turn = |delta: f64, t: &mut f64| {
+                let d = 2.0 * delta.abs() / peak_rate;
+                turns.push((*t, *t + d, delta));
+                *t += d;
+            };
+            if rng.random_bool(c.figure_eight_share) {
+                // Two full circles, one each way, then on at a new heading.
+                turn(sign * std::f64::consts::TAU, &mut t);
+                turn(-sign * std::f64::consts::TAU, &mut t);
+                turn(sign * pick(c.turn_deg, rng).to_radians() / 4.0, &mut t);
+            } else {
+                turn(sign * pick(c.turn_deg, rng).to_radians(), &mut t);
+            }
+        }
+        let a = c.terrain_deg;
+        RoverPlan {
+            t_total: total,
+            speed_mps: c.speed_mps,
+            yaw0_rad: rng.random_range(0.0..std::f64::consts::TAU),
+            turns,
+            roll: vec![(0.6 * a, 9.0, ph(rng)), (0.4 * a, 23.0, ph(rng))],
+            pitch: vec![(0.6 * a, 13.0, ph(rng)), (0.4 * a, 31.0, ph(rng))],
+        }
+    }
+
+    /// Heading (rad) and its rate (rad/s).
+    pub(super) fn heading(&self, t: f64) -> (f64, f64) {
+        smooth_turns(self.yaw0_rad, &self.turns, t)
+    }
+
+    pub(super) fn attitude(&self, t: f64) -> Quat {
+        let (psi, _) = self.heading(t);
+        let s = self.speed_mps * t;
+        let terrain = |c: &[(f64, f64, f64)]| {
+            c.iter()
+                .map(|&(a, l, ph)| a * (std::f64::consts::TAU * s / l + ph).sin())
+                .sum::<f64>()
+        };
+        quat_from_euler_deg(terrain(&self.roll), terrain(&self.pitch), psi.to_degrees())
+    }
+
+    pub(super) fn velocity_ned(&self, t: f64) -> Vector3<f64> {
+        let (psi, _) = self.heading(t);
+        self.speed_mps * Vector3::new(psi.cos(), psi.sin(), 0.0)
+    }
+
+    /// The centripetal acceleration of the turns (constant speed on the ground plane), m/s^2.
+    pub(super) fn accel_ned(&self, t: f64) -> Vector3<f64> {
+        let (psi, rate) = self.heading(t);
+        self.speed_mps * rate * Vector3::new(-psi.sin(), psi.cos(), 0.0)
+    }
+}
+
+/// Heading (rad) and rate (rad/s) from `yaw0` through turns (t0, t1, delta rad) whose rate is
+/// `delta / T (1 - cos(2 pi u))`, u = (t - t0) / T.
+fn smooth_turns(yaw0: f64, turns: &[(f64, f64, f64)], t: f64) -> (f64, f64) {
+    let (mut psi, mut rate) = (yaw0, 0.0);
+    for &(t0, t1, delta) in turns {
+        let d = t1 - t0;
+        let u = ((t - t0) / d).clamp(0.0, 1.0);
+        let w = std::f64::consts::TAU * u;
+        psi += delta * (u - w.sin() / std::f64::consts::TAU);
+        if (t0..t1).contains(&t) {
+            rate += delta / d * (1.0 - w.cos());
+        }
+    }
+    (psi, rate)
+}
+
 #[derive(Debug, Clone)]
 pub(super) enum Motion {
     Segments {
@@ -300,6 +390,7 @@ pub(super) enum Motion {
     },
     Flight(FlightPlan),
     Cruise(CruisePlan),
+    Rover(RoverPlan),
 }
 
 impl Motion {
@@ -308,6 +399,7 @@ impl Motion {
             Motion::Segments { segs, .. } => segs.last().map(|s| s.t1()).unwrap_or(0.0),
             Motion::Flight(p) => p.t_total,
             Motion::Cruise(p) => p.t_total,
+            Motion::Rover(p) => p.t_total,
         }
     }
 
@@ -332,6 +424,7 @@ impl Motion {
             }
             Motion::Flight(p) => p.attitude(t),
             Motion::Cruise(p) => p.attitude(t),
+            Motion::Rover(p) => p.attitude(t),
         }
     }
 
@@ -352,6 +445,7 @@ impl Motion {
                 (p.position_ned(t + h) - p.position_ned(t - h)) / (2.0 * h)
             }
             Motion::Cruise(p) => p.velocity_ned(t),
+            Motion::Rover(p) => p.velocity_ned(t),
         }
     }
 
@@ -364,6 +458,7 @@ impl Motion {
                 (p.position_ned(t + h) - 2.0 * p.position_ned(t) + p.position_ned(t - h)) / (h * h)
             }
             Motion::Cruise(p) => p.accel_ned(t),
+            Motion::Rover(p) => p.accel_ned(t),
         }
     }
 }
