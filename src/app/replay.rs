@@ -168,7 +168,7 @@ fn mounting_check(
             Some(MountPoint {
                 mag: [c[0], c[1], c[2]],
                 specific_force_mps2: accel.map_or(p.accel, |a| a.apply(&p.accel)),
-                body_to_ned: a.and_then(|(_, q)| crate::calib::magmethod::body_ned_of_ref_q(q)),
+                body_to_ned: a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)),
             })
         })
         .collect();

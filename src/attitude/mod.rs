@@ -15,15 +15,8 @@ use serde::{Deserialize, Serialize};
 
 /// Quaternion (w, x, y, z) of body -> NED from roll, pitch, yaw (rad), Euler ZYX.
 pub fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
-    let (sr, cr) = (0.5 * roll).sin_cos();
-    let (sp, cp) = (0.5 * pitch).sin_cos();
-    let (sy, cy) = (0.5 * yaw).sin_cos();
-    [
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    ]
+    let q = nalgebra::UnitQuaternion::from_euler_angles(roll, pitch, yaw);
+    [q.w, q.i, q.j, q.k]
 }
 
 /// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
@@ -39,6 +32,16 @@ pub fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
     ];
     let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
     (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
+}
+
+/// Body -> NED from a reference attitude (sensor -> ENU, as [`crate::types::Sample::ref_q`]): NED -> ENU is a
+/// half turn about (1, 1, 0)/sqrt(2), its own inverse.
+pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<nalgebra::UnitQuaternion<f64>> {
+    // ENU -> NED is the same half-turn as NED -> ENU.
+    let b = ned_to_enu(q)?;
+    Some(nalgebra::UnitQuaternion::new_unchecked(
+        nalgebra::Quaternion::new(b[0], b[1], b[2], b[3]),
+    ))
 }
 
 /// Roll, pitch (deg) from calibrated specific force `f` (FRD; reads (0, 0, -g) level at rest).

@@ -14,7 +14,6 @@ use crate::calib::model::{Calibration, ModelKind};
 use crate::calib::pipeline::SensorResult;
 use crate::calib::vector::{VectorFit, VectorPoint};
 use crate::types::{GeoPoint, Sample};
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// The current term is fitted only when the logged current varies at least this much (standard
@@ -107,23 +106,6 @@ pub fn earth_field_of(
     crate::attitude::earth_field(&place_of(samples, log_gps, cfg_place)?.place).ok()
 }
 
-/// Body -> NED from a reference attitude (sensor -> ENU, as [`Sample::ref_q`]): NED -> ENU is a
-/// half turn about (1, 1, 0)/sqrt(2), its own inverse.
-pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<UnitQuaternion<f64>> {
-    if !q.iter().all(|x| x.is_finite()) {
-        return None;
-    }
-    let raw = Quaternion::new(q[0], q[1], q[2], q[3]);
-    if raw.norm() < 0.5 {
-        return None;
-    }
-    let half = UnitQuaternion::from_axis_angle(
-        &nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0)),
-        std::f64::consts::PI,
-    );
-    Some(half * UnitQuaternion::from_quaternion(raw))
-}
-
 /// The vector fit's points: readings (body axes) with an attitude, the expected field at it.
 pub fn points(
     samples: &[Sample],
@@ -133,7 +115,7 @@ pub fn points(
     samples
         .iter()
         .filter_map(|s| {
-            let q = body_ned_of_ref_q(s.ref_q?)?;
+            let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
             Some(VectorPoint {
                 raw_ut: body_mag(s)?,
                 expected_ut: crate::calib::vector::expected_field(&q, b_ned),
@@ -285,7 +267,7 @@ fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
     let mut t: Vec<f64> = samples
         .iter()
         .filter_map(|s| {
-            let e = crate::attitude::euler_zyx_deg(&body_ned_of_ref_q(s.ref_q?)?);
+            let e = crate::attitude::euler_zyx_deg(&crate::attitude::body_ned_of_ref_q(s.ref_q?)?);
             let c = e[0].to_radians().cos() * e[1].to_radians().cos();
             Some(c.clamp(-1.0, 1.0).acos().to_degrees())
         })

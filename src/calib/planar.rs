@@ -522,13 +522,9 @@ fn sectors(headings_deg: impl Iterator<Item = f64>) -> usize {
     seen.iter().filter(|s| **s).count()
 }
 
-/// Fit the horizontal calibration, then the deviation curve against the references.
-pub fn fit(
-    points: &[PlanarPoint],
-    earth: Option<&PlanarEarth>,
-    settings: &PlanarSettings,
-) -> Result<PlanarFit, PlanarFailure> {
-    let usable: Vec<&PlanarPoint> = points.iter().filter(|p| p.usable()).collect();
+/// The tilts seen (95th percentile and largest, deg) and the mean bank of the turns (deg, from the
+/// pitch rate against the yaw rate while turning; `None` without turns).
+fn tilt_and_bank(usable: &[&PlanarPoint]) -> (f64, f64, Option<f64>) {
     let tilts: Vec<f64> = usable.iter().map(|p| p.tilt_deg()).collect();
     let tilt_p95_deg = p95(tilts.clone()).unwrap_or(0.0);
     let tilt_max_deg = tilts.iter().copied().fold(0.0, f64::max);
@@ -554,6 +550,17 @@ pub fn fit(
         yaw_rate += w[2].abs();
     }
     let turn_bank_deg = (yaw_rate > 0.0).then(|| pitch_rate.atan2(yaw_rate).to_degrees());
+    (tilt_p95_deg, tilt_max_deg, turn_bank_deg)
+}
+
+/// Fit the horizontal calibration, then the deviation curve against the references.
+pub fn fit(
+    points: &[PlanarPoint],
+    earth: Option<&PlanarEarth>,
+    settings: &PlanarSettings,
+) -> Result<PlanarFit, PlanarFailure> {
+    let usable: Vec<&PlanarPoint> = points.iter().filter(|p| p.usable()).collect();
+    let (tilt_p95_deg, tilt_max_deg, turn_bank_deg) = tilt_and_bank(&usable);
     let level: Vec<&PlanarPoint> = usable
         .iter()
         .copied()
@@ -832,7 +839,7 @@ pub fn points_from_samples(
             let track = track_at(&tracks, s.t_s);
             let attitude = s
                 .ref_q
-                .and_then(crate::calib::magmethod::body_ned_of_ref_q)
+                .and_then(crate::attitude::body_ned_of_ref_q)
                 .map(|q| {
                     (
                         crate::attitude::euler_zyx_deg(&q)[2],

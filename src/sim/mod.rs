@@ -926,21 +926,22 @@ impl Scenario {
     }
 }
 
+/// `[min, max]` of scenario setting `section.key` within `lo..=hi`, else an error naming the key.
+fn range_in(section: &str, key: &str, r: [f64; 2], lo: f64, hi: f64) -> Result<(), Error> {
+    if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+        Ok(())
+    } else {
+        Err(Error::Config {
+            key: format!("{section}.{key}"),
+            message: format!("must be [min, max] with {lo} <= min <= max <= {hi}, got {r:?}"),
+        })
+    }
+}
+
 impl Scenario {
     fn validate_cruise(&self) -> Result<(), Error> {
         let c = &self.cruise;
-        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| {
-            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
-                Ok(())
-            } else {
-                Err(Error::Config {
-                    key: format!("cruise.{key}"),
-                    message: format!(
-                        "must be [min, max] with {lo} <= min <= max <= {hi}, got {r:?}"
-                    ),
-                })
-            }
-        };
+        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| range_in("cruise", key, r, lo, hi);
         range("speed_mps", [c.speed_mps; 2], 1.0, 100.0)?;
         range("bank_deg", c.bank_deg, 1.0, 60.0)?;
         range("leg_s", c.leg_s, 0.5, 3600.0)?;
@@ -957,18 +958,7 @@ impl Scenario {
 
     fn validate_rover(&self) -> Result<(), Error> {
         let c = &self.rover;
-        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| {
-            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
-                Ok(())
-            } else {
-                Err(Error::Config {
-                    key: format!("rover.{key}"),
-                    message: format!(
-                        "must be [min, max] with {lo} <= min <= max <= {hi}, got {r:?}"
-                    ),
-                })
-            }
-        };
+        let range = |key: &str, r: [f64; 2], lo: f64, hi: f64| range_in("rover", key, r, lo, hi);
         range("speed_mps", [c.speed_mps; 2], 0.1, 30.0)?;
         range("turn_radius_m", [c.turn_radius_m; 2], 0.5, 1000.0)?;
         range("leg_s", c.leg_s, 0.5, 3600.0)?;

@@ -199,7 +199,7 @@ impl Track {
         if let (Some(_), Some(q)) = (s.mag_ut, s.ref_q) {
             if let (Some(m), Some(q)) = (
                 self.pipe.to_body(s).mag_ut,
-                crate::calib::magmethod::body_ned_of_ref_q(q),
+                crate::attitude::body_ned_of_ref_q(q),
             ) {
                 self.learner
                     .push(s.t_s, &m, &q, s.current_a, s.position, self.place.as_ref());

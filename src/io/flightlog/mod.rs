@@ -308,12 +308,9 @@ impl Assembler {
 
 /// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
 pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
-    // ENU -> NED is the same half-turn as NED -> ENU.
-    let b = crate::attitude::ned_to_enu(q)?;
-    let (w, x, y, z) = (b[0], b[1], b[2], b[3]);
-    let roll = (2.0 * (w * x + y * z)).atan2(1.0 - 2.0 * (x * x + y * y));
-    let pitch = (2.0 * (w * y - z * x)).clamp(-1.0, 1.0).asin();
-    Some((roll.to_degrees(), pitch.to_degrees()))
+    let b = crate::attitude::body_ned_of_ref_q(q)?;
+    let [roll, pitch, _] = crate::attitude::euler_zyx_deg(&b);
+    Some((roll, pitch))
 }
 
 fn mat3(rows: [[f64; 3]; 3]) -> Matrix3<f64> {
