@@ -662,24 +662,30 @@ fn theta_phi(v: &[f64; 3]) -> Option<(f64, f64)> {
     Some((theta, v[1].atan2(v[0]).to_degrees()))
 }
 
+/// A figure's white background and its title centred at the top.
+fn titled<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, ink: Ink, title: &str) -> DrawResult {
+    root.fill(&WHITE).map_err(de)?;
+    let (w, _) = root.dim_in_pixel();
+    label(
+        root,
+        ink,
+        title,
+        (w as i32 / 2, 14),
+        TITLE_UNIT,
+        TEXT,
+        (HPos::Center, VPos::Top),
+        false,
+    )
+}
+
 impl Figure for CoverageFigure<'_> {
     fn size(&self) -> (u32, u32) {
         (1600, 640)
     }
 
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, ink: Ink) -> DrawResult {
-        root.fill(&WHITE).map_err(de)?;
+        titled(root, ink, self.title)?;
         let (w, _) = root.dim_in_pixel();
-        label(
-            root,
-            ink,
-            self.title,
-            (w as i32 / 2, 14),
-            TITLE_UNIT,
-            TEXT,
-            (HPos::Center, VPos::Top),
-            false,
-        )?;
         let (left_half, right_half) = root.split_horizontally(w / 2);
         for (panel, area) in self.panels.iter().zip([left_half, right_half]) {
             self.draw_panel(root, &area, panel, ink)?;
@@ -870,18 +876,7 @@ impl Figure for ResidualFigure<'_> {
     }
 
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, ink: Ink) -> DrawResult {
-        root.fill(&WHITE).map_err(de)?;
-        let (w, _) = root.dim_in_pixel();
-        label(
-            root,
-            ink,
-            self.title,
-            (w as i32 / 2, 14),
-            TITLE_UNIT,
-            TEXT,
-            (HPos::Center, VPos::Top),
-            false,
-        )?;
+        titled(root, ink, self.title)?;
 
         let ((x_lo, x_hi), (y_lo, y_hi)) = self.ranges();
         let (x_ticks, x_dec) = nice_ticks(x_lo, x_hi, 8);
