@@ -123,15 +123,6 @@ fn mounting_check(
     pipe: &Pipeline,
     cfg: &Config,
 ) {
-    use crate::calib::mounting::MountPoint;
-    let Some(cal) = results.mag.calibration else {
-        return;
-    };
-    let Ok(r_cfg) = crate::attitude::sensor_rotation(&cfg.orientation.sensor) else {
-        return;
-    };
-    let soft = crate::calib::mounting::symmetric_part(&cal.matrix);
-    let accel = results.accel.calibration;
     let poses = pipe.poses();
     // The attitude nearest each pose's middle (samples and poses both in arrival order).
     let mut att: Vec<Option<(f64, [f64; 4])>> = vec![None; poses.len()];
@@ -153,45 +144,27 @@ fn mounting_check(
             }
         }
     }
-    let points: Vec<MountPoint> = poses
+    let att: Vec<_> = att
         .iter()
-        .zip(&att)
-        .filter_map(|(p, a)| {
-            let m = p.mag?;
-            let c = soft
-                * nalgebra::Vector3::new(
-                    m[0] - cal.offset[0],
-                    m[1] - cal.offset[1],
-                    m[2] - cal.offset[2],
-                );
-            let c = r_cfg.transpose() * c;
-            Some(MountPoint {
-                mag: [c[0], c[1], c[2]],
-                specific_force_mps2: accel.map_or(p.accel, |a| a.apply(&p.accel)),
-                body_to_ned: a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)),
-            })
-        })
+        .map(|a| a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)))
         .collect();
     let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
     let field = crate::calib::magmethod::earth_field_of(&log.samples, gps, cfg.place.as_ref());
-    let Some(rep) =
-        crate::calib::mounting::detect(&points, field.as_ref(), &r_cfg, &cfg.orientation.sensor)
-    else {
-        return;
-    };
     let index = log
         .instances
         .iter()
         .find(|i| log.instance.as_deref() == Some(i.name.as_str()))
         .map_or(0, |i| i.compass_id as usize);
-    if let Some(why) = rep.refusal(index) {
-        let r = &mut results.mag.report;
-        r.status = crate::report::CalStatus::Failed;
-        r.failure = Some(crate::calib::fit::FitFailure::Orientation);
-        r.detail = Some(why);
-        results.mag.calibration = None;
-    }
-    results.mag.report.mounting = Some(rep);
+    let accel = results.accel.calibration;
+    crate::calib::mounting::check(
+        &mut results.mag,
+        accel.as_ref(),
+        poses,
+        &att,
+        field.as_ref(),
+        &cfg.orientation.sensor,
+        index,
+    );
 }
 
 /// A log run through the pipelines: the primary's, the other instances' and the decoded log (with

@@ -587,6 +587,61 @@ pub fn detect(
     })
 }
 
+/// The mounting of the compass whose result is `mag`, from the static `poses` (with the attitude
+/// at each where known, `attitudes[k]` body -> NED, and the earth field where known), into
+/// `mag.report.mounting`; a mounting clearly other than `configured` (a MAV_SENSOR_ORIENTATION
+/// name) refuses the calibration (failure `orientation`, the parameter to set for compass
+/// `index` named). The readings are corrected with the calibration's offset and its soft iron
+/// without rotation (so a fitted matrix cannot hide the turn), and turned back into the
+/// compass's axes. Nothing happens without a calibration or with an unknown `configured`.
+pub fn check(
+    mag: &mut crate::calib::pipeline::SensorResult,
+    accel: Option<&crate::calib::model::Calibration>,
+    poses: &[crate::calib::gate::Pose],
+    attitudes: &[Option<UnitQuaternion<f64>>],
+    field: Option<&EarthField>,
+    configured: &str,
+    index: usize,
+) {
+    let Some(cal) = mag.calibration else {
+        return;
+    };
+    let Ok(r_cfg) = crate::attitude::sensor_rotation(configured) else {
+        return;
+    };
+    let soft = symmetric_part(&cal.matrix);
+    let points: Vec<MountPoint> = poses
+        .iter()
+        .enumerate()
+        .filter_map(|(k, p)| {
+            let m = p.mag?;
+            let c = soft
+                * nalgebra::Vector3::new(
+                    m[0] - cal.offset[0],
+                    m[1] - cal.offset[1],
+                    m[2] - cal.offset[2],
+                );
+            let c = r_cfg.transpose() * c;
+            Some(MountPoint {
+                mag: [c[0], c[1], c[2]],
+                specific_force_mps2: accel.map_or(p.accel, |a| a.apply(&p.accel)),
+                body_to_ned: attitudes.get(k).copied().flatten(),
+            })
+        })
+        .collect();
+    let Some(rep) = detect(&points, field, &r_cfg, configured) else {
+        return;
+    };
+    if let Some(why) = rep.refusal(index) {
+        let r = &mut mag.report;
+        r.status = crate::report::CalStatus::Failed;
+        r.failure = Some(crate::calib::fit::FitFailure::Orientation);
+        r.detail = Some(why);
+        mag.calibration = None;
+    }
+    mag.report.mounting = Some(rep);
+}
+
 /// The symmetric part of a calibration matrix (polar decomposition `M = U P`, `P = sqrt(M^T M)`):
 /// a soft-iron correction without any rotation it holds (a vector or full12 fit can turn the
 /// readings onto the body frame and so hide a wrong mounting).
