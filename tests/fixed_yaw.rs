@@ -7,33 +7,19 @@
 mod common;
 
 use imucald::attitude::{earth_field, Place};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 #[test]
 fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
     let dir = tempfile::tempdir().unwrap();
-    let cal = dir.path().join("cal");
     let port = common::free_udp_port();
-    let cfg = dir.path().join("svc.toml");
     // On command only: a resting vehicle never fills the sphere, and nothing else may install a
     // calibration meanwhile.
-    std::fs::write(
-        &cfg,
-        format!(
-            "[daemon]\ncalibration_dir = \"{}\"\npublish = []\nmag_cal = \"on_command\"\n\
-             sources = [{{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
-            cal.display()
-        ),
-    )
-    .unwrap();
-    let mut svc = Command::new(env!("CARGO_BIN_EXE_imucald"))
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let (cal, mut svc) = common::spawn_on_command_service(
+        dir.path(),
+        &[format!("{{ address = \"udpin:127.0.0.1:{port}\" }}")],
+    );
     std::thread::sleep(Duration::from_millis(500));
     // The field the service will use: the WMM at the place, today (the service's date too).
     let (lat, lon) = (47.4, 8.5);

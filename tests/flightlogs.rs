@@ -8,7 +8,6 @@
 
 mod common;
 
-use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
 use imucald::io::flightlog::dataflash::DfReader;
 use imucald::io::flightlog::ulog::UlogReader;
@@ -48,10 +47,7 @@ macro_rules! require_data {
 }
 
 fn run_replay(path: &Path) -> Report {
-    let cfg = Config::default();
-    replay(path, &cfg, &ReplayOptions::default(), &mut |_, _| {})
-        .unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
-        .report
+    common::replay_log(path, &Config::default()).report
 }
 
 // ---------------------------------------------------------------------------------------------

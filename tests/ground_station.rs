@@ -26,25 +26,14 @@ fn mavproxy() -> PathBuf {
 fn mavproxy_magcal_start_calibrates_and_accepts() {
     let mp = mavproxy();
     let dir = tempfile::tempdir().unwrap();
-    let cal = dir.path().join("cal");
     let port = common::free_udp_port();
-    let cfg = dir.path().join("svc.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "[daemon]\ncalibration_dir = \"{}\"\npublish = []\nmag_cal = \"on_command\"\n\
-             sources = [{{ address = \"sim:tumble?speed=10\" }}, {{ address = \"udpin:127.0.0.1:{port}\" }}]\n",
-            cal.display()
-        ),
-    )
-    .unwrap();
-    let mut svc = Command::new(env!("CARGO_BIN_EXE_imucald"))
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let (cal, mut svc) = common::spawn_on_command_service(
+        dir.path(),
+        &[
+            "{ address = \"sim:tumble?speed=10\" }".into(),
+            format!("{{ address = \"udpin:127.0.0.1:{port}\" }}"),
+        ],
+    );
     let mut gcs = Command::new(&mp)
         .arg(format!("--master=udpout:127.0.0.1:{port}"))
         // The service's system id: MAVProxy takes a target from autopilot heartbeats only, and

@@ -8,25 +8,14 @@
 
 mod common;
 
-use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
 use imucald::report::CalStatus;
-use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
+use imucald::sim::{SimOutput, TLOG_EPOCH_US};
 use mavlink::dialects::ardupilotmega::MavMessage;
 
 /// The tumble with the second compass's hard iron and soft iron changed.
 fn two_compasses() -> (SimOutput, SimOutput) {
-    let sc = Scenario::named("tumble").unwrap();
-    let a = simulate(&sc, 4);
-    let mut sc2 = sc.clone();
-    sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
-    sc2.truth.mag.matrix = [
-        [0.97, 0.03, -0.02],
-        [0.03, 1.04, 0.015],
-        [-0.02, 0.015, 0.99],
-    ];
-    let b = simulate(&sc2, 4);
-    (a, b)
+    common::tumble_and_other_iron(4)
 }
 
 fn write_tlog(path: &std::path::Path, streams: &[(&SimOutput, u8)]) {
@@ -65,13 +54,7 @@ fn two_compasses_in_one_log_are_calibrated_each_against_its_own_truth() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("two.tlog");
     write_tlog(&log, &[(&a, 0), (&b, 1)]);
-    let out = replay(
-        &log,
-        &Config::default(),
-        &ReplayOptions::default(),
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let out = common::replay_log(&log, &Config::default());
     let r = &out.report;
     assert_eq!(
         r.instances.len(),
@@ -117,7 +100,7 @@ fn a_config_can_still_pick_one_instance() {
     write_tlog(&log, &[(&a, 0), (&b, 1)]);
     let mut cfg = Config::default();
     cfg.input.instance = "highres_imu:1".parse().unwrap();
-    let out = replay(&log, &cfg, &ReplayOptions::default(), &mut |_, _| {}).unwrap();
+    let out = common::replay_log(&log, &cfg);
     let r = &out.report;
     assert!(r.instances.is_empty());
     assert_eq!(r.input.instance.as_deref(), Some("highres_imu:1"));
@@ -151,9 +134,7 @@ async fn live_service_reports_each_compass_on_its_own() {
     cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
     cfg.fit.refit_every_s = 5.0;
     cfg.validate().unwrap();
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
 
     // What comes back from the service: the last MAG_CAL_REPORT and the progress per compass.
     let reports = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
@@ -200,18 +181,10 @@ async fn live_service_reports_each_compass_on_its_own() {
                 .await
                 .unwrap();
         }
-        if i % 50 == 0 {
-            let t = a.samples[i].t_s;
-            tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
-        }
+        common::pace(i, t0, a.samples[i].t_s, speed).await;
     }
     tokio::time::sleep(Duration::from_millis(1500)).await;
-    stop_tx.send(true).unwrap();
-    let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
-        .await
-        .expect("stops")
-        .unwrap()
-        .unwrap();
+    let summary = daemon.stop(Duration::from_secs(2)).await;
     listener.abort();
     eprintln!("{summary:?}");
 

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{free_udp_port, mavlink_source, python_with, udpin_config};
+use common::{free_udp_port, mavlink_source, python_with, replay_log, udpin_config};
 use imucald::app::replay::{replay, ReplayOptions};
 use imucald::calib::fit::FitFailure;
 use imucald::config::Config;
@@ -19,11 +19,6 @@ macro_rules! require_data {
             None => return,
         }
     };
-}
-
-fn run(path: &Path, cfg: &Config) -> imucald::app::replay::ReplayOutcome {
-    replay(path, cfg, &ReplayOptions::default(), &mut |_, _| {})
-        .unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
 }
 
 mod real_data {
@@ -44,7 +39,7 @@ mod real_data {
     fn tyrex_hard_iron_within_0_7_ut_of_the_phone() {
         let data = require_data!();
         for set in ["calib_mag_Nexus5_d1", "calib_mag_Nexus5_d3"] {
-            let out = run(
+            let out = replay_log(
                 &data.join(format!("tyrex/{set}.csv.gz")),
                 &Config::default(),
             );
@@ -111,7 +106,7 @@ mod real_data {
     #[test]
     fn imu_tk_poses_and_gravity_norm_residual() {
         let data = require_data!();
-        let out = run(
+        let out = replay_log(
             &data.join("imu_tk/xsens_raw_counts.csv.gz"),
             &Config::default(),
         );
@@ -159,7 +154,7 @@ mod real_data {
     #[test]
     fn tyrex_accel_log_without_mag_tumble_says_coverage() {
         let data = require_data!();
-        let out = run(
+        let out = replay_log(
             &data.join("tyrex/calib_acc_Nexus5_d1.csv.gz"),
             &Config::default(),
         );
@@ -277,7 +272,7 @@ mod simulated {
     }
 
     fn check_recovery(path: &Path, truth: &imucald::sim::Truth, what: &str) {
-        let out = run(path, &Config::default());
+        let out = replay_log(path, &Config::default());
         let (m, a) = (&out.report.calibration.mag, &out.report.calibration.accel);
         assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
         assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
@@ -312,7 +307,7 @@ mod simulated {
         let sim = simulate(&Scenario::named("turntable").unwrap(), 3);
         let tlog = dir.path().join("turntable.tlog");
         write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
-        let out = run(&tlog, &Config::default());
+        let out = replay_log(&tlog, &Config::default());
         let (mc, ac) = (
             out.results.mag.calibration.expect("mag ok"),
             out.results.accel.calibration.expect("accel ok"),
@@ -368,7 +363,7 @@ mod fixtures {
         let truth: imucald::sim::Truth =
             serde_json::from_str(&std::fs::read_to_string(fixture("tumble.truth.json")).unwrap())
                 .unwrap();
-        let out = run(&fixture("tumble.tlog"), &Config::default());
+        let out = replay_log(&fixture("tumble.tlog"), &Config::default());
         let r = &out.report;
         assert_eq!(r.schema, "imucald.report/1");
         assert_eq!(r.input.format, "tlog");
@@ -419,11 +414,7 @@ mod fixtures {
             .arg(d.join("plots"))
             .output()
             .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        common::assert_success(&out);
         let stdout = String::from_utf8_lossy(&out.stdout);
         assert!(stdout.contains("mag  : ok, model sym9"), "{stdout}");
         let v: serde_json::Value =
@@ -529,6 +520,7 @@ mod fixtures {
 }
 
 mod diagnose_cli {
+    use super::common;
     use std::process::Command;
 
     fn imucald(args: &[&str]) -> std::process::Output {
@@ -559,11 +551,7 @@ mod diagnose_cli {
             "--seed",
             "3",
         ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        common::assert_success(&out);
         let report = dir.path().join("diag.json");
         let plots = dir.path().join("plots");
         let out = imucald(&[
@@ -575,11 +563,7 @@ mod diagnose_cli {
             plots.to_str().unwrap(),
         ]);
         let text = String::from_utf8_lossy(&out.stdout);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        common::assert_success(&out);
         assert!(text.contains("round 1: named motor_interference"), "{text}");
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
@@ -670,11 +654,7 @@ mod diagnose_cli {
             report.to_str().unwrap(),
         ]);
         let text = String::from_utf8_lossy(&out.stdout);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        common::assert_success(&out);
         eprintln!("{text}");
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
@@ -701,7 +681,7 @@ mod full12 {
         write_tlog(&p, &sim.samples, &TlogWriteOptions::default()).unwrap();
         let mut cfg = Config::default();
         cfg.fit.mag_model = imucald::config::MagModelChoice::Full12;
-        let out = run(&p, &cfg);
+        let out = replay_log(&p, &cfg);
         let m = &out.report.calibration.mag;
         assert_eq!(
             (m.status, m.model.as_str()),
@@ -720,7 +700,7 @@ mod full12 {
         assert!(err < 0.002, "full12 matrix error {err}: {got} vs {want}");
         // sym9 alone cannot see the rotation: its error is the rotation's size.
         cfg.fit.mag_model = imucald::config::MagModelChoice::Sym9;
-        let sym = run(&p, &cfg)
+        let sym = replay_log(&p, &cfg)
             .results
             .mag
             .calibration
@@ -924,13 +904,7 @@ mod live {
         std::fs::write(d.join("k.toml"), cfg).unwrap();
         let mut checked = 0;
         for (i, delay_ms) in [700u64, 1300, 1900, 2300, 2900, 3400].iter().enumerate() {
-            let mut child = Command::new(bin())
-                .args(["run", "--config"])
-                .arg(d.join("k.toml"))
-                .stdout(Stdio::null())
-                .stderr(Stdio::null())
-                .spawn()
-                .unwrap();
+            let mut child = common::spawn_service(&d.join("k.toml"));
             std::thread::sleep(Duration::from_millis(*delay_ms));
             let _ = child.kill(); // SIGKILL
             let _ = child.wait();
@@ -1117,16 +1091,7 @@ mod faults {
         for s in samples.iter_mut() {
             f(s, s.t_s / end);
         }
-        let dir = tempfile::tempdir().unwrap();
-        let log = dir.path().join("log.csv");
-        imucald::sim::write_csv(&log, &samples).unwrap();
-        let out = replay(
-            &log,
-            &Config::default(),
-            &ReplayOptions::default(),
-            &mut |_, _| {},
-        )
-        .unwrap();
+        let out = common::replay_samples(&samples, &Config::default());
         (out.report, sim.truth)
     }
 
@@ -1183,53 +1148,44 @@ mod faults {
 
     #[test]
     fn saturated_and_stuck_axes_are_named_and_refused() {
-        type Change = fn(&mut imucald::types::Sample, f64);
-        let cases: [(&str, Change, &str, &str); 4] = [
+        // (case, sensor, axis, its reading from the reading and the fraction of the run, the words
+        // the refusal must contain)
+        type Change = fn(f64, f64) -> f64;
+        let cases: [(&str, &str, usize, Change, &str); 4] = [
             (
                 "mag y clipped at +-45 uT",
-                |s, _| {
-                    if let Some(m) = s.mag_ut.as_mut() {
-                        m[1] = m[1].clamp(-45.0, 45.0);
-                    }
-                },
                 "mag",
+                1,
+                |v, _| v.clamp(-45.0, 45.0),
                 "axis y reads exactly",
             ),
             (
                 "accel x clipped at +-7 m/s^2",
-                |s, _| {
-                    if let Some(a) = s.accel_mps2.as_mut() {
-                        a[0] = a[0].clamp(-7.0, 7.0);
-                    }
-                },
                 "accel",
+                0,
+                |v, _| v.clamp(-7.0, 7.0),
                 "axis x reads exactly",
             ),
-            (
-                "accel z stuck",
-                |s, _| {
-                    if let Some(a) = s.accel_mps2.as_mut() {
-                        a[2] = -9.5;
-                    }
-                },
-                "accel",
-                "axis z reads -9.5 in all",
-            ),
+            ("accel z stuck", "accel", 2, |_, _| -9.5, "axis z reads -9.5 in all"),
             (
                 "mag y stuck from 30%",
-                |s, x| {
-                    if let Some(m) = s.mag_ut.as_mut() {
-                        if x > 0.3 {
-                            m[1] = -12.5;
-                        }
-                    }
-                },
                 "mag",
+                1,
+                |v, x| if x > 0.3 { -12.5 } else { v },
                 "stuck part of the time",
             ),
         ];
-        for (what, f, sensor, words) in cases {
-            let (r, _) = replay_changed(31, f);
+        for (what, sensor, axis, change, words) in cases {
+            let (r, _) = replay_changed(31, |s, x| {
+                let reading = if sensor == "mag" {
+                    s.mag_ut.as_mut()
+                } else {
+                    s.accel_mps2.as_mut()
+                };
+                if let Some(v) = reading {
+                    v[axis] = change(v[axis], x);
+                }
+            });
             let c = if sensor == "mag" {
                 &r.calibration.mag
             } else {
@@ -1341,9 +1297,7 @@ mod live_serial {
         cfg.gate.window_s = 0.1;
         cfg.gate.min_pose_s = 0.1;
         cfg.validate().unwrap();
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        let daemon = common::Daemon::start(cfg, Duration::from_millis(300)).await;
         stream(&mut master, &sim.samples, 10.0).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
         let store = imucald::app::daemon::load_store(&d.join("cal"))
@@ -1358,12 +1312,7 @@ mod live_serial {
         tokio::time::sleep(Duration::from_millis(1500)).await;
         stream(&mut master, &sim.samples[..1500], 10.0).await;
         tokio::time::sleep(Duration::from_millis(300)).await;
-        stop_tx.send(true).unwrap();
-        let summary = tokio::time::timeout(Duration::from_secs(2), daemon)
-            .await
-            .expect("stops")
-            .unwrap()
-            .unwrap();
+        let summary = daemon.stop(Duration::from_secs(2)).await;
         assert!(
             summary.samples as usize >= sim.samples.len() + 1000,
             "samples after the replug arrived: {}",
@@ -1428,9 +1377,7 @@ mod live_ardupilot {
         cfg.daemon.write_params = true;
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_millis(200)).await;
+        let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
 
         // The FC's current calibration, in ArduPilot's convention (mGauss, added).
         let mut params: BTreeMap<String, f32> = BTreeMap::new();
@@ -1481,22 +1428,13 @@ mod live_ardupilot {
                 }
             }
             // ArduPilot streams its corrected field: S (raw + OFS), in gauss in HIGHRES_IMU.
-            let corrected = ap.correct(0, s.mag_ut.unwrap()).unwrap();
-            let a = s.accel_mps2.unwrap();
-            let g = s.gyro_rad_s.unwrap();
-            let msg = MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
-                time_usec: (1e7 + t * 1e6) as u64,
-                xacc: a[0] as f32,
-                yacc: a[1] as f32,
-                zacc: a[2] as f32,
-                xgyro: g[0] as f32,
-                ygyro: g[1] as f32,
-                zgyro: g[2] as f32,
-                xmag: (corrected[0] / 100.0) as f32,
-                ymag: (corrected[1] / 100.0) as f32,
-                zmag: (corrected[2] / 100.0) as f32,
-                ..Default::default()
-            });
+            // No temperature in the stream.
+            let streamed = imucald::types::Sample {
+                mag_ut: Some(ap.correct(0, s.mag_ut.unwrap()).unwrap()),
+                temp_c: None,
+                ..s.clone()
+            };
+            let msg = imucald::sim::highres_imu(&streamed, (1e7 + t * 1e6) as u64);
             fc.send_to(&enc.encode(&msg), &target).await.unwrap();
             // Answer what the daemon asked.
             while let Ok(Ok((n, _))) =
@@ -1523,17 +1461,10 @@ mod live_ardupilot {
                     }
                 }
             }
-            if i % 50 == 0 {
-                tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
-            }
+            common::pace(i, t0, t, speed).await;
         }
         tokio::time::sleep(Duration::from_millis(1500)).await;
-        stop_tx.send(true).unwrap();
-        tokio::time::timeout(Duration::from_secs(2), daemon)
-            .await
-            .expect("stops")
-            .unwrap()
-            .unwrap();
+        daemon.stop(Duration::from_secs(2)).await;
         // The daemon fitted the raw field (undoing the FC's correction) and wrote COMPASS_OFS = -hard iron.
         let truth = sim.truth.mag.offset;
         eprintln!("COMPASS_OFS sets {sets:?}, truth hard iron {truth:?} uT");
@@ -1941,9 +1872,7 @@ mod live_attitude {
         cfg.daemon.progress_rate_hz = 0.1;
         cfg.daemon.heartbeat_rate_hz = 0.0;
         cfg.validate().unwrap();
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        let daemon = common::Daemon::start(cfg, Duration::from_millis(300)).await;
         let fc = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         fc.connect(("127.0.0.1", port)).await.unwrap();
         let mut enc = MavEncoder::new(1, 1);
@@ -2004,8 +1933,7 @@ mod live_attitude {
                 "sample {i} (roll rate {mark}): attitude with roll rates {got:?}"
             );
         }
-        stop_tx.send(true).unwrap();
-        daemon.await.unwrap().unwrap();
+        daemon.stopped().await;
     }
     use imucald::app::daemon::{save_store, StoredCalibration, STORE_SCHEMA};
     use imucald::io::decode::FrameDecoder;
@@ -2148,11 +2076,9 @@ mod live_attitude {
         cfg.validate().unwrap();
         let fc_rx = collect(fc);
         let json_rx = collect(json);
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_secs(31)).await;
-        stop_tx.send(true).unwrap();
-        let summary = daemon.await.unwrap().unwrap();
+        // The log plays for 31 s of the paused clock; then the service is stopped.
+        let daemon = common::Daemon::start(cfg, Duration::from_secs(31)).await;
+        let summary = daemon.stopped().await;
         assert_eq!(summary.samples, 3000);
 
         // MAVLink: ATTITUDE_QUATERNION and ATTITUDE at the rate, both at the true attitude.
@@ -2270,7 +2196,7 @@ mod live_consumers {
     use super::*;
     use imucald::io::decode::FrameDecoder;
     use imucald::io::mavout::MavEncoder;
-    use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA};
+    use mavlink::dialects::ardupilotmega::MavMessage;
     use std::process::{Command, Stdio};
     use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::{Arc, Mutex};
@@ -2349,26 +2275,7 @@ mod live_consumers {
             if target > now + Duration::from_millis(1) {
                 std::thread::sleep(target - now);
             }
-            let (a, g, m) = (
-                s.accel_mps2.unwrap(),
-                s.gyro_rad_s.unwrap(),
-                s.mag_ut.unwrap(),
-            );
-            let frame = enc.encode(&MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
-                time_usec: 10_000_000 + (s.t_s * 1e6) as u64,
-                xacc: a[0] as f32,
-                yacc: a[1] as f32,
-                zacc: a[2] as f32,
-                xgyro: g[0] as f32,
-                ygyro: g[1] as f32,
-                zgyro: g[2] as f32,
-                xmag: (m[0] / 100.0) as f32,
-                ymag: (m[1] / 100.0) as f32,
-                zmag: (m[2] / 100.0) as f32,
-                temperature: s.temp_c.unwrap_or(25.0) as f32,
-                fields_updated: mavlink::dialects::ardupilotmega::HighresImuUpdatedFlags::all(),
-                ..Default::default()
-            }));
+            let frame = enc.encode(&common::highres_imu_at(s));
             let _ = sock.send(&frame);
         }
         std::thread::sleep(linger);
@@ -2761,7 +2668,7 @@ mod gyro_scale_checked {
         let dir = tempfile::tempdir().unwrap();
         let tlog = dir.path().join("turntable.tlog");
         write_tlog(&tlog, &sim.samples, &TlogWriteOptions::default()).unwrap();
-        run(&tlog, &Config::default()).report
+        replay_log(&tlog, &Config::default()).report
     }
 
     #[test]
@@ -2809,7 +2716,7 @@ mod gyro_scale_checked {
     #[test]
     fn the_tumble_still_publishes_its_checked_gyro_scale() {
         let path = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"));
-        let g = run(&path, &Config::default()).report.calibration.gyro;
+        let g = replay_log(&path, &Config::default()).report.calibration.gyro;
         let k = g.scale.unwrap_or_else(|| panic!("{:?}", g.scale_failure));
         let h = k.held_out.expect("checked");
         eprintln!(

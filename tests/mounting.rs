@@ -1,29 +1,23 @@
 //! The compass mounting found from the data in `replay`: a compass turned against the IMU is
 //! refused with the parameter to set; a correctly mounted one is not.
 
-use imucald::app::replay::{replay, ReplayOptions};
+mod common;
+
 use imucald::calib::fit::FitFailure;
 use imucald::calib::mounting::{rotation_vector_deg, Mounting, Verdict};
 use imucald::config::Config;
 use imucald::report::CalStatus;
-use imucald::sim::{simulate, write_csv, Scenario};
+use imucald::sim::{simulate, Scenario};
 
 fn replay_tumble(mount: Option<u8>, seed: u64) -> imucald::report::SensorCalibration {
-    let dir = tempfile::tempdir().unwrap();
     let mut sc = Scenario::named("tumble").unwrap();
     sc.effects.mag_accel_rotation_deg =
         mount.map(|n| rotation_vector_deg(&Mounting::standard(n).unwrap().matrix()));
     let sim = simulate(&sc, seed);
-    let log = dir.path().join("tumble.csv");
-    write_csv(&log, &sim.samples).unwrap();
-    let out = replay(
-        &log,
-        &Config::default(),
-        &ReplayOptions::default(),
-        &mut |_, _| {},
-    )
-    .unwrap();
-    out.report.calibration.mag
+    common::replay_samples(&sim.samples, &Config::default())
+        .report
+        .calibration
+        .mag
 }
 
 #[test]

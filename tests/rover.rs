@@ -3,12 +3,13 @@
 //! with 0.5 deg of noise, hidden hard iron with a z offset and soft iron): heading against the
 //! simulated true heading before and after.
 
-use imucald::app::replay::{replay, ReplayOptions};
+mod common;
+
 use imucald::attitude::angle_diff_deg;
 use imucald::calib::magmethod::MagMethod;
 use imucald::calib::planar::{points_from_samples, raw_heading_deg, PlanarFit, Undetermined};
 use imucald::config::Config;
-use imucald::sim::{simulate, write_csv, Scenario, SimOutput};
+use imucald::sim::{simulate, Scenario, SimOutput};
 
 /// Heading errors (deg) over the run: per reading, and averaged over 1 s blocks (the sensor noise
 /// of a single reading is about 0.4 deg).
@@ -42,17 +43,7 @@ fn errors(
 }
 
 fn replay_rover(out: &SimOutput) -> imucald::report::Report {
-    let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("rover.csv");
-    write_csv(&p, &out.samples).unwrap();
-    replay(
-        &p,
-        &Config::from_toml_str("").unwrap(),
-        &ReplayOptions::default(),
-        &mut |_, _| {},
-    )
-    .unwrap()
-    .report
+    common::replay_samples(&out.samples, &Config::from_toml_str("").unwrap()).report
 }
 
 #[test]

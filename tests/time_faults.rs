@@ -129,14 +129,7 @@ fn write_tlog(path: &Path, recs: &[Rec]) {
         component_id: 1,
         sequence: 0,
     };
-    let heartbeat = MavMessage::HEARTBEAT(apm::HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: apm::MavType::MAV_TYPE_QUADROTOR,
-        autopilot: apm::MavAutopilot::MAV_AUTOPILOT_PX4,
-        base_mode: apm::MavModeFlag::empty(),
-        system_status: apm::MavState::MAV_STATE_STANDBY,
-        mavlink_version: 3,
-    });
+    let heartbeat = imucald::sim::vehicle_heartbeat();
     for (k, r) in recs.iter().enumerate() {
         let mut put = |m: &MavMessage| {
             bytes.extend_from_slice(&r.record_us.to_be_bytes());
@@ -338,11 +331,7 @@ fn live_report(log: &Path) -> imucald::report::Report {
         .arg(&report)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    common::assert_success(&out);
     serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
 }
 

@@ -8,6 +8,8 @@
 //! Screenshots go to `IMUCALD_SCREENSHOT_DIR` when set (`docs/` for the README's pictures:
 //! `IMUCALD_SCREENSHOT_DIR=docs cargo test --release --test ui`), else to a temporary directory.
 
+mod common;
+
 use serde_json::{json, Value};
 use std::io::{Read, Write};
 use std::os::unix::process::CommandExt;
@@ -323,15 +325,7 @@ fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
         ),
     )
     .unwrap();
-    let mut svc = Service(
-        Command::new(env!("CARGO_BIN_EXE_imucald"))
-            .args(["run", "--config"])
-            .arg(&cfg)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
+    let mut svc = Service(common::spawn_service(&cfg));
     // The centre is known and regions counted: completion above 0 (the tumble at twice its pace
     // reaches it in about 10 s).
     let until = Instant::now() + Duration::from_secs(60);
@@ -449,11 +443,7 @@ fn ui_html_report_renders_offline() {
         .arg(&html)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    common::assert_success(&out);
     let mut b = Browser::start(exe);
     b.page("Network.enable", json!({}));
     b.page(

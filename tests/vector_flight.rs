@@ -4,8 +4,8 @@
 
 mod common;
 
-use imucald::app::replay::{replay, ReplayOptions};
-use imucald::calib::magmethod::MagMethod;
+use imucald::calib::magmethod::{MagMethod, MethodChoice};
+use imucald::report::SensorCalibration;
 use imucald::config::Config;
 use imucald::sim::{simulate, write_csv, Scenario};
 use imucald::types::Vec3;
@@ -27,13 +27,20 @@ fn replay_sim(
             s.position = None;
         }
     }
-    let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("flight.csv");
-    write_csv(&p, &out.samples).unwrap();
-    let cfg = Config::from_toml_str(toml).unwrap();
-    replay(&p, &cfg, &ReplayOptions::default(), &mut |_, _| {})
-        .unwrap()
-        .report
+    common::replay_samples(&out.samples, &Config::from_toml_str(toml).unwrap()).report
+}
+
+/// The method chosen for `m`, checked to be the vector method with the field at the log's position.
+#[track_caller]
+fn vector_from_the_logs_position(m: &SensorCalibration) -> &MethodChoice {
+    let choice = m.method.as_ref().unwrap();
+    assert_eq!(choice.method, MagMethod::Vector, "{}", choice.method_reason);
+    assert!(
+        choice.method_reason.contains("the log's position"),
+        "{}",
+        choice.method_reason
+    );
+    choice
 }
 
 /// The date of the simulation, so the field is the one the vehicle flew in.
@@ -45,13 +52,7 @@ fn cruise_offset_within_1_ut_by_the_vector_method_the_sphere_fails_or_is_far_wor
     let truth = sc.truth.mag.offset;
     let r = replay_sim(&sc, 1, DATE, false);
     let m = &r.calibration.mag;
-    let choice = m.method.as_ref().unwrap();
-    assert_eq!(choice.method, MagMethod::Vector, "{}", choice.method_reason);
-    assert!(
-        choice.method_reason.contains("the log's position"),
-        "{}",
-        choice.method_reason
-    );
+    let choice = vector_from_the_logs_position(m);
     let v = choice.vector.as_ref().unwrap();
     assert!(
         v.offset_identifiable && v.unidentified().count() == 0,
@@ -192,7 +193,7 @@ fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
     // The log has no position: a northern mid-latitude place whose field (48.4 uT) matches the
     // strength of the log's own calibrated field (48.2 uT).
     let cfg = Config::from_toml_str(DATE).unwrap();
-    let out = replay(&path, &cfg, &ReplayOptions::default(), &mut |_, _| {}).unwrap();
+    let out = common::replay_log(&path, &cfg);
     let m = &out.report.calibration.mag;
     let choice = m.method.as_ref().unwrap();
     assert_eq!(choice.method, MagMethod::Sphere, "{}", choice.method_reason);
@@ -229,9 +230,7 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
     let (port, mut cfg) = common::udpin_config(dir.path());
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
     let mut state = imucald::sim::VehicleStateStream::default();
@@ -259,12 +258,7 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
         }
     }
     tokio::time::sleep(Duration::from_millis(500)).await;
-    stop_tx.send(true).unwrap();
-    tokio::time::timeout(Duration::from_secs(5), daemon)
-        .await
-        .expect("stops")
-        .unwrap()
-        .unwrap();
+    daemon.stop(Duration::from_secs(5)).await;
     while let Ok(n) = sink.try_recv(&mut buf) {
         lines.extend(
             String::from_utf8_lossy(&buf[..n])
@@ -323,22 +317,9 @@ fn replay_of_a_pymavlink_flight_tlog_takes_attitude_position_and_current_from_it
         .status()
         .unwrap();
     assert!(st.success(), "pymavlink_flight_tlog.py");
-    let r = replay(
-        &tlog,
-        &Config::default(),
-        &ReplayOptions::default(),
-        &mut |_, _| {},
-    )
-    .unwrap()
-    .report;
+    let r = common::replay_log(&tlog, &Config::default()).report;
     let m = &r.calibration.mag;
-    let choice = m.method.as_ref().unwrap();
-    assert_eq!(choice.method, MagMethod::Vector, "{}", choice.method_reason);
-    assert!(
-        choice.method_reason.contains("the log's position"),
-        "{}",
-        choice.method_reason
-    );
+    let choice = vector_from_the_logs_position(m);
     let err = dist(&m.offset, &sc.truth.mag.offset);
     println!(
         "pymavlink tlog: vector offset {:?}, {err:.3} uT off; {}",

@@ -13,7 +13,7 @@ use common::{free_udp_port, mavlink_source};
 use imucald::app::daemon::RunSummary;
 use imucald::config::Config;
 use imucald::io::mavout::MavEncoder;
-use imucald::sim::{simulate, Scenario, SimOutput};
+use imucald::sim::SimOutput;
 use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -21,16 +21,7 @@ use std::time::Duration;
 
 /// The tumble, and the tumble with another vehicle's hard and soft iron.
 fn two_vehicles() -> (SimOutput, SimOutput) {
-    let sc = Scenario::named("tumble").unwrap();
-    let a = simulate(&sc, 4);
-    let mut sc2 = sc.clone();
-    sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
-    sc2.truth.mag.matrix = [
-        [0.97, 0.03, -0.02],
-        [0.03, 1.04, 0.015],
-        [-0.02, 0.015, 0.99],
-    ];
-    (a, simulate(&sc2, 11))
+    common::tumble_and_other_iron(11)
 }
 
 /// A service configuration listening on UDP `ports` (one link each), keeping its calibration in
@@ -52,24 +43,17 @@ fn service_config(
 
 /// Run the service on `cfg`, send the first `n` samples of `sim` as system 1 to `port`, stop it.
 async fn feed_and_stop(cfg: Config, port: u16, sim: &SimOutput, n: usize) -> RunSummary {
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
     for s in &sim.samples[..n] {
-        let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+        let msg = common::highres_imu_at(s);
         peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
             .await
             .unwrap();
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
-    stop_tx.send(true).unwrap();
-    tokio::time::timeout(Duration::from_secs(2), daemon)
-        .await
-        .expect("stops")
-        .unwrap()
-        .unwrap()
+    daemon.stop(Duration::from_secs(2)).await
 }
 
 /// The JSON lines waiting at `sink`.
@@ -135,9 +119,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_millis(200)).await;
+        let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
 
         // Vehicle A: system 1 on link 0. Vehicle B: system 1 on link 1, or system 2 on link 0.
         // One link: both vehicles behind one router (one address); two: one radio each.
@@ -176,23 +158,15 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
                 (&b, &mut enc_b, &peer_b, port_b),
             ] {
                 let s = &sim.samples[i];
-                let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+                let msg = common::highres_imu_at(s);
                 peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
                     .await
                     .unwrap();
             }
-            if i % 50 == 0 {
-                let t = a.samples[i].t_s;
-                tokio::time::sleep_until(t0 + Duration::from_secs_f64(t / speed)).await;
-            }
+            common::pace(i, t0, a.samples[i].t_s, speed).await;
         }
         tokio::time::sleep(Duration::from_millis(1500)).await;
-        stop_tx.send(true).unwrap();
-        tokio::time::timeout(Duration::from_secs(2), daemon)
-            .await
-            .expect("stops")
-            .unwrap()
-            .unwrap();
+        daemon.stop(Duration::from_secs(2)).await;
         task_a.abort();
         task_b.abort();
         let (got_a, got_b) = (got_a.lock().unwrap().clone(), got_b.lock().unwrap().clone());
@@ -314,9 +288,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut cfg = service_config(&dir.path().join("cal"), &[port], &sink);
     cfg.daemon.heartbeat_rate_hz = 0.0;
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let daemon = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
     let peer = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
     let (mut v1, mut v2, mut gcs) = (
         MavEncoder::new(1, 1),
@@ -326,7 +298,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     for i in 0..100 {
         for (sim, enc) in [(&a, &mut v1), (&b, &mut v2)] {
             let s = &sim.samples[i];
-            let msg = imucald::sim::highres_imu(s, 10_000_000 + (s.t_s * 1e6).round() as u64);
+            let msg = common::highres_imu_at(s);
             peer.send_to(&enc.encode(&msg), ("127.0.0.1", port))
                 .await
                 .unwrap();
@@ -360,12 +332,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
         }
         answers.push((target, acks.into_iter().collect::<Vec<_>>()));
     }
-    stop_tx.send(true).unwrap();
-    tokio::time::timeout(Duration::from_secs(2), daemon)
-        .await
-        .expect("stops")
-        .unwrap()
-        .unwrap();
+    daemon.stop(Duration::from_secs(2)).await;
     assert_eq!(
         answers,
         vec![(2, vec![2]), (1, vec![1]), (0, vec![1, 2])],

@@ -1,11 +1,16 @@
-//! Set-up the integration tests share: loopback ports, service configurations and the Python
-//! peers that `scripts/test` installs.
+//! Set-up the integration tests share: loopback ports, service configurations, the service run
+//! in this process or as a child, replays, and the Python peers that `scripts/test` installs.
 
 // Each test file uses a part of this module.
 #![allow(dead_code)]
 
+use imucald::app::daemon::RunSummary;
+use imucald::app::replay::{replay, ReplayOptions, ReplayOutcome};
 use imucald::config::{Config, SourceConfig};
-use std::path::Path;
+use imucald::types::Sample;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::Duration;
 
 /// A UDP port on the loopback that was free a moment ago.
 pub fn free_udp_port() -> u16 {
@@ -54,4 +59,124 @@ pub fn python_with(module: &str) -> String {
         "no Python with {module} at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON"
     );
     p
+}
+
+/// `imucald run --config CONFIG`, its output discarded (the caller waits for it to bind).
+pub fn spawn_service(config: &Path) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .args(["run", "--config"])
+        .arg(config)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// The service with `mag_cal = "on_command"` (nothing installs a calibration unless commanded),
+/// no publication, its calibration directory (returned) under `dir` and `sources` (the TOML of each
+/// source table, as `{ address = "..." }`), started as a child process.
+pub fn spawn_on_command_service(dir: &Path, sources: &[String]) -> (PathBuf, Child) {
+    let cal = dir.join("cal");
+    let cfg = dir.join("svc.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[daemon]\ncalibration_dir = \"{}\"\npublish = []\nmag_cal = \"on_command\"\n\
+             sources = [{}]\n",
+            cal.display(),
+            sources.join(", ")
+        ),
+    )
+    .unwrap();
+    (cal, spawn_service(&cfg))
+}
+
+/// Fails the test with the command's stderr unless it exited successfully.
+#[track_caller]
+pub fn assert_success(out: &Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `replay` of the log at `path` with `cfg` and the default options; a failure names the log.
+pub fn replay_log(path: &Path, cfg: &Config) -> ReplayOutcome {
+    replay(path, cfg, &ReplayOptions::default(), &mut |_, _| {})
+        .unwrap_or_else(|e| panic!("replay {}: {e}", path.display()))
+}
+
+/// `samples` written as a CSV log in a temporary directory and replayed with `cfg`.
+pub fn replay_samples(samples: &[Sample], cfg: &Config) -> ReplayOutcome {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("log.csv");
+    imucald::sim::write_csv(&log, samples).unwrap();
+    replay_log(&log, cfg)
+}
+
+/// HIGHRES_IMU for a simulated sample, stamped with its time since a boot
+/// [`imucald::sim::TLOG_BOOT_OFFSET_US`] before the simulation's start (as the `.tlog` writer does).
+pub fn highres_imu_at(s: &Sample) -> mavlink::dialects::ardupilotmega::MavMessage {
+    imucald::sim::highres_imu(
+        s,
+        imucald::sim::TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64,
+    )
+}
+
+/// Sleeps, every 50th sample (`i`), until the time of a sample at `t_s` played `speed` times
+/// faster than recorded from `t0`.
+pub async fn pace(i: usize, t0: tokio::time::Instant, t_s: f64, speed: f64) {
+    if i % 50 == 0 {
+        tokio::time::sleep_until(t0 + Duration::from_secs_f64(t_s / speed)).await;
+    }
+}
+
+/// The live service running in this process.
+pub struct Daemon {
+    stop: tokio::sync::watch::Sender<bool>,
+    task: tokio::task::JoinHandle<Result<RunSummary, imucald::error::Error>>,
+}
+
+impl Daemon {
+    /// The service on `cfg`, given `settle` to open its links.
+    pub async fn start(cfg: Config, settle: Duration) -> Daemon {
+        let (stop, stop_rx) = tokio::sync::watch::channel(false);
+        let task = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
+        tokio::time::sleep(settle).await;
+        Daemon { stop, task }
+    }
+
+    /// Asks it to stop; its summary, once it stopped (however long it takes: for tokio's paused
+    /// clock, where a timeout would fire while the service idles).
+    pub async fn stopped(self) -> RunSummary {
+        self.stop.send(true).unwrap();
+        self.task.await.unwrap().unwrap()
+    }
+
+    /// Asks it to stop; its summary, once it stopped (within `within`).
+    pub async fn stop(self, within: Duration) -> RunSummary {
+        self.stop.send(true).unwrap();
+        tokio::time::timeout(within, self.task)
+            .await
+            .expect("stops")
+            .unwrap()
+            .unwrap()
+    }
+}
+
+/// The tumble (seed 4), and the tumble with other hard and soft iron simulated with `seed_b`: two
+/// compasses or two vehicles, each with its own truth.
+pub fn tumble_and_other_iron(seed_b: u64) -> (imucald::sim::SimOutput, imucald::sim::SimOutput) {
+    use imucald::sim::{simulate, Scenario};
+    let sc = Scenario::named("tumble").unwrap();
+    let a = simulate(&sc, 4);
+    let mut sc2 = sc.clone();
+    sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
+    sc2.truth.mag.matrix = [
+        [0.97, 0.03, -0.02],
+        [0.03, 1.04, 0.015],
+        [-0.02, 0.015, 0.99],
+    ];
+    (a, simulate(&sc2, seed_b))
 }
