@@ -21,6 +21,9 @@
 
 #![allow(dead_code)]
 
+#[path = "../tests/common/python.rs"]
+mod python;
+
 use imucald::attitude::eval::{errors, evaluate, reference, EvalResult};
 use imucald::attitude::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
 use imucald::config::Config;
@@ -61,21 +64,14 @@ struct Trial {
 }
 
 fn python() -> Option<String> {
-    let p = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = Command::new(&p)
-        .args(["-c", "import vqf"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false);
-    if ok {
-        Some(p)
-    } else {
+    let p = python::python_importing("vqf");
+    if p.is_none() {
         println!(
-            "peer: no Python with the `vqf` package at {p} (scripts/bench installs it); reporting imucald alone."
+            "peer: no Python with the `vqf` package at {} (scripts/bench installs it); reporting imucald alone.",
+            python::python_path()
         );
-        None
     }
+    p
 }
 
 fn read_quats(path: &Path) -> Result<Vec<UnitQuaternion<f64>>, String> {

@@ -3,6 +3,9 @@
 //! run, and replay throughput against pymavlink parsing the same tlog. Figures, not assertions.
 //! `IMUCALD_BENCH_ONLY=fit` or `=replay` runs one of the two.
 
+#[path = "../tests/common/python.rs"]
+mod python;
+
 use imucald::calib::fit::{fit_norm, NormFitOptions};
 use imucald::calib::model::ModelKind;
 use nalgebra::{Matrix3, Vector3};
@@ -42,19 +45,14 @@ fn points(n: usize, seed: u64) -> Vec<[f64; 3]> {
 }
 
 fn python() -> Option<String> {
-    let p = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let ok = Command::new(&p)
-        .args(["-c", "import scipy, pymavlink"])
-        .output()
-        .map(|o| o.status.success())
-        .unwrap_or(false);
-    if ok {
-        Some(p)
-    } else {
-        println!("peer: no Python with scipy+pymavlink at {p}; run scripts/bench to install it. Reporting imucald alone.");
-        None
+    let p = python::python_importing("scipy, pymavlink");
+    if p.is_none() {
+        println!(
+            "peer: no Python with scipy+pymavlink at {}; run scripts/bench to install it. Reporting imucald alone.",
+            python::python_path()
+        );
     }
+    p
 }
 
 fn bench_fit(py: Option<&str>) {

@@ -10,6 +10,9 @@
 
 #![allow(dead_code)]
 
+#[path = "../tests/common/python.rs"]
+mod python;
+
 use imucald::config::Config;
 use imucald::io::decode::Format;
 use std::path::Path;
@@ -38,8 +41,7 @@ print(best, n)
 "#;
 
 fn python_time(kind: &str, path: &Path) -> Option<(f64, u64)> {
-    let py = std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
+    let py = python::python_path();
     let out = Command::new(&py)
         .args(["-c", PEER, kind])
         .arg(path)

@@ -139,24 +139,24 @@ pub fn mavlink_frames(data: &[u8]) -> (usize, Vec<Sample>) {
 }
 
 fn user_mapping() -> CsvMapping {
-    let mut m = CsvMapping::default();
-    for (f, c) in [
-        ("t", "time_ms"),
-        ("ax", "AccX"),
-        ("ay", "AccY"),
-        ("az", "AccZ"),
-        ("mx", "MagX"),
-        ("my", "MagY"),
-        ("mz", "MagZ"),
-    ] {
-        m.columns.insert(f.into(), c.into());
-    }
-    m.scales.insert("t".into(), 0.001);
-    for f in ["ax", "ay", "az"] {
-        m.scales.insert(f.into(), 9.80665);
-    }
-    m.scales.insert("gx".into(), 1e300);
-    m
+    CsvMapping::from_pairs(
+        &[
+            ("t", "time_ms"),
+            ("ax", "AccX"),
+            ("ay", "AccY"),
+            ("az", "AccZ"),
+            ("mx", "MagX"),
+            ("my", "MagY"),
+            ("mz", "MagZ"),
+        ],
+        &[
+            ("t", 0.001),
+            ("ax", 9.80665),
+            ("ay", 9.80665),
+            ("az", 9.80665),
+            ("gx", 1e300),
+        ],
+    )
 }
 
 // Target `csv`: `decode::decode_csv` on arbitrary text, with the default column names and with a

@@ -312,6 +312,30 @@ pub struct SensorCalibration {
 }
 
 impl SensorCalibration {
+    /// A result of `status` for `model` in `units` with nothing fitted: no failure, zero offset,
+    /// identity matrix, every figure zero, no candidates. The base a refusal or a made-up result
+    /// fills in.
+    pub fn new(status: CalStatus, model: &str, units: &str) -> SensorCalibration {
+        SensorCalibration {
+            status,
+            failure: None,
+            detail: None,
+            model: model.into(),
+            units: units.into(),
+            offset: [0.0; 3],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            radius: 0.0,
+            rms_residual: 0.0,
+            offset_sigma: [0.0; 3],
+            samples_used: 0,
+            iterations: 0,
+            candidates: vec![],
+            outliers_rejected: 0,
+            method: None,
+            mounting: None,
+        }
+    }
+
     /// The calibration to apply when it passed (`status` "ok"); a model name this build does not
     /// know reads as the general one (full12), which applies the stored matrix as it is.
     pub fn calibration(&self) -> Option<crate::calib::model::Calibration> {

@@ -1166,7 +1166,13 @@ mod faults {
                 |v, _| v.clamp(-7.0, 7.0),
                 "axis x reads exactly",
             ),
-            ("accel z stuck", "accel", 2, |_, _| -9.5, "axis z reads -9.5 in all"),
+            (
+                "accel z stuck",
+                "accel",
+                2,
+                |_, _| -9.5,
+                "axis z reads -9.5 in all",
+            ),
             (
                 "mag y stuck from 30%",
                 "mag",
@@ -1432,7 +1438,7 @@ mod live_ardupilot {
             let streamed = imucald::types::Sample {
                 mag_ut: Some(ap.correct(0, s.mag_ut.unwrap()).unwrap()),
                 temp_c: None,
-                ..s.clone()
+                ..*s
             };
             let msg = imucald::sim::highres_imu(&streamed, (1e7 + t * 1e6) as u64);
             fc.send_to(&enc.encode(&msg), &target).await.unwrap();
@@ -1497,8 +1503,9 @@ mod fuzz_regressions {
     include!(concat!(env!("CARGO_MANIFEST_DIR"), "/fuzz/entry.rs"));
 
     use imucald::io::decode::Format;
-    use mavlink::dialects::ardupilotmega::{MavMessage, HIGHRES_IMU_DATA, RAW_IMU_DATA};
-    use mavlink::{MavHeader, MavlinkVersion};
+    use imucald::io::mavout::MavEncoder;
+    use mavlink::dialects::ardupilotmega::{MavMessage, RAW_IMU_DATA};
+    use mavlink::MavlinkVersion;
 
     const TARGETS: [&str; 7] = [
         "tlog",
@@ -1598,36 +1605,17 @@ mod fuzz_regressions {
         replay_regressions("ulog", ulog);
     }
 
-    fn frame(msg: &MavMessage, v: MavlinkVersion, seq: u8) -> Vec<u8> {
-        let mut out = Vec::new();
-        let h = MavHeader {
-            system_id: 1,
-            component_id: 1,
-            sequence: seq,
-        };
-        mavlink::write_versioned_msg(&mut out, v, h, msg).unwrap();
-        out
-    }
-
     fn highres(i: usize) -> MavMessage {
-        MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
-            time_usec: 1_000 + i as u64 * 10_000,
-            xacc: 0.1 * i as f32,
-            zacc: -9.8,
-            xmag: 0.2,
-            ymag: 0.01,
-            zmag: 0.4,
-            temperature: 30.0,
-            ..Default::default()
-        })
+        imucald::testdata::level_highres_imu(1_000 + i as u64 * 10_000, 0.1 * i as f32)
     }
 
     /// `n` tlog records of HIGHRES_IMU, 10 ms apart.
     fn good_tlog(n: usize) -> Vec<u8> {
         let mut log = Vec::new();
+        let mut enc = MavEncoder::new(1, 1);
         for i in 0..n {
             log.extend((1_700_000_000_000_000u64 + i as u64 * 10_000).to_be_bytes());
-            log.extend(frame(&highres(i), MavlinkVersion::V2, i as u8));
+            log.extend(enc.encode(&highres(i)));
         }
         log
     }
@@ -1697,24 +1685,23 @@ mod fuzz_regressions {
     #[test]
     fn mavlink_frame_regressions_and_nasty_streams() {
         replay_regressions("mavlink_frames", mavlink_frames);
+        // Sequence numbers 0 to 10; MAVLink 2 and 1 alternating, the last (RAW_IMU) 2.
         let mut frames = Vec::new();
+        let mut enc = MavEncoder::new(1, 1);
         for i in 0..10 {
-            let v = if i % 2 == 0 {
+            enc.version = if i % 2 == 0 {
                 MavlinkVersion::V2
             } else {
                 MavlinkVersion::V1
             };
-            frames.push(frame(&highres(i), v, i as u8));
+            frames.push(enc.encode(&highres(i)));
         }
-        frames.push(frame(
-            &MavMessage::RAW_IMU(RAW_IMU_DATA {
-                xacc: i16::MIN,
-                zmag: i16::MAX,
-                ..Default::default()
-            }),
-            MavlinkVersion::V2,
-            10,
-        ));
+        enc.version = MavlinkVersion::V2;
+        frames.push(enc.encode(&MavMessage::RAW_IMU(RAW_IMU_DATA {
+            xacc: i16::MIN,
+            zmag: i16::MAX,
+            ..Default::default()
+        })));
         let stream: Vec<u8> = frames.concat();
         for k in [0u8, 1, 37, 255] {
             let mut data = vec![k];
@@ -2623,24 +2610,7 @@ mod honest_progress {
         let cfg = Config::default();
         // Without a calibration: no centre, no region. With one (a restart resumes from the
         // stored calibration): the one or two regions the field points into.
-        let stored = SensorCalibration {
-            status: CalStatus::Ok,
-            failure: None,
-            detail: None,
-            model: "sphere".into(),
-            units: "uT".into(),
-            offset: sim.truth.mag.offset,
-            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            radius: 50.0,
-            rms_residual: 0.1,
-            offset_sigma: [0.01; 3],
-            samples_used: 500,
-            iterations: 5,
-            candidates: vec![],
-            outliers_rejected: 0,
-            method: None,
-            mounting: None,
-        };
+        let stored = imucald::testdata::passing_mag_calibration("sphere", sim.truth.mag.offset);
         for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
             let reports = live_progress(&sim.samples, &cfg, stored);
             assert!(reports.len() >= 29, "{} reports", reports.len());
@@ -2692,16 +2662,7 @@ mod gyro_scale_checked {
     fn a_turntable_mostly_about_one_axis_fails_the_held_out_check() {
         // Six positions, then three turns about x: it was published with its held-out check at
         // 0.21 -> 9.8 deg.
-        let mut att = vec![
-            [0.0, 0.0, 0.0],
-            [0.0, 90.0, 0.0],
-            [90.0, 0.0, 0.0],
-            [0.0, -90.0, 0.0],
-            [180.0, 0.0, 0.0],
-            [-90.0, 0.0, 0.0],
-        ];
-        att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
-        let r = turntable_replay(att);
+        let r = turntable_replay(imucald::sim::six_positions_then_turns_about_x());
         assert_eq!(r.calibration.accel.status, CalStatus::Ok);
         let g = r.calibration.gyro;
         assert!(g.scale.is_none(), "published: {:?}", g.scale);
@@ -2716,7 +2677,10 @@ mod gyro_scale_checked {
     #[test]
     fn the_tumble_still_publishes_its_checked_gyro_scale() {
         let path = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"));
-        let g = replay_log(&path, &Config::default()).report.calibration.gyro;
+        let g = replay_log(&path, &Config::default())
+            .report
+            .calibration
+            .gyro;
         let k = g.scale.unwrap_or_else(|| panic!("{:?}", g.scale_failure));
         let h = k.held_out.expect("checked");
         eprintln!(

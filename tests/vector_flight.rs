@@ -5,8 +5,8 @@
 mod common;
 
 use imucald::calib::magmethod::{MagMethod, MethodChoice};
-use imucald::report::SensorCalibration;
 use imucald::config::Config;
+use imucald::report::SensorCalibration;
 use imucald::sim::{simulate, write_csv, Scenario};
 use imucald::types::Vec3;
 

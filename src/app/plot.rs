@@ -570,41 +570,29 @@ fn axes<DB: DrawingBackend>(
     .map_err(de)?;
     let line = FRAME.stroke_width(1);
     let gap = TICK_LEN + 4;
+    // One tick: its line between two points, its label at `at` anchored by `anchor`.
+    let tick = |ends: [(i32, i32); 2], text: &str, at: (i32, i32), anchor: (HPos, VPos)| {
+        root.draw(&PathElement::new(ends.to_vec(), line))
+            .map_err(de)?;
+        label(root, ink, text, at, TICK_UNIT, TEXT, anchor, false)
+    };
     for (x, text) in xt {
         let (px, _) = chart.backend_coord(&(*x, y_lo));
-        root.draw(&PathElement::new(
-            vec![(px, bottom), (px, bottom + TICK_LEN)],
-            line,
-        ))
-        .map_err(de)?;
-        label(
-            root,
-            ink,
+        tick(
+            [(px, bottom), (px, bottom + TICK_LEN)],
             text,
             (px, bottom + gap),
-            TICK_UNIT,
-            TEXT,
             (HPos::Center, VPos::Top),
-            false,
         )?;
     }
     let mut widest = 0;
     for (y, text) in yt {
         let (_, py) = chart.backend_coord(&(x_lo, *y));
-        root.draw(&PathElement::new(
-            vec![(left - TICK_LEN, py), (left, py)],
-            line,
-        ))
-        .map_err(de)?;
-        label(
-            root,
-            ink,
+        tick(
+            [(left - TICK_LEN, py), (left, py)],
             text,
             (left - gap, py),
-            TICK_UNIT,
-            TEXT,
             (HPos::Right, VPos::Center),
-            false,
         )?;
         widest = widest.max(text.chars().count() as i32);
     }

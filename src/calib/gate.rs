@@ -584,32 +584,28 @@ mod tests {
         let mut poses = vec![];
         let rate = 100.0;
         let mut t = 0.0;
+        // The next sample at 100 Hz, reading `a`.
+        let mut feed = |a: [f64; 3]| {
+            let s = Sample {
+                t_s: t,
+                accel_mps2: Some(a),
+                ..Default::default()
+            };
+            poses.extend(det.push(&s, &a));
+            t += 1.0 / rate;
+        };
         for p in 0..10 {
             let still = [0.0, (p as f64).sin() * 9.8, (p as f64).cos() * 9.8];
             for _ in 0..300 {
-                let a = [
+                feed([
                     still[0] + noise.sample(&mut rng),
                     still[1] + noise.sample(&mut rng),
                     still[2] + noise.sample(&mut rng),
-                ];
-                let s = Sample {
-                    t_s: t,
-                    accel_mps2: Some(a),
-                    ..Default::default()
-                };
-                poses.extend(det.push(&s, &a));
-                t += 1.0 / rate;
+                ]);
             }
             for i in 0..150 {
                 let w = i as f64 * 0.1;
-                let a = [3.0 * w.sin(), 9.8 * w.cos(), 2.0];
-                let s = Sample {
-                    t_s: t,
-                    accel_mps2: Some(a),
-                    ..Default::default()
-                };
-                poses.extend(det.push(&s, &a));
-                t += 1.0 / rate;
+                feed([3.0 * w.sin(), 9.8 * w.cos(), 2.0]);
             }
         }
         poses.extend(det.finish());

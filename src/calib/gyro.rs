@@ -827,15 +827,7 @@ mod tests {
     fn a_scale_that_fails_its_held_out_check_is_refused() {
         // Six positions (gravity along each axis), then three turns about x: all three directions
         // are turned about, but most rotations about one, and the half fits cannot place the rest.
-        let mut att = vec![
-            [0.0, 0.0, 0.0],
-            [0.0, 90.0, 0.0],
-            [90.0, 0.0, 0.0],
-            [0.0, -90.0, 0.0],
-            [180.0, 0.0, 0.0],
-            [-90.0, 0.0, 0.0],
-        ];
-        att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
+        let att = crate::sim::six_positions_then_turns_about_x();
         let (samples, poses, bias, accel) = turntable(att);
         let opt = ScaleOptions::default();
         let (span, _) = rotation_axes(&samples, &poses, &bias, &accel, &opt).unwrap();

@@ -13,7 +13,7 @@ use crate::attitude::Place;
 use crate::calib::model::{Calibration, ModelKind};
 use crate::calib::pipeline::SensorResult;
 use crate::calib::vector::{VectorFit, VectorPoint};
-use crate::types::{GeoPoint, Sample};
+use crate::types::{GeoPoint, Sample, Vec3};
 use serde::{Deserialize, Serialize};
 
 /// The current term is fitted only when the logged current varies at least this much (standard
@@ -280,26 +280,13 @@ fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
 /// The planar fit as the sensor's result, the undetermined z terms at nominal.
 fn install_planar(mag: &mut SensorResult, p: &crate::calib::planar::PlanarFit) {
     let (offset, matrix) = p.calibration();
-    let r = &mut mag.report;
-    r.status = crate::report::CalStatus::Ok;
-    r.failure = None;
-    r.detail = None;
-    r.model = ModelKind::Full12.name().into();
-    r.offset = offset;
-    r.matrix = matrix;
+    let r = install_full12(mag, offset, matrix);
     r.radius = p.horizontal.hypot(p.vertical);
     r.rms_residual = p.rms_residual;
     // z held at nominal, not fitted (named in `planar.undetermined`).
     r.offset_sigma = [p.offset_sigma_xy[0], p.offset_sigma_xy[1], 0.0];
     r.samples_used = p.points;
-    r.iterations = 0;
-    r.candidates = Vec::new();
     r.outliers_rejected = p.outliers_rejected;
-    mag.calibration = Some(Calibration {
-        model: ModelKind::Full12,
-        offset,
-        matrix,
-    });
 }
 
 fn decide_vector(
@@ -427,23 +414,34 @@ pub fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer
 
 /// The vector fit as the sensor's result: calibrated = A^-1 (raw - o).
 fn install(mag: &mut SensorResult, v: &VectorFit) {
+    let r = install_full12(mag, v.offset_ut, v.matrix);
+    r.radius = v.field_ut;
+    r.rms_residual = v.rms_residual_ut;
+    r.offset_sigma = v.offset_sigma_ut;
+    r.samples_used = v.points;
+    r.outliers_rejected = v.outliers_rejected;
+}
+
+/// A full-12 calibration `offset`, `matrix` (found in closed form: no iterations, no candidate
+/// models) installed as the sensor's passing result; the report, for the fit's own figures.
+fn install_full12(
+    mag: &mut SensorResult,
+    offset: Vec3,
+    matrix: [[f64; 3]; 3],
+) -> &mut crate::report::SensorCalibration {
+    mag.calibration = Some(Calibration {
+        model: ModelKind::Full12,
+        offset,
+        matrix,
+    });
     let r = &mut mag.report;
     r.status = crate::report::CalStatus::Ok;
     r.failure = None;
     r.detail = None;
     r.model = ModelKind::Full12.name().into();
-    r.offset = v.offset_ut;
-    r.matrix = v.matrix;
-    r.radius = v.field_ut;
-    r.rms_residual = v.rms_residual_ut;
-    r.offset_sigma = v.offset_sigma_ut;
-    r.samples_used = v.points;
+    r.offset = offset;
+    r.matrix = matrix;
     r.iterations = 0;
     r.candidates = Vec::new();
-    r.outliers_rejected = v.outliers_rejected;
-    mag.calibration = Some(Calibration {
-        model: ModelKind::Full12,
-        offset: v.offset_ut,
-        matrix: v.matrix,
-    });
+    r
 }

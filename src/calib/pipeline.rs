@@ -429,22 +429,9 @@ pub const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
 fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> SensorCalibration {
     SensorCalibration {
-        status: CalStatus::Failed,
         failure: Some(failure),
         detail: Some(detail),
-        model: model.into(),
-        units: units.into(),
-        offset: [0.0; 3],
-        matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        radius: 0.0,
-        rms_residual: 0.0,
-        offset_sigma: [0.0; 3],
-        samples_used: 0,
-        iterations: 0,
-        candidates: vec![],
-        outliers_rejected: 0,
-        method: None,
-        mounting: None,
+        ..SensorCalibration::new(CalStatus::Failed, model, units)
     }
 }
 

@@ -696,30 +696,9 @@ impl MessageConverter {
                     has,
                 )
             }
-            MavMessage::SCALED_IMU(d) => scaled(
-                "scaled_imu",
-                d.time_boot_ms,
-                [d.xacc, d.yacc, d.zacc],
-                [d.xgyro, d.ygyro, d.zgyro],
-                [d.xmag, d.ymag, d.zmag],
-                d.temperature,
-            ),
-            MavMessage::SCALED_IMU2(d) => scaled(
-                "scaled_imu2",
-                d.time_boot_ms,
-                [d.xacc, d.yacc, d.zacc],
-                [d.xgyro, d.ygyro, d.zgyro],
-                [d.xmag, d.ymag, d.zmag],
-                d.temperature,
-            ),
-            MavMessage::SCALED_IMU3(d) => scaled(
-                "scaled_imu3",
-                d.time_boot_ms,
-                [d.xacc, d.yacc, d.zacc],
-                [d.xgyro, d.ygyro, d.zgyro],
-                [d.xmag, d.ymag, d.zmag],
-                d.temperature,
-            ),
+            MavMessage::SCALED_IMU(d) => scaled_imu!("scaled_imu", d),
+            MavMessage::SCALED_IMU2(d) => scaled_imu!("scaled_imu2", d),
+            MavMessage::SCALED_IMU3(d) => scaled_imu!("scaled_imu3", d),
             MavMessage::RAW_IMU(d) => {
                 let sc = |v: i16, s: f64| if s == 0.0 { v as f64 } else { v as f64 * s };
                 let m = [
@@ -854,6 +833,22 @@ enum MsgTime {
 
 /// The wrap period of a u32 millisecond time field, us.
 const MS32_WRAP_US: i64 = (1i64 << 32) * 1000;
+
+/// [`scaled`] of a SCALED_IMU, SCALED_IMU2 or SCALED_IMU3 message (`$d`): the same fields in three
+/// types.
+macro_rules! scaled_imu {
+    ($name:literal, $d:expr) => {
+        scaled(
+            $name,
+            $d.time_boot_ms,
+            [$d.xacc, $d.yacc, $d.zacc],
+            [$d.xgyro, $d.ygyro, $d.zgyro],
+            [$d.xmag, $d.ymag, $d.zmag],
+            $d.temperature,
+        )
+    };
+}
+use scaled_imu;
 
 fn scaled(
     name: &'static str,
@@ -1046,6 +1041,19 @@ pub struct CsvMapping {
     /// Field -> factor that turns the column's unit into ours (e.g. ax = 9.80665 for g, t = 0.001 for ms).
     #[serde(default)]
     pub scales: BTreeMap<String, f64>,
+}
+
+impl CsvMapping {
+    /// The mapping of (field, column) pairs with (field, scale) pairs, as a config would give them.
+    pub fn from_pairs(columns: &[(&str, &str)], scales: &[(&str, f64)]) -> CsvMapping {
+        CsvMapping {
+            columns: columns
+                .iter()
+                .map(|&(f, c)| (f.to_string(), c.to_string()))
+                .collect(),
+            scales: scales.iter().map(|&(f, k)| (f.to_string(), k)).collect(),
+        }
+    }
 }
 
 /// Field names of CSV input, in the order [`sample_from_fields`] indexes them.
@@ -1332,28 +1340,15 @@ mod tests {
         assert!(known > 200, "{known}");
     }
 
+    /// `msg` as a MAVLink `v` frame from system 1, component 1.
     fn frame_bytes(msg: &MavMessage, v: MavlinkVersion) -> Vec<u8> {
-        let mut out = Vec::new();
-        let h = mavlink::MavHeader {
-            system_id: 1,
-            component_id: 1,
-            sequence: 0,
-        };
-        mavlink::write_versioned_msg(&mut out, v, h, msg).unwrap();
-        out
+        let mut enc = crate::io::mavout::MavEncoder::new(1, 1);
+        enc.version = v;
+        enc.encode(msg)
     }
 
     fn imu_msg(x: f32) -> MavMessage {
-        MavMessage::HIGHRES_IMU(mavlink::dialects::ardupilotmega::HIGHRES_IMU_DATA {
-            time_usec: 1000,
-            xacc: x,
-            zacc: -9.8,
-            xmag: 0.2,
-            ymag: 0.01,
-            zmag: 0.4,
-            temperature: 30.0,
-            ..Default::default()
-        })
+        crate::testdata::level_highres_imu(1000, x)
     }
 
     #[test]
@@ -1450,19 +1445,20 @@ mod tests {
     #[test]
     fn csv_user_mapping_with_scales() {
         let text = "time_ms,AccX,AccY,AccZ\n10,0,0,-1\n";
-        let mut m = CsvMapping::default();
-        for (f, c) in [
-            ("t", "time_ms"),
-            ("ax", "AccX"),
-            ("ay", "AccY"),
-            ("az", "AccZ"),
-        ] {
-            m.columns.insert(f.into(), c.into());
-        }
-        m.scales.insert("t".into(), 0.001);
-        for f in ["ax", "ay", "az"] {
-            m.scales.insert(f.into(), 9.80665);
-        }
+        let mut m = CsvMapping::from_pairs(
+            &[
+                ("t", "time_ms"),
+                ("ax", "AccX"),
+                ("ay", "AccY"),
+                ("az", "AccZ"),
+            ],
+            &[
+                ("t", 0.001),
+                ("ax", 9.80665),
+                ("ay", 9.80665),
+                ("az", 9.80665),
+            ],
+        );
         let mut st = DecodeStats::default();
         let s = decode_csv(text, &m, &mut st).unwrap();
         assert!((s[0].t_s - 0.01).abs() < 1e-12);

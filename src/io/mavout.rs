@@ -512,6 +512,17 @@ impl MagCalRun {
         use MagCalEvent as V;
         use MagCalRun as R;
         let ack = E::Ack;
+        // A passing fit installed and written at once, and reported.
+        let autosave = |cal: Box<SensorCalibration>, commanded: bool| {
+            vec![
+                E::Install(cal.clone()),
+                E::ReportSuccess {
+                    cal,
+                    autosaved: true,
+                    commanded,
+                },
+            ]
+        };
         match (self, ev) {
             (s, V::Start { opts, .. }) if !ours(opts.mask) => {
                 (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
@@ -536,17 +547,9 @@ impl MagCalRun {
                     complete: false, ..
                 },
             ) => (R::Running { opts }, vec![]),
-            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => (
-                R::Idle,
-                vec![
-                    E::Install(cal.clone()),
-                    E::ReportSuccess {
-                        cal,
-                        autosaved: true,
-                        commanded: true,
-                    },
-                ],
-            ),
+            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => {
+                (R::Idle, autosave(cal, true))
+            }
             (R::Running { .. }, V::FitPassed { cal, .. }) => (
                 R::Held { cal: cal.clone() },
                 vec![E::ReportSuccess {
@@ -555,17 +558,7 @@ impl MagCalRun {
                     commanded: true,
                 }],
             ),
-            (R::Idle, V::FitPassed { cal, .. }) if continuous => (
-                R::Idle,
-                vec![
-                    E::Install(cal.clone()),
-                    E::ReportSuccess {
-                        cal,
-                        autosaved: true,
-                        commanded: false,
-                    },
-                ],
-            ),
+            (R::Idle, V::FitPassed { cal, .. }) if continuous => (R::Idle, autosave(cal, false)),
             (R::Running { opts }, V::FitFailed) if opts.retry => {
                 (R::Running { opts }, vec![E::ReportFailure, E::Restart])
             }
@@ -1307,24 +1300,10 @@ mod tests {
     }
 
     fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
-        Box::new(SensorCalibration {
-            status: CalStatus::Ok,
-            failure: None,
-            detail: None,
-            model: "sym9".into(),
-            units: "uT".into(),
-            offset: [offset_x, 0.0, 0.0],
-            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            radius: 50.0,
-            rms_residual: 0.1,
-            offset_sigma: [0.01; 3],
-            samples_used: 500,
-            iterations: 5,
-            candidates: vec![],
-            outliers_rejected: 0,
-            method: None,
-            mounting: None,
-        })
+        Box::new(crate::testdata::passing_mag_calibration(
+            "sym9",
+            [offset_x, 0.0, 0.0],
+        ))
     }
 
     #[test]

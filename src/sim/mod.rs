@@ -15,7 +15,7 @@ mod trajectory;
 use trajectory::{
     build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan, Tremor,
 };
-pub use trajectory::{quat_from_euler_deg, turntable_attitudes};
+pub use trajectory::{quat_from_euler_deg, six_positions_then_turns_about_x, turntable_attitudes};
 
 /// True calibration of one sensor: `raw = matrix^-1 * true + offset + noise`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -594,37 +594,28 @@ impl Scenario {
                 sc.slew_s = [1.0, 1.5];
                 sc.temp_drift_c = 0.0;
             }
-            TrajectoryKind::Cruise => {
-                // Five minutes over Zurich in mid-2026, the attitude estimate at 10 Hz with 0.5 deg
-                // of noise per axis.
-                sc.tremor_deg = 0.0;
-                sc.duration_s = Some(300.0);
-                sc.reference_noise_deg = Some(0.5);
-                sc.reference_rate_hz = Some(10.0);
-                sc.place = Some(crate::attitude::Place {
-                    latitude_deg: 47.3769,
-                    longitude_deg: 8.5417,
-                    altitude_m: 600.0,
-                    date: Some("2026-06-01".into()),
-                });
-            }
-            TrajectoryKind::Rover => {
-                // Five minutes on a field near Zurich in mid-2026, the vehicle's attitude estimate
-                // at 10 Hz with 0.5 deg of noise per axis, the default hard iron (z included).
-                sc.tremor_deg = 0.0;
-                sc.duration_s = Some(300.0);
-                sc.reference_noise_deg = Some(0.5);
-                sc.reference_rate_hz = Some(10.0);
-                sc.place = Some(crate::attitude::Place {
-                    latitude_deg: 47.3769,
-                    longitude_deg: 8.5417,
-                    altitude_m: 450.0,
-                    date: Some("2026-06-01".into()),
-                });
-            }
+            // Five minutes over Zurich in mid-2026.
+            TrajectoryKind::Cruise => sc.five_minutes_near_zurich(600.0),
+            // Five minutes on a field near Zurich in mid-2026, the default hard iron (z included).
+            TrajectoryKind::Rover => sc.five_minutes_near_zurich(450.0),
         }
         sc.truth = truth;
         Some(sc)
+    }
+
+    /// An ordinary trip (cruise, rover): five minutes near Zurich in mid-2026 at `altitude_m`, no
+    /// tremor, the vehicle's attitude estimate at 10 Hz with 0.5 deg of noise per axis.
+    fn five_minutes_near_zurich(&mut self, altitude_m: f64) {
+        self.tremor_deg = 0.0;
+        self.duration_s = Some(300.0);
+        self.reference_noise_deg = Some(0.5);
+        self.reference_rate_hz = Some(10.0);
+        self.place = Some(crate::attitude::Place {
+            latitude_deg: 47.3769,
+            longitude_deg: 8.5417,
+            altitude_m,
+            date: Some("2026-06-01".into()),
+        });
     }
 }
 
@@ -1532,14 +1523,7 @@ fn tlog_records<W: std::io::Write>(
         w.write_all(&time_us.to_be_bytes())?;
         w.write_all(&frame)
     };
-    let heartbeat = apm::MavMessage::HEARTBEAT(apm::HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: apm::MavType::MAV_TYPE_QUADROTOR,
-        autopilot: apm::MavAutopilot::MAV_AUTOPILOT_PX4,
-        base_mode: apm::MavModeFlag::empty(),
-        system_status: apm::MavState::MAV_STATE_STANDBY,
-        mavlink_version: 3,
-    });
+    let heartbeat = vehicle_heartbeat();
     let mut next_heartbeat_s = f64::NEG_INFINITY;
     let mut state = VehicleStateStream::default();
     for s in samples {
@@ -1602,6 +1586,19 @@ fn tlog_records<W: std::io::Write>(
         put(w, stamp, &msg)?;
     }
     Ok(())
+}
+
+/// The HEARTBEAT of the simulated vehicle: a quadrotor under PX4, standing by.
+pub fn vehicle_heartbeat() -> mavlink::dialects::ardupilotmega::MavMessage {
+    use mavlink::dialects::ardupilotmega as apm;
+    apm::MavMessage::HEARTBEAT(apm::HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: apm::MavType::MAV_TYPE_QUADROTOR,
+        autopilot: apm::MavAutopilot::MAV_AUTOPILOT_PX4,
+        base_mode: apm::MavModeFlag::empty(),
+        system_status: apm::MavState::MAV_STATE_STANDBY,
+        mavlink_version: 3,
+    })
 }
 
 /// One HIGHRES_IMU message for a sample (m/s^2, rad/s, gauss, degC; `fields_updated` says which

@@ -110,7 +110,6 @@ impl FlightPlan {
         let t_down = t_total - 5.0 - t_climb;
         let h0 = t_up + t_climb;
         let hl = t_down - h0;
-        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
         let yaw0_deg = rng.random_range(0.0..360.0);
         FlightPlan {
             t_total,
@@ -125,17 +124,17 @@ impl FlightPlan {
                 (h0 + 0.55 * hl, h0 + 0.90 * hl, -360.0),
             ],
             roll: vec![
-                (6.0, 0.13, ph(rng)),
-                (3.0, 0.31, ph(rng)),
-                (1.5, 0.7, ph(rng)),
+                (6.0, 0.13, phase(rng)),
+                (3.0, 0.31, phase(rng)),
+                (1.5, 0.7, phase(rng)),
             ],
             pitch: vec![
-                (6.0, 0.11, ph(rng)),
-                (3.0, 0.27, ph(rng)),
-                (1.5, 0.6, ph(rng)),
+                (6.0, 0.11, phase(rng)),
+                (3.0, 0.27, phase(rng)),
+                (1.5, 0.6, phase(rng)),
             ],
-            north: (2.0, 0.05, ph(rng)),
-            east: (1.5, 0.08, ph(rng)),
+            north: (2.0, 0.05, phase(rng)),
+            east: (1.5, 0.08, phase(rng)),
             hover_throttle: 0.5,
         }
     }
@@ -188,12 +187,9 @@ impl FlightPlan {
 #[derive(Debug, Clone)]
 pub(super) struct CruisePlan {
     pub(super) t_total: f64,
-    speed_mps: f64,
     gravity_mps2: f64,
-    yaw0_rad: f64,
-    /// (t0, t1, heading change rad): the turn rate is `delta / T (1 - cos(2 pi u))`, u = (t - t0) / T,
-    /// so the bank (coordinated: tan(bank) = v rate / g) rises and falls smoothly.
-    turns: Vec<(f64, f64, f64)>,
+    /// Its turns rise and fall smoothly, and so does the bank (coordinated: tan(bank) = v rate / g).
+    track: Track,
     /// (t_start, current A) of each leg and turn; the current ramps over 2 s to the next.
     currents: Vec<(f64, f64)>,
     pub(super) max_current_a: f64,
@@ -210,66 +206,44 @@ impl CruisePlan {
         gravity: f64,
         rng: &mut R,
     ) -> CruisePlan {
-        let pick = |r: [f64; 2], rng: &mut R| {
-            if r[1] > r[0] {
-                rng.random_range(r[0]..r[1])
-            } else {
-                r[0]
-            }
-        };
-        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
         let (mut turns, mut currents) = (Vec::new(), Vec::new());
         let mut t = 0.0;
         while t < total {
-            currents.push((t, pick(c.current_a, rng)));
-            t += pick(c.leg_s, rng);
-            let bank = pick(c.bank_deg, rng).to_radians();
+            currents.push((t, pick_in(c.current_a, rng)));
+            t += pick_in(c.leg_s, rng);
+            let bank = pick_in(c.bank_deg, rng).to_radians();
             let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-            let delta = sign * pick(c.turn_deg, rng).to_radians();
+            let delta = sign * pick_in(c.turn_deg, rng).to_radians();
             // Peak rate 2 |delta| / T = g tan(bank) / v.
             let d = 2.0 * c.speed_mps * delta.abs() / (gravity * bank.tan());
-            currents.push((t, pick(c.current_a, rng)));
+            currents.push((t, pick_in(c.current_a, rng)));
             turns.push((t, t + d, delta));
             t += d;
         }
         CruisePlan {
             t_total: total,
-            speed_mps: c.speed_mps,
             gravity_mps2: gravity,
-            yaw0_rad: rng.random_range(0.0..std::f64::consts::TAU),
-            turns,
+            track: Track {
+                speed_mps: c.speed_mps,
+                yaw0_rad: rng.random_range(0.0..std::f64::consts::TAU),
+                turns,
+            },
             currents,
             max_current_a: c.current_a[1],
-            roll: vec![(1.0, 0.23, ph(rng)), (0.5, 0.61, ph(rng))],
-            pitch: vec![(2.0, 0.05, ph(rng)), (1.0, 0.17, ph(rng))],
+            roll: vec![(1.0, 0.23, phase(rng)), (0.5, 0.61, phase(rng))],
+            pitch: vec![(2.0, 0.05, phase(rng)), (1.0, 0.17, phase(rng))],
             pitch_trim_deg: 1.5,
         }
     }
 
-    /// Heading (rad) and its rate (rad/s).
-    pub(super) fn heading(&self, t: f64) -> (f64, f64) {
-        smooth_turns(self.yaw0_rad, &self.turns, t)
-    }
-
     pub(super) fn attitude(&self, t: f64) -> Quat {
-        let (psi, rate) = self.heading(t);
-        let bank = (self.speed_mps * rate / self.gravity_mps2)
+        let (psi, rate) = self.track.heading(t);
+        let bank = (self.track.speed_mps * rate / self.gravity_mps2)
             .atan()
             .to_degrees();
         let roll = bank + sines(&self.roll, t);
         let pitch = self.pitch_trim_deg + sines(&self.pitch, t);
         quat_from_euler_deg(roll, pitch, psi.to_degrees())
-    }
-
-    pub(super) fn velocity_ned(&self, t: f64) -> Vector3<f64> {
-        let (psi, _) = self.heading(t);
-        self.speed_mps * Vector3::new(psi.cos(), psi.sin(), 0.0)
-    }
-
-    /// The centripetal acceleration of the turns (level flight at constant speed), m/s^2.
-    pub(super) fn accel_ned(&self, t: f64) -> Vector3<f64> {
-        let (psi, rate) = self.heading(t);
-        self.speed_mps * rate * Vector3::new(-psi.sin(), psi.cos(), 0.0)
     }
 
     pub(super) fn current_a(&self, t: f64) -> f64 {
@@ -287,10 +261,7 @@ impl CruisePlan {
 #[derive(Debug, Clone)]
 pub(super) struct RoverPlan {
     pub(super) t_total: f64,
-    speed_mps: f64,
-    yaw0_rad: f64,
-    /// (t0, t1, heading change rad), as the cruise's turns (smooth rate, zero at both ends).
-    turns: Vec<(f64, f64, f64)>,
+    track: Track,
     /// (amplitude deg, wavelength m, phase): roll and pitch from the terrain along the track.
     roll: Vec<(f64, f64, f64)>,
     pitch: Vec<(f64, f64, f64)>,
@@ -298,20 +269,12 @@ pub(super) struct RoverPlan {
 
 impl RoverPlan {
     pub(super) fn new<R: rand::Rng>(total: f64, c: &RoverSettings, rng: &mut R) -> RoverPlan {
-        let pick = |r: [f64; 2], rng: &mut R| {
-            if r[1] > r[0] {
-                rng.random_range(r[0]..r[1])
-            } else {
-                r[0]
-            }
-        };
-        let ph = |rng: &mut R| rng.random_range(0.0..std::f64::consts::TAU);
         // Peak rate 2 |delta| / T = speed / radius.
         let peak_rate = c.speed_mps / c.turn_radius_m;
         let mut turns = Vec::new();
         let mut t = 0.0;
         while t < total {
-            t += pick(c.leg_s, rng);
+            t += pick_in(c.leg_s, rng);
             let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
             let mut turn = |delta: f64, t: &mut f64| {
                 let d = 2.0 * delta.abs() / peak_rate;
@@ -322,30 +285,27 @@ impl RoverPlan {
                 // Two full circles, one each way, then on at a new heading.
                 turn(sign * std::f64::consts::TAU, &mut t);
                 turn(-sign * std::f64::consts::TAU, &mut t);
-                turn(sign * pick(c.turn_deg, rng).to_radians() / 4.0, &mut t);
+                turn(sign * pick_in(c.turn_deg, rng).to_radians() / 4.0, &mut t);
             } else {
-                turn(sign * pick(c.turn_deg, rng).to_radians(), &mut t);
+                turn(sign * pick_in(c.turn_deg, rng).to_radians(), &mut t);
             }
         }
         let a = c.terrain_deg;
         RoverPlan {
             t_total: total,
-            speed_mps: c.speed_mps,
-            yaw0_rad: rng.random_range(0.0..std::f64::consts::TAU),
-            turns,
-            roll: vec![(0.6 * a, 9.0, ph(rng)), (0.4 * a, 23.0, ph(rng))],
-            pitch: vec![(0.6 * a, 13.0, ph(rng)), (0.4 * a, 31.0, ph(rng))],
+            track: Track {
+                speed_mps: c.speed_mps,
+                yaw0_rad: rng.random_range(0.0..std::f64::consts::TAU),
+                turns,
+            },
+            roll: vec![(0.6 * a, 9.0, phase(rng)), (0.4 * a, 23.0, phase(rng))],
+            pitch: vec![(0.6 * a, 13.0, phase(rng)), (0.4 * a, 31.0, phase(rng))],
         }
     }
 
-    /// Heading (rad) and its rate (rad/s).
-    pub(super) fn heading(&self, t: f64) -> (f64, f64) {
-        smooth_turns(self.yaw0_rad, &self.turns, t)
-    }
-
     pub(super) fn attitude(&self, t: f64) -> Quat {
-        let (psi, _) = self.heading(t);
-        let s = self.speed_mps * t;
+        let (psi, _) = self.track.heading(t);
+        let s = self.track.speed_mps * t;
         let terrain = |c: &[(f64, f64, f64)]| {
             c.iter()
                 .map(|&(a, l, ph)| a * (std::f64::consts::TAU * s / l + ph).sin())
@@ -353,14 +313,46 @@ impl RoverPlan {
         };
         quat_from_euler_deg(terrain(&self.roll), terrain(&self.pitch), psi.to_degrees())
     }
+}
 
-    pub(super) fn velocity_ned(&self, t: f64) -> Vector3<f64> {
+/// A value drawn uniformly from the range `r` (its low end when the range is empty).
+fn pick_in<R: rand::Rng>(r: [f64; 2], rng: &mut R) -> f64 {
+    if r[1] > r[0] {
+        rng.random_range(r[0]..r[1])
+    } else {
+        r[0]
+    }
+}
+
+/// A phase drawn uniformly from [0, 2 pi).
+fn phase<R: rand::Rng>(rng: &mut R) -> f64 {
+    rng.random_range(0.0..std::f64::consts::TAU)
+}
+
+/// A vehicle at constant speed on level ground or in level flight, its heading turning smoothly:
+/// the horizontal motion of the cruise and the rover.
+#[derive(Debug, Clone)]
+pub(super) struct Track {
+    speed_mps: f64,
+    yaw0_rad: f64,
+    /// (t0, t1, heading change rad): the turn rate is `delta / T (1 - cos(2 pi u))`, u = (t - t0) / T,
+    /// zero at both ends.
+    turns: Vec<(f64, f64, f64)>,
+}
+
+impl Track {
+    /// Heading (rad) and its rate (rad/s).
+    fn heading(&self, t: f64) -> (f64, f64) {
+        smooth_turns(self.yaw0_rad, &self.turns, t)
+    }
+
+    fn velocity_ned(&self, t: f64) -> Vector3<f64> {
         let (psi, _) = self.heading(t);
         self.speed_mps * Vector3::new(psi.cos(), psi.sin(), 0.0)
     }
 
-    /// The centripetal acceleration of the turns (constant speed on the ground plane), m/s^2.
-    pub(super) fn accel_ned(&self, t: f64) -> Vector3<f64> {
+    /// The centripetal acceleration of the turns (constant speed), m/s^2.
+    fn accel_ned(&self, t: f64) -> Vector3<f64> {
         let (psi, rate) = self.heading(t);
         self.speed_mps * rate * Vector3::new(-psi.sin(), psi.cos(), 0.0)
     }
@@ -444,8 +436,8 @@ impl Motion {
                 let h = 1e-3;
                 (p.position_ned(t + h) - p.position_ned(t - h)) / (2.0 * h)
             }
-            Motion::Cruise(p) => p.velocity_ned(t),
-            Motion::Rover(p) => p.velocity_ned(t),
+            Motion::Cruise(p) => p.track.velocity_ned(t),
+            Motion::Rover(p) => p.track.velocity_ned(t),
         }
     }
 
@@ -457,8 +449,8 @@ impl Motion {
                 let h = 1e-3;
                 (p.position_ned(t + h) - 2.0 * p.position_ned(t) + p.position_ned(t - h)) / (h * h)
             }
-            Motion::Cruise(p) => p.accel_ned(t),
-            Motion::Rover(p) => p.accel_ned(t),
+            Motion::Cruise(p) => p.track.accel_ned(t),
+            Motion::Rover(p) => p.track.accel_ned(t),
         }
     }
 }
@@ -518,6 +510,22 @@ pub(super) fn build_segments<R: rand::Rng>(
         }
     }
     (segs, truths)
+}
+
+/// A turntable plan that turns about every axis but mostly about one: six positions (gravity
+/// along each body axis, `[roll, pitch, yaw]` deg), then three turns about body x in 40 deg steps.
+/// The gyro scale it gives fails its held-out check.
+pub fn six_positions_then_turns_about_x() -> Vec<[f64; 3]> {
+    let mut att = vec![
+        [0.0, 0.0, 0.0],
+        [0.0, 90.0, 0.0],
+        [90.0, 0.0, 0.0],
+        [0.0, -90.0, 0.0],
+        [180.0, 0.0, 0.0],
+        [-90.0, 0.0, 0.0],
+    ];
+    att.extend((0..27).map(|i| [((i * 40) % 360) as f64 - 180.0, 0.0, 0.0]));
+    att
 }
 
 /// The 32 turntable attitudes of Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation" (roll, pitch, yaw deg), ordered to keep slews short.

@@ -12,6 +12,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::Duration;
 
+mod python;
+pub use python::{python_importing, python_path};
+
 /// A UDP port on the loopback that was free a moment ago.
 pub fn free_udp_port() -> u16 {
     std::net::UdpSocket::bind("127.0.0.1:0")
@@ -41,24 +44,14 @@ pub fn udpin_config(dir: &Path) -> (u16, Config) {
     (port, cfg)
 }
 
-/// The Python `scripts/test` installs (`.venv`), or `IMUCALD_PYTHON`.
-pub fn python_path() -> String {
-    std::env::var("IMUCALD_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string())
-}
-
 /// [`python_path`], checked to import `module` (pymavlink, pyulog).
 pub fn python_with(module: &str) -> String {
-    let p = python_path();
-    let ok = std::process::Command::new(&p)
-        .args(["-c", &format!("import {module}")])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    assert!(
-        ok,
-        "no Python with {module} at {p}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON"
-    );
-    p
+    python_importing(module).unwrap_or_else(|| {
+        panic!(
+            "no Python with {module} at {}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON",
+            python_path()
+        )
+    })
 }
 
 /// `imucald run --config CONFIG`, its output discarded (the caller waits for it to bind).
@@ -127,7 +120,7 @@ pub fn highres_imu_at(s: &Sample) -> mavlink::dialects::ardupilotmega::MavMessag
 /// Sleeps, every 50th sample (`i`), until the time of a sample at `t_s` played `speed` times
 /// faster than recorded from `t0`.
 pub async fn pace(i: usize, t0: tokio::time::Instant, t_s: f64, speed: f64) {
-    if i % 50 == 0 {
+    if i.is_multiple_of(50) {
         tokio::time::sleep_until(t0 + Duration::from_secs_f64(t_s / speed)).await;
     }
 }

@@ -12,6 +12,7 @@
 //! format characters are unknown or do not fit its length), `truncated` (the log ends inside a
 //! record: what came before is kept). The state is bounded: at most 256 formats.
 
+use super::number::Number;
 use std::collections::BTreeMap;
 
 /// The two bytes that start every record.
@@ -24,24 +25,10 @@ const FMT_LEN: usize = 89;
 /// How a format character's bytes are read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Kind {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    I64,
-    U64,
-    F32,
-    F64,
-    /// `c`: int16 * 0.01.
-    I16Centi,
-    /// `C`: uint16 * 0.01.
-    U16Centi,
-    /// `e`: int32 * 0.01.
-    I32Centi,
-    /// `E`: uint32 * 0.01.
-    U32Centi,
+    /// `b`, `B`/`M`, `h`, `H`, `i`, `I`, `q`, `Q`, `f`, `d`.
+    Number(Number),
+    /// `c` (int16), `C` (uint16), `e` (int32), `E` (uint32): the integer * 0.01.
+    Centi(Number),
     /// `L`: int32 latitude/longitude * 1e-7 (degrees).
     LatLon,
     /// `n`, `N`, `Z`: NUL-padded text of 4, 16, 64 bytes.
@@ -54,20 +41,20 @@ impl Kind {
     /// The kind of a DataFlash format character, `None` for an unknown one.
     pub fn from_char(c: u8) -> Option<Kind> {
         Some(match c {
-            b'b' => Kind::I8,
-            b'B' | b'M' => Kind::U8,
-            b'h' => Kind::I16,
-            b'H' => Kind::U16,
-            b'i' => Kind::I32,
-            b'I' => Kind::U32,
-            b'q' => Kind::I64,
-            b'Q' => Kind::U64,
-            b'f' => Kind::F32,
-            b'd' => Kind::F64,
-            b'c' => Kind::I16Centi,
-            b'C' => Kind::U16Centi,
-            b'e' => Kind::I32Centi,
-            b'E' => Kind::U32Centi,
+            b'b' => Kind::Number(Number::I8),
+            b'B' | b'M' => Kind::Number(Number::U8),
+            b'h' => Kind::Number(Number::I16),
+            b'H' => Kind::Number(Number::U16),
+            b'i' => Kind::Number(Number::I32),
+            b'I' => Kind::Number(Number::U32),
+            b'q' => Kind::Number(Number::I64),
+            b'Q' => Kind::Number(Number::U64),
+            b'f' => Kind::Number(Number::F32),
+            b'd' => Kind::Number(Number::F64),
+            b'c' => Kind::Centi(Number::I16),
+            b'C' => Kind::Centi(Number::U16),
+            b'e' => Kind::Centi(Number::I32),
+            b'E' => Kind::Centi(Number::U32),
             b'L' => Kind::LatLon,
             b'n' => Kind::Text(4),
             b'N' => Kind::Text(16),
@@ -79,10 +66,8 @@ impl Kind {
 
     pub fn size(self) -> usize {
         match self {
-            Kind::I8 | Kind::U8 => 1,
-            Kind::I16 | Kind::U16 | Kind::I16Centi | Kind::U16Centi => 2,
-            Kind::I32 | Kind::U32 | Kind::F32 | Kind::I32Centi | Kind::U32Centi | Kind::LatLon => 4,
-            Kind::I64 | Kind::U64 | Kind::F64 => 8,
+            Kind::Number(n) | Kind::Centi(n) => n.size(),
+            Kind::LatLon => 4,
             Kind::Text(n) => n,
             Kind::I16Array => 64,
         }
@@ -198,25 +183,12 @@ impl Record<'_> {
     pub fn value(&self, col: usize) -> Option<f64> {
         let c = self.format.columns.get(col)?;
         let b = self.payload.get(c.offset..c.offset + c.kind.size())?;
-        let v = match c.kind {
-            Kind::I8 => b[0] as i8 as f64,
-            Kind::U8 => b[0] as f64,
-            Kind::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
-            Kind::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
-            Kind::I32 => i32::from_le_bytes(b.try_into().ok()?) as f64,
-            Kind::U32 => u32::from_le_bytes(b.try_into().ok()?) as f64,
-            Kind::I64 => i64::from_le_bytes(b.try_into().ok()?) as f64,
-            Kind::U64 => u64::from_le_bytes(b.try_into().ok()?) as f64,
-            Kind::F32 => f32::from_le_bytes(b.try_into().ok()?) as f64,
-            Kind::F64 => f64::from_le_bytes(b.try_into().ok()?),
-            Kind::I16Centi => i16::from_le_bytes([b[0], b[1]]) as f64 * 0.01,
-            Kind::U16Centi => u16::from_le_bytes([b[0], b[1]]) as f64 * 0.01,
-            Kind::I32Centi => i32::from_le_bytes(b.try_into().ok()?) as f64 * 0.01,
-            Kind::U32Centi => u32::from_le_bytes(b.try_into().ok()?) as f64 * 0.01,
-            Kind::LatLon => i32::from_le_bytes(b.try_into().ok()?) as f64 * 1e-7,
-            Kind::Text(_) | Kind::I16Array => return None,
-        };
-        Some(v)
+        match c.kind {
+            Kind::Number(n) => n.read(b),
+            Kind::Centi(n) => Some(n.read(b)? * 0.01),
+            Kind::LatLon => Some(Number::I32.read(b)? * 1e-7),
+            Kind::Text(_) | Kind::I16Array => None,
+        }
     }
 
     /// Column `name` as a number ([`Record::value`]).
@@ -229,8 +201,10 @@ impl Record<'_> {
         let c = &self.format.columns[self.format.column(name)?];
         let b = self.payload.get(c.offset..c.offset + c.kind.size())?;
         match c.kind {
-            Kind::U64 | Kind::I64 => Some(u64::from_le_bytes(b.try_into().ok()?)),
-            Kind::U32 | Kind::I32 => Some(u32::from_le_bytes(b.try_into().ok()?) as u64),
+            Kind::Number(Number::U64 | Number::I64) => Some(u64::from_le_bytes(b.try_into().ok()?)),
+            Kind::Number(Number::U32 | Number::I32) => {
+                Some(u32::from_le_bytes(b.try_into().ok()?) as u64)
+            }
             _ => None,
         }
     }

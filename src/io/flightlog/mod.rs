@@ -26,6 +26,7 @@
 //! board); their onboard calibration is reported, not undone.
 
 pub mod dataflash;
+pub mod number;
 pub mod ulog;
 pub mod write;
 

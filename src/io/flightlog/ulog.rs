@@ -17,6 +17,7 @@
 //! offset. State is bounded: at most [`MAX_FORMATS`] formats, [`MAX_SUBSCRIPTIONS`]
 //! subscriptions, [`MAX_PARAMS`] parameters, [`MAX_FIELDS`] flattened fields per topic.
 
+use super::number::Number;
 use std::collections::BTreeMap;
 
 /// The file magic (`ULog`, then 01 12 35), followed by a version byte and the start time.
@@ -32,16 +33,7 @@ const MAX_NESTING: usize = 8;
 /// A primitive field type.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Ty {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    I64,
-    U64,
-    F32,
-    F64,
+    Number(Number),
     Bool,
     Char,
 }
@@ -49,16 +41,16 @@ pub enum Ty {
 impl Ty {
     fn parse(s: &str) -> Option<Ty> {
         Some(match s {
-            "int8_t" => Ty::I8,
-            "uint8_t" => Ty::U8,
-            "int16_t" => Ty::I16,
-            "uint16_t" => Ty::U16,
-            "int32_t" => Ty::I32,
-            "uint32_t" => Ty::U32,
-            "int64_t" => Ty::I64,
-            "uint64_t" => Ty::U64,
-            "float" => Ty::F32,
-            "double" => Ty::F64,
+            "int8_t" => Ty::Number(Number::I8),
+            "uint8_t" => Ty::Number(Number::U8),
+            "int16_t" => Ty::Number(Number::I16),
+            "uint16_t" => Ty::Number(Number::U16),
+            "int32_t" => Ty::Number(Number::I32),
+            "uint32_t" => Ty::Number(Number::U32),
+            "int64_t" => Ty::Number(Number::I64),
+            "uint64_t" => Ty::Number(Number::U64),
+            "float" => Ty::Number(Number::F32),
+            "double" => Ty::Number(Number::F64),
             "bool" => Ty::Bool,
             "char" => Ty::Char,
             _ => return None,
@@ -67,31 +59,16 @@ impl Ty {
 
     pub fn size(self) -> usize {
         match self {
-            Ty::I8 | Ty::U8 | Ty::Bool | Ty::Char => 1,
-            Ty::I16 | Ty::U16 => 2,
-            Ty::I32 | Ty::U32 | Ty::F32 => 4,
-            Ty::I64 | Ty::U64 | Ty::F64 => 8,
+            Ty::Number(n) => n.size(),
+            Ty::Bool | Ty::Char => 1,
         }
     }
 
-    /// The value at the start of `b` (at least `size()` bytes).
-    fn read(self, b: &[u8]) -> f64 {
-        let a = |n: usize| -> [u8; 8] {
-            let mut x = [0u8; 8];
-            x[..n].copy_from_slice(&b[..n]);
-            x
-        };
+    /// The value at the start of `b`; `None` when `b` is shorter than [`Ty::size`].
+    fn read(self, b: &[u8]) -> Option<f64> {
         match self {
-            Ty::I8 => b[0] as i8 as f64,
-            Ty::U8 | Ty::Bool | Ty::Char => b[0] as f64,
-            Ty::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
-            Ty::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
-            Ty::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-            Ty::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-            Ty::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-            Ty::I64 => i64::from_le_bytes(a(8)) as f64,
-            Ty::U64 => u64::from_le_bytes(a(8)) as f64,
-            Ty::F64 => f64::from_le_bytes(a(8)),
+            Ty::Number(n) => n.read(b),
+            Ty::Bool | Ty::Char => b.first().map(|&v| v as f64),
         }
     }
 }
@@ -141,8 +118,7 @@ impl Data<'_> {
     /// Field `k` (an index from [`Subscription::field`]) as a number; `None` past the data's end.
     pub fn value(&self, k: usize) -> Option<f64> {
         let f = self.sub.fields.get(k)?;
-        let b = self.payload.get(f.offset..f.offset + f.ty.size())?;
-        Some(f.ty.read(b))
+        f.ty.read(self.payload.get(f.offset..)?)
     }
 
     /// Field `name` as a number.
@@ -154,7 +130,8 @@ impl Data<'_> {
     pub fn timestamp_us(&self) -> Option<u64> {
         let f = &self.sub.fields[self.sub.timestamp?];
         let b = self.payload.get(f.offset..f.offset + 8)?;
-        (f.ty == Ty::U64).then(|| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+        (f.ty == Ty::Number(Number::U64))
+            .then(|| u64::from_le_bytes(b.try_into().expect("8 bytes")))
     }
 }
 
@@ -393,9 +370,9 @@ impl<'a> UlogReader<'a> {
                     }
                     return;
                 }
-                let v = match Ty::parse(tyname) {
-                    Some(t) if value.len() >= t.size() => t.read(value),
-                    _ => {
+                let v = match Ty::parse(tyname).and_then(|t| t.read(value)) {
+                    Some(v) => v,
+                    None => {
                         self.stats.skip("bad_message");
                         return;
                     }
