@@ -19,11 +19,6 @@ fn two_compasses() -> (SimOutput, SimOutput) {
 }
 
 fn write_tlog(path: &std::path::Path, streams: &[(&SimOutput, u8)]) {
-    let header = mavlink::MavHeader {
-        system_id: 1,
-        component_id: 1,
-        sequence: 0,
-    };
     let mut bytes = Vec::new();
     let n = streams[0].0.samples.len();
     for i in 0..n {
@@ -35,14 +30,11 @@ fn write_tlog(path: &std::path::Path, streams: &[(&SimOutput, u8)]) {
                 unreachable!()
             };
             d.id = *id;
-            bytes.extend_from_slice(&(TLOG_EPOCH_US + t_us).to_be_bytes());
-            mavlink::write_versioned_msg(
+            common::push_tlog_record(
                 &mut bytes,
-                mavlink::MavlinkVersion::V2,
-                header,
+                TLOG_EPOCH_US + t_us,
                 &MavMessage::HIGHRES_IMU(d),
-            )
-            .unwrap();
+            );
         }
     }
     std::fs::write(path, bytes).unwrap();

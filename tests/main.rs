@@ -186,29 +186,7 @@ mod config_files {
 mod simulated {
     use super::*;
     use imucald::attitude::{angle_diff_deg, attitude_deg};
-    use imucald::calib::model::Calibration;
-    use imucald::report::SensorCalibration;
-    use imucald::sim::{simulate, write_csv, write_tlog, Scenario, SensorTruth, TlogWriteOptions};
-
-    fn normalised(m: &[[f64; 3]; 3]) -> nalgebra::Matrix3<f64> {
-        Calibration {
-            model: imucald::calib::model::ModelKind::Sym9,
-            offset: [0.0; 3],
-            matrix: *m,
-        }
-        .normalised_matrix()
-    }
-
-    /// Offset error and largest normalised-matrix element error of a fit against the truth.
-    fn errors(fit: &SensorCalibration, truth: &SensorTruth) -> (f64, f64) {
-        let off = (0..3)
-            .map(|k| (fit.offset[k] - truth.offset[k]).abs())
-            .fold(0.0, f64::max);
-        let mat = (normalised(&fit.matrix) - normalised(&truth.matrix))
-            .abs()
-            .max();
-        (off, mat)
-    }
+    use imucald::sim::{simulate, write_csv, write_tlog, Scenario, TlogWriteOptions};
 
     #[test]
     fn calibrated_out_carries_the_fused_attitude_of_a_moving_sensor() {
@@ -276,8 +254,8 @@ mod simulated {
         let (m, a) = (&out.report.calibration.mag, &out.report.calibration.accel);
         assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
         assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
-        let (mo, mm) = errors(m, &truth.mag);
-        let (ao, am) = errors(a, &truth.accel);
+        let (mo, mm) = common::errors_against_truth(m, &truth.mag);
+        let (ao, am) = common::errors_against_truth(a, &truth.accel);
         eprintln!("{what}: mag {} offset err {mo:.4} uT, matrix err {mm:.5}; accel {} offset err {ao:.5} m/s^2, matrix err {am:.5}; {} poses", m.model, a.model, out.report.static_poses.len());
         // Measured (seeds 1, 2; tlog and CSV alike): mag offset 0.0078, 0.0085 uT, matrix 0.00027,
         // 0.00014; accel offset 0.00024, 0.00066 m/s^2, matrix 0.00006, 0.00013.

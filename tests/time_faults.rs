@@ -124,18 +124,9 @@ fn timeline(faults: &[(usize, Fault)], msg0_us: u64, jitter_us: u64, seed: u64) 
 fn write_tlog(path: &Path, recs: &[Rec]) {
     let mut bytes = Vec::new();
     let sim = tumble();
-    let header = mavlink::MavHeader {
-        system_id: 1,
-        component_id: 1,
-        sequence: 0,
-    };
     let heartbeat = imucald::sim::vehicle_heartbeat();
     for (k, r) in recs.iter().enumerate() {
-        let mut put = |m: &MavMessage| {
-            bytes.extend_from_slice(&r.record_us.to_be_bytes());
-            mavlink::write_versioned_msg(&mut bytes, mavlink::MavlinkVersion::V2, header, m)
-                .unwrap();
-        };
+        let mut put = |m: &MavMessage| common::push_tlog_record(&mut bytes, r.record_us, m);
         if k % 100 == 0 {
             put(&heartbeat);
         }
@@ -144,33 +135,14 @@ fn write_tlog(path: &Path, recs: &[Rec]) {
     std::fs::write(path, bytes).unwrap();
 }
 
-/// Largest offset error and normalised-matrix error of a calibration against the truth.
-fn errors(
-    fit: &imucald::report::SensorCalibration,
-    truth: &imucald::sim::SensorTruth,
-) -> (f64, f64) {
-    let norm = |m: &[[f64; 3]; 3]| {
-        imucald::calib::model::Calibration {
-            model: imucald::calib::model::ModelKind::Sym9,
-            offset: [0.0; 3],
-            matrix: *m,
-        }
-        .normalised_matrix()
-    };
-    let off = (0..3)
-        .map(|k| (fit.offset[k] - truth.offset[k]).abs())
-        .fold(0.0, f64::max);
-    (off, (norm(&fit.matrix) - norm(&truth.matrix)).abs().max())
-}
-
 /// The report's calibration against the truth, at the clean stream's tolerances.
 fn assert_recovered(cal: &imucald::report::CalibrationReport, what: &str) {
     let truth = &tumble().truth;
     let (m, a) = (&cal.mag, &cal.accel);
     assert_eq!(m.status, CalStatus::Ok, "{what} mag: {:?}", m.detail);
     assert_eq!(a.status, CalStatus::Ok, "{what} accel: {:?}", a.detail);
-    let (mo, mm) = errors(m, &truth.mag);
-    let (ao, am) = errors(a, &truth.accel);
+    let (mo, mm) = common::errors_against_truth(m, &truth.mag);
+    let (ao, am) = common::errors_against_truth(a, &truth.accel);
     eprintln!("{what}: mag offset err {mo:.4} uT, matrix {mm:.5}; accel offset {ao:.5} m/s^2, matrix {am:.5}");
     // Worst measured: mag offset 0.0087 uT (live, joined logs), matrix 0.00026; accel offset
     // 0.00053 m/s^2 (four faults with a gap), matrix 0.00010.
@@ -261,11 +233,6 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
     let dir = tempfile::tempdir().unwrap();
     let sim = tumble();
     let mut bytes = Vec::new();
-    let header = mavlink::MavHeader {
-        system_id: 1,
-        component_id: 1,
-        sequence: 0,
-    };
     let start_ms = u32::MAX - 20_000;
     for s in &sim.samples {
         let (a, g, m) = (
@@ -281,14 +248,7 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
         (d.xgyro, d.ygyro, d.zgyro) = (g[0], g[1], g[2]);
         (d.xmag, d.ymag, d.zmag) = (m[0], m[1], m[2]);
         let rec = TLOG_EPOCH_US + (s.t_s * 1e6) as u64;
-        bytes.extend_from_slice(&rec.to_be_bytes());
-        mavlink::write_versioned_msg(
-            &mut bytes,
-            mavlink::MavlinkVersion::V2,
-            header,
-            &MavMessage::SCALED_IMU(d),
-        )
-        .unwrap();
+        common::push_tlog_record(&mut bytes, rec, &MavMessage::SCALED_IMU(d));
     }
     let log = dir.path().join("wrap.tlog");
     std::fs::write(&log, bytes).unwrap();

@@ -173,3 +173,42 @@ pub fn tumble_and_other_iron(seed_b: u64) -> (imucald::sim::SimOutput, imucald::
     ];
     (a, simulate(&sc2, seed_b))
 }
+
+/// Appends one `.tlog` record to `bytes`: the big-endian time stamp `stamp_us`, then `msg` as a
+/// MAVLink 2 frame from system 1, component 1 (sequence 0).
+pub fn push_tlog_record(
+    bytes: &mut Vec<u8>,
+    stamp_us: u64,
+    msg: &mavlink::dialects::ardupilotmega::MavMessage,
+) {
+    let header = mavlink::MavHeader {
+        system_id: 1,
+        component_id: 1,
+        sequence: 0,
+    };
+    bytes.extend_from_slice(&stamp_us.to_be_bytes());
+    mavlink::write_versioned_msg(bytes, mavlink::MavlinkVersion::V2, header, msg).unwrap();
+}
+
+/// Largest offset error and largest normalised-matrix element error of a calibration against the
+/// simulated truth.
+pub fn errors_against_truth(
+    fit: &imucald::report::SensorCalibration,
+    truth: &imucald::sim::SensorTruth,
+) -> (f64, f64) {
+    let normalised = |m: &[[f64; 3]; 3]| {
+        imucald::calib::model::Calibration {
+            model: imucald::calib::model::ModelKind::Full12,
+            offset: [0.0; 3],
+            matrix: *m,
+        }
+        .normalised_matrix()
+    };
+    let off = (0..3)
+        .map(|k| (fit.offset[k] - truth.offset[k]).abs())
+        .fold(0.0, f64::max);
+    let mat = (normalised(&fit.matrix) - normalised(&truth.matrix))
+        .abs()
+        .max();
+    (off, mat)
+}
