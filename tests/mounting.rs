@@ -61,3 +61,62 @@ fn a_correctly_mounted_compass_is_not_refused() {
         m.margin_ratio.unwrap()
     );
 }
+
+/// The live service, refitting as the poses arrive (a CSV `file:` source at 20x its pace, a
+/// refit every half second): with the compass at YAW_90 and ROTATION_NONE configured, no refit's
+/// magnetometer calibration is installed or written, from the first poses (while two other
+/// rotations still fit alike) to the end; the report names the parameter to set.
+#[test]
+fn the_live_service_never_installs_a_calibration_from_a_compass_mounted_otherwise() {
+    let mut sc = Scenario::named("tumble").unwrap();
+    sc.effects.mag_accel_rotation_deg = Some(rotation_vector_deg(
+        &Mounting::standard(2).unwrap().matrix(),
+    ));
+    let sim = simulate(&sc, 11);
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let csv = d.join("tumble.csv");
+    imucald::sim::write_csv(&csv, &sim.samples).unwrap();
+    let cfg = d.join("live.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[fit]\nrefit_every_s = 0.5\n[daemon]\ncalibration_dir = \"{}\"\npublish = [\"stdout\"]\nsources = [{{ address = \"file:{}?speed=20\" }}]\n",
+            d.join("cal").display(),
+            csv.display()
+        ),
+    )
+    .unwrap();
+    let report = d.join("report.json");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .args(["run", "--config"])
+        .arg(&cfg)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    common::assert_success(&out);
+    let mut refits = 0;
+    let mut refusals = 0;
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        if v["type"] == "calibration" && v["sensor"] == "mag" {
+            refits += 1;
+            assert_ne!(v["status"], "ok", "installed: {line}");
+            refusals += (v["failure"] == "orientation") as usize;
+        }
+    }
+    eprintln!("{refits} magnetometer refits, {refusals} refused for the mounting");
+    assert!(refusals > 0);
+    let stored = imucald::app::daemon::load_store(&d.join("cal")).unwrap();
+    assert!(
+        stored.as_ref().and_then(|s| s.mag.as_ref()).is_none(),
+        "{stored:?}"
+    );
+    let r: imucald::report::Report =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let mag = &r.calibration.mag;
+    assert_eq!(mag.failure, Some(FitFailure::Orientation), "{mag:?}");
+    let detail = mag.detail.as_deref().unwrap();
+    assert!(detail.contains("COMPASS_ORIENT = 2"), "{detail}");
+}

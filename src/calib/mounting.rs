@@ -16,8 +16,10 @@
 //! A continuous yaw (upright or upside down, a 1-D search) covers mounts between the standard ones
 //! (ArduPilot's custom rotation). The best rotation, its runner-up and the configured one are
 //! reported with the parameters to set, and a verdict: the data say the configured mounting, say a
-//! different one clearly, or cannot tell (too few poses, poses not varied enough, no rotation fits,
-//! or two rotations fit alike). Pure: no I/O.
+//! different one clearly, rule the configured one out while two others still fit alike (early in
+//! a live calibration), or cannot tell (too few poses, poses not varied enough, no rotation fits,
+//! or two rotations fit alike, the configured among them). Both of the middle two refuse the
+//! calibration. Pure: no I/O.
 
 use crate::attitude::EarthField;
 use crate::types::Vec3;
@@ -291,6 +293,10 @@ pub enum Verdict {
     Matches,
     /// The data clearly say another mounting: `set` is the one to configure.
     Differs { set: Scored },
+    /// The data rule the configured mounting out, but cannot yet tell which of `candidates` (the
+    /// best and the runner-up, which fit alike) it is: the configured scores at least
+    /// [`MIN_MARGIN_RATIO`] times and [`MIN_MARGIN_DEG`] above both.
+    Mismatch { candidates: Vec<Scored> },
     /// The data cannot tell.
     Undetermined { why: Undetermined },
 }
@@ -469,6 +475,19 @@ fn best_custom(p: &Prepared) -> Scored {
     )
 }
 
+/// Whether a score of `score_deg` is clearly worse than `than`'s: at least [`MIN_MARGIN_RATIO`]
+/// times and [`MIN_MARGIN_DEG`] above it.
+fn clearly_worse(score_deg: f64, than: &Scored) -> bool {
+    score_deg >= MIN_MARGIN_RATIO * than.score_deg && score_deg - than.score_deg >= MIN_MARGIN_DEG
+}
+
+impl Scored {
+    /// Whether this mounting is the rotation `r` (within [`SAME_ROTATION_DEG`]).
+    fn same_as(&self, r: &Matrix3<f64>) -> bool {
+        rotation_angle_deg(&self.mounting.matrix(), r) < SAME_ROTATION_DEG
+    }
+}
+
 /// Score every standard rotation and the custom yaws on the poses and judge the configured
 /// mounting (`configured`, body = R sensor, named `configured_name`). `points` carry the
 /// magnetometer in the compass's own axes; `field` is the earth field where the data were taken
@@ -547,21 +566,25 @@ pub fn detect(
                 limit_deg: MAX_BEST_SCORE_DEG,
             },
         }
-    } else if let Some(r) = runner_up.as_ref().filter(|r| {
-        !(r.score_deg >= MIN_MARGIN_RATIO * best.score_deg
-            && r.score_deg - best.score_deg >= MIN_MARGIN_DEG)
-    }) {
-        Verdict::Undetermined {
-            why: Undetermined::Ambiguous {
-                best_deg: best.score_deg,
-                runner_up_deg: r.score_deg,
-            },
+    } else if let Some(r) = runner_up
+        .as_ref()
+        .filter(|r| !clearly_worse(r.score_deg, &best))
+    {
+        if clearly_worse(configured_score_deg, r) && !r.same_as(configured) {
+            Verdict::Mismatch {
+                candidates: vec![best.clone(), r.clone()],
+            }
+        } else {
+            Verdict::Undetermined {
+                why: Undetermined::Ambiguous {
+                    best_deg: best.score_deg,
+                    runner_up_deg: r.score_deg,
+                },
+            }
         }
     } else if rotation_angle_deg(&best_r, configured) < SAME_ROTATION_DEG {
         Verdict::Matches
-    } else if configured_score_deg >= MIN_MARGIN_RATIO * best.score_deg
-        && configured_score_deg - best.score_deg >= MIN_MARGIN_DEG
-    {
+    } else if clearly_worse(configured_score_deg, &best) {
         Verdict::Differs { set: best.clone() }
     } else {
         Verdict::Undetermined {
@@ -664,8 +687,28 @@ impl MountingReport {
     /// The refusal's message when the verdict is [`Verdict::Differs`]: the mounting the data say
     /// and the parameter to set for compass `index`.
     pub fn refusal(&self, index: usize) -> Option<String> {
-        let Verdict::Differs { set } = &self.verdict else {
-            return None;
+        let set = match &self.verdict {
+            Verdict::Differs { set } => set,
+            Verdict::Mismatch { candidates } => {
+                let named: Vec<String> = candidates
+                    .iter()
+                    .map(|c| {
+                        format!(
+                            "{} ({:.1} deg, {})",
+                            c.mounting.label(),
+                            c.score_deg,
+                            c.mounting.parameters(index)
+                        )
+                    })
+                    .collect();
+                return Some(format!(
+                    "the compass is not mounted {} as configured ({:.1} deg RMS); the poses so far fit {} alike: turn the vehicle through more attitudes to tell them apart",
+                    self.configured,
+                    self.configured_score_deg,
+                    named.join(" and ")
+                ));
+            }
+            _ => return None,
         };
         Some(format!(
             "the compass is mounted {} ({:.1} deg RMS, {} scores {:.1}; runner-up {}), not {} as configured: set {}",
@@ -864,6 +907,62 @@ mod tests {
         eprintln!("custom yaw: worst error {worst:.3} deg");
         // Measured: worst 0.53 deg over seeds 1-4.
         assert!(worst < 1.6, "{worst}");
+    }
+
+    /// Poses rolled about the body x axis only (yaw 30 deg, roll -80 to 70 deg), compass mounted
+    /// `mount`, earth field 20 uT north and 44 uT down: gravity stays in the body y-z plane, so
+    /// the truth followed by any turn about x keeps the field-to-gravity angle as well.
+    fn rolled_points(mount: &Matrix3<f64>) -> Vec<MountPoint> {
+        let b_ned = Vector3::new(20.0, 0.0, 44.0);
+        let up_ned = Vector3::new(0.0, 0.0, -9.81);
+        (0..6)
+            .map(|k| {
+                let roll = (-80.0 + 30.0 * k as f64).to_radians();
+                let c = UnitQuaternion::from_euler_angles(roll, 0.0, 30f64.to_radians());
+                let m = mount.transpose() * c.inverse_transform_vector(&b_ned);
+                let f = c.inverse_transform_vector(&up_ned);
+                MountPoint {
+                    mag: [m.x, m.y, m.z],
+                    specific_force_mps2: [f.x, f.y, f.z],
+                    body_to_ned: None,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_wrong_configured_mounting_is_refused_while_two_others_fit_alike() {
+        let truth = Mounting::standard(2).unwrap().matrix();
+        let pts = rolled_points(&truth);
+        let rep = detect(&pts, None, &Matrix3::identity(), "ROTATION_NONE").unwrap();
+        let Verdict::Mismatch { candidates } = &rep.verdict else {
+            panic!("{rep:?}")
+        };
+        // Both fit exactly (two of the family); the configured one is far off.
+        assert_eq!(candidates.len(), 2);
+        assert!(
+            candidates.iter().all(|c| c.score_deg < 1e-6),
+            "{candidates:?}"
+        );
+        assert!(rep.configured_score_deg > 5.0, "{rep:?}");
+        let why = rep.refusal(0).unwrap();
+        assert!(
+            why.contains("not mounted ROTATION_NONE as configured"),
+            "{why}"
+        );
+        assert!(why.contains("COMPASS_ORIENT = "), "{why}");
+        // Configured as one of the two that fit alike: nothing to refuse yet.
+        let rep = detect(&pts, None, &truth, "ROTATION_YAW_90").unwrap();
+        assert!(
+            matches!(
+                rep.verdict,
+                Verdict::Undetermined {
+                    why: Undetermined::Ambiguous { .. }
+                }
+            ),
+            "{rep:?}"
+        );
+        assert!(rep.refusal(0).is_none());
     }
 
     #[test]

@@ -15,6 +15,13 @@ pub const WINDOW_S: f64 = 0.25;
 pub const MAX_STILL_SPREAD_DEG: f64 = 1.0;
 /// Largest RMS scatter of the gyro inside a static unit, rad/s.
 pub const MAX_STILL_GYRO_RAD_S: f64 = 0.05;
+/// Largest turn of the reference attitude between the first and the last of a static unit's
+/// samples, degrees. In flight, a straight leg and a steady banked turn both hold the specific
+/// force and the gyro steady; only the attitude tells the turn (whose field mean is not a pose's).
+pub const MAX_STILL_TURN_DEG: f64 = 5.0;
+/// Fewest samples with a reference attitude for a static unit to carry one (the attitude often
+/// comes at a tenth of the IMU's rate).
+const MIN_UNIT_REF_SAMPLES: usize = 2;
 /// Smallest range of the logged current that makes it the motor driver, A.
 pub const MIN_CURRENT_RANGE_A: f64 = 0.5;
 /// Smallest range of the throttle (0..1) that makes it the motor driver, when current does not vary.
@@ -45,6 +52,8 @@ pub(super) struct MagObs {
     /// Centred temperature and driver of this observation.
     pub temp: f64,
     pub drv: f64,
+    /// Moving windows: this reading's reference attitude (body -> ENU), when it has one.
+    pub ref_w: Option<Matrix3<f64>>,
 }
 
 #[derive(Debug, Clone)]
@@ -109,8 +118,16 @@ pub(super) fn quat_rot(q: &[f64; 4]) -> Option<Matrix3<f64>> {
 }
 
 /// A pose is still when the RMS angle of its accelerometer samples about their mean direction is at
-/// most [`MAX_STILL_SPREAD_DEG`] and the gyro's RMS scatter at most [`MAX_STILL_GYRO_RAD_S`].
+/// most [`MAX_STILL_SPREAD_DEG`], the gyro's RMS scatter at most [`MAX_STILL_GYRO_RAD_S`] and the
+/// reference attitude (when there is one) turns by at most [`MAX_STILL_TURN_DEG`].
 fn is_still(samples: &[Sample]) -> bool {
+    let refs: Vec<Matrix3<f64>> = samples.iter().filter_map(|s| quat_rot(&s.ref_q?)).collect();
+    if let (Some(a), Some(b)) = (refs.first(), refs.last()) {
+        let turn = nalgebra::Rotation3::from_matrix_unchecked(a.transpose() * b).angle();
+        if turn.to_degrees() > MAX_STILL_TURN_DEG {
+            return false;
+        }
+    }
     let acc: Vec<Vector3<f64>> = samples
         .iter()
         .filter_map(|s| s.accel_mps2.map(|a| v3(&a)))
@@ -337,8 +354,8 @@ fn unit_means(
     let t_mid = 0.5 * (body[idx[0]].t_s + body[*idx.last().unwrap()].t_s);
     let mean_temp = if nts > 0 { ts / nts as f64 } else { f64::NAN };
     let d = if nds > 0 { ds / nds as f64 } else { 0.0 };
-    // The reference attitude when at least half the unit's samples carry one.
-    let ref_w = if !moving && nref * 2 >= idx.len() && nref > 0 {
+    // The reference attitude, the mean of the unit's.
+    let ref_w = if !moving && nref >= MIN_UNIT_REF_SAMPLES {
         quat_rot(&[qsum[0], qsum[1], qsum[2], qsum[3]]).map(|r| r * rot_t)
     } else {
         None
@@ -350,6 +367,7 @@ fn unit_means(
                     m: v3(&m),
                     temp: temp[i].unwrap_or(f64::NAN),
                     drv: drv[i].unwrap_or(0.0),
+                    ref_w: body[i].ref_q.and_then(|q| quat_rot(&q)).map(|r| r * rot_t),
                 })
             })
             .collect()
@@ -358,6 +376,7 @@ fn unit_means(
             m: mag / nm as f64,
             temp: mean_temp,
             drv: d,
+            ref_w: None,
         }]
     } else {
         vec![]

@@ -2,7 +2,7 @@
 //! base model plus the catalogue of effects as switchable terms, decoding a parameter vector, the
 //! residuals every evidence unit gives, and the physical plausibility of an effect's parameters.
 
-use super::evidence::{v3, Driver, Evidence, MagObs, MIN_TEMP_RANGE_C};
+use super::evidence::{v3, Driver, Evidence, MagObs, Unit, MIN_TEMP_RANGE_C};
 use super::Effect;
 use crate::calib::model::{a_from_params, rotation_from_vector, Calibration, ModelKind};
 use crate::types::Vec3;
@@ -560,6 +560,33 @@ impl Ctx {
     }
 }
 
+/// A moving window's residuals: the mean field-magnitude residual, and with reference attitudes
+/// the mean of the readings' field directions turned into ENU, against the earth field's.
+fn eval_window(ctx: &Ctx, md: &Model, u: &Unit, sink: &mut dyn FnMut(Ch, f64)) {
+    if u.mags.is_empty() {
+        return;
+    }
+    let cal: Vec<Vector3<f64>> = u.mags.iter().map(|o| ctx.cal_mag(md, o)).collect();
+    if ctx.ch[Ch::MagNorm.i()] {
+        let s: f64 = cal.iter().map(|c| c.norm() - 1.0).sum();
+        sink(Ch::MagNorm, s / cal.len() as f64 * ctx.s0m);
+    }
+    if ctx.ch[Ch::VecMag.i()] {
+        let (mut v, mut n) = (Vector3::zeros(), 0usize);
+        for (o, c) in u.mags.iter().zip(&cal) {
+            if let Some(w) = &o.ref_w {
+                v += w * md.q * (md.rot * c.normalize());
+                n += 1;
+            }
+        }
+        if n > 0 {
+            v /= n as f64;
+            sink(Ch::VecMag, v.dot(&md.e1));
+            sink(Ch::VecMag, v.dot(&md.e2));
+        }
+    }
+}
+
 /// Every residual component of `units`, in a fixed order, to `sink(unit, channel, value)` (physical units).
 pub(super) fn eval_units(
     ctx: &Ctx,
@@ -572,10 +599,7 @@ pub(super) fn eval_units(
         let u = &ev.units[ui];
         let has_mag = !u.mags.is_empty();
         if u.moving {
-            if ctx.ch[Ch::MagNorm.i()] && has_mag {
-                let s: f64 = u.mags.iter().map(|o| ctx.cal_mag(md, o).norm() - 1.0).sum();
-                sink(ui, Ch::MagNorm, s / u.mags.len() as f64 * ctx.s0m);
-            }
+            eval_window(ctx, md, u, &mut |c, r| sink(ui, c, r));
             continue;
         }
         let cm = has_mag.then(|| ctx.cal_mag(md, &u.mags[0]));
@@ -853,7 +877,9 @@ pub(super) fn context(
     let n_static_acc = count(&|u| !u.moving && u.acc.is_some());
     let n_dip = count(&|u| !u.moving && u.acc.is_some() && !u.mags.is_empty());
     let n_ref_acc = count(&|u| u.ref_w.is_some() && u.acc.is_some());
-    let n_ref_mag = count(&|u| u.ref_w.is_some() && !u.mags.is_empty());
+    let n_ref_mag = count(&|u| {
+        (u.ref_w.is_some() && !u.mags.is_empty()) || u.mags.iter().any(|o| o.ref_w.is_some())
+    });
     let n_gyro = count(&|u| u.gyro.is_some());
     let mag_pts: Vec<Vec3> = ev.body.iter().filter_map(|s| s.mag_ut).collect();
     let mstart = if n_mag >= MIN_MAG_UNITS {

@@ -13,18 +13,28 @@
 //!   the throttle at each attitude gives one unit per (attitude, level). Per unit the means of accel,
 //!   mag, gyro, temperature, driver and reference attitude, and the within-unit scatter of every channel.
 //! * **moving windows** (only when fewer than [`MIN_STATIC_MAG_UNITS`] static units carry the
-//!   magnetometer, e.g. a continuous hand tumble such as the tyrex phone recordings): [`WINDOW_S`]
-//!   windows of the magnetometer samples outside static units; the unit's residual is the window mean of
-//!   the per-sample field-magnitude residual (a rotation invariant, so motion does not matter), each
-//!   sample keeping its own driver and temperature. Windows are grouped in blocks of [`WINDOW_BLOCK`]
-//!   for the held-out split (neighbouring windows are not independent).
+//!   magnetometer, e.g. a continuous hand tumble such as the tyrex phone recordings, or an ordinary
+//!   flight): [`WINDOW_S`] windows of the magnetometer samples outside static units; the unit's
+//!   residual is the window mean of the per-sample field-magnitude residual (a rotation invariant,
+//!   so motion does not matter) and, for the samples with a reference attitude, of their field
+//!   directions turned into ENU (`vector_mag`), each sample keeping its own driver and
+//!   temperature. Windows are grouped in blocks of [`WINDOW_BLOCK`] for the held-out split
+//!   (neighbouring windows are not independent).
+//!
+//! With a reference attitude, a pose is still only while the attitude turns by at most
+//! [`MAX_STILL_TURN_DEG`] (in flight a steady banked turn keeps accel and gyro steady as well).
 //!
 //! # Residual channels (what the model predicts each unit should have read)
 //! `mag_norm` |calibrated field| - F (uT); `accel_norm` |calibrated accel| - g; `dip` the gravity-field
 //! angle, g.m - sin(dip); `vector_accel`/`vector_mag` the calibrated vectors turned into ENU by the
 //! reference attitude against up and the fitted earth-field direction (only with `ref_q`); `gyro` the
 //! static gyro mean minus the bias. The base model (diag6 or sym9 mag and accel, dip, field direction,
-//! gyro bias) is fitted jointly to all channels, starting from the pipeline's fits.
+//! gyro bias) is fitted jointly to all channels, starting from the pipeline's fits; when the log
+//! has an attitude and a position (or `[place]`) and the vector calibration determines the offset
+//! ([`crate::calib::magmethod`]), the magnetometer starts from that instead of the sphere fit (an
+//! ordinary flight leaves the sphere without coverage). A candidate's refit that ends implausible
+//! from the current fit is started again from these start values (a base fit bent by a large
+//! missing effect can hold the refit in its own minimum).
 //!
 //! # Decisions (per round)
 //! The current model (base + effects found so far) is fitted on the fit units; channel weights are the
@@ -68,7 +78,8 @@ mod tests;
 mod tests_mismatch;
 
 pub use evidence::{
-    MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MIN_STATIC_MAG_UNITS, WINDOW_BLOCK, WINDOW_S,
+    MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MAX_STILL_TURN_DEG, MIN_STATIC_MAG_UNITS,
+    WINDOW_BLOCK, WINDOW_S,
 };
 pub use report::{
     summary_table, CandidateReport, ChannelRms, Decision, DiagnosisReport, EvidenceSummary,
@@ -202,7 +213,14 @@ pub fn diagnose(samples: &[Sample], cfg: &Config, opts: &DiagnoseOptions) -> Dia
     let lay0 = layout::build_layout(&run.ctx, &[]);
     let p0 = rounds::start_params(&run, &lay0, base, &start.m0, &start.a0);
     rounds::estimate_noise(&mut run, &lay0, &p0, &prep.rot);
-    let (base_p, noise_known) = rounds::base_fit(&mut run, &lay0, p0);
-    let sel = rounds::select(&run, &lay0, &base_p, &noise_known, alpha, opts.max_rounds);
+    let (base_p, noise_known) = rounds::base_fit(&mut run, &lay0, p0.clone());
+    let sel = rounds::select(
+        &run,
+        (&lay0, &p0),
+        &base_p,
+        &noise_known,
+        alpha,
+        opts.max_rounds,
+    );
     report::assemble(&run, &split, base, (&lay0, &base_p), sel, notes)
 }

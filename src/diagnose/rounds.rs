@@ -311,7 +311,8 @@ pub(super) fn prepare(
     for s in &sorted {
         pipe.push(s);
     }
-    let results = pipe.finish().clone();
+    let mut results = pipe.finish().clone();
+    vector_start(&mut results, &sorted, &pipe, cfg, notes);
     let poses = pipe.poses().to_vec();
     let body: Vec<Sample> = sorted.iter().map(|s| pipe.to_body(s)).collect();
     let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor)
@@ -321,6 +322,35 @@ pub(super) fn prepare(
         return Err("no static poses and no magnetometer windows: nothing to compare".into());
     }
     Ok(Prepared { ev, results, rot })
+}
+
+/// With an attitude and the earth field (an ordinary flight, no tumble), the vector calibration is
+/// the magnetometer's start instead of the sphere fit, which such data leave without coverage.
+fn vector_start(
+    results: &mut crate::calib::pipeline::FitResults,
+    sorted: &[Sample],
+    pipe: &Pipeline,
+    cfg: &Config,
+    notes: &mut Vec<String>,
+) {
+    let mut mag = results.mag.clone();
+    crate::calib::magmethod::choose(
+        &mut mag,
+        sorted,
+        &|s| pipe.to_body(s),
+        None,
+        cfg.place.as_ref(),
+    );
+    let Some(choice) = &mag.report.method else {
+        return;
+    };
+    if choice.method == crate::calib::magmethod::MagMethod::Vector {
+        notes.push(format!(
+            "magnetometer start: the vector calibration ({})",
+            choice.method_reason
+        ));
+        results.mag = mag;
+    }
 }
 
 /// Units in time order, and the fit and held-out units (whole groups held out, drawn with the seed).
@@ -443,6 +473,11 @@ pub(super) fn start_params(
     let mut ng = 0usize;
     for u in &run.ev.units {
         if u.moving {
+            for o in &u.mags {
+                if let Some(w) = o.ref_w {
+                    hsum += w * run.ctx.cal_mag(&md, o).normalize();
+                }
+            }
             continue;
         }
         let cm = u.mags.first().map(|o| run.ctx.cal_mag(&md, o).normalize());
@@ -498,7 +533,13 @@ fn unit_scatter(
     let mut gyro_axes: [Vec<f64>; 3] = Default::default();
     if u.moving {
         for o in &u.mags {
-            vals[0].push((ctx.cal_mag(md, o).norm() - 1.0) * ctx.s0m);
+            let c = ctx.cal_mag(md, o);
+            vals[Ch::MagNorm.i()].push((c.norm() - 1.0) * ctx.s0m);
+            if let Some(w) = o.ref_w {
+                let v = w * c.normalize();
+                vals[Ch::VecMag.i()].push(v.dot(&md.e1));
+                vals2[Ch::VecMag.i()].push(v.dot(&md.e2));
+            }
         }
     } else {
         let mut last_acc: Option<Vector3<f64>> = None;
@@ -525,6 +566,7 @@ fn unit_scatter(
                     m: v3(&m),
                     temp: u.temp,
                     drv: u.drv,
+                    ref_w: None,
                 };
                 let c = ctx.cal_mag(md, &o);
                 vals[Ch::MagNorm.i()].push((c.norm() - 1.0) * ctx.s0m);
@@ -636,6 +678,10 @@ pub(super) struct Selection {
     pub rounds: Vec<RoundReport>,
     pub lay: Layout,
     pub p: DVector<f64>,
+    /// The base model's start values (the pipeline's or the vector calibration): a second start
+    /// of a candidate's refit when the first, from the current fit, ends implausible (a base fit
+    /// that bent to absorb a large missing effect can hold the refit in its own minimum).
+    pub start: (Layout, DVector<f64>),
 }
 
 /// The current model linearised with every remaining candidate appended at zero: one Jacobian for
@@ -697,7 +743,7 @@ struct Verdict {
 /// Run the rounds from the base model until one names nothing (or `max_rounds`).
 pub(super) fn select(
     run: &Run,
-    lay0: &Layout,
+    (lay0, p0): (&Layout, &DVector<f64>),
     base_p: &DVector<f64>,
     noise_known: &[bool; NCH],
     alpha: f64,
@@ -708,6 +754,7 @@ pub(super) fn select(
         rounds: vec![],
         lay: lay0.clone(),
         p: base_p.clone(),
+        start: (lay0.clone(), p0.clone()),
     };
     for round in 1..=max_rounds.max(1) {
         let (report, named, cur_p) = one_round(run, &sel, round, noise_known, alpha);
@@ -895,7 +942,14 @@ fn refit(
     let lay1 = build_layout(&run.ctx, &effs);
     let p1s = carry_params(&sel.lay, cur_p, &lay1);
     let w = &lin.w;
-    let alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
+    let mut alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
+    if !plausibility(&run.ctx, &lay1, &alt.p, c.e).0 {
+        let again = carry_params(&sel.start.0, &sel.start.1, &lay1);
+        let alt2 = run.fit(&lay1, w, &run.fit_units.clone(), again);
+        if alt2.ssr < alt.ssr {
+            alt = alt2;
+        }
+    }
     let (m, p_cur, q, s0) = (lin.m, lin.p_cur, c.q, lin.s0);
     let s1 = alt.ssr.max(1e-300);
     let rho = run.autocorr(w, (&sel.lay, cur_p), (&lay1, &alt.p));

@@ -513,6 +513,31 @@ impl Cal {
     }
 }
 
+/// A track's fits; for the primary compass (`compass`: its number) also its mounting from the
+/// static poses (against gravity, [`crate::calib::mounting`]): a calibration from a compass
+/// mounted other than `orientation.sensor` is refused (failure `orientation`, the parameter to
+/// set named) before it can be installed. Other compasses' mountings are not configured here.
+fn fit_track(
+    input: &crate::calib::pipeline::FitInput,
+    cfg: &Config,
+    compass: Option<usize>,
+) -> FitResults {
+    let mut r = fit_all(input, cfg);
+    if let Some(index) = compass {
+        let accel = r.accel.calibration;
+        crate::calib::mounting::check(
+            &mut r.mag,
+            accel.as_ref(),
+            &input.poses,
+            &[],
+            None,
+            &cfg.orientation.sensor,
+            index,
+        );
+    }
+    r
+}
+
 impl State {
     /// Start a fit of every track whose refit is due (`all`: of every track, with its last poses
     /// closed: the end of a replay), off the executor.
@@ -526,14 +551,24 @@ impl State {
                     continue;
                 }
                 t.refit_wanted = false;
-                inputs.push((c, i, t.generation, t.pipe.last_t, t.pipe.snapshot()));
+                let compass = (i == 0).then_some(t.compass_id as usize);
+                inputs.push((
+                    c,
+                    i,
+                    t.generation,
+                    t.pipe.last_t,
+                    t.pipe.snapshot(),
+                    compass,
+                ));
             }
         }
         let cfg = self.cfg.clone();
         tokio::task::spawn_blocking(move || {
             inputs
                 .into_iter()
-                .map(|(c, i, generation, t, input)| (c, i, generation, t, fit_all(&input, &cfg)))
+                .map(|(c, i, generation, t, input, compass)| {
+                    (c, i, generation, t, fit_track(&input, &cfg, compass))
+                })
                 .collect()
         })
     }

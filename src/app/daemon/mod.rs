@@ -216,7 +216,12 @@ impl Track {
     /// passes its checks ([`crate::calib::learn::acceptable`]), the vector fit takes the
     /// magnetometer's place in `results`, as `replay` does. Returns whether it did.
     fn take_vector(&self, results: &mut FitResults) -> bool {
-        if results.mag.calibration.is_some() || results.mag.report.units != "uT" {
+        // A compass refused for its mounting stays refused: the vector fit's matrix would
+        // turn the readings and hide the wrong mounting.
+        if results.mag.calibration.is_some()
+            || results.mag.report.units != "uT"
+            || results.mag.report.failure == Some(crate::calib::fit::FitFailure::Orientation)
+        {
             return false;
         }
         let Some(offer) = self.learner.offer() else {

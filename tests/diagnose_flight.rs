@@ -1,0 +1,60 @@
+//! `diagnose` on simulated ordinary flights (the `cruise` scenario: legs and banked turns, attitude
+//! at 10 Hz with 0.5 deg of noise, position, hidden hard and soft iron, a current of 0.5-60 A leg
+//! by leg): with an attitude and the earth field the base model starts from the vector
+//! calibration and the moving windows carry the field's direction, so the current's field is
+//! named although the sphere fit has no coverage.
+
+use imucald::config::Config;
+use imucald::diagnose::{diagnose, DiagnoseOptions, DiagnosisReport, Effect};
+use imucald::sim::{simulate, MotorDriver, Scenario};
+
+const DATE: &str = "[place]\nlatitude_deg = 47.3769\nlongitude_deg = 8.5417\naltitude_m = 600.0\ndate = \"2026-06-01\"\n";
+
+fn flight(k: Option<[f64; 3]>, seed: u64) -> DiagnosisReport {
+    let mut sc = Scenario::named("cruise").unwrap();
+    sc.effects.motor_interference = k;
+    sc.effects.motor_driver = MotorDriver::Current;
+    let out = simulate(&sc, seed);
+    let cfg = Config::from_toml_str(DATE).unwrap();
+    let r = diagnose(&out.samples, &cfg, &DiagnoseOptions::default());
+    eprintln!("seed {seed}:\n{}", imucald::diagnose::summary_table(&r));
+    r
+}
+
+#[test]
+fn current_interference_is_named_on_an_ordinary_flight_and_the_gap_shrinks() {
+    let k_true = [0.3, -0.2, 0.45];
+    let (mut worst_rel, mut least_shrink) = (0.0f64, f64::INFINITY);
+    for seed in 1..=3 {
+        let r = flight(Some(k_true), seed);
+        assert_eq!(
+            r.found.first(),
+            Some(&Effect::MotorInterference),
+            "seed {seed}"
+        );
+        let est = &r.effects["motor_interference"];
+        for (j, axis) in ["k_x", "k_y", "k_z"].iter().enumerate() {
+            let rel = (est[*axis].value - k_true[j]).abs() / k_true[j].abs();
+            worst_rel = worst_rel.max(rel);
+        }
+        least_shrink = least_shrink.min(r.rms_before / r.rms_after);
+    }
+    eprintln!("worst relative error of k {worst_rel:.5}; least held-out shrink {least_shrink:.1}x");
+    // Measured: k within 0.19 % over seeds 1-3 (seed 1: 0.29988, -0.20002, 0.45003 uT/A); the
+    // held-out RMS shrinks 17.1x to 20.5x (seed 1: 19.4 -> 1.06 expected-noise units), with
+    // motor_interference then cross_axis (the hidden soft iron's off-diagonal terms, which the
+    // diag6 base leaves out).
+    assert!(worst_rel < 0.006, "{worst_rel}");
+    assert!(least_shrink > 6.0, "{least_shrink}");
+}
+
+#[test]
+fn without_interference_the_current_is_not_blamed() {
+    // Measured: cross_axis alone is named (held-out RMS 4.82 -> 1.09).
+    let r = flight(None, 1);
+    assert!(
+        !r.found.contains(&Effect::MotorInterference),
+        "{:?}",
+        r.found
+    );
+}
