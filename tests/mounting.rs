@@ -77,25 +77,7 @@ fn the_live_service_never_installs_a_calibration_from_a_compass_mounted_otherwis
     let d = dir.path();
     let csv = d.join("tumble.csv");
     imucald::sim::write_csv(&csv, &sim.samples).unwrap();
-    let cfg = d.join("live.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "[fit]\nrefit_every_s = 0.5\n[daemon]\ncalibration_dir = \"{}\"\npublish = [\"stdout\"]\nsources = [{{ address = \"file:{}?speed=20\" }}]\n",
-            d.join("cal").display(),
-            csv.display()
-        ),
-    )
-    .unwrap();
-    let report = d.join("report.json");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .arg("--report")
-        .arg(&report)
-        .output()
-        .unwrap();
-    common::assert_success(&out);
+    let (out, r) = common::run_on_file(&csv, 20, "[\"stdout\"]", "[fit]\nrefit_every_s = 0.5\n");
     let mut refits = 0;
     let mut refusals = 0;
     for line in String::from_utf8_lossy(&out.stdout).lines() {
@@ -113,8 +95,6 @@ fn the_live_service_never_installs_a_calibration_from_a_compass_mounted_otherwis
         stored.as_ref().and_then(|s| s.mag.as_ref()).is_none(),
         "{stored:?}"
     );
-    let r: imucald::report::Report =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let mag = &r.calibration.mag;
     assert_eq!(mag.failure, Some(FitFailure::Orientation), "{mag:?}");
     let detail = mag.detail.as_deref().unwrap();

@@ -271,28 +271,7 @@ fn a_u32_millisecond_clock_that_wraps_stays_one_segment() {
 
 /// The live service on a `file:` source at full speed: its report.
 fn live_report(log: &Path) -> imucald::report::Report {
-    let dir = log.parent().unwrap();
-    let cal = dir.join("cal");
-    let cfg = dir.join("live.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "[daemon]\ncalibration_dir = \"{}\"\npublish = []\nsources = [{{ address = \"file:{}?speed=0\" }}]\n",
-            cal.display(),
-            log.display()
-        ),
-    )
-    .unwrap();
-    let report = dir.join("live-report.json");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
-        .args(["run", "--config"])
-        .arg(&cfg)
-        .arg("--report")
-        .arg(&report)
-        .output()
-        .unwrap();
-    common::assert_success(&out);
-    serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+    common::run_on_file(log, 0, "[]", "").1
 }
 
 #[test]

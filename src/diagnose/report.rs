@@ -161,6 +161,21 @@ pub struct ResidualSeries {
 }
 
 impl DiagnosisReport {
+    /// One line: the effects found, the held-out RMS before and after, and the last round's
+    /// decision with its detail.
+    pub fn outcome(&self) -> String {
+        format!(
+            "found {:?}, rms {:.2} -> {:.2}; {}",
+            self.found,
+            self.rms_before,
+            self.rms_after,
+            self.rounds
+                .last()
+                .map(|x| format!("{}: {}", x.decision, x.detail))
+                .unwrap_or_default()
+        )
+    }
+
     pub(super) fn failed(base: ModelKind, why: String) -> Self {
         DiagnosisReport {
             schema: SCHEMA.into(),

@@ -8,7 +8,7 @@ use super::layout::{
     Ctx, Layout, ALL_CH, NCH,
 };
 use super::report::{CandidateReport, Decision, RoundReport};
-use super::stats::{columns, condition, explained, f_sf, mean_sd, select_cols, t_sf};
+use super::stats::{columns, condition, explained, mean_sd, nested_f, select_cols, t_sf};
 use super::{DiagnoseOptions, Effect};
 use crate::calib::lm::LmFit;
 use crate::calib::model::{params_from_a, ModelKind};
@@ -884,18 +884,8 @@ fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e:
     } else {
         format!("linearised estimate implausible: {pnote}")
     };
-    let dof2 = lin.m as f64 - (lin.p_cur + q) as f64;
     let s1 = (lin.s0 - ds).max(1e-300);
-    let f = if dof2 > 0.0 {
-        (ds / q as f64) / (s1 / dof2)
-    } else {
-        0.0
-    };
-    let pl = if dof2 > 0.0 {
-        f_sf(f, q as f64, dof2)
-    } else {
-        1.0
-    };
+    let (f, pl) = nested_f(ds, s1, q, lin.m as f64 - (lin.p_cur + q) as f64, 1.0);
     Cand {
         e,
         q,
@@ -954,17 +944,13 @@ fn refit(
     let s1 = alt.ssr.max(1e-300);
     let rho = run.autocorr(w, (&sel.lay, cur_p), (&lay1, &alt.p));
     let defl = (1.0 - rho) / (1.0 + rho);
-    let dof2 = (m as f64 - (p_cur + q) as f64) * defl;
-    let f = if dof2 > 0.0 {
-        ((s0 - s1).max(0.0) / q as f64) / (s1 / (m as f64 - (p_cur + q) as f64)) * defl
-    } else {
-        0.0
-    };
-    let pv = if dof2 > 0.0 {
-        f_sf(f, q as f64, dof2)
-    } else {
-        1.0
-    };
+    let (f, pv) = nested_f(
+        (s0 - s1).max(0.0),
+        s1,
+        q,
+        m as f64 - (p_cur + q) as f64,
+        defl,
+    );
     let (plaus, pnote) = plausibility(&run.ctx, &lay1, &alt.p, c.e);
     let (holds, hp, hdrop) = run.held_out(w, (&sel.lay, cur_p), (&lay1, &alt.p), q, m);
     let cond = condition(&alt.jtj);

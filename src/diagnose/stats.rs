@@ -37,6 +37,18 @@ pub(super) fn f_sf(f: f64, d1: f64, d2: f64) -> f64 {
 }
 
 /// Upper tail P(T > t) of Student's t with `dof` degrees of freedom (1 when `dof` is not positive).
+/// The nested F statistic of `q` added parameters that lower the weighted sum of squares by
+/// `drop` to `s1`, with `dof` residual degrees of freedom, both deflated by `defl` (1: none; the
+/// autocorrelation's (1 - rho) / (1 + rho)), and its p-value. (0, 1) without degrees of freedom.
+pub(super) fn nested_f(drop: f64, s1: f64, q: usize, dof: f64, defl: f64) -> (f64, f64) {
+    let dof2 = dof * defl;
+    if !(dof2 > 0.0) {
+        return (0.0, 1.0);
+    }
+    let f = (drop / q as f64) / (s1 / dof) * defl;
+    (f, f_sf(f, q as f64, dof2))
+}
+
 pub(super) fn t_sf(t: f64, dof: f64) -> f64 {
     if !t.is_finite() {
         return if t > 0.0 { 0.0 } else { 1.0 };

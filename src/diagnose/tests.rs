@@ -387,16 +387,10 @@ fn run_case(case: Case, seeds: std::ops::Range<u64>, verbose: bool) -> (usize, u
         n += 1;
         if verbose || !ok || !sh {
             eprintln!(
-                "[{}] seed {seed}: found {:?} (shift {:.2} deg) rms {:.2} -> {:.2}; {}",
+                "[{}] seed {seed} (shift {:.2} deg): {}",
                 case.name(),
-                r.found,
                 b.shift_deg,
-                r.rms_before,
-                r.rms_after,
-                r.rounds
-                    .last()
-                    .map(|x| format!("{}: {}", x.decision, x.detail))
-                    .unwrap_or_default()
+                r.outcome()
             );
             if !ok || std::env::var("TABLE").is_ok() {
                 eprintln!("{}", summary_table(&r));
@@ -654,37 +648,27 @@ fn blind(case: Case) {
     assert!(shrunk >= 19, "{}: {shrunk}/{n}", case.name());
 }
 
-#[test]
-fn blind_none() {
-    blind(Case::Nothing)
+/// One blind test per case: `name => case`.
+macro_rules! blind_tests {
+    ($($name:ident => $case:expr),* $(,)?) => {
+        $(
+            #[test]
+            fn $name() {
+                blind($case)
+            }
+        )*
+    };
 }
-#[test]
-fn blind_cross_axis() {
-    blind(Case::Hide(Effect::CrossAxis))
-}
-#[test]
-fn blind_mag_accel_misalignment() {
-    blind(Case::Hide(Effect::MagAccelMisalignment))
-}
-#[test]
-fn blind_temperature_bias() {
-    blind(Case::Hide(Effect::TemperatureBias))
-}
-#[test]
-fn blind_motor_interference() {
-    blind(Case::Hide(Effect::MotorInterference))
-}
-#[test]
-fn blind_heading_offset() {
-    blind(Case::Hide(Effect::HeadingOffset))
-}
-#[test]
-fn blind_scale_nonlinearity() {
-    blind(Case::Hide(Effect::ScaleNonlinearity))
-}
-#[test]
-fn blind_gyro_bias_drift() {
-    blind(Case::Hide(Effect::GyroBiasDrift))
+
+blind_tests! {
+    blind_none => Case::Nothing,
+    blind_cross_axis => Case::Hide(Effect::CrossAxis),
+    blind_mag_accel_misalignment => Case::Hide(Effect::MagAccelMisalignment),
+    blind_temperature_bias => Case::Hide(Effect::TemperatureBias),
+    blind_motor_interference => Case::Hide(Effect::MotorInterference),
+    blind_heading_offset => Case::Hide(Effect::HeadingOffset),
+    blind_scale_nonlinearity => Case::Hide(Effect::ScaleNonlinearity),
+    blind_gyro_bias_drift => Case::Hide(Effect::GyroBiasDrift),
 }
 
 #[test]

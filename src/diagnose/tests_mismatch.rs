@@ -180,17 +180,7 @@ fn tally(form: Form, n: u64) -> Tally {
         t.n += 1;
         t.shrink.push(r.rms_before / r.rms_after);
         if !exact || std::env::var("MISMATCH_VERBOSE").is_ok() {
-            eprintln!(
-                "[{}] seed {seed}: found {:?}, rms {:.2} -> {:.2}; {}",
-                form.name(),
-                r.found,
-                r.rms_before,
-                r.rms_after,
-                r.rounds
-                    .last()
-                    .map(|x| format!("{}: {}", x.decision, x.detail))
-                    .unwrap_or_default()
-            );
+            eprintln!("[{}] seed {seed}: {}", form.name(), r.outcome());
         }
     }
     t.shrink.sort_by(|a, b| a.total_cmp(b));

@@ -212,3 +212,37 @@ pub fn errors_against_truth(
         .max();
     (off, mat)
 }
+
+/// `imucald run` as a child on the `file:` source `log` at `speed` times its pace (0: as fast as
+/// possible), publishing to `publish` (a TOML list), with `extra` (TOML tables) before the
+/// `[daemon]` table; configuration, calibration directory (`cal`) and report
+/// (`live-report.json`) beside `log`. Its output, asserted successful, and its report.
+pub fn run_on_file(
+    log: &Path,
+    speed: u32,
+    publish: &str,
+    extra: &str,
+) -> (Output, imucald::report::Report) {
+    let dir = log.parent().unwrap();
+    let cfg = dir.join("live.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "{extra}[daemon]\ncalibration_dir = \"{}\"\npublish = {publish}\nsources = [{{ address = \"file:{}?speed={speed}\" }}]\n",
+            dir.join("cal").display(),
+            log.display()
+        ),
+    )
+    .unwrap();
+    let report = dir.join("live-report.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .args(["run", "--config"])
+        .arg(&cfg)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert_success(&out);
+    let r = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    (out, r)
+}
