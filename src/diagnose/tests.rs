@@ -671,44 +671,32 @@ blind_tests! {
     blind_gyro_bias_drift => Case::Hide(Effect::GyroBiasDrift),
 }
 
+/// Seeds 0-4 of `case`: nothing named, and the last round's decision is `decision`; its details.
+fn decided_without_effect(case: fn(u64) -> Vec<Sample>, decision: Decision) -> Vec<String> {
+    (0..5)
+        .map(|seed| {
+            let r = diagnose(&case(seed), &Config::default(), &DiagnoseOptions::default());
+            let last = r.rounds.last().unwrap();
+            assert!(r.found.is_empty(), "seed {seed}: {:?}", r.found);
+            assert_eq!(last.decision, decision, "seed {seed}: {}", last.detail);
+            last.detail.clone()
+        })
+        .collect()
+}
+
 #[test]
 fn effect_outside_the_catalogue_is_unexplained() {
-    for seed in 0..5 {
-        let r = diagnose(
-            &wander_case(seed),
-            &Config::default(),
-            &DiagnoseOptions::default(),
-        );
-        let last = r.rounds.last().unwrap();
-        assert!(r.found.is_empty(), "seed {seed}: {:?}", r.found);
-        assert_eq!(
-            last.decision,
-            Decision::Unexplained,
-            "seed {seed}: {}",
-            last.detail
-        );
-        assert!(last.detail.contains("mag_norm"), "{}", last.detail);
+    for detail in decided_without_effect(wander_case, Decision::Unexplained) {
+        assert!(detail.contains("mag_norm"), "{detail}");
     }
 }
 
 #[test]
 fn collinear_drivers_are_not_identifiable() {
-    for seed in 0..5 {
-        let r = diagnose(
-            &collinear_case(seed),
-            &Config::default(),
-            &DiagnoseOptions::default(),
-        );
-        let last = r.rounds.last().unwrap();
-        assert!(r.found.is_empty(), "seed {seed}: {:?}", r.found);
-        assert_eq!(
-            last.decision,
-            Decision::NotIdentifiable,
-            "seed {seed}: {}",
-            last.detail
-        );
+    for detail in decided_without_effect(collinear_case, Decision::NotIdentifiable) {
         assert!(
-            last.detail.contains("motor_interference") && last.detail.contains("temperature_bias")
+            detail.contains("motor_interference") && detail.contains("temperature_bias"),
+            "{detail}"
         );
     }
 }
