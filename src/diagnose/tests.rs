@@ -48,6 +48,18 @@ fn signed(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
     }
 }
 
+/// A sensor truth with a diagonal matrix: offsets drawn within +-`offset`, then scales within
+/// 1 +- `scale`, then the noise `noise_sd`.
+fn diag_truth(rng: &mut ChaCha8Rng, offset: f64, scale: f64, noise_sd: f64) -> SensorTruth {
+    let offset = std::array::from_fn(|_| rng.random_range(-offset..offset));
+    let d: [f64; 3] = std::array::from_fn(|_| 1.0 + rng.random_range(-scale..scale));
+    SensorTruth {
+        offset,
+        matrix: [[d[0], 0.0, 0.0], [0.0, d[1], 0.0], [0.0, 0.0, d[2]]],
+        noise_sd,
+    }
+}
+
 /// A bench scenario with a diag6-exact truth (so the base model is right when nothing is hidden).
 pub(super) fn base_bench(rng: &mut ChaCha8Rng) -> Scenario {
     let mut sc = Scenario::named("bench").unwrap();
@@ -61,33 +73,8 @@ pub(super) fn base_bench(rng: &mut ChaCha8Rng) -> Scenario {
     };
     sc.slew_s = [0.8, 1.2];
     sc.temp_c = rng.random_range(15.0..30.0);
-    let d = |rng: &mut ChaCha8Rng, s: f64| 1.0 + rng.random_range(-s..s);
-    sc.truth.mag = SensorTruth {
-        offset: [
-            rng.random_range(-40.0..40.0),
-            rng.random_range(-40.0..40.0),
-            rng.random_range(-40.0..40.0),
-        ],
-        matrix: [
-            [d(rng, 0.05), 0.0, 0.0],
-            [0.0, d(rng, 0.05), 0.0],
-            [0.0, 0.0, d(rng, 0.05)],
-        ],
-        noise_sd: 0.15,
-    };
-    sc.truth.accel = SensorTruth {
-        offset: [
-            rng.random_range(-0.1..0.1),
-            rng.random_range(-0.1..0.1),
-            rng.random_range(-0.1..0.1),
-        ],
-        matrix: [
-            [d(rng, 0.01), 0.0, 0.0],
-            [0.0, d(rng, 0.01), 0.0],
-            [0.0, 0.0, d(rng, 0.01)],
-        ],
-        noise_sd: 0.02,
-    };
+    sc.truth.mag = diag_truth(rng, 40.0, 0.05, 0.15);
+    sc.truth.accel = diag_truth(rng, 0.1, 0.01, 0.02);
     sc.reference_noise_deg = if rng.random_bool(0.7) {
         Some(0.05)
     } else {
@@ -96,37 +83,24 @@ pub(super) fn base_bench(rng: &mut ChaCha8Rng) -> Scenario {
     sc
 }
 
+/// Symmetric off-diagonal terms xy, xz, yz into `m`, each of size `lo..hi` and random sign.
+fn cross_axis(rng: &mut ChaCha8Rng, m: &mut [[f64; 3]; 3], lo: f64, hi: f64) {
+    for (i, j) in [(0, 1), (0, 2), (1, 2)] {
+        let v = signed(rng, lo, hi);
+        m[i][j] = v;
+        m[j][i] = v;
+    }
+}
+
 /// Put the effect of `case` into `sc`, sized by `scale` (1 = the drawn size).
 fn hide(case: Case, sc: &mut Scenario, rng: &mut ChaCha8Rng) {
     let mut fx = Effects::default();
     match case {
         Case::Nothing => {}
         Case::Hide(Effect::CrossAxis) => {
-            let (a, b, c) = (
-                signed(rng, 0.01, 0.04),
-                signed(rng, 0.01, 0.04),
-                signed(rng, 0.01, 0.04),
-            );
-            let m = &mut sc.truth.mag.matrix;
-            m[0][1] = a;
-            m[1][0] = a;
-            m[0][2] = b;
-            m[2][0] = b;
-            m[1][2] = c;
-            m[2][1] = c;
+            cross_axis(rng, &mut sc.truth.mag.matrix, 0.01, 0.04);
             if rng.random_bool(0.5) {
-                let (a, b, c) = (
-                    signed(rng, 0.003, 0.01),
-                    signed(rng, 0.003, 0.01),
-                    signed(rng, 0.003, 0.01),
-                );
-                let m = &mut sc.truth.accel.matrix;
-                m[0][1] = a;
-                m[1][0] = a;
-                m[0][2] = b;
-                m[2][0] = b;
-                m[1][2] = c;
-                m[2][1] = c;
+                cross_axis(rng, &mut sc.truth.accel.matrix, 0.003, 0.01);
             }
         }
         Case::Hide(Effect::MagAccelMisalignment) => {
