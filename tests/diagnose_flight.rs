@@ -72,19 +72,7 @@ fn current_interference_is_named_from_a_pymavlink_flight_tlog() {
     sc.effects.motor_driver = MotorDriver::Current;
     let out = simulate(&sc, 1);
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("flight.csv");
-    imucald::sim::write_csv(&csv, &out.samples).unwrap();
-    let tlog = dir.path().join("flight.tlog");
-    let st = std::process::Command::new(common::python_with("pymavlink"))
-        .arg(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/tests/interop/pymavlink_flight_tlog.py"
-        ))
-        .arg(&csv)
-        .arg(&tlog)
-        .status()
-        .unwrap();
-    assert!(st.success(), "pymavlink_flight_tlog.py");
+    let tlog = common::pymavlink_flight_tlog(&out.samples, dir.path());
     let cfg = Config::default();
     let log = imucald::io::sources::read_log(&tlog, None, &cfg).unwrap();
     let r = diagnose(&log.samples, &cfg, &DiagnoseOptions::default());

@@ -7,7 +7,7 @@ mod common;
 use imucald::calib::magmethod::{MagMethod, MethodChoice};
 use imucald::config::Config;
 use imucald::report::SensorCalibration;
-use imucald::sim::{simulate, write_csv, Scenario};
+use imucald::sim::{simulate, Scenario};
 use imucald::types::Vec3;
 
 fn dist(a: &Vec3, b: &Vec3) -> f64 {
@@ -304,19 +304,7 @@ fn replay_of_a_pymavlink_flight_tlog_takes_attitude_position_and_current_from_it
     let sc = Scenario::named("cruise").unwrap();
     let out = simulate(&sc, 1);
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("flight.csv");
-    write_csv(&csv, &out.samples).unwrap();
-    let tlog = dir.path().join("flight.tlog");
-    let st = std::process::Command::new(common::python_with("pymavlink"))
-        .arg(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/tests/interop/pymavlink_flight_tlog.py"
-        ))
-        .arg(&csv)
-        .arg(&tlog)
-        .status()
-        .unwrap();
-    assert!(st.success(), "pymavlink_flight_tlog.py");
+    let tlog = common::pymavlink_flight_tlog(&out.samples, dir.path());
     let r = common::replay_log(&tlog, &Config::default()).report;
     let m = &r.calibration.mag;
     let choice = vector_from_the_logs_position(m);

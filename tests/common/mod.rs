@@ -246,3 +246,23 @@ pub fn run_on_file(
     let r = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     (out, r)
 }
+
+/// `samples` as a `.tlog` in `dir` written by pymavlink (`tests/interop/pymavlink_flight_tlog.py`:
+/// HIGHRES_IMU, ATTITUDE when the reference attitude changes, GPS_RAW_INT and SYS_STATUS at
+/// 5 Hz), through a CSV beside it.
+pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> PathBuf {
+    let csv = dir.join("flight.csv");
+    imucald::sim::write_csv(&csv, samples).unwrap();
+    let tlog = dir.join("flight.tlog");
+    let st = Command::new(python_with("pymavlink"))
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/interop/pymavlink_flight_tlog.py"
+        ))
+        .arg(&csv)
+        .arg(&tlog)
+        .status()
+        .unwrap();
+    assert!(st.success(), "pymavlink_flight_tlog.py");
+    tlog
+}
