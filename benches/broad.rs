@@ -13,6 +13,9 @@
 //! cross-validated figures), then once on all trials: that last result is what
 //! `FusionConfig::default()` holds.
 //!
+//! `IMUCALD_BROAD_SWEEP="key=v1,v2;key2=v3" cargo bench --bench broad` scores one setting at a
+//! time over all trials (see [`sweep`]).
+//!
 //! `cargo bench --bench broad -- --dump NAME OUT.csv` writes the per-sample errors (deg) of both
 //! filters on the trial whose name contains NAME, for a look at where they fail.
 //!
@@ -370,22 +373,28 @@ fn objective(trials: &[&Trial], cfg: &FusionConfig) -> f64 {
     m_ours / m_vqf + (worst - 1.2).max(0.0)
 }
 
-/// The trials scored on two threads (the machine's other work permitting).
+/// The trials scored on two threads (the machine's other work permitting), each taking the next
+/// trial not yet scored.
 fn score_all(trials: &[&Trial], cfg: &FusionConfig) -> Vec<EvalResult> {
-    let mut out: Vec<Option<EvalResult>> = vec![None; trials.len()];
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Mutex;
+    let next = AtomicUsize::new(0);
+    let out: Mutex<Vec<Option<EvalResult>>> = Mutex::new(vec![None; trials.len()]);
+    let work = || loop {
+        let i = next.fetch_add(1, Ordering::Relaxed);
+        let Some(t) = trials.get(i) else { break };
+        let e = score(t, cfg);
+        out.lock().expect("no panic while scoring")[i] = Some(e);
+    };
     std::thread::scope(|s| {
-        let (a, b) = out.split_at_mut(trials.len() / 2);
-        let (ta, tb) = trials.split_at(trials.len() / 2);
-        s.spawn(move || {
-            for (o, t) in a.iter_mut().zip(ta) {
-                *o = Some(score(t, cfg));
-            }
-        });
-        for (o, t) in b.iter_mut().zip(tb) {
-            *o = Some(score(t, cfg));
-        }
+        s.spawn(work);
+        work();
     });
-    out.into_iter().map(|e| e.expect("scored")).collect()
+    out.into_inner()
+        .expect("no panic while scoring")
+        .into_iter()
+        .map(|e| e.expect("scored"))
+        .collect()
 }
 
 /// Coordinate search: each setting in turn is multiplied by each factor of a pass, and a change is
@@ -516,6 +525,66 @@ fn configured() -> FusionConfig {
     cfg
 }
 
+/// `IMUCALD_BROAD_SWEEP="key=v1,v2;key2=v3"`: one line per value of each key (each on top of
+/// [`configured`], one key changed at a time) with the mean total RMSE ratio to VQF, the worst
+/// trial's ratio, the mean heading and inclination RMSE and every trial's ratio: a look at one
+/// setting's effect across all trials at once, for deciding what the tuning should search; the
+/// defaults come from [`tune`] only.
+fn sweep(trials: &[Trial], spec: &str) {
+    if trials.iter().any(|t| t.vqf.is_none()) {
+        println!(
+            "IMUCALD_BROAD_SWEEP: needs VQF's results on every trial (scripts/bench installs it)"
+        );
+        return;
+    }
+    let all: Vec<&Trial> = trials.iter().collect();
+    let base = FusionConfig {
+        world: WorldFrame::Enu,
+        ..configured()
+    };
+    let vqf = |t: &Trial| t.vqf.map_or(f64::NAN, |v| v.0.total_rmse_deg);
+    let line = |label: &str, cfg: &FusionConfig| {
+        let ours = score_all(&all, cfg);
+        let r: Vec<f64> = ours
+            .iter()
+            .zip(&all)
+            .map(|(e, t)| e.total_rmse_deg / vqf(t))
+            .collect();
+        let m = mean(ours.iter().map(|e| e.total_rmse_deg)) / mean(all.iter().map(|t| vqf(t)));
+        println!(
+            "{label:<36} mean {m:.3} worst {:.2} heading {:.2} incl {:.2} | {}",
+            r.iter().cloned().fold(0.0, f64::max),
+            mean(ours.iter().map(|e| e.heading_rmse_deg)),
+            mean(ours.iter().map(|e| e.inclination_rmse_deg)),
+            r.iter()
+                .map(|x| format!("{x:.2}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+    };
+    line("as configured", &base);
+    for part in spec.split(';').filter(|s| !s.trim().is_empty()) {
+        let Some((key, values)) = part.split_once('=') else {
+            println!("IMUCALD_BROAD_SWEEP: cannot read {part} (key=v1,v2)");
+            continue;
+        };
+        let key = key.trim();
+        if serde_json::to_value(base).expect("config to JSON")[key]
+            .as_f64()
+            .is_none()
+        {
+            println!("IMUCALD_BROAD_SWEEP: {key} is not a number setting of FusionConfig");
+            continue;
+        }
+        for v in values.split(',') {
+            match v.trim().parse::<f64>() {
+                Ok(x) => line(&format!("{key}={x}"), &set(&base, key, x)),
+                Err(e) => println!("IMUCALD_BROAD_SWEEP: {key}={v}: {e}"),
+            }
+        }
+    }
+}
+
 fn dump(trials: &[Trial], pattern: &str, out: &Path) {
     let Some(t) = trials.iter().find(|t| t.name.contains(pattern)) else {
         println!("broad --dump: no trial matches {pattern}");
@@ -581,6 +650,10 @@ fn main() {
     }
     if args.iter().any(|a| a == "--tune") {
         tune_mode(&trials);
+        return;
+    }
+    if let Ok(spec) = std::env::var("IMUCALD_BROAD_SWEEP") {
+        sweep(&trials, &spec);
         return;
     }
     if let Some(i) = args.iter().position(|a| a == "--dump") {
