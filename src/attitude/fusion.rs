@@ -34,11 +34,11 @@
 //!   vibration trials; VQF (Laidig and Seel, "VQF: Highly Accurate IMU Orientation Estimation with
 //!   Bias Estimation and Magnetic Disturbance Rejection", 2023) low-passes the accelerometer in an
 //!   almost-inertial frame instead; the adaptive noise here is the Kalman counterpart;
-//! * **world-frame low-pass** (`acc_lp_tau_s`, off by default): before the tilt update, the specific force in the
-//!   world frame goes through a second-order Butterworth low-pass, as VQF does in its almost-inertial
+//! * **world-frame low-pass** (`acc_lp_tau_s`, off by default): before the tilt update, the
+//!   specific force in the world frame goes through a second-order Butterworth low-pass, as VQF does in its almost-inertial
 //!   frame. A first-order correction alone (the Kalman gain) lets the linear acceleration of a
-//!   periodic hand motion (0.5-1 Hz) through at -20 dB per decade; with the low-pass in front it
-//!   falls at -60. The filter's state is kept in the frame of the estimate: every correction of the
+//!   periodic hand motion (0.5-1 Hz) through at -20 dB per decade; with the second-order low-pass
+//!   in front it falls at -60. The filter's state is kept in the frame of the estimate: every correction of the
 //!   attitude turns it with the estimate, so the low-passed force stays what it would be in an
 //!   uncorrected (gyro-only) frame, turned into the corrected one;
 //! * **magnetic disturbance**: field norm and dip (with the current tilt) are compared with reference
@@ -757,10 +757,10 @@ impl OrientationFilter {
             let mut h = RowVector6::zeros();
             h[i] = 1.0;
             let y = if i == 0 { aw.y / g } else { -aw.x / g };
-            let dtheta = self.q;
+            let q_before = self.q;
             self.scalar_update(&h, y, r, &[2]);
             // The first row's correction turns the world-frame force for the second.
-            aw = self.q * dtheta.inverse() * aw;
+            aw = self.q * q_before.inverse() * aw;
         }
     }
 
