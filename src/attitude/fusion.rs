@@ -526,8 +526,6 @@ pub struct OrientationFilter {
     acc_ms: f64,
     /// Mean square of the world-frame linear acceleration, (m/s^2)^2 (`acc_lin_tau_s`).
     lin_ms: f64,
-    /// The last time step, s.
-    step_s: f64,
     /// The specific force in the world frame, low-passed (`acc_lp_tau_s`).
     acc_lp: Butter3,
 }
@@ -559,7 +557,6 @@ impl OrientationFilter {
             acc_ms: 0.0,
             lin_ms: 0.0,
             acc_lp: Butter3::default(),
-            step_s: 0.01,
         }
     }
 
@@ -590,7 +587,6 @@ impl OrientationFilter {
     pub fn update(&mut self, dt: f64, gyro: Option<&Vec3>, acc: Option<&Vec3>, mag: Option<&Vec3>) {
         let dt = if dt.is_finite() && dt > 0.0 { dt } else { 0.01 };
         self.t += dt;
-        self.step_s = dt;
         let gyro = gyro.filter(|g| crate::types::is_finite3(g)).map(v3);
         let acc = acc.filter(|a| crate::types::is_finite3(a)).map(v3);
         let mag = mag
@@ -616,7 +612,7 @@ impl OrientationFilter {
                 let lin = self.q * a - Vector3::new(0.0, 0.0, self.cfg.gravity_mps2);
                 let a_lin = (dt / self.cfg.acc_lin_tau_s.max(dt)).min(1.0);
                 self.lin_ms += (lin.norm_squared() - self.lin_ms) * a_lin;
-                self.tilt_update(&a);
+                self.tilt_update(&a, dt);
             }
         }
         if self.rest.rest {
@@ -719,7 +715,7 @@ impl OrientationFilter {
         self.bias = self.bias.map(|b| b.clamp(-c, c));
     }
 
-    fn tilt_update(&mut self, a: &Vector3<f64>) {
+    fn tilt_update(&mut self, a: &Vector3<f64>, dt: f64) {
         let g = self.cfg.gravity_mps2;
         let dev = (a.norm() - g).abs();
         if dev > self.cfg.acc_reject_mps2 && !self.rest.rest {
@@ -744,7 +740,6 @@ impl OrientationFilter {
                 * a
         };
         let lp = self.cfg.acc_lp_tau_s > 0.0;
-        let dt = self.step_s;
         let mut aw = self.q * a_shifted;
         if lp {
             aw = self.acc_lp.update(&aw, dt, self.cfg.acc_lp_tau_s);
