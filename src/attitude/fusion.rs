@@ -38,9 +38,10 @@
 //!   world frame goes through a second-order Butterworth low-pass, as VQF does in its
 //!   almost-inertial frame. A first-order correction alone (the Kalman gain) lets a linear
 //!   acceleration through at -20 dB per decade above its corner; with the low-pass in front it
-//!   falls at -60 above the low-pass's. The low-pass's state is kept in the frame of the estimate:
-//!   every correction of the attitude turns it with the estimate, so the low-passed force stays
-//!   what it would be in an uncorrected (gyro-only) frame, turned into the corrected one;
+//!   falls at -60 above the low-pass's. As in VQF, the low-pass runs in an almost-inertial frame:
+//!   the attitude integrated from the gyro alone (`q_gyro`, started at the first tilt), whose frame
+//!   no correction turns. Its output is turned into the world with the correction accumulated so
+//!   far (`q q_gyro^-1`), so the corrections never have to turn the filter's state;
 //! * **magnetic disturbance**: field norm and dip (with the current tilt) are compared with reference
 //!   values learned from the data (initialised from the first seconds, then tracked slowly while
 //!   undisturbed); a disturbed field is not used, and a new steady field is accepted after a while
@@ -62,7 +63,7 @@
 //! (1, 1, 0)/sqrt(2)).
 
 use crate::types::{Sample, Vec3, STANDARD_GRAVITY_MPS2};
-use nalgebra::{Matrix6, RowVector6, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Matrix6, UnitQuaternion, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
@@ -271,8 +272,7 @@ impl Lp3 {
 }
 
 /// Second-order Butterworth low-pass of a 3-vector (bilinear transform, cut-off
-/// `sqrt(2) / (2 pi tau)`), direct form I: the state is the last two inputs and outputs, all in the
-/// frame of the input, so that a rotation of that frame rotates the whole state.
+/// `sqrt(2) / (2 pi tau)`), direct form I: the state is the last two inputs and outputs.
 #[derive(Debug, Clone, Copy, Default)]
 struct Butter3 {
     /// (tau, dt) the coefficients are for, and b0, a1, a2 (b1 = 2 b0, b2 = b0).
@@ -306,11 +306,6 @@ impl Butter3 {
         self.x = [*v, self.x[0]];
         self.y = [out, self.y[0]];
         out
-    }
-    fn rotate(&mut self, r: &UnitQuaternion<f64>) {
-        for v in self.x.iter_mut().chain(self.y.iter_mut()) {
-            *v = r * *v;
-        }
     }
 }
 
@@ -526,7 +521,10 @@ pub struct OrientationFilter {
     acc_ms: f64,
     /// Mean square of the world-frame linear acceleration, (m/s^2)^2 (`acc_lin_tau_s`).
     lin_ms: f64,
-    /// The specific force in the world frame, low-passed (`acc_lp_tau_s`).
+    /// Sensor -> almost-inertial frame: the attitude integrated from the (bias-corrected) gyro
+    /// alone since the first tilt, never corrected.
+    q_gyro: UnitQuaternion<f64>,
+    /// The specific force in the almost-inertial frame, low-passed (`acc_lp_tau_s`).
     acc_lp: Butter3,
 }
 
@@ -556,6 +554,7 @@ impl OrientationFilter {
             rate_ms: 0.0,
             acc_ms: 0.0,
             lin_ms: 0.0,
+            q_gyro: UnitQuaternion::identity(),
             acc_lp: Butter3::default(),
         }
     }
@@ -642,6 +641,7 @@ impl OrientationFilter {
 
     fn init_tilt(&mut self, a: &Vector3<f64>) {
         self.q = rotation_between(&a.normalize(), &Vector3::z());
+        self.q_gyro = self.q;
         self.tilt_init = true;
         let s2 = 0.05f64.powi(2);
         self.p[(0, 0)] = s2;
@@ -653,7 +653,11 @@ impl OrientationFilter {
     fn predict(&mut self, dt: f64) {
         let w = self.last_gyro - self.bias;
         let r = self.q.to_rotation_matrix().into_inner();
-        self.q *= UnitQuaternion::from_scaled_axis(w * dt);
+        let dq = UnitQuaternion::from_scaled_axis(w * dt);
+        self.q *= dq;
+        self.q_gyro *= dq;
+        // Only gyro steps ever turn q_gyro: keep it unit against rounding.
+        self.q_gyro.renormalize_fast();
         // Error dynamics (world-frame attitude error): dtheta' = -R dbias, so F = [[I, B], [0, I]]
         // with B = -R dt. F P F^T by blocks (P = [[P11, P12], [P12^T, P22]]):
         //   P11' = P11 + B P12^T + P12 B^T + B P22 B^T,  P12' = P12 + B P22,  P22' = P22,
@@ -681,20 +685,29 @@ impl OrientationFilter {
         }
     }
 
-    /// Scalar Kalman update with measurement row `h`, innovation `y`, variance `r`; entries of the gain
-    /// listed in `frozen` are forced to zero (Joseph form keeps P consistent for that gain).
-    fn scalar_update(&mut self, h: &RowVector6<f64>, y: f64, r: f64, frozen: &[usize]) -> f64 {
-        let ph = self.p * h.transpose();
-        let s = (h * ph)[(0, 0)] + r;
-        let mut k = ph / s;
-        for &i in frozen {
-            k[i] = 0.0;
+    /// Scalar Kalman update of state `i` measured directly (every measurement here is one state:
+    /// `h` is the unit row `e_i`), innovation `y`, variance `r`; entries of the gain listed in
+    /// `frozen` are forced to zero (Joseph form keeps P consistent for that gain).
+    fn scalar_update(&mut self, i: usize, y: f64, r: f64, frozen: &[usize]) -> f64 {
+        // a = P h^T is P's column i.
+        let a: Vector6<f64> = self.p.column(i).into_owned();
+        let s = a[i] + r;
+        let mut k = a / s;
+        for &j in frozen {
+            k[j] = 0.0;
         }
         // Joseph form (I - K h) P (I - K h)^T + r K K^T, expanded with a = P h^T and
         // s = h P h^T + r: P - K a^T - a K^T + s K K^T (exact for any K, so also with frozen
-        // entries; O(36) instead of two 6 x 6 products).
-        let ka = k * ph.transpose();
-        self.p += k * k.transpose() * s - ka - ka.transpose();
+        // entries). Symmetric: the upper triangle is computed and mirrored.
+        for c in 0..6 {
+            for rr in 0..=c {
+                let d = s * k[rr] * k[c] - k[rr] * a[c] - a[rr] * k[c];
+                self.p[(rr, c)] += d;
+                if rr != c {
+                    self.p[(c, rr)] = self.p[(rr, c)];
+                }
+            }
+        }
         let dx: Vector6<f64> = k * y;
         self.apply(&dx);
         s
@@ -706,9 +719,6 @@ impl OrientationFilter {
         if dtheta != Vector3::zeros() {
             let r = UnitQuaternion::from_scaled_axis(dtheta);
             self.q = r * self.q;
-            if self.acc_lp.init {
-                self.acc_lp.rotate(&r);
-            }
         }
         self.bias += Vector3::new(dx[3], dx[4], dx[5]);
         let c = self.cfg.bias_clip;
@@ -739,29 +749,26 @@ impl OrientationFilter {
             UnitQuaternion::from_scaled_axis((self.last_gyro - self.bias) * (-self.cfg.acc_delay_s))
                 * a
         };
-        let lp = self.cfg.acc_lp_tau_s > 0.0;
-        let mut aw = self.q * a_shifted;
-        if lp {
-            aw = self.acc_lp.update(&aw, dt, self.cfg.acc_lp_tau_s);
-        }
-        for i in 0..2 {
-            let mut h = RowVector6::zeros();
-            h[i] = 1.0;
-            let y = if i == 0 { aw.y / g } else { -aw.x / g };
-            let q_before = self.q;
-            self.scalar_update(&h, y, r, &[2]);
-            // The first row's correction turns the world-frame force for the second.
-            aw = self.q * q_before.inverse() * aw;
-        }
+        let aw = if self.cfg.acc_lp_tau_s > 0.0 {
+            let lp = self
+                .acc_lp
+                .update(&(self.q_gyro * a_shifted), dt, self.cfg.acc_lp_tau_s);
+            (self.q * self.q_gyro.inverse()) * lp
+        } else {
+            self.q * a_shifted
+        };
+        let q_before = self.q;
+        self.scalar_update(0, aw.y / g, r, &[2]);
+        // The first row's correction turns the world-frame force for the second.
+        let aw = self.q * q_before.inverse() * aw;
+        self.scalar_update(1, -aw.x / g, r, &[2]);
     }
 
     fn bias_update(&mut self, g: &Vector3<f64>) {
         let r = self.cfg.gyro_sample_sd.powi(2);
         for i in 0..3 {
-            let mut h = RowVector6::zeros();
-            h[i + 3] = 1.0;
             let y = g[i] - self.bias[i];
-            self.scalar_update(&h, y, r, &[0, 1, 2]);
+            self.scalar_update(i + 3, y, r, &[0, 1, 2]);
         }
     }
 
@@ -824,7 +831,6 @@ impl OrientationFilter {
                 crate::attitude::wrap_pi(azimuth - decl),
             );
             self.q = rz * self.q;
-            self.acc_lp.rotate(&rz);
             for x in self.history.iter_mut() {
                 x.1 = rz * x.1;
             }
@@ -847,8 +853,6 @@ impl OrientationFilter {
         .to_radians();
         let r = sd * sd + self.cfg.mag_rate_noise_s.powi(2) * self.rate_ms;
         let y = crate::attitude::wrap_pi(azimuth - decl);
-        let mut hrow = RowVector6::zeros();
-        hrow[2] = 1.0;
         let gate =
             self.cfg.mag_gate_deg.to_radians() + self.cfg.mag_gate_sigma * self.p[(2, 2)].sqrt();
         if y.abs() <= gate {
@@ -858,7 +862,7 @@ impl OrientationFilter {
             return;
         }
         // (Timed out: open until an innovation is within the gate again.)
-        self.scalar_update(&hrow, y, r, &[0, 1]);
+        self.scalar_update(2, y, r, &[0, 1]);
         self.mag_used = true;
     }
 
