@@ -7,9 +7,9 @@
 //! VQF runs through `scripts/vqf_peer.py` with `$IMUCALD_PYTHON` or `.venv/bin/python`.
 //!
 //! `cargo bench --bench broad -- --tune` is the procedure that chose the filter's defaults (see
-//! [`tune`]): a coordinate search over the settings in [`TUNED`] (within [`upper_bound`]), from three
-//! fixed start points ([`start_point`], [`weak_mag_start`] and [`low_pass_start`]), scored against VQF on the trials it
-//! may see. It runs it three times on two
+//! [`tune`]): a coordinate search over the settings in [`TUNED`] (within [`upper_bound`]), from two
+//! fixed start points ([`start_point`], [`weak_mag_start`]) and then from the better end moved to
+//! the [`low_pass`] settings, scored against VQF on the trials it may see. It runs it three times on two
 //! thirds of the trials each and scores each run only on the third it did not see (the
 //! cross-validated figures), then once on all trials: that last result is what
 //! `FusionConfig::default()` holds.
@@ -425,47 +425,45 @@ fn weak_mag_start() -> FusionConfig {
     }
 }
 
-/// The third start: [`start_point`] with VQF's split of the work, the world-frame low-pass
-/// (`acc_lp_tau_s` 1.5 s) rejecting the linear acceleration and the Kalman update following its
-/// output closely (`acc_noise_mps2` 1), the adaptive noise terms small (`acc_norm_gain`,
-/// `acc_lin_gain` 0.25). The searches from the other two starts lower the low-pass's time
-/// constant early (a short low-pass serves a loose Kalman update better) and never reach this
-/// basin by one setting at a time, though sweeps over all trials show it lower. The low-pass's
-/// two settings are held through the first wide pass ([`LOW_PASS_HELD`]): from the start point
-/// the worst trial's penalty (an innovation gate that is too narrow) dominates, and the first
-/// setting that lowers it, whatever it is, would be taken.
-fn low_pass_start() -> FusionConfig {
+/// The last start: `base` (the better end of the first two searches) moved to VQF's split of the
+/// work, the low-pass (`acc_lp_tau_s` 1.5 s) rejecting the linear acceleration and the Kalman
+/// update following its output closely (`acc_noise_mps2` 1), the adaptive noise terms small
+/// (`acc_norm_gain`, `acc_lin_gain` 0.25). A search from a fixed start lowers the low-pass's
+/// time constant early (a short low-pass serves a loose Kalman update better) and does not come
+/// back to this basin one setting at a time, though sweeps over all trials show it lower; from
+/// a fixed start with these settings the search goes astray (a narrow innovation gate, a tiny
+/// rest threshold) while the other settings are still far off. So it starts from where the
+/// others ended, and holds the low-pass's two settings through the first wide pass
+/// ([`LOW_PASS_HELD`]) so that the rest adapt to them before they are judged.
+fn low_pass(base: FusionConfig) -> FusionConfig {
     FusionConfig {
         acc_lp_tau_s: 1.5,
         acc_noise_mps2: 1.0,
         acc_norm_gain: 0.25,
         acc_lin_gain: 0.25,
-        ..start_point()
+        ..base
     }
 }
 
-/// Coordinate search from each start ([`start_point`], [`weak_mag_start`], [`low_pass_start`]),
-/// keeping the one that
-/// ends lower. From a start, each setting in turn is multiplied by each factor of a pass, and a
-/// change is kept when it lowers [`objective`] by more than 0.002. Wide passes (factors 0.25, 0.5,
-/// 0.7, 1.4, 2, 4) repeat until one changes nothing (at most three), then fine passes (0.8, 1.25)
-/// likewise (at most four).
+/// Coordinate search from [`start_point`] and [`weak_mag_start`], then from the better end moved
+/// by [`low_pass`], keeping the one of the three that ends lowest. From a start, each setting in
+/// turn is multiplied by each factor of a pass, and a change is kept when it lowers [`objective`]
+/// by more than 0.002. Wide passes (factors 0.25, 0.5, 0.7, 1.4, 2, 4) repeat until one changes
+/// nothing (at most three), then fine passes (0.8, 1.25) likewise (at most four).
 fn tune(trials: &[&Trial], quiet: bool) -> FusionConfig {
-    let mut best: Option<(f64, FusionConfig)> = None;
-    for (label, start, held) in [
-        ("fixed", start_point(), &[][..]),
-        ("weak magnetometer", weak_mag_start(), &[][..]),
-        ("low-pass", low_pass_start(), &LOW_PASS_HELD[..]),
-    ] {
-        let (j, cfg) = search(trials, start, held, quiet, label);
-        if best.as_ref().is_none_or(|(jb, _)| j < *jb) {
-            best = Some((j, cfg));
-        }
+    let (mut j_best, mut best) = search(trials, start_point(), &[], quiet, "fixed");
+    let (j, cfg) = search(trials, weak_mag_start(), &[], quiet, "weak magnetometer");
+    if j < j_best {
+        (j_best, best) = (j, cfg);
     }
-    best.map(|b| b.1).unwrap_or_else(start_point)
+    let (j, cfg) = search(trials, low_pass(best), &LOW_PASS_HELD, quiet, "low-pass");
+    if j < j_best {
+        best = cfg;
+    }
+    best
 }
 
-/// The settings [`low_pass_start`] holds through the first wide pass.
+/// The settings the [`low_pass`] start holds through the first wide pass.
 const LOW_PASS_HELD: [&str; 2] = ["acc_lp_tau_s", "acc_noise_mps2"];
 
 /// One coordinate search from `start` (see [`tune`]); the settings in `held` stay at their start
