@@ -296,8 +296,13 @@ fn report(title: &str, trials: &[&Trial], ours: &[EvalResult]) -> Option<(f64, f
 // ---------------------------------------------------------------------------------------------
 // The tuning procedure.
 
-/// The settings the procedure tunes (all positive; searched by factors).
-const TUNED: [&str; 18] = [
+/// The settings the procedure tunes (all positive; searched by factors). The magnetic
+/// disturbance thresholds (`mag_norm_tol`, `mag_dip_tol_deg`) are not among them: they stay at
+/// VQF's published values (0.1 and 10 deg). BROAD has one to three disturbed trials per class, so
+/// a fold can fit a threshold to the one trial of a class it sees: the dip tolerance tuned to
+/// 5 deg on the 2 cm attached magnet cost the held-out 4 cm one 1.71x VQF's error (1.23x at
+/// 10 deg).
+const TUNED: [&str; 16] = [
     "gyro_noise_density",
     "gyro_rate_noise",
     "intensity_tau_s",
@@ -310,8 +315,6 @@ const TUNED: [&str; 18] = [
     "acc_lp_tau_s",
     "mag_heading_noise_deg",
     "mag_rest_heading_noise_deg",
-    "mag_norm_tol",
-    "mag_dip_tol_deg",
     "mag_new_field_s",
     "mag_gate_deg",
     "mag_gate_timeout_s",
