@@ -655,9 +655,12 @@ impl OrientationFilter {
         let r = self.q.to_rotation_matrix().into_inner();
         let dq = UnitQuaternion::from_scaled_axis(w * dt);
         self.q *= dq;
-        self.q_gyro *= dq;
-        // Only gyro steps ever turn q_gyro: keep it unit against rounding.
-        self.q_gyro.renormalize_fast();
+        if self.cfg.acc_lp_tau_s > 0.0 {
+            // Only the low-pass uses q_gyro, and only gyro steps ever turn it: keep it unit
+            // against rounding.
+            self.q_gyro *= dq;
+            self.q_gyro.renormalize_fast();
+        }
         // Error dynamics (world-frame attitude error): dtheta' = -R dbias, so F = [[I, B], [0, I]]
         // with B = -R dt. F P F^T by blocks (P = [[P11, P12], [P12^T, P22]]):
         //   P11' = P11 + B P12^T + P12 B^T + B P22 B^T,  P12' = P12 + B P22,  P22' = P22,
