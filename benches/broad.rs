@@ -9,16 +9,18 @@
 //! `cargo bench --bench broad -- --tune` is the procedure that chose the filter's defaults (see
 //! [`tune`]): a coordinate search over the settings in [`TUNED`] (within [`upper_bound`]), from two
 //! fixed start points ([`start_point`], [`weak_mag_start`]) and then from the better end moved to
-//! the [`low_pass`] settings, scored against VQF on the trials it may see. It runs it three times on two
-//! thirds of the trials each and scores each run only on the third it did not see (the
-//! cross-validated figures), then once on all trials: that last result is what
-//! `FusionConfig::default()` holds.
+//! the [`low_pass`] settings, scored against VQF on the trials it may see. It deals the trials into
+//! folds (`--folds K`, default 3; each class's trials in turn), runs it once per fold on the other
+//! folds' trials and scores that run only on the fold it did not see (the cross-validated
+//! figures), then once on all trials: that last result is what `FusionConfig::default()` holds.
+//! `--cv-only` stops after the cross-validated figures.
 //!
 //! `IMUCALD_BROAD_SWEEP="key=v1,v2;key2=v3" cargo bench --bench broad` scores one setting at a
 //! time over all trials (see [`sweep`]).
 //!
 //! `cargo bench --bench broad -- --dump NAME OUT.csv` writes the per-sample errors (deg) of both
-//! filters on the trial whose name contains NAME, for a look at where they fail.
+//! filters on the trial whose name contains NAME, with imucald's state (rest, disturbance, bias,
+//! sensor -> ENU quaternion), for a look at where they fail.
 //!
 //! Needs `[[bench]] name = "broad" harness = false` in Cargo.toml (without it cargo builds this file
 //! under the test harness, which never calls `main`: hence the allow below).
@@ -527,24 +529,26 @@ fn print_settings(cfg: &FusionConfig) {
     }
 }
 
-fn tune_mode(trials: &[Trial]) {
+/// `--tune [--folds K] [--cv-only]`: the cross-validated figures over K folds (default 3), then
+/// (unless `--cv-only`) the search on all trials that chose the defaults.
+fn tune_mode(trials: &[Trial], folds: usize, cv_only: bool) {
     if trials.iter().any(|t| t.vqf.is_none()) {
         println!("broad --tune: needs VQF's results on every trial (scripts/bench installs it)");
         return;
     }
-    // Three folds, each class's trials dealt in turn (name order) so every fold has a mix.
+    // K folds, each class's trials dealt in turn (name order) so every fold has a mix.
     let mut fold = vec![0usize; trials.len()];
     let mut next = 0;
     for c in 0..CLASSES.len() {
         for (i, t) in trials.iter().enumerate() {
             if t.class == c {
-                fold[i] = next % 3;
+                fold[i] = next % folds;
                 next += 1;
             }
         }
     }
     let mut held_out: Vec<Option<EvalResult>> = vec![None; trials.len()];
-    for k in 0..3 {
+    for k in 0..folds {
         let train: Vec<&Trial> = (0..trials.len())
             .filter(|&i| fold[i] != k)
             .map(|i| &trials[i])
@@ -567,10 +571,16 @@ fn tune_mode(trials: &[Trial]) {
     let all: Vec<&Trial> = trials.iter().collect();
     let cv: Vec<EvalResult> = held_out.into_iter().map(|e| e.expect("scored")).collect();
     let cv_fig = report(
-        "cross-validated: each trial scored by the settings tuned on the other two folds",
+        &format!("cross-validated ({folds} folds): each trial scored by the settings tuned on the other folds"),
         &all,
         &cv,
     );
+    if cv_only {
+        if let Some((r, w)) = cv_fig {
+            println!("cross-validated ({folds} folds): mean total RMSE ratio {r:.2}, worst trial ratio {w:.2}");
+        }
+        return;
+    }
     println!("== tuned on all {} trials (the defaults)", trials.len());
     let cfg = tune(&all, false);
     print_settings(&cfg);
@@ -683,7 +693,7 @@ fn dump(trials: &[Trial], pattern: &str, out: &Path) {
     let dt = median_dt(&t.samples);
     let mut flt = OrientationFilter::new(cfg);
     let mut s = String::from(
-        "t,moving,ours_total,ours_heading,ours_incl,vqf_total,vqf_heading,vqf_incl,rest,mag_disturbed,bias_x,bias_y,bias_z\n",
+        "t,moving,ours_total,ours_heading,ours_incl,vqf_total,vqf_heading,vqf_incl,rest,mag_disturbed,bias_x,bias_y,bias_z,qw,qx,qy,qz\n",
     );
     for (i, smp) in t.samples.iter().enumerate() {
         flt.update_sample(smp, dt);
@@ -692,8 +702,9 @@ fn dump(trials: &[Trial], pattern: &str, out: &Path) {
         let v = t.vqf_q.get(i).map(|v| errors(v, &r));
         let (d, e, f) = v.unwrap_or((f64::NAN, f64::NAN, f64::NAN));
         let bias = flt.bias();
+        let q = flt.quaternion_enu();
         s += &format!(
-            "{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{:.6},{:.6},{:.6}\n",
+            "{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7},{:.7}\n",
             smp.t_s,
             u8::from(smp.moving == Some(true)),
             a.to_degrees(),
@@ -706,7 +717,11 @@ fn dump(trials: &[Trial], pattern: &str, out: &Path) {
             u8::from(flt.mag_disturbed()),
             bias[0],
             bias[1],
-            bias[2]
+            bias[2],
+            q.w,
+            q.i,
+            q.j,
+            q.k
         );
     }
     match std::fs::write(out, s) {
@@ -735,7 +750,20 @@ fn main() {
         return;
     }
     if args.iter().any(|a| a == "--tune") {
-        tune_mode(&trials);
+        let folds = match args.iter().position(|a| a == "--folds") {
+            Some(i) => match args.get(i + 1).and_then(|v| v.parse::<usize>().ok()) {
+                Some(k) if k >= 2 && k <= trials.len() => k,
+                _ => {
+                    println!(
+                        "broad --tune --folds K: K is a whole number from 2 to {}",
+                        trials.len()
+                    );
+                    return;
+                }
+            },
+            None => 3,
+        };
+        tune_mode(&trials, folds, args.iter().any(|a| a == "--cv-only"));
         return;
     }
     if let Ok(spec) = std::env::var("IMUCALD_BROAD_SWEEP") {
