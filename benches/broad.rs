@@ -575,10 +575,11 @@ fn tune_mode(trials: &[Trial], folds: usize, cv_only: bool) {
         &all,
         &cv,
     );
+    let summary = cv_fig.map(|(r, w)| {
+        format!("cross-validated ({folds} folds): mean total RMSE ratio {r:.2}, worst trial ratio {w:.2}")
+    });
     if cv_only {
-        if let Some((r, w)) = cv_fig {
-            println!("cross-validated ({folds} folds): mean total RMSE ratio {r:.2}, worst trial ratio {w:.2}");
-        }
+        summary.iter().for_each(|l| println!("{l}"));
         return;
     }
     println!("== tuned on all {} trials (the defaults)", trials.len());
@@ -595,9 +596,7 @@ fn tune_mode(trials: &[Trial], folds: usize, cv_only: bool) {
         "FusionConfig::default() {} these settings",
         if same { "holds" } else { "does NOT hold" }
     );
-    if let Some((r, w)) = cv_fig {
-        println!("cross-validated: mean total RMSE ratio {r:.2}, worst trial ratio {w:.2}");
-    }
+    summary.iter().for_each(|l| println!("{l}"));
 }
 
 /// `FusionConfig::default()` with the settings of `$IMUCALD_BROAD_SET` (`key=value,key=value`), for
