@@ -494,10 +494,10 @@ impl DelayEst {
 /// second's. A rest's attitude is the TRIAD of its mean specific force and field; a pair of rests
 /// whose field was undisturbed at both gives one recursive least-squares step at the end of the
 /// second rest (three equations: the residual rotation, linearised in the scale). A residual the
-/// scale cannot explain (chi-square gate) is not used. The calibrator's gyro fit
-/// (`crate::calib::gyro`) solves the full 3x3 model at once from a dozen rotations or more, gravity
-/// alone; this is its recursive, per-axis counterpart, usable from the second rest on, which the
-/// field's heading at the rests makes observable about the vertical too.
+/// scale cannot explain (chi-square gate) is not used, and no step spans a new time segment. The
+/// calibrator's gyro fit (`crate::calib::gyro`) solves the full 3x3 model at once from a dozen
+/// rotations or more, gravity alone; this is its recursive, per-axis counterpart, usable from the
+/// second rest on, which the field's heading at the rests makes observable about the vertical too.
 #[derive(Debug, Clone)]
 struct ScaleEst {
     /// Scale per sensor axis (true rate = scale * (reading - bias)) and its covariance.
@@ -603,6 +603,16 @@ impl ScaleEst {
             self.q_s *= dq;
             self.path_rad += w.norm() * dt;
         }
+    }
+
+    /// The time broke (a new time segment): the last rest no longer opens a motion the gyro
+    /// integrated whole; the next rest starts a new chain.
+    fn break_chain(&mut self) {
+        self.r0 = None;
+        self.q_s = UnitQuaternion::identity();
+        self.sens = Matrix3::zeros();
+        self.path_rad = 0.0;
+        self.was_rest = false;
     }
 
     fn accumulate(&mut self, acc: Option<&Vector3<f64>>, mag: Option<(&Vector3<f64>, bool)>) {
@@ -775,6 +785,10 @@ impl OrientationFilter {
             }
             _ => default_dt,
         };
+        if self.last_t.is_some_and(|(_, seg)| seg != s.segment) {
+            // What the gyro turned through in a gap is unknown: no rest-to-rest step spans it.
+            self.scale.break_chain();
+        }
         self.last_t = Some((s.t_s, s.segment));
         self.update(
             dt,
@@ -1739,6 +1753,55 @@ mod tests {
         });
         off.set_state(&state);
         assert!(off.gyro_scale().is_none());
+    }
+
+    /// A rest-to-rest step never spans a break in time: a turn the gyro did not see (made during
+    /// a gap in the stream, small enough to pass the step's gate) must not be taken for a scale
+    /// error, while the same rests with nothing missed give a step.
+    #[test]
+    fn gyro_scale_chain_breaks_with_the_time_segment() {
+        let field = Vector3::new(20.0, 0.0, 40.0);
+        let learn = |gap: bool| {
+            let mut f = OrientationFilter::new(FusionConfig::default());
+            let mut q = UnitQuaternion::from_euler_angles(0.1, -0.2, 0.5);
+            let mut s = Sample::default();
+            let feed = |f: &mut OrientationFilter,
+                        s: &mut Sample,
+                        q: &UnitQuaternion<f64>,
+                        w: Vector3<f64>| {
+                let (a, m) = readings(q, &field);
+                s.accel_mps2 = Some(a);
+                s.gyro_rad_s = Some([w.x, w.y, w.z]);
+                s.mag_ut = Some(m);
+                f.update_sample(s, DT);
+                s.t_s += DT;
+            };
+            // A rest, a turn of 1.2 rad about z, and (gap) 2 deg more while the stream is silent.
+            for _ in 0..400 {
+                feed(&mut f, &mut s, &q, Vector3::zeros());
+            }
+            let w = Vector3::new(0.0, 0.0, 0.6);
+            for _ in 0..200 {
+                q *= UnitQuaternion::from_scaled_axis(w * DT);
+                feed(&mut f, &mut s, &q, w);
+            }
+            if gap {
+                q *= UnitQuaternion::from_scaled_axis(Vector3::z() * 2f64.to_radians());
+                s.t_s += 5.0;
+                s.segment += 1;
+            }
+            for _ in 0..400 {
+                feed(&mut f, &mut s, &q, Vector3::zeros());
+            }
+            // One more motion ends the second rest.
+            feed(&mut f, &mut s, &q, w);
+            (f.scale.steps, f.scale.s)
+        };
+        let (steps, scale) = learn(false);
+        assert_eq!(steps, 1);
+        assert!((scale - Vector3::repeat(1.0)).amax() < 1e-3, "{scale:?}");
+        // Without the break, the 2 deg moved the z scale by 0.42 % (measured).
+        assert_eq!(learn(true), (0, Vector3::repeat(1.0)));
     }
 
     /// Two recordings of BROAD's IMU with rests between their motions (a slow and a fast one)
