@@ -1198,6 +1198,19 @@ impl OrientationFilter {
         })
     }
 
+    /// Start again after a new magnetometer calibration moved the field the filter sees: what does
+    /// not depend on the field (the gyro bias) is kept; the field reference and the gyro scale,
+    /// learnt against the rests' headings in the old field, are learnt again.
+    pub fn restart_for_new_field(&mut self) {
+        let kept = FilterState {
+            mag_reference: None,
+            gyro_scale: None,
+            ..self.state()
+        };
+        *self = OrientationFilter::new(self.cfg);
+        self.set_state(&kept);
+    }
+
     /// Restore what a filter had learnt: the gyro bias with its uncertainty (not below
     /// [`RESTORED_BIAS_SIGMA_MIN_RAD_S`]), and the magnetic reference when given (taken as learnt for
     /// `mag_ref_tau_s`, so it changes only slowly from here). The attitude is not part of it: the
@@ -1458,6 +1471,17 @@ mod tests {
         });
         assert_eq!(h.bias(), [0.0; 3]);
         assert!(h.mag_reference().is_none());
+        // A new magnetometer calibration: the bias stays, the field's reference and the gyro
+        // scale learnt against it go.
+        let mut r = OrientationFilter::new(FusionConfig::default());
+        r.set_state(&FilterState {
+            gyro_scale: Some(([1.004, 0.998, 1.002], [1e-3; 3])),
+            ..back
+        });
+        assert!(r.gyro_scale().is_some() && r.mag_reference().is_some());
+        r.restart_for_new_field();
+        assert_eq!(r.bias(), back.gyro_bias_rad_s);
+        assert!(r.gyro_scale().is_none() && r.mag_reference().is_none());
     }
 
     /// Simulated hand tumble (calibrated sensors, gyro bias kept): the filter tracks the true attitude.

@@ -76,14 +76,9 @@ impl Cal {
         if let Some(m) = self.last_body_mag {
             if mag_cal_moved(before.as_ref(), self.calibrator.mag.as_ref(), &m) {
                 tracing::info!(
-                    "magnetometer calibration moved the field: orientation filter restarted (gyro bias kept, field reference learnt again)"
+                    "magnetometer calibration moved the field: orientation filter restarted (gyro bias kept, field reference and gyro scale learnt again)"
                 );
-                let kept = crate::attitude::fusion::FilterState {
-                    mag_reference: None,
-                    ..self.fusion.state()
-                };
-                self.fusion = OrientationFilter::new(*self.fusion.config());
-                self.fusion.set_state(&kept);
+                self.fusion.restart_for_new_field();
                 self.filter_seeded = true;
             }
         }
