@@ -351,7 +351,7 @@ fn start_point() -> FusionConfig {
         mag_gate_deg: 20.0,
         mag_gate_timeout_s: 10.0,
         rest_gyro_rad_s: 2.0f64.to_radians(),
-        // A MEMS gyro's sensitivity tolerance (0.5 % to 1 % in datasheets), and a milliradian of
+        // A MEMS gyro's sensitivity error, of the order of a percent or less, and a milliradian of
         // unmodelled error per radian turned (a misalignment of that size).
         gyro_scale_sigma: 0.005,
         gyro_scale_path_sd: 0.001,
@@ -428,9 +428,10 @@ fn upper_bound(key: &str) -> f64 {
 /// The smallest value the search may give a setting. The rest detector's gyro threshold stays at
 /// or above 2 deg/s: one sample beyond it restarts the detector's clock, and a flight controller's
 /// gyro at 1 kHz reads a few tenths of a degree per second of noise at rest (more with a running
-/// fan or pump nearby). BROAD's IMU at 286 Hz is quieter, so the trials alone would let it shrink
-/// (the search took it to 0.5 deg/s, on the way to settings with which 4 deg/s scores as well:
-/// mean ratio 0.722 against 0.725).
+/// fan or pump nearby). BROAD's IMU at 286 Hz is quieter, so the trials alone could let a fold
+/// shrink it; over all trials it does not pay at the defaults
+/// (`IMUCALD_BROAD_SWEEP="rest_gyro_rad_s=0.008727,0.034907"`: mean ratio 0.732 at 0.5 deg/s and
+/// 0.735 at 2 deg/s, against 0.708 at the default 4 deg/s).
 fn lower_bound(key: &str) -> f64 {
     match key {
         "rest_gyro_rad_s" => 2f64.to_radians(),
