@@ -44,6 +44,67 @@ pub struct GeoPoint {
     pub alt_m: f64,
 }
 
+/// The day a log was recorded, and what says so.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LogDate {
+    pub year: i32,
+    pub month: u8,
+    pub day: u8,
+    pub source: DateSource,
+}
+
+/// Where a log's date comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DateSource {
+    /// The receiving computer's clock that stamped each `.tlog` record (Unix time).
+    RecordClock,
+    /// The GPS receiver's time (DataFlash `GPS` week and milliseconds, ULog `time_utc_usec`,
+    /// MAVLink SYSTEM_TIME).
+    GpsTime,
+}
+
+impl LogDate {
+    /// The day of a Unix time in microseconds, if it is after 2000-01-01 (earlier is a clock that
+    /// counts from boot, not a date).
+    pub fn from_unix_us(us: u64, source: DateSource) -> Option<LogDate> {
+        const Y2000_US: u64 = 946_684_800_000_000;
+        if us < Y2000_US {
+            return None;
+        }
+        // Days since 1970-01-01 to a civil date (proleptic Gregorian).
+        let days = (us / 86_400_000_000) as i64;
+        let z = days + 719_468;
+        let era = z.div_euclid(146_097);
+        let doe = z - era * 146_097;
+        let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+        let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+        let mp = (5 * doy + 2) / 153;
+        let day = (doy - (153 * mp + 2) / 5 + 1) as u8;
+        let month = if mp < 10 { mp + 3 } else { mp - 9 } as u8;
+        let year = (yoe + era * 400 + i64::from(month <= 2)) as i32;
+        Some(LogDate {
+            year,
+            month,
+            day,
+            source,
+        })
+    }
+
+    /// `YYYY-MM-DD`.
+    pub fn iso(&self) -> String {
+        format!("{:04}-{:02}-{:02}", self.year, self.month, self.day)
+    }
+}
+
+/// What a log says of where and when it was recorded, for the earth field.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LogWhere {
+    /// The first GPS fix: latitude deg, longitude deg, altitude m.
+    pub gps: Option<[f64; 3]>,
+    pub date: Option<LogDate>,
+}
+
 impl Sample {
     /// True when no sensor field is present.
     pub fn is_empty(&self) -> bool {
@@ -98,4 +159,20 @@ pub fn norm(v: &Vec3) -> f64 {
 
 pub fn is_finite3(v: &Vec3) -> bool {
     v.iter().all(|x| x.is_finite())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unix_time_to_civil_date() {
+        let d = |us: u64| LogDate::from_unix_us(us, DateSource::RecordClock).map(|d| d.iso());
+        // 2013-10-13 21:59:05 UTC (the first record of a 2013 telemetry log).
+        assert_eq!(d(1_381_701_545_375_000).as_deref(), Some("2013-10-13"));
+        assert_eq!(d(951_782_400_000_000).as_deref(), Some("2000-02-29"));
+        assert_eq!(d(1_767_225_599_000_000).as_deref(), Some("2025-12-31"));
+        // A clock since boot is no date.
+        assert_eq!(d(60_455_792), None);
+    }
 }

@@ -101,13 +101,12 @@ fn mag_method(
     pipe: &Pipeline,
     cfg: &Config,
 ) {
-    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
     let body = |s: &crate::types::Sample| pipe.to_body(s);
     crate::calib::magmethod::choose(
         &mut results.mag,
         &log.samples,
         &body,
-        gps,
+        log.place(),
         cfg.place.as_ref(),
     );
 }
@@ -148,8 +147,8 @@ fn mounting_check(
         .iter()
         .map(|a| a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)))
         .collect();
-    let gps = log.flight.as_ref().and_then(|f| f.onboard.gps);
-    let field = crate::calib::magmethod::earth_field_of(&log.samples, gps, cfg.place.as_ref());
+    let field =
+        crate::calib::magmethod::earth_field_of(&log.samples, log.place(), cfg.place.as_ref());
     let index = log
         .instances
         .iter()
@@ -256,6 +255,8 @@ fn full_report(
         let mut onboard = f.onboard.clone();
         onboard.comparison = onboard_comparison(f, &onboard, &log.samples, &run.pipe, results);
         report.onboard = Some(onboard);
+    } else {
+        report.onboard = log.telemetry_onboard.clone();
     }
     report
 }

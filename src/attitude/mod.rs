@@ -145,13 +145,36 @@ impl Place {
     }
 }
 
-/// The earth field at a place (WMM2025).
+/// The earth field at a place and date.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct EarthField {
     pub declination_deg: f64,
     pub inclination_deg: f64,
     pub total_ut: f64,
+    /// The model that gave it.
+    #[serde(default)]
+    pub model: FieldModel,
 }
+
+/// A model of the earth's main field.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+pub enum FieldModel {
+    /// The World Magnetic Model 2025 (NOAA/BGS), with its 2020 coefficients for 2020-2024: dates
+    /// 2020-01-01 to 2029-12-31.
+    #[default]
+    #[serde(rename = "WMM")]
+    Wmm,
+    /// The International Geomagnetic Reference Field, 13th generation (Alken et al.,
+    /// "International Geomagnetic Reference Field: the thirteenth generation", 2021): dates
+    /// 1900 to 2019, where the WMM releases in use do not reach.
+    #[serde(rename = "IGRF-13")]
+    Igrf13,
+}
+
+/// The first date the World Magnetic Model in use covers; earlier dates take IGRF-13.
+const WMM_FIRST_YEAR: i32 = 2020;
+/// The first year IGRF-13 covers.
+const IGRF_FIRST_YEAR: i32 = 1900;
 
 impl EarthField {
     /// The field as a vector in NED, uT.
@@ -165,8 +188,9 @@ impl EarthField {
     }
 }
 
-/// Evaluate the World Magnetic Model. Errors name what is wrong (date outside the model's span,
-/// latitude out of range, bad date string).
+/// Evaluate the earth's main field: the World Magnetic Model from 2020 on, IGRF-13 for
+/// 1900-2019 (the model is named in the result). Errors name what is wrong (date outside every
+/// model's span, latitude out of range, bad date string).
 pub fn earth_field(place: &Place) -> Result<EarthField, String> {
     use world_magnetic_model::time::{Date, Month};
     use world_magnetic_model::uom::si::angle::degree;
@@ -203,17 +227,44 @@ pub fn earth_field(place: &Place) -> Result<EarthField, String> {
             place.latitude_deg, place.longitude_deg
         ));
     }
+    if date.year() < WMM_FIRST_YEAR {
+        return igrf13(place, date);
+    }
     let f = world_magnetic_model::GeomagneticField::new(
         Length::new::<meter>(place.altitude_m as f32),
         Angle::new::<degree>(place.latitude_deg as f32),
         Angle::new::<degree>(place.longitude_deg as f32),
         date,
     )
-    .map_err(|e| format!("world magnetic model: {e} (WMM2025 covers 2025-2029)"))?;
+    .map_err(|e| format!("world magnetic model: {e} (it covers 2020-2029; IGRF-13 1900-2019)"))?;
     Ok(EarthField {
         declination_deg: f.declination().get::<degree>() as f64,
         inclination_deg: f.inclination().get::<degree>() as f64,
         total_ut: f.f().get::<nanotesla>() as f64 / 1000.0,
+        model: FieldModel::Wmm,
+    })
+}
+
+/// IGRF-13 at a place and a date before the WMM's span.
+fn igrf13(place: &Place, date: world_magnetic_model::time::Date) -> Result<EarthField, String> {
+    if date.year() < IGRF_FIRST_YEAR {
+        return Err(format!(
+            "no field model for {date}: IGRF-13 starts in {IGRF_FIRST_YEAR}"
+        ));
+    }
+    // The crate takes whole metres above the ellipsoid, not below it.
+    let alt_m = place.altitude_m.clamp(0.0, 1.0e6) as u32;
+    let f = igrf::declination(place.latitude_deg, place.longitude_deg, alt_m, date)
+        .map_err(|e| format!("IGRF-13: {e:?}"))?;
+    let ok = [f.d, f.i, f.f].iter().all(|x| x.is_finite()) && f.f > 0.0;
+    if !ok {
+        return Err(format!("IGRF-13 gave no field at {date}"));
+    }
+    Ok(EarthField {
+        declination_deg: f.d,
+        inclination_deg: f.i,
+        total_ut: f.f / 1000.0,
+        model: FieldModel::Igrf13,
     })
 }
 

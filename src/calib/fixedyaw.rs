@@ -189,6 +189,7 @@ mod tests {
             declination_deg: 3.5,
             inclination_deg: 64.0,
             total_ut: 49.0,
+            model: Default::default(),
         }
     }
 

@@ -7,13 +7,14 @@
 //! The vector fit is chosen when it determines the offset; otherwise the planar fit
 //! ([`crate::calib::planar`]) when the vehicle stays near level and turns about the vertical only,
 //! else the sphere fit stays, and the reason names what could not be determined. Pure: no I/O (the date is the
-//! configured one, else today's, as everywhere the World Magnetic Model is used).
+//! configured one, else the log's own (its GPS time or the clock that stamped its records), else
+//! today's; the model is the WMM from 2020 on and IGRF-13 before, named in `earth_field`).
 
 use crate::attitude::Place;
 use crate::calib::model::{Calibration, ModelKind};
 use crate::calib::pipeline::SensorResult;
 use crate::calib::vector::{VectorFit, VectorPoint};
-use crate::types::{GeoPoint, Sample, Vec3};
+use crate::types::{DateSource, GeoPoint, LogWhere, Sample, Vec3};
 use serde::{Deserialize, Serialize};
 
 /// The current term is fitted only when the logged current varies at least this much (standard
@@ -56,6 +57,28 @@ pub struct MethodChoice {
     /// The sphere fit's offset (uT) when it passed but the vector fit was chosen.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sphere_offset: Option<crate::types::Vec3>,
+    /// The earth field the vector and planar fits compare with, where the log was taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub earth_field: Option<FieldUsed>,
+}
+
+/// The earth field at the log's place and date, and where both came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldUsed {
+    /// `WMM` or `IGRF-13`.
+    pub model: crate::attitude::FieldModel,
+    /// `YYYY-MM-DD`.
+    pub date: String,
+    /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`, or
+    /// `today` (the log gives no date).
+    pub date_source: String,
+    pub latitude_deg: f64,
+    pub longitude_deg: f64,
+    /// Where the place came from: the log's position, its GPS, or `[place]`.
+    pub place_source: String,
+    pub total_ut: f64,
+    pub inclination_deg: f64,
+    pub declination_deg: f64,
 }
 
 /// Where the field is evaluated, and where that came from.
@@ -63,13 +86,27 @@ pub struct MethodChoice {
 struct Where {
     place: Place,
     source: &'static str,
+    /// Where the date came from (the place's `date`; `None` there is today).
+    date_source: &'static str,
 }
 
 /// The place of the World Magnetic Model: the first position the samples carry, else the log's
-/// first GPS fix, else the configured place; the date is the configured one (today without).
-fn place_of(samples: &[Sample], log_gps: Option<[f64; 3]>, cfg: Option<&Place>) -> Option<Where> {
-    let date = cfg.and_then(|p| p.date.clone());
+/// first GPS fix, else the configured place; the date is the configured one, else the log's,
+/// else today.
+fn place_of(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<Where> {
+    let (date, date_source) = match (cfg.and_then(|p| p.date.clone()), log.date) {
+        (Some(d), _) => (Some(d), "configured"),
+        (None, Some(d)) => (
+            Some(d.iso()),
+            match d.source {
+                DateSource::RecordClock => "record_clock",
+                DateSource::GpsTime => "gps_time",
+            },
+        ),
+        (None, None) => (None, "today"),
+    };
     let at = |p: GeoPoint, source| Where {
+        date_source,
         place: Place {
             latitude_deg: p.lat_deg,
             longitude_deg: p.lon_deg,
@@ -81,7 +118,7 @@ fn place_of(samples: &[Sample], log_gps: Option<[f64; 3]>, cfg: Option<&Place>) 
     if let Some(p) = samples.iter().find_map(|s| s.position) {
         return Some(at(p, "the log's position"));
     }
-    if let Some([lat_deg, lon_deg, alt_m]) = log_gps {
+    if let Some([lat_deg, lon_deg, alt_m]) = log.gps {
         return Some(at(
             GeoPoint {
                 lat_deg,
@@ -92,18 +129,39 @@ fn place_of(samples: &[Sample], log_gps: Option<[f64; 3]>, cfg: Option<&Place>) 
         ));
     }
     cfg.map(|p| Where {
-        place: p.clone(),
+        place: Place {
+            date: date.clone(),
+            ..p.clone()
+        },
         source: "[place]",
+        date_source,
+    })
+}
+
+/// The field at the log's place and date, as the report states it.
+fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<FieldUsed> {
+    let w = place_of(samples, log, cfg)?;
+    let f = crate::attitude::earth_field(&w.place).ok()?;
+    Some(FieldUsed {
+        model: f.model,
+        date: w.place.date.clone().unwrap_or_else(|| "today".to_string()),
+        date_source: w.date_source.to_string(),
+        latitude_deg: w.place.latitude_deg,
+        longitude_deg: w.place.longitude_deg,
+        place_source: w.source.to_string(),
+        total_ut: f.total_ut,
+        inclination_deg: f.inclination_deg,
+        declination_deg: f.declination_deg,
     })
 }
 
 /// The earth field where the log was taken (the place as for the vector fit), if known.
 pub fn earth_field_of(
     samples: &[Sample],
-    log_gps: Option<[f64; 3]>,
+    log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> Option<crate::attitude::EarthField> {
-    crate::attitude::earth_field(&place_of(samples, log_gps, cfg_place)?.place).ok()
+    crate::attitude::earth_field(&place_of(samples, log, cfg_place)?.place).ok()
 }
 
 /// The vector fit's points: readings (body axes) with an attitude, the expected field at it.
@@ -156,15 +214,15 @@ pub fn choose(
     mag: &mut SensorResult,
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
-    log_gps: Option<[f64; 3]>,
+    log: LogWhere,
     cfg_place: Option<&Place>,
 ) {
     let body_mag = |s: &Sample| body(s).mag_ut;
-    let choice = decide_vector(mag, samples, &body_mag, log_gps, cfg_place);
+    let choice = decide_vector(mag, samples, &body_mag, log, cfg_place);
     let choice = if choice.method == MagMethod::Vector {
         choice
     } else {
-        planar_or(choice, mag, samples, body, log_gps, cfg_place)
+        planar_or(choice, mag, samples, body, log, cfg_place)
     };
     match choice.method {
         MagMethod::Vector => {
@@ -179,6 +237,8 @@ pub fn choose(
         }
         MagMethod::Sphere => {}
     }
+    let mut choice = choice;
+    choice.earth_field = field_used(samples, log, cfg_place);
     mag.report.method = Some(choice);
 }
 
@@ -190,14 +250,14 @@ fn planar_or(
     mag: &SensorResult,
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
-    log_gps: Option<[f64; 3]>,
+    log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> MethodChoice {
     let pts = crate::calib::planar::points_from_samples(samples, body);
     if pts.is_empty() {
         return other;
     }
-    let field = place_of(samples, log_gps, cfg_place)
+    let field = place_of(samples, log, cfg_place)
         .filter(|_| mag.report.units == "uT")
         .and_then(|w| crate::attitude::earth_field(&w.place).ok());
     let earth = field.map(|f| {
@@ -258,6 +318,7 @@ fn planar_or(
         vector: other.vector,
         planar: Some(p),
         sphere_offset: None,
+        earth_field: None,
     }
 }
 
@@ -293,7 +354,7 @@ fn decide_vector(
     mag: &SensorResult,
     samples: &[Sample],
     body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
-    log_gps: Option<[f64; 3]>,
+    log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> MethodChoice {
     let sphere = |reason: String, vector: Option<VectorFit>| MethodChoice {
@@ -302,6 +363,7 @@ fn decide_vector(
         vector,
         planar: None,
         sphere_offset: None,
+        earth_field: None,
     };
     if !samples
         .iter()
@@ -321,7 +383,7 @@ fn decide_vector(
             None,
         );
     }
-    let Some(w) = place_of(samples, log_gps, cfg_place) else {
+    let Some(w) = place_of(samples, log, cfg_place) else {
         return sphere(
             "an attitude but no position (no GPS in the log, no [place] configured)".into(),
             None,
@@ -347,7 +409,10 @@ fn decide_vector(
         w.source,
         w.place.latitude_deg,
         w.place.longitude_deg,
-        w.place.date.as_deref().unwrap_or("today"),
+        match w.place.date.as_deref() {
+            Some(d) => format!("{d}, date from {}", w.date_source.replace('_', " ")),
+            None => "today: the log gives no date".to_string(),
+        },
         field.total_ut
     );
     let unknown: Vec<String> = v
@@ -389,6 +454,7 @@ fn decide_vector(
         vector: Some(v),
         planar: None,
         sphere_offset: mag.calibration.map(|c| c.offset),
+        earth_field: None,
     }
 }
 
@@ -408,6 +474,7 @@ pub fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer
         method_reason: reason,
         vector: Some(v.clone()),
         sphere_offset: None,
+        earth_field: None,
         planar: None,
     });
 }

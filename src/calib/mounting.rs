@@ -830,6 +830,7 @@ mod tests {
             declination_deg: w.declination_deg(),
             inclination_deg: w.inclination_deg(),
             total_ut: w.field_strength_ut(),
+            model: Default::default(),
         };
         (out, field)
     }

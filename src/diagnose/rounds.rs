@@ -338,7 +338,7 @@ fn vector_start(
         &mut mag,
         sorted,
         &|s| pipe.to_body(s),
-        None,
+        Default::default(),
         cfg.place.as_ref(),
     );
     let Some(choice) = &mag.report.method else {

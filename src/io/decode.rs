@@ -445,8 +445,30 @@ pub struct MessageConverter {
     /// The newest battery current (BATTERY_STATUS or SYS_STATUS), A.
     current_a: Option<f64>,
     time_revision: u64,
+    /// The vehicle's flight stack, from its HEARTBEAT (a ground station's says nothing).
+    autopilot: Autopilot,
+    /// Whether RAW_IMU is read in ArduPilot's units (mG, mrad/s, mGauss), latched at the first
+    /// RAW_IMU message so that a stream never changes units.
+    raw_imu_ardupilot: Option<bool>,
+    /// An ArduPilot vehicle's compass corrections from its telemetry, undone from each reading
+    /// when `undo_ardupilot` is set.
+    ardupilot: crate::io::ardupilot::Telemetry,
+    undo_ardupilot: bool,
+    /// The first position fix.
+    first_position: Option<crate::types::GeoPoint>,
     /// The primary instance's counts; `stats.time` is its clock's.
     pub stats: DecodeStats,
+}
+
+/// The flight stack a vehicle's HEARTBEAT names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Autopilot {
+    /// No vehicle HEARTBEAT yet.
+    Unknown,
+    /// ArduPilot: RAW_IMU in SCALED_IMU's units, magnetometer streamed with its calibration applied.
+    ArduPilot,
+    /// Any other (PX4, ...): messages as the MAVLink specification defines them.
+    Other,
 }
 
 /// An attitude received longer before a sample than this is not attached to it, us: ArduPilot and
@@ -518,8 +540,48 @@ impl MessageConverter {
             position: None,
             current_a: None,
             time_revision: u64::MAX,
+            autopilot: Autopilot::Unknown,
+            raw_imu_ardupilot: None,
+            ardupilot: Default::default(),
+            undo_ardupilot: false,
+            first_position: None,
             stats: DecodeStats::default(),
         }
+    }
+
+    /// Undo an ArduPilot vehicle's magnetometer calibration from each reading, with the
+    /// COMPASS_* values its telemetry gives at the reading's time ([`crate::io::ardupilot`]);
+    /// readings before any are known are left out (skipped as `mag_awaiting_params`).
+    pub fn with_ardupilot_undo(mut self) -> Self {
+        self.undo_ardupilot = true;
+        self
+    }
+
+    /// The vehicle's flight stack as its HEARTBEAT names it.
+    pub fn autopilot(&self) -> Autopilot {
+        self.autopilot
+    }
+
+    /// An ArduPilot vehicle's onboard magnetometer calibration as its telemetry gave it, and what
+    /// was undone (`None` for other vehicles or without the undo).
+    pub fn ardupilot_onboard(&self) -> Option<crate::report::OnboardReport> {
+        if self.autopilot != Autopilot::ArduPilot || !self.undo_ardupilot {
+            return None;
+        }
+        let sources: std::collections::BTreeMap<u8, String> = self
+            .tracks
+            .iter()
+            .map(|t| (t.instance.compass_id(), t.name.clone()))
+            .collect();
+        let (undone, not_undone) = self.ardupilot.describe(&sources);
+        Some(crate::report::OnboardReport {
+            stack: "ardupilot".into(),
+            mag: self.ardupilot.onboard_cals(&sources),
+            undone,
+            not_undone,
+            gps: self.first_position.map(|p| [p.lat_deg, p.lon_deg, p.alt_m]),
+            ..Default::default()
+        })
     }
 
     /// Take every instance, not only the primary: [`MessageConverter::convert_any`] gives them.
@@ -561,7 +623,7 @@ impl MessageConverter {
     }
 
     fn units_of(&self, i: &Instance) -> Units {
-        let raw = i.kind == "raw_imu";
+        let raw = i.kind == "raw_imu" && self.raw_imu_ardupilot != Some(true);
         let u = |scale: f64| {
             if raw && scale == 0.0 {
                 Unit::Counts
@@ -619,6 +681,13 @@ impl MessageConverter {
     /// FRD -> NED in MAVLink, kept as sensor -> ENU with the body taken as the sensor frame), its
     /// position and its battery current. Values that are not finite or say "unknown" are ignored.
     fn vehicle_state(&mut self, msg: &MavMessage, time_us: u64) {
+        self.vehicle_state_inner(msg, time_us);
+        if self.first_position.is_none() {
+            self.first_position = self.position;
+        }
+    }
+
+    fn vehicle_state_inner(&mut self, msg: &MavMessage, time_us: u64) {
         match msg {
             MavMessage::ATTITUDE_QUATERNION(d) => {
                 let q = [d.q1, d.q2, d.q3, d.q4].map(f64::from);
@@ -701,27 +770,30 @@ impl MessageConverter {
             MavMessage::SCALED_IMU3(d) => scaled_imu!("scaled_imu3", d),
             MavMessage::RAW_IMU(d) => {
                 let sc = |v: i16, s: f64| if s == 0.0 { v as f64 } else { v as f64 * s };
-                let m = [
-                    sc(d.xmag, self.raw_scale.mag),
-                    sc(d.ymag, self.raw_scale.mag),
-                    sc(d.zmag, self.raw_scale.mag),
-                ];
+                // ArduPilot fills RAW_IMU as SCALED_IMU (mG, mrad/s, mGauss); a configured
+                // scale still wins.
+                let ap = self.raw_imu_ardupilot == Some(true);
+                let pick = |configured: f64, ardupilot: f64| {
+                    if configured == 0.0 && ap {
+                        ardupilot
+                    } else {
+                        configured
+                    }
+                };
+                let (ka, kg, km) = (
+                    pick(self.raw_scale.accel, MG_TO_MPS2),
+                    pick(self.raw_scale.gyro, 1e-3),
+                    pick(self.raw_scale.mag, 0.1),
+                );
+                let m = [sc(d.xmag, km), sc(d.ymag, km), sc(d.zmag, km)];
                 (
                     Instance {
                         kind: "raw_imu",
                         id: Some(d.id),
                     },
                     MsgTime::Usec(d.time_usec),
-                    [
-                        sc(d.xacc, self.raw_scale.accel),
-                        sc(d.yacc, self.raw_scale.accel),
-                        sc(d.zacc, self.raw_scale.accel),
-                    ],
-                    [
-                        sc(d.xgyro, self.raw_scale.gyro),
-                        sc(d.ygyro, self.raw_scale.gyro),
-                        sc(d.zgyro, self.raw_scale.gyro),
-                    ],
+                    [sc(d.xacc, ka), sc(d.yacc, ka), sc(d.zacc, ka)],
+                    [sc(d.xgyro, kg), sc(d.ygyro, kg), sc(d.zgyro, kg)],
                     m,
                     if d.temperature != 0 {
                         Some(d.temperature as f64 / 100.0)
@@ -740,6 +812,7 @@ impl MessageConverter {
     /// unknown), which the instance's [`SourceClock`] falls back on when the message's own time is
     /// unusable. A repeated frame (same time and readings) gives `None`, counted in its clock's
     /// statistics.
+    #[allow(deprecated)] // SENSOR_OFFSETS: deprecated in the dialect, sent by older ArduPilot
     pub fn convert_any(&mut self, msg: &MavMessage, time_us: u64) -> Option<(usize, Sample)> {
         let (name, t_us, acc, gyr, mag, temp, has_mag) = match msg {
             MavMessage::VFR_HUD(d) => {
@@ -759,6 +832,30 @@ impl MessageConverter {
             | MavMessage::SYS_STATUS(_) => {
                 self.vehicle_state(msg, time_us);
                 return None;
+            }
+            MavMessage::HEARTBEAT(h) => {
+                use mavlink::dialects::ardupilotmega::MavAutopilot;
+                // A ground station's or companion's HEARTBEAT names no flight stack.
+                if self.autopilot == Autopilot::Unknown
+                    && h.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
+                {
+                    self.autopilot = if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA {
+                        Autopilot::ArduPilot
+                    } else {
+                        Autopilot::Other
+                    };
+                }
+                return None;
+            }
+            MavMessage::PARAM_VALUE(_) | MavMessage::SENSOR_OFFSETS(_) => {
+                self.ardupilot.absorb(msg);
+                return None;
+            }
+            MavMessage::RAW_IMU(_) => {
+                if self.raw_imu_ardupilot.is_none() {
+                    self.raw_imu_ardupilot = Some(self.autopilot == Autopilot::ArduPilot);
+                }
+                self.imu_reading(msg)?
             }
             _ => self.imu_reading(msg)?,
         };
@@ -808,6 +905,15 @@ impl MessageConverter {
         s.gyro_rad_s = take(gyr);
         s.mag_ut = if has_mag { take(mag) } else { None };
         s.temp_c = temp.filter(|x| x.is_finite());
+        if self.undo_ardupilot && self.autopilot == Autopilot::ArduPilot {
+            if let Some(m) = s.mag_ut {
+                let compass = self.tracks[k].instance.compass_id();
+                s.mag_ut = self.ardupilot.undo(compass, m.map(|v| v * 10.0), s.t_s);
+                if s.mag_ut.is_none() {
+                    self.stats.skip("mag_awaiting_params");
+                }
+            }
+        }
         if Some(k) == self.primary {
             if bad {
                 self.stats.skip("non_finite");

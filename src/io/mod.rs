@@ -9,6 +9,7 @@
 //! Must not: fit, filter or decide anything about a calibration; that is `calib` and `attitude`.
 //! Bad input is counted and skipped here, never passed on as NaN and never a panic.
 
+pub mod ardupilot;
 pub mod clock;
 pub mod decode;
 pub mod flightlog;

@@ -23,7 +23,34 @@ pub struct Log {
     /// Flight-controller logs (`.bin`, `.ulg`): sensor streams, onboard calibration, message
     /// counts (`instances` and `stats` above are its own).
     pub flight: Option<crate::io::flightlog::FlightLog>,
+    /// A MAVLink log of an ArduPilot vehicle: its onboard magnetometer calibration as the
+    /// telemetry gave it, and what was undone.
+    pub telemetry_onboard: Option<crate::report::OnboardReport>,
+    /// The day the log was recorded, when it says (GPS time, or a `.tlog`'s record clock).
+    pub date: Option<crate::types::LogDate>,
 }
+
+impl Log {
+    /// Where and when the log was recorded, for the earth field.
+    pub fn place(&self) -> crate::types::LogWhere {
+        crate::types::LogWhere {
+            gps: self.onboard().and_then(|o| o.gps),
+            date: self.date,
+        }
+    }
+
+    /// The onboard calibration the log records (flight-controller logs, ArduPilot telemetry).
+    pub fn onboard(&self) -> Option<&crate::report::OnboardReport> {
+        match &self.flight {
+            Some(f) => Some(&f.onboard),
+            None => self.telemetry_onboard.as_ref(),
+        }
+    }
+}
+
+/// Records read from the start of a `.tlog` for the vehicle's HEARTBEAT before decoding, so that
+/// its flight stack (which fixes RAW_IMU's units) is known from the first sample on.
+const HEARTBEAT_SCAN_RECORDS: usize = 4096;
 
 /// Read and decode a log file (`.tlog`, `.csv`, `.csv.gz`). `format` overrides detection.
 pub fn read_log(path: &Path, format: Option<Format>, cfg: &Config) -> Result<Log, Error> {
@@ -146,10 +173,27 @@ pub fn decode_log_batched(
     match format {
         Format::Tlog => {
             let choice = cfg.input.instance.clone();
-            let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale);
+            let mut conv =
+                MessageConverter::new(choice, cfg.input.raw_imu_scale).with_ardupilot_undo();
             if conv.choice == InstanceChoice::Auto {
                 conv = conv.with_other_instances();
             }
+            let heartbeat = crate::io::decode::TlogRecords::new(&data)
+                .take(HEARTBEAT_SCAN_RECORDS)
+                .find(|(_, f)| {
+                    matches!(&f.message, mavlink::dialects::ardupilotmega::MavMessage::HEARTBEAT(h)
+                        if h.autopilot != mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_INVALID)
+                });
+            if let Some((ts, f)) = heartbeat {
+                conv.convert_any(&f.message, ts);
+            }
+            // The clock that stamped the records is the ground station's: a date, unless it
+            // counted from its own start.
+            let date = crate::io::decode::TlogRecords::new(&data)
+                .next()
+                .and_then(|(ts, _)| {
+                    crate::types::LogDate::from_unix_us(ts, crate::types::DateSource::RecordClock)
+                });
             let total = data.len();
             let mut b = Batcher::new();
             decode_tlog_with(&data, &mut conv, &mut |k, s, read, conv| {
@@ -180,6 +224,8 @@ pub fn decode_log_batched(
                 samples: Vec::new(),
                 instance: conv.instance().map(String::from),
                 instances: conv.instances(),
+                telemetry_onboard: conv.ardupilot_onboard(),
+                date,
                 stats: conv.stats,
                 units,
                 flight: None,
@@ -218,6 +264,8 @@ pub fn decode_log_batched(
                 instances: Vec::new(),
                 units,
                 flight: None,
+                telemetry_onboard: None,
+                date: None,
             })
         }
         Format::Bin | Format::Ulg => decode_flight_log(&data, path, format, sink),
@@ -285,6 +333,8 @@ fn decode_flight_log(
             .map(|i| i.name.clone()),
         instances: flight.instances.clone(),
         units: Units::default(),
+        date: flight.date,
         flight: Some(flight),
+        telemetry_onboard: None,
     })
 }

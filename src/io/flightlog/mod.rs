@@ -53,7 +53,14 @@ pub struct FlightLog {
     pub messages: BTreeMap<String, u64>,
     /// The stream the primary's magnetometer readings come from (`MAG`, `vehicle_magnetometer[0]`).
     pub primary_mag_source: Option<String>,
+    /// The day of the first GPS fix that gives one (DataFlash `GPS` week and milliseconds, ULog
+    /// `vehicle_gps_position.time_utc_usec`).
+    pub date: Option<crate::types::LogDate>,
 }
+
+/// The Unix time of the GPS epoch (1980-01-06), s. GPS time runs ahead of UTC by the leap
+/// seconds since (18 in 2017-2026), which never moves a date by more than those seconds.
+const GPS_EPOCH_UNIX_S: u64 = 315_964_800;
 
 /// One instance being assembled.
 #[derive(Debug, Clone)]
@@ -303,6 +310,7 @@ impl Assembler {
             stats,
             messages: self.messages,
             primary_mag_source: None,
+            date: None,
         }
     }
 }
@@ -330,59 +338,6 @@ fn soft_iron(d: [f64; 3], o: [f64; 3]) -> Matrix3<f64> {
 // ---------------------------------------------------------------------------------------------
 // ArduPilot
 
-/// The compass parameter suffix of compass k: `COMPASS_OFS_X`, `COMPASS_OFS2_X`, `COMPASS_OFS3_X`.
-fn ap_suffix(k: u8) -> Option<&'static str> {
-    ["", "2", "3"].get(k as usize).copied()
-}
-
-/// ArduPilot's correction of compass k from its parameters: (OFS mGauss, S, scale).
-fn ap_compass(params: &BTreeMap<String, f64>, k: u8) -> Option<([f64; 3], Matrix3<f64>, f64)> {
-    let s = ap_suffix(k)?;
-    let get3 = |what: &str| -> Option<[f64; 3]> {
-        let mut v = [0.0; 3];
-        for (i, ax) in ["X", "Y", "Z"].iter().enumerate() {
-            v[i] = *params.get(&format!("COMPASS_{what}{s}_{ax}"))?;
-        }
-        Some(v)
-    };
-    let ofs = get3("OFS")?;
-    let mut dia = get3("DIA").unwrap_or([1.0; 3]);
-    if dia.iter().all(|d| *d == 0.0) {
-        dia = [1.0; 3];
-    }
-    let odi = get3("ODI").unwrap_or([0.0; 3]);
-    // ArduPilot applies COMPASS_SCALE only within 1/1.5..1.5.
-    let scale = match params.get(&format!("COMPASS_SCALE{s}")) {
-        Some(&k) if (1.0 / 1.5..=1.5).contains(&k) => k,
-        _ => 1.0,
-    };
-    Some((ofs, soft_iron(dia, odi), scale))
-}
-
-fn ap_param_names(k: u8) -> Vec<String> {
-    let Some(s) = ap_suffix(k) else {
-        return Vec::new();
-    };
-    let mut n = Vec::new();
-    for what in ["OFS", "DIA", "ODI", "MOT"] {
-        for ax in ["X", "Y", "Z"] {
-            n.push(format!("COMPASS_{what}{s}_{ax}"));
-        }
-    }
-    let (orient, dev, ext) = match k {
-        0 => ("COMPASS_ORIENT", "COMPASS_DEV_ID", "COMPASS_EXTERNAL"),
-        1 => ("COMPASS_ORIENT2", "COMPASS_DEV_ID2", "COMPASS_EXTERN2"),
-        _ => ("COMPASS_ORIENT3", "COMPASS_DEV_ID3", "COMPASS_EXTERN3"),
-    };
-    n.extend(
-        [orient, dev, ext]
-            .iter()
-            .map(|x| x.to_string())
-            .chain([format!("COMPASS_SCALE{s}"), format!("COMPASS_USE{}", s)]),
-    );
-    n
-}
-
 fn ap_onboard(
     params: &BTreeMap<String, f64>,
     sources: &BTreeMap<(u8, u8), String>,
@@ -391,26 +346,13 @@ fn ap_onboard(
         stack: "ardupilot".into(),
         ..Default::default()
     };
-    for k in 0..3u8 {
-        let Some((ofs, sm, scale)) = ap_compass(params, k) else {
+    for k in 0..crate::io::ardupilot::COMPASSES {
+        let Some(c) = crate::io::ardupilot::correction(params, k, true) else {
             continue;
         };
-        let pick = |names: Vec<String>| -> BTreeMap<String, f64> {
-            names
-                .into_iter()
-                .filter_map(|n| params.get(&n).map(|v| (n, *v)))
-                .collect()
-        };
-        let p = pick(ap_param_names(k));
-        r.mag.push(OnboardCal {
-            instance: k,
-            device_id: ap_dev_id(params, k),
-            sources: sources.get(&(0, k)).cloned().into_iter().collect(),
-            offset: ofs.map(|o| -o / 10.0),
-            matrix: rows(&(sm * scale)),
-            units: "uT".into(),
-            params: p,
-        });
+        let sources = sources.get(&(0, k)).cloned().into_iter().collect();
+        r.mag
+            .push(crate::io::ardupilot::onboard_cal(params, k, &c, sources));
     }
     for k in 0..3u8 {
         let s = ["", "2", "3"][k as usize];
@@ -448,18 +390,6 @@ fn ap_onboard(
     r
 }
 
-fn ap_dev_id(params: &BTreeMap<String, f64>, k: u8) -> Option<u32> {
-    let n = match k {
-        0 => "COMPASS_DEV_ID",
-        1 => "COMPASS_DEV_ID2",
-        _ => "COMPASS_DEV_ID3",
-    };
-    params
-        .get(n)
-        .filter(|v| **v > 0.0 && **v < u32::MAX as f64)
-        .map(|v| *v as u32)
-}
-
 /// Undo ArduPilot's correction of one MAG record (mGauss in, uT out). `rec_ofs` is the record's
 /// OfsX/Y/Z and `mofs` its MOfsX/Y/Z when logged.
 fn ap_undo(
@@ -469,21 +399,18 @@ fn ap_undo(
     rec_ofs: Option<Vec3>,
     mofs: Option<Vec3>,
 ) -> Option<Vec3> {
-    let (mut ofs, sm, scale) = match ap_compass(params, k) {
+    use crate::io::ardupilot::{correction, Correction};
+    let mut c = match correction(params, k, true) {
         Some(c) => c,
         // No parameters: the record's offsets, no soft iron.
-        None => (rec_ofs?, Matrix3::identity(), 1.0),
+        None => Correction::offsets_only(rec_ofs?),
     };
     if let Some(r) = rec_ofs {
-        if (0..3).any(|i| (r[i] - ofs[i]).abs() > 1.0) {
-            ofs = r;
+        if (0..3).any(|i| (r[i] - c.ofs_mg[i]).abs() > 1.0) {
+            c.ofs_mg = r;
         }
     }
-    let inv = sm.try_inverse()?;
-    let m = mofs.unwrap_or([0.0; 3]);
-    let c = Vector3::new(mag_mg[0] - m[0], mag_mg[1] - m[1], mag_mg[2] - m[2]);
-    let u = inv * c / scale;
-    finite3([0, 1, 2].map(|i| (u[i] - ofs[i]) / 10.0))
+    c.undo(mag_mg, mofs)
 }
 
 /// Which sensor instance a DataFlash message name is (old per-instance names), or `None`.
@@ -567,6 +494,7 @@ struct DfConv {
     /// Magnetometer streams whose correction was undone.
     undone: std::collections::BTreeSet<String>,
     gps: Option<[f64; 3]>,
+    date: Option<crate::types::LogDate>,
     /// Records per type id, and per (type id, instance) for instanced types.
     type_counts: [u64; 256],
     inst_counts: BTreeMap<(u8, u8), u64>,
@@ -583,6 +511,7 @@ impl DfConv {
             sources: BTreeMap::new(),
             undone: std::collections::BTreeSet::new(),
             gps: None,
+            date: None,
             type_counts: [0; 256],
             inst_counts: BTreeMap::new(),
             names: BTreeMap::new(),
@@ -705,8 +634,12 @@ impl DfConv {
             return None;
         };
         let src = df_source(&self.names, &f.rec, k);
-        self.asm
-            .stream(Sensor::Mag, k, src, ap_dev_id(&self.params, k));
+        self.asm.stream(
+            Sensor::Mag,
+            k,
+            src,
+            crate::io::ardupilot::dev_id(&self.params, k),
+        );
         self.sources
             .entry((0, k))
             .or_insert_with(|| src.to_string());
@@ -736,6 +669,15 @@ impl DfConv {
         ) {
             if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
                 self.gps = Some([lat, lng, alt]);
+                if let (Some(wk), Some(ms)) = (f.get(DfField::GWk), f.get(DfField::Gms)) {
+                    if (1.0..1.0e5).contains(&wk) && (0.0..1.0e9).contains(&ms) {
+                        let s = GPS_EPOCH_UNIX_S + wk as u64 * 604_800 + (ms / 1000.0) as u64;
+                        self.date = crate::types::LogDate::from_unix_us(
+                            s * 1_000_000,
+                            crate::types::DateSource::GpsTime,
+                        );
+                    }
+                }
             }
         }
     }
@@ -761,6 +703,7 @@ impl DfConv {
         let primary_mag = self.sources.get(&(0, 0)).cloned();
         let mut log = self.asm.finish(onboard, &skips);
         log.primary_mag_source = primary_mag;
+        log.date = self.date;
         for (id, n) in self.type_counts.iter().enumerate() {
             if let (true, Some(name)) = (*n > 0, self.names.get(&(id as u8, None))) {
                 *log.messages.entry(name.clone()).or_insert(0) += n;
@@ -813,12 +756,14 @@ enum DfField {
     Alt,
     Value,
     Type,
+    GWk,
+    Gms,
 }
 
-const DF_FIELDS: [&str; 31] = [
+const DF_FIELDS: [&str; 33] = [
     "TimeUS", "TimeMS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ", "T", "MagX", "MagY",
     "MagZ", "OfsX", "OfsY", "OfsZ", "MOfsX", "MOfsY", "MOfsZ", "Roll", "Pitch", "Yaw", "C3", "ThO",
-    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type",
+    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type", "GWk", "GMS",
 ];
 
 fn df_group_name(instanced: bool, k: u8) -> String {
@@ -1043,7 +988,8 @@ enum UlogRecord {
     /// `battery_status[0]`, A.
     Current(f64),
     /// `vehicle_gps_position[0]`: lat, lon (1e-7 deg), alt (mm), fix type.
-    Gps(f64, f64, f64, f64),
+    /// lat, lon (1e-7 deg), alt (mm), fix type, UTC time (us since the Unix epoch, 0 unknown).
+    Gps(f64, f64, f64, f64, f64),
     None,
 }
 
@@ -1102,7 +1048,9 @@ impl UlogRecord {
                 get(UlField::Alt),
                 get(UlField::FixType),
             ) {
-                (Some(a), Some(b), Some(c), Some(f)) => R::Gps(a, b, c, f),
+                (Some(a), Some(b), Some(c), Some(f)) => {
+                    R::Gps(a, b, c, f, get(UlField::TimeUtc).unwrap_or(0.0))
+                }
                 _ => R::None,
             },
             _ => R::None,
@@ -1123,6 +1071,7 @@ struct UlogConv {
     mag_ids: BTreeMap<u8, u32>,
     accel_ids: BTreeMap<u8, u32>,
     gps: Option<[f64; 3]>,
+    date: Option<crate::types::LogDate>,
     /// A corrected field could not be undone.
     not_undone: bool,
 }
@@ -1136,6 +1085,7 @@ impl UlogConv {
             mag_ids: BTreeMap::new(),
             accel_ids: BTreeMap::new(),
             gps: None,
+            date: None,
             not_undone: false,
         }
     }
@@ -1198,9 +1148,15 @@ impl UlogConv {
                 }
                 None
             }
-            UlogRecord::Gps(lat, lon, alt, fix) => {
+            UlogRecord::Gps(lat, lon, alt, fix, utc_us) => {
                 if self.gps.is_none() && fix >= 3.0 {
                     self.gps = Some([lat * 1e-7, lon * 1e-7, alt * 1e-3]);
+                }
+                if self.date.is_none() && fix >= 3.0 && utc_us > 0.0 {
+                    self.date = crate::types::LogDate::from_unix_us(
+                        utc_us as u64,
+                        crate::types::DateSource::GpsTime,
+                    );
                 }
                 None
             }
@@ -1306,6 +1262,7 @@ impl UlogConv {
         }
         let mut log = self.asm.finish(onboard, &skips);
         log.primary_mag_source = self.prime_source;
+        log.date = self.date;
         for sub in rd.subscriptions().filter(|s| s.records > 0) {
             *log.messages
                 .entry(format!("{}[{}]", sub.name, sub.multi_id))
@@ -1349,9 +1306,10 @@ enum UlField {
     Lon,
     Alt,
     FixType,
+    TimeUtc,
 }
 
-const UL_FIELDS: [&str; 24] = [
+const UL_FIELDS: [&str; 25] = [
     "accelerometer_m_s2[0]",
     "accelerometer_m_s2[1]",
     "accelerometer_m_s2[2]",
@@ -1376,6 +1334,7 @@ const UL_FIELDS: [&str; 24] = [
     "lon",
     "alt",
     "fix_type",
+    "time_utc_usec",
 ];
 
 /// A subscription's topic, the indices of [`UL_FIELDS`] in its fields, and its source name.
@@ -1439,13 +1398,9 @@ mod tests {
             p.insert(n.to_string(), v);
         }
         let raw_ut = [12.0, -30.0, 41.0];
-        let (ofs, s, scale) = ap_compass(&p, 1).unwrap();
-        let m = Vector3::new(
-            raw_ut[0] * 10.0 + ofs[0],
-            raw_ut[1] * 10.0 + ofs[1],
-            raw_ut[2] * 10.0 + ofs[2],
-        );
-        let c = s * m * scale;
+        let c = crate::io::ardupilot::correction(&p, 1, true)
+            .unwrap()
+            .apply(raw_ut);
         let back = ap_undo(&p, 1, [c[0], c[1], c[2]], None, None).unwrap();
         for i in 0..3 {
             assert!((back[i] - raw_ut[i]).abs() < 1e-9, "{back:?}");
