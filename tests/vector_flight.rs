@@ -317,3 +317,62 @@ fn replay_of_a_pymavlink_flight_tlog_takes_attitude_position_and_current_from_it
     // the figure promised for ordinary flights.
     assert!(err < 1.0, "vector offset {err} uT off");
 }
+
+/// The earth field of the day the log was recorded: a cruise flown in 2015 (IGRF-13, the WMM in use
+/// starts in 2020) and one in 2025 (WMM), each written as a `.tlog` whose record clock is that
+/// day's. The replay, with no date configured, takes the field of the log's day, says so in
+/// `calibration.mag.earth_field`, and the vector fit finds the hidden offset with it.
+#[test]
+fn the_field_is_the_one_of_the_day_the_log_was_recorded() {
+    use imucald::attitude::FieldModel;
+    let dir = tempfile::tempdir().unwrap();
+    for (date, epoch_us, model) in [
+        ("2015-06-01", 1_433_160_000_000_000u64, FieldModel::Igrf13),
+        ("2025-06-01", 1_748_779_200_000_000u64, FieldModel::Wmm),
+    ] {
+        let mut sc = Scenario::named("cruise").unwrap();
+        let place = sc.place.clone().expect("the cruise flies at a place");
+        sc.place = Some(imucald::attitude::Place {
+            date: Some(date.into()),
+            ..place
+        });
+        let out = simulate(&sc, 3);
+        let log = dir.path().join(format!("{date}.tlog"));
+        imucald::sim::write_tlog(
+            &log,
+            &out.samples,
+            &imucald::sim::TlogWriteOptions {
+                epoch_us,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let r = common::replay_log(&log, &Config::default()).report;
+        let m = &r.calibration.mag;
+        let choice = vector_from_the_logs_position(m);
+        let f = choice
+            .earth_field
+            .as_ref()
+            .expect("the field used is reported");
+        assert_eq!(f.date, date);
+        assert_eq!(f.date_source, "record_clock");
+        assert_eq!(f.model, model, "{date}");
+        assert!(
+            choice.method_reason.contains(date),
+            "{}",
+            choice.method_reason
+        );
+        let err = dist(&m.offset, &sc.truth.mag.offset);
+        eprintln!(
+            "{date}: {:?} {:.1} uT, offset error {err:.3} uT",
+            f.model, f.total_ut
+        );
+        // Measured 0.20 uT in both years.
+        assert!(
+            err < 0.6,
+            "{date}: offset {:?} against {:?}",
+            m.offset,
+            sc.truth.mag.offset
+        );
+    }
+}

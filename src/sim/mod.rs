@@ -1468,6 +1468,9 @@ pub struct TlogWriteOptions {
     pub component_id: u8,
     /// 2 (default) or 1.
     pub mavlink_version: u8,
+    /// Unix time of `t_s = 0` in the record stamps, us ([`TLOG_EPOCH_US`] by default): the day a
+    /// replay takes the earth field of.
+    pub epoch_us: u64,
 }
 
 impl Default for TlogWriteOptions {
@@ -1477,6 +1480,7 @@ impl Default for TlogWriteOptions {
             system_id: 1,
             component_id: 1,
             mavlink_version: 2,
+            epoch_us: TLOG_EPOCH_US,
         }
     }
 }
@@ -1531,7 +1535,7 @@ fn tlog_records<W: std::io::Write>(
             continue;
         }
         let t_us = (s.t_s.max(0.0) * 1e6).round() as u64;
-        let stamp = TLOG_EPOCH_US + t_us;
+        let stamp = opts.epoch_us + t_us;
         if s.t_s >= next_heartbeat_s {
             put(w, stamp, &heartbeat)?;
             next_heartbeat_s = if next_heartbeat_s.is_finite() {
@@ -2227,6 +2231,7 @@ mod tests {
             system_id: 7,
             component_id: 3,
             mavlink_version: 1,
+            ..Default::default()
         };
         write_tlog(&p, &samples, &opts).unwrap();
         let bytes = std::fs::read(&p).unwrap();
