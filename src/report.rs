@@ -35,6 +35,47 @@ pub struct Report {
     /// its parameters record it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub onboard: Option<OnboardReport>,
+    /// The primary compass's calibration judged on the part of the log it was not fitted on,
+    /// against the vehicle's own (logs with an attitude and a place).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quality: Option<QualityReport>,
+}
+
+/// A calibration fitted on alternate blocks of the log and scored on the others: what the field
+/// looks like through it where it was not fitted.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct QualityReport {
+    /// The instance judged (the primary).
+    pub instance: String,
+    /// Length of the alternating blocks, s: fitted on the even ones (counted from the log's
+    /// first sample), scored on the odd ones.
+    pub block_s: f64,
+    /// imucald's method on the fitting blocks (`vector`).
+    pub method: String,
+    /// Through imucald's calibration fitted on the even blocks.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imucald: Option<HeldOut>,
+    /// Through the vehicle's own calibration (as the log records it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub onboard: Option<HeldOut>,
+    /// Why imucald's held-out score is missing, when it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imucald_failure: Option<String>,
+    /// The plain answer and the next step.
+    pub verdict: String,
+}
+
+/// The field seen through one calibration on held-out readings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeldOut {
+    /// Standard deviation of the field's norm over its mean, %.
+    pub norm_spread_pct: f64,
+    /// Standard deviation of the field's dip below the horizontal (from the vehicle's attitude), deg.
+    pub dip_spread_deg: f64,
+    /// Mean dip, deg.
+    pub dip_mean_deg: f64,
+    /// Readings scored.
+    pub readings: usize,
 }
 
 /// One sensor stream of the input (`input.sensors`).

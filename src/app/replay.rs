@@ -51,7 +51,8 @@ pub fn replay(
     mag_method(&mut results, &run.log, &run.pipe, cfg);
     mounting_check(&mut results, &run.log, &run.pipe, cfg);
     let declination = cfg.declination_deg()?;
-    let report = full_report(path, &mut run, &results, declination);
+    let mut report = full_report(path, &mut run, &results, declination);
+    report.quality = quality(&run.log, &run.pipe, cfg);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -91,6 +92,48 @@ fn write_html(
     let others = others.filter_map(|(i, o)| Some((i.name.clone(), o.as_mut()?.finish().clone())));
     let views = crate::app::ui::html::Views::new(report, results, others.collect());
     crate::app::ui::html::write(p, report, &views, opts.diagnosis.as_deref())
+}
+
+/// The primary compass judged on the blocks of the log it was not fitted on, against the
+/// vehicle's own calibration of the same compass ([`crate::calib::magmethod::quality`]).
+fn quality(
+    log: &crate::io::sources::Log,
+    pipe: &Pipeline,
+    cfg: &Config,
+) -> Option<crate::report::QualityReport> {
+    let instance = log.instance.clone()?;
+    let source = match &log.flight {
+        Some(f) => f.primary_mag_source.clone()?,
+        None => instance.clone(),
+    };
+    let slot = log
+        .onboard()
+        .and_then(|o| o.mag.iter().find(|c| c.sources.contains(&source)))
+        .filter(|c| c.units == "uT");
+    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    let onboard = slot.map(|c| {
+        let m = crate::calib::model::rows_to_mat(&c.matrix);
+        let o = nalgebra::Vector3::from(c.offset);
+        move |s: &crate::types::Sample| {
+            let raw = nalgebra::Vector3::from(s.mag_ut?);
+            let v = m * (raw - o);
+            let corrected = crate::types::Sample {
+                mag_ut: Some([v.x, v.y, v.z]),
+                ..*s
+            };
+            pipe.to_body(&corrected).mag_ut
+        }
+    });
+    crate::calib::magmethod::quality(
+        &instance,
+        &log.samples,
+        &body_mag,
+        onboard
+            .as_ref()
+            .map(|f| f as &crate::calib::magmethod::FieldOf<'_>),
+        log.place(),
+        cfg.place.as_ref(),
+    )
 }
 
 /// The primary magnetometer's method: the vector fit when the log carries an attitude and the
@@ -547,6 +590,7 @@ pub fn make_report(
         outputs: None,
         vehicles: Vec::new(),
         onboard: None,
+        quality: None,
     }
 }
 
@@ -777,6 +821,13 @@ pub fn summary(r: &Report) -> String {
     }
     if let Some(m) = &r.calibration.mag.method {
         let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
+    }
+    if let Some(q) = &r.quality {
+        let _ = writeln!(
+            s,
+            "quality ({}, fitted on alternate {:.0} s blocks, scored on the others): {}",
+            q.instance, q.block_s, q.verdict
+        );
     }
     let g = &r.calibration.gyro;
     if g.status == CalStatus::Ok {

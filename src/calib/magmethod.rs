@@ -512,3 +512,156 @@ fn install_full12(
     r.candidates = Vec::new();
     r
 }
+
+// ---------------------------------------------------------------------------------------------
+// Held-out quality
+
+/// Length of the alternating blocks of the held-out check, s: long enough to hold a turn or two
+/// of an ordinary flight, short enough that a flight of a few minutes gives several of each.
+pub const QUALITY_BLOCK_S: f64 = 20.0;
+
+/// Readings a held-out score needs at least.
+pub const QUALITY_MIN_READINGS: usize = 30;
+
+/// The spread of the field seen through a calibration: `readings` are (calibrated field in body
+/// axes, uT; body -> NED attitude). `None` with fewer than [`QUALITY_MIN_READINGS`].
+pub fn held_out(
+    readings: &[(Vec3, nalgebra::UnitQuaternion<f64>)],
+) -> Option<crate::report::HeldOut> {
+    let mut norms = Vec::with_capacity(readings.len());
+    let mut dips = Vec::with_capacity(readings.len());
+    for (m, q) in readings {
+        let v = nalgebra::Vector3::from(*m);
+        let n = v.norm();
+        if !(n.is_finite() && n > 0.0) {
+            continue;
+        }
+        // The field in NED; its dip is the angle below the horizontal (down positive).
+        let ned = q * v;
+        norms.push(n);
+        dips.push((ned.z / n).clamp(-1.0, 1.0).asin().to_degrees());
+    }
+    if norms.len() < QUALITY_MIN_READINGS {
+        return None;
+    }
+    let mean_sd = |x: &[f64]| {
+        let m = x.iter().sum::<f64>() / x.len() as f64;
+        let v = x.iter().map(|a| (a - m) * (a - m)).sum::<f64>() / x.len() as f64;
+        (m, v.sqrt())
+    };
+    let (nm, nsd) = mean_sd(&norms);
+    let (dm, dsd) = mean_sd(&dips);
+    Some(crate::report::HeldOut {
+        norm_spread_pct: 100.0 * nsd / nm,
+        dip_spread_deg: dsd,
+        dip_mean_deg: dm,
+        readings: norms.len(),
+    })
+}
+
+/// The calibrated field of a sample in body axes (uT), when it has a magnetometer reading.
+pub type FieldOf<'a> = dyn Fn(&Sample) -> Option<Vec3> + 'a;
+
+/// Whether a sample falls in a fitting block (even) of the held-out check.
+fn fitting_block(t0: f64, t: f64) -> bool {
+    (((t - t0) / QUALITY_BLOCK_S).floor() as i64).rem_euclid(2) == 0
+}
+
+/// The primary compass judged where it was not fitted: imucald's vector fit on the even
+/// [`QUALITY_BLOCK_S`] blocks, and the vehicle's own calibration (`onboard`: the field it gives
+/// in body axes, uT, for a sample), both scored on the odd blocks by the spread of the field's
+/// norm and of its dip, with a verdict. `None` without an attitude, a place, or readings enough.
+pub fn quality(
+    instance: &str,
+    samples: &[Sample],
+    body_mag: &FieldOf<'_>,
+    onboard: Option<&FieldOf<'_>>,
+    log: LogWhere,
+    cfg_place: Option<&Place>,
+) -> Option<crate::report::QualityReport> {
+    let w = place_of(samples, log, cfg_place)?;
+    let field = crate::attitude::earth_field(&w.place).ok()?;
+    let t0 = samples.first()?.t_s;
+    let (fit_part, held): (Vec<&Sample>, Vec<&Sample>) =
+        samples.iter().partition(|s| fitting_block(t0, s.t_s));
+    let fit_samples: Vec<Sample> = fit_part.into_iter().cloned().collect();
+    let pts = points(&fit_samples, body_mag, &field.field_ned_ut());
+    let fitted = crate::calib::vector::fit(&pts, current_varies(&pts));
+    let score = |cal: &FieldOf<'_>| {
+        let r: Vec<(Vec3, nalgebra::UnitQuaternion<f64>)> = held
+            .iter()
+            .filter_map(|s| Some((cal(s)?, crate::attitude::body_ned_of_ref_q(s.ref_q?)?)))
+            .collect();
+        held_out(&r)
+    };
+    let (ours, failure) = match &fitted {
+        Ok(v) if v.offset_identifiable => {
+            let m = crate::calib::model::rows_to_mat(&v.matrix);
+            let o = nalgebra::Vector3::from(v.offset_ut);
+            let cal = |s: &Sample| {
+                let raw = nalgebra::Vector3::from(body_mag(s)?);
+                let c = m * (raw - o);
+                Some([c.x, c.y, c.z])
+            };
+            (score(&cal), None)
+        }
+        Ok(_) => (
+            None,
+            Some("the fitting blocks do not determine the offset".to_string()),
+        ),
+        Err(e) => (
+            None,
+            Some(format!("the vector fit on the fitting blocks failed: {e}")),
+        ),
+    };
+    let theirs = onboard.and_then(|f| score(f));
+    if ours.is_none() && theirs.is_none() {
+        return None;
+    }
+    let verdict = verdict(ours.as_ref(), theirs.as_ref());
+    Some(crate::report::QualityReport {
+        instance: instance.to_string(),
+        block_s: QUALITY_BLOCK_S,
+        method: "vector".into(),
+        imucald: ours,
+        onboard: theirs,
+        imucald_failure: if ours.is_none() { failure } else { None },
+        verdict,
+    })
+}
+
+/// The plain answer: is imucald's calibration better than the vehicle's on the held-out blocks?
+/// Better means no worse on both spreads and better on at least one by a tenth.
+fn verdict(
+    ours: Option<&crate::report::HeldOut>,
+    theirs: Option<&crate::report::HeldOut>,
+) -> String {
+    match (ours, theirs) {
+        (Some(a), Some(b)) => {
+            let worse = a.norm_spread_pct > 1.1 * b.norm_spread_pct
+                || a.dip_spread_deg > 1.1 * b.dip_spread_deg;
+            let better = a.norm_spread_pct < 0.9 * b.norm_spread_pct
+                || a.dip_spread_deg < 0.9 * b.dip_spread_deg;
+            let figures = format!(
+                "held out, the field's norm spreads {:.2} % through imucald's against {:.2} % through the vehicle's, its dip {:.2} against {:.2} deg",
+                a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg
+            );
+            if better && !worse {
+                format!("imucald's is better: load the export; {figures}")
+            } else if worse {
+                format!("keep the vehicle's: imucald's is not better on this flight; {figures}")
+            } else {
+                format!("no clear difference: keep the vehicle's; {figures}")
+            }
+        }
+        (Some(a), None) => format!(
+            "no onboard calibration to compare with; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
+            a.norm_spread_pct, a.dip_spread_deg
+        ),
+        (None, Some(b)) => format!(
+            "imucald's held-out fit failed; through the vehicle's the field's norm spreads {:.2} % and its dip {:.2} deg",
+            b.norm_spread_pct, b.dip_spread_deg
+        ),
+        (None, None) => "nothing to judge".into(),
+    }
+}

@@ -406,6 +406,25 @@ fn fmt3(v: &[f64; 3]) -> String {
     format!("[{:.1}, {:.1}, {:.1}]", v[0], v[1], v[2])
 }
 
+/// Compass 2's parameters of a real vehicle (offsets, soft iron), for tests.
+#[cfg(test)]
+pub(crate) fn example_compass2() -> BTreeMap<String, f64> {
+    [
+        ("COMPASS_OFS2_X", -171.9),
+        ("COMPASS_OFS2_Y", 546.3),
+        ("COMPASS_OFS2_Z", -565.6),
+        ("COMPASS_DIA2_X", 1.02),
+        ("COMPASS_DIA2_Y", 0.98),
+        ("COMPASS_DIA2_Z", 1.14),
+        ("COMPASS_ODI2_X", -0.01),
+        ("COMPASS_ODI2_Y", 0.007),
+        ("COMPASS_ODI2_Z", 0.014),
+    ]
+    .iter()
+    .map(|(n, v)| (n.to_string(), *v))
+    .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -424,20 +443,7 @@ mod tests {
 
     #[test]
     fn undo_inverts_the_correction() {
-        let mut p = BTreeMap::new();
-        for (n, v) in [
-            ("COMPASS_OFS2_X", -171.9),
-            ("COMPASS_OFS2_Y", 546.3),
-            ("COMPASS_OFS2_Z", -565.6),
-            ("COMPASS_DIA2_X", 1.02),
-            ("COMPASS_DIA2_Y", 0.98),
-            ("COMPASS_DIA2_Z", 1.14),
-            ("COMPASS_ODI2_X", -0.01),
-            ("COMPASS_ODI2_Y", 0.007),
-            ("COMPASS_ODI2_Z", 0.014),
-        ] {
-            p.insert(n.to_string(), v);
-        }
+        let mut p = example_compass2();
         let c = correction(&p, 1, false).unwrap();
         let raw = [12.0, -30.0, 41.0];
         let back = c.undo(c.apply(raw), None).unwrap();

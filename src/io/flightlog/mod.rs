@@ -1383,20 +1383,7 @@ mod tests {
 
     #[test]
     fn ardupilot_undo_inverts_its_correction() {
-        let mut p = BTreeMap::new();
-        for (n, v) in [
-            ("COMPASS_OFS2_X", -171.9),
-            ("COMPASS_OFS2_Y", 546.3),
-            ("COMPASS_OFS2_Z", -565.6),
-            ("COMPASS_DIA2_X", 1.02),
-            ("COMPASS_DIA2_Y", 0.98),
-            ("COMPASS_DIA2_Z", 1.14),
-            ("COMPASS_ODI2_X", -0.01),
-            ("COMPASS_ODI2_Y", 0.007),
-            ("COMPASS_ODI2_Z", 0.014),
-        ] {
-            p.insert(n.to_string(), v);
-        }
+        let p = crate::io::ardupilot::example_compass2();
         let raw_ut = [12.0, -30.0, 41.0];
         let c = crate::io::ardupilot::correction(&p, 1, true)
             .unwrap()
