@@ -1379,7 +1379,7 @@ mod live_ardupilot {
         ] {
             params.insert(n.into(), v);
         }
-        let mut ap = imucald::io::mavout::ApCompassParams::default();
+        let mut ap: Option<imucald::io::ardupilot::Correction> = None;
         let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 6);
         let mut enc = MavEncoder::new(1, 1);
         let mut dec = FrameDecoder::new();
@@ -1407,14 +1407,16 @@ mod live_ardupilot {
             };
             if i % 100 == 0 {
                 fc.send_to(&enc.encode(&heartbeat), &target).await.unwrap();
-                for (n, v) in &params {
-                    ap.set(n, *v);
-                }
+                let p: BTreeMap<String, f64> = params
+                    .iter()
+                    .map(|(n, v)| (n.clone(), f64::from(*v)))
+                    .collect();
+                ap = imucald::io::ardupilot::correction(&p, 0, false);
             }
             // ArduPilot streams its corrected field: S (raw + OFS), in gauss in HIGHRES_IMU.
             // No temperature in the stream.
             let streamed = imucald::types::Sample {
-                mag_ut: Some(ap.correct(0, s.mag_ut.unwrap()).unwrap()),
+                mag_ut: Some(ap.unwrap().apply(s.mag_ut.unwrap()).map(|v| v / 10.0)),
                 temp_c: None,
                 ..*s
             };

@@ -225,8 +225,9 @@ pub struct Telemetry {
     sensor_offsets_mg: Option<[f64; 3]>,
     /// Per compass: the correction used for its last reading, and where from.
     in_use: [Option<(Correction, CorrectionSource)>; COMPASSES as usize],
-    /// Per compass: the first correction used, and the parameters then.
-    first: [Option<(Correction, BTreeMap<String, f64>)>; COMPASSES as usize],
+    /// Per compass: [`Telemetry::current`] as of the last message absorbed (`None`: not yet
+    /// worked out), so a reading costs no parameter look-ups.
+    cached: [Option<Option<(Correction, CorrectionSource)>>; COMPASSES as usize],
     /// Changes of a compass's offsets between readings.
     pub changes: Vec<CorrectionChange>,
     /// Readings that could not be undone (no correction known yet), per compass.
@@ -238,6 +239,7 @@ impl Telemetry {
     /// deprecated in the dialect, but the firmware of older logs sends it and nothing else.
     #[allow(deprecated)]
     pub fn absorb(&mut self, msg: &MavMessage) -> bool {
+        self.cached = Default::default();
         match msg {
             MavMessage::PARAM_VALUE(p) => {
                 let bytes: &[u8; 16] = &p.param_id;
@@ -299,7 +301,11 @@ impl Telemetry {
         if ki >= COMPASSES as usize {
             return None;
         }
-        let Some((c, src)) = self.current(k) else {
+        let current = match self.cached[ki] {
+            Some(c) => c,
+            None => *self.cached[ki].insert(self.current(k)),
+        };
+        let Some((c, src)) = current else {
             self.held[ki] += 1;
             return None;
         };
@@ -312,14 +318,11 @@ impl Telemetry {
             }),
             _ => {}
         }
-        if self.first[ki].is_none() {
-            self.first[ki] = Some((c, self.params.clone()));
-        }
         self.in_use[ki] = Some((c, src));
         c.undo(mag_mg, None)
     }
 
-    /// Compass k's correction used for its last reading, and the parameters of the vehicle now.
+    /// Compass k's correction used for its last reading, and where it came from.
     pub fn last_used(&self, k: u8) -> Option<(Correction, CorrectionSource)> {
         self.in_use.get(k as usize).copied().flatten()
     }
@@ -517,5 +520,87 @@ mod tests {
         let cals = t.onboard_cals(&BTreeMap::new());
         assert_eq!(cals.len(), 1);
         assert_eq!(cals[0].offset, [12.0, -5.0, -1.0]);
+    }
+
+    /// A telemetry state that has read `values` (name, value) as PARAM_VALUE, list length unknown.
+    fn read(values: &[(String, f64)]) -> Telemetry {
+        let mut t = Telemetry::default();
+        for (n, v) in values {
+            assert!(t.absorb(&pv(n, *v as f32, 0, 0)));
+        }
+        t
+    }
+
+    fn compass0(v: [f64; 9]) -> Vec<(String, f64)> {
+        let names = ["OFS", "DIA", "ODI"]
+            .iter()
+            .flat_map(|b| ["X", "Y", "Z"].map(|a| param(b, 0, a)));
+        names.zip(v).collect()
+    }
+
+    #[test]
+    fn telemetry_undoes_correct_field_and_what_export_writes() {
+        let mut t = Telemetry::default();
+        assert!(!t.absorb(&crate::io::mavout::named_float("COMPASS_OF", 0, 1.0)));
+        assert!(t.undo(0, [1.0, 2.0, 3.0], 0.0).is_none());
+        let mut t = read(&compass0([
+            -120.0, 300.0, -450.0, 1.05, 0.97, 1.01, 0.02, -0.01, 0.04,
+        ]));
+        assert!(t.current(0).is_some() && t.current(1).is_none());
+        let raw = [40.0, 5.0, -20.0];
+        // ArduPilot's correct_field, written out in mGauss.
+        let m = [400.0 - 120.0, 50.0 + 300.0, -200.0 - 450.0];
+        let s = [[1.05, 0.02, -0.01], [0.02, 0.97, 0.04], [-0.01, 0.04, 1.01]];
+        let corrected: Vec3 = [0, 1, 2].map(|i| (0..3).map(|j| s[i][j] * m[j]).sum());
+        let fwd = t.current(0).unwrap().0.apply(raw);
+        assert!(
+            (0..3).all(|i| (fwd[i] - corrected[i]).abs() < 1e-3),
+            "{fwd:?}"
+        );
+        let back = t.undo(0, corrected, 0.0).unwrap();
+        assert!((0..3).all(|i| (back[i] - raw[i]).abs() < 1e-4), "{back:?}");
+
+        // COMPASS_SCALE is applied when ArduPilot would (within 1/1.5..1.5).
+        t.absorb(&pv("COMPASS_SCALE", 1.2, 0, 0));
+        let c = t.current(0).unwrap().0.apply(raw);
+        assert!((c[0] - 1.2 * corrected[0]).abs() < 1e-2);
+        let back = t.undo(0, c, 1.0).unwrap();
+        assert!((0..3).all(|i| (back[i] - raw[i]).abs() < 1e-4));
+        t.absorb(&pv("COMPASS_SCALE", 3.0, 0, 0));
+        assert!((t.current(0).unwrap().0.apply(raw)[0] - corrected[0]).abs() < 1e-3);
+
+        // The undone field is what our own calibration with export's parameters corrects, for
+        // the second compass too, apart from the first's.
+        let cal = crate::calib::model::Calibration {
+            model: crate::calib::model::ModelKind::Sym9,
+            offset: [12.0, -30.0, 45.0],
+            matrix: s,
+        };
+        for k in [0u8, 1] {
+            let (exp, _) = crate::calib::export::ardupilot_mag(&cal, k as usize);
+            for (n, v) in exp.iter() {
+                t.absorb(&pv(n, *v as f32, 0, 0));
+            }
+            let c = cal.apply(&raw).map(|v| v * 10.0);
+            let u = t.undo(k, c, 2.0).unwrap();
+            assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{k}: {u:?}");
+        }
+    }
+
+    #[test]
+    fn zero_diagonals_read_as_one_singular_and_incomplete_are_refused() {
+        let mut t = read(&compass0([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]));
+        let u = t.undo(0, [50.0, 10.0, 20.0], 0.0).unwrap();
+        assert!(
+            (0..3).all(|i| (u[i] - [4.0, 1.0, 2.0][i]).abs() < 1e-12),
+            "{u:?}"
+        );
+        let mut t = read(&compass0([0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]));
+        assert!(t.undo(0, [5.0, 1.0, 2.0], 0.0).is_none());
+        let mut v = compass0([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+        let mut t = read(&v);
+        assert!(t.undo(0, [f64::NAN, 0.0, 0.0], 0.0).is_none());
+        v.pop();
+        assert!(read(&v).current(0).is_none(), "COMPASS_ODI_Z unknown");
     }
 }

@@ -450,19 +450,32 @@ pub struct MessageConverter {
     /// Whether RAW_IMU is read in ArduPilot's units (mG, mrad/s, mGauss), latched at the first
     /// RAW_IMU message so that a stream never changes units.
     raw_imu_ardupilot: Option<bool>,
-    /// An ArduPilot vehicle's compass corrections from its telemetry, undone from each reading
-    /// when `undo_ardupilot` is set.
+    /// An ArduPilot vehicle's compass corrections from its telemetry, and what to do with its
+    /// magnetometer readings.
     ardupilot: crate::io::ardupilot::Telemetry,
-    undo_ardupilot: bool,
+    ardupilot_mag: ArduPilotMag,
     /// The first position fix.
     first_position: Option<crate::types::GeoPoint>,
     /// The primary instance's counts; `stats.time` is its clock's.
     pub stats: DecodeStats,
 }
 
+/// What a converter does with an ArduPilot vehicle's magnetometer readings, which carry the
+/// vehicle's own calibration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ArduPilotMag {
+    /// Pass them on as streamed.
+    Keep,
+    /// Undo the calibration ([`crate::io::ardupilot::Telemetry`]); readings before it is known
+    /// are left out, skipped as `mag_awaiting_params`.
+    Undo,
+    /// Leave every reading out, skipped as `mag_awaiting_params`.
+    Refuse,
+}
+
 /// The flight stack a vehicle's HEARTBEAT names.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Autopilot {
+enum Autopilot {
     /// No vehicle HEARTBEAT yet.
     Unknown,
     /// ArduPilot: RAW_IMU in SCALED_IMU's units, magnetometer streamed with its calibration applied.
@@ -543,29 +556,29 @@ impl MessageConverter {
             autopilot: Autopilot::Unknown,
             raw_imu_ardupilot: None,
             ardupilot: Default::default(),
-            undo_ardupilot: false,
+            ardupilot_mag: ArduPilotMag::Keep,
             first_position: None,
             stats: DecodeStats::default(),
         }
     }
 
-    /// Undo an ArduPilot vehicle's magnetometer calibration from each reading, with the
-    /// COMPASS_* values its telemetry gives at the reading's time ([`crate::io::ardupilot`]);
-    /// readings before any are known are left out (skipped as `mag_awaiting_params`).
-    pub fn with_ardupilot_undo(mut self) -> Self {
-        self.undo_ardupilot = true;
+    /// What to do with an ArduPilot vehicle's magnetometer readings ([`ArduPilotMag`]; `Keep`
+    /// unless set). `Undo` uses the COMPASS_* values its telemetry gives at each reading's time
+    /// ([`crate::io::ardupilot`]).
+    pub fn with_ardupilot_mag(mut self, mode: ArduPilotMag) -> Self {
+        self.ardupilot_mag = mode;
         self
     }
 
-    /// The vehicle's flight stack as its HEARTBEAT names it.
-    pub fn autopilot(&self) -> Autopilot {
-        self.autopilot
+    /// A HEARTBEAT has named the vehicle's flight stack ArduPilot.
+    pub fn is_ardupilot(&self) -> bool {
+        self.autopilot == Autopilot::ArduPilot
     }
 
     /// An ArduPilot vehicle's onboard magnetometer calibration as its telemetry gave it, and what
     /// was undone (`None` for other vehicles or without the undo).
     pub fn ardupilot_onboard(&self) -> Option<crate::report::OnboardReport> {
-        if self.autopilot != Autopilot::ArduPilot || !self.undo_ardupilot {
+        if self.autopilot != Autopilot::ArduPilot || self.ardupilot_mag != ArduPilotMag::Undo {
             return None;
         }
         let sources: std::collections::BTreeMap<u8, String> = self
@@ -835,15 +848,14 @@ impl MessageConverter {
             }
             MavMessage::HEARTBEAT(h) => {
                 use mavlink::dialects::ardupilotmega::MavAutopilot;
-                // A ground station's or companion's HEARTBEAT names no flight stack.
-                if self.autopilot == Autopilot::Unknown
+                // A ground station's or companion's HEARTBEAT names no flight stack. Once one
+                // names ArduPilot, its magnetometer data are taken as calibrated from then on.
+                if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA {
+                    self.autopilot = Autopilot::ArduPilot;
+                } else if self.autopilot == Autopilot::Unknown
                     && h.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID
                 {
-                    self.autopilot = if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA {
-                        Autopilot::ArduPilot
-                    } else {
-                        Autopilot::Other
-                    };
+                    self.autopilot = Autopilot::Other;
                 }
                 return None;
             }
@@ -905,10 +917,14 @@ impl MessageConverter {
         s.gyro_rad_s = take(gyr);
         s.mag_ut = if has_mag { take(mag) } else { None };
         s.temp_c = temp.filter(|x| x.is_finite());
-        if self.undo_ardupilot && self.autopilot == Autopilot::ArduPilot {
+        if self.autopilot == Autopilot::ArduPilot {
             if let Some(m) = s.mag_ut {
                 let compass = self.tracks[k].instance.compass_id();
-                s.mag_ut = self.ardupilot.undo(compass, m.map(|v| v * 10.0), s.t_s);
+                s.mag_ut = match self.ardupilot_mag {
+                    ArduPilotMag::Keep => Some(m),
+                    ArduPilotMag::Undo => self.ardupilot.undo(compass, m.map(|v| v * 10.0), s.t_s),
+                    ArduPilotMag::Refuse => None,
+                };
                 if s.mag_ut.is_none() {
                     self.stats.skip("mag_awaiting_params");
                 }

@@ -10,7 +10,8 @@
 //! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
 //! * Fused attitude from a quaternion (body FRD -> NED): [`attitude_quaternion`]
 //!   (ATTITUDE_QUATERNION, 31) and [`attitude_from_quaternion`] (ATTITUDE, 30).
-//! * Undoing ArduPilot's own compass correction on streamed telemetry: [`ApCompassParams`].
+//! * Reading back ArduPilot's compass parameters ([`param_request_reads`]; undone by
+//!   [`crate::io::ardupilot::Telemetry`]).
 //! * Writing parameters with read-back verification: [`ParamWriter`].
 //! * JSON lines for other consumers: [`LiveEvent`], [`json_line`] (schema [`JSON_SCHEMA`]).
 //!
@@ -49,7 +50,7 @@
 //! ```
 
 use crate::calib::fit::FitFailure;
-use crate::calib::model::{rows_to_mat, Calibration, ModelKind};
+use crate::calib::model::{Calibration, ModelKind};
 use crate::report::{CalStatus, SensorCalibration};
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
@@ -61,7 +62,6 @@ use mavlink::dialects::ardupilotmega::{
 use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
 
 // ---------------------------------------------------------------------------------------------
 // Framing
@@ -888,9 +888,6 @@ pub fn ap_compass_params(compass: u8) -> [String; 10] {
     out
 }
 
-/// ArduPilot applies COMPASS_SCALE only within these bounds (COMPASS_MIN/MAX_SCALE_FACTOR).
-const AP_SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
-
 /// PARAM_REQUEST_READ by name (`param_index` -1) for the parameters of compasses 0 to
 /// [`AP_COMPASSES`] - 1 ([`ap_compass_params`]: ten per compass).
 pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
@@ -905,102 +902,6 @@ pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMe
             })
         })
         .collect()
-}
-
-/// ArduPilot's compass corrections as read back from the vehicle, to undo them (one set per compass).
-///
-/// ArduPilot streams RAW_IMU / SCALED_IMU* magnetometer fields after
-/// `mag = S (scale (raw + OFS))` (mGauss; S from DIA/ODI, all-zero DIA read as 1; `scale` =
-/// COMPASS_SCALE when read and within 1/1.5..1.5, else 1). The motor term (COMPASS_MOT) is not undone:
-/// it needs throttle or current and is zero unless motor compensation is set up.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct ApCompassParams {
-    values: BTreeMap<String, f32>,
-}
-
-impl ApCompassParams {
-    /// Take a PARAM_VALUE for one of the compasses' parameters ([`ap_compass_params`]); true when
-    /// it was one.
-    pub fn absorb(&mut self, msg: &MavMessage) -> bool {
-        let MavMessage::PARAM_VALUE(p) = msg else {
-            return false;
-        };
-        let name = array_text(&p.param_id);
-        let known = (0..AP_COMPASSES).any(|c| ap_compass_params(c).contains(&name));
-        if known && p.param_value.is_finite() {
-            self.values.insert(name, p.param_value);
-            true
-        } else {
-            false
-        }
-    }
-
-    /// Set a value directly (as if read).
-    pub fn set(&mut self, name: &str, value: f32) {
-        self.values.insert(name.to_string(), value);
-    }
-
-    /// A value read so far.
-    pub fn get(&self, name: &str) -> Option<f32> {
-        self.values.get(name).copied()
-    }
-
-    /// All nine offset and matrix parameters of `compass` have been read.
-    pub fn complete(&self, compass: u8) -> bool {
-        ap_compass_params(compass)[..9]
-            .iter()
-            .all(|n| self.values.contains_key(n))
-    }
-
-    /// (OFS in mGauss, S, scale) of `compass` as ArduPilot uses them.
-    fn parts(&self, compass: u8) -> Option<([f64; 3], [[f64; 3]; 3], f64)> {
-        if !self.complete(compass) {
-            return None;
-        }
-        let names = ap_compass_params(compass);
-        let v: Vec<f64> = names[..9].iter().map(|n| self.values[n] as f64).collect();
-        let ofs = [v[0], v[1], v[2]];
-        let mut dia = [v[3], v[4], v[5]];
-        if dia.iter().all(|d| *d == 0.0) {
-            dia = [1.0; 3];
-        }
-        let (odx, ody, odz) = (v[6], v[7], v[8]);
-        let s = [[dia[0], odx, ody], [odx, dia[1], odz], [ody, odz, dia[2]]];
-        let scale = match self.get(&names[9]).map(f64::from) {
-            Some(k) if k >= AP_SCALE_RANGE.0 && k <= AP_SCALE_RANGE.1 => k,
-            _ => 1.0,
-        };
-        Some((ofs, s, scale))
-    }
-
-    /// ArduPilot's forward correction of `compass`'s raw field (uT in, uT out). None until complete.
-    pub fn correct(&self, compass: u8, raw_ut: [f64; 3]) -> Option<[f64; 3]> {
-        let (ofs, s, scale) = self.parts(compass)?;
-        let m = [0, 1, 2].map(|i| scale * (raw_ut[i] * 10.0 + ofs[i]));
-        Some([0, 1, 2].map(|i| dot(&s[i], &m) / 10.0))
-    }
-
-    /// The raw field (uT) behind `compass`'s corrected one (uT): raw = S^-1 corrected / scale - OFS.
-    /// None until complete, or when S is singular or the input not finite.
-    pub fn undo(&self, compass: u8, corrected_ut: [f64; 3]) -> Option<[f64; 3]> {
-        if !corrected_ut.iter().all(|x| x.is_finite()) {
-            return None;
-        }
-        let (ofs, s, scale) = self.parts(compass)?;
-        let sm = rows_to_mat(&s);
-        if !(sm.determinant().abs() > 1e-9) {
-            return None;
-        }
-        let inv = sm.try_inverse()?;
-        let c = nalgebra::Vector3::new(
-            corrected_ut[0] * 10.0,
-            corrected_ut[1] * 10.0,
-            corrected_ut[2] * 10.0,
-        );
-        let m = inv * c / scale;
-        let raw = [0, 1, 2].map(|i| (m[i] - ofs[i]) / 10.0);
-        raw.iter().all(|x| x.is_finite()).then_some(raw)
-    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1943,16 +1844,8 @@ mod tests {
         }
     }
 
-    fn ap_params(values: [f32; 9]) -> ApCompassParams {
-        let mut p = ApCompassParams::default();
-        for (n, v) in ap_compass_params(0).iter().zip(values) {
-            assert!(p.absorb(&param_value(n, v)));
-        }
-        p
-    }
-
     #[test]
-    fn ardupilot_correction_is_undone() {
+    fn param_request_reads_name_every_compass_parameter() {
         let reqs = param_request_reads(1, 1);
         assert_eq!(reqs.len(), 30);
         let names: Vec<String> = (0..AP_COMPASSES).flat_map(ap_compass_params).collect();
@@ -1971,71 +1864,6 @@ mod tests {
             );
             assert_eq!(array_text(&r.param_id), *n);
         }
-
-        let mut p = ApCompassParams::default();
-        assert!(!p.absorb(&param_value("COMPASS_OFS4_X", 1.0)));
-        assert!(!p.absorb(&named_float("COMPASS_OF", 0, 1.0)));
-        assert!(p.undo(0, [1.0, 2.0, 3.0]).is_none());
-        p = ap_params([-120.0, 300.0, -450.0, 1.05, 0.97, 1.01, 0.02, -0.01, 0.04]);
-        assert!(p.complete(0) && !p.complete(1));
-        let raw = [40.0, 5.0, -20.0];
-        // ArduPilot's correct_field, written out in mGauss.
-        let m = [400.0 - 120.0, 50.0 + 300.0, -200.0 - 450.0];
-        let s = [[1.05, 0.02, -0.01], [0.02, 0.97, 0.04], [-0.01, 0.04, 1.01]];
-        let corrected = [0, 1, 2].map(|i| dot(&s[i], &m) / 10.0);
-        let fwd = p.correct(0, raw).unwrap();
-        for i in 0..3 {
-            assert!((fwd[i] - corrected[i]).abs() < 1e-4);
-        }
-        let back = p.undo(0, corrected).unwrap();
-        for i in 0..3 {
-            assert!((back[i] - raw[i]).abs() < 1e-4, "{back:?}");
-        }
-        // The undone field is what our own calibration with export's parameters corrects.
-        let cal = Calibration {
-            model: ModelKind::Sym9,
-            offset: [12.0, -30.0, 45.0],
-            matrix: s,
-        };
-        let (exp, _) = crate::calib::export::ardupilot_mag(&cal, 0);
-        let mut q = ApCompassParams::default();
-        for (n, v) in exp.iter() {
-            q.set(n, *v as f32);
-        }
-        let c = cal.apply(&raw);
-        let u = q.undo(0, c).unwrap();
-        assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
-
-        // COMPASS_SCALE is applied when ArduPilot would.
-        p.absorb(&param_value("COMPASS_SCALE", 1.2));
-        let c = p.correct(0, raw).unwrap();
-        assert!((c[0] - 1.2 * corrected[0]).abs() < 1e-3);
-        let back = p.undo(0, c).unwrap();
-        assert!((0..3).all(|i| (back[i] - raw[i]).abs() < 1e-4));
-        p.absorb(&param_value("COMPASS_SCALE", 3.0));
-        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
-
-        // The second compass has parameters of its own, undone apart from the first's.
-        let (exp2, _) = crate::calib::export::ardupilot_mag(&cal, 1);
-        for (n, v) in exp2.iter() {
-            assert!(p.absorb(&param_value(n, *v as f32)), "{n}");
-        }
-        assert!(p.complete(1));
-        let u = p.undo(1, cal.apply(&raw)).unwrap();
-        assert!((0..3).all(|i| (u[i] - raw[i]).abs() < 1e-3), "{u:?}");
-        assert!((p.correct(0, raw).unwrap()[0] - corrected[0]).abs() < 1e-4);
-    }
-
-    #[test]
-    fn zero_diagonals_read_as_one_and_singular_is_refused() {
-        let p = ap_params([10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(p.undo(0, [5.0, 1.0, 2.0]).unwrap(), [4.0, 1.0, 2.0]);
-        let p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
-        assert!(p.undo(0, [5.0, 1.0, 2.0]).is_none());
-        let mut p = ap_params([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
-        assert!(p.undo(0, [f64::NAN, 0.0, 0.0]).is_none());
-        p.values.remove("COMPASS_ODI_Z");
-        assert!(!p.complete(0));
     }
 
     fn sets(msgs: &[MavMessage]) -> Vec<(String, f32)> {

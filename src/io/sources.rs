@@ -173,8 +173,8 @@ pub fn decode_log_batched(
     match format {
         Format::Tlog => {
             let choice = cfg.input.instance.clone();
-            let mut conv =
-                MessageConverter::new(choice, cfg.input.raw_imu_scale).with_ardupilot_undo();
+            let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale)
+                .with_ardupilot_mag(crate::io::decode::ArduPilotMag::Undo);
             if conv.choice == InstanceChoice::Auto {
                 conv = conv.with_other_instances();
             }

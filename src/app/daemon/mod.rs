@@ -49,13 +49,11 @@ use crate::io::clock::{ClockSettings, SourceClock};
 use crate::io::decode::{InstanceChoice, MessageConverter};
 use crate::io::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
 use crate::io::mavout::{
-    self, ApCompassParams, LiveEvent, MagCalEffect, MagCalEvent, MagCalRun, MavEncoder, ParamWriter,
+    self, LiveEvent, MagCalEffect, MagCalEvent, MagCalRun, MavEncoder, ParamWriter,
 };
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Sensor, Unit, Vec3};
-use mavlink::dialects::ardupilotmega::{
-    MavAutopilot, MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA,
-};
+use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -84,14 +82,12 @@ pub struct RunSummary {
     pub inbound_dropped: u64,
 }
 
-/// A vehicle heard on the links: its converter (instances, clocks) and its ArduPilot state (whether
+/// A vehicle heard on the links: its converter (instances, clocks, and its ArduPilot state: whether
 /// its magnetometer data comes calibrated, and the calibration to undo).
 struct Vehicle {
     /// Link index and system id; (0, 0) for every link with `daemon.links = "merged"`.
     key: (usize, u8),
     conv: MessageConverter,
-    ardupilot: bool,
-    ap_params: ApCompassParams,
     /// Its calibration (index in `State::cals`), once its IMU data arrived.
     cal: Option<usize>,
     /// Told the user it is not calibrated.
@@ -278,7 +274,6 @@ struct Cal {
     latest: Option<Calibrated>,
     writer: Option<ParamWriter>,
     cal_dir: PathBuf,
-    mag_awaiting_params: u64,
     /// Calibrated vectors since the last heading publication.
     window: Averager,
     /// Fused attitude (body FRD -> NED, true north when the place is known) from every calibrated sample.
@@ -383,6 +378,7 @@ pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSumm
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mavlink::dialects::ardupilotmega::MavAutopilot;
 
     fn cal(offset: Vec3, scale: f64) -> Calibration {
         Calibration {

@@ -98,7 +98,6 @@ impl Cal {
             latest: None,
             writer: None,
             cal_dir,
-            mag_awaiting_params: 0,
             window: Averager::default(),
             fusion: OrientationFilter::new(cfg.fusion_config(declination)),
             attitude_rates: RateMean::default(),
@@ -125,7 +124,12 @@ impl State {
     ) -> Result<State, Error> {
         let d = cfg.daemon.clone();
         let choice = cfg.input.instance.clone();
-        let mut new_converter = MessageConverter::new(choice, cfg.input.raw_imu_scale);
+        let ardupilot_mag = match d.ardupilot_corrected_mag {
+            crate::config::ArdupilotCorrectedMag::Undo => crate::io::decode::ArduPilotMag::Undo,
+            crate::config::ArdupilotCorrectedMag::Refuse => crate::io::decode::ArduPilotMag::Refuse,
+        };
+        let mut new_converter = MessageConverter::new(choice, cfg.input.raw_imu_scale)
+            .with_ardupilot_mag(ardupilot_mag);
         if new_converter.choice == InstanceChoice::Auto {
             // Every compass of the calibrated vehicle, each on its own track.
             new_converter = new_converter.with_other_instances();

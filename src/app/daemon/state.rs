@@ -353,8 +353,6 @@ impl State {
         self.vehicles.push(Vehicle {
             key,
             conv: self.new_converter.clone(),
-            ardupilot: false,
-            ap_params: ApCompassParams::default(),
             cal: None,
             announced: false,
         });
@@ -477,13 +475,15 @@ impl State {
             return false;
         }
         match &frame.message {
-            MavMessage::HEARTBEAT(h) => {
+            MavMessage::HEARTBEAT(_) => {
                 let v = self.vehicle(link, frame.system_id);
-                if h.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA
-                    && !self.vehicles[v].ardupilot
-                    && frame.component_id != 191
-                {
-                    self.vehicles[v].ardupilot = true;
+                let conv = &mut self.vehicles[v].conv;
+                let was = conv.is_ardupilot();
+                // An onboard computer's HEARTBEAT speaks for no flight stack.
+                if frame.component_id != 191 {
+                    conv.convert_any(&frame.message, time_us);
+                }
+                if !was && conv.is_ardupilot() {
                     if self.cfg.daemon.ardupilot_corrected_mag == ArdupilotCorrectedMag::Undo {
                         self.status(6, "ArduPilot link: reading COMPASS_* to undo its calibration before fitting".into()).await;
                         let reqs = mavout::param_request_reads(frame.system_id, frame.component_id);
@@ -500,7 +500,7 @@ impl State {
             }
             MavMessage::PARAM_VALUE(_) => {
                 let v = self.vehicle(link, frame.system_id);
-                self.vehicles[v].ap_params.absorb(&frame.message);
+                self.vehicles[v].conv.convert_any(&frame.message, time_us);
                 for c in self.cals.iter_mut() {
                     if c.target.0 == frame.system_id {
                         if let Some(w) = c.writer.as_mut() {
@@ -522,34 +522,19 @@ impl State {
                 let Some(track) = self.track_of(c, k).await else {
                     return false;
                 };
-                self.on_vehicle_sample(v, c, track, s)
+                self.on_vehicle_sample(c, track, s)
             }
         }
     }
 
-    /// A sample of vehicle `v` (calibrated vehicle `c`, its track `track`): an ArduPilot
-    /// vehicle's magnetometer reading has its onboard calibration undone (or is held back
-    /// until its parameters are known), then it is pushed. True when a refit is due.
-    fn on_vehicle_sample(&mut self, v: usize, c: usize, track: usize, mut s: Sample) -> bool {
-        let vh = &self.vehicles[v];
-        let cal = &mut self.cals[c];
-        if vh.ardupilot {
-            if let Some(m) = s.mag_ut {
-                s.mag_ut = if self.cfg.daemon.ardupilot_corrected_mag == ArdupilotCorrectedMag::Undo
-                {
-                    vh.ap_params.undo(cal.tracks[track].compass_id, m)
-                } else {
-                    None
-                };
-                if s.mag_ut.is_none() {
-                    cal.mag_awaiting_params += 1;
-                }
-            }
-        }
+    /// A sample of calibrated vehicle `c`'s track `track` (an ArduPilot vehicle's magnetometer
+    /// reading already has its onboard calibration undone by the converter, or is held back
+    /// until its parameters are known). True when a refit is due.
+    fn on_vehicle_sample(&mut self, c: usize, track: usize, s: Sample) -> bool {
         if track == 0 {
             self.on_sample(c, s)
         } else {
-            cal.tracks[track].push(&s)
+            self.cals[c].tracks[track].push(&s)
         }
     }
 

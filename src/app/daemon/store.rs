@@ -408,7 +408,6 @@ impl State {
         let cal = &self.cals[c];
         let vehicle = cal.vehicle.map(|v| &self.vehicles[v]);
         let mut stats = vehicle.map(|v| v.conv.stats.clone()).unwrap_or_default();
-        stats.skip_n("mag_awaiting_params", cal.mag_awaiting_params);
         let label = if c == 0 {
             self.service_input(&mut stats);
             let labels: Vec<_> = self.links.iter().map(|l| l.label.clone()).collect();
