@@ -546,8 +546,12 @@ fn instance_reports(
                 report.calibration.clone()
             } else {
                 let r = others.get_mut(k)?.as_mut()?.finish();
+                let mut mag = r.mag.report.clone();
+                if let Some(f) = &log.flight {
+                    explain_instance_mag(f, i, &mut mag, report.input.duration_s);
+                }
                 CalibrationReport {
-                    mag: r.mag.report.clone(),
+                    mag,
                     accel: r.accel.report.clone(),
                     gyro: r.gyro.clone(),
                 }
@@ -562,6 +566,61 @@ fn instance_reports(
             })
         })
         .collect()
+}
+
+/// A further instance of a flight-controller log whose magnetometer fit failed: the evidence
+/// when the reason is the log's, not the data's. An instance with no magnetometer readings says
+/// so; one whose compass is the primary's (the same onboard calibration slot: PX4 logs the raw
+/// `sensor_mag` of the compass whose corrected `vehicle_magnetometer` the primary takes) names
+/// the rate it was logged at and where that compass is calibrated instead.
+fn explain_instance_mag(
+    f: &crate::io::flightlog::FlightLog,
+    inst: &crate::io::decode::InstanceInfo,
+    mag: &mut crate::report::SensorCalibration,
+    duration_s: f64,
+) {
+    if mag.status != CalStatus::Failed {
+        return;
+    }
+    let mine = f.sensors.iter().find(|s| {
+        s.sensor == "mag" && s.instance == inst.compass_id && inst.name.contains(s.source.as_str())
+    });
+    let Some(stream) = mine else {
+        mag.detail = Some(format!(
+            "no magnetometer: the log has no compass readings for {} (its accelerometer and gyro only)",
+            inst.name
+        ));
+        return;
+    };
+    let Some(primary) = f.primary_mag_source.as_deref() else {
+        return;
+    };
+    let shared = f.onboard.mag.iter().any(|slot| {
+        slot.sources.iter().any(|s| s == &stream.source)
+            && slot.sources.iter().any(|s| s == primary)
+    });
+    if !shared {
+        return;
+    }
+    let primary_n = f
+        .sensors
+        .iter()
+        .find(|s| s.sensor == "mag" && s.source == primary)
+        .map_or(0, |s| s.samples);
+    let rate = if duration_s > 0.0 {
+        stream.samples as f64 / duration_s
+    } else {
+        0.0
+    };
+    let was = mag.detail.take().unwrap_or_default();
+    mag.detail = Some(format!(
+        "{was}: {} is logged at {rate:.1} Hz ({} readings over {duration_s:.0} s); it is the primary's compass{}, calibrated above from {primary} ({primary_n} readings)",
+        stream.source,
+        stream.samples,
+        stream
+            .device_id
+            .map_or(String::new(), |d| format!(" (device id {d})")),
+    ));
 }
 
 /// The report for a pipeline's current state.
@@ -791,9 +850,13 @@ pub fn summary(r: &Report) -> String {
             ),
             CalStatus::Failed => format!("FAILED ({})", m.failure.map_or("?", FitFailure::name)),
         };
+        let why = match (&m.status, &m.detail) {
+            (CalStatus::Failed, Some(d)) => format!(": {d}"),
+            _ => String::new(),
+        };
         let _ = writeln!(
             s,
-            "instance {} (compass {}): {} samples, mag {what}; accel {}",
+            "instance {} (compass {}): {} samples, mag {what}{why}; accel {}",
             i.instance, i.compass_id, i.samples, i.calibration.accel.status
         );
     }

@@ -549,10 +549,16 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
             ));
         }
     }
-    // Stuck part of the time: one exact value in a fifth of the points.
+    // Stuck part of the time: one exact value in a fifth of the points, while the other axes
+    // sweep. A sensor at rest (a vehicle on the ground, streamed at a low rate) repeats its
+    // readings too, but the other axes then hold still as well, to within noise: not a fault.
     for k in 0..3 {
         if let Some((val, best)) = frequent_value(points.iter().map(|p| p[k]), 0.2) {
-            if best >= 5 && val > ranges[k].0 && val < ranges[k].1 {
+            if best >= 5
+                && val > ranges[k].0
+                && val < ranges[k].1
+                && !holds_still(points, k, val, widest)
+            {
                 return Some(format!(
                     "axis {} reads exactly {val} in {best} of {n} points: the axis is stuck part of the time",
                     AXIS[k]
@@ -583,6 +589,25 @@ pub fn axis_fault(points: &[Vec3]) -> Option<String> {
     }
     None
 }
+
+/// The others axes' largest range over the points whose axis `k` reads `val` is within
+/// [`REST_SHARE`] of the widest range of the run: the sensor held still whenever the axis read
+/// that value.
+fn holds_still(points: &[Vec3], k: usize, val: f64, widest: f64) -> bool {
+    let mut r = [(f64::INFINITY, f64::NEG_INFINITY); 3];
+    for p in points.iter().filter(|p| p[k] == val) {
+        for (j, r) in r.iter_mut().enumerate() {
+            *r = (r.0.min(p[j]), r.1.max(p[j]));
+        }
+    }
+    (0..3)
+        .filter(|j| *j != k)
+        .all(|j| r[j].1 - r[j].0 <= REST_SHARE * widest)
+}
+
+/// While a sensor holds still its readings vary by noise only: a few counts, well under a twentieth
+/// of the span a calibration run sweeps (twice the field or gravity).
+const REST_SHARE: f64 = 0.05;
 
 /// The value that occurs most often (the smallest of equally frequent ones) and its count, when it
 /// occurs in at least `min_share` of the values (`min_share` > 1/6). O(n): the Misra-Gries summary
@@ -1397,6 +1422,39 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A sensor resting for a third of a run (a vehicle on the ground streamed at a low rate)
+    /// repeats one y reading exactly while x and z jitter by a count: not a stuck axis. The same
+    /// y value held while x and z sweep is one.
+    #[test]
+    fn axis_fault_tells_a_resting_sensor_from_a_stuck_axis() {
+        let sweep: Vec<Vec3> = (0..200)
+            .map(|i| {
+                let (a, b) = (i as f64 * 0.37, i as f64 * 0.11);
+                [
+                    40.0 * a.cos() * b.cos(),
+                    40.0 * a.sin() * b.cos(),
+                    40.0 * b.sin(),
+                ]
+            })
+            .collect();
+        let mut resting = sweep.clone();
+        resting.extend((0..100).map(|i| {
+            [
+                -1.4 + 0.1 * (i % 2) as f64,
+                -17.0,
+                28.8 - 0.1 * (i % 3) as f64,
+            ]
+        }));
+        assert_eq!(axis_fault(&resting), None);
+        let mut stuck = sweep.clone();
+        stuck.extend(sweep.iter().take(100).map(|p| [p[0], -17.0, p[2]]));
+        let why = axis_fault(&stuck).expect("a stuck axis");
+        assert!(
+            why.contains("axis y reads exactly -17 in 100 of 300"),
+            "{why}"
+        );
+    }
 
     #[test]
     fn frequent_value_agrees_with_sorting_and_counting() {
