@@ -50,6 +50,7 @@ pub fn replay(
     results.gyro.scale_failure = failure;
     mag_method(&mut results, &run.log, &run.pipe, cfg);
     mounting_check(&mut results, &run.log, &run.pipe, cfg);
+    run.other_mags = other_mag_methods(&mut run, cfg);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality(&run.log, &run.pipe, cfg);
@@ -165,11 +166,39 @@ fn mounting_check(
     pipe: &Pipeline,
     cfg: &Config,
 ) {
+    let index = log
+        .instances
+        .iter()
+        .find(|i| log.instance.as_deref() == Some(i.name.as_str()))
+        .map_or(0, |i| i.compass_id as usize);
+    let accel = results.accel.calibration;
+    check_mounting(
+        &mut results.mag,
+        accel.as_ref(),
+        &log.samples,
+        log,
+        pipe,
+        cfg,
+        index,
+    );
+}
+
+/// [`mounting_check`] of one compass: its result, its instance's accelerometer calibration and
+/// samples, its pipeline, and its compass number.
+fn check_mounting(
+    mag: &mut crate::calib::pipeline::SensorResult,
+    accel: Option<&crate::calib::model::Calibration>,
+    samples: &[crate::types::Sample],
+    log: &crate::io::sources::Log,
+    pipe: &Pipeline,
+    cfg: &Config,
+    index: usize,
+) {
     let poses = pipe.poses();
     // The attitude nearest each pose's middle (samples and poses both in arrival order).
     let mut att: Vec<Option<(f64, [f64; 4])>> = vec![None; poses.len()];
     let mut k = 0;
-    for s in &log.samples {
+    for s in samples {
         while k < poses.len()
             && (s.segment > poses[k].segment
                 || (s.segment == poses[k].segment && s.t_s > poses[k].t_end))
@@ -190,17 +219,10 @@ fn mounting_check(
         .iter()
         .map(|a| a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)))
         .collect();
-    let field =
-        crate::calib::magmethod::earth_field_of(&log.samples, log.place(), cfg.place.as_ref());
-    let index = log
-        .instances
-        .iter()
-        .find(|i| log.instance.as_deref() == Some(i.name.as_str()))
-        .map_or(0, |i| i.compass_id as usize);
-    let accel = results.accel.calibration;
+    let field = crate::calib::magmethod::earth_field_of(samples, log.place(), cfg.place.as_ref());
     crate::calib::mounting::check(
-        &mut results.mag,
-        accel.as_ref(),
+        mag,
+        accel,
         poses,
         &att,
         field.as_ref(),
@@ -209,12 +231,50 @@ fn mounting_check(
     );
 }
 
+/// Every further compass gets the primary's methods: the vector (or planar) fit when its samples
+/// carry the vehicle's attitude and the place is known, with its own mounting check. `None` where
+/// an instance has no pipeline.
+fn other_mag_methods(
+    run: &mut Run,
+    cfg: &Config,
+) -> Vec<Option<crate::calib::pipeline::SensorResult>> {
+    let log = &run.log;
+    let mut out = Vec::with_capacity(run.others.len());
+    for (k, p) in run.others.iter_mut().enumerate() {
+        let Some(p) = p.as_mut() else {
+            out.push(None);
+            continue;
+        };
+        let results = p.finish().clone();
+        let mut mag = results.mag;
+        let samples = run.other_samples.get(k).map_or(&[][..], |v| &v[..]);
+        let p = &*p;
+        crate::calib::magmethod::choose(
+            &mut mag,
+            samples,
+            &|s| p.to_body(s),
+            log.place(),
+            cfg.place.as_ref(),
+        );
+        let index = log.instances.get(k).map_or(k, |i| i.compass_id as usize);
+        let accel = results.accel.calibration;
+        check_mounting(&mut mag, accel.as_ref(), samples, log, p, cfg, index);
+        out.push(Some(mag));
+    }
+    out
+}
+
 /// A log run through the pipelines: the primary's, the other instances' and the decoded log (with
 /// the primary's samples).
 struct Run {
     pipe: Pipeline,
-    /// The other IMU instances of a MAVLink log, each through a pipeline of its own.
+    /// The other IMU instances of a log, each through a pipeline of its own.
     others: Vec<Option<Pipeline>>,
+    /// Their samples, by the same index.
+    other_samples: Vec<Vec<crate::types::Sample>>,
+    /// Their magnetometer results after the method choice and mounting check
+    /// ([`other_mag_methods`]), by the same index.
+    other_mags: Vec<Option<crate::calib::pipeline::SensorResult>>,
     log: crate::io::sources::Log,
 }
 
@@ -232,6 +292,7 @@ fn run_pipelines(
     // the same order as from a whole-file decode, so the result is the same.
     let mut samples = Vec::new();
     let mut others: Vec<Option<Pipeline>> = Vec::new();
+    let mut other_samples: Vec<Vec<crate::types::Sample>> = Vec::new();
     let decoded = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
         let decoder = scope.spawn(move || {
@@ -257,6 +318,10 @@ fn run_pipelines(
                     if p.push(s) {
                         p.refit();
                     }
+                    if other_samples.len() <= k {
+                        other_samples.resize_with(k + 1, Vec::new);
+                    }
+                    other_samples[k].push(*s);
                 }
             }
             progress(batch.bytes_read as u64, batch.bytes_total as u64);
@@ -268,7 +333,13 @@ fn run_pipelines(
     });
     let mut log = decoded?;
     log.samples = samples;
-    Ok(Run { pipe, others, log })
+    Ok(Run {
+        pipe,
+        others,
+        other_samples,
+        other_mags: Vec::new(),
+        log,
+    })
 }
 
 /// The report of a run: input, calibrations, the other instances and the onboard comparison.
@@ -292,7 +363,7 @@ fn full_report(
         duration,
     );
     let mut report = make_report(input, &run.pipe, results, declination);
-    report.instances = instance_reports(log, &report, &mut run.others);
+    report.instances = instance_reports(log, &report, &mut run.others, &run.other_mags);
     if let Some(f) = &log.flight {
         report.input.sensors = f.sensors.clone();
         let mut onboard = f.onboard.clone();
@@ -532,6 +603,7 @@ fn instance_reports(
     log: &crate::io::sources::Log,
     report: &Report,
     others: &mut [Option<Pipeline>],
+    other_mags: &[Option<crate::calib::pipeline::SensorResult>],
 ) -> Vec<crate::report::InstanceReport> {
     if log.instances.len() < 2 {
         return Vec::new();
@@ -546,7 +618,10 @@ fn instance_reports(
                 report.calibration.clone()
             } else {
                 let r = others.get_mut(k)?.as_mut()?.finish();
-                let mut mag = r.mag.report.clone();
+                let mut mag = match other_mags.get(k) {
+                    Some(Some(m)) => m.report.clone(),
+                    _ => r.mag.report.clone(),
+                };
                 if let Some(f) = &log.flight {
                     explain_instance_mag(f, i, &mut mag, report.input.duration_s);
                 }

@@ -245,12 +245,14 @@ impl Assembler {
         s.gyro_rad_s = take(gyro);
         s.mag_ut = take(mag);
         s.temp_c = temp.filter(|x| x.is_finite());
-        if primary {
-            if let Some((ta, q)) = self.attitude {
-                if t_us.abs_diff(ta) <= ATTITUDE_MAX_AGE_US {
-                    s.ref_q = Some(q);
-                }
+        // The vehicle's attitude rides on every instance's samples: every compass can be fitted
+        // against it.
+        if let Some((ta, q)) = self.attitude {
+            if t_us.abs_diff(ta) <= ATTITUDE_MAX_AGE_US {
+                s.ref_q = Some(q);
             }
+        }
+        if primary {
             if bad {
                 self.stats.skip("non_finite");
             }
