@@ -169,6 +169,10 @@ pub enum FieldModel {
     /// 1900 to 2019, where the WMM releases in use do not reach.
     #[serde(rename = "IGRF-13")]
     Igrf13,
+    /// Fitted to the log's own readings and attitudes (no place known, or the data disagree with
+    /// the models): its strength is held at the readings' mean, its direction fitted.
+    #[serde(rename = "fitted")]
+    Fitted,
 }
 
 /// The first date the World Magnetic Model in use covers; earlier dates take IGRF-13.

@@ -72,8 +72,9 @@ pub struct FieldUsed {
     /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`, or
     /// `today` (the log gives no date).
     pub date_source: String,
-    pub latitude_deg: f64,
-    pub longitude_deg: f64,
+    /// The place (none when the field is fitted).
+    pub latitude_deg: Option<f64>,
+    pub longitude_deg: Option<f64>,
     /// Where the place came from: the log's position, its GPS, or `[place]`.
     pub place_source: String,
     pub total_ut: f64,
@@ -146,8 +147,8 @@ fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<
         model: f.model,
         date: w.place.date.clone().unwrap_or_else(|| "today".to_string()),
         date_source: w.date_source.to_string(),
-        latitude_deg: w.place.latitude_deg,
-        longitude_deg: w.place.longitude_deg,
+        latitude_deg: Some(w.place.latitude_deg),
+        longitude_deg: Some(w.place.longitude_deg),
         place_source: w.source.to_string(),
         total_ut: f.total_ut,
         inclination_deg: f.inclination_deg,
@@ -238,7 +239,9 @@ pub fn choose(
         MagMethod::Sphere => {}
     }
     let mut choice = choice;
-    choice.earth_field = field_used(samples, log, cfg_place);
+    if choice.earth_field.is_none() {
+        choice.earth_field = field_used(samples, log, cfg_place);
+    }
     mag.report.method = Some(choice);
 }
 
@@ -384,10 +387,7 @@ fn decide_vector(
         );
     }
     let Some(w) = place_of(samples, log, cfg_place) else {
-        return sphere(
-            "an attitude but no position (no GPS in the log, no [place] configured)".into(),
-            None,
-        );
+        return fitted_field_choice(mag, samples, body_mag);
     };
     let field = match crate::attitude::earth_field(&w.place) {
         Ok(f) => f,
@@ -579,14 +579,25 @@ pub fn quality(
     log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> Option<crate::report::QualityReport> {
-    let w = place_of(samples, log, cfg_place)?;
-    let field = crate::attitude::earth_field(&w.place).ok()?;
     let t0 = samples.first()?.t_s;
     let (fit_part, held): (Vec<&Sample>, Vec<&Sample>) =
         samples.iter().partition(|s| fitting_block(t0, s.t_s));
     let fit_samples: Vec<Sample> = fit_part.into_iter().cloned().collect();
-    let pts = points(&fit_samples, body_mag, &field.field_ned_ut());
-    let fitted = crate::calib::vector::fit(&pts, current_varies(&pts));
+    // The field of the place and day, else fitted on the fitting blocks with the calibration.
+    let (fitted, method) = match place_of(samples, log, cfg_place) {
+        Some(w) => {
+            let field = crate::attitude::earth_field(&w.place).ok()?;
+            let pts = points(&fit_samples, body_mag, &field.field_ned_ut());
+            (
+                crate::calib::vector::fit(&pts, current_varies(&pts)),
+                "vector",
+            )
+        }
+        None => (
+            fit_with_field(&fit_samples, body_mag)?.map(|(v, _)| v),
+            "vector, field fitted",
+        ),
+    };
     let score = |cal: &FieldOf<'_>| {
         let r: Vec<(Vec3, nalgebra::UnitQuaternion<f64>)> = held
             .iter()
@@ -618,11 +629,14 @@ pub fn quality(
     if ours.is_none() && theirs.is_none() {
         return None;
     }
-    let verdict = verdict(ours.as_ref(), theirs.as_ref());
+    let mut verdict = verdict(ours.as_ref(), theirs.as_ref());
+    if let (None, Some(f)) = (&ours, &failure) {
+        verdict = format!("{verdict} ({f})");
+    }
     Some(crate::report::QualityReport {
         instance: instance.to_string(),
         block_s: QUALITY_BLOCK_S,
-        method: "vector".into(),
+        method: method.into(),
         imucald: ours,
         onboard: theirs,
         imucald_failure: if ours.is_none() { failure } else { None },
@@ -664,4 +678,201 @@ fn verdict(
         ),
         (None, None) => "nothing to judge".into(),
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The earth field fitted
+
+/// Alternations of the fitted-field vector fit at most; it stops earlier once the field's
+/// direction moves by less than [`FIELD_FIT_TOL`] (relative) in one.
+const FIELD_FIT_ROUNDS: usize = 50;
+const FIELD_FIT_TOL: f64 = 1e-7;
+
+/// The vector fit with the earth field unknown, as ArduPilot's MAGFit fits the EKF's field
+/// (no place known): raw = A R^T B + o with B fitted too, by alternating the linear vector fit
+/// (B held) and B as the mean of R M (raw - o) (the calibration held). B's strength trades
+/// against A's scale, so it is held at the strength of the mean of the readings turned into NED
+/// (the start); its direction (inclination and declination against the attitude's north) is fitted.
+/// `None` with fewer than [`crate::calib::vector::MIN_POINTS`] readings with an attitude.
+pub fn fit_with_field(
+    samples: &[Sample],
+    body_mag: &FieldOf<'_>,
+) -> Option<Result<(VectorFit, Vec3), crate::calib::vector::VectorFailure>> {
+    let pairs: Vec<(
+        nalgebra::Vector3<f64>,
+        nalgebra::UnitQuaternion<f64>,
+        Option<f64>,
+    )> = samples
+        .iter()
+        .filter_map(|s| {
+            let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
+            Some((nalgebra::Vector3::from(body_mag(s)?), q, s.current_a))
+        })
+        .collect();
+    if pairs.len() < crate::calib::vector::MIN_POINTS {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let mean_ned = |f: &dyn Fn(&nalgebra::Vector3<f64>) -> nalgebra::Vector3<f64>| {
+        pairs
+            .iter()
+            .map(|(m, q, _)| q * f(m))
+            .sum::<nalgebra::Vector3<f64>>()
+            / n
+    };
+    // Start: the readings turned into NED, averaged: the hard iron, fixed in the body, averages
+    // out as the vehicle turns, and what is left is the earth field. Its strength is kept.
+    let mut b = mean_ned(&|m| *m);
+    let strength = b.norm();
+    if !(strength > 0.0) {
+        return None;
+    }
+    let mut fit = None;
+    for _ in 0..FIELD_FIT_ROUNDS {
+        let pts: Vec<VectorPoint> = pairs
+            .iter()
+            .map(|(m, q, c)| VectorPoint {
+                raw_ut: [m.x, m.y, m.z],
+                expected_ut: {
+                    let e = q.inverse() * b;
+                    [e.x, e.y, e.z]
+                },
+                current_a: *c,
+            })
+            .collect();
+        let v = match crate::calib::vector::fit(&pts, false) {
+            Ok(v) => v,
+            Err(e) => return Some(Err(e)),
+        };
+        let m = crate::calib::model::rows_to_mat(&v.matrix);
+        let o = nalgebra::Vector3::from(v.offset_ut);
+        let mut nb = mean_ned(&|r| m * (r - o));
+        if !(nb.norm() > 0.0) {
+            return Some(Ok((v, [b.x, b.y, b.z])));
+        }
+        nb *= strength / nb.norm();
+        let moved = (nb - b).norm() / strength;
+        b = nb;
+        fit = Some(v);
+        if moved < FIELD_FIT_TOL {
+            break;
+        }
+    }
+    fit.map(|v| Ok((v, [b.x, b.y, b.z])))
+}
+
+/// The vector method with the field fitted ([`fit_with_field`]), or the sphere fit with the
+/// reason, for a log with an attitude but no place.
+fn fitted_field_choice(
+    mag: &SensorResult,
+    samples: &[Sample],
+    body_mag: &FieldOf<'_>,
+) -> MethodChoice {
+    let sphere = |reason: String, vector: Option<VectorFit>| MethodChoice {
+        method: MagMethod::Sphere,
+        method_reason: reason,
+        vector,
+        planar: None,
+        sphere_offset: None,
+        earth_field: None,
+    };
+    let no_place = "an attitude but no position (no GPS in the log, no [place] configured)";
+    let (v, b) = match fit_with_field(samples, body_mag) {
+        None => {
+            return sphere(
+                format!("{no_place}; too few readings with an attitude to fit the field"),
+                None,
+            )
+        }
+        Some(Err(e)) => {
+            return sphere(
+                format!(
+                    "{no_place}; the vector fit with the field fitted failed: {e}; {}",
+                    sphere_words(mag)
+                ),
+                None,
+            )
+        }
+        Some(Ok(x)) => x,
+    };
+    let total = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+    let field = FieldUsed {
+        model: crate::attitude::FieldModel::Fitted,
+        date: "n/a".into(),
+        date_source: "fitted".into(),
+        latitude_deg: None,
+        longitude_deg: None,
+        place_source: "none: no GPS in the log, no [place] configured".into(),
+        total_ut: total,
+        inclination_deg: (b[2] / total).asin().to_degrees(),
+        declination_deg: b[1].atan2(b[0]).to_degrees(),
+    };
+    let at = format!(
+        "{no_place}: the earth field fitted with the calibration ({:.1} uT held at the mean of the readings turned into NED, inclination {:.1} deg, declination {:.1} deg against the attitude's north)",
+        field.total_ut, field.inclination_deg, field.declination_deg
+    );
+    if !v.offset_identifiable {
+        return sphere(
+            format!(
+                "{at}; the attitudes do not determine the offset (up to {:.1} uT rests on an assumed soft iron); {}",
+                v.offset_assumption_ut,
+                sphere_words(mag)
+            ),
+            Some(v),
+        );
+    }
+    // With the field free the fit's own uncertainties leave out the field's: the offset counts as
+    // determined only when each half of the flight (alternate blocks) determines it on its own and
+    // the two agree.
+    if let Err(why) = halves_agree(samples, body_mag) {
+        return sphere(format!("{at}; {why}; {}", sphere_words(mag)), Some(v));
+    }
+    MethodChoice {
+        method: MagMethod::Vector,
+        method_reason: format!("attitude and fitted field: {} readings, {at}; each half of the flight gives the same offset; {}", v.points, sphere_words(mag)),
+        vector: Some(v),
+        planar: None,
+        sphere_offset: mag.calibration.map(|c| c.offset),
+        earth_field: Some(field),
+    }
+}
+
+/// The offsets of the field-fitted vector fit on the even and on the odd [`QUALITY_BLOCK_S`]
+/// blocks: both determined, and apart by at most three of their combined standard errors plus
+/// [`crate::calib::vector::OFFSET_ASSUMPTION_LIMIT_UT`] (what the fit lets rest on assumptions).
+fn halves_agree(samples: &[Sample], body_mag: &FieldOf<'_>) -> Result<(), String> {
+    let Some(t0) = samples.first().map(|s| s.t_s) else {
+        return Err("no readings".into());
+    };
+    let mut fits = Vec::with_capacity(2);
+    for even in [true, false] {
+        let half: Vec<Sample> = samples
+            .iter()
+            .filter(|s| fitting_block(t0, s.t_s) == even)
+            .cloned()
+            .collect();
+        match fit_with_field(&half, body_mag) {
+            Some(Ok((v, _))) if v.offset_identifiable => fits.push(v),
+            _ => {
+                return Err(format!(
+                    "the {} {QUALITY_BLOCK_S:.0} s blocks alone do not determine the offset with the field fitted",
+                    if even { "even" } else { "odd" }
+                ))
+            }
+        }
+    }
+    let (a, b) = (&fits[0], &fits[1]);
+    for k in 0..3 {
+        let d = (a.offset_ut[k] - b.offset_ut[k]).abs();
+        let allowed = 3.0 * a.offset_sigma_ut[k].hypot(b.offset_sigma_ut[k])
+            + crate::calib::vector::OFFSET_ASSUMPTION_LIMIT_UT;
+        if d > allowed {
+            return Err(format!(
+                "the two halves of the flight give offsets {:.1} uT apart on {} (at most {allowed:.1} allowed)",
+                d,
+                ["x", "y", "z"][k]
+            ));
+        }
+    }
+    Ok(())
 }
