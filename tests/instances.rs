@@ -267,14 +267,7 @@ fn a_second_compass_of_an_ordinary_flight_gets_the_vector_method_too() {
     use imucald::sim::{simulate, Scenario};
     let sc = Scenario::named("cruise").unwrap();
     let a = simulate(&sc, 2);
-    let mut sc2 = sc.clone();
-    sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
-    sc2.truth.mag.matrix = [
-        [0.97, 0.03, -0.02],
-        [0.03, 1.04, 0.015],
-        [-0.02, 0.015, 0.99],
-    ];
-    let b = simulate(&sc2, 2);
+    let b = simulate(&common::with_other_iron(&sc), 2);
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("cruise2.tlog");
     let mut bytes = Vec::new();

@@ -353,6 +353,18 @@ fn install_planar(mag: &mut SensorResult, p: &crate::calib::planar::PlanarFit) {
     r.outliers_rejected = p.outliers_rejected;
 }
 
+/// The sphere fit stays, for `reason`, with the vector fit made (if one was).
+fn sphere(reason: String, vector: Option<VectorFit>) -> MethodChoice {
+    MethodChoice {
+        method: MagMethod::Sphere,
+        method_reason: reason,
+        vector,
+        planar: None,
+        sphere_offset: None,
+        earth_field: None,
+    }
+}
+
 fn decide_vector(
     mag: &SensorResult,
     samples: &[Sample],
@@ -360,14 +372,6 @@ fn decide_vector(
     log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> MethodChoice {
-    let sphere = |reason: String, vector: Option<VectorFit>| MethodChoice {
-        method: MagMethod::Sphere,
-        method_reason: reason,
-        vector,
-        planar: None,
-        sphere_offset: None,
-        earth_field: None,
-    };
     if !samples
         .iter()
         .any(|s| s.ref_q.is_some() && s.mag_ut.is_some())
@@ -768,14 +772,6 @@ fn fitted_field_choice(
     samples: &[Sample],
     body_mag: &FieldOf<'_>,
 ) -> MethodChoice {
-    let sphere = |reason: String, vector: Option<VectorFit>| MethodChoice {
-        method: MagMethod::Sphere,
-        method_reason: reason,
-        vector,
-        planar: None,
-        sphere_offset: None,
-        earth_field: None,
-    };
     let no_place = "an attitude but no position (no GPS in the log, no [place] configured)";
     let (v, b) = match fit_with_field(samples, body_mag) {
         None => {

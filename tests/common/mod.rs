@@ -164,6 +164,11 @@ pub fn tumble_and_other_iron(seed_b: u64) -> (imucald::sim::SimOutput, imucald::
     use imucald::sim::{simulate, Scenario};
     let sc = Scenario::named("tumble").unwrap();
     let a = simulate(&sc, 4);
+    (a, simulate(&with_other_iron(&sc), seed_b))
+}
+
+/// `sc` with a second compass's hard and soft iron in place of its own.
+pub fn with_other_iron(sc: &imucald::sim::Scenario) -> imucald::sim::Scenario {
     let mut sc2 = sc.clone();
     sc2.truth.mag.offset = [-31.0, 12.5, 44.0];
     sc2.truth.mag.matrix = [
@@ -171,7 +176,7 @@ pub fn tumble_and_other_iron(seed_b: u64) -> (imucald::sim::SimOutput, imucald::
         [0.03, 1.04, 0.015],
         [-0.02, 0.015, 0.99],
     ];
-    (a, simulate(&sc2, seed_b))
+    sc2
 }
 
 /// Appends one `.tlog` record to `bytes`: the big-endian time stamp `stamp_us`, then `msg` as a
