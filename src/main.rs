@@ -53,6 +53,14 @@ struct ReplayArgs {
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
     format: Option<Format>,
+    /// Rows per second (Hz) of a CSV without a time column (as `rate_hz` under [input.csv]).
+    #[arg(long)]
+    rate_hz: Option<f64>,
+    /// Write the readings of each compass's held-out check here, one CSV per compass (block,
+    /// field in body axes with the onboard correction undone, attitude, the vehicle's calibrated
+    /// field): to fit another tool on the same blocks.
+    #[arg(long)]
+    quality_points: Option<PathBuf>,
     /// Write the JSON report here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -263,8 +271,13 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         export,
         html,
         diagnosis,
+        rate_hz,
+        quality_points,
     } = args;
-    let cfg = load_config(config.as_ref())?;
+    let mut cfg = load_config(config.as_ref())?;
+    if rate_hz.is_some() {
+        cfg.input.csv.rate_hz = rate_hz;
+    }
     let log = log.unwrap_or_else(|| {
         PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
     });
@@ -276,6 +289,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
         export_dir: export,
         html,
         diagnosis,
+        quality_points,
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(

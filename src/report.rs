@@ -35,17 +35,18 @@ pub struct Report {
     /// its parameters record it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub onboard: Option<OnboardReport>,
-    /// The primary compass's calibration judged on the part of the log it was not fitted on,
-    /// against the vehicle's own (logs with an attitude and a place).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub quality: Option<QualityReport>,
+    /// Each compass's calibration judged on the part of the log it was not fitted on, against
+    /// the vehicle's own (logs with an attitude): the primary's first, then the further
+    /// instances'.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub quality: Vec<QualityReport>,
 }
 
 /// A calibration fitted on alternate blocks of the log and scored on the others: what the field
 /// looks like through it where it was not fitted.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct QualityReport {
-    /// The instance judged (the primary).
+    /// The instance judged.
     pub instance: String,
     /// Length of the alternating blocks, s: fitted on the even ones (counted from the log's
     /// first sample), scored on the odd ones.

@@ -24,6 +24,9 @@ pub struct ReplayOptions {
     pub html: Option<PathBuf>,
     /// A diagnosis report (imucald.diagnosis/1) to show in the HTML page.
     pub diagnosis: Option<PathBuf>,
+    /// Directory for the readings of each compass's held-out check, for a peer's fit on the same
+    /// blocks (`write_quality_points`).
+    pub quality_points: Option<PathBuf>,
 }
 
 pub struct ReplayOutcome {
@@ -53,7 +56,7 @@ pub fn replay(
     run.other_mags = other_mag_methods(&mut run, cfg);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
-    report.quality = quality(&run.log, &run.pipe, cfg);
+    report.quality = quality(&run, cfg);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -73,6 +76,13 @@ pub fn replay(
     if let Some(p) = &opts.html {
         write_html(p, &mut run, &report, &results, opts)?;
         written.push(p.clone());
+    }
+    if let Some(dir) = &opts.quality_points {
+        std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+            path: dir.clone(),
+            source,
+        })?;
+        written.extend(write_quality_points(dir, &run, cfg)?);
     }
     Ok(ReplayOutcome {
         report,
@@ -95,29 +105,80 @@ fn write_html(
     crate::app::ui::html::write(p, report, &views, opts.diagnosis.as_deref())
 }
 
-/// The primary compass judged on the blocks of the log it was not fitted on, against the
-/// vehicle's own calibration of the same compass ([`crate::calib::magmethod::quality`]).
-fn quality(
+/// One compass of a log and what judging it needs: its instance, the stream its magnetometer
+/// readings come from (to find the vehicle's calibration of it), its samples and pipeline.
+struct Compass<'a> {
+    instance: String,
+    source: String,
+    samples: &'a [crate::types::Sample],
+    pipe: &'a Pipeline,
+}
+
+/// Every compass of the run with readings: the primary's first, then each further instance's.
+fn compasses(run: &Run) -> Vec<Compass<'_>> {
+    let log = &run.log;
+    let mut out = Vec::new();
+    if let Some(instance) = log.instance.clone() {
+        let source = match &log.flight {
+            Some(f) => f.primary_mag_source.clone(),
+            None => Some(instance.clone()),
+        };
+        if let Some(source) = source {
+            out.push(Compass {
+                instance,
+                source,
+                samples: &log.samples,
+                pipe: &run.pipe,
+            });
+        }
+    }
+    for (k, p) in run.others.iter().enumerate() {
+        let (Some(p), Some(info)) = (p.as_ref(), log.instances.get(k)) else {
+            continue;
+        };
+        let samples = run.other_samples.get(k).map_or(&[][..], |v| &v[..]);
+        if !samples.iter().any(|s| s.mag_ut.is_some()) {
+            continue;
+        }
+        // A flight log's instance joins its streams with '+': the magnetometer's is the source.
+        let source = info
+            .name
+            .split('+')
+            .find(|p| p.contains("mag") || !info.name.contains('+'))
+            .unwrap_or(&info.name)
+            .to_string();
+        out.push(Compass {
+            instance: info.name.clone(),
+            source,
+            samples,
+            pipe: p,
+        });
+    }
+    out
+}
+
+/// `f` with a compass's field in body axes (raw, any onboard correction undone) and, where the
+/// log records one for its stream, the field through the vehicle's own calibration.
+fn judge<R>(
     log: &crate::io::sources::Log,
-    pipe: &Pipeline,
-    cfg: &Config,
-) -> Option<crate::report::QualityReport> {
-    let instance = log.instance.clone()?;
-    let source = match &log.flight {
-        Some(f) => f.primary_mag_source.clone()?,
-        None => instance.clone(),
-    };
+    c: &Compass<'_>,
+    f: impl FnOnce(
+        &crate::calib::magmethod::FieldOf<'_>,
+        Option<&crate::calib::magmethod::FieldOf<'_>>,
+    ) -> R,
+) -> R {
+    let pipe = c.pipe;
     let slot = log
         .onboard()
-        .and_then(|o| o.mag.iter().find(|c| c.sources.contains(&source)))
-        .filter(|c| c.units == "uT");
+        .and_then(|o| o.mag.iter().find(|m| m.sources.contains(&c.source)))
+        .filter(|m| m.units == "uT");
     let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
-    let onboard = slot.map(|c| {
-        let m = crate::calib::model::rows_to_mat(&c.matrix);
-        let o = nalgebra::Vector3::from(c.offset);
+    let onboard = slot.map(|m| {
+        let mat = crate::calib::model::rows_to_mat(&m.matrix);
+        let o = nalgebra::Vector3::from(m.offset);
         move |s: &crate::types::Sample| {
             let raw = nalgebra::Vector3::from(s.mag_ut?);
-            let v = m * (raw - o);
+            let v = mat * (raw - o);
             let corrected = crate::types::Sample {
                 mag_ut: Some([v.x, v.y, v.z]),
                 ..*s
@@ -125,16 +186,96 @@ fn quality(
             pipe.to_body(&corrected).mag_ut
         }
     });
-    crate::calib::magmethod::quality(
-        &instance,
-        &log.samples,
+    f(
         &body_mag,
         onboard
             .as_ref()
-            .map(|f| f as &crate::calib::magmethod::FieldOf<'_>),
-        log.place(),
-        cfg.place.as_ref(),
+            .map(|g| g as &crate::calib::magmethod::FieldOf<'_>),
     )
+}
+
+/// Every compass judged on the blocks of the log it was not fitted on, against the vehicle's own
+/// calibration of the same compass ([`crate::calib::magmethod::quality`]); the primary first.
+fn quality(run: &Run, cfg: &Config) -> Vec<crate::report::QualityReport> {
+    let log = &run.log;
+    compasses(run)
+        .iter()
+        .filter_map(|c| {
+            judge(log, c, |body_mag, onboard| {
+                crate::calib::magmethod::quality(
+                    &c.instance,
+                    c.samples,
+                    body_mag,
+                    onboard,
+                    log.place(),
+                    cfg.place.as_ref(),
+                )
+            })
+        })
+        .collect()
+}
+
+/// The readings of the held-out check of every compass, one CSV per compass in `dir`
+/// (`quality_<instance>.csv`): for a peer's fit on the same blocks. Columns: `t` (s), `fit` (1 in
+/// a fitting block, 0 in a scored one), `mx my mz` (body axes, onboard correction undone, uT),
+/// `qw qx qy qz` (body -> NED), `onboard_mx ..` (through the vehicle's calibration, uT; empty
+/// without one). `#` lines first name the instance and give the earth field of the place and
+/// day, when known.
+fn write_quality_points(dir: &Path, run: &Run, cfg: &Config) -> Result<Vec<PathBuf>, Error> {
+    let log = &run.log;
+    let mut written = Vec::new();
+    for c in compasses(run) {
+        let (points, field) = judge(log, &c, |body_mag, onboard| {
+            crate::calib::magmethod::quality_points(
+                c.samples,
+                body_mag,
+                onboard,
+                log.place(),
+                cfg.place.as_ref(),
+            )
+        });
+        if points.is_empty() {
+            continue;
+        }
+        let mut text = format!("# instance {}\n", c.instance);
+        if let Some((p, f)) = field {
+            let _ = writeln!(
+                text,
+                "# place {} {} {}; earth field NED {} {} {} uT",
+                p.latitude_deg,
+                p.longitude_deg,
+                p.date.as_deref().unwrap_or("today"),
+                f[0],
+                f[1],
+                f[2]
+            );
+        }
+        text.push_str("t,fit,mx,my,mz,qw,qx,qy,qz,onboard_mx,onboard_my,onboard_mz\n");
+        for q in &points {
+            let [mx, my, mz] = q.raw_body_ut;
+            let [w, x, y, z] = q.body_ned;
+            let _ = write!(
+                text,
+                "{},{},{mx},{my},{mz},{w},{x},{y},{z}",
+                q.t_s, q.fit as u8
+            );
+            match q.onboard_body_ut {
+                Some([a, b, c]) => {
+                    let _ = writeln!(text, ",{a},{b},{c}");
+                }
+                None => text.push_str(",,,\n"),
+            }
+        }
+        let name: String = c
+            .instance
+            .chars()
+            .map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '_' })
+            .collect();
+        let p = dir.join(format!("quality_{name}.csv"));
+        crate::io::publish::write_atomic(&p, text.as_bytes())?;
+        written.push(p);
+    }
+    Ok(written)
 }
 
 /// The primary magnetometer's method: the vector fit when the log carries an attitude and the
@@ -724,7 +865,7 @@ pub fn make_report(
         outputs: None,
         vehicles: Vec::new(),
         onboard: None,
-        quality: None,
+        quality: Vec::new(),
     }
 }
 
@@ -948,6 +1089,9 @@ pub fn summary(r: &Report) -> String {
                 "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
                 c.model, c.offset[0], c.offset[1], c.offset[2], c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
             );
+            if let Some(d) = &c.detail {
+                let _ = writeln!(s, "{:5}  ({d})", "");
+            }
         } else {
             let _ = writeln!(
                 s,
@@ -960,7 +1104,7 @@ pub fn summary(r: &Report) -> String {
     if let Some(m) = &r.calibration.mag.method {
         let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
     }
-    if let Some(q) = &r.quality {
+    for q in &r.quality {
         let _ = writeln!(
             s,
             "quality ({}, fitted on alternate {:.0} s blocks, scored on the others): {}",

@@ -598,7 +598,7 @@ pub fn quality(
             )
         }
         None => (
-            fit_with_field(&fit_samples, body_mag)?.map(|(v, _)| v),
+            fit_with_field(&fit_samples, body_mag, None)?.map(|(v, _)| v),
             "vector, field fitted",
         ),
     };
@@ -646,6 +646,52 @@ pub fn quality(
         imucald_failure: if ours.is_none() { failure } else { None },
         verdict,
     })
+}
+
+/// One reading of the held-out check, as a peer fit takes it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QualityPoint {
+    pub t_s: f64,
+    /// In a fitting (even) block; else scored.
+    pub fit: bool,
+    /// The field in body axes with any onboard correction undone, uT.
+    pub raw_body_ut: Vec3,
+    /// Body -> NED attitude (w, x, y, z).
+    pub body_ned: [f64; 4],
+    /// The field through the vehicle's own calibration, body axes, uT.
+    pub onboard_body_ut: Option<Vec3>,
+}
+
+/// The readings [`quality`] fits and scores, each marked with its block: for a peer's fit on the
+/// same blocks. With the earth field of the place and day, when one is known ([`place_of`]).
+pub fn quality_points(
+    samples: &[Sample],
+    body_mag: &FieldOf<'_>,
+    onboard: Option<&FieldOf<'_>>,
+    log: LogWhere,
+    cfg_place: Option<&Place>,
+) -> (Vec<QualityPoint>, Option<(Place, Vec3)>) {
+    let Some(t0) = samples.first().map(|s| s.t_s) else {
+        return (Vec::new(), None);
+    };
+    let points = samples
+        .iter()
+        .filter_map(|s| {
+            let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
+            Some(QualityPoint {
+                t_s: s.t_s,
+                fit: fitting_block(t0, s.t_s),
+                raw_body_ut: body_mag(s)?,
+                body_ned: [q.w, q.i, q.j, q.k],
+                onboard_body_ut: onboard.and_then(|f| f(s)),
+            })
+        })
+        .collect();
+    let field = place_of(samples, log, cfg_place).and_then(|w| {
+        let f = crate::attitude::earth_field(&w.place).ok()?;
+        Some((w.place, f.field_ned_ut()))
+    });
+    (points, field)
 }
 
 /// The plain answer: is imucald's calibration better than the vehicle's on the held-out blocks?
@@ -701,6 +747,7 @@ const FIELD_FIT_TOL: f64 = 1e-7;
 pub fn fit_with_field(
     samples: &[Sample],
     body_mag: &FieldOf<'_>,
+    start_ned_ut: Option<Vec3>,
 ) -> Option<Result<(VectorFit, Vec3), crate::calib::vector::VectorFailure>> {
     let pairs: Vec<(
         nalgebra::Vector3<f64>,
@@ -726,7 +773,10 @@ pub fn fit_with_field(
     };
     // Start: the readings turned into NED, averaged: the hard iron, fixed in the body, averages
     // out as the vehicle turns, and what is left is the earth field. Its strength is kept.
-    let mut b = mean_ned(&|m| *m);
+    let mut b = match start_ned_ut {
+        Some(f) => nalgebra::Vector3::from(f),
+        None => mean_ned(&|m| *m),
+    };
     let strength = b.norm();
     if !(strength > 0.0) {
         return None;
@@ -773,7 +823,7 @@ fn fitted_field_choice(
     body_mag: &FieldOf<'_>,
 ) -> MethodChoice {
     let no_place = "an attitude but no position (no GPS in the log, no [place] configured)";
-    let (v, b) = match fit_with_field(samples, body_mag) {
+    let (v, b) = match fit_with_field(samples, body_mag, None) {
         None => {
             return sphere(
                 format!("{no_place}; too few readings with an attitude to fit the field"),
@@ -847,7 +897,7 @@ fn halves_agree(samples: &[Sample], body_mag: &FieldOf<'_>) -> Result<(), String
             .filter(|s| fitting_block(t0, s.t_s) == even)
             .cloned()
             .collect();
-        match fit_with_field(&half, body_mag) {
+        match fit_with_field(&half, body_mag, None) {
             Some(Ok((v, _))) if v.offset_identifiable => fits.push(v),
             _ => {
                 return Err(format!(

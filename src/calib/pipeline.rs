@@ -29,6 +29,46 @@ pub struct FitInput {
     /// Hold every this-many-th magnetometer point and pose out of the fits (0: fit on all); see
     /// [`hold_out`].
     pub hold_out_every: usize,
+    /// The magnetometer's own noise (one axis, the stream's units) from its readings
+    /// ([`NoiseMeter`]); `None` before enough readings.
+    pub mag_noise: Option<f64>,
+}
+
+/// Readings a [`NoiseMeter`] needs before it gives a noise level.
+pub const NOISE_MIN_READINGS: u64 = 500;
+
+/// A sensor's white noise from its stream: the second difference of three successive readings,
+/// x[i+1] - 2 x[i] + x[i-1], removes the reading's value and any steady rate of change (a turn),
+/// and for white noise of standard deviation sigma per axis has variance 6 sigma^2. A break in
+/// time starts a new triple.
+#[derive(Debug, Clone, Default)]
+pub struct NoiseMeter {
+    last: Option<(Vec3, Option<Vec3>, u32)>,
+    sum_sq: f64,
+    n: u64,
+}
+
+impl NoiseMeter {
+    /// Take the next reading of the stream (`segment`: its time segment).
+    pub fn push(&mut self, x: Vec3, segment: u32) {
+        match self.last {
+            Some((b, Some(a), seg)) if seg == segment => {
+                for k in 0..3 {
+                    let d2 = x[k] - 2.0 * b[k] + a[k];
+                    self.sum_sq += d2 * d2;
+                }
+                self.n += 3;
+                self.last = Some((x, Some(b), segment));
+            }
+            Some((b, None, seg)) if seg == segment => self.last = Some((x, Some(b), segment)),
+            _ => self.last = Some((x, None, segment)),
+        }
+    }
+
+    /// The noise's standard deviation per axis, once [`NOISE_MIN_READINGS`] triples are in.
+    pub fn sigma(&self) -> Option<f64> {
+        (self.n >= 3 * NOISE_MIN_READINGS).then(|| (self.sum_sq / self.n as f64 / 6.0).sqrt())
+    }
 }
 
 /// One sensor's outcome.
@@ -89,6 +129,8 @@ pub struct Pipeline {
     /// Latest results (whether accepted or not) and refit history.
     pub latest: Option<FitResults>,
     pub refits: Vec<RefitReport>,
+    /// The magnetometer stream's noise, as the fit sees it (after the prefilter).
+    mag_noise: NoiseMeter,
 }
 
 const MAG_BUFFER_MAX: usize = 4000;
@@ -128,6 +170,7 @@ impl Pipeline {
             hold_out_every: 0,
             latest: None,
             refits: Vec::new(),
+            mag_noise: NoiseMeter::default(),
         })
     }
 
@@ -179,6 +222,7 @@ impl Pipeline {
             }
         }
         if let Some(m) = s.mag_ut {
+            self.mag_noise.push(m, s.segment);
             self.add_mag(m);
         }
         let due = match self.last_refit_t {
@@ -273,6 +317,7 @@ impl Pipeline {
             gyro_units: self.gyro_units,
             accel_units: self.cfg.input.accel_units,
             hold_out_every: self.hold_out_every,
+            mag_noise: self.mag_noise.sigma(),
         }
     }
 
@@ -444,6 +489,8 @@ struct SensorSpec<'a> {
     units_known: bool,
     limits: &'a AcceptLimits,
     is_accel: bool,
+    /// The stream's own noise per axis, same units ([`NoiseMeter`]).
+    noise: Option<f64>,
 }
 
 fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
@@ -485,8 +532,11 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     }
     let plain = fit_sensor_on(points, spec);
     // A plain fit that failed on its residuals or numerically may have been pulled apart by a
-    // disturbed cluster: look for outliers then too.
+    // disturbed cluster: look for outliers then too (and when its residuals passed only as the
+    // sensor's noise: a noisy stream has its wild readings too).
+    let noisy = plain.report.rms_residual > spec.limits.max_rms_ratio * plain.report.radius;
     let suspicious = has_outliers(&plain.residuals)
+        || noisy
         || matches!(
             plain.report.failure,
             Some(
@@ -1058,6 +1108,42 @@ fn set_fail(rep: &mut SensorCalibration, why: FitFailure, detail: String) {
     rep.detail = Some(detail);
 }
 
+/// What a radius outside the limits would be in another common unit: "; it looks like gauss:
+/// scale mx, my, mz by 100 ..." when that unit brings it inside, else nothing.
+fn unit_hint(radius: f64, is_accel: bool, lo: f64, hi: f64) -> String {
+    let (fields, units): (&str, &[(&str, f64)]) = if is_accel {
+        ("ax, ay, az", &[("g", 9.80665), ("mG", 0.00980665)])
+    } else {
+        (
+            "mx, my, mz",
+            &[("gauss", 100.0), ("mGauss", 0.1), ("nT", 0.001)],
+        )
+    };
+    units
+        .iter()
+        .find(|(_, k)| (lo..=hi).contains(&(radius * k)))
+        .map(|(u, k)| {
+            format!("; it looks like {u}: scale {fields} by {k} (scales under [input.csv] for a CSV)")
+        })
+        .or_else(|| {
+            // Raw counts: the factor that makes this radius the field (or gravity) expected.
+            let expected = if is_accel { 9.80665 } else { 50.0 };
+            (radius > hi).then(|| {
+                format!(
+                    "; if these are raw counts, scale {fields} by the sensor's sensitivity, about {expected}/{radius:.1} = {:.4} ({expected} {} expected; scales under [input.csv] for a CSV)",
+                    expected / radius,
+                    if is_accel { "m/s^2 of gravity" } else { "uT of earth field" }
+                )
+            })
+        })
+        .unwrap_or_default()
+}
+
+/// How far above the readings' noise (per axis) a fit's RMS residual may be and still be taken as
+/// that noise: the radial component of white noise has the per-axis deviation, and a quarter more
+/// leaves room for the noise estimate's own error and a model error well below the noise.
+const NOISE_EXPLAINS: f64 = 1.25;
+
 fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, spec: &SensorSpec) {
     let l = spec.limits;
     let nm = cal.normalised_matrix();
@@ -1083,8 +1169,10 @@ fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, 
                 rep,
                 FitFailure::Radius,
                 format!(
-                    "field magnitude {raw_radius:.3} outside [{}, {}]",
-                    l.min_radius, l.max_radius
+                    "field magnitude {raw_radius:.3} outside [{}, {}]{}",
+                    l.min_radius,
+                    l.max_radius,
+                    unit_hint(raw_radius, spec.is_accel, l.min_radius, l.max_radius)
                 ),
             );
         }
@@ -1123,7 +1211,20 @@ fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, 
             }
         }
     }
-    if rep.rms_residual > l.max_rms_ratio * rep.radius {
+    // A residual no larger than the readings' own noise is not a model error: the sensor is
+    // noisy, and the fit is as good as its readings allow.
+    let noise_explains = spec
+        .noise
+        .is_some_and(|sigma| rep.rms_residual <= NOISE_EXPLAINS * sigma);
+    if rep.rms_residual > l.max_rms_ratio * rep.radius && noise_explains {
+        rep.detail = Some(format!(
+            "a noisy sensor: the RMS residual {:.4} is above {} x radius {:.4}, but no more than the readings' own noise ({:.4} per axis, from successive readings) explains",
+            rep.rms_residual,
+            l.max_rms_ratio,
+            rep.radius,
+            spec.noise.unwrap_or(f64::NAN)
+        ));
+    } else if rep.rms_residual > l.max_rms_ratio * rep.radius {
         set_fail(
             rep,
             FitFailure::Residuals,
@@ -1248,6 +1349,7 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
             units_known: input.mag_units == Unit::Si,
             limits: &cfg.accept.mag,
             is_accel: false,
+            noise: input.mag_noise,
         },
     );
     mag.held_out = mag_held;
@@ -1262,6 +1364,7 @@ pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
             units_known: au == Unit::Si,
             limits: &cfg.accept.accel,
             is_accel: true,
+            noise: None,
         },
     );
     accel.held_out = accel_held;
@@ -1421,6 +1524,43 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn the_noise_meter_finds_white_noise_under_a_steady_turn() {
+        // Deterministic pseudo-random noise of 0.5 per axis on a field turning steadily.
+        let mut seed = 12345u64;
+        let mut gauss = || {
+            let mut u = || {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()
+        };
+        let mut m = NoiseMeter::default();
+        for i in 0..5000 {
+            let a = i as f64 * 0.01;
+            let x = [40.0 * a.cos(), 40.0 * a.sin(), 10.0];
+            m.push(
+                [
+                    x[0] + 0.5 * gauss(),
+                    x[1] + 0.5 * gauss(),
+                    x[2] + 0.5 * gauss(),
+                ],
+                0,
+            );
+        }
+        let sigma = m.sigma().unwrap();
+        assert!((sigma - 0.5).abs() < 0.03, "{sigma}");
+        // Too few readings: no figure.
+        let mut few = NoiseMeter::default();
+        for i in 0..100 {
+            few.push([i as f64, 0.0, 0.0], 0);
+        }
+        assert_eq!(few.sigma(), None);
+    }
+
     use super::*;
 
     /// A sensor resting for a third of a run (a vehicle on the ground streamed at a low rate)

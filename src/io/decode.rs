@@ -1163,6 +1163,11 @@ pub struct CsvMapping {
     /// Field -> factor that turns the column's unit into ours (e.g. ax = 9.80665 for g, t = 0.001 for ms).
     #[serde(default)]
     pub scales: BTreeMap<String, f64>,
+    /// Rows per second, Hz, for a file without a time column (row i is at i / rate_hz s).
+    /// Default: none; a file without a `t` column then needs it, or a rate in its preamble
+    /// (a `Fs,50` or `rate_hz,50` line before the header). A `t` column wins over both.
+    #[serde(default)]
+    pub rate_hz: Option<f64>,
 }
 
 impl CsvMapping {
@@ -1174,9 +1179,23 @@ impl CsvMapping {
                 .map(|&(f, c)| (f.to_string(), c.to_string()))
                 .collect(),
             scales: scales.iter().map(|&(f, k)| (f.to_string(), k)).collect(),
+            rate_hz: None,
         }
     }
 }
+
+/// Lines of a CSV preamble (`key,value` lines before the header row) read at most.
+const CSV_PREAMBLE_LINES: usize = 32;
+
+/// Preamble keys that give the rows' rate, Hz (lower case): `Fs` as the sampling frequency is
+/// written by MATLAB-style loggers.
+const CSV_RATE_KEYS: [&str; 5] = [
+    "fs",
+    "rate_hz",
+    "sample_rate",
+    "sample_rate_hz",
+    "sampling_rate",
+];
 
 /// Field names of CSV input, in the order [`sample_from_fields`] indexes them.
 pub const FIELDS: [&str; 21] = [
@@ -1210,18 +1229,7 @@ pub fn decode_csv(
     mapping: &CsvMapping,
     stats: &mut DecodeStats,
 ) -> Result<Vec<Sample>, String> {
-    let mut start = 0;
-    let header = loop {
-        let Some(l) = text[start..].split_inclusive('\n').next() else {
-            return Err("empty file: no header row".into());
-        };
-        let line = l.trim_end_matches(['\n', '\r']);
-        if line.trim().is_empty() || line.starts_with('#') {
-            start += l.len();
-            continue;
-        }
-        break line;
-    };
+    let (start, header, preamble_rate_hz) = csv_header(text, mapping)?;
     let mut rows = csv::ReaderBuilder::new()
         .has_headers(false)
         .flexible(true)
@@ -1261,6 +1269,20 @@ pub fn decode_csv(
             "no sensor columns found in header `{header}`: expected ax/ay/az, gx/gy/gz or mx/my/mz, or a [input.csv] columns mapping"
         ));
     }
+    // Row i's time when the file has no time column.
+    let row_period_s = if has("t") {
+        None
+    } else {
+        match mapping.rate_hz.or(preamble_rate_hz) {
+            Some(r) if r.is_finite() && r > 0.0 => Some(1.0 / r),
+            Some(r) => return Err(format!("the sample rate {r} Hz is not a positive number")),
+            None => {
+                return Err(format!(
+                    "no time column in header `{header}` and no sample rate: give the rate (`imucald replay --rate-hz 100`, or rate_hz = 100 under [input.csv]), or name the time column (t = \"your_column\" under [input.csv.columns])"
+                ))
+            }
+        }
+    };
     let scale: Vec<f64> = FIELDS
         .iter()
         .map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0))
@@ -1311,7 +1333,11 @@ pub fn decode_csv(
             stats.skip("bad_row");
             continue;
         }
-        let mut s = sample_from_fields(vals[0].unwrap_or(row_no as f64), &vals, Some(stats));
+        let t_s = match row_period_s {
+            Some(dt) => (row_no - 1) as f64 * dt,
+            None => vals[0].unwrap_or(f64::NAN),
+        };
+        let mut s = sample_from_fields(t_s, &vals, Some(stats));
         if !s.t_s.is_finite() {
             stats.skip("non_finite");
             continue;
@@ -1332,6 +1358,51 @@ pub fn decode_csv(
     }
     stats.time = clock.stats;
     Ok(out)
+}
+
+/// Where a CSV's header row starts (byte offset), the header line, and the rate its preamble
+/// gives, if any. Blank and `#` lines are skipped; so are up to [`CSV_PREAMBLE_LINES`] lines
+/// before a line naming a sensor column (`key,value` lines such as `Fs,50.00`).
+fn csv_header<'a>(
+    text: &'a str,
+    mapping: &CsvMapping,
+) -> Result<(usize, &'a str, Option<f64>), String> {
+    let sensor_columns: Vec<&str> = ["ax", "gx", "mx"]
+        .iter()
+        .map(|f| mapping.columns.get(*f).map(String::as_str).unwrap_or(f))
+        .collect();
+    let names_sensor = |line: &str| {
+        line.split(',')
+            .any(|c| sensor_columns.contains(&c.trim().trim_matches('"')))
+    };
+    let mut first: Option<(usize, &str)> = None;
+    let mut rate = None;
+    let mut start = 0;
+    for (n, l) in text.split_inclusive('\n').enumerate() {
+        let line = l.trim_end_matches(['\n', '\r']);
+        let at = start;
+        start += l.len();
+        if line.trim().is_empty() || line.starts_with('#') {
+            continue;
+        }
+        if names_sensor(line) {
+            return Ok((at, line, rate));
+        }
+        first.get_or_insert((at, line));
+        if n >= CSV_PREAMBLE_LINES {
+            break;
+        }
+        let mut cells = line.split(',').map(str::trim);
+        if let (Some(k), Some(v), None) = (cells.next(), cells.next(), cells.next()) {
+            if CSV_RATE_KEYS.contains(&k.to_ascii_lowercase().as_str()) {
+                rate = v.parse::<f64>().ok();
+            }
+        }
+    }
+    // No line names a sensor column: the first is taken as the header (and refused by the caller).
+    first
+        .map(|(at, line)| (at, line, None))
+        .ok_or_else(|| "empty file: no header row".to_string())
 }
 
 /// A sample from per-field values indexed like [`FIELDS`] (already scaled). A vector needs all three
@@ -1562,6 +1633,32 @@ mod tests {
         assert_eq!(s[2].accel_mps2, None);
         assert_eq!(st.skipped.get("bad_row"), Some(&1));
         assert_eq!(st.skipped.get("non_finite"), Some(&1));
+    }
+
+    #[test]
+    fn csv_without_time_takes_the_rate_given_or_its_preamble_or_says_what_to_give() {
+        let body = "mx,my,mz\n1,2,3\n4,5,6\nbad\n7,8,9\n";
+        let mut st = DecodeStats::default();
+        let e = decode_csv(body, &CsvMapping::default(), &mut st).unwrap_err();
+        assert!(e.contains("--rate-hz") && e.contains("rate_hz"), "{e}");
+        let with_preamble = format!("Fs,50.00\nInitialization time,60\n{body}");
+        let s = decode_csv(&with_preamble, &CsvMapping::default(), &mut st).unwrap();
+        let t: Vec<f64> = s.iter().map(|s| s.t_s).collect();
+        // The bad row keeps its place in time.
+        assert_eq!(t, vec![0.0, 0.02, 0.06]);
+        let m = CsvMapping {
+            rate_hz: Some(10.0),
+            ..Default::default()
+        };
+        let s = decode_csv(&with_preamble, &m, &mut st).unwrap();
+        assert!((s[1].t_s - 0.1).abs() < 1e-12);
+        let m = CsvMapping {
+            rate_hz: Some(0.0),
+            ..Default::default()
+        };
+        assert!(decode_csv(body, &m, &mut st)
+            .unwrap_err()
+            .contains("positive"));
     }
 
     #[test]
