@@ -484,3 +484,36 @@ fn ui_html_report_renders_offline() {
         .collect();
     assert!(requests.is_empty(), "{requests:?}");
 }
+
+/// The `--html` report of a real ArduPilot flight answers the pilot's question in words: the
+/// held-out verdict for each compass and its figures, as the report's `quality` block has them.
+#[test]
+fn ui_html_report_answers_whether_it_is_better_than_the_vehicles() {
+    let Some(exe) = chromium() else { return };
+    let Some(data) = imucald::testdata::shared_data() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let html = dir.path().join("report.html");
+    let out = Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .arg("replay")
+        .arg(data.join("real/apm_copter_2013_a.tlog"))
+        .arg("--html")
+        .arg(&html)
+        .output()
+        .unwrap();
+    common::assert_success(&out);
+    let mut b = Browser::start(exe);
+    b.page("Page.enable", json!({}));
+    let url = format!("file://{}", html.display());
+    b.page("Page.navigate", json!({"url": url}));
+    b.wait_for("document.body && document.body.dataset.ready === '1'", 20.0);
+    let text = b.eval("document.body.innerText");
+    let text = text.as_str().unwrap_or("");
+    assert!(
+        text.contains("Is it better than the vehicle's own?")
+            && text.contains("raw_imu:0: imucald's is better: load the export"),
+        "{text}"
+    );
+    assert!(text.contains("the vehicle's own") && text.contains("readings)"));
+}

@@ -9,6 +9,14 @@
 //! attitudes the model is linear in `(A, o, k)`: each raw axis `j` is a linear regression of
 //! `raw_j - h_j` on the same regressors `u = (h / |B|, 1, c / c_max)`, so one normal matrix
 //! `N = mean(u u^T)` serves all three axes and the fit is linear least squares (no iteration).
+//! That forward fit gives the offset the calibration is then centred on; the calibration itself
+//! comes from the reverse regression, the expected field on the reading,
+//! `h = M (raw - o_ref) + d + k' c` (`A = M^-1`), with the same rules on what is determined: least
+//! squares puts the error in the variable regressed, and the attitude's error (a degree is 0.9 uT
+//! of a 50 uT field) is larger than a compass's (tenths of a uT), so the expected field is the one
+//! regressed (see `reverse`). On the three APM-era telemetry logs of `../shared/data/real/` the
+//! held-out spread of the field's norm went from 4.74, 3.06 and 3.43 % (forward) to 4.47, 2.83 and
+//! 2.64 % (`cargo bench --bench real_quality`).
 //! The same measurement model, with the orientation known from inertial sensors, is the one of
 //! Kok and Schön, "Magnetometer calibration using inertial sensors" (2016); what is added here is
 //! the explicit verdict on what the attitudes seen determine.
@@ -223,6 +231,11 @@ pub struct VectorAccumulator {
     nm: DMatrix<f64>,
     g: DMatrix<f64>,
     yy: Vec3,
+    /// The same sums of the reverse regression ([`reverse`]): regressors `(raw / |B|, 1, c)`
+    /// and `y = h - raw`.
+    nm_r: DMatrix<f64>,
+    g_r: DMatrix<f64>,
+    yy_r: Vec3,
 }
 
 impl VectorAccumulator {
@@ -245,6 +258,9 @@ impl VectorAccumulator {
             nm: DMatrix::zeros(k, k),
             g: DMatrix::zeros(k, 3),
             yy: [0.0; 3],
+            nm_r: DMatrix::zeros(k, k),
+            g_r: DMatrix::zeros(k, 3),
+            yy_r: [0.0; 3],
         })
     }
 
@@ -258,14 +274,18 @@ impl VectorAccumulator {
         {
             return false;
         }
-        let u = self.reg.of(p);
+        let u = self.reg.of(p.expected_ut, p.current_a);
+        let u_r = self.reg.of(p.raw_ut, p.current_a);
         self.nm += &u * u.transpose();
+        self.nm_r += &u_r * u_r.transpose();
         for j in 0..3 {
             let y = p.raw_ut[j] - p.expected_ut[j];
             for r in 0..self.reg.k {
                 self.g[(r, j)] += u[r] * y;
+                self.g_r[(r, j)] -= u_r[r] * y;
             }
             self.yy[j] += y * y;
+            self.yy_r[j] += y * y;
         }
         self.weight += 1.0;
         self.points += 1;
@@ -279,6 +299,9 @@ impl VectorAccumulator {
         self.nm *= f;
         self.g *= f;
         self.yy = self.yy.map(|v| v * f);
+        self.nm_r *= f;
+        self.g_r *= f;
+        self.yy_r = self.yy_r.map(|v| v * f);
         self.weight *= f;
     }
 
@@ -295,7 +318,7 @@ impl VectorAccumulator {
     /// The fit of what was added: a small eigen-decomposition and solve of the `k x k` normal
     /// matrix (k = 4 or 5), whatever the number of readings.
     pub fn solve(&self) -> Result<VectorFit, VectorFailure> {
-        solve(self)
+        reverse(self, &solve(self)?)
     }
 }
 
@@ -308,15 +331,16 @@ struct Regressors {
 }
 
 impl Regressors {
-    fn of(&self, p: &VectorPoint) -> DVector<f64> {
-        let h = p.expected_ut;
+    /// The regressors of a point: the field `v` (the expected one, or the reading in the reverse
+    /// regression) over the field strength, 1, and the current over its scale.
+    fn of(&self, v: Vec3, current_a: Option<f64>) -> DVector<f64> {
         let mut u = DVector::zeros(self.k);
         for c in 0..3 {
-            u[c] = h[c] / self.field_ut;
+            u[c] = v[c] / self.field_ut;
         }
         u[OFFSET] = 1.0;
         if self.k > 4 {
-            u[4] = p.current_a.unwrap_or(0.0) / self.current_max_a;
+            u[4] = current_a.unwrap_or(0.0) / self.current_max_a;
         }
         u
     }
@@ -481,6 +505,107 @@ fn solve(acc: &VectorAccumulator) -> Result<VectorFit, VectorFailure> {
     })
 }
 
+/// The calibration from the reverse regression: the expected field on the reading,
+/// `h = M (raw - o_ref) + d + k' c`, with the same identifiability rules, centred on the forward
+/// fit's offset `o_ref` (so the regressors vary about zero as the forward ones do).
+///
+/// Why the reverse: least squares puts all the error in the variable regressed. A compass reads
+/// to a few tenths of a uT, while the expected field `R^T B` carries the attitude's error (a
+/// degree is 0.9 uT of a 50 uT field; a flight controller's heading is good to a few degrees at
+/// best) and the field model's. Regressing the reading on a regressor with that much error shrinks
+/// each soft-iron column by the share of its spread the error makes up (attenuation), most where
+/// the attitudes vary least (the vertical on a level flight), which skews the matrix; regressing
+/// the expected field on the reading, the near error-free side, does not. With an exact attitude
+/// (a simulation, motion capture) the two agree to the compass noise's share of the spread.
+fn reverse(acc: &VectorAccumulator, fwd: &VectorFit) -> Result<VectorFit, VectorFailure> {
+    let k = acc.reg.k;
+    let f = acc.reg.field_ut;
+    let o_ref = fwd.offset_ut;
+    // u' = T u: the field regressors less o_ref / |B| times the constant.
+    let mut t = DMatrix::<f64>::identity(k, k);
+    for c in 0..3 {
+        t[(c, OFFSET)] = -o_ref[c] / f;
+    }
+    // y' = h - (raw - o_ref) = y + o_ref.
+    let sum_u = acc.nm_r.column(OFFSET).into_owned();
+    let mut g = acc.g_r.clone();
+    let mut yy = acc.yy_r;
+    for j in 0..3 {
+        let sum_y = acc.g_r[(OFFSET, j)];
+        for r in 0..k {
+            g[(r, j)] += sum_u[r] * o_ref[j];
+        }
+        yy[j] += 2.0 * o_ref[j] * sum_y + acc.nm_r[(OFFSET, OFFSET)] * o_ref[j] * o_ref[j];
+    }
+    // Scaled by the readings' own RMS strength about o_ref (not the expected field's), so a
+    // combination's spread means the same share of the field as in the forward fit.
+    let n = acc.nm_r[(OFFSET, OFFSET)];
+    let sq: f64 = (0..3)
+        .map(|c| {
+            f * f * (acc.nm_r[(c, c)] - 2.0 * o_ref[c] / f * acc.nm_r[(c, OFFSET)])
+                + n * o_ref[c] * o_ref[c]
+        })
+        .sum();
+    let reading_ut = (sq / n.max(1e-12)).sqrt();
+    if !(reading_ut.is_finite() && reading_ut > 0.0) {
+        return Err(VectorFailure::Singular);
+    }
+    for c in 0..3 {
+        for r in 0..k {
+            t[(c, r)] *= f / reading_ut;
+        }
+    }
+    let centred = VectorAccumulator {
+        nm: &t * &acc.nm_r * t.transpose(),
+        g: &t * g,
+        yy,
+        reg: Regressors {
+            field_ut: reading_ut,
+            ..acc.reg.clone()
+        },
+        ..acc.clone()
+    };
+    // Read as the forward fit: `soft_iron` is M, `offset` d, `current` k'.
+    let r = solve(&centred)?;
+    let m = crate::calib::model::rows_to_mat(&r.soft_iron);
+    let a = m.try_inverse().ok_or(VectorFailure::Singular)?;
+    let d = nalgebra::Vector3::from(r.offset_ut);
+    let o = nalgebra::Vector3::from(o_ref) - a * d;
+    // Uncertainties through A (close to the identity), the soft iron's as M's.
+    let through_a = |sd: Vec3| -> Vec3 {
+        let mut out = [0.0; 3];
+        for (j, o) in out.iter_mut().enumerate() {
+            *o = (0..3)
+                .map(|c| (a[(j, c)] * sd[c]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+        }
+        out
+    };
+    let current = r.current_ut_per_a.map(|kc| {
+        let v = -(a * nalgebra::Vector3::from(kc));
+        [v.x, v.y, v.z]
+    });
+    // What the attitudes determine is the forward fit's verdict (their spread, as the module
+    // documents it); the values are the reverse fit's.
+    Ok(VectorFit {
+        offset_ut: [o.x, o.y, o.z],
+        offset_sigma_ut: through_a(r.offset_sigma_ut),
+        soft_iron: crate::calib::model::mat_to_rows(&a),
+        matrix: crate::calib::model::mat_to_rows(&m),
+        rotation_deg: polar_rotation_deg(&a),
+        current_ut_per_a: current,
+        current_sigma_ut_per_a: r.current_sigma_ut_per_a.map(through_a),
+        field_ut: fwd.field_ut,
+        offset_assumption_ut: fwd.offset_assumption_ut,
+        offset_identifiable: fwd.offset_identifiable,
+        soft_iron_fitted: fwd.soft_iron_fitted,
+        current_identifiable: fwd.current_identifiable,
+        directions: fwd.directions.clone(),
+        ..r
+    })
+}
+
 /// Angle of the rotation `U V^T` of `a = U S V^T` (the orthogonal factor of `a = R P`), deg.
 fn polar_rotation_deg(a: &nalgebra::Matrix3<f64>) -> f64 {
     let svd = a.svd(true, true);
@@ -608,8 +733,10 @@ mod tests {
         // so it is named as an assumption: SOFT_IRON_PRIOR x B_down = 0.05 x 43 uT = 2.15 uT.
         for j in 0..3 {
             let nominal = if j == 2 { 1.0 } else { 0.0 };
+            // Held along the unidentified direction, which the readings' noise turns slightly
+            // (measured within 0.0015).
             assert!(
-                (f.soft_iron[j][2] - nominal).abs() < 1e-12,
+                (f.soft_iron[j][2] - nominal).abs() < 0.005,
                 "{:?}",
                 f.soft_iron
             );

@@ -2,7 +2,8 @@
 //! data embedded as JSON, drawn by the page's own canvas code. Per IMU instance and sensor: the
 //! field directions on the sphere before and after calibration with the coverage regions (the
 //! regions `coverage` counts), the residual of every fitted point, the fitted values or the named
-//! failure; the onboard calibration when the log has one; a diagnosis when one is given. Building
+//! failure; the onboard calibration when the log has one; each compass judged on the blocks of
+//! the log it was not fitted on (`quality`); a diagnosis when one is given. Building
 //! the page is pure; [`write`] writes it atomically.
 
 use crate::calib::pipeline::{FitResults, SensorResult};
