@@ -6,7 +6,10 @@
 //! (`IMU`, `IMU2`, `IMU3`, `MAG`, `MAG2`, `MAG3`, or newer instanced messages with a field `I`);
 //! instance 0 is the primary. PX4: the primary takes `sensor_combined` (accelerometer, gyroscope)
 //! with `sensor_combined.magnetometer_ga` (older logs) or `vehicle_magnetometer[0]`; instance
-//! 1 + k takes `sensor_accel[k]`, `sensor_gyro[k]`, `sensor_mag[k]` (raw). Within an instance a
+//! 1 + k takes `sensor_accel[k]`, `sensor_gyro[k]`, `sensor_mag[k]` (raw), or, where the log has
+//! a `vehicle_magnetometer[j]` (j > 0) of the same device id (PX4 logs `sensor_mag` at 1 Hz by
+//! default), that faster corrected stream with its CAL_MAGn undone instead, said so in
+//! `onboard.undone` (the raw readings then skipped as `mag_slower_stream`). Within an instance a
 //! sample is made per accelerometer reading, carrying the newest gyroscope and magnetometer
 //! readings since the last one (as a MAVLink IMU message does); an instance without an
 //! accelerometer gives a sample per reading. Each instance has its own [`SourceClock`].
@@ -981,8 +984,8 @@ enum UlogRecord {
     Gyro(Vec3, Option<u32>),
     /// `sensor_mag[k]`: gauss, device id.
     Mag(Vec3, Option<u32>),
-    /// `vehicle_magnetometer[0]`: the corrected field, gauss.
-    VMag(Vec3),
+    /// `vehicle_magnetometer[k]`: the corrected field, gauss, device id.
+    VMag(Vec3, Option<u32>),
     /// `vehicle_attitude[0]`: w, x, y, z (body FRD -> NED).
     Att([f64; 4]),
     /// `actuator_controls_0[0]` control 3.
@@ -1023,8 +1026,8 @@ impl UlogRecord {
                 Some(m) => R::Mag(m, dev),
                 None => R::None,
             },
-            Topic::VehicleMag if multi == 0 => match v3(UlField::MagGa0) {
-                Some(m) => R::VMag(m),
+            Topic::VehicleMag => match v3(UlField::MagGa0) {
+                Some(m) => R::VMag(m, dev),
                 None => R::None,
             },
             Topic::Attitude if multi == 0 => match (
@@ -1076,6 +1079,12 @@ struct UlogConv {
     date: Option<crate::types::LogDate>,
     /// A corrected field could not be undone.
     not_undone: bool,
+    /// Each further compass's correction by device id (CAL_MAGn_ID), for its
+    /// `vehicle_magnetometer[k]` instance; `None` where the parameters do not allow the undo.
+    undo_by_device: BTreeMap<u32, (u8, Option<Px4Undo>)>,
+    /// `sensor_mag` instance -> the `vehicle_magnetometer` instance that feeds it instead (the
+    /// same device, logged faster), and the correction slot undone (`None`: could not be).
+    fast_mag: BTreeMap<u8, (u8, Option<u8>)>,
 }
 
 impl UlogConv {
@@ -1089,6 +1098,8 @@ impl UlogConv {
             gps: None,
             date: None,
             not_undone: false,
+            undo_by_device: BTreeMap::new(),
+            fast_mag: BTreeMap::new(),
         }
     }
 
@@ -1096,6 +1107,12 @@ impl UlogConv {
     fn params_known(&mut self, params: &BTreeMap<String, f64>) {
         let slot = px4_prime_slot(params);
         self.undo = Some(slot.and_then(|n| Px4Undo::new(params, n)));
+        for n in 0..4u8 {
+            if let Some(id) = params.get(&format!("CAL_MAG{n}_ID")) {
+                self.undo_by_device
+                    .insert(*id as u32, (n, Px4Undo::new(params, n)));
+            }
+        }
     }
 
     /// Convert one record of instance `multi` from stream `src` at `t_us`: the sample it completes.
@@ -1112,7 +1129,8 @@ impl UlogConv {
         let t = t_us;
         match r {
             UlogRecord::Combined(a, g, m) => self.combined(a, g, m, t, read, emit),
-            UlogRecord::VMag(m) => self.vehicle_mag(m, t),
+            UlogRecord::VMag(m, _) if multi == 0 => self.vehicle_mag(m, t),
+            UlogRecord::VMag(m, dev) => self.further_vehicle_mag(m, multi, dev, t),
             UlogRecord::Accel(a, temp, dev) => {
                 self.asm.stream(Sensor::Accel, multi, src, dev);
                 if let Some(d) = dev {
@@ -1130,6 +1148,11 @@ impl UlogConv {
                 self.asm.stream(Sensor::Mag, multi, src, dev);
                 if let Some(d) = dev {
                     self.mag_ids.insert(multi, d);
+                }
+                if self.fast_mag.contains_key(&multi) {
+                    // The same compass arrives faster through its vehicle_magnetometer instance.
+                    self.asm.stats.skip("mag_slower_stream");
+                    return None;
                 }
                 let gi = self.sensor_group(multi)?;
                 self.asm.mag(gi, t, m.map(|x| x * 100.0))
@@ -1218,6 +1241,40 @@ impl UlogConv {
         self.asm.mag(gi, t, raw)
     }
 
+    /// A `vehicle_magnetometer[k]` record (k > 0): a further compass's corrected field, logged
+    /// faster than its raw `sensor_mag` topic (PX4 logs those at 1 Hz by default). Its correction
+    /// (the CAL_MAGn of its device id) is undone and the reading goes to the instance of the
+    /// `sensor_mag` with the same device id (else `sensor_mag[k]`), whose raw readings are then
+    /// skipped (`mag_slower_stream`). Without a correction to undo nothing is taken.
+    fn further_vehicle_mag(
+        &mut self,
+        m: Vec3,
+        k: u8,
+        dev: Option<u32>,
+        t: u64,
+    ) -> Option<(usize, Sample)> {
+        let j = dev
+            .and_then(|d| {
+                self.mag_ids
+                    .iter()
+                    .find(|(_, id)| **id == d)
+                    .map(|(j, _)| *j)
+            })
+            .unwrap_or(k);
+        let undo = dev.and_then(|d| self.undo_by_device.get(&d));
+        let slot = undo.and_then(|(n, u)| u.as_ref().map(|_| *n));
+        self.fast_mag.entry(j).or_insert((k, slot));
+        let source = format!("vehicle_magnetometer[{k}]");
+        self.asm.stream(Sensor::Mag, j, &source, dev);
+        let raw = undo.and_then(|(_, u)| u.as_ref()).and_then(|u| u.apply(m));
+        let Some(raw) = raw else {
+            self.asm.stats.skip("mag_not_undone");
+            return None;
+        };
+        let gi = self.sensor_group(j)?;
+        self.asm.mag(gi, t, raw)
+    }
+
     /// The prime compass's correction undone from `m` (gauss), uT; `None` (noted) when it cannot be.
     fn undo_prime(&mut self, m: Vec3) -> Option<Vec3> {
         let raw = self
@@ -1255,6 +1312,22 @@ impl UlogConv {
                 onboard.undone.push(format!(
                     "{src}: CAL_MAG{n} offsets, scales and rotation removed"
                 ));
+            }
+        }
+        for (j, (k, slot)) in &self.fast_mag {
+            let what = format!("vehicle_magnetometer[{k}] (the same device as sensor_mag[{j}], logged faster): used for sensor_mag[{j}]'s instance");
+            match slot {
+                Some(n) => onboard.undone.push(format!(
+                    "{what}, CAL_MAG{n} offsets, scales and rotation removed"
+                )),
+                None => onboard.not_undone.push(format!(
+                    "{what}, but no CAL_MAGn with its device id, or one whose rotation this reader does not undo: its readings are left out"
+                )),
+            }
+            for c in onboard.mag.iter_mut() {
+                if c.sources.contains(&format!("sensor_mag[{j}]")) {
+                    c.sources.push(format!("vehicle_magnetometer[{k}]"));
+                }
             }
         }
         onboard.gps = self.gps;

@@ -213,11 +213,36 @@ fn ulog_param(out: &mut Vec<u8>, name: &str, v: f64, int: bool) {
     ulog_msg(out, b'P', &b);
 }
 
+/// A further compass of a simulated PX4 log ([`ulog_bytes_with`]).
+#[derive(Debug, Clone)]
+pub struct FurtherCompass {
+    /// Its device id (CAL_MAGn_ID, `sensor_mag.device_id`).
+    pub device_id: u32,
+    /// Its onboard calibration (CAL_MAGn_*).
+    pub onboard: OnboardMag,
+    /// Its raw readings: time (s) and field (body axes, uT).
+    pub readings: Vec<(f64, Vec3)>,
+    /// The rate its raw `sensor_mag` topic is logged at, Hz (PX4's default logger: 1 Hz); the
+    /// corrected `vehicle_magnetometer` instance carries every reading.
+    pub raw_rate_hz: f64,
+}
+
 /// PX4 ULog: CAL_MAG0_* from `onboard` (CAL_MAG_PRIME its id, no rotation), `sensor_combined`
 /// (gyroscope, accelerometer) and `vehicle_magnetometer` (gauss, after PX4's correction
 /// `S (raw - OFF)`).
 pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
-    if !onboard.symmetric() {
+    ulog_bytes_with(samples, onboard, &[])
+}
+
+/// [`ulog_bytes`] with further compasses as PX4 1.13 and later logs them: compass i's raw
+/// `sensor_mag[i]` at its `raw_rate_hz` and its corrected `vehicle_magnetometer[i + 1]` at every
+/// reading, CAL_MAG{i + 1}_* its calibration.
+pub fn ulog_bytes_with(
+    samples: &[Sample],
+    onboard: &OnboardMag,
+    further: &[FurtherCompass],
+) -> Result<Vec<u8>, Error> {
+    if !onboard.symmetric() || further.iter().any(|f| !f.onboard.symmetric()) {
         return Err(Error::Other(
             "PX4's compass matrix is symmetric (SCALE/ODIAG)".into(),
         ));
@@ -234,7 +259,12 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
     ulog_msg(
         &mut out,
         b'F',
-        b"vehicle_magnetometer:uint64_t timestamp;float[3] magnetometer_ga;uint8_t[4] _padding0;",
+        b"vehicle_magnetometer:uint64_t timestamp;uint32_t device_id;float[3] magnetometer_ga;",
+    );
+    ulog_msg(
+        &mut out,
+        b'F',
+        b"sensor_mag:uint64_t timestamp;uint32_t device_id;float x;float y;float z;",
     );
     ulog_msg(
         &mut out,
@@ -261,10 +291,37 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
     ] {
         ulog_param(&mut out, n, v, int);
     }
-    let used = OnboardMag {
-        offset_ut: off.map(|o| o as f32 as f64 * 100.0),
-        matrix: m.map(|r| r.map(|x| x as f32 as f64)),
+    // As PX4 reads its parameters back (float32).
+    let as_used = |o: &OnboardMag| {
+        let off = o.offset_ut.map(|v| v / 100.0);
+        (
+            off,
+            OnboardMag {
+                offset_ut: off.map(|v| v as f32 as f64 * 100.0),
+                matrix: o.matrix.map(|r| r.map(|x| x as f32 as f64)),
+            },
+        )
     };
+    for (i, f) in further.iter().enumerate() {
+        let n = i + 1;
+        let (off, _) = as_used(&f.onboard);
+        let m = &f.onboard.matrix;
+        ulog_param(
+            &mut out,
+            &format!("CAL_MAG{n}_ID"),
+            f.device_id as f64,
+            true,
+        );
+        ulog_param(&mut out, &format!("CAL_MAG{n}_ROT"), 0.0, true);
+        for (k, a) in ["X", "Y", "Z"].iter().enumerate() {
+            ulog_param(&mut out, &format!("CAL_MAG{n}_{a}OFF"), off[k], false);
+            ulog_param(&mut out, &format!("CAL_MAG{n}_{a}SCALE"), m[k][k], false);
+        }
+        for (name, v) in [("X", m[0][1]), ("Y", m[0][2]), ("Z", m[1][2])] {
+            ulog_param(&mut out, &format!("CAL_MAG{n}_{name}ODIAG"), v, false);
+        }
+    }
+    let used = as_used(onboard).1;
     let mut sub = |multi: u8, id: u16, name: &str| {
         let mut b = vec![multi];
         b.extend(id.to_le_bytes());
@@ -274,8 +331,42 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
     sub(0, 0, "sensor_combined");
     sub(0, 1, "vehicle_magnetometer");
     sub(0, 2, "vehicle_attitude");
+    // Further compass i: sensor_mag[i] as message 3 + 2i, vehicle_magnetometer[i + 1] as 4 + 2i.
+    for i in 0..further.len() {
+        sub(i as u8, 3 + 2 * i as u16, "sensor_mag");
+        sub(i as u8 + 1, 4 + 2 * i as u16, "vehicle_magnetometer");
+    }
+    let mag_msg = |id: u16, t: u64, dev: u32, v: [f64; 3]| {
+        let mut b = id.to_le_bytes().to_vec();
+        b.extend(t.to_le_bytes());
+        b.extend(dev.to_le_bytes());
+        for x in v {
+            b.extend(((x / 100.0) as f32).to_le_bytes());
+        }
+        b
+    };
+    let mut further_msgs: Vec<(u64, Vec<u8>)> = Vec::new();
+    for (i, f) in further.iter().enumerate() {
+        let used = as_used(&f.onboard).1;
+        let mut next_raw = f64::NEG_INFINITY;
+        for (t_s, raw) in &f.readings {
+            let t = time_us(*t_s);
+            if *t_s >= next_raw {
+                further_msgs.push((t, mag_msg(3 + 2 * i as u16, t, f.device_id, *raw)));
+                next_raw = t_s + 1.0 / f.raw_rate_hz;
+            }
+            let c = used.correct(raw);
+            further_msgs.push((t, mag_msg(4 + 2 * i as u16, t, f.device_id, c)));
+        }
+    }
+    further_msgs.sort_by_key(|(t, _)| *t);
+    let mut further_msgs = further_msgs.into_iter().peekable();
     for s in samples {
         let t = time_us(s.t_s);
+        // Readings before this sample's time; those at it follow its attitude.
+        while let Some((_, b)) = further_msgs.next_if(|(tf, _)| *tf < t) {
+            ulog_msg(&mut out, b'D', &b);
+        }
         if let Some(q) = s.ref_q.and_then(crate::attitude::ned_to_enu) {
             let mut b = 2u16.to_le_bytes().to_vec();
             b.extend(t.to_le_bytes());
@@ -286,13 +377,7 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
         }
         if let Some(raw) = s.mag_ut {
             let c = used.correct(&raw);
-            let mut b = 1u16.to_le_bytes().to_vec();
-            b.extend(t.to_le_bytes());
-            for v in c {
-                b.extend(((v / 100.0) as f32).to_le_bytes());
-            }
-            b.extend([0u8; 4]);
-            ulog_msg(&mut out, b'D', &b);
+            ulog_msg(&mut out, b'D', &mag_msg(1, t, ID as u32, c));
         }
         if let (Some(a), Some(g)) = (s.accel_mps2, s.gyro_rad_s) {
             let mut b = 0u16.to_le_bytes().to_vec();
@@ -302,6 +387,12 @@ pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, E
             }
             ulog_msg(&mut out, b'D', &b);
         }
+        while let Some((_, b)) = further_msgs.next_if(|(tf, _)| *tf <= t) {
+            ulog_msg(&mut out, b'D', &b);
+        }
+    }
+    for (_, b) in further_msgs {
+        ulog_msg(&mut out, b'D', &b);
     }
     Ok(out)
 }
