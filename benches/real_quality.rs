@@ -90,7 +90,10 @@ fn score(rows: &[Row], fit: &serde_json::Value) -> Result<HeldOut, String> {
 
 fn cell(h: Option<&HeldOut>) -> String {
     h.map_or("-".into(), |h| {
-        format!("{:.2} % / {:.2} deg", h.norm_spread_pct, h.dip_spread_deg)
+        format!(
+            "{:.2} % / {:.2} / {:.2} deg",
+            h.norm_spread_pct, h.dip_spread_deg, h.heading_spread_deg
+        )
     })
 }
 
@@ -102,7 +105,7 @@ fn main() {
     }
     let py = python::python_path();
     let peer = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/peer_magfit.py");
-    println!("held out: spread of the field's norm / of its dip, on the odd 20 s blocks of a fit on the even ones\n");
+    println!("held out: spread of the field's norm / of its dip / of its heading against the vehicle's yaw, on the odd 20 s blocks of a fit on the even ones (the ratio: norm and dip)\n");
     println!("| log | compass | scored readings | vehicle's own | least squares, B fitted | MAGFit (magfit_WMM.py) | imucald | imucald against the best other |");
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     let mut notes = Vec::new();

@@ -75,6 +75,11 @@ pub struct HeldOut {
     pub dip_spread_deg: f64,
     /// Mean dip, deg.
     pub dip_mean_deg: f64,
+    /// Spread of the field's horizontal direction in the vehicle's NED frame (circular standard
+    /// deviation), deg: how far the compass heading wanders against the vehicle's own yaw, a
+    /// constant offset (the declination) aside.
+    #[serde(default)]
+    pub heading_spread_deg: f64,
     /// Readings scored.
     pub readings: usize,
 }

@@ -534,6 +534,7 @@ pub fn held_out(
 ) -> Option<crate::report::HeldOut> {
     let mut norms = Vec::with_capacity(readings.len());
     let mut dips = Vec::with_capacity(readings.len());
+    let (mut east, mut north) = (0.0, 0.0);
     for (m, q) in readings {
         let v = nalgebra::Vector3::from(*m);
         let n = v.norm();
@@ -544,6 +545,11 @@ pub fn held_out(
         let ned = q * v;
         norms.push(n);
         dips.push((ned.z / n).clamp(-1.0, 1.0).asin().to_degrees());
+        let h = ned.x.hypot(ned.y);
+        if h > 0.0 {
+            north += ned.x / h;
+            east += ned.y / h;
+        }
     }
     if norms.len() < QUALITY_MIN_READINGS {
         return None;
@@ -555,10 +561,14 @@ pub fn held_out(
     };
     let (nm, nsd) = mean_sd(&norms);
     let (dm, dsd) = mean_sd(&dips);
+    // Circular standard deviation of the horizontal direction: sqrt(-2 ln R), R the mean
+    // resultant length of its unit vectors.
+    let r = (north.hypot(east) / norms.len() as f64).clamp(1e-12, 1.0);
     Some(crate::report::HeldOut {
         norm_spread_pct: 100.0 * nsd / nm,
         dip_spread_deg: dsd,
         dip_mean_deg: dm,
+        heading_spread_deg: (-2.0 * r.ln()).sqrt().to_degrees(),
         readings: norms.len(),
     })
 }
@@ -707,8 +717,8 @@ fn verdict(
             let better = a.norm_spread_pct < 0.9 * b.norm_spread_pct
                 || a.dip_spread_deg < 0.9 * b.dip_spread_deg;
             let figures = format!(
-                "held out, the field's norm spreads {:.2} % through imucald's against {:.2} % through the vehicle's, its dip {:.2} against {:.2} deg",
-                a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg
+                "held out, the field's norm spreads {:.2} % through imucald's against {:.2} % through the vehicle's, its dip {:.2} against {:.2} deg, the heading against the vehicle's yaw {:.2} against {:.2} deg",
+                a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg, a.heading_spread_deg, b.heading_spread_deg
             );
             if better && !worse {
                 format!("imucald's is better: load the export; {figures}")

@@ -102,7 +102,7 @@
   // Held-out quality: the plain answer first, then the figures per compass.
   if ((R.quality || []).length) {
     const s = section("Is it better than the vehicle's own?", true);
-    const spread = h => h ? f(h.norm_spread_pct, 2) + " % / " + f(h.dip_spread_deg, 2) + " deg (" + h.readings + " readings)" : "–";
+    const spread = h => h ? f(h.norm_spread_pct, 2) + " % / " + f(h.dip_spread_deg, 2) + " deg / " + f(h.heading_spread_deg, 2) + " deg (" + h.readings + " readings)" : "–";
     for (const q of R.quality) s.append(el("p", {}, el("strong", {}, q.instance + ": "), q.verdict));
     s.append(table("Fitted on alternate " + f(R.quality[0].block_s, 0) + " s blocks, scored on the others: spread of the field's norm / of its dip",
       ["compass", "imucald (" + R.quality[0].method + ")", "the vehicle's own"],
