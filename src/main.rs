@@ -421,6 +421,7 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
         base_model: base,
         alpha,
         seed,
+        log_where: input.place(),
         ..Default::default()
     };
     let r = imucald::diagnose::diagnose(&input.samples, &cfg, &opts);

@@ -294,3 +294,27 @@ fn a_csv_without_time_needs_its_rate_and_says_so() {
     assert!((20.0..40.0).contains(&m.radius), "{}", m.radius);
     assert!(m.rms_residual < 1.2, "{}", m.rms_residual);
 }
+
+/// `diagnose` takes the earth field of the day and place the log was recorded, as `replay` does:
+/// the 2013 flight's vector start uses IGRF-13 of 2013-10-13 (its records' clock), not today's.
+#[test]
+fn diagnose_uses_the_field_of_the_logs_day() {
+    let real = require_data!();
+    let cfg = Config::default();
+    let log =
+        imucald::io::sources::read_log(&real.join("apm_copter_2013_a.tlog"), None, &cfg).unwrap();
+    let opts = imucald::diagnose::DiagnoseOptions {
+        log_where: log.place(),
+        ..Default::default()
+    };
+    let d = imucald::diagnose::diagnose(&log.samples, &cfg, &opts);
+    let start = d
+        .notes
+        .iter()
+        .find(|n| n.starts_with("magnetometer start"))
+        .expect("a vector start");
+    assert!(
+        start.contains("2013-10-13, date from record clock"),
+        "{start}"
+    );
+}

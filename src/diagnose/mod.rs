@@ -160,6 +160,11 @@ pub struct DiagnoseOptions {
     pub seed: u64,
     /// Most effects to add.
     pub max_rounds: usize,
+    /// Where and when the log was recorded, as the log says ([`crate::io::sources::Log::place`]):
+    /// the earth field of the vector start. Default: nothing (the configuration's `[place]`, else
+    /// today).
+    #[serde(skip)]
+    pub log_where: crate::types::LogWhere,
 }
 
 impl Default for DiagnoseOptions {
@@ -170,6 +175,7 @@ impl Default for DiagnoseOptions {
             holdout_fraction: 0.25,
             seed: 0,
             max_rounds: 4,
+            log_where: Default::default(),
         }
     }
 }
@@ -199,7 +205,7 @@ pub fn diagnose(samples: &[Sample], cfg: &Config, opts: &DiagnoseOptions) -> Dia
     } else {
         DEFAULT_ALPHA
     };
-    let prep = match rounds::prepare(samples, cfg, base, &mut notes) {
+    let prep = match rounds::prepare(samples, cfg, base, opts.log_where, &mut notes) {
         Ok(p) => p,
         Err(why) => return DiagnosisReport::failed(base, why),
     };

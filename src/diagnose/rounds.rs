@@ -294,6 +294,7 @@ pub(super) fn prepare(
     samples: &[Sample],
     cfg: &Config,
     base: ModelKind,
+    log_where: crate::types::LogWhere,
     notes: &mut Vec<String>,
 ) -> Result<Prepared, String> {
     let mut cfg2 = cfg.clone();
@@ -312,7 +313,7 @@ pub(super) fn prepare(
         pipe.push(s);
     }
     let mut results = pipe.finish().clone();
-    vector_start(&mut results, &sorted, &pipe, cfg, notes);
+    vector_start(&mut results, &sorted, &pipe, cfg, log_where, notes);
     let poses = pipe.poses().to_vec();
     let body: Vec<Sample> = sorted.iter().map(|s| pipe.to_body(s)).collect();
     let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor)
@@ -331,6 +332,7 @@ fn vector_start(
     sorted: &[Sample],
     pipe: &Pipeline,
     cfg: &Config,
+    log_where: crate::types::LogWhere,
     notes: &mut Vec<String>,
 ) {
     let mut mag = results.mag.clone();
@@ -338,7 +340,7 @@ fn vector_start(
         &mut mag,
         sorted,
         &|s| pipe.to_body(s),
-        Default::default(),
+        log_where,
         cfg.place.as_ref(),
     );
     let Some(choice) = &mag.report.method else {
