@@ -291,36 +291,7 @@ pub fn ulog_bytes_with(
     ] {
         ulog_param(&mut out, n, v, int);
     }
-    // As PX4 reads its parameters back (float32).
-    let as_used = |o: &OnboardMag| {
-        let off = o.offset_ut.map(|v| v / 100.0);
-        (
-            off,
-            OnboardMag {
-                offset_ut: off.map(|v| v as f32 as f64 * 100.0),
-                matrix: o.matrix.map(|r| r.map(|x| x as f32 as f64)),
-            },
-        )
-    };
-    for (i, f) in further.iter().enumerate() {
-        let n = i + 1;
-        let (off, _) = as_used(&f.onboard);
-        let m = &f.onboard.matrix;
-        ulog_param(
-            &mut out,
-            &format!("CAL_MAG{n}_ID"),
-            f.device_id as f64,
-            true,
-        );
-        ulog_param(&mut out, &format!("CAL_MAG{n}_ROT"), 0.0, true);
-        for (k, a) in ["X", "Y", "Z"].iter().enumerate() {
-            ulog_param(&mut out, &format!("CAL_MAG{n}_{a}OFF"), off[k], false);
-            ulog_param(&mut out, &format!("CAL_MAG{n}_{a}SCALE"), m[k][k], false);
-        }
-        for (name, v) in [("X", m[0][1]), ("Y", m[0][2]), ("Z", m[1][2])] {
-            ulog_param(&mut out, &format!("CAL_MAG{n}_{name}ODIAG"), v, false);
-        }
-    }
+    further_params(&mut out, further);
     let used = as_used(onboard).1;
     let mut sub = |multi: u8, id: u16, name: &str| {
         let mut b = vec![multi];
@@ -336,31 +307,7 @@ pub fn ulog_bytes_with(
         sub(i as u8, 3 + 2 * i as u16, "sensor_mag");
         sub(i as u8 + 1, 4 + 2 * i as u16, "vehicle_magnetometer");
     }
-    let mag_msg = |id: u16, t: u64, dev: u32, v: [f64; 3]| {
-        let mut b = id.to_le_bytes().to_vec();
-        b.extend(t.to_le_bytes());
-        b.extend(dev.to_le_bytes());
-        for x in v {
-            b.extend(((x / 100.0) as f32).to_le_bytes());
-        }
-        b
-    };
-    let mut further_msgs: Vec<(u64, Vec<u8>)> = Vec::new();
-    for (i, f) in further.iter().enumerate() {
-        let used = as_used(&f.onboard).1;
-        let mut next_raw = f64::NEG_INFINITY;
-        for (t_s, raw) in &f.readings {
-            let t = time_us(*t_s);
-            if *t_s >= next_raw {
-                further_msgs.push((t, mag_msg(3 + 2 * i as u16, t, f.device_id, *raw)));
-                next_raw = t_s + 1.0 / f.raw_rate_hz;
-            }
-            let c = used.correct(raw);
-            further_msgs.push((t, mag_msg(4 + 2 * i as u16, t, f.device_id, c)));
-        }
-    }
-    further_msgs.sort_by_key(|(t, _)| *t);
-    let mut further_msgs = further_msgs.into_iter().peekable();
+    let mut further_msgs = further_messages(further).into_iter().peekable();
     for s in samples {
         let t = time_us(s.t_s);
         // Readings before this sample's time; those at it follow its attitude.
@@ -395,6 +342,73 @@ pub fn ulog_bytes_with(
         ulog_msg(&mut out, b'D', &b);
     }
     Ok(out)
+}
+
+/// An onboard calibration as PX4 reads its parameters back (float32): the offset in gauss as
+/// written, and the calibration it applies.
+fn as_used(o: &OnboardMag) -> ([f64; 3], OnboardMag) {
+    let off = o.offset_ut.map(|v| v / 100.0);
+    (
+        off,
+        OnboardMag {
+            offset_ut: off.map(|v| v as f32 as f64 * 100.0),
+            matrix: o.matrix.map(|r| r.map(|x| x as f32 as f64)),
+        },
+    )
+}
+
+/// CAL_MAG{i + 1}_* of each further compass i (no rotation).
+fn further_params(out: &mut Vec<u8>, further: &[FurtherCompass]) {
+    for (i, f) in further.iter().enumerate() {
+        let n = i + 1;
+        let (off, _) = as_used(&f.onboard);
+        let m = &f.onboard.matrix;
+        ulog_param(out, &format!("CAL_MAG{n}_ID"), f.device_id as f64, true);
+        ulog_param(out, &format!("CAL_MAG{n}_ROT"), 0.0, true);
+        for (k, a) in ["X", "Y", "Z"].iter().enumerate() {
+            ulog_param(out, &format!("CAL_MAG{n}_{a}OFF"), off[k], false);
+            ulog_param(out, &format!("CAL_MAG{n}_{a}SCALE"), m[k][k], false);
+        }
+        for (name, v) in [("X", m[0][1]), ("Y", m[0][2]), ("Z", m[1][2])] {
+            ulog_param(out, &format!("CAL_MAG{n}_{name}ODIAG"), v, false);
+        }
+    }
+}
+
+/// The body of a `sensor_mag` or `vehicle_magnetometer` data message `id`: time (us), device id,
+/// the field (uT, written in gauss).
+fn mag_msg(id: u16, t: u64, dev: u32, v: [f64; 3]) -> Vec<u8> {
+    let mut b = id.to_le_bytes().to_vec();
+    b.extend(t.to_le_bytes());
+    b.extend(dev.to_le_bytes());
+    for x in v {
+        b.extend(((x / 100.0) as f32).to_le_bytes());
+    }
+    b
+}
+
+/// Every further compass's messages in time order: compass i's raw `sensor_mag[i]` (message
+/// 3 + 2i) at its `raw_rate_hz`, its corrected `vehicle_magnetometer[i + 1]` (4 + 2i) at every
+/// reading.
+fn further_messages(further: &[FurtherCompass]) -> Vec<(u64, Vec<u8>)> {
+    let mut msgs = Vec::new();
+    for (i, f) in further.iter().enumerate() {
+        let used = as_used(&f.onboard).1;
+        let mut next_raw = f64::NEG_INFINITY;
+        for (t_s, raw) in &f.readings {
+            let t = time_us(*t_s);
+            if *t_s >= next_raw {
+                msgs.push((t, mag_msg(3 + 2 * i as u16, t, f.device_id, *raw)));
+                next_raw = t_s + 1.0 / f.raw_rate_hz;
+            }
+            msgs.push((
+                t,
+                mag_msg(4 + 2 * i as u16, t, f.device_id, used.correct(raw)),
+            ));
+        }
+    }
+    msgs.sort_by_key(|(t, _)| *t);
+    msgs
 }
 
 /// Write `samples` as a `.bin` or `.ulg` (by `path`'s extension) through
