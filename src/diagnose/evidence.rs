@@ -45,12 +45,24 @@ const WINDOW_MAX_GAP_S: f64 = 0.2;
 const MIN_TEMP_COVERAGE: (usize, usize) = (4, 5);
 /// ...and it spans at least this range over the units, degrees C.
 pub const MIN_TEMP_RANGE_C: f64 = 0.5;
+/// Time constants, s, of the first-order lags of the temperature the temperature effect is fitted
+/// on (the first, 0, is the temperature itself). A sensor follows the temperature logged beside it
+/// late when the two sit apart on the board or the package heats through: seconds for a bare
+/// chip, minutes behind a heat sink. Steps of sqrt(2) from 5 s to 226 s: a lag between two grid
+/// values is matched within 19 %, and a lag beyond a few minutes cannot be told from a slow drift
+/// on a flight of tens of minutes.
+pub const TEMP_LAGS_S: [f64; N_TEMP_LAGS] = [
+    0.0, 5.0, 7.07, 10.0, 14.1, 20.0, 28.3, 40.0, 56.6, 80.0, 113.0, 160.0, 226.0,
+];
+/// How many lags [`TEMP_LAGS_S`] holds.
+pub const N_TEMP_LAGS: usize = 13;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct MagObs {
     pub m: Vector3<f64>,
-    /// Centred temperature and driver of this observation.
-    pub temp: f64,
+    /// Centred temperature of this observation, lagged by each of [`TEMP_LAGS_S`] (0 when absent).
+    pub tlag: [f64; N_TEMP_LAGS],
+    /// Centred driver of this observation.
     pub drv: f64,
     /// Moving windows: this reading's reference attitude (body -> ENU), when it has one.
     pub ref_w: Option<Matrix3<f64>>,
@@ -68,6 +80,8 @@ pub(super) struct Unit {
     pub gyro: Option<Vector3<f64>>,
     /// Centred temperature (0 when absent) and driver.
     pub temp: f64,
+    /// Centred temperature lagged by each of [`TEMP_LAGS_S`] (`tlag[0] == temp`).
+    pub tlag: [f64; N_TEMP_LAGS],
     pub has_temp: bool,
     pub drv: f64,
     /// Reference attitude, body -> ENU.
@@ -191,6 +205,38 @@ fn carry_forward(body: &[Sample]) -> Carried {
     }
 }
 
+/// Per sample, the carried temperature through a first-order lag of each time constant of
+/// [`TEMP_LAGS_S`] (NaN before the first temperature). The lag starts at the first value and steps
+/// with the exact discrete form y += (1 - exp(-dt / tau)) (T - y), so uneven sample times are
+/// followed exactly; a break in the source's time (a joined log) restarts it.
+fn lag_temperatures(body: &[Sample], temp: &[Option<f64>]) -> Vec<[f64; N_TEMP_LAGS]> {
+    let mut out = Vec::with_capacity(body.len());
+    let mut y = [f64::NAN; N_TEMP_LAGS];
+    let mut last: Option<(f64, u32)> = None;
+    for (s, t) in body.iter().zip(temp) {
+        let Some(v) = *t else {
+            out.push(y);
+            continue;
+        };
+        let restart = match last {
+            None => true,
+            Some((_, seg)) => seg != s.segment,
+        };
+        if restart {
+            y = [v; N_TEMP_LAGS];
+        } else {
+            let dt = (s.t_s - last.map_or(s.t_s, |l| l.0)).max(0.0);
+            y[0] = v;
+            for k in 1..N_TEMP_LAGS {
+                y[k] += (1.0 - (-dt / TEMP_LAGS_S[k]).exp()) * (v - y[k]);
+            }
+        }
+        last = Some((s.t_s, s.segment));
+        out.push(y);
+    }
+    out
+}
+
 /// Range (max - min) of the values present, 0 when none.
 fn range(v: &[Option<f64>]) -> f64 {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -301,7 +347,7 @@ fn moving_windows(
 /// The means (and sample counts) of one unit; time, temperature and driver not yet centred.
 fn unit_means(
     body: &[Sample],
-    temp: &[Option<f64>],
+    tlag: &[[f64; N_TEMP_LAGS]],
     drv: &[Option<f64>],
     rot_t: &Matrix3<f64>,
     (group, idx, moving): RawUnit,
@@ -310,7 +356,7 @@ fn unit_means(
     let mut mag = Vector3::zeros();
     let mut gyr = Vector3::zeros();
     let (mut na, mut nm, mut ng) = (0usize, 0usize, 0usize);
-    let (mut ts, mut nts) = (0.0, 0usize);
+    let (mut ts, mut nts) = ([0.0; N_TEMP_LAGS], 0usize);
     let (mut ds, mut nds) = (0.0, 0usize);
     let mut qsum = nalgebra::Vector4::zeros();
     let mut q0: Option<nalgebra::Vector4<f64>> = None;
@@ -330,8 +376,10 @@ fn unit_means(
             gyr += v3(&g);
             ng += 1;
         }
-        if let Some(t) = temp[i] {
-            ts += t;
+        if tlag[i][0].is_finite() {
+            for (a, b) in ts.iter_mut().zip(&tlag[i]) {
+                *a += b;
+            }
             nts += 1;
         }
         if let Some(x) = drv[i] {
@@ -352,7 +400,8 @@ fn unit_means(
         }
     }
     let t_mid = 0.5 * (body[idx[0]].t_s + body[*idx.last().unwrap()].t_s);
-    let mean_temp = if nts > 0 { ts / nts as f64 } else { f64::NAN };
+    let mean_tlag = ts.map(|x| if nts > 0 { x / nts as f64 } else { f64::NAN });
+    let mean_temp = mean_tlag[0];
     let d = if nds > 0 { ds / nds as f64 } else { 0.0 };
     // The reference attitude, the mean of the unit's.
     let ref_w = if !moving && nref >= MIN_UNIT_REF_SAMPLES {
@@ -365,7 +414,7 @@ fn unit_means(
             .filter_map(|&i| {
                 body[i].mag_ut.map(|m| MagObs {
                     m: v3(&m),
-                    temp: temp[i].unwrap_or(f64::NAN),
+                    tlag: tlag[i],
                     drv: drv[i].unwrap_or(0.0),
                     ref_w: body[i].ref_q.and_then(|q| quat_rot(&q)).map(|r| r * rot_t),
                 })
@@ -374,7 +423,7 @@ fn unit_means(
     } else if nm >= MIN_UNIT_MAG_SAMPLES {
         vec![MagObs {
             m: mag / nm as f64,
-            temp: mean_temp,
+            tlag: mean_tlag,
             drv: d,
             ref_w: None,
         }]
@@ -396,6 +445,7 @@ fn unit_means(
         acc: (!moving && na >= MIN_UNIT_CHANNEL_SAMPLES).then(|| acc / na as f64),
         gyro: (!moving && ng >= MIN_UNIT_CHANNEL_SAMPLES).then(|| gyr / ng as f64),
         temp: mean_temp,
+        tlag: mean_tlag,
         has_temp: nts > 0,
         drv: d,
         ref_w,
@@ -441,15 +491,16 @@ fn centre(units: &mut [Unit]) -> Centred {
         } else {
             u.temp = 0.0;
         }
+        u.tlag = u
+            .tlag
+            .map(|x| if x.is_finite() { x - tempbar } else { 0.0 });
         dlo = dlo.min(u.drv);
         dhi = dhi.max(u.drv);
         u.drv -= dbar;
         for o in u.mags.iter_mut() {
-            o.temp = if o.temp.is_finite() {
-                o.temp - tempbar
-            } else {
-                0.0
-            };
+            o.tlag = o
+                .tlag
+                .map(|x| if x.is_finite() { x - tempbar } else { 0.0 });
             o.drv -= dbar;
         }
     }
@@ -477,6 +528,7 @@ pub(super) fn build_evidence(
 ) -> Evidence {
     let n = body.len();
     let carried = carry_forward(&body);
+    let tlag = lag_temperatures(&body, &carried.temp);
     let driver = if range(&carried.current) >= MIN_CURRENT_RANGE_A {
         Some(Driver::Current)
     } else if range(&carried.throttle) >= MIN_THROTTLE_RANGE {
@@ -510,7 +562,7 @@ pub(super) fn build_evidence(
     };
     let mut units: Vec<Unit> = raw_units
         .into_iter()
-        .map(|r| unit_means(&body, &carried.temp, &drv, &rot_t, r))
+        .map(|r| unit_means(&body, &tlag, &drv, &rot_t, r))
         .collect();
     let c = centre(&mut units);
     let temp_ok = !units.is_empty()

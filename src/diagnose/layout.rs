@@ -2,7 +2,9 @@
 //! base model plus the catalogue of effects as switchable terms, decoding a parameter vector, the
 //! residuals every evidence unit gives, and the physical plausibility of an effect's parameters.
 
-use super::evidence::{v3, Driver, Evidence, MagObs, Unit, MIN_TEMP_RANGE_C};
+use super::evidence::{
+    v3, Driver, Evidence, MagObs, Unit, MIN_TEMP_RANGE_C, N_TEMP_LAGS, TEMP_LAGS_S,
+};
 use super::Effect;
 use crate::calib::model::{a_from_params, rotation_from_vector, Calibration, ModelKind};
 use crate::types::Vec3;
@@ -124,6 +126,9 @@ pub(super) struct Layout {
     pub n: usize,
     pub typ: Vec<f64>,
     pub names: Vec<(String, String)>,
+    /// Which lag of [`TEMP_LAGS_S`] the temperature effect follows (chosen by profiling, not a
+    /// parameter of the solver).
+    pub temp_lag: usize,
 }
 
 impl Layout {
@@ -135,6 +140,15 @@ impl Layout {
     }
     pub(super) fn block(&self, e: Effect) -> Option<&EffBlock> {
         self.effects.iter().find(|b| b.effect == e)
+    }
+    /// The same layout with the temperature effect following lag `k` of [`TEMP_LAGS_S`].
+    pub(super) fn with_temp_lag(mut self, k: usize) -> Layout {
+        self.temp_lag = k.min(N_TEMP_LAGS - 1);
+        self
+    }
+    /// The time constant the temperature effect follows, s.
+    pub(super) fn temp_lag_s(&self) -> f64 {
+        TEMP_LAGS_S[self.temp_lag]
     }
 }
 
@@ -217,6 +231,7 @@ pub(super) fn build_layout(ctx: &Ctx, effects: &[Effect]) -> Layout {
         n: 0,
         typ: vec![],
         names: vec![],
+        temp_lag: 0,
     };
     let axes = ["x", "y", "z"];
     let mat_names: &[&str] = if ctx.base == ModelKind::Sym9 {
@@ -393,6 +408,8 @@ pub(super) struct Model {
     pub am: Matrix3<f64>,
     pub mot: Vector3<f64>,
     pub tm: Vector3<f64>,
+    /// Which lag of [`TEMP_LAGS_S`] the temperature terms `tm` and `ta` follow.
+    pub lag_k: usize,
     pub cub_m: Option<Vector3<f64>>,
     pub rot: Matrix3<f64>,
     pub pa: Vector3<f64>,
@@ -436,6 +453,7 @@ pub(super) fn decode(ctx: &Ctx, lay: &Layout, p: &[f64]) -> Model {
         am: Matrix3::identity(),
         mot: Vector3::zeros(),
         tm: Vector3::zeros(),
+        lag_k: lay.temp_lag,
         cub_m: None,
         rot: Matrix3::identity(),
         pa: Vector3::zeros(),
@@ -536,7 +554,7 @@ impl Ctx {
     /// Calibrated field, normalised so that |u| = 1 for the earth field.
     #[inline]
     pub(super) fn cal_mag(&self, md: &Model, o: &MagObs) -> Vector3<f64> {
-        let x = (o.m - md.mot * o.drv - md.tm * o.temp - self.c0m) / self.s0m;
+        let x = (o.m - md.mot * o.drv - md.tm * o.tlag[md.lag_k] - self.c0m) / self.s0m;
         let u = md.am * (x - md.pm);
         match &md.cub_m {
             Some(c) => invert_cubic(&u, c),
@@ -545,9 +563,14 @@ impl Ctx {
     }
     /// Calibrated specific force in units of g.
     #[inline]
-    pub(super) fn cal_acc(&self, md: &Model, a: &Vector3<f64>, temp: f64) -> Vector3<f64> {
+    pub(super) fn cal_acc(
+        &self,
+        md: &Model,
+        a: &Vector3<f64>,
+        tlag: &[f64; N_TEMP_LAGS],
+    ) -> Vector3<f64> {
         if self.acc_free {
-            let x = (a - md.ta * temp - self.c0a) / self.s0a;
+            let x = (a - md.ta * tlag[md.lag_k] - self.c0a) / self.s0a;
             let u = md.aa * (x - md.pa);
             match &md.cub_a {
                 Some(c) => invert_cubic(&u, c),
@@ -608,7 +631,7 @@ pub(super) fn eval_units(
                 sink(ui, Ch::MagNorm, (c.norm() - 1.0) * ctx.s0m);
             }
         }
-        let ca = u.acc.map(|a| ctx.cal_acc(md, &a, u.temp));
+        let ca = u.acc.map(|a| ctx.cal_acc(md, &a, &u.tlag));
         if ctx.ch[Ch::AccNorm.i()] {
             if let Some(a) = ca {
                 sink(ui, Ch::AccNorm, (a.norm() - 1.0) * ctx.g);

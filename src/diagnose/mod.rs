@@ -42,7 +42,10 @@
 //! channel counts as noise of variance 1 under the current model. Each catalogue effect is a switchable
 //! term with its own regressors: they are ranked by a linearised nested test at the current fit
 //! (projecting out the current parameters; a regressor that does not vary or that the current model
-//! absorbs makes the candidate not identifiable), then refitted jointly in that order. An effect is
+//! absorbs makes the candidate not identifiable), then refitted jointly in that order. The
+//! temperature term's lag is profiled first: of the lags [`TEMP_LAGS_S`], the one whose regressors
+//! explain most of the current residual on the fit units; its time constant then counts as one
+//! more parameter in both tests below. An effect is
 //! **named** when
 //! 1. the nested F-test on unit means has p < alpha / m (Bonferroni over the m identifiable candidates
 //!    of the round); F and its denominator degrees of freedom are deflated by (1 - rho) / (1 + rho), rho
@@ -79,7 +82,7 @@ mod tests_mismatch;
 
 pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MAX_STILL_TURN_DEG, MIN_STATIC_MAG_UNITS,
-    WINDOW_BLOCK, WINDOW_S,
+    TEMP_LAGS_S, WINDOW_BLOCK, WINDOW_S,
 };
 pub use report::{
     summary_table, CandidateReport, ChannelRms, Decision, DiagnosisReport, EvidenceSummary,
@@ -108,7 +111,8 @@ pub enum Effect {
     CrossAxis,
     /// A rotation between the magnetometer and accelerometer frames (seen in the dip).
     MagAccelMisalignment,
-    /// Mag and accel biases linear in temperature.
+    /// Mag and accel biases linear in a first-order lag of the logged temperature, the time
+    /// constant profiled over [`TEMP_LAGS_S`] (0: the temperature itself) and reported as `lag_s`.
     TemperatureBias,
     /// A field proportional to the motor driver: `m_raw += k * throttle` (or current), k in uT per unit.
     MotorInterference,

@@ -284,6 +284,22 @@ fn effect_params(
                 },
             );
         }
+        if b.effect == Effect::TemperatureBias {
+            // Profiled on the lag grid, not solved for: its uncertainty is the grid's half step.
+            let tau = lay.temp_lag_s();
+            params.insert(
+                "lag_s".to_string(),
+                ParamEstimate {
+                    value: tau,
+                    sigma: if tau > 0.0 {
+                        tau * (std::f64::consts::SQRT_2 - 1.0) / 2.0
+                    } else {
+                        super::evidence::TEMP_LAGS_S[1] / 2.0
+                    },
+                    unit: "s".to_string(),
+                },
+            );
+        }
         effects.insert(b.effect.name().to_string(), params);
     }
     effects
@@ -402,6 +418,9 @@ fn residual_series(
             Some(Driver::Current) => "current (A)".to_string(),
             _ => "throttle (0..1)".to_string(),
         },
+        Effect::TemperatureBias if lay.temp_lag > 0 => {
+            format!("temperature lagged {:.0} s (deg C)", lay.temp_lag_s())
+        }
         Effect::TemperatureBias => "temperature (deg C)".to_string(),
         Effect::GyroBiasDrift => "time (s)".to_string(),
         Effect::HeadingOffset if units.iter().all(|&u| heading_deg(u).is_some()) => {
@@ -428,7 +447,7 @@ fn residual_series(
         let u = &ev.units[*ui];
         let x = match e {
             Effect::MotorInterference => u.drv + ev.drv_mean,
-            Effect::TemperatureBias if u.has_temp => u.temp + ev.temp_mean,
+            Effect::TemperatureBias if u.has_temp => u.tlag[lay.temp_lag] + ev.temp_mean,
             Effect::GyroBiasDrift => u.t + ev.t_mean,
             Effect::HeadingOffset if regressor.starts_with("reference") => {
                 heading_deg(*ui).unwrap_or(f64::NAN)

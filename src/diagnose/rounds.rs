@@ -100,6 +100,32 @@ impl Run<'_> {
         crate::calib::lm::minimise(&f, p0, &lay.typ, LM_MAX_ITER)
     }
 
+    /// Forward-difference Jacobian columns `cols` of the weighted fit-unit residuals at `p`
+    /// (`r0` the residuals there).
+    pub(super) fn jac_cols(
+        &self,
+        lay: &Layout,
+        w: &[f64; NCH],
+        p: &DVector<f64>,
+        r0: &[f64],
+        cols: &[usize],
+    ) -> DMatrix<f64> {
+        let f = |q: &[f64], out: &mut Vec<f64>| {
+            let mut full = p.clone();
+            for (c, v) in cols.iter().zip(q) {
+                full[*c] = *v;
+            }
+            out.clear();
+            let md = decode(&self.ctx, lay, full.as_slice());
+            eval_units(&self.ctx, &md, self.ev, &self.fit_units, &mut |ui, c, r| {
+                out.push(r * w[c.i()] * self.rel[ui][c.i()])
+            });
+        };
+        let q0 = DVector::from_iterator(cols.len(), cols.iter().map(|&c| p[c]));
+        let typ: Vec<f64> = cols.iter().map(|&c| lay.typ[c]).collect();
+        crate::calib::lm::jacobian(&f, &q0, r0, &typ)
+    }
+
     pub(super) fn jac(
         &self,
         lay: &Layout,
@@ -483,7 +509,7 @@ pub(super) fn start_params(
             continue;
         }
         let cm = u.mags.first().map(|o| run.ctx.cal_mag(&md, o).normalize());
-        let ca = u.acc.map(|a| run.ctx.cal_acc(&md, &a, u.temp).normalize());
+        let ca = u.acc.map(|a| run.ctx.cal_acc(&md, &a, &u.tlag).normalize());
         if let (Some(c), Some(a)) = (cm, ca) {
             sd += -a.dot(&c);
             nd += 1;
@@ -547,7 +573,7 @@ fn unit_scatter(
         let mut last_acc: Option<Vector3<f64>> = None;
         for &i in &u.idx {
             let s = &ev.body[i];
-            let ca = s.accel_mps2.map(|a| ctx.cal_acc(md, &v3(&a), u.temp));
+            let ca = s.accel_mps2.map(|a| ctx.cal_acc(md, &v3(&a), &u.tlag));
             if ca.is_some() {
                 last_acc = ca;
             }
@@ -566,7 +592,7 @@ fn unit_scatter(
             if let Some(m) = s.mag_ut {
                 let o = MagObs {
                     m: v3(&m),
-                    temp: u.temp,
+                    tlag: u.tlag,
                     drv: u.drv,
                     ref_w: None,
                 };
@@ -703,6 +729,9 @@ struct Linearised {
     /// Sum of squares the current model's columns explain, and an orthonormal basis of them.
     ex0: f64,
     u0: DMatrix<f64>,
+    /// Whether the temperature candidate's lag was chosen in this round by profiling (its time
+    /// constant then counts as one more parameter in the tests).
+    lag_profiled: bool,
 }
 
 /// A candidate after the linearised screen.
@@ -790,15 +819,25 @@ fn linearise(
         .collect();
     let mut all_effects = sel.found.clone();
     all_effects.extend(cands.iter().copied());
-    let lay_all = build_layout(&run.ctx, &all_effects);
+    let mut lay_all = build_layout(&run.ctx, &all_effects).with_temp_lag(sel.lay.temp_lag);
     let p_all = carry_params(&sel.lay, cur_p, &lay_all);
-    let (j_all, r_all) = run.jac(&lay_all, &w, &run.fit_units.clone(), &p_all);
+    let (mut j_all, r_all) = run.jac(&lay_all, &w, &run.fit_units.clone(), &p_all);
     let r_vec = DVector::from_column_slice(&r_all);
     let base_cols: Vec<usize> = (0..sel.lay.n_base)
         .chain(sel.found.iter().flat_map(|e| columns(&lay_all, *e)))
         .collect();
     let j0 = select_cols(&j_all, &base_cols);
     let (ex0, u0) = explained(&j0, &r_vec);
+    let lag_profiled = cands.contains(&Effect::TemperatureBias)
+        && applicable(&run.ctx, Effect::TemperatureBias).is_ok();
+    if lag_profiled {
+        let (k, x) = profile_temp_lag(run, &w, (&lay_all, &p_all), (&j_all, &r_all), &base_cols);
+        let cols = columns(&lay_all, Effect::TemperatureBias);
+        for (c, &col) in cols.iter().enumerate() {
+            j_all.set_column(col, &x.column(c));
+        }
+        lay_all = lay_all.with_temp_lag(k);
+    }
     Linearised {
         w,
         s0: cur.ssr,
@@ -810,6 +849,41 @@ fn linearise(
         base_cols,
         ex0,
         u0,
+        lag_profiled,
+    }
+}
+
+/// The lag of [`super::evidence::TEMP_LAGS_S`] whose temperature regressors explain most of the
+/// current residual beyond the current model's columns (the time constant is profiled on the fit
+/// units, as least squares would fit it), with the temperature block's Jacobian columns at that lag.
+fn profile_temp_lag(
+    run: &Run,
+    w: &[f64; NCH],
+    (lay_all, p_all): (&Layout, &DVector<f64>),
+    (j_all, r0): (&DMatrix<f64>, &[f64]),
+    base_cols: &[usize],
+) -> (usize, DMatrix<f64>) {
+    let cols = columns(lay_all, Effect::TemperatureBias);
+    let r_vec = DVector::from_column_slice(r0);
+    let j_base = select_cols(j_all, base_cols);
+    let mut best: Option<(f64, usize, DMatrix<f64>)> = None;
+    for k in 0..super::evidence::N_TEMP_LAGS {
+        let lay_k = lay_all.clone().with_temp_lag(k);
+        let x = run.jac_cols(&lay_k, w, p_all, r0, &cols);
+        let mut jb = j_base
+            .clone()
+            .resize_horizontally(base_cols.len() + cols.len(), 0.0);
+        for c in 0..cols.len() {
+            jb.set_column(base_cols.len() + c, &x.column(c));
+        }
+        let (ex, _) = explained(&jb, &r_vec);
+        if best.as_ref().is_none_or(|b| ex > b.0) {
+            best = Some((ex, k, x));
+        }
+    }
+    match best {
+        Some((_, k, x)) => (k, x),
+        None => (lay_all.temp_lag, select_cols(j_all, &cols)),
     }
 }
 
@@ -861,7 +935,8 @@ fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e:
         return Cand::rejected(e, 0, why, cols);
     }
     let x = select_cols(&lin.j_all, &cols);
-    let q = cols.len();
+    // A profiled time constant is one more parameter.
+    let q = cols.len() + usize::from(e == Effect::TemperatureBias && lin.lag_profiled);
     if let Err(note) = identifiable(lin, &cols, &x) {
         return Cand::rejected(e, q, note, cols);
     }
@@ -873,7 +948,7 @@ fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e:
     // Linearised parameter step, for a first plausibility check.
     let mut effs = sel.found.clone();
     effs.push(e);
-    let lay1 = build_layout(&run.ctx, &effs);
+    let lay1 = build_layout(&run.ctx, &effs).with_temp_lag(lin.lay_all.temp_lag);
     let mut p1 = carry_params(&sel.lay, cur_p, &lay1);
     if let Ok(step) = jb.clone().svd(true, true).solve(&(-&lin.r_vec), 1e-10) {
         if step.len() == lay1.n {
@@ -931,7 +1006,7 @@ fn refit(
 ) -> (Layout, DVector<f64>, f64, bool, bool, f64) {
     let mut effs = sel.found.clone();
     effs.push(c.e);
-    let lay1 = build_layout(&run.ctx, &effs);
+    let lay1 = build_layout(&run.ctx, &effs).with_temp_lag(lin.lay_all.temp_lag);
     let p1s = carry_params(&sel.lay, cur_p, &lay1);
     let w = &lin.w;
     let mut alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
@@ -962,15 +1037,31 @@ fn refit(
     rep.plausible = plaus;
     rep.refit = true;
     rep.held_out = Some(holds);
+    let held = if hdrop.is_finite() {
+        format!("held-out drop {:.1}% (z {:.1})", 100.0 * hdrop, hp)
+    } else {
+        "no held-out groups".to_string()
+    };
+    let params = lay1
+        .block(c.e)
+        .map(|b| {
+            (0..b.len)
+                .map(|k| {
+                    let (name, unit) = &lay1.names[b.start + k];
+                    format!("{name} {:.4} {unit}", alt.p[b.start + k])
+                })
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+        .unwrap_or_default();
+    let lag = if c.e == Effect::TemperatureBias {
+        format!(", lagged {:.0} s", lay1.temp_lag_s())
+    } else {
+        String::new()
+    };
     let mut note = format!(
-        "held-out drop {:.1}% (z {:.1}); lag-1 autocorrelation {:.2}; linearised F {:.2}; params {:?}",
-        100.0 * hdrop,
-        hp,
-        rho,
-        c.f_lin,
-        lay1.block(c.e).map(|b| (0..b.len)
-            .map(|k| (alt.p[b.start + k] * 1e4).round() / 1e4)
-            .collect::<Vec<_>>())
+        "{held}; lag-1 autocorrelation {rho:.2}; linearised F {:.2}; {params}{lag}",
+        c.f_lin
     );
     if !pnote.is_empty() {
         note.push_str("; implausible: ");
