@@ -9,7 +9,9 @@ use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 pub const MIN_STATIC_MAG_UNITS: usize = 15;
 /// Moving windows per held-out block.
 pub const WINDOW_BLOCK: usize = 5;
-/// Length of a moving window, s.
+/// Length of a moving window, s, when the magnetometer is fast enough to put
+/// [`MIN_WINDOW_SAMPLES`] readings in it; a slower one (telemetry at 1 Hz) gets windows of that
+/// many of its median reading intervals.
 pub const WINDOW_S: f64 = 0.25;
 /// Largest spread of the accelerometer direction inside a static unit, degrees.
 pub const MAX_STILL_SPREAD_DEG: f64 = 1.0;
@@ -38,8 +40,11 @@ const MIN_UNIT_MAG_SAMPLES: usize = 3;
 const MIN_UNIT_CHANNEL_SAMPLES: usize = 3;
 /// Fewest magnetometer samples of a moving window.
 const MIN_WINDOW_SAMPLES: usize = 5;
-/// A gap between magnetometer samples longer than this ends a moving window, s.
+/// A gap between magnetometer samples longer than this ends a moving window, s...
 const WINDOW_MAX_GAP_S: f64 = 0.2;
+/// ...or than this many median reading intervals, whichever is longer (a slow stream's readings
+/// come about one interval apart, and one lost message should not end a window).
+const WINDOW_GAP_INTERVALS: f64 = 2.5;
 /// Temperature is a usable regressor when this fraction (numerator, denominator) of the units have
 /// it...
 const MIN_TEMP_COVERAGE: (usize, usize) = (4, 5);
@@ -56,14 +61,23 @@ pub const TEMP_LAGS_S: [f64; N_TEMP_LAGS] = [
 ];
 /// How many lags [`TEMP_LAGS_S`] holds.
 pub const N_TEMP_LAGS: usize = 13;
+/// Time constants, s, of the first-order lags of the motor driver (throttle or current) the motor
+/// field is fitted on (the first, 0, is the driver itself). The field follows the current as the
+/// motors spin up and the ESCs settle (tens to hundreds of ms), and a logged current is often
+/// filtered: steps of sqrt(2) from 0.05 s to 1.6 s.
+pub const DRIVER_LAGS_S: [f64; N_DRIVER_LAGS] = [
+    0.0, 0.05, 0.0707, 0.1, 0.141, 0.2, 0.283, 0.4, 0.566, 0.8, 1.13, 1.6,
+];
+/// How many lags [`DRIVER_LAGS_S`] holds.
+pub const N_DRIVER_LAGS: usize = 12;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct MagObs {
     pub m: Vector3<f64>,
     /// Centred temperature of this observation, lagged by each of [`TEMP_LAGS_S`] (0 when absent).
     pub tlag: [f64; N_TEMP_LAGS],
-    /// Centred driver of this observation.
-    pub drv: f64,
+    /// Centred driver of this observation, lagged by each of [`DRIVER_LAGS_S`].
+    pub dlag: [f64; N_DRIVER_LAGS],
     /// Moving windows: this reading's reference attitude (body -> ENU), when it has one.
     pub ref_w: Option<Matrix3<f64>>,
 }
@@ -82,6 +96,8 @@ pub(super) struct Unit {
     pub temp: f64,
     /// Centred temperature lagged by each of [`TEMP_LAGS_S`] (`tlag[0] == temp`).
     pub tlag: [f64; N_TEMP_LAGS],
+    /// Centred driver lagged by each of [`DRIVER_LAGS_S`] (`dlag[0] == drv`).
+    pub dlag: [f64; N_DRIVER_LAGS],
     pub has_temp: bool,
     pub drv: f64,
     /// Reference attitude, body -> ENU.
@@ -103,6 +119,8 @@ pub(super) struct Evidence {
     pub units: Vec<Unit>,
     pub poses: usize,
     pub moving_windows: usize,
+    /// Length of the moving windows, s ([`WINDOW_S`], longer for a slow magnetometer).
+    pub window_s: f64,
     pub driver: Option<Driver>,
     pub drv_ok: bool,
     pub drv_range: f64,
@@ -205,13 +223,18 @@ fn carry_forward(body: &[Sample]) -> Carried {
     }
 }
 
-/// Per sample, the carried temperature through a first-order lag of each time constant of
-/// [`TEMP_LAGS_S`] (NaN before the first temperature). The lag starts at the first value and steps
-/// with the exact discrete form y += (1 - exp(-dt / tau)) (T - y), so uneven sample times are
-/// followed exactly; a break in the source's time (a joined log) restarts it.
-fn lag_temperatures(body: &[Sample], temp: &[Option<f64>]) -> Vec<[f64; N_TEMP_LAGS]> {
+/// Per sample, a carried value (temperature, driver) through a first-order lag of each time
+/// constant of `taus_s` (`taus_s[0]` = 0: the value itself; NaN before the first value). The lag
+/// starts at the first value and steps with the exact discrete form y += (1 - exp(-dt / tau))
+/// (x - y), so uneven sample times are followed exactly; a break in the source's time (a joined
+/// log) restarts it.
+fn lag_series<const N: usize>(
+    body: &[Sample],
+    temp: &[Option<f64>],
+    taus_s: &[f64; N],
+) -> Vec<[f64; N]> {
     let mut out = Vec::with_capacity(body.len());
-    let mut y = [f64::NAN; N_TEMP_LAGS];
+    let mut y = [f64::NAN; N];
     let mut last: Option<(f64, u32)> = None;
     for (s, t) in body.iter().zip(temp) {
         let Some(v) = *t else {
@@ -223,12 +246,15 @@ fn lag_temperatures(body: &[Sample], temp: &[Option<f64>]) -> Vec<[f64; N_TEMP_L
             Some((_, seg)) => seg != s.segment,
         };
         if restart {
-            y = [v; N_TEMP_LAGS];
+            y = [v; N];
         } else {
             let dt = (s.t_s - last.map_or(s.t_s, |l| l.0)).max(0.0);
-            y[0] = v;
-            for k in 1..N_TEMP_LAGS {
-                y[k] += (1.0 - (-dt / TEMP_LAGS_S[k]).exp()) * (v - y[k]);
+            for k in 0..N {
+                y[k] = if taus_s[k] > 0.0 {
+                    y[k] + (1.0 - (-dt / taus_s[k]).exp()) * (v - y[k])
+                } else {
+                    v
+                };
             }
         }
         last = Some((s.t_s, s.segment));
@@ -301,6 +327,34 @@ fn static_units(
     raw_units
 }
 
+/// The length of a moving window and the longest gap inside one, s, for the magnetometer's median
+/// interval between readings outside still poses (see [`WINDOW_S`]).
+fn window_span(body: &[Sample], times: &[f64], in_pose: &[bool]) -> (f64, f64) {
+    let mut dts: Vec<f64> = Vec::new();
+    let mut last: Option<(f64, u32)> = None;
+    for (i, s) in body.iter().enumerate() {
+        if in_pose[i] || s.mag_ut.is_none() {
+            continue;
+        }
+        if let Some((t, seg)) = last {
+            let dt = times[i] - t;
+            if seg == s.segment && dt > 0.0 {
+                dts.push(dt);
+            }
+        }
+        last = Some((times[i], s.segment));
+    }
+    if dts.is_empty() {
+        return (WINDOW_S, WINDOW_MAX_GAP_S);
+    }
+    let mid = dts.len() / 2;
+    let dt = *dts.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+    (
+        WINDOW_S.max(MIN_WINDOW_SAMPLES as f64 * dt),
+        WINDOW_MAX_GAP_S.max(WINDOW_GAP_INTERVALS * dt),
+    )
+}
+
 /// Moving windows of the magnetometer samples outside still poses, appended to `raw_units`; their
 /// groups are blocks of [`WINDOW_BLOCK`] windows numbered after the poses. Returns the window count.
 fn moving_windows(
@@ -309,7 +363,8 @@ fn moving_windows(
     in_pose: &[bool],
     n_poses: usize,
     raw_units: &mut Vec<RawUnit>,
-) -> usize {
+) -> (usize, f64) {
+    let (window_s, max_gap_s) = window_span(body, times, in_pose);
     let mut cur: Vec<usize> = vec![];
     let mut t0 = f64::NAN;
     let mut last_t = f64::NAN;
@@ -331,7 +386,7 @@ fn moving_windows(
         let broke = cur
             .last()
             .is_some_and(|&j| body[j].segment != body[i].segment);
-        if !cur.is_empty() && (broke || t - t0 >= WINDOW_S || t - last_t > WINDOW_MAX_GAP_S) {
+        if !cur.is_empty() && (broke || t - t0 >= window_s || t - last_t > max_gap_s) {
             flush(&mut cur, &mut w, raw_units);
         }
         if cur.is_empty() {
@@ -341,14 +396,14 @@ fn moving_windows(
         last_t = t;
     }
     flush(&mut cur, &mut w, raw_units);
-    w
+    (w, window_s)
 }
 
 /// The means (and sample counts) of one unit; time, temperature and driver not yet centred.
 fn unit_means(
     body: &[Sample],
     tlag: &[[f64; N_TEMP_LAGS]],
-    drv: &[Option<f64>],
+    dlag: &[[f64; N_DRIVER_LAGS]],
     rot_t: &Matrix3<f64>,
     (group, idx, moving): RawUnit,
 ) -> Unit {
@@ -357,7 +412,7 @@ fn unit_means(
     let mut gyr = Vector3::zeros();
     let (mut na, mut nm, mut ng) = (0usize, 0usize, 0usize);
     let (mut ts, mut nts) = ([0.0; N_TEMP_LAGS], 0usize);
-    let (mut ds, mut nds) = (0.0, 0usize);
+    let (mut ds, mut nds) = ([0.0; N_DRIVER_LAGS], 0usize);
     let mut qsum = nalgebra::Vector4::zeros();
     let mut q0: Option<nalgebra::Vector4<f64>> = None;
     let (mut nra, mut nrm) = (0usize, 0usize);
@@ -382,8 +437,10 @@ fn unit_means(
             }
             nts += 1;
         }
-        if let Some(x) = drv[i] {
-            ds += x;
+        if dlag[i][0].is_finite() {
+            for (a, b) in ds.iter_mut().zip(&dlag[i]) {
+                *a += b;
+            }
             nds += 1;
         }
         if let Some(q) = s.ref_q {
@@ -402,7 +459,8 @@ fn unit_means(
     let t_mid = 0.5 * (body[idx[0]].t_s + body[*idx.last().unwrap()].t_s);
     let mean_tlag = ts.map(|x| if nts > 0 { x / nts as f64 } else { f64::NAN });
     let mean_temp = mean_tlag[0];
-    let d = if nds > 0 { ds / nds as f64 } else { 0.0 };
+    let mean_dlag = ds.map(|x| if nds > 0 { x / nds as f64 } else { 0.0 });
+    let d = mean_dlag[0];
     // The reference attitude, the mean of the unit's.
     let ref_w = if !moving && nref >= MIN_UNIT_REF_SAMPLES {
         quat_rot(&[qsum[0], qsum[1], qsum[2], qsum[3]]).map(|r| r * rot_t)
@@ -415,7 +473,7 @@ fn unit_means(
                 body[i].mag_ut.map(|m| MagObs {
                     m: v3(&m),
                     tlag: tlag[i],
-                    drv: drv[i].unwrap_or(0.0),
+                    dlag: dlag[i].map(|x| if x.is_finite() { x } else { 0.0 }),
                     ref_w: body[i].ref_q.and_then(|q| quat_rot(&q)).map(|r| r * rot_t),
                 })
             })
@@ -424,7 +482,7 @@ fn unit_means(
         vec![MagObs {
             m: mag / nm as f64,
             tlag: mean_tlag,
-            drv: d,
+            dlag: mean_dlag,
             ref_w: None,
         }]
     } else {
@@ -446,6 +504,7 @@ fn unit_means(
         gyro: (!moving && ng >= MIN_UNIT_CHANNEL_SAMPLES).then(|| gyr / ng as f64),
         temp: mean_temp,
         tlag: mean_tlag,
+        dlag: mean_dlag,
         has_temp: nts > 0,
         drv: d,
         ref_w,
@@ -497,11 +556,12 @@ fn centre(units: &mut [Unit]) -> Centred {
         dlo = dlo.min(u.drv);
         dhi = dhi.max(u.drv);
         u.drv -= dbar;
+        u.dlag = u.dlag.map(|x| x - dbar);
         for o in u.mags.iter_mut() {
             o.tlag = o
                 .tlag
                 .map(|x| if x.is_finite() { x - tempbar } else { 0.0 });
-            o.drv -= dbar;
+            o.dlag = o.dlag.map(|x| x - dbar);
         }
     }
     let (t_lo, t_hi) = units
@@ -528,7 +588,7 @@ pub(super) fn build_evidence(
 ) -> Evidence {
     let n = body.len();
     let carried = carry_forward(&body);
-    let tlag = lag_temperatures(&body, &carried.temp);
+    let tlag = lag_series(&body, &carried.temp, &TEMP_LAGS_S);
     let driver = if range(&carried.current) >= MIN_CURRENT_RANGE_A {
         Some(Driver::Current)
     } else if range(&carried.throttle) >= MIN_THROTTLE_RANGE {
@@ -542,6 +602,7 @@ pub(super) fn build_evidence(
         None => vec![None; n],
     };
     let split = (DRIVER_STEP_FRACTION * range(&drv)).max(1e-9);
+    let dlag = lag_series(&body, &drv, &DRIVER_LAGS_S);
     let rot_t = rot_sensor_to_body.transpose();
     let times: Vec<f64> = body.iter().map(|s| s.t_s).collect();
 
@@ -555,14 +616,14 @@ pub(super) fn build_evidence(
             s.iter().filter(|&&i| body[i].mag_ut.is_some()).count() >= MIN_UNIT_MAG_SAMPLES
         })
         .count();
-    let moving = if static_mag < MIN_STATIC_MAG_UNITS {
+    let (moving, window_s) = if static_mag < MIN_STATIC_MAG_UNITS {
         moving_windows(&body, &times, &in_pose, n_poses, &mut raw_units)
     } else {
-        0
+        (0, WINDOW_S)
     };
     let mut units: Vec<Unit> = raw_units
         .into_iter()
-        .map(|r| unit_means(&body, &tlag, &drv, &rot_t, r))
+        .map(|r| unit_means(&body, &tlag, &dlag, &rot_t, r))
         .collect();
     let c = centre(&mut units);
     let temp_ok = !units.is_empty()
@@ -578,6 +639,7 @@ pub(super) fn build_evidence(
         units,
         poses: n_poses,
         moving_windows: moving,
+        window_s,
         driver,
         drv_ok,
         drv_range: c.drv_range,

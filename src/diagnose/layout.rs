@@ -3,7 +3,8 @@
 //! residuals every evidence unit gives, and the physical plausibility of an effect's parameters.
 
 use super::evidence::{
-    v3, Driver, Evidence, MagObs, Unit, MIN_TEMP_RANGE_C, N_TEMP_LAGS, TEMP_LAGS_S,
+    v3, Driver, Evidence, MagObs, Unit, DRIVER_LAGS_S, MIN_TEMP_RANGE_C, N_DRIVER_LAGS,
+    N_TEMP_LAGS, TEMP_LAGS_S,
 };
 use super::Effect;
 use crate::calib::model::{a_from_params, rotation_from_vector, Calibration, ModelKind};
@@ -129,6 +130,8 @@ pub(super) struct Layout {
     /// Which lag of [`TEMP_LAGS_S`] the temperature effect follows (chosen by profiling, not a
     /// parameter of the solver).
     pub temp_lag: usize,
+    /// Which lag of [`DRIVER_LAGS_S`] the motor field follows (likewise).
+    pub drv_lag: usize,
 }
 
 impl Layout {
@@ -149,6 +152,37 @@ impl Layout {
     /// The time constant the temperature effect follows, s.
     pub(super) fn temp_lag_s(&self) -> f64 {
         TEMP_LAGS_S[self.temp_lag]
+    }
+    /// The same layout with the motor field following lag `k` of [`DRIVER_LAGS_S`].
+    pub(super) fn with_drv_lag(mut self, k: usize) -> Layout {
+        self.drv_lag = k.min(N_DRIVER_LAGS - 1);
+        self
+    }
+    /// The time constant the motor field follows, s.
+    pub(super) fn drv_lag_s(&self) -> f64 {
+        DRIVER_LAGS_S[self.drv_lag]
+    }
+    /// The same layout with the lags of `other`.
+    pub(super) fn with_lags_of(self, other: &Layout) -> Layout {
+        self.with_temp_lag(other.temp_lag)
+            .with_drv_lag(other.drv_lag)
+    }
+    /// The lag grid of an effect that follows a lagged regressor: (how many lags, the time
+    /// constant in use, s), or None.
+    pub(super) fn lag_of(&self, e: Effect) -> Option<(usize, f64)> {
+        match e {
+            Effect::TemperatureBias => Some((N_TEMP_LAGS, self.temp_lag_s())),
+            Effect::MotorInterference => Some((N_DRIVER_LAGS, self.drv_lag_s())),
+            _ => None,
+        }
+    }
+    /// The same layout with effect `e` following lag `k` of its grid.
+    pub(super) fn with_lag(self, e: Effect, k: usize) -> Layout {
+        match e {
+            Effect::TemperatureBias => self.with_temp_lag(k),
+            Effect::MotorInterference => self.with_drv_lag(k),
+            _ => self,
+        }
     }
 }
 
@@ -232,6 +266,7 @@ pub(super) fn build_layout(ctx: &Ctx, effects: &[Effect]) -> Layout {
         typ: vec![],
         names: vec![],
         temp_lag: 0,
+        drv_lag: 0,
     };
     let axes = ["x", "y", "z"];
     let mat_names: &[&str] = if ctx.base == ModelKind::Sym9 {
@@ -410,6 +445,8 @@ pub(super) struct Model {
     pub tm: Vector3<f64>,
     /// Which lag of [`TEMP_LAGS_S`] the temperature terms `tm` and `ta` follow.
     pub lag_k: usize,
+    /// Which lag of [`DRIVER_LAGS_S`] the motor field `mot` follows.
+    pub drv_lag_k: usize,
     pub cub_m: Option<Vector3<f64>>,
     pub rot: Matrix3<f64>,
     pub pa: Vector3<f64>,
@@ -454,6 +491,7 @@ pub(super) fn decode(ctx: &Ctx, lay: &Layout, p: &[f64]) -> Model {
         mot: Vector3::zeros(),
         tm: Vector3::zeros(),
         lag_k: lay.temp_lag,
+        drv_lag_k: lay.drv_lag,
         cub_m: None,
         rot: Matrix3::identity(),
         pa: Vector3::zeros(),
@@ -554,7 +592,8 @@ impl Ctx {
     /// Calibrated field, normalised so that |u| = 1 for the earth field.
     #[inline]
     pub(super) fn cal_mag(&self, md: &Model, o: &MagObs) -> Vector3<f64> {
-        let x = (o.m - md.mot * o.drv - md.tm * o.tlag[md.lag_k] - self.c0m) / self.s0m;
+        let x =
+            (o.m - md.mot * o.dlag[md.drv_lag_k] - md.tm * o.tlag[md.lag_k] - self.c0m) / self.s0m;
         let u = md.am * (x - md.pm);
         match &md.cub_m {
             Some(c) => invert_cubic(&u, c),

@@ -105,6 +105,9 @@ pub struct EvidenceSummary {
     pub units: usize,
     pub static_units: usize,
     pub moving_windows: usize,
+    /// Length of each moving window, s (0.25, or five reading intervals of a slower magnetometer).
+    #[serde(default)]
+    pub window_s: f64,
     pub poses: usize,
     pub held_out_units: usize,
     pub channels: Vec<String>,
@@ -284,9 +287,13 @@ fn effect_params(
                 },
             );
         }
-        if b.effect == Effect::TemperatureBias {
-            // Profiled on the lag grid, not solved for: its uncertainty is the grid's half step.
-            let tau = lay.temp_lag_s();
+        if let Some((_, tau)) = lay.lag_of(b.effect) {
+            // Profiled on the lag grid (steps of sqrt 2 above its first non-zero value), not
+            // solved for: its uncertainty is the grid's half step.
+            let first = match b.effect {
+                Effect::TemperatureBias => super::evidence::TEMP_LAGS_S[1],
+                _ => super::evidence::DRIVER_LAGS_S[1],
+            };
             params.insert(
                 "lag_s".to_string(),
                 ParamEstimate {
@@ -294,7 +301,7 @@ fn effect_params(
                     sigma: if tau > 0.0 {
                         tau * (std::f64::consts::SQRT_2 - 1.0) / 2.0
                     } else {
-                        super::evidence::TEMP_LAGS_S[1] / 2.0
+                        first / 2.0
                     },
                     unit: "s".to_string(),
                 },
@@ -348,6 +355,11 @@ pub(super) fn assemble(
             units: ev.units.len(),
             static_units,
             moving_windows: ev.moving_windows,
+            window_s: if ev.moving_windows > 0 {
+                ev.window_s
+            } else {
+                0.0
+            },
             poses: ev.poses,
             held_out_units: run.hold_units.len(),
             channels,
@@ -414,10 +426,17 @@ fn residual_series(
         })
     };
     let regressor = match e {
-        Effect::MotorInterference => match ev.driver {
-            Some(Driver::Current) => "current (A)".to_string(),
-            _ => "throttle (0..1)".to_string(),
-        },
+        Effect::MotorInterference => {
+            let lagged = if lay.drv_lag > 0 {
+                format!(" lagged {:.2} s", lay.drv_lag_s())
+            } else {
+                String::new()
+            };
+            match ev.driver {
+                Some(Driver::Current) => format!("current{lagged} (A)"),
+                _ => format!("throttle{lagged} (0..1)"),
+            }
+        }
         Effect::TemperatureBias if lay.temp_lag > 0 => {
             format!("temperature lagged {:.0} s (deg C)", lay.temp_lag_s())
         }
@@ -446,7 +465,7 @@ fn residual_series(
         }
         let u = &ev.units[*ui];
         let x = match e {
-            Effect::MotorInterference => u.drv + ev.drv_mean,
+            Effect::MotorInterference => u.dlag[lay.drv_lag] + ev.drv_mean,
             Effect::TemperatureBias if u.has_temp => u.tlag[lay.temp_lag] + ev.temp_mean,
             Effect::GyroBiasDrift => u.t + ev.t_mean,
             Effect::HeadingOffset if regressor.starts_with("reference") => {
@@ -470,8 +489,19 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
     let e = &r.evidence;
     let _ = writeln!(
         s,
-        "diagnosis ({}): base {}, {} evidence units ({} static from {} poses, {} moving windows), {} held out",
-        r.schema, r.base_model, e.units, e.static_units, e.poses, e.moving_windows, e.held_out_units
+        "diagnosis ({}): base {}, {} evidence units ({} static from {} poses, {} moving windows{}), {} held out",
+        r.schema,
+        r.base_model,
+        e.units,
+        e.static_units,
+        e.poses,
+        e.moving_windows,
+        if e.moving_windows > 0 {
+            format!(" of {:.2} s", e.window_s)
+        } else {
+            String::new()
+        },
+        e.held_out_units
     );
     let _ = writeln!(
         s,
@@ -538,11 +568,22 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         }
     );
     let ratio = r.rms_before / r.rms_after;
-    let _ = writeln!(
-        s,
-        "held-out RMS (units of expected noise): {:.3} -> {:.3} ({:.2}x)",
-        r.rms_before, r.rms_after, ratio
-    );
+    if ratio.is_finite() {
+        let _ = writeln!(
+            s,
+            "{} RMS (units of expected noise): {:.3} -> {:.3} ({:.2}x)",
+            if e.held_out_units > 0 {
+                "held-out"
+            } else {
+                "in-sample (nothing held out)"
+            },
+            r.rms_before,
+            r.rms_after,
+            ratio
+        );
+    } else {
+        let _ = writeln!(s, "no residual to compare");
+    }
     for (name, c) in &r.rms_channels {
         let _ = writeln!(
             s,

@@ -593,7 +593,7 @@ fn unit_scatter(
                 let o = MagObs {
                     m: v3(&m),
                     tlag: u.tlag,
-                    drv: u.drv,
+                    dlag: u.dlag,
                     ref_w: None,
                 };
                 let c = ctx.cal_mag(md, &o);
@@ -729,9 +729,9 @@ struct Linearised {
     /// Sum of squares the current model's columns explain, and an orthonormal basis of them.
     ex0: f64,
     u0: DMatrix<f64>,
-    /// Whether the temperature candidate's lag was chosen in this round by profiling (its time
-    /// constant then counts as one more parameter in the tests).
-    lag_profiled: bool,
+    /// The candidates whose lag was chosen in this round by profiling (the time constant then
+    /// counts as one more parameter in the tests).
+    lag_profiled: Vec<Effect>,
 }
 
 /// A candidate after the linearised screen.
@@ -819,7 +819,7 @@ fn linearise(
         .collect();
     let mut all_effects = sel.found.clone();
     all_effects.extend(cands.iter().copied());
-    let mut lay_all = build_layout(&run.ctx, &all_effects).with_temp_lag(sel.lay.temp_lag);
+    let mut lay_all = build_layout(&run.ctx, &all_effects).with_lags_of(&sel.lay);
     let p_all = carry_params(&sel.lay, cur_p, &lay_all);
     let (mut j_all, r_all) = run.jac(&lay_all, &w, &run.fit_units.clone(), &p_all);
     let r_vec = DVector::from_column_slice(&r_all);
@@ -828,15 +828,18 @@ fn linearise(
         .collect();
     let j0 = select_cols(&j_all, &base_cols);
     let (ex0, u0) = explained(&j0, &r_vec);
-    let lag_profiled = cands.contains(&Effect::TemperatureBias)
-        && applicable(&run.ctx, Effect::TemperatureBias).is_ok();
-    if lag_profiled {
-        let (k, x) = profile_temp_lag(run, &w, (&lay_all, &p_all), (&j_all, &r_all), &base_cols);
-        let cols = columns(&lay_all, Effect::TemperatureBias);
+    let lag_profiled: Vec<Effect> = cands
+        .iter()
+        .copied()
+        .filter(|&e| lay_all.lag_of(e).is_some() && applicable(&run.ctx, e).is_ok())
+        .collect();
+    for &e in &lag_profiled {
+        let (k, x) = profile_lag(run, &w, e, (&lay_all, &p_all), (&j_all, &r_all), &base_cols);
+        let cols = columns(&lay_all, e);
         for (c, &col) in cols.iter().enumerate() {
             j_all.set_column(col, &x.column(c));
         }
-        lay_all = lay_all.with_temp_lag(k);
+        lay_all = lay_all.with_lag(e, k);
     }
     Linearised {
         w,
@@ -853,22 +856,25 @@ fn linearise(
     }
 }
 
-/// The lag of [`super::evidence::TEMP_LAGS_S`] whose temperature regressors explain most of the
-/// current residual beyond the current model's columns (the time constant is profiled on the fit
-/// units, as least squares would fit it), with the temperature block's Jacobian columns at that lag.
-fn profile_temp_lag(
+/// The lag of effect `e`'s grid ([`super::evidence::TEMP_LAGS_S`], [`super::evidence::DRIVER_LAGS_S`])
+/// whose regressors explain most of the current residual beyond the current model's columns (the
+/// time constant is profiled on the fit units, as least squares would fit it), with the effect's
+/// Jacobian columns at that lag.
+fn profile_lag(
     run: &Run,
     w: &[f64; NCH],
+    e: Effect,
     (lay_all, p_all): (&Layout, &DVector<f64>),
     (j_all, r0): (&DMatrix<f64>, &[f64]),
     base_cols: &[usize],
 ) -> (usize, DMatrix<f64>) {
-    let cols = columns(lay_all, Effect::TemperatureBias);
+    let cols = columns(lay_all, e);
     let r_vec = DVector::from_column_slice(r0);
     let j_base = select_cols(j_all, base_cols);
     let mut best: Option<(f64, usize, DMatrix<f64>)> = None;
-    for k in 0..super::evidence::N_TEMP_LAGS {
-        let lay_k = lay_all.clone().with_temp_lag(k);
+    let n_lags = lay_all.lag_of(e).map_or(1, |l| l.0);
+    for k in 0..n_lags {
+        let lay_k = lay_all.clone().with_lag(e, k);
         let x = run.jac_cols(&lay_k, w, p_all, r0, &cols);
         let mut jb = j_base
             .clone()
@@ -883,7 +889,7 @@ fn profile_temp_lag(
     }
     match best {
         Some((_, k, x)) => (k, x),
-        None => (lay_all.temp_lag, select_cols(j_all, &cols)),
+        None => (0, select_cols(j_all, &cols)),
     }
 }
 
@@ -936,7 +942,7 @@ fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e:
     }
     let x = select_cols(&lin.j_all, &cols);
     // A profiled time constant is one more parameter.
-    let q = cols.len() + usize::from(e == Effect::TemperatureBias && lin.lag_profiled);
+    let q = cols.len() + usize::from(lin.lag_profiled.contains(&e));
     if let Err(note) = identifiable(lin, &cols, &x) {
         return Cand::rejected(e, q, note, cols);
     }
@@ -948,7 +954,7 @@ fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e:
     // Linearised parameter step, for a first plausibility check.
     let mut effs = sel.found.clone();
     effs.push(e);
-    let lay1 = build_layout(&run.ctx, &effs).with_temp_lag(lin.lay_all.temp_lag);
+    let lay1 = build_layout(&run.ctx, &effs).with_lags_of(&lin.lay_all);
     let mut p1 = carry_params(&sel.lay, cur_p, &lay1);
     if let Ok(step) = jb.clone().svd(true, true).solve(&(-&lin.r_vec), 1e-10) {
         if step.len() == lay1.n {
@@ -1006,7 +1012,7 @@ fn refit(
 ) -> (Layout, DVector<f64>, f64, bool, bool, f64) {
     let mut effs = sel.found.clone();
     effs.push(c.e);
-    let lay1 = build_layout(&run.ctx, &effs).with_temp_lag(lin.lay_all.temp_lag);
+    let lay1 = build_layout(&run.ctx, &effs).with_lags_of(&lin.lay_all);
     let p1s = carry_params(&sel.lay, cur_p, &lay1);
     let w = &lin.w;
     let mut alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
@@ -1054,10 +1060,9 @@ fn refit(
                 .join(", ")
         })
         .unwrap_or_default();
-    let lag = if c.e == Effect::TemperatureBias {
-        format!(", lagged {:.0} s", lay1.temp_lag_s())
-    } else {
-        String::new()
+    let lag = match lay1.lag_of(c.e) {
+        Some((_, tau)) => format!(", lagged {tau:.2} s"),
+        None => String::new(),
     };
     let mut note = format!(
         "{held}; lag-1 autocorrelation {rho:.2}; linearised F {:.2}; {params}{lag}",

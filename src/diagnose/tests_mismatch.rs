@@ -1,8 +1,8 @@
 //! Diagnosis of effects whose real form is not the one the catalogue fits: the field grows with the
 //! square of the throttle, the bias follows the temperature with a lag, the field follows the motor
 //! current while the log has only the throttle, the field follows the motor with a delay. The
-//! catalogue's linear motor term only approximates these; the temperature term follows a fitted
-//! lag. The tests measure how often the right effect is still named, how far the held-out
+//! catalogue's linear motor term only approximates the first two; the temperature and motor
+//! terms follow a fitted lag. The tests measure how often the right effect is still named, how far the held-out
 //! residual shrinks and, for the temperature, how close the fitted lag comes to the hidden one.
 
 use super::tests::{base_bench, rand_dir};
@@ -25,7 +25,7 @@ enum Form {
     /// is there to fit against.
     CurrentNotLogged,
     /// Field `k * y`, `y` a first-order lag of the throttle (time constant 0.1-0.4 s; levels are held
-    /// 1 s): the field settles after each step.
+    /// 1 s): the field settles after each step, and the catalogue's lag follows it.
     FieldLagsMotor,
 }
 
@@ -114,6 +114,7 @@ fn generate(form: Form, seed: u64) -> (Vec<Sample>, Option<f64>) {
             for (x, y) in s.iter_mut().zip(y) {
                 add(&mut x.mag_ut, &k, y);
             }
+            hidden_lag = Some(tau);
         }
         Form::TemperatureShortLag | Form::TemperatureLongLag => {
             let tau = if form == Form::TemperatureShortLag {
@@ -150,7 +151,7 @@ struct Tally {
     unexplained: usize,
     n: usize,
     shrink: Vec<f64>,
-    /// Temperature forms, seeds where the effect was named: |ln(fitted lag / hidden lag)|.
+    /// Lagged forms, seeds where the effect was named: |ln(fitted lag / hidden lag)|.
     lag_err: Vec<f64>,
 }
 
@@ -192,7 +193,7 @@ fn tally(form: Form, n: u64) -> Tally {
             .and_then(|p| p.get("lag_s"))
             .map(|p| p.value);
         if let (Some(h), Some(f)) = (hidden_lag, fitted_lag) {
-            t.lag_err.push((f.max(1.0) / h).ln().abs());
+            t.lag_err.push((f.max(1e-3) / h).ln().abs());
         }
         if !exact || std::env::var("MISMATCH_VERBOSE").is_ok() {
             eprintln!("[{}] seed {seed}: {}", form.name(), r.outcome());
@@ -242,7 +243,7 @@ struct Expect {
     min_unexplained: usize,
     min_median_shrink: f64,
     min_smallest_shrink: f64,
-    /// Temperature forms: the worst fitted lag's error against the hidden one, %.
+    /// Lagged forms: the worst fitted lag's error against the hidden one, %.
     max_lag_err_pct: f64,
 }
 
@@ -311,17 +312,20 @@ fn field_from_an_unlogged_current_is_named_motor_interference() {
 }
 
 #[test]
-fn field_lagging_the_motor_is_named_motor_interference() {
-    // Measured: named 20/20, wrong 0/20, unexplained 20/20, shrink median 3.14x, smallest 1.72x.
+fn field_lagging_the_motor_is_named_motor_interference_with_its_lag() {
+    // The motor field follows a first-order lag of the driver whose time constant is profiled on
+    // a grid. Measured: named 20/20, wrong 0/20, unexplained 0/20, shrink median 11.49x, smallest
+    // 5.91x (before the lag was fitted: unexplained 20/20, 3.14x and 1.72x); fitted lag within
+    // 12 % of the hidden one (median), 20 % at worst.
     check(
         Form::FieldLagsMotor,
         Expect {
             min_exact: 19,
             max_wrong: 1,
-            min_unexplained: 14,
-            min_median_shrink: 1.71,
-            min_smallest_shrink: 1.24,
-            max_lag_err_pct: f64::INFINITY,
+            min_unexplained: 0,
+            min_median_shrink: 4.5,
+            min_smallest_shrink: 2.64,
+            max_lag_err_pct: 60.0,
         },
     );
 }
