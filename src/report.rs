@@ -400,6 +400,26 @@ impl SensorCalibration {
         self.calibration().filter(|_| self.units == "uT")
     }
 
+    /// What the data did not determine of this calibration (a planar fit's z offset and z soft
+    /// iron, held at nominal): never exported.
+    pub fn unknowns(&self) -> crate::calib::export::Unknowns {
+        use crate::calib::planar::Undetermined;
+        let mut u = crate::calib::export::Unknowns::default();
+        if let Some(p) = self.method.as_ref().and_then(|m| m.planar.as_ref()) {
+            for d in &p.undetermined {
+                match d {
+                    Undetermined::OffsetZ => u.offset[2] = true,
+                    Undetermined::SoftIronZ => u.axis[2] = true,
+                    Undetermined::FieldVertical | Undetermined::HeadingDeviation => {}
+                }
+            }
+            if u.any() {
+                u.why = "turns about the vertical only: the body-z axis never sees the field from another side".into();
+            }
+        }
+        u
+    }
+
     /// The field per ampere of battery current (uT/A, raw body axes) of a vector calibration in
     /// use whose data determined it: what the motor-compensation parameters export.
     pub fn motor_ut_per_a(&self) -> Option<Vec3> {

@@ -676,3 +676,35 @@ fn a_px4_further_compass_is_calibrated_from_its_fast_corrected_stream() {
         r.quality
     );
 }
+
+/// pyulog's AUAV-X2.1 flight: a drone in small tilts whose yaw stays within -48..-20 deg. The
+/// planar fit took it for a rover before (its own fitted headings spread over 10 sectors through a
+/// mirrored soft iron) and exported CAL_MAG0_ZOFF 0 over the vehicle's own; the vehicle's yaw
+/// visits 2 of 12 sectors, so the planar method is not taken, and with the sphere and vector fits
+/// not determining it either, no compass parameter is written.
+#[test]
+fn auav_exports_no_undetermined_term() {
+    let dir = require_data!();
+    let out = tempfile::tempdir().unwrap();
+    let opts = imucald::app::replay::ReplayOptions {
+        export_dir: Some(out.path().to_path_buf()),
+        ..Default::default()
+    };
+    let r = imucald::app::replay::replay(
+        &dir.join("px4_auav_x21.ulg"),
+        &imucald::config::Config::default(),
+        &opts,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let m = &r.report.calibration.mag;
+    let why = &m.method.as_ref().unwrap().method_reason;
+    assert!(
+        why.contains("planar not taken: the headings visit 2 of 12 sectors"),
+        "{why}"
+    );
+    let px = std::fs::read_to_string(out.path().join("px4.params")).unwrap();
+    let ap = std::fs::read_to_string(out.path().join("ardupilot.parm")).unwrap();
+    assert!(!px.contains("CAL_MAG0_"), "{px}");
+    assert!(!ap.contains("COMPASS_OFS"), "{ap}");
+}

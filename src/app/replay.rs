@@ -568,26 +568,45 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
         path: dir.to_path_buf(),
         source,
     })?;
-    let (m, a) = (
-        results
-            .mag
-            .calibration
-            .as_ref()
-            .filter(|_| report.calibration.mag.units == "uT"),
-        results.accel.calibration.as_ref(),
-    );
+    let a = results.accel.calibration.as_ref();
     let primary_id = report
         .instances
         .iter()
         .find(|i| i.primary)
         .map_or(0, |i| i.compass_id);
-    let mut mags: Vec<(usize, crate::calib::model::Calibration)> =
-        m.map(|c| (primary_id as usize, *c)).into_iter().collect();
+    // The vehicle's own compass parameters as the log carries them, by name.
+    let vehicle = |k: u8| {
+        report
+            .onboard
+            .iter()
+            .flat_map(|o| &o.mag)
+            .filter(|c| c.instance == k)
+            .flat_map(|c| c.params.clone())
+            .collect()
+    };
+    let export = |k: u8,
+                  rep: &crate::report::SensorCalibration,
+                  cal: Option<&crate::calib::model::Calibration>| {
+        cal.filter(|_| rep.units == "uT")
+            .map(|c| crate::calib::export::CompassExport {
+                index: k as usize,
+                cal: *c,
+                unknown: rep.unknowns(),
+                vehicle: vehicle(k),
+            })
+    };
+    let mut mags: Vec<crate::calib::export::CompassExport> = export(
+        primary_id,
+        &report.calibration.mag,
+        results.mag.calibration.as_ref(),
+    )
+    .into_iter()
+    .collect();
     for i in report.instances.iter().filter(|i| !i.primary) {
-        if let Some(c) = i.calibration.mag.calibration_ut() {
-            mags.push((i.compass_id as usize, c));
-        }
+        let m = &i.calibration.mag;
+        mags.extend(export(i.compass_id, m, m.calibration_ut().as_ref()));
     }
+    let m = mags.first().filter(|c| c.index == primary_id as usize);
     let motors: Vec<(usize, crate::types::Vec3)> = report
         .calibration
         .mag
@@ -1084,11 +1103,30 @@ pub fn summary(r: &Report) -> String {
     );
     for (name, c) in [("mag", &r.calibration.mag), ("accel", &r.calibration.accel)] {
         if c.status == CalStatus::Ok {
+            let unknown = c.unknowns();
+            let axis = |k: usize| {
+                if unknown.offset[k] {
+                    "not determined".to_string()
+                } else {
+                    format!("{:.4}", c.offset[k])
+                }
+            };
             let _ = writeln!(
                 s,
-                "{name:5}: ok, model {}, offset [{:.4}, {:.4}, {:.4}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
-                c.model, c.offset[0], c.offset[1], c.offset[2], c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
+                "{name:5}: ok, model {}, offset [{}, {}, {}] (+-{:.2e}), radius {:.4} {}, rms residual {:.4} {}, {} points",
+                c.model, axis(0), axis(1), axis(2), c.offset_sigma.iter().cloned().fold(0.0, f64::max), c.radius, c.units, c.rms_residual, c.units, c.samples_used
             );
+            if unknown.any() {
+                let _ =
+                    writeln!(
+                    s,
+                    "{:5}  not determined, so not exported (the vehicle keeps its own): {}{}; {}",
+                    "",
+                    if unknown.offset[2] { "z offset" } else { "" },
+                    if unknown.axis[2] { ", z soft iron (scale, xz, yz)" } else { "" },
+                    unknown.why
+                );
+            }
             if let Some(d) = &c.detail {
                 let _ = writeln!(s, "{:5}  ({d})", "");
             }
@@ -1102,7 +1140,7 @@ pub fn summary(r: &Report) -> String {
         }
     }
     if let Some(m) = &r.calibration.mag.method {
-        let _ = writeln!(s, "mag method: {:?} ({})", m.method, m.method_reason);
+        let _ = writeln!(s, "mag method: {} ({})", m.method.name(), m.method_reason);
     }
     for q in &r.quality {
         let _ = writeln!(

@@ -11,11 +11,123 @@
 //!
 //! Pure formatting: the caller writes the text to disk.
 
-use crate::calib::model::{Calibration, IDENTITY};
+use crate::calib::model::Calibration;
 use crate::types::{Vec3, STANDARD_GRAVITY_MPS2};
 
 /// A parameter name and value.
 pub type Param = (String, f64);
+
+/// The parts of a calibration the data did not determine (held at nominal in the fit): they are
+/// never exported. A flight-stack file leaves them out, so the vehicle keeps its own value, or
+/// writes the vehicle's own value from the log with a comment saying so.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Unknowns {
+    /// Offset axes not determined.
+    pub offset: [bool; 3],
+    /// Matrix rows and columns not determined (the whole row and column of that axis).
+    pub axis: [bool; 3],
+    /// Why, for the comment (e.g. "turns about the vertical only").
+    pub why: String,
+}
+
+impl Unknowns {
+    /// Whether anything is undetermined.
+    pub fn any(&self) -> bool {
+        self.offset.iter().chain(&self.axis).any(|&b| b)
+    }
+    /// Whether the offset of `axis` (0..3) or the matrix element (r, c) is undetermined.
+    fn offset_unknown(&self, axis: usize) -> bool {
+        self.offset[axis]
+    }
+    fn matrix_unknown(&self, r: usize, c: usize) -> bool {
+        self.axis[r] || self.axis[c]
+    }
+}
+
+/// One compass to export: its flight-stack index (0 for COMPASS_OFS and CAL_MAG0, 1 for
+/// COMPASS_OFS2 and CAL_MAG1 ...), its calibration in uT, what the data did not determine, and
+/// the vehicle's own parameters as the log carries them (by name), to keep where ours is unknown.
+#[derive(Debug, Clone)]
+pub struct CompassExport {
+    pub index: usize,
+    pub cal: Calibration,
+    pub unknown: Unknowns,
+    pub vehicle: std::collections::BTreeMap<String, f64>,
+}
+
+impl CompassExport {
+    /// A compass whose every parameter the data determined.
+    pub fn determined(index: usize, cal: Calibration) -> CompassExport {
+        CompassExport {
+            index,
+            cal,
+            unknown: Unknowns::default(),
+            vehicle: Default::default(),
+        }
+    }
+}
+
+/// Which of the nine compass parameters (offset x y z, diagonal x y z, off-diagonal xy xz yz, in
+/// the order [`ardupilot_mag`] and [`px4_mag`] list them) the data did not determine.
+fn unknown_mask(u: &Unknowns) -> [bool; 9] {
+    [
+        u.offset_unknown(0),
+        u.offset_unknown(1),
+        u.offset_unknown(2),
+        u.matrix_unknown(0, 0),
+        u.matrix_unknown(1, 1),
+        u.matrix_unknown(2, 2),
+        u.matrix_unknown(0, 1),
+        u.matrix_unknown(0, 2),
+        u.matrix_unknown(1, 2),
+    ]
+}
+
+/// The parameters of one compass the data determined (for writing to a flight controller, which
+/// then keeps its own value of the rest), in ArduPilot's or PX4's names.
+pub fn determined_mag_params(c: &CompassExport, px4: bool) -> Vec<Param> {
+    let params = if px4 {
+        px4_mag(&c.cal, c.index).0
+    } else {
+        ardupilot_mag(&c.cal, c.index).0
+    };
+    params
+        .into_iter()
+        .zip(unknown_mask(&c.unknown))
+        .filter(|(_, unknown)| !unknown)
+        .map(|(p, _)| p)
+        .collect()
+}
+
+/// The lines of one compass's parameters: the determined ones as they are; an undetermined one
+/// as the vehicle's own value when the log has it, else left out; each with a comment saying so.
+/// `line` formats one parameter.
+fn compass_lines(
+    c: &CompassExport,
+    params: Vec<Param>,
+    comment: &str,
+    line: &dyn Fn(&str, f64) -> String,
+) -> String {
+    let mut out = String::new();
+    let mask = unknown_mask(&c.unknown);
+    for ((n, v), unknown) in params.into_iter().zip(mask) {
+        if !unknown {
+            out += &line(&n, v);
+        } else if let Some(own) = c.vehicle.get(&n) {
+            out += &format!(
+                "{comment} {n}: not determined by this log ({}); the vehicle's own value, kept\n",
+                c.unknown.why
+            );
+            out += &line(&n, *own);
+        } else {
+            out += &format!(
+                "{comment} {n} not written: not determined by this log ({}); the vehicle keeps its own\n",
+                c.unknown.why
+            );
+        }
+    }
+    out
+}
 
 /// Warnings about what a target cannot represent (asymmetric matrix, cross-axis terms dropped).
 fn representability(cal: &Calibration, allow_offdiag: bool) -> Vec<String> {
@@ -153,9 +265,8 @@ pub fn px4_motor(k_ut_per_a: &Vec3, index: usize) -> Vec<Param> {
 /// [`px4_motor`] export beside the calibrations.
 pub type CompassMotors = [(usize, Vec3)];
 
-/// Magnetometer calibrations (uT) with the compass index each is for (0 for COMPASS_OFS and
-/// CAL_MAG0, 1 for COMPASS_OFS2 and CAL_MAG1 ...).
-pub type CompassCalibrations = [(usize, Calibration)];
+/// Magnetometer calibrations to export, one per compass.
+pub type CompassCalibrations = [CompassExport];
 
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
 pub fn ardupilot_file(
@@ -165,22 +276,30 @@ pub fn ardupilot_file(
 ) -> String {
     let mut out =
         String::from("# imucald calibration for ArduPilot (load with a GCS or `param load`)\n");
-    let motor = |k: usize| {
-        let m = mags.iter().find(|(i, _)| *i == k).map(|(_, c)| c.matrix);
-        motors
-            .iter()
-            .filter(move |(i, _)| *i == k)
-            .map(move |(_, v)| (ardupilot_motor(v, &m.unwrap_or(IDENTITY), k), vec![]))
-    };
-    let mags = mags
-        .iter()
-        .flat_map(|(k, c)| std::iter::once(ardupilot_mag(c, *k)).chain(motor(*k)));
-    for (params, warns) in mags.chain(accel.map(ardupilot_accel)) {
+    let line = |n: &str, v: f64| format!("{n} {v:.6}\n");
+    for c in mags {
+        let (params, warns) = ardupilot_mag(&c.cal, c.index);
+        for w in warns {
+            out += &format!("# warning: {w}\n");
+        }
+        out += &compass_lines(c, params, "#", &line);
+        // The motor term is in the calibrated frame (after the matrix): only with a whole matrix.
+        for (_, k) in motors.iter().filter(|(i, _)| *i == c.index) {
+            if c.unknown.any() {
+                out += "# motor compensation not written: the matrix it goes through is not determined\n";
+                continue;
+            }
+            for (n, v) in ardupilot_motor(k, &c.cal.matrix, c.index) {
+                out += &line(&n, v);
+            }
+        }
+    }
+    if let Some((params, warns)) = accel.map(ardupilot_accel) {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
         for (n, v) in params {
-            out += &format!("{n} {v:.6}\n");
+            out += &line(&n, v);
         }
     }
     out
@@ -193,28 +312,34 @@ pub fn px4_file(
     accel: Option<&Calibration>,
 ) -> String {
     let mut out = String::from("# imucald calibration for PX4 (QGroundControl parameter file)\n# Vehicle-Id\tComponent-Id\tName\tValue\tType\n");
-    let motor = |k: usize| {
-        motors
-            .iter()
-            .filter(move |(i, _)| *i == k)
-            .map(|(i, v)| (px4_motor(v, *i), vec![]))
-    };
-    let mags = mags
-        .iter()
-        .flat_map(|(k, c)| std::iter::once(px4_mag(c, *k)).chain(motor(*k)));
-    for (params, warns) in mags.chain(accel.map(px4_accel)) {
+    let line = |n: &str, v: f64| format!("1\t1\t{n}\t{v:.9}\t9\n");
+    for c in mags {
+        let (params, warns) = px4_mag(&c.cal, c.index);
+        for w in warns {
+            out += &format!("# warning: {w}\n");
+        }
+        out += &compass_lines(c, params, "#", &line);
+        for (i, k) in motors.iter().filter(|(i, _)| *i == c.index) {
+            for (n, v) in px4_motor(k, *i) {
+                out += &line(&n, v);
+            }
+        }
+    }
+    if let Some((params, warns)) = accel.map(px4_accel) {
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
         for (n, v) in params {
-            out += &format!("1\t1\t{n}\t{v:.9}\t9\n");
+            out += &line(&n, v);
         }
     }
     out
 }
 
 /// x-io Fusion C snippet: the magnetometer soft/hard iron and the accelerometer inertial model.
-pub fn fusion_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> String {
+/// Fusion takes the whole matrix and offset, so a magnetometer calibration with an undetermined
+/// part is left out, with a comment saying why.
+pub fn fusion_file(mag: Option<&CompassExport>, accel: Option<&Calibration>) -> String {
     let mat = |m: &[[f64; 3]; 3]| {
         format!(
             "{{{:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f}}",
@@ -223,9 +348,24 @@ pub fn fusion_file(mag: Option<&Calibration>, accel: Option<&Calibration>) -> St
     };
     let vec = |v: [f64; 3]| format!("{{{:.9}f, {:.9}f, {:.9}f}}", v[0], v[1], v[2]);
     let mut out = String::from("// imucald calibration for x-io Fusion. Magnetometer in the input's units (uT),\n// accelerometer in g: FusionCalibrationInertial(u, accelerometerMisalignment, accelerometerSensitivity, accelerometerOffset).\n");
-    if let Some(c) = mag {
-        out += &format!("const FusionMatrix softIronMatrix = {};\n", mat(&c.matrix));
-        out += &format!("const FusionVector hardIronOffset = {};\n", vec(c.offset));
+    match mag {
+        Some(c) if c.unknown.any() => {
+            out += &format!(
+                "// magnetometer not written: this log does not determine all of it ({})\n",
+                c.unknown.why
+            );
+        }
+        Some(c) => {
+            out += &format!(
+                "const FusionMatrix softIronMatrix = {};\n",
+                mat(&c.cal.matrix)
+            );
+            out += &format!(
+                "const FusionVector hardIronOffset = {};\n",
+                vec(c.cal.offset)
+            );
+        }
+        None => {}
     }
     if let Some(c) = accel {
         out += &format!(
@@ -295,12 +435,12 @@ mod tests {
             assert!((got - h[r] * 0.01).abs() < 1e-12, "PX4 axis {r}: {got}");
         }
         // Both files carry them beside the calibration.
-        let ap = ardupilot_file(&[(1, cal)], &[(1, k)], None);
+        let ap = ardupilot_file(&[CompassExport::determined(1, cal)], &[(1, k)], None);
         assert!(
             ap.contains("COMPASS_MOT2_X") && ap.contains("COMPASS_MOTCT 2"),
             "{ap}"
         );
-        let px = px4_file(&[(0, cal)], &[(0, k)], None);
+        let px = px4_file(&[CompassExport::determined(0, cal)], &[(0, k)], None);
         assert!(
             px.contains("CAL_MAG0_XCOMP") && px.contains("CAL_MAG_COMP_TYP"),
             "{px}"
@@ -443,11 +583,50 @@ mod tests {
 
     #[test]
     fn fusion_snippet_is_row_major_with_offset_subtracted() {
-        let t = fusion_file(Some(&cal()), None);
+        let t = fusion_file(Some(&CompassExport::determined(0, cal())), None);
         assert!(
             t.contains("softIronMatrix = {1.050000000f, 0.020000000f, -0.010000000f, 0.020000000f"),
             "{t}"
         );
         assert!(t.contains("hardIronOffset = {12.000000000f, -30.000000000f, 45.000000000f}"));
+    }
+
+    /// A planar fit's z offset and z soft iron are never written: left out (the vehicle keeps its
+    /// own) or, when the log carries the vehicle's value, that value with a comment.
+    #[test]
+    fn undetermined_parameters_are_never_exported() {
+        let mut c = CompassExport::determined(0, cal());
+        c.unknown = Unknowns {
+            offset: [false, false, true],
+            axis: [false, false, true],
+            why: "turns about the vertical only".into(),
+        };
+        let ap = ardupilot_file(std::slice::from_ref(&c), &[], None);
+        for n in [
+            "COMPASS_OFS_Z",
+            "COMPASS_DIA_Z",
+            "COMPASS_ODI_Y",
+            "COMPASS_ODI_Z",
+        ] {
+            assert!(!ap.lines().any(|l| l.starts_with(n)), "{n} written:\n{ap}");
+            assert!(ap.contains(&format!("# {n} not written")), "{ap}");
+        }
+        for n in [
+            "COMPASS_OFS_X",
+            "COMPASS_OFS_Y",
+            "COMPASS_DIA_X",
+            "COMPASS_ODI_X",
+        ] {
+            assert!(ap.lines().any(|l| l.starts_with(n)), "{n} missing:\n{ap}");
+        }
+        let px = px4_file(std::slice::from_ref(&c), &[], None);
+        assert!(!px.contains("\tCAL_MAG0_ZOFF\t"), "{px}");
+        assert!(px.contains("\tCAL_MAG0_XOFF\t"), "{px}");
+        assert!(fusion_file(Some(&c), None).contains("magnetometer not written"));
+        // The vehicle's own value, when the log has it, is kept and said so.
+        c.vehicle.insert("COMPASS_OFS_Z".into(), -130.0);
+        let ap = ardupilot_file(std::slice::from_ref(&c), &[], None);
+        assert!(ap.contains("COMPASS_OFS_Z -130.000000"), "{ap}");
+        assert!(ap.contains("the vehicle's own value, kept"), "{ap}");
     }
 }

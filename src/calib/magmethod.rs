@@ -43,6 +43,17 @@ pub enum MagMethod {
     Planar,
 }
 
+impl MagMethod {
+    /// The name the report uses (`vector`, `sphere`, `planar`).
+    pub fn name(self) -> &'static str {
+        match self {
+            MagMethod::Vector => "vector",
+            MagMethod::Sphere => "sphere",
+            MagMethod::Planar => "planar",
+        }
+    }
+}
+
 /// The method chosen and why (flattened into `calibration.mag`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MethodChoice {
@@ -341,10 +352,16 @@ fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
     t.get(k).copied()
 }
 
+/// The `model` of a calibration from the planar fit (read back as a full matrix: see
+/// [`crate::report::SensorCalibration::calibration`]).
+pub const PLANAR_MODEL: &str = "planar";
+
 /// The planar fit as the sensor's result, the undetermined z terms at nominal.
 fn install_planar(mag: &mut SensorResult, p: &crate::calib::planar::PlanarFit) {
     let (offset, matrix) = p.calibration();
     let r = install_full12(mag, offset, matrix);
+    // The model is the planar fit (applied as a full matrix, z terms at nominal).
+    r.model = PLANAR_MODEL.into();
     r.radius = p.horizontal.hypot(p.vertical);
     r.rms_residual = p.rms_residual;
     // z held at nominal, not fitted (named in `planar.undetermined`).

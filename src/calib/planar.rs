@@ -347,6 +347,33 @@ pub enum PlanarFailure {
         sectors: usize,
         need: usize,
     },
+    /// The fitted 2x2 soft iron is not a calibration: its eigenvalues, normalised to their
+    /// geometric mean, are not both within [`SOFT_IRON_EIGEN_BOUNDS`] (a negative one mirrors the
+    /// heading).
+    SoftIron {
+        eigenvalues: [f64; 2],
+    },
+}
+
+/// Bounds on the eigenvalues of the fitted 2x2 soft iron normalised to unit determinant (or,
+/// when the determinant is not positive, to the larger eigenvalue's size): the bounds ArduPilot's
+/// CompassCalibrator puts on the diagonal of its normalised soft iron (0.2 to 5). Outside, the
+/// fit has found a mirror or a degenerate ellipse, not the soft iron of a board.
+pub const SOFT_IRON_EIGEN_BOUNDS: (f64, f64) = (0.2, 5.0);
+
+/// The eigenvalues of the symmetric 2x2 `s`, normalised (see [`SOFT_IRON_EIGEN_BOUNDS`]).
+fn normalised_eigenvalues(s: &[[f64; 2]; 2]) -> [f64; 2] {
+    let (a, b, d) = (s[0][0], s[0][1], s[1][1]);
+    let mean = 0.5 * (a + d);
+    let r = (0.25 * (a - d).powi(2) + b * b).sqrt();
+    let (l1, l2) = (mean + r, mean - r);
+    let det = l1 * l2;
+    let scale = if det > 0.0 {
+        det.sqrt()
+    } else {
+        l1.abs().max(l2.abs()).max(1e-300)
+    };
+    [l1 / scale, l2 / scale]
 }
 
 impl std::fmt::Display for PlanarFailure {
@@ -361,6 +388,19 @@ impl std::fmt::Display for PlanarFailure {
             PlanarFailure::NarrowYaw { sectors, need } => write!(
                 f,
                 "the headings visit {sectors} of {YAW_SECTORS} sectors, need {need}"
+            ),
+            PlanarFailure::SoftIron { eigenvalues } => write!(
+                f,
+                "the fitted horizontal soft iron is not a calibration (normalised eigenvalues {:.3} and {:.3}, a calibration's are within {}..{}{})",
+                eigenvalues[0],
+                eigenvalues[1],
+                SOFT_IRON_EIGEN_BOUNDS.0,
+                SOFT_IRON_EIGEN_BOUNDS.1,
+                if eigenvalues.iter().any(|e| *e <= 0.0) {
+                    "; a negative one mirrors the heading"
+                } else {
+                    ""
+                }
             ),
         }
     }
@@ -661,11 +701,24 @@ pub fn fit(
         .filter(|p| p.reference.is_some_and(|r| r.0.is_finite()))
         .collect();
     fit.yaw_sectors = sectors(level.iter().map(|p| fit.compass_heading_deg(p)));
+    // The fitted headings can be spread by the fit itself (a mirror, a degenerate ellipse): where
+    // there is a true heading, it must have turned through as many sectors.
+    if referenced.len() >= settings.min_reference_points {
+        let true_sectors = sectors(referenced.iter().filter_map(|p| p.reference.map(|r| r.0)));
+        fit.yaw_sectors = fit.yaw_sectors.min(true_sectors);
+    }
     if fit.yaw_sectors < settings.min_yaw_sectors {
         return Err(PlanarFailure::NarrowYaw {
             sectors: fit.yaw_sectors,
             need: settings.min_yaw_sectors,
         });
+    }
+    let eigenvalues = normalised_eigenvalues(&fit.soft_iron_xy);
+    if !eigenvalues
+        .iter()
+        .all(|e| (SOFT_IRON_EIGEN_BOUNDS.0..=SOFT_IRON_EIGEN_BOUNDS.1).contains(e))
+    {
+        return Err(PlanarFailure::SoftIron { eigenvalues });
     }
     if referenced.len() >= settings.min_reference_points {
         match deviation(&fit, &referenced, settings) {

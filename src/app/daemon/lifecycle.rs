@@ -493,12 +493,8 @@ impl Cal {
             .store
             .mags_ut()
             .iter()
-            .flat_map(|(k, m)| {
-                if convention == ParamTarget::Px4 {
-                    crate::calib::export::px4_mag(m, *k).0
-                } else {
-                    crate::calib::export::ardupilot_mag(m, *k).0
-                }
+            .flat_map(|c| {
+                crate::calib::export::determined_mag_params(c, convention == ParamTarget::Px4)
             })
             .collect();
         if params.is_empty() {

@@ -74,17 +74,19 @@ impl StoredCalibration {
         self.accel.as_ref()?.calibration()
     }
     /// Every compass's magnetometer calibration in uT with its compass id (what parameters hold).
-    pub fn mags_ut(&self) -> Vec<(usize, Calibration)> {
-        let primary = self.mag.as_ref().and_then(|m| m.calibration_ut());
-        let others = self.instances.iter().filter_map(|i| {
-            let c = i.mag.as_ref()?.calibration_ut()?;
-            Some((i.compass_id as usize, c))
-        });
-        primary
-            .map(|c| (self.compass_id as usize, c))
-            .into_iter()
-            .chain(others)
-            .collect()
+    pub fn mags_ut(&self) -> Vec<crate::calib::export::CompassExport> {
+        let export = |k: u8, m: &crate::report::SensorCalibration| {
+            let mut e =
+                crate::calib::export::CompassExport::determined(k as usize, m.calibration_ut()?);
+            e.unknown = m.unknowns();
+            Some(e)
+        };
+        let primary = self.mag.as_ref().and_then(|m| export(self.compass_id, m));
+        let others = self
+            .instances
+            .iter()
+            .filter_map(|i| export(i.compass_id, i.mag.as_ref()?));
+        primary.into_iter().chain(others).collect()
     }
     /// The stored entry of the instance with compass id `compass_id` (made when missing).
     pub(super) fn instance_mut(&mut self, name: &str, compass_id: u8) -> &mut StoredInstance {
@@ -130,8 +132,9 @@ pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
         path: dir.to_path_buf(),
         source,
     })?;
-    let (m, a) = (store.mag_cal(), store.accel_cal());
+    let a = store.accel_cal();
     let mags = store.mags_ut();
+    let m = mags.iter().find(|c| c.index == store.compass_id as usize);
     // The primary compass's motor term, when its vector calibration determined one.
     let motors: Vec<(usize, crate::types::Vec3)> = store
         .mag
@@ -150,7 +153,7 @@ pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
     )?;
     crate::io::publish::write_atomic(
         &dir.join("fusion.h"),
-        crate::calib::export::fusion_file(m.as_ref(), a.as_ref()).as_bytes(),
+        crate::calib::export::fusion_file(m, a.as_ref()).as_bytes(),
     )?;
     // The JSON last: it is what a restart loads.
     crate::io::publish::write_json(&dir.join(STORE_FILE), store)
