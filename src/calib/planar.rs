@@ -702,10 +702,16 @@ pub fn fit(
         .collect();
     fit.yaw_sectors = sectors(level.iter().map(|p| fit.compass_heading_deg(p)));
     // The fitted headings can be spread by the fit itself (a mirror, a degenerate ellipse): where
-    // there is a true heading, it must have turned through as many sectors.
-    if referenced.len() >= settings.min_reference_points {
-        let true_sectors = sectors(referenced.iter().filter_map(|p| p.reference.map(|r| r.0)));
-        fit.yaw_sectors = fit.yaw_sectors.min(true_sectors);
+    // the logged attitude gives the true heading all along, it must have turned through as many
+    // sectors. (A course over ground is only taken on straight stretches, so it visits fewer.)
+    let by_attitude: Vec<f64> = referenced
+        .iter()
+        .filter_map(|p| p.reference)
+        .filter(|r| r.1 == ReferenceKind::Attitude)
+        .map(|r| r.0)
+        .collect();
+    if by_attitude.len() >= settings.min_reference_points {
+        fit.yaw_sectors = fit.yaw_sectors.min(sectors(by_attitude.into_iter()));
     }
     if fit.yaw_sectors < settings.min_yaw_sectors {
         return Err(PlanarFailure::NarrowYaw {
