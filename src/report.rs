@@ -268,6 +268,9 @@ pub struct PoseReport {
     pub accel: Vec3,
     pub mag: Option<Vec3>,
     pub gyro: Option<Vec3>,
+    /// How fast it turned, deg/s ([`Pose::turn_rate_deg_s`]); a pose that turned is not rest.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub turn_rate_deg_s: Option<f64>,
 }
 
 impl From<&Pose> for PoseReport {
@@ -279,6 +282,7 @@ impl From<&Pose> for PoseReport {
             accel: p.accel,
             mag: p.mag,
             gyro: p.gyro,
+            turn_rate_deg_s: p.turn_rate_deg_s,
         }
     }
 }
@@ -450,6 +454,10 @@ pub struct GyroCalibration {
     pub bias: Vec3,
     pub bias_sigma: Vec3,
     pub poses_used: usize,
+    /// Steady poses left out of the bias because they turned faster than
+    /// [`crate::calib::gate::REST_MAX_RATE_DEG_S`] (a steady turn is not rest).
+    #[serde(default)]
+    pub poses_turning: usize,
     /// Scale and misalignment from the rotations between static poses (replay only: it needs the
     /// whole log), present only when its held-out check passed. `None` when not attempted or
     /// refused; a refusal is in `scale_failure`.

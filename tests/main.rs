@@ -2021,6 +2021,7 @@ mod live_attitude {
                 bias: truth.gyro.offset,
                 bias_sigma: [1e-4; 3],
                 poses_used: 6,
+                poses_turning: 0,
                 scale: None,
                 scale_failure: None,
             }),

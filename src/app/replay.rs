@@ -1153,8 +1153,17 @@ pub fn summary(r: &Report) -> String {
     if g.status == CalStatus::Ok {
         let _ = writeln!(
             s,
-            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses",
-            g.bias[0], g.bias[1], g.bias[2], g.units, g.poses_used
+            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses at rest{}",
+            g.bias[0],
+            g.bias[1],
+            g.bias[2],
+            g.units,
+            g.poses_used,
+            if g.poses_turning > 0 {
+                format!(" ({} steady but turning, left out)", g.poses_turning)
+            } else {
+                String::new()
+            }
         );
         if let Some(k) = &g.scale {
             let _ = write!(
@@ -1173,6 +1182,18 @@ pub fn summary(r: &Report) -> String {
         } else if let Some(f) = &g.scale_failure {
             let _ = writeln!(s, "gyro : no scale fit: {f}");
         }
+    } else if g.poses_turning > 0 {
+        let _ = writeln!(
+            s,
+            "gyro : no bias claimed: no rest in this log ({} steady segments turned faster than {} deg/s: a steady turn holds the gyro steady too); set the vehicle down still for a few seconds",
+            g.poses_turning,
+            crate::calib::gate::REST_MAX_RATE_DEG_S
+        );
+    } else {
+        let _ = writeln!(
+            s,
+            "gyro : no bias claimed: fewer than 2 static poses with the gyro"
+        );
     }
     s
 }

@@ -76,10 +76,12 @@ impl Default for BiasOptions {
 }
 
 /// Bias (and its temperature drift when temperatures vary) from the static poses' mean gyro readings,
-/// each weighted by its sample count. `None` without a pose that has gyro data.
+/// each weighted by its sample count, the poses at rest only ([`Pose::at_rest`]: a steady turn
+/// holds the gyro steady too). `None` without a pose at rest that has gyro data.
 pub fn bias_from_poses(poses: &[Pose], opt: &BiasOptions) -> Option<GyroBias> {
     let pts: Vec<(Vec3, f64, Option<f64>)> = poses
         .iter()
+        .filter(|p| p.at_rest())
         .filter_map(|p| p.gyro.map(|g| (g, p.samples.max(1) as f64, p.temp_c)))
         .filter(|(g, _, _)| crate::types::is_finite3(g))
         .collect();

@@ -1236,9 +1236,18 @@ fn check_limits(rep: &mut SensorCalibration, cal: &Calibration, cov: &Coverage, 
     }
 }
 
-/// Gyro bias from static poses: the mean of pose means.
+/// Gyro bias from the static poses at rest ([`Pose::at_rest`]): the mean of pose means. A pose
+/// that turned (a steady turn holds the gyro steady too) says nothing about the bias.
 fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
-    let g: Vec<Vec3> = poses.iter().filter_map(|p| p.gyro).collect();
+    let turning = poses
+        .iter()
+        .filter(|p| p.gyro.is_some() && !p.at_rest())
+        .count();
+    let g: Vec<Vec3> = poses
+        .iter()
+        .filter(|p| p.at_rest())
+        .filter_map(|p| p.gyro)
+        .collect();
     // A gyro at rest reading more than 35 rad/s (2000 deg/s) is in counts, whatever the input said.
     let mut norms: Vec<f64> = g.iter().map(norm).collect();
     norms.sort_by(|a, b| a.total_cmp(b));
@@ -1252,6 +1261,7 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
             bias: [0.0; 3],
             bias_sigma: [0.0; 3],
             poses_used: g.len(),
+            poses_turning: turning,
             scale: None,
             scale_failure: None,
         };
@@ -1276,6 +1286,7 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
         bias: mean,
         bias_sigma: sd.map(|v| (v / n).sqrt()),
         poses_used: g.len(),
+        poses_turning: turning,
         scale: None,
         scale_failure: None,
     }
@@ -1719,6 +1730,7 @@ mod tests {
                 temp_c: None,
                 throttle: None,
                 accel_var: 0.0,
+                turn_rate_deg_s: None,
             });
         }
         assert_eq!(p.poses().len(), MAX_POSES);
