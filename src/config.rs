@@ -75,8 +75,10 @@ pub struct DaemonConfig {
     /// JSON-lines consumers: "stdout", "udp:IP:PORT", "tcp:IP:PORT" (schema imucald.live/1).
     /// Default: none.
     pub publish: Vec<String>,
-    /// Where calibration files go (JSON + ArduPilot/PX4/Fusion exports); loaded at start.
-    /// Default: "calibration" (relative to the working directory).
+    /// Where calibration files go (JSON + ArduPilot/PX4/Fusion exports); loaded at start and
+    /// printed then. Default: the per-user state directory's `imucald/calibration`
+    /// (`$XDG_STATE_HOME`, else `~/.local/state`, on Linux; the local data directory elsewhere),
+    /// or `calibration` in the working directory when there is no home.
     pub calibration_dir: String,
     /// Keep the latest report (imucald.report/1) here. Default: none.
     pub report: Option<String>,
@@ -140,12 +142,20 @@ pub struct DaemonConfig {
     pub udp_poll_ms: f64,
 }
 
+/// The per-user state directory's `imucald/calibration` (see [`DaemonConfig::calibration_dir`]).
+pub fn default_calibration_dir() -> String {
+    dirs::state_dir()
+        .or_else(dirs::data_local_dir)
+        .map(|d| d.join("imucald").join("calibration").display().to_string())
+        .unwrap_or_else(|| "calibration".into())
+}
+
 impl Default for DaemonConfig {
     fn default() -> Self {
         DaemonConfig {
             sources: vec![],
             publish: vec![],
-            calibration_dir: "calibration".into(),
+            calibration_dir: default_calibration_dir(),
             report: None,
             heading_rate_hz: 5.0,
             progress_rate_hz: 1.0,

@@ -45,7 +45,7 @@ enum Cmd {
 
 #[derive(Args)]
 struct ReplayArgs {
-    /// The log file. Default: the bundled simulated tumble in fixtures/.
+    /// The log file. Default: a simulated tumble built into the binary (140 s, `.tlog`).
     log: Option<PathBuf>,
     /// TOML configuration (see config/).
     #[arg(long)]
@@ -242,25 +242,107 @@ async fn wait_for_signal() {
     }
 }
 
-fn main() -> Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+/// How a command ended, as the process's exit status.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Outcome {
+    /// Done (0).
+    Done,
+    /// Ran, but produced nothing usable: no sensor calibrated (3).
+    NothingCalibrated,
+}
+
+/// Exit status of an error: bad input, a file that cannot be read or written (1). A source that
+/// can never work ends `run` with 2.
+const EXIT_ERROR: u8 = 1;
+const EXIT_SOURCE_FAILED: u8 = 2;
+const EXIT_NOTHING_CALIBRATED: u8 = 3;
+
+/// A `run` whose replays could not be read at all.
+#[derive(Debug)]
+struct SourcesFailed(Vec<String>);
+
+impl std::fmt::Display for SourcesFailed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "no source could be read: {} (check the path, or give a live link such as --source udpin:127.0.0.1:14550)",
+            self.0.join("; ")
         )
-        .with_writer(std::io::stderr)
-        .init();
-    let cli = Cli::parse();
-    match cli.cmd {
-        Cmd::Replay(a) => replay_cmd(a),
-        Cmd::Run(a) => run_cmd(a),
-        Cmd::Diagnose(a) => diagnose_cmd(a),
-        Cmd::Eval(a) => eval_cmd(a),
-        Cmd::FixedYaw(a) => fixed_yaw_cmd(a),
-        Cmd::Simulate(a) => simulate_cmd(a),
     }
 }
 
-fn replay_cmd(args: ReplayArgs) -> Result<()> {
+impl std::error::Error for SourcesFailed {}
+
+fn main() -> std::process::ExitCode {
+    // Status lines of the service (links connected, lost, ended) at info, everything else from
+    // warnings up; RUST_LOG overrides. Short lines: level and text.
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| format!("warn,{}=info", imucald::app::daemon::STATUS_TARGET).into());
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .without_time()
+        .with_target(false)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.cmd {
+        Cmd::Replay(a) => replay_cmd(a),
+        Cmd::Run(a) => run_cmd(a).map(|()| Outcome::Done),
+        Cmd::Diagnose(a) => diagnose_cmd(a).map(|()| Outcome::Done),
+        Cmd::Eval(a) => eval_cmd(a).map(|()| Outcome::Done),
+        Cmd::FixedYaw(a) => fixed_yaw_cmd(a).map(|()| Outcome::Done),
+        Cmd::Simulate(a) => simulate_cmd(a).map(|()| Outcome::Done),
+    };
+    match result {
+        Ok(Outcome::Done) => std::process::ExitCode::SUCCESS,
+        Ok(Outcome::NothingCalibrated) => std::process::ExitCode::from(EXIT_NOTHING_CALIBRATED),
+        Err(e) => {
+            // The chain once, without a backtrace (RUST_BACKTRACE is for panics, not user errors).
+            let mut text = format!("error: {e}");
+            let mut last = e.to_string();
+            for cause in e.chain().skip(1) {
+                let c = cause.to_string();
+                // A cause already quoted in the message above it is not repeated.
+                if !last.contains(&c) {
+                    text.push_str(&format!("\n  because: {c}"));
+                }
+                last = c;
+            }
+            eprintln!("{text}");
+            if e.downcast_ref::<SourcesFailed>().is_some() {
+                std::process::ExitCode::from(EXIT_SOURCE_FAILED)
+            } else {
+                std::process::ExitCode::from(EXIT_ERROR)
+            }
+        }
+    }
+}
+
+/// The simulated tumble built into the binary (so `imucald replay` works wherever it was
+/// installed), written to a temporary file for the replay and removed after.
+struct EmbeddedLog(PathBuf);
+
+impl EmbeddedLog {
+    const BYTES: &'static [u8] = include_bytes!("../fixtures/tumble.tlog");
+    fn write() -> Result<EmbeddedLog> {
+        let p = std::env::temp_dir().join(format!(
+            "imucald-embedded-tumble-{}.tlog",
+            std::process::id()
+        ));
+        std::fs::write(&p, Self::BYTES)
+            .with_context(|| format!("writing the embedded tumble to {}", p.display()))?;
+        Ok(EmbeddedLog(p))
+    }
+}
+
+impl Drop for EmbeddedLog {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
     let ReplayArgs {
         log,
         config,
@@ -278,9 +360,13 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
     if rate_hz.is_some() {
         cfg.input.csv.rate_hz = rate_hz;
     }
-    let log = log.unwrap_or_else(|| {
-        PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/tumble.tlog"))
-    });
+    let (log, _embedded) = match log {
+        Some(p) => (p, None),
+        None => {
+            let e = EmbeddedLog::write()?;
+            (e.0.clone(), Some(e))
+        }
+    };
     let opts = imucald::app::replay::ReplayOptions {
         format,
         report,
@@ -308,7 +394,15 @@ fn replay_cmd(args: ReplayArgs) -> Result<()> {
     for p in &out.written {
         println!("wrote {}", p.display());
     }
-    Ok(())
+    println!(
+        "{}",
+        imucald::app::replay::next_step(&out.report, &out.written)
+    );
+    if imucald::app::replay::calibrated_nothing(&out.report) {
+        eprintln!("error: nothing was calibrated (exit status {EXIT_NOTHING_CALIBRATED}): see the reasons above");
+        return Ok(Outcome::NothingCalibrated);
+    }
+    Ok(Outcome::Done)
 }
 
 fn run_cmd(args: RunArgs) -> Result<()> {
@@ -382,9 +476,15 @@ fn run_cmd(args: RunArgs) -> Result<()> {
     })?;
     rt.shutdown_timeout(std::time::Duration::from_millis(200));
     eprintln!(
-        "imucald run: {} samples, {} calibrations accepted, {} samples dropped",
-        summary.samples, summary.accepted, summary.inbound_dropped
+        "imucald run: {} samples, {} calibration{} accepted, {} samples dropped",
+        summary.samples,
+        summary.accepted,
+        if summary.accepted == 1 { "" } else { "s" },
+        summary.inbound_dropped
     );
+    if !summary.sources_failed.is_empty() && summary.samples == 0 {
+        return Err(SourcesFailed(summary.sources_failed).into());
+    }
     Ok(())
 }
 

@@ -73,6 +73,45 @@ fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
     assert!(err < 0.015, "stored offset error {err} uT");
 }
 
+/// The same ground station commanding a fixed yaw 3 s after the data stopped: refused
+/// (MAV_RESULT_FAILED) with the reason in a STATUSTEXT, and nothing installed or written. (Before,
+/// it was accepted on the last samples and installed.)
+#[test]
+fn fixed_yaw_on_stale_data_is_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = common::free_udp_port();
+    let (cal, mut svc) = common::spawn_on_command_service(
+        dir.path(),
+        &[format!("{{ address = \"udpin:127.0.0.1:{port}\" }}")],
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    let out = Command::new(common::python_with("pymavlink"))
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/interop/pymavlink_fixed_yaw.py"
+        ))
+        .arg(port.to_string())
+        .args(
+            [
+                123.0, 3.0, -2.0, 47.4, 8.5, 21.0, 0.8, 43.0, 14.0, -27.5, 33.0,
+            ]
+            .map(|x: f64| x.to_string()),
+        )
+        .env("STALE_S", "3")
+        .output()
+        .expect("python with pymavlink: run ./scripts/test (it makes .venv)");
+    let _ = Command::new("kill")
+        .args(["-TERM", &svc.id().to_string()])
+        .status();
+    let _ = svc.wait();
+    let seen = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(out.status.success(), "peer saw: {seen}");
+    assert!(imucald::app::daemon::load_store(&cal)
+        .unwrap()
+        .and_then(|s| s.mag)
+        .is_none());
+}
+
 /// `imucald fixed-yaw LOG --yaw-deg Y --lat --lon` on a log of a vehicle resting at yaw Y: the
 /// offset it prints is the hidden hard iron.
 #[test]

@@ -542,7 +542,13 @@ mod diagnose_cli {
         ]);
         let text = String::from_utf8_lossy(&out.stdout);
         common::assert_success(&out);
-        assert!(text.contains("round 1: named motor_interference"), "{text}");
+        // Named in the first or the second round: with its time constant profiled (one more
+        // parameter), round 1 on this bench names the hidden soft iron's cross-axis terms first.
+        assert!(
+            text.contains("round 1: named motor_interference")
+                || text.contains("round 2: named motor_interference"),
+            "{text}"
+        );
         let v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(v["schema"], "imucald.diagnosis/1");
@@ -552,7 +558,7 @@ mod diagnose_cli {
             .iter()
             .map(|x| x.as_str().unwrap())
             .collect();
-        assert_eq!(found[0], "motor_interference", "{found:?}");
+        assert!(found.contains(&"motor_interference"), "{found:?}");
         let k = &v["effects"]["motor_interference"];
         for (axis, want) in [("k_x", 4.0), ("k_y", -3.0), ("k_z", 6.0)] {
             let got = k[axis]["value"].as_f64().unwrap();
@@ -573,8 +579,12 @@ mod diagnose_cli {
                 .contains(&round["decision"].as_str().unwrap()));
         }
         // Residual-vs-regressor plots, before and after.
-        let series = &v["residual_plots"][0];
-        assert_eq!(series["effect"], "motor_interference");
+        let series = v["residual_plots"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["effect"] == "motor_interference")
+            .unwrap();
         assert_eq!(series["regressor"], "throttle (0..1)");
         let n = series["x"].as_array().unwrap().len();
         assert!(n > 50 && series["after"].as_array().unwrap().len() == n);
@@ -2669,5 +2679,80 @@ mod gyro_scale_checked {
             k.segments, h.rms_before_deg, h.rms_after_deg, h.segments
         );
         assert!(h.rms_after_deg <= h.rms_before_deg * 1.1, "{h:?}");
+    }
+}
+
+/// What the commands say, where and with which exit status, when the input is wrong or nothing
+/// came of it: a line on stderr naming the cause and what to do, never a backtrace.
+mod cli_words {
+    use std::process::Command;
+
+    fn imucald(args: &[&str], dir: &std::path::Path) -> (i32, String, String) {
+        let out = Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(args)
+            .current_dir(dir)
+            .env("RUST_BACKTRACE", "1")
+            .env("XDG_STATE_HOME", dir.join("state"))
+            .output()
+            .unwrap();
+        (
+            out.status.code().unwrap_or(-1),
+            String::from_utf8_lossy(&out.stdout).into(),
+            String::from_utf8_lossy(&out.stderr).into(),
+        )
+    }
+
+    #[test]
+    fn a_source_that_can_never_work_ends_the_run_with_its_reason() {
+        let d = tempfile::tempdir().unwrap();
+        let (code, _, err) = imucald(&["run", "--source", "file:/nonexistent.tlog"], d.path());
+        assert_eq!(code, 2, "{err}");
+        assert!(err.contains("cannot read /nonexistent.tlog"), "{err}");
+        assert!(err.contains("no source could be read"), "{err}");
+        assert!(!err.contains("backtrace"), "{err}");
+        // Where the calibrations would go: the per-user state directory.
+        assert!(
+            err.contains(&format!(
+                "calibrations will be written to {}",
+                d.path().join("state/imucald/calibration").display()
+            )),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn replay_says_what_is_wrong_and_exits_non_zero() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("empty.tlog"), b"").unwrap();
+        let (code, _, err) = imucald(&["replay", "empty.tlog"], d.path());
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("the file is empty"), "{err}");
+        let (code, _, err) = imucald(&["replay", "missing.bin"], d.path());
+        assert_eq!(code, 1);
+        assert!(err.contains("No such file"), "{err}");
+        assert_eq!(err.matches("No such file").count(), 1, "{err}");
+        assert!(!err.contains("backtrace"), "{err}");
+        // Two rows: nothing can be calibrated. Exit 3, no parameter files.
+        std::fs::write(
+            d.path().join("two.csv"),
+            "t,ax,ay,az,mx,my,mz\n0,0,0,-9.8,20,0,40\n0.01,0,0,-9.8,20,0,40\n",
+        )
+        .unwrap();
+        let (code, out, err) = imucald(&["replay", "two.csv", "--export", "out"], d.path());
+        assert_eq!(code, 3, "{out}{err}");
+        assert!(out.contains("next: nothing passed"), "{out}");
+        assert!(err.contains("nothing was calibrated"), "{err}");
+        assert!(!d.path().join("out/ardupilot.parm").exists());
+    }
+
+    /// `imucald replay` with no log replays the tumble built into the binary, from any directory.
+    #[test]
+    fn replay_of_the_embedded_tumble_works_anywhere_and_says_what_next() {
+        let d = tempfile::tempdir().unwrap();
+        let (code, out, err) = imucald(&["replay", "--export", "out"], d.path());
+        assert_eq!(code, 0, "{err}");
+        assert!(out.contains("mag  : ok"), "{out}");
+        assert!(out.contains("next: load out/ardupilot.parm"), "{out}");
+        assert!(d.path().join("out/ardupilot.parm").exists());
     }
 }

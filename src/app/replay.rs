@@ -607,6 +607,10 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
         mags.extend(export(i.compass_id, m, m.calibration_ut().as_ref()));
     }
     let m = mags.first().filter(|c| c.index == primary_id as usize);
+    if mags.is_empty() && a.is_none() {
+        // Nothing passed: no file rather than an empty one a user might load.
+        return Ok(vec![]);
+    }
     let motors: Vec<(usize, crate::types::Vec3)> = report
         .calibration
         .mag
@@ -1039,6 +1043,40 @@ fn write_row(
 }
 
 /// A terminal summary of a report.
+/// Whether a replay calibrated nothing: no compass, no accelerometer, no gyro bias.
+pub fn calibrated_nothing(r: &Report) -> bool {
+    r.calibration.mag.status != CalStatus::Ok
+        && r.calibration.accel.status != CalStatus::Ok
+        && r.calibration.gyro.status != CalStatus::Ok
+        && r.instances
+            .iter()
+            .all(|i| i.calibration.mag.status != CalStatus::Ok)
+}
+
+/// The line after a replay's summary: what to do next with what it found.
+pub fn next_step(r: &Report, written: &[PathBuf]) -> String {
+    let exported = |name: &str| {
+        written
+            .iter()
+            .find(|p| p.file_name().is_some_and(|f| f == name))
+            .map(|p| p.display().to_string())
+    };
+    if calibrated_nothing(r) {
+        return "next: nothing passed; each FAILED line above says what the data lacked (most often: turn the vehicle through more directions, or give the log's units), then replay again".into();
+    }
+    match (exported("ardupilot.parm"), exported("px4.params")) {
+        (Some(ap), Some(px)) => {
+            let judged = r
+                .quality
+                .first()
+                .map(|q| format!(" (first read the quality line: {})", q.verdict))
+                .unwrap_or_default();
+            format!("next: load {ap} (ArduPilot) or {px} (PX4) on the vehicle{judged}")
+        }
+        _ => "next: add --export DIR for the ArduPilot, PX4 and Fusion parameter files, --html FILE for a page of plots".into(),
+    }
+}
+
 pub fn summary(r: &Report) -> String {
     let mut s = String::new();
     let _ = writeln!(

@@ -160,6 +160,12 @@ pub fn decode_log_batched(
         path: path.to_path_buf(),
         message: format!("gzip: {e}"),
     })?;
+    if data.is_empty() {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: "the file is empty (0 bytes): was the log still being written, or copied before it was closed?".into(),
+        });
+    }
     let cfg_format = cfg.input.format.format();
     let format = match format.or(cfg_format).or_else(|| detect_format(&data)) {
         Some(f) => f,

@@ -60,19 +60,31 @@ for k in range(200):
     )
     time.sleep(max(0.0, t0 + (k + 1) * 0.01 - time.time()))
 
+# STALE_S: the data stops this long before the command (the service must refuse stale data).
+stale_s = float(os.environ.get("STALE_S", "0"))
+time.sleep(stale_s)
+
 # The ground station's turn.
 m.mav.srcSystem, m.mav.srcComponent = 255, 190
 m.mav.command_long_send(1, 191, mavutil.mavlink.MAV_CMD_FIXED_MAG_CAL_YAW, 0, yaw, 0, lat, lon, 0, 0, 0)
-seen = {"ack": None, "report": None}
+seen = {"ack": None, "report": None, "texts": []}
 deadline = time.time() + 5.0
-while time.time() < deadline and (seen["ack"] is None or seen["report"] is None):
-    msg = m.recv_match(type=["COMMAND_ACK", "MAG_CAL_REPORT"], blocking=True, timeout=0.5)
+while time.time() < deadline and (seen["ack"] is None or (seen["report"] is None and not stale_s)):
+    msg = m.recv_match(type=["COMMAND_ACK", "MAG_CAL_REPORT", "STATUSTEXT"], blocking=True, timeout=0.5)
     if msg is None:
         continue
     if msg.get_type() == "COMMAND_ACK" and msg.command == mavutil.mavlink.MAV_CMD_FIXED_MAG_CAL_YAW:
         seen["ack"] = msg.result
     elif msg.get_type() == "MAG_CAL_REPORT":
         seen["report"] = {"ofs": [msg.ofs_x, msg.ofs_y, msg.ofs_z], "status": msg.cal_status, "autosaved": msg.autosaved}
+    elif msg.get_type() == "STATUSTEXT":
+        seen["texts"].append(msg.text)
+
+if stale_s:
+    # Refused (MAV_RESULT_FAILED, 4), nothing reported, and the reason said.
+    ok = seen["ack"] == 4 and seen["report"] is None and "old" in "".join(seen["texts"])
+    print(json.dumps(seen))
+    sys.exit(0 if ok else 1)
 
 ok = seen["ack"] == 0 and seen["report"] is not None
 if ok:

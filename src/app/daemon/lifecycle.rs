@@ -445,6 +445,22 @@ impl Cal {
         if t.pipe.mag_units != Unit::Si {
             return Err("the magnetometer's units are not known (uT needed)".into());
         }
+        if !matches!(t.mag_run, MagCalRun::Idle) {
+            return Err(
+                "a calibration run is in progress: cancel it first (MAVProxy `magcal cancel`)"
+                    .into(),
+            );
+        }
+        match t.recent_at.map(|at| at.elapsed().as_secs_f64()) {
+            None => return Err("no magnetometer and accelerometer samples yet".into()),
+            Some(age) if age > super::FIXED_YAW_MAX_AGE_S => {
+                return Err(format!(
+                    "the latest samples are {age:.1} s old (at most {} s): the data has stopped, so the vehicle's yaw now is not known",
+                    super::FIXED_YAW_MAX_AGE_S
+                ))
+            }
+            Some(_) => {}
+        }
         let current = self.in_use(i, Sensor::Mag).filter(|m| m.units == "uT");
         let matrix = current.map_or(crate::calib::model::IDENTITY, |m| m.matrix);
         let accel = self.in_use(i, Sensor::Accel).and_then(|a| a.calibration());

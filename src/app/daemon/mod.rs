@@ -29,6 +29,7 @@ use mavout::severity_name;
 use outputs::*;
 use service::{open_store, start_links};
 use sinks::*;
+pub use state::STATUS_TARGET;
 pub use store::{
     accept, failure_report_due, load_store, save_store, NotReplaced, StoredCalibration,
     StoredInstance, StoredVehicle, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE, STORE_SCHEMA,
@@ -80,6 +81,9 @@ pub struct RunSummary {
     pub samples: u64,
     pub accepted: usize,
     pub inbound_dropped: u64,
+    /// Replays (`file:`, `sim:`) that could not be read at all, each with its reason: they can
+    /// never work, so the caller ends with a failure.
+    pub sources_failed: Vec<String>,
 }
 
 /// A vehicle heard on the links: its converter (instances, clocks, and its ArduPilot state: whether
@@ -148,6 +152,9 @@ struct Track {
     /// calibration: what a fixed-yaw calibration averages ([`crate::calib::fixedyaw`]; turned to body
     /// axes only then, not per sample).
     recent: std::collections::VecDeque<(Vec3, Vec3)>,
+    /// When the newest of `recent` arrived: a fixed-yaw calibration wants the vehicle as it is
+    /// now, not as it was before the data stopped.
+    recent_at: Option<tokio::time::Instant>,
     /// The vector fit learnt from every reading that comes with the vehicle's attitude
     /// ([`crate::calib::learn`]); it stands in for a failed sphere fit once it determines the offset.
     learner: VectorLearner,
@@ -176,6 +183,7 @@ impl Track {
             last_results: None,
             refit_wanted: false,
             recent: std::collections::VecDeque::with_capacity(FIXED_YAW.window_samples),
+            recent_at: None,
             learner: VectorLearner::new(LearnSettings::DEFAULT),
             place: cfg.place.clone(),
         })
@@ -191,6 +199,7 @@ impl Track {
                 self.recent.pop_front();
             }
             self.recent.push_back((m, a));
+            self.recent_at = Some(tokio::time::Instant::now());
         }
         if let (Some(_), Some(q)) = (s.mag_ut, s.ref_q) {
             if let (Some(m), Some(q)) = (
@@ -316,10 +325,16 @@ struct State {
     /// Counts of the samples from text-line and simulator links.
     line_stats: crate::io::decode::DecodeStats,
     accepted: usize,
+    /// Replays that could not be read, with the reason ([`RunSummary::sources_failed`]).
+    sources_failed: Vec<String>,
     report: Option<PathBuf>,
     start: tokio::time::Instant,
     declination: Option<f64>,
 }
+
+/// Oldest the newest sample of a fixed-yaw calibration may be, s: the vehicle must be standing at
+/// the commanded yaw now, not when the data stopped.
+const FIXED_YAW_MAX_AGE_S: f64 = 2.0;
 
 /// How still and level a fixed-yaw calibration wants the vehicle, over how many samples.
 const FIXED_YAW: crate::calib::fixedyaw::FixedYawSettings =

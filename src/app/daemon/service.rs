@@ -14,10 +14,18 @@ const INBOX_BATCH: usize = 256;
 pub(super) fn open_store(d: &crate::config::DaemonConfig) -> Result<StoredCalibration, Error> {
     let cal_dir = PathBuf::from(&d.calibration_dir);
     let store = load_store(&cal_dir)?.unwrap_or_else(StoredCalibration::empty);
+    let shown = std::path::absolute(&cal_dir).unwrap_or_else(|_| cal_dir.clone());
     if store.mag.is_some() || store.accel.is_some() {
         tracing::info!(
+            target: super::STATUS_TARGET,
             "resuming from the calibration in {}",
-            cal_dir.join(STORE_FILE).display()
+            shown.join(STORE_FILE).display()
+        );
+    } else {
+        tracing::info!(
+            target: super::STATUS_TARGET,
+            "calibrations will be written to {} (daemon.calibration_dir)",
+            shown.display()
         );
     }
     Ok(store)
@@ -155,6 +163,7 @@ impl State {
             new_converter,
             line_stats: crate::io::decode::DecodeStats::default(),
             accepted: 0,
+            sources_failed: vec![],
             report: d.report.as_ref().map(PathBuf::from),
             start: tokio::time::Instant::now(),
             declination,
@@ -261,7 +270,14 @@ impl State {
                         self.status(6, format!("{label}: connected {s}")).await
                     }
                     LinkStatus::Lost(s) => {
-                        let text = format!("{label}: lost ({s}); reconnecting, calibration kept");
+                        let replay = self.links.get(link).is_some_and(|l| l.replay);
+                        let text = if replay {
+                            // A replay never reconnects: it can never work.
+                            self.sources_failed.push(format!("{label}: {s}"));
+                            format!("{label}: {s}")
+                        } else {
+                            format!("{label}: lost ({s}); reconnecting, calibration kept")
+                        };
                         self.status(4, text).await
                     }
                     LinkStatus::Silent { for_s } => {
@@ -272,6 +288,7 @@ impl State {
                         if let Some(l) = self.links.get_mut(link) {
                             l.ended = true;
                         }
+                        self.status(6, format!("{label}: ended")).await;
                         if self.links.iter().all(|l| l.replay && l.ended) {
                             if let Some(j) = fit_job.take() {
                                 self.fits_done(j.await).await;
@@ -358,6 +375,7 @@ impl State {
             samples: self.cals[0].tracks[0].pipe.samples,
             accepted: self.accepted,
             inbound_dropped,
+            sources_failed: self.sources_failed,
         }
     }
 }

@@ -188,7 +188,7 @@ impl State {
     }
 
     pub(super) async fn status(&mut self, severity: u8, text: String) {
-        tracing::info!("{text}");
+        status_trace(severity, &text);
         let msgs = mavout::statustext(severity, &text);
         self.send_mav(To::All, &msgs).await;
         self.send_json(&LiveEvent::Status {
@@ -203,7 +203,10 @@ impl State {
         if c == 0 {
             return self.status(severity, text).await;
         }
-        tracing::info!("vehicle {}: {text}", self.vehicle_name(c));
+        status_trace(
+            severity,
+            &format!("vehicle {}: {text}", self.vehicle_name(c)),
+        );
         let msgs = mavout::statustext(severity, &text);
         self.send_mav(To::Cal(c), &msgs).await;
         let ev = LiveEvent::Status {
@@ -680,3 +683,18 @@ impl Cal {
         }
     }
 }
+
+/// A status line for the operator, whatever the outputs: under the tracing target
+/// [`STATUS_TARGET`] (the binary shows it on stderr), at the level of its MAVLink severity.
+fn status_trace(severity: u8, text: &str) {
+    if severity <= 3 {
+        tracing::error!(target: STATUS_TARGET, "{text}");
+    } else if severity == 4 {
+        tracing::warn!(target: STATUS_TARGET, "{text}");
+    } else {
+        tracing::info!(target: STATUS_TARGET, "{text}");
+    }
+}
+
+/// The tracing target of the service's status lines.
+pub const STATUS_TARGET: &str = "imucald::status";

@@ -279,10 +279,20 @@ impl WriteJob {
                 let r = save_store(&dir, &store);
                 (Written::Calibration(dir), r)
             }
-            WriteJob::Report(path, report) => (
-                Written::Report,
-                crate::io::publish::write_json(&path, &report),
-            ),
+            WriteJob::Report(path, report) => {
+                // Its folder (e.g. `calibration/`) may not exist before the first calibration.
+                let made = match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    Some(d) => std::fs::create_dir_all(d).map_err(|source| Error::Write {
+                        path: d.to_path_buf(),
+                        source,
+                    }),
+                    None => Ok(()),
+                };
+                (
+                    Written::Report,
+                    made.and_then(|()| crate::io::publish::write_json(&path, &report)),
+                )
+            }
         }
     }
 }
