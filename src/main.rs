@@ -147,6 +147,10 @@ struct EvalArgs {
     /// Without the magnetometer (6D: heading from the gyro alone).
     #[arg(long)]
     no_mag: bool,
+    /// Apply this calibration first: the service's calibration.json or a replay's --report file
+    /// (a raw log scored without one is scored uncalibrated).
+    #[arg(long)]
+    calibration: Option<PathBuf>,
     /// Write the figures as JSON here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -417,6 +421,14 @@ fn run_cmd(args: RunArgs) -> Result<()> {
     if ui.is_some() {
         cfg.ui.listen = ui;
     }
+    for a in &sources {
+        // Said against the option the user typed, not the configuration it lands in.
+        if let Err(imucald::error::Error::Config { message, .. }) =
+            imucald::io::link::Address::parse(a)
+        {
+            anyhow::bail!("--source {message}");
+        }
+    }
     if !sources.is_empty() {
         cfg.daemon.sources = sources
             .into_iter()
@@ -548,12 +560,17 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         format,
         align,
         no_mag,
+        calibration,
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
     let alignment = align;
-    let input = imucald::io::sources::read_log(&log, format, &cfg)
+    let mut input = imucald::io::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
+    if let Some(c) = &calibration {
+        let cal = imucald::app::replay::LoadedCalibration::load(c)?;
+        input.samples = cal.apply(&input.samples);
+    }
     let fcfg = imucald::attitude::fusion::FusionConfig {
         use_mag: !no_mag,
         ..Default::default()

@@ -2710,6 +2710,13 @@ mod cli_words {
         assert!(err.contains("cannot read /nonexistent.tlog"), "{err}");
         assert!(err.contains("no source could be read"), "{err}");
         assert!(!err.contains("backtrace"), "{err}");
+        // An address the service does not know is blamed on the option typed.
+        let (code, _, err) = imucald(&["run", "--source", "bogus"], d.path());
+        assert_eq!(code, 1, "{err}");
+        assert!(
+            err.starts_with("error: --source `bogus`: no scheme"),
+            "{err}"
+        );
         // Where the calibrations would go: the per-user state directory.
         assert!(
             err.contains(&format!(
@@ -2755,4 +2762,52 @@ mod cli_words {
         assert!(out.contains("next: load out/ardupilot.parm"), "{out}");
         assert!(d.path().join("out/ardupilot.parm").exists());
     }
+}
+
+/// `eval` scores a raw log through a calibration (`--calibration`, a replay's report), and the
+/// calibrated samples `replay --calibrated-out` writes keep the reference attitude, so they can be
+/// scored too: the two give the same figures.
+#[test]
+fn eval_takes_a_calibration_and_scores_calibrated_output() {
+    let d = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(args)
+            .current_dir(d.path())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).to_string()
+    };
+    run(&["simulate", "--scenario", "cruise", "--out", "cruise.csv"]);
+    run(&[
+        "replay",
+        "cruise.csv",
+        "--report",
+        "r.json",
+        "--calibrated-out",
+        "cal.csv",
+    ]);
+    let header = std::fs::read_to_string(d.path().join("cal.csv")).unwrap();
+    assert!(header
+        .lines()
+        .next()
+        .unwrap()
+        .ends_with("ref_qw,ref_qx,ref_qy,ref_qz"));
+    let total = |text: &str| -> f64 {
+        text.lines()
+            .find_map(|l| l.trim().strip_prefix("total RMSE"))
+            .and_then(|v| v.trim().trim_end_matches(" deg").parse().ok())
+            .unwrap_or_else(|| panic!("{text}"))
+    };
+    let raw = total(&run(&["eval", "cruise.csv"]));
+    let through = total(&run(&["eval", "cruise.csv", "--calibration", "r.json"]));
+    let written = total(&run(&["eval", "cal.csv"]));
+    assert!((through - written).abs() < 0.01, "{through} vs {written}");
+    // Measured: 115.8 deg raw, 80.1 through the calibration.
+    assert!(through < raw, "{through} vs {raw}");
 }

@@ -553,7 +553,7 @@ fn write_calibrated(
             f.update_sample(&c.as_sample(), dt);
             fused = f.initialized().then(|| f.orientation());
         }
-        write_row(&mut out, &c, fused.as_ref()).map_err(write_err)?;
+        write_row(&mut out, &c, fused.as_ref(), s.ref_q).map_err(write_err)?;
     }
     let bytes = out
         .into_inner()
@@ -980,7 +980,7 @@ fn shown_coverage(r: &crate::calib::pipeline::SensorResult) -> crate::calib::cov
 }
 
 /// The columns of the calibrated CSV (`replay --calibrated-out`).
-const CALIBRATED_COLUMNS: [&str; 20] = [
+const CALIBRATED_COLUMNS: [&str; 24] = [
     "t",
     "ax",
     "ay",
@@ -1001,6 +1001,10 @@ const CALIBRATED_COLUMNS: [&str; 20] = [
     "fused_roll_deg",
     "fused_pitch_deg",
     "fused_heading_deg",
+    "ref_qw",
+    "ref_qx",
+    "ref_qy",
+    "ref_qz",
 ];
 
 /// One calibrated sample as a row of [`CALIBRATED_COLUMNS`]: empty cells for what it lacks.
@@ -1008,8 +1012,15 @@ fn write_row(
     out: &mut csv::Writer<Vec<u8>>,
     c: &Calibrated,
     fused: Option<&crate::attitude::fusion::Orientation>,
+    ref_q: Option<[f64; 4]>,
 ) -> Result<(), csv::Error> {
-    let mut cells: [Option<(f64, usize)>; 20] = [None; 20];
+    let mut cells: [Option<(f64, usize)>; 24] = [None; 24];
+    // The input's reference attitude, as it came, so `imucald eval` can score the output.
+    if let Some(q) = ref_q {
+        for (i, v) in q.into_iter().enumerate() {
+            cells[20 + i] = Some((v, 9));
+        }
+    }
     cells[0] = Some((c.t_s, 6));
     for (k, v) in [c.accel_mps2, c.gyro_rad_s, c.mag_ut].iter().enumerate() {
         for i in 0..3 {
@@ -1043,6 +1054,81 @@ fn write_row(
 }
 
 /// A terminal summary of a report.
+/// A calibration read from a file (`calibration.json` of the service, or a replay's report), to
+/// apply to a log's samples (e.g. before `eval`): each part only where it passed.
+#[derive(Debug, Clone, Default)]
+pub struct LoadedCalibration {
+    pub mag: Option<crate::calib::model::Calibration>,
+    pub accel: Option<crate::calib::model::Calibration>,
+    /// Gyro bias, rad/s.
+    pub gyro_bias: Option<crate::types::Vec3>,
+}
+
+impl LoadedCalibration {
+    /// Read `path`: the service's `calibration.json` (`imucald.calibration/1`) or a replay report
+    /// (`imucald.report/1`). Err: unreadable, or neither.
+    pub fn load(path: &Path) -> Result<LoadedCalibration, Error> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let bad = |m: String| Error::Format {
+            path: path.to_path_buf(),
+            message: m,
+        };
+        let v: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| bad(format!("not JSON: {e}")))?;
+        let gyro = |g: &crate::report::GyroCalibration| {
+            (g.status == CalStatus::Ok && g.units == "rad/s").then_some(g.bias)
+        };
+        match v["schema"].as_str() {
+            Some(s) if s == crate::app::daemon::STORE_SCHEMA => {
+                let st: crate::app::daemon::StoredCalibration = serde_json::from_value(v)
+                    .map_err(|e| bad(format!("a calibration file, but: {e}")))?;
+                Ok(LoadedCalibration {
+                    mag: st.mag.as_ref().and_then(|m| m.calibration()),
+                    accel: st.accel.as_ref().and_then(|a| a.calibration()),
+                    gyro_bias: st.gyro.as_ref().and_then(gyro),
+                })
+            }
+            Some(s) if s == crate::report::SCHEMA => {
+                let r: Report = serde_json::from_value(v)
+                    .map_err(|e| bad(format!("a replay report, but: {e}")))?;
+                Ok(LoadedCalibration {
+                    mag: r.calibration.mag.calibration(),
+                    accel: r.calibration.accel.calibration(),
+                    gyro_bias: gyro(&r.calibration.gyro),
+                })
+            }
+            other => Err(bad(format!(
+                "schema {other:?}: give a calibration.json (the service's) or a replay's --report file"
+            ))),
+        }
+    }
+
+    /// `samples` with the calibration applied (raw sensor axes in, calibrated out).
+    pub fn apply(&self, samples: &[crate::types::Sample]) -> Vec<crate::types::Sample> {
+        samples
+            .iter()
+            .map(|s| {
+                let mut c = *s;
+                if let Some(m) = &self.mag {
+                    c.mag_ut = s.mag_ut.map(|v| m.apply(&v));
+                }
+                if let Some(a) = &self.accel {
+                    c.accel_mps2 = s.accel_mps2.map(|v| a.apply(&v));
+                }
+                if let Some(b) = &self.gyro_bias {
+                    c.gyro_rad_s = s
+                        .gyro_rad_s
+                        .map(|g| [g[0] - b[0], g[1] - b[1], g[2] - b[2]]);
+                }
+                c
+            })
+            .collect()
+    }
+}
+
 /// Whether a replay calibrated nothing: no compass, no accelerometer, no gyro bias.
 pub fn calibrated_nothing(r: &Report) -> bool {
     r.calibration.mag.status != CalStatus::Ok
