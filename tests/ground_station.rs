@@ -2,8 +2,8 @@
 //! service runs with `daemon.mag_cal = "on_command"` on a simulated tumble and listens on UDP;
 //! `mavproxy.py --master=udpout:... --target-system=1` connects and sends `magcal start`; its
 //! calibration module
-//! prints the MAG_CAL_REPORT and answers it with DO_ACCEPT_MAG_CAL, and the service writes the
-//! calibration. `./scripts/test` installs MAVProxy into `.venv`.
+//! prints the MAG_CAL_REPORT and answers it with DO_ACCEPT_MAG_CAL (ACCEPTED: the result is
+//! already saved), and the service writes the calibration. `./scripts/test` installs MAVProxy into `.venv`.
 
 mod common;
 
@@ -64,8 +64,15 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
             seen.push(l);
         }
     }
-    // The accept goes out right after the report; give the service a moment to write.
-    std::thread::sleep(Duration::from_secs(2));
+    // The accept goes out right after the report (MAVProxy accepts every report); its answer,
+    // and a moment for the service to write.
+    let until = Instant::now() + Duration::from_secs(5);
+    while Instant::now() < until && !seen.iter().any(|l| l.contains("DO_ACCEPT_MAG_CAL: ")) {
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(200)) {
+            seen.push(l);
+        }
+    }
+    std::thread::sleep(Duration::from_secs(1));
     let stored = std::fs::read_to_string(cal.join("calibration.json")).unwrap_or_default();
     let _ = Command::new("kill").arg(svc.id().to_string()).status();
     let _ = gcs.kill();
@@ -82,6 +89,13 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
     let report =
         report.unwrap_or_else(|| panic!("no MAG_CAL_REPORT; MAVProxy said:\n{}", seen.join("\n")));
     assert!(report.contains("compass 0 SUCCESS"), "{report}");
+    // The run saved its result (autosave): the automatic accept is ACCEPTED, as ArduPilot answers.
+    assert!(
+        seen.iter()
+            .any(|l| l.contains("DO_ACCEPT_MAG_CAL: ACCEPTED")),
+        "MAVProxy said:\n{}",
+        seen.join("\n")
+    );
     let v: serde_json::Value = serde_json::from_str(&stored).expect("calibration.json written");
     assert_eq!(v["mag"]["status"], "ok", "{stored}");
     // The simulated tumble's hard iron (Scenario `tumble`: [12, -25, 40] uT).

@@ -571,6 +571,11 @@ impl MagCalRun {
                 R::Idle,
                 vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
             ),
+            // Nothing waits to be accepted (the run saved its result, or none ran): accepted, as
+            // ArduPilot's compass calibration answers when its result is already saved, so a
+            // ground station that accepts every report (MAVProxy) sees it succeed.
+            (R::Idle, V::Accept { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
+            // Still collecting, or failed: nothing to accept.
             (s, V::Accept { .. }) => (s, vec![ack(MavResult::MAV_RESULT_FAILED)]),
             (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
             (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
@@ -1273,9 +1278,15 @@ mod tests {
         let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
         assert_eq!(s, MagCalRun::Idle);
         assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
-        // Accept with nothing held fails; cancel always succeeds and discards the held result.
+        // Accept with nothing held (already saved) is accepted, as ArduPilot answers; during a
+        // run it fails. Cancel always succeeds and discards the held result.
         let (s, fx) = s.on(V::Accept { mask: 1 }, false, 0);
-        assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![failed.clone()]));
+        assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![accepted.clone()]));
+        let running = MagCalRun::Running {
+            opts: opts(false, false, 0.0),
+        };
+        let (_, fx) = running.on(V::Accept { mask: 0 }, false, 0);
+        assert_eq!(fx, vec![failed.clone()]);
         let (s, _) = s.on(
             V::Start {
                 opts: opts(false, false, 0.0),
