@@ -718,6 +718,20 @@ impl Config {
             ("accept.mag", &self.accept.mag),
             ("accept.accel", &self.accept.accel),
         ] {
+            for (key, v) in [
+                ("min_radius", l.min_radius),
+                ("max_offset", l.max_offset),
+                ("min_diag", l.min_diag),
+                ("max_offdiag", l.max_offdiag),
+                ("max_rms_ratio", l.max_rms_ratio),
+            ] {
+                if !(v >= 0.0) {
+                    return Err(err(
+                        &format!("{name}.{key}"),
+                        format!("must be 0 or more (it is {v})"),
+                    ));
+                }
+            }
             if !(l.min_radius < l.max_radius) {
                 return Err(err(
                     &format!("{name}.min_radius"),

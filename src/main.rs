@@ -166,6 +166,7 @@ struct FixedYawArgs {
     /// Where it rested (degrees); without both, `[place]` from the config.
     #[arg(long, requires = "lon", allow_hyphen_values = true)]
     lat: Option<f64>,
+    /// Longitude of where it rested (degrees east); with --lat.
     #[arg(long, requires = "lat", allow_hyphen_values = true)]
     lon: Option<f64>,
     /// The rest ends at this time of the log (s, as the report's times); default: the log's end.
@@ -181,7 +182,8 @@ struct FixedYawArgs {
 
 #[derive(Args)]
 struct SimulateArgs {
-    /// A built-in scenario (turntable, tumble, flight, bench, cruise) or a scenario TOML file.
+    /// A built-in scenario (turntable, tumble, flight, bench, cruise, rover) or a scenario TOML
+    /// file.
     #[arg(long, default_value = "tumble")]
     scenario: String,
     /// Output log; the format follows the extension.
@@ -190,6 +192,7 @@ struct SimulateArgs {
     /// Write the true parameters and poses here (JSON).
     #[arg(long)]
     truth: Option<PathBuf>,
+    /// Seed of the simulated noise (the same seed gives the same log).
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// IMU message in a .tlog: highres_imu or scaled_imu.
@@ -606,6 +609,15 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
         .with_context(|| format!("reading {}", a.log.display()))?;
     let pipe = imucald::calib::pipeline::Pipeline::new(&cfg)?;
     let end_s = a.at_s.unwrap_or(f64::INFINITY);
+    if let (Some(at), Some(last)) = (a.at_s, log.samples.last()) {
+        let first = log.samples.first().map_or(0.0, |s| s.t_s);
+        if at > last.t_s || at < first {
+            anyhow::bail!(
+                "--at-s {at} is outside the log ({first:.1} to {:.1} s): give the time the rest ended",
+                last.t_s
+            );
+        }
+    }
     let pairs: Vec<_> = log
         .samples
         .iter()

@@ -2811,3 +2811,46 @@ fn eval_takes_a_calibration_and_scores_calibrated_output() {
     // Measured: 115.8 deg raw, 80.1 through the calibration.
     assert!(through < raw, "{through} vs {raw}");
 }
+
+/// In `on_command` mode a fit that passes without a run is not installed, and its JSON
+/// `calibration` line says so (`installed: false`); calibrating continuously, passing fits are.
+#[test]
+fn calibration_lines_say_whether_the_fit_is_installed() {
+    let d = tempfile::tempdir().unwrap();
+    let lines = |mode: &str| -> Vec<serde_json::Value> {
+        let cfg = d.path().join(format!("{mode}.toml"));
+        std::fs::write(
+            &cfg,
+            format!(
+                "[daemon]\ncalibration_dir = \"{}\"\nmag_cal = \"{mode}\"\npublish = [\"stdout\"]\nsources = [{{ address = \"sim:tumble?speed=0\" }}]\n",
+                d.path().join(mode).display()
+            ),
+        )
+        .unwrap();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(["run", "--config", cfg.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter(|v| v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok")
+            .collect()
+    };
+    let on_command = lines("on_command");
+    assert!(!on_command.is_empty());
+    assert!(
+        on_command.iter().all(|v| v["installed"] == false),
+        "{on_command:?}"
+    );
+    let continuous = lines("continuous");
+    assert!(
+        continuous.iter().any(|v| v["installed"] == true),
+        "{continuous:?}"
+    );
+}

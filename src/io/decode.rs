@@ -1471,9 +1471,9 @@ pub fn sample_from_fields(
 pub enum Format {
     Tlog,
     Csv,
-    /// ArduPilot DataFlash (`crate::io::flightlog::dataflash`).
+    /// ArduPilot DataFlash log (.bin)
     Bin,
-    /// PX4 ULog (`crate::io::flightlog::ulog`).
+    /// PX4 ULog (.ulg)
     Ulg,
 }
 

@@ -1105,6 +1105,11 @@ pub enum LiveEvent {
         /// The magnetometer's method ("vector" or "sphere") when one was chosen.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         method: Option<crate::calib::magmethod::MagMethod>,
+        /// Whether this fit is now the calibration in use. A fit that passed but is not installed
+        /// (on-command mode with no run, a run waiting to be accepted, not better than the one in
+        /// use) says false: it is not a calibration of the vehicle.
+        #[serde(default)]
+        installed: bool,
     },
     Status {
         level: String,
@@ -1113,8 +1118,14 @@ pub enum LiveEvent {
 }
 
 impl LiveEvent {
-    /// A `calibration` event from a report entry of the instance with compass id `instance`.
-    pub fn calibration(sensor: &str, instance: u8, cal: &SensorCalibration) -> Self {
+    /// A `calibration` event from a report entry of the instance with compass id `instance`,
+    /// `installed` when it is now the calibration in use.
+    pub fn calibration(
+        sensor: &str,
+        instance: u8,
+        cal: &SensorCalibration,
+        installed: bool,
+    ) -> Self {
         LiveEvent::Calibration {
             sensor: sensor.to_string(),
             instance,
@@ -1126,6 +1137,7 @@ impl LiveEvent {
             matrix: cal.matrix,
             rms_residual: cal.rms_residual,
             method: cal.method.as_ref().map(|m| m.method),
+            installed,
         }
     }
 }
@@ -2025,6 +2037,7 @@ mod tests {
                 "mag",
                 0,
                 &sensor_cal(CalStatus::Failed, Some(FitFailure::Residuals)),
+                false,
             ),
             LiveEvent::Status {
                 level: severity_name(6).into(),

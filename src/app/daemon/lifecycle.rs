@@ -110,8 +110,10 @@ impl State {
                 false
             }
         };
+        let mut accel_installed = false;
         match accept(&results.accel, cal.in_use(i, Sensor::Accel)) {
             Ok(()) => {
+                accel_installed = true;
                 let r = &results.accel.report;
                 tracing::info!(sensor = "accel", compass = id, model = %r.model, rms = r.rms_residual, "calibration accepted");
                 if i == 0 {
@@ -141,21 +143,23 @@ impl State {
         // data covered the sphere and the fit still failed (not while still collecting).
         let mag = &results.mag.report;
         let completion = cal.tracks[i].progress.completion_pct();
+        let mut mag_installed = false;
         if mag_passed {
             let ev = MagCalEvent::FitPassed {
                 cal: Box::new(mag.clone()),
                 complete: completion >= 100 || by_vector,
             };
-            changed |= self.mag_event(c, i, ev).await.0;
+            mag_installed = self.mag_event(c, i, ev).await.0;
+            changed |= mag_installed;
         } else if failure_report_due(mag, completion) {
             cal.tracks[i].mag_failed = Some(mag.clone());
             self.mag_event(c, i, MagCalEvent::FitFailed).await;
         }
-        for (name, r) in [
-            ("mag", &results.mag.report),
-            ("accel", &results.accel.report),
+        for (name, r, installed) in [
+            ("mag", &results.mag.report, mag_installed),
+            ("accel", &results.accel.report, accel_installed),
         ] {
-            self.send_json_for(c, &LiveEvent::calibration(name, id, r))
+            self.send_json_for(c, &LiveEvent::calibration(name, id, r, installed))
                 .await;
         }
         let track = &mut self.cals[c].tracks[i];
