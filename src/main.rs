@@ -571,7 +571,7 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
     let mut input = imucald::io::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
     if let Some(c) = &calibration {
-        let cal = imucald::app::replay::LoadedCalibration::load(c)?;
+        let cal = imucald::app::daemon::LoadedCalibration::load(c)?;
         input.samples = cal.apply(&input.samples);
     }
     let fcfg = imucald::attitude::fusion::FusionConfig {

@@ -161,6 +161,10 @@ pub fn is_finite3(v: &Vec3) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 
+/// The tracing target of the service's status lines for the operator (links connected, lost,
+/// ended; where calibrations go; the live page's address): the binary shows it on stderr.
+pub const STATUS_TARGET: &str = "imucald::status";
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -424,13 +424,15 @@ mod fixtures {
         assert_eq!(
             lines.next().unwrap(),
             "t,ax,ay,az,gx,gy,gz,mx,my,mz,roll_deg,pitch_deg,heading_deg,\
-             qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg"
+             qw,qx,qy,qz,fused_roll_deg,fused_pitch_deg,fused_heading_deg,\
+             ref_qw,ref_qx,ref_qy,ref_qz"
         );
         // The first pose of the tumble is level: roll and pitch near zero.
         let row: Vec<f64> = lines
             .nth(50)
             .unwrap()
             .split(',')
+            .take(20)
             .map(|c| c.parse().unwrap())
             .collect();
         eprintln!(
@@ -2710,19 +2712,19 @@ mod cli_words {
         assert!(err.contains("cannot read /nonexistent.tlog"), "{err}");
         assert!(err.contains("no source could be read"), "{err}");
         assert!(!err.contains("backtrace"), "{err}");
-        // An address the service does not know is blamed on the option typed.
-        let (code, _, err) = imucald(&["run", "--source", "bogus"], d.path());
-        assert_eq!(code, 1, "{err}");
-        assert!(
-            err.starts_with("error: --source `bogus`: no scheme"),
-            "{err}"
-        );
         // Where the calibrations would go: the per-user state directory.
         assert!(
             err.contains(&format!(
                 "calibrations will be written to {}",
                 d.path().join("state/imucald/calibration").display()
             )),
+            "{err}"
+        );
+        // An address the service does not know is blamed on the option typed.
+        let (code, _, err) = imucald(&["run", "--source", "bogus"], d.path());
+        assert_eq!(code, 1, "{err}");
+        assert!(
+            err.starts_with("error: --source `bogus`: no scheme"),
             "{err}"
         );
     }

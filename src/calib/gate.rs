@@ -173,6 +173,21 @@ impl<const N: usize> Trend<N> {
     fn mean(&self) -> [f64; N] {
         self.sx.map(|x| x / self.n.max(1.0))
     }
+    /// How fast the components' direction moves, per second: the part of the fitted slope
+    /// across the mean, over the mean's length (rad/s for a unit vector or quaternion).
+    fn rate_across(&self) -> Option<f64> {
+        let s = self.slope()?;
+        let m = self.mean();
+        let n = m.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-300);
+        let along = s.iter().zip(&m).map(|(a, b)| a * b).sum::<f64>() / n;
+        let across = s
+            .iter()
+            .zip(&m)
+            .map(|(a, b)| (a - along * b / n).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        Some(across / n)
+    }
 }
 
 #[derive(Debug, Clone, Default)]
@@ -245,29 +260,10 @@ impl Acc {
     /// How fast the pose turned, deg/s: by the attitude, |omega| = 2 |dq/dt| (the slope's part
     /// across q), else by the magnetometer, the rate its unit direction moves.
     fn turn_rate_deg_s(&self) -> Option<f64> {
-        if let Some(s) = self.q_trend.slope() {
-            let q = self.q_trend.mean();
-            let nq = q.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-300);
-            let along = s.iter().zip(&q).map(|(a, b)| a * b).sum::<f64>() / nq;
-            let across: f64 = s
-                .iter()
-                .zip(&q)
-                .map(|(a, b)| (a - along * b / nq).powi(2))
-                .sum::<f64>()
-                .sqrt();
-            return Some((2.0 * across / nq).to_degrees());
+        match self.q_trend.rate_across() {
+            Some(r) => Some((2.0 * r).to_degrees()),
+            None => self.m_trend.rate_across().map(f64::to_degrees),
         }
-        let s = self.m_trend.slope()?;
-        let m = self.m_trend.mean();
-        let nm = m.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-300);
-        let along = s.iter().zip(&m).map(|(a, b)| a * b).sum::<f64>() / nm;
-        let across: f64 = s
-            .iter()
-            .zip(&m)
-            .map(|(a, b)| (a - along * b / nm).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        Some((across / nm).to_degrees())
     }
 
     fn pose(&self) -> Pose {

@@ -25,14 +25,15 @@ mod sinks;
 mod state;
 mod store;
 
+pub use crate::types::STATUS_TARGET;
 use mavout::severity_name;
 use outputs::*;
 use service::{open_store, start_links};
 use sinks::*;
-pub use state::STATUS_TARGET;
 pub use store::{
-    accept, failure_report_due, load_store, save_store, NotReplaced, StoredCalibration,
-    StoredInstance, StoredVehicle, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE, STORE_SCHEMA,
+    accept, failure_report_due, load_store, save_store, LoadedCalibration, NotReplaced,
+    StoredCalibration, StoredInstance, StoredVehicle, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE,
+    STORE_SCHEMA,
 };
 use store::{WriteJob, Writes};
 

@@ -685,16 +685,13 @@ impl Cal {
 }
 
 /// A status line for the operator, whatever the outputs: under the tracing target
-/// [`STATUS_TARGET`] (the binary shows it on stderr), at the level of its MAVLink severity.
+/// [`crate::types::STATUS_TARGET`] (the binary shows it on stderr), at the level of its MAVLink severity.
 fn status_trace(severity: u8, text: &str) {
     if severity <= 3 {
-        tracing::error!(target: STATUS_TARGET, "{text}");
+        tracing::error!(target: crate::types::STATUS_TARGET, "{text}");
     } else if severity == 4 {
-        tracing::warn!(target: STATUS_TARGET, "{text}");
+        tracing::warn!(target: crate::types::STATUS_TARGET, "{text}");
     } else {
-        tracing::info!(target: STATUS_TARGET, "{text}");
+        tracing::info!(target: crate::types::STATUS_TARGET, "{text}");
     }
 }
-
-/// The tracing target of the service's status lines.
-pub const STATUS_TARGET: &str = "imucald::status";

@@ -476,3 +476,78 @@ impl State {
         stats.skip_n("own_echo", self.own_echo);
     }
 }
+
+/// A calibration read from a file (`calibration.json` of the service, or a replay's report), to
+/// apply to a log's samples (e.g. before `eval`): each part only where it passed.
+#[derive(Debug, Clone, Default)]
+pub struct LoadedCalibration {
+    pub mag: Option<crate::calib::model::Calibration>,
+    pub accel: Option<crate::calib::model::Calibration>,
+    /// Gyro bias, rad/s.
+    pub gyro_bias: Option<crate::types::Vec3>,
+}
+
+impl LoadedCalibration {
+    /// Read `path`: the service's `calibration.json` (`imucald.calibration/1`) or a replay report
+    /// (`imucald.report/1`). Err: unreadable, or neither.
+    pub fn load(path: &Path) -> Result<LoadedCalibration, Error> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let bad = |m: String| Error::Format {
+            path: path.to_path_buf(),
+            message: m,
+        };
+        let v: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| bad(format!("not JSON: {e}")))?;
+        let gyro = |g: &crate::report::GyroCalibration| {
+            (g.status == crate::report::CalStatus::Ok && g.units == "rad/s").then_some(g.bias)
+        };
+        match v["schema"].as_str() {
+            Some(s) if s == STORE_SCHEMA => {
+                let st: StoredCalibration = serde_json::from_value(v)
+                    .map_err(|e| bad(format!("a calibration file, but: {e}")))?;
+                Ok(LoadedCalibration {
+                    mag: st.mag.as_ref().and_then(|m| m.calibration()),
+                    accel: st.accel.as_ref().and_then(|a| a.calibration()),
+                    gyro_bias: st.gyro.as_ref().and_then(gyro),
+                })
+            }
+            Some(s) if s == crate::report::SCHEMA => {
+                let r: crate::report::Report = serde_json::from_value(v)
+                    .map_err(|e| bad(format!("a replay report, but: {e}")))?;
+                Ok(LoadedCalibration {
+                    mag: r.calibration.mag.calibration(),
+                    accel: r.calibration.accel.calibration(),
+                    gyro_bias: gyro(&r.calibration.gyro),
+                })
+            }
+            other => Err(bad(format!(
+                "schema {other:?}: give a calibration.json (the service's) or a replay's --report file"
+            ))),
+        }
+    }
+
+    /// `samples` with the calibration applied (raw sensor axes in, calibrated out).
+    pub fn apply(&self, samples: &[crate::types::Sample]) -> Vec<crate::types::Sample> {
+        samples
+            .iter()
+            .map(|s| {
+                let mut c = *s;
+                if let Some(m) = &self.mag {
+                    c.mag_ut = s.mag_ut.map(|v| m.apply(&v));
+                }
+                if let Some(a) = &self.accel {
+                    c.accel_mps2 = s.accel_mps2.map(|v| a.apply(&v));
+                }
+                if let Some(b) = &self.gyro_bias {
+                    c.gyro_rad_s = s
+                        .gyro_rad_s
+                        .map(|g| [g[0] - b[0], g[1] - b[1], g[2] - b[2]]);
+                }
+                c
+            })
+            .collect()
+    }
+}

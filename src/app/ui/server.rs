@@ -104,7 +104,7 @@ impl LiveUi {
         let listener = tokio::net::TcpListener::bind(addr).await.map_err(fail)?;
         let bound = listener.local_addr().map_err(fail)?;
         tracing::info!(
-            target: crate::app::daemon::STATUS_TARGET,
+            target: crate::types::STATUS_TARGET,
             "live page at http://{bound}/ (open it in a browser)"
         );
         let (stop_tx, stop_rx) = watch::channel(false);
