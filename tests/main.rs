@@ -2736,6 +2736,10 @@ mod cli_words {
         let (code, _, err) = imucald(&["replay", "empty.tlog"], d.path());
         assert_eq!(code, 1, "{err}");
         assert!(err.contains("the file is empty"), "{err}");
+        std::fs::write(d.path().join("text.tlog"), "t,ax,ay,az\n0,0,0,-9.8\n").unwrap();
+        let (code, _, err) = imucald(&["replay", "text.tlog"], d.path());
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("named .tlog but holds text"), "{err}");
         let (code, _, err) = imucald(&["replay", "missing.bin"], d.path());
         assert_eq!(code, 1);
         assert!(err.contains("No such file"), "{err}");

@@ -1054,6 +1054,55 @@ fn write_row(
 }
 
 /// A terminal summary of a report.
+/// The summary's gyro lines: the bias (from the poses at rest) and the scale, or why none.
+fn gyro_lines(g: &crate::report::GyroCalibration, s: &mut String) {
+    if g.status == CalStatus::Ok {
+        let _ = writeln!(
+            s,
+            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses at rest{}",
+            g.bias[0],
+            g.bias[1],
+            g.bias[2],
+            g.units,
+            g.poses_used,
+            if g.poses_turning > 0 {
+                format!(" ({} steady but turning, left out)", g.poses_turning)
+            } else {
+                String::new()
+            }
+        );
+        if let Some(k) = &g.scale {
+            let _ = write!(
+                s,
+                "gyro : scale {:.6} {:.6} {:.6} (rad/s per {}), gravity direction between poses {:.2} -> {:.2} deg over {} rotations",
+                k.matrix[0][0], k.matrix[1][1], k.matrix[2][2], g.units, k.rms_before_deg, k.rms_after_deg, k.segments
+            );
+            if let Some(h) = &k.held_out {
+                let _ = write!(
+                    s,
+                    "; held out {:.2} -> {:.2} deg over {}",
+                    h.rms_before_deg, h.rms_after_deg, h.segments
+                );
+            }
+            s.push('\n');
+        } else if let Some(f) = &g.scale_failure {
+            let _ = writeln!(s, "gyro : no scale fit: {f}");
+        }
+    } else if g.poses_turning > 0 {
+        let _ = writeln!(
+            s,
+            "gyro : no bias claimed: no rest in this log ({} steady segments turned faster than {} deg/s: a steady turn holds the gyro steady too); set the vehicle down still for a few seconds",
+            g.poses_turning,
+            crate::calib::gate::REST_MAX_RATE_DEG_S
+        );
+    } else {
+        let _ = writeln!(
+            s,
+            "gyro : no bias claimed: fewer than 2 static poses with the gyro"
+        );
+    }
+}
+
 /// Whether a replay calibrated nothing: no compass, no accelerometer, no gyro bias.
 pub fn calibrated_nothing(r: &Report) -> bool {
     r.calibration.mag.status != CalStatus::Ok
@@ -1198,51 +1247,6 @@ pub fn summary(r: &Report) -> String {
             q.instance, q.block_s, q.verdict
         );
     }
-    let g = &r.calibration.gyro;
-    if g.status == CalStatus::Ok {
-        let _ = writeln!(
-            s,
-            "gyro : bias [{:.5}, {:.5}, {:.5}] {} from {} poses at rest{}",
-            g.bias[0],
-            g.bias[1],
-            g.bias[2],
-            g.units,
-            g.poses_used,
-            if g.poses_turning > 0 {
-                format!(" ({} steady but turning, left out)", g.poses_turning)
-            } else {
-                String::new()
-            }
-        );
-        if let Some(k) = &g.scale {
-            let _ = write!(
-                s,
-                "gyro : scale {:.6} {:.6} {:.6} (rad/s per {}), gravity direction between poses {:.2} -> {:.2} deg over {} rotations",
-                k.matrix[0][0], k.matrix[1][1], k.matrix[2][2], g.units, k.rms_before_deg, k.rms_after_deg, k.segments
-            );
-            if let Some(h) = &k.held_out {
-                let _ = write!(
-                    s,
-                    "; held out {:.2} -> {:.2} deg over {}",
-                    h.rms_before_deg, h.rms_after_deg, h.segments
-                );
-            }
-            s.push('\n');
-        } else if let Some(f) = &g.scale_failure {
-            let _ = writeln!(s, "gyro : no scale fit: {f}");
-        }
-    } else if g.poses_turning > 0 {
-        let _ = writeln!(
-            s,
-            "gyro : no bias claimed: no rest in this log ({} steady segments turned faster than {} deg/s: a steady turn holds the gyro steady too); set the vehicle down still for a few seconds",
-            g.poses_turning,
-            crate::calib::gate::REST_MAX_RATE_DEG_S
-        );
-    } else {
-        let _ = writeln!(
-            s,
-            "gyro : no bias claimed: fewer than 2 static poses with the gyro"
-        );
-    }
+    gyro_lines(&r.calibration.gyro, &mut s);
     s
 }

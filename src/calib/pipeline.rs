@@ -1071,7 +1071,10 @@ fn norm_fit_report(
         set_fail(
             &mut rep,
             FitFailure::DidNotConverge,
-            format!("no convergence in {} iterations", f.iterations),
+            format!(
+                "no convergence in {} iterations: the readings do not outline an ellipsoid (too little turning, or a field that changed during the log); turn the vehicle through more directions, away from magnets and running motors",
+                f.iterations
+            ),
         );
     } else if !f.condition.is_finite()
         || f.condition > 1e12

@@ -588,7 +588,11 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         let _ = writeln!(
             s,
             "  {:<13} {:>12.4e} -> {:>12.4e} {} (noise {:.2e})",
-            name, c.before, c.after, c.unit, c.noise
+            name,
+            c.before,
+            c.after,
+            shown_unit(&c.unit),
+            c.noise
         );
     }
     for (name, params) in &r.effects {
@@ -597,7 +601,10 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
             let _ = writeln!(
                 s,
                 "  {:<22} {:>12.5} +- {:<10.2e} {}",
-                p, v.value, v.sigma, v.unit
+                p,
+                v.value,
+                v.sigma,
+                shown_unit(&v.unit)
             );
         }
     }
@@ -605,4 +612,13 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         let _ = writeln!(s, "note: {n}");
     }
     s
+}
+
+/// A unit as the terminal shows it: a dimensionless one (`1` in the report) as nothing.
+pub(super) fn shown_unit(u: &str) -> &str {
+    if u == "1" {
+        ""
+    } else {
+        u
+    }
 }

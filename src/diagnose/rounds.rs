@@ -1054,7 +1054,10 @@ fn refit(
             (0..b.len)
                 .map(|k| {
                     let (name, unit) = &lay1.names[b.start + k];
+                    let unit = super::report::shown_unit(unit);
                     format!("{name} {:.4} {unit}", alt.p[b.start + k])
+                        .trim_end()
+                        .to_string()
                 })
                 .collect::<Vec<_>>()
                 .join(", ")

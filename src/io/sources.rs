@@ -167,7 +167,23 @@ pub fn decode_log_batched(
         });
     }
     let cfg_format = cfg.input.format.format();
-    let format = match format.or(cfg_format).or_else(|| detect_format(&data)) {
+    let chosen = format.or(cfg_format);
+    if chosen.is_none() && detect_format(&data) == Some(Format::Csv) {
+        // A binary log's name on a text file: say so rather than read it as CSV unasked.
+        let name = path.display().to_string().to_ascii_lowercase();
+        if let Some(ext) = [".tlog", ".bin", ".ulg"]
+            .iter()
+            .find(|e| name.ends_with(*e))
+        {
+            return Err(Error::Format {
+                path: path.to_path_buf(),
+                message: format!(
+                    "named {ext} but holds text: a CSV, or a log exported as text? Give --format csv to read it as CSV"
+                ),
+            });
+        }
+    }
+    let format = match chosen.or_else(|| detect_format(&data)) {
         Some(f) => f,
         None => {
             return Err(Error::Format {
