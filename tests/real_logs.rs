@@ -383,6 +383,11 @@ fn diagnose_names_the_motor_field_of_a_real_flight() {
     }
     // Measured: 14 deg apart, 11.9 and 9.4 uT per unit throttle.
     let angle = k[0].angle(&k[1]).to_degrees();
+    eprintln!(
+        "motor fields of flights a and b: {angle:.1} deg apart, {:.1} and {:.1} uT per unit throttle",
+        k[0].norm(),
+        k[1].norm()
+    );
     assert!(
         angle < 40.0,
         "the two flights' motor fields are {angle:.0} deg apart"
