@@ -105,6 +105,12 @@ pub struct DaemonConfig {
     pub write_params: bool,
     /// Flight-stack convention of the parameters written. Default: "ardupilot".
     pub param_target: ParamTarget,
+    /// Let a ground station change the service's own live settings with PARAM_SET (those its
+    /// parameter list marks writable: `CAL_MAG_MODE`, `CAL_DEBUG_VECT`), for this run only. The
+    /// service always answers the parameter protocol (PARAM_REQUEST_LIST/READ) with its settings
+    /// and the calibration values in use; those values, and `CAL_WRITE_PARAMS`, are never
+    /// writable. Default: false (every PARAM_SET is answered with the value unchanged).
+    pub params_writable: bool,
     /// The flight controller's system id, for parameter writes and reads (of the first vehicle
     /// calibrated; a further vehicle's go to its own system id). Default: 1.
     pub target_system: u8,
@@ -167,6 +173,7 @@ impl Default for DaemonConfig {
             progress_full_regions: 80,
             write_params: false,
             param_target: ParamTarget::Ardupilot,
+            params_writable: false,
             target_system: 1,
             target_component: 1,
             system_id: 1,

@@ -57,7 +57,8 @@ use mavlink::dialects::ardupilotmega::{
     MagCalStatus, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavParamType, MavResult,
     MavSeverity, MavState, MavType, ATTITUDE_DATA, ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA,
     COMMAND_LONG_DATA, DEBUG_VECT_DATA, HEARTBEAT_DATA, MAG_CAL_PROGRESS_DATA, MAG_CAL_REPORT_DATA,
-    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, STATUSTEXT_DATA,
+    NAMED_VALUE_FLOAT_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, PARAM_VALUE_DATA,
+    STATUSTEXT_DATA,
 };
 use mavlink::types::CharArray;
 use mavlink::{MavHeader, MavlinkVersion};
@@ -907,6 +908,55 @@ pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMe
             })
         })
         .collect()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Serving our own parameters
+
+/// A ground station's request of the parameter protocol addressed to a component.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParamRequest {
+    /// PARAM_REQUEST_LIST: every parameter.
+    List,
+    /// PARAM_REQUEST_READ by name.
+    ReadName(String),
+    /// PARAM_REQUEST_READ by index (its name empty or ignored, `param_index` >= 0).
+    ReadIndex(u16),
+    /// PARAM_SET of a name to a value.
+    Set(String, f32),
+}
+
+/// The parameter request in `msg` with its target (system, component), or `None` when `msg` is
+/// not one.
+pub fn param_request(msg: &MavMessage) -> Option<((u8, u8), ParamRequest)> {
+    match msg {
+        MavMessage::PARAM_REQUEST_LIST(r) => {
+            Some(((r.target_system, r.target_component), ParamRequest::List))
+        }
+        MavMessage::PARAM_REQUEST_READ(r) => {
+            let req = match u16::try_from(r.param_index) {
+                Ok(i) => ParamRequest::ReadIndex(i),
+                Err(_) => ParamRequest::ReadName(array_text(&r.param_id)),
+            };
+            Some(((r.target_system, r.target_component), req))
+        }
+        MavMessage::PARAM_SET(s) => Some((
+            (s.target_system, s.target_component),
+            ParamRequest::Set(array_text(&s.param_id), s.param_value),
+        )),
+        _ => None,
+    }
+}
+
+/// PARAM_VALUE of parameter `index` of `count` (REAL32: every parameter we serve is a float).
+pub fn param_value(name: &str, value: f32, index: u16, count: u16) -> MavMessage {
+    MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+        param_value: value,
+        param_count: count,
+        param_index: index,
+        param_id: char_array(name),
+        param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+    })
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@
 
 mod lifecycle;
 mod outputs;
+mod params;
 mod service;
 mod sinks;
 mod state;

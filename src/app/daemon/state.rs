@@ -501,6 +501,12 @@ impl State {
                 self.on_command(link, frame, c).await;
                 false
             }
+            MavMessage::PARAM_REQUEST_LIST(_)
+            | MavMessage::PARAM_REQUEST_READ(_)
+            | MavMessage::PARAM_SET(_) => {
+                self.on_param_request(&frame.message).await;
+                false
+            }
             MavMessage::PARAM_VALUE(_) => {
                 let v = self.vehicle(link, frame.system_id);
                 self.vehicles[v].conv.convert_any(&frame.message, time_us);
