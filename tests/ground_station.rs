@@ -22,6 +22,45 @@ fn mavproxy() -> PathBuf {
     p
 }
 
+/// MAVProxy on `port` (UDP out) in `dir`, with `args`, its commands from a pipe and its output
+/// lines through a channel.
+fn mavproxy_session(
+    dir: &std::path::Path,
+    port: u16,
+    args: &[&str],
+) -> (
+    std::process::Child,
+    std::process::ChildStdin,
+    std::sync::mpsc::Receiver<String>,
+) {
+    let mut gcs = Command::new(mavproxy())
+        .arg(format!("--master=udpout:127.0.0.1:{port}"))
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdin = gcs.stdin.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let out = gcs.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (gcs, stdin, rx)
+}
+
+/// Send one command line to MAVProxy.
+fn send(stdin: &mut std::process::ChildStdin, cmd: &str) {
+    use std::io::Write;
+    writeln!(stdin, "{cmd}").unwrap();
+}
+
 #[test]
 fn mavproxy_magcal_start_calibrates_and_accepts() {
     let mp = mavproxy();
@@ -120,7 +159,6 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
 /// a calibration value stays read only.
 #[test]
 fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
-    let mp = mavproxy();
     let dir = tempfile::tempdir().unwrap();
     let port = common::free_udp_port();
     let cfg = dir.path().join("svc.toml");
@@ -134,27 +172,16 @@ fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
     )
     .unwrap();
     let mut svc = common::spawn_service(&cfg);
-    let mut gcs = Command::new(&mp)
-        .arg(format!("--master=udpout:127.0.0.1:{port}"))
-        // Our component: MAVProxy keeps the parameters of each component apart.
-        .args(["--target-system=1", "--target-component=191"])
-        .arg("--cmd=set param_ftp 0")
-        .current_dir(dir.path())
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut stdin = gcs.stdin.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel::<String>();
-    let out = gcs.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
+    // Our component: MAVProxy keeps the parameters of each component apart.
+    let (mut gcs, mut stdin, rx) = mavproxy_session(
+        dir.path(),
+        port,
+        &[
+            "--target-system=1",
+            "--target-component=191",
+            "--cmd=set param_ftp 0",
+        ],
+    );
     let mut seen = Vec::new();
     let parm = dir.path().join("mav_1_191.parm");
     // Once a calibration is in use, fetch the list again (MAVProxy fetched it at connection,
@@ -166,19 +193,15 @@ fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
         let Ok(l) = rx.recv_timeout(Duration::from_millis(200)) else {
             continue;
         };
-        let mut send = |cmd: &str| {
-            use std::io::Write;
-            writeln!(stdin, "{cmd}").unwrap();
-        };
         let listed = std::fs::read_to_string(&parm).unwrap_or_default();
         if step == 0 && l.contains("mag calibrated") {
-            send("param fetch");
+            send(&mut stdin, "param fetch");
             step = 1;
         } else if step == 1 && l.starts_with("Saved ") && listed.contains("MAG0_OFS_X") {
-            send("param set CAL_MAG_MODE 1");
+            send(&mut stdin, "param set CAL_MAG_MODE 1");
             step = 2;
         } else if step == 2 && l.contains("CAL_MAG_MODE set to 1 (on_command)") {
-            send("param set MAG0_OFS_X 3");
+            send(&mut stdin, "param set MAG0_OFS_X 3");
             step = 3;
         } else if step == 3 && l.contains("Failed to set MAG0_OFS_X") {
             step = 4;
@@ -210,5 +233,63 @@ fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
     for (axis, truth) in ["X", "Y", "Z"].iter().zip([12.0, -25.0, 40.0]) {
         let v = value(&format!("MAG0_OFS_{axis}"));
         assert!((v - truth).abs() < 0.5, "MAG0_OFS_{axis} {v}\n{listed}");
+    }
+}
+
+/// `magcal yaw` from MAVProxy after the data has stopped: refused (FAILED) with the reason, as the
+/// vehicle's yaw now is not known; nothing is written.
+#[test]
+fn mavproxy_magcal_yaw_on_stale_data_is_refused_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = common::free_udp_port();
+    let cfg = dir.path().join("svc.toml");
+    let cal = dir.path().join("cal");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[daemon]\ncalibration_dir = \"{}\"\npublish = []\nmag_cal = \"on_command\"\n\
+             sources = [{{ address = \"sim:tumble?speed=50\" }}, {{ address = \"udpin:127.0.0.1:{port}\" }}]\n\
+             [place]\nlatitude_deg = 47.4\nlongitude_deg = 8.5\n",
+            cal.display()
+        ),
+    )
+    .unwrap();
+    let mut svc = common::spawn_service(&cfg);
+    let (mut gcs, mut stdin, rx) = mavproxy_session(dir.path(), port, &["--target-system=1"]);
+    let mut seen = Vec::new();
+    let mut ended = None;
+    let mut answered = false;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while Instant::now() < deadline && !answered {
+        if let Ok(l) = rx.recv_timeout(Duration::from_millis(200)) {
+            if l.contains("sim:tumble?speed=50: ended") {
+                ended = Some(Instant::now());
+            }
+            answered = l.contains("FIXED_MAG_CAL_YAW: ");
+            seen.push(l);
+        }
+        // The data is stale once it is older than the service's 2 s: command 3 s after the end.
+        if ended.is_some_and(|e| e.elapsed() > Duration::from_secs(3)) {
+            send(&mut stdin, "magcal yaw 90");
+            ended = None;
+        }
+    }
+    let _ = Command::new("kill").arg(svc.id().to_string()).status();
+    let _ = gcs.kill();
+    let _ = svc.wait();
+    let _ = gcs.wait();
+    let said = seen.join("\n");
+    assert!(
+        said.contains("FIXED_MAG_CAL_YAW: FAILED"),
+        "MAVProxy said:\n{said}"
+    );
+    assert!(
+        said.contains("fixed-yaw calibration refused: the latest samples are"),
+        "MAVProxy said:\n{said}"
+    );
+    // Nothing installed: no store, or one without a magnetometer calibration.
+    if let Ok(stored) = std::fs::read_to_string(cal.join("calibration.json")) {
+        let v: serde_json::Value = serde_json::from_str(&stored).unwrap();
+        assert!(v["mag"].is_null(), "{stored}");
     }
 }

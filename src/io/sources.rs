@@ -237,7 +237,7 @@ pub fn decode_log_batched(
                 };
                 return Err(Error::Format {
                     path: path.to_path_buf(),
-                    message: format!("{what}; skipped: {:?}", conv.stats.skipped),
+                    message: format!("{what}{}", skipped_text(&conv.stats.skipped)),
                 });
             }
             let units = conv.units();
@@ -342,7 +342,7 @@ fn decode_flight_log(
         };
         return Err(Error::Format {
             path: path.to_path_buf(),
-            message: format!("{what}; skipped: {:?}", flight.stats.skipped),
+            message: format!("{what}{}", skipped_text(&flight.stats.skipped)),
         });
     }
     Ok(Log {
@@ -359,4 +359,13 @@ fn decode_flight_log(
         flight: Some(flight),
         telemetry_onboard: None,
     })
+}
+
+/// "; skipped: 12 bad_crc, 3 resync" for an error message, or nothing when nothing was skipped.
+fn skipped_text(skipped: &std::collections::BTreeMap<String, u64>) -> String {
+    if skipped.is_empty() {
+        return String::new();
+    }
+    let parts: Vec<String> = skipped.iter().map(|(k, n)| format!("{n} {k}")).collect();
+    format!("; skipped: {}", parts.join(", "))
 }
