@@ -192,7 +192,7 @@ impl Default for DaemonConfig {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct InputConfig {
-    /// "auto" (from content), "tlog" or "csv". Default: "auto".
+    /// "auto" (from content), "tlog", "csv", "bin" (ArduPilot DataFlash) or "ulg" (PX4 ULog). Default: "auto".
     pub format: InputFormat,
     /// IMU instance in MAVLink logs: "auto" (default: every instance, each calibrated on its own in
     /// `replay`, the first with a magnetometer primary; the live service takes the primary), or one
@@ -217,6 +217,10 @@ pub enum InputFormat {
     Auto,
     Tlog,
     Csv,
+    /// ArduPilot DataFlash log.
+    Bin,
+    /// PX4 ULog.
+    Ulg,
 }
 
 impl InputFormat {
@@ -226,6 +230,8 @@ impl InputFormat {
             InputFormat::Auto => None,
             InputFormat::Tlog => Some(Format::Tlog),
             InputFormat::Csv => Some(Format::Csv),
+            InputFormat::Bin => Some(Format::Bin),
+            InputFormat::Ulg => Some(Format::Ulg),
         }
     }
 }

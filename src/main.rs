@@ -105,7 +105,7 @@ struct RunArgs {
 
 #[derive(Args)]
 struct DiagnoseArgs {
-    /// The log file (.tlog, CSV or .csv.gz).
+    /// The log file: .tlog, CSV or .csv.gz, ArduPilot DataFlash (.bin) or PX4 ULog (.ulg).
     log: PathBuf,
     /// TOML configuration (see config/).
     #[arg(long)]

@@ -1187,10 +1187,15 @@ pub fn summary(r: &Report) -> String {
             (CalStatus::Failed, Some(d)) => format!(": {d}"),
             _ => String::new(),
         };
+        let a = &i.calibration.accel;
+        let accel = match a.status {
+            CalStatus::Ok => "ok".to_string(),
+            CalStatus::Failed => format!("FAILED ({})", a.failure.map_or("?", FitFailure::name)),
+        };
         let _ = writeln!(
             s,
-            "instance {} (compass {}): {} samples, mag {what}{why}; accel {}",
-            i.instance, i.compass_id, i.samples, i.calibration.accel.status
+            "instance {} (compass {}): {} samples, mag {what}{why}; accel {accel}",
+            i.instance, i.compass_id, i.samples
         );
     }
     let _ = writeln!(s, "static poses: {}", r.static_poses.len());
