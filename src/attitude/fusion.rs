@@ -325,7 +325,14 @@ impl Butter3 {
     }
 }
 
-/// Rest detector: gyro and accel stay within thresholds of their low-passed values for `rest_min_s`.
+/// Rest detector: the sensor is at rest when, for `rest_min_s`, (1) gyro and accel stay within
+/// thresholds of their low-passed values (steady), (2) the low-passed rate less the bias estimate is
+/// within three standard deviations of what the gyro's noise (`gyro_noise_density`) and the bias
+/// estimate's uncertainty leave in it (not turning: a steady turn is steady but not rest), and (3) the specific force's norm is within `2 rest_acc_mps2` of
+/// gravity (no sustained acceleration: a coordinated turn or a centrifuge is steady but not rest).
+/// Rest is what lets each gyro sample measure the bias and the accelerometer measure the tilt
+/// closely, so what it lets through sets their errors: a rotation it accepts becomes bias, at most
+/// the threshold.
 #[derive(Debug, Clone, Default)]
 struct Rest {
     gyr_lp: Lp3,
@@ -337,24 +344,30 @@ struct Rest {
 const REST_TAU_S: f64 = 0.5;
 
 impl Rest {
+    /// `bias` and `bias_sd`: the filter's gyro bias estimate and the norm of its standard
+    /// deviations, rad/s.
     fn update(
         &mut self,
         gyr: Option<&Vector3<f64>>,
         acc: Option<&Vector3<f64>>,
         dt: f64,
+        bias: (&Vector3<f64>, f64),
         cfg: &FusionConfig,
     ) {
         let mut still = true;
         if let Some(g) = gyr {
             let lp = self.gyr_lp.update(g, dt, REST_TAU_S);
-            // Still, and not turning steadily either (up to the largest bias allowed).
-            still &= (g - lp).norm() < cfg.rest_gyro_rad_s
-                && lp.norm() < cfg.rest_gyro_rad_s + cfg.bias_clip * 3f64.sqrt();
+            let (b, b_sd) = bias;
+            // The noise of the low-passed rate: density over the low-pass's equivalent noise
+            // bandwidth, 1 / (4 tau), on three axes.
+            let noise = cfg.gyro_noise_density * (3.0 / (4.0 * REST_TAU_S)).sqrt();
+            still &=
+                (g - lp).norm() < cfg.rest_gyro_rad_s && (lp - b).norm() < 3.0 * (noise + b_sd);
         }
         if let Some(a) = acc {
             let lp = self.acc_lp.update(a, dt, REST_TAU_S);
             still &= (a - lp).norm() < cfg.rest_acc_mps2
-                && (a.norm() - cfg.gravity_mps2).abs() < cfg.rest_acc_mps2 * 2.0;
+                && (lp.norm() - cfg.gravity_mps2).abs() < cfg.rest_acc_mps2 * 2.0;
         }
         if still {
             self.still_s += dt;
@@ -809,7 +822,14 @@ impl OrientationFilter {
         let mag = mag
             .filter(|m| crate::types::is_finite3(m) && self.cfg.use_mag)
             .map(v3);
-        self.rest.update(gyro.as_ref(), acc.as_ref(), dt, &self.cfg);
+        let bias_sd = (self.p[(3, 3)] + self.p[(4, 4)] + self.p[(5, 5)]).sqrt();
+        self.rest.update(
+            gyro.as_ref(),
+            acc.as_ref(),
+            dt,
+            (&self.bias, bias_sd),
+            &self.cfg,
+        );
         let a_int = (dt / self.cfg.intensity_tau_s.max(dt)).min(1.0);
         if let Some(g) = gyro {
             self.last_gyro = g;
