@@ -140,10 +140,20 @@ struct EvalArgs {
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
     format: Option<Format>,
-    /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference),
-    /// heading, or heading-and-misalignment.
-    #[arg(long, value_enum, ignore_case = true, default_value_t = Alignment::None)]
-    align: Alignment,
+    /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference; the
+    /// default), heading (the default with --reference), or heading-and-misalignment.
+    #[arg(long, value_enum, ignore_case = true)]
+    align: Option<Alignment>,
+    /// Score against optical motion capture (an OptiTrack Motive CSV export) instead of the log's
+    /// own reference: its clock offset, the rigid body's rotation to the log's axes and the tilt of
+    /// its world are found from the gyro and accelerometer; the flight controller's attitude, when
+    /// the log has one, is scored too. Given several times, the take whose rotation rate correlates
+    /// best with the gyro is used.
+    #[arg(long)]
+    reference: Vec<PathBuf>,
+    /// The rigid body in the Motive export (default: the first one tracked).
+    #[arg(long, requires = "reference")]
+    rigid_body: Option<String>,
     /// Without the magnetometer (6D: heading from the gyro alone).
     #[arg(long)]
     no_mag: bool,
@@ -562,12 +572,13 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         config,
         format,
         align,
+        reference,
+        rigid_body,
         no_mag,
         calibration,
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let alignment = align;
     let mut input = imucald::io::sources::read_log(&log, format, &cfg)
         .with_context(|| format!("reading {}", log.display()))?;
     if let Some(c) = &calibration {
@@ -578,6 +589,25 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         use_mag: !no_mag,
         ..Default::default()
     };
+    if !reference.is_empty() {
+        let alignment = match align {
+            None => Alignment::Heading,
+            Some(Alignment::None) => anyhow::bail!(
+                "--align none with --reference: the capture world's heading is unknown, so at \
+                 least the heading is aligned (--align heading or heading-and-misalignment)"
+            ),
+            Some(a) => a,
+        };
+        return eval_against_reference(
+            &input,
+            &reference,
+            rigid_body.as_deref(),
+            &fcfg,
+            alignment,
+            report,
+        );
+    }
+    let alignment = align.unwrap_or(Alignment::None);
     let r = imucald::attitude::eval::evaluate_filter(&input.samples, &fcfg, alignment)
             .with_context(|| {
                 format!(
@@ -586,6 +616,63 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
                     log.display()
                 )
             })?;
+    print!("{}", r.to_text());
+    if let Some(path) = report {
+        imucald::io::publish::write_json(&path, &r)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+/// `imucald eval LOG --reference CAPTURE...`: each capture aligned with the log, the best
+/// correlated one used to score imucald's filter and the flight controller's attitude.
+fn eval_against_reference(
+    input: &imucald::io::sources::Log,
+    references: &[PathBuf],
+    rigid_body: Option<&str>,
+    fcfg: &imucald::attitude::fusion::FusionConfig,
+    alignment: Alignment,
+    report: Option<PathBuf>,
+) -> Result<()> {
+    use imucald::attitude::align;
+    let mut takes = Vec::new();
+    for path in references {
+        takes.push(imucald::io::mocap::read_motive(path, rigid_body)?);
+    }
+    let poses: Vec<Vec<align::Pose>> = takes.iter().map(|t| t.poses()).collect();
+    let opts = align::AlignOptions::default();
+    let found: Vec<_> = poses
+        .iter()
+        .map(|p| align::align_to_log(&input.samples, p, &opts))
+        .collect();
+    let best = align::best_alignment(&found);
+    for (take, a) in takes.iter().zip(&found) {
+        print!("{}", take.summary());
+        match a {
+            Ok(a) if takes.len() > 1 => println!(
+                "  rate correlation {:.3} at offset {:.3} s",
+                a.correlation, a.time_offset_s
+            ),
+            Ok(_) => {}
+            Err(e) => println!("  not aligned: {e}"),
+        }
+    }
+    let Some(i) = best else {
+        anyhow::bail!("no capture could be aligned with the log");
+    };
+    if takes.len() > 1 {
+        println!("using {}", takes[i].path.display());
+    }
+    let fc_name = match input.format {
+        Format::Ulg => Some("PX4 EKF (vehicle_attitude)"),
+        Format::Bin => Some("ArduPilot attitude (ATT)"),
+        Format::Tlog => Some("vehicle attitude (ATTITUDE)"),
+        // A CSV's ref_q is a reference, not an estimate.
+        Format::Csv => None,
+    };
+    let a = found[i].as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let r =
+        align::evaluate_against_reference(&input.samples, &poses[i], a, fcfg, alignment, fc_name)?;
     print!("{}", r.to_text());
     if let Some(path) = report {
         imucald::io::publish::write_json(&path, &r)?;

@@ -326,9 +326,9 @@ impl Butter3 {
 }
 
 /// Rest detector: the sensor is at rest when, for `rest_min_s`, (1) gyro and accel stay within
-/// thresholds of their low-passed values (steady), (2) the low-passed rate less the bias estimate is
-/// within three standard deviations of what the gyro's noise (`gyro_noise_density`) and the bias
-/// estimate's uncertainty leave in it (not turning: a steady turn is steady but not rest), and (3) the specific force's norm is within `2 rest_acc_mps2` of
+/// thresholds of their low-passed values (steady), (2) the rate less the bias estimate is within
+/// three standard deviations of what the gyro's noise (`gyro_sample_sd`) and the bias estimate's
+/// uncertainty leave in it (not turning: a steady turn is steady but not rest), and (3) the specific force's norm is within `2 rest_acc_mps2` of
 /// gravity (no sustained acceleration: a coordinated turn or a centrifuge is steady but not rest).
 /// Rest is what lets each gyro sample measure the bias and the accelerometer measure the tilt
 /// closely, so what it lets through sets their errors: a rotation it accepts becomes bias, at most
@@ -342,6 +342,11 @@ struct Rest {
 }
 
 const REST_TAU_S: f64 = 0.5;
+
+/// The tilt noise, as a multiple of `acc_noise_mps2`, beyond which the adaptive terms say a linear
+/// acceleration is present (the gyro bias is not learnt from the tilt then): twice the
+/// unaccelerated noise, i.e. an RMS acceleration of about sqrt(3) `acc_noise_mps2` / gain.
+const ACC_CLEAN_FACTOR: f64 = 2.0;
 
 impl Rest {
     /// `bias` and `bias_sd`: the filter's gyro bias estimate and the norm of its standard
@@ -358,11 +363,10 @@ impl Rest {
         if let Some(g) = gyr {
             let lp = self.gyr_lp.update(g, dt, REST_TAU_S);
             let (b, b_sd) = bias;
-            // The noise of the low-passed rate: density over the low-pass's equivalent noise
-            // bandwidth, 1 / (4 tau), on three axes.
-            let noise = cfg.gyro_noise_density * (3.0 / (4.0 * REST_TAU_S)).sqrt();
-            still &=
-                (g - lp).norm() < cfg.rest_gyro_rad_s && (lp - b).norm() < 3.0 * (noise + b_sd);
+            // Each reading, not the low-passed rate (which would lag the end of a motion): its
+            // noise on three axes is sqrt(3) `gyro_sample_sd`.
+            let noise = 3f64.sqrt() * cfg.gyro_sample_sd;
+            still &= (g - lp).norm() < cfg.rest_gyro_rad_s && (g - b).norm() < 3.0 * (noise + b_sd);
         }
         if let Some(a) = acc {
             let lp = self.acc_lp.update(a, dt, REST_TAU_S);
@@ -730,6 +734,10 @@ pub struct OrientationFilter {
     tilt_init: bool,
     heading_init: bool,
     rest: Rest,
+    /// Gyro samples of the last [`REST_TAU_S`] (time, reading), waiting to become bias
+    /// measurements: a sample is used only if the rest still holds `REST_TAU_S` after it, so the
+    /// first moments of a motion, which the rest detector sees only after its low-pass, never count.
+    rest_gyro: VecDeque<(f64, Vector3<f64>)>,
     mag_ref: MagRef,
     delay: DelayEst,
     scale: ScaleEst,
@@ -769,6 +777,7 @@ impl OrientationFilter {
             tilt_init: false,
             heading_init: false,
             rest: Rest::default(),
+            rest_gyro: VecDeque::new(),
             mag_ref: MagRef::default(),
             delay: DelayEst::default(),
             scale: ScaleEst::new(cfg.gyro_scale_sigma, cfg.gyro_scale_path_sd),
@@ -854,8 +863,15 @@ impl OrientationFilter {
             }
             dq
         };
-        if self.rest.rest {
-            if let Some(g) = gyro {
+        if let Some(g) = gyro {
+            self.rest_gyro.push_back((self.t, g));
+        }
+        while let Some(&(t, g)) = self.rest_gyro.front() {
+            if self.t - t < REST_TAU_S {
+                break;
+            }
+            self.rest_gyro.pop_front();
+            if self.rest.rest {
                 self.bias_update(&g);
             }
         }
@@ -976,20 +992,33 @@ impl OrientationFilter {
         self.bias = self.bias.map(|b| b.clamp(-c, c));
     }
 
-    fn tilt_update(&mut self, a: &Vector3<f64>, dt: f64) {
-        let g = self.cfg.gravity_mps2;
-        let dev = (a.norm() - g).abs();
-        if dev > self.cfg.acc_reject_mps2 && !self.rest.rest {
-            return;
-        }
-        let sigma = if self.rest.rest {
+    /// The tilt measurement's noise now, m/s^2: `acc_rest_noise_mps2` at rest, else
+    /// `acc_noise_mps2` grown by the slow RMS of the force's norm deviation and of the world-frame
+    /// linear acceleration.
+    fn tilt_sigma(&self) -> f64 {
+        if self.rest.rest {
             self.cfg.acc_rest_noise_mps2
         } else {
             (self.cfg.acc_noise_mps2.powi(2)
                 + self.cfg.acc_norm_gain.powi(2) * self.acc_ms
                 + self.cfg.acc_lin_gain.powi(2) * self.lin_ms)
                 .sqrt()
-        };
+        }
+    }
+
+    /// Whether a linear acceleration is seen ([`ACC_CLEAN_FACTOR`]): the tilt, and the heading
+    /// taken with it, are then off by a slow, correlated error.
+    fn accelerated(&self) -> bool {
+        self.tilt_sigma() > ACC_CLEAN_FACTOR * self.cfg.acc_noise_mps2
+    }
+
+    fn tilt_update(&mut self, a: &Vector3<f64>, dt: f64) {
+        let g = self.cfg.gravity_mps2;
+        let dev = (a.norm() - g).abs();
+        if dev > self.cfg.acc_reject_mps2 && !self.rest.rest {
+            return;
+        }
+        let sigma = self.tilt_sigma();
         let r = (sigma / g).powi(2);
         // The accelerometer's timing against the gyro: rotate it with the attitude `acc_delay_s` ago
         // (a negative delay, an accelerometer ahead of the gyro, extrapolates with the current rate).
@@ -1008,11 +1037,20 @@ impl OrientationFilter {
         } else {
             self.q * a_shifted
         };
+        // The gyro bias is learnt from the tilt only while no linear acceleration is seen: an
+        // acceleration is no white noise but a slow, correlated error of the tilt measurement, which
+        // the bias would take up (two minutes on a centrifuge turned it by 0.1 deg/s) and keep long
+        // after the motion.
+        let frozen: &[usize] = if self.accelerated() {
+            &[2, 3, 4, 5]
+        } else {
+            &[2]
+        };
         let q_before = self.q;
-        self.scalar_update(0, aw.y / g, r, &[2]);
+        self.scalar_update(0, aw.y / g, r, frozen);
         // The first row's correction turns the world-frame force for the second.
         let aw = self.q * q_before.inverse() * aw;
-        self.scalar_update(1, -aw.x / g, r, &[2]);
+        self.scalar_update(1, -aw.x / g, r, frozen);
     }
 
     fn bias_update(&mut self, g: &Vector3<f64>) {

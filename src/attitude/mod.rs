@@ -4,8 +4,10 @@
 //! Body frame FRD, world NED. Pure math, no I/O.
 //!
 //! The folder owns orientation: [`fusion`] (the 9D/6D filter and its saved state) and [`eval`]
-//! (the BROAD benchmark's error metrics). Must not: do I/O or know tokio.
+//! (the BROAD benchmark's error metrics), [`align`] (a motion-capture reference aligned with a log:
+//! clock offset, body rotation, world tilt). Must not: do I/O or know tokio.
 
+pub mod align;
 pub mod eval;
 pub mod fusion;
 

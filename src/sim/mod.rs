@@ -13,7 +13,8 @@ use serde::{Deserialize, Serialize};
 
 mod trajectory;
 use trajectory::{
-    build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan, Tremor,
+    build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan,
+    StressMotion, StressPlan, Tremor,
 };
 pub use trajectory::{quat_from_euler_deg, six_positions_then_turns_about_x, turntable_attitudes};
 
@@ -192,6 +193,16 @@ pub enum TrajectoryKind {
     /// A ground vehicle: straight stretches, loops and figure-eights at walking pace on gently
     /// rolling ground (roll and pitch within `rover.terrain_deg`), yaw over the full circle.
     Rover,
+    /// Stress for the attitude filter (calibrated sensors, 400 Hz, the true attitude as the
+    /// reference on every sample): rest, calm rotation, then shaking at `stress.shake_mps2`
+    /// (default 10 g, 8 Hz) for `stress.stress_s`, calm rotation to recover, rest.
+    Shake,
+    /// As `shake`, with a spin to `stress.spin_deg_s` (default 2000 deg/s) as the stress.
+    Spin,
+    /// As `shake`, with minutes on a centrifuge (default 2 g, a turn every 4 s, 120 s) as the stress.
+    Centrifuge,
+    /// As `spin`, to 2500 deg/s with the gyro's range at 2000 deg/s: its readings saturate.
+    Saturation,
 }
 
 impl TrajectoryKind {
@@ -203,6 +214,10 @@ impl TrajectoryKind {
             TrajectoryKind::Bench => "bench",
             TrajectoryKind::Cruise => "cruise",
             TrajectoryKind::Rover => "rover",
+            TrajectoryKind::Shake => "shake",
+            TrajectoryKind::Spin => "spin",
+            TrajectoryKind::Centrifuge => "centrifuge",
+            TrajectoryKind::Saturation => "saturation",
         }
     }
     pub fn parse(s: &str) -> Option<TrajectoryKind> {
@@ -213,12 +228,27 @@ impl TrajectoryKind {
             "bench" => Some(TrajectoryKind::Bench),
             "cruise" => Some(TrajectoryKind::Cruise),
             "rover" => Some(TrajectoryKind::Rover),
+            "shake" => Some(TrajectoryKind::Shake),
+            "spin" => Some(TrajectoryKind::Spin),
+            "centrifuge" => Some(TrajectoryKind::Centrifuge),
+            "saturation" => Some(TrajectoryKind::Saturation),
             _ => None,
         }
     }
 }
 
-const SCENARIO_NAMES: [&str; 6] = ["turntable", "tumble", "flight", "bench", "cruise", "rover"];
+const SCENARIO_NAMES: [&str; 10] = [
+    "turntable",
+    "tumble",
+    "flight",
+    "bench",
+    "cruise",
+    "rover",
+    "shake",
+    "spin",
+    "centrifuge",
+    "saturation",
+];
 
 /// A named simulation scenario: truth parameters plus the trajectory and its knobs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -269,6 +299,43 @@ pub struct Scenario {
     /// Knobs of the `rover` trajectory.
     #[serde(default)]
     pub rover: RoverSettings,
+    /// Knobs of the stress trajectories (`shake`, `spin`, `centrifuge`, `saturation`).
+    #[serde(default)]
+    pub stress: StressSettings,
+}
+
+/// Settings of the stress trajectories.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StressSettings {
+    /// Length of the stress phase, s (its ramps in and out included).
+    pub stress_s: f64,
+    /// Peak linear acceleration of the shaking, m/s^2.
+    pub shake_mps2: f64,
+    /// Frequency of the shaking, Hz.
+    pub shake_hz: f64,
+    /// Peak rate of the spin, deg/s.
+    pub spin_deg_s: f64,
+    /// Centripetal acceleration on the centrifuge, m/s^2.
+    pub centripetal_mps2: f64,
+    /// One turn of the centrifuge, s.
+    pub turn_s: f64,
+    /// The gyro's range, deg/s: each axis's reading saturates there. `None`: no limit.
+    pub gyro_range_deg_s: Option<f64>,
+}
+
+impl Default for StressSettings {
+    fn default() -> Self {
+        StressSettings {
+            stress_s: 20.0,
+            shake_mps2: 10.0 * STANDARD_GRAVITY_MPS2,
+            shake_hz: 8.0,
+            spin_deg_s: 2000.0,
+            centripetal_mps2: 2.0 * STANDARD_GRAVITY_MPS2,
+            turn_s: 4.0,
+            gyro_range_deg_s: None,
+        }
+    }
 }
 
 /// Settings of the `rover` trajectory.
@@ -563,6 +630,7 @@ impl Scenario {
             place: None,
             cruise: CruiseSettings::default(),
             rover: RoverSettings::default(),
+            stress: StressSettings::default(),
         };
         match kind {
             TrajectoryKind::Turntable => {
@@ -598,9 +666,45 @@ impl Scenario {
             TrajectoryKind::Cruise => sc.five_minutes_near_zurich(600.0),
             // Five minutes on a field near Zurich in mid-2026, the default hard iron (z included).
             TrajectoryKind::Rover => sc.five_minutes_near_zurich(450.0),
+            TrajectoryKind::Shake
+            | TrajectoryKind::Spin
+            | TrajectoryKind::Centrifuge
+            | TrajectoryKind::Saturation => {
+                sc.stress_run(kind, &mut truth);
+            }
         }
         sc.truth = truth;
         Some(sc)
+    }
+
+    /// A stress run for the attitude filter: calibrated sensors with their noise and a small gyro
+    /// bias, 400 Hz (fast spins need it), the true attitude on every sample.
+    fn stress_run(&mut self, kind: TrajectoryKind, truth: &mut Truth) {
+        let ideal = |noise_sd| SensorTruth {
+            offset: [0.0; 3],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            noise_sd,
+        };
+        truth.accel = ideal(default_accel().noise_sd);
+        truth.mag = ideal(default_mag().noise_sd);
+        truth.gyro = SensorTruth {
+            offset: [0.005, -0.003, 0.004],
+            ..ideal(default_gyro().noise_sd)
+        };
+        truth.rate_hz = 400.0;
+        self.tremor_deg = 0.0;
+        self.temp_drift_c = 0.0;
+        self.reference_noise_deg = Some(0.0);
+        match kind {
+            TrajectoryKind::Spin => self.stress.stress_s = 10.0,
+            TrajectoryKind::Centrifuge => self.stress.stress_s = 120.0,
+            TrajectoryKind::Saturation => {
+                self.stress.stress_s = 10.0;
+                self.stress.spin_deg_s = 2500.0;
+                self.stress.gyro_range_deg_s = Some(2000.0);
+            }
+            _ => {}
+        }
     }
 
     /// An ordinary trip (cruise, rover): five minutes near Zurich in mid-2026 at `altitude_m`, no
@@ -1094,6 +1198,15 @@ fn build_motion(
             &scenario.rover,
             rng,
         )),
+        TrajectoryKind::Shake => {
+            Motion::Stress(StressPlan::new(StressMotion::Shake, &scenario.stress))
+        }
+        TrajectoryKind::Spin | TrajectoryKind::Saturation => {
+            Motion::Stress(StressPlan::new(StressMotion::Spin, &scenario.stress))
+        }
+        TrajectoryKind::Centrifuge => {
+            Motion::Stress(StressPlan::new(StressMotion::Centrifuge, &scenario.stress))
+        }
     };
     (motion, bench_schedule)
 }
@@ -1189,10 +1302,15 @@ impl Stepper<'_> {
                 acc[k] += c.accel[k] * acc[k].powi(3) / (g * g);
             }
         }
+        let mut gyro_read = raw_with_noise(&truth.gyro, &gyr, &mut rng.noise);
+        if let Some(range) = sc.stress.gyro_range_deg_s {
+            let r = range.to_radians();
+            gyro_read = gyro_read.map(|w| w.clamp(-r, r));
+        }
         let mut s = Sample {
             t_s: t,
             accel_mps2: Some(raw_with_noise(&truth.accel, &acc, &mut rng.noise)),
-            gyro_rad_s: Some(raw_with_noise(&truth.gyro, &gyr, &mut rng.noise)),
+            gyro_rad_s: Some(gyro_read),
             mag_ut: Some(raw_with_noise(&truth.mag, &mag, &mut rng.noise)),
             temp_c: Some(temp),
             throttle: Some(bench_throttle),
@@ -1219,7 +1337,7 @@ impl Stepper<'_> {
                 s.current_a = Some(c);
                 s.throttle = Some((c / p.max_current_a).clamp(0.0, 1.0).powf(2.0 / 3.0));
             }
-            Motion::Segments { .. } | Motion::Rover(_) => {}
+            Motion::Segments { .. } | Motion::Rover(_) | Motion::Stress(_) => {}
         }
         // Effects added to the raw readings.
         if !fx.is_none() {

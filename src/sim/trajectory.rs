@@ -383,6 +383,7 @@ pub(super) enum Motion {
     Flight(FlightPlan),
     Cruise(CruisePlan),
     Rover(RoverPlan),
+    Stress(StressPlan),
 }
 
 impl Motion {
@@ -392,6 +393,7 @@ impl Motion {
             Motion::Flight(p) => p.t_total,
             Motion::Cruise(p) => p.t_total,
             Motion::Rover(p) => p.t_total,
+            Motion::Stress(p) => p.t_total,
         }
     }
 
@@ -417,6 +419,7 @@ impl Motion {
             Motion::Flight(p) => p.attitude(t),
             Motion::Cruise(p) => p.attitude(t),
             Motion::Rover(p) => p.attitude(t),
+            Motion::Stress(p) => p.attitude(t),
         }
     }
 
@@ -438,6 +441,8 @@ impl Motion {
             }
             Motion::Cruise(p) => p.track.velocity_ned(t),
             Motion::Rover(p) => p.track.velocity_ned(t),
+            // No place is simulated for a stress run: no position is written.
+            Motion::Stress(_) => Vector3::zeros(),
         }
     }
 
@@ -451,6 +456,7 @@ impl Motion {
             }
             Motion::Cruise(p) => p.track.accel_ned(t),
             Motion::Rover(p) => p.track.accel_ned(t),
+            Motion::Stress(p) => p.accel_ned(t),
         }
     }
 }
@@ -593,4 +599,162 @@ pub(super) fn tumble_attitudes<R: rand::Rng>(n: usize, rng: &mut R) -> Vec<[f64;
         v.push([roll, pitch, yaw]);
     }
     v
+}
+
+// ---------------------------------------------------------------------------------------------
+// Stress: motion harder than any calibration needs, with truth, for the attitude filter
+
+/// What the stress phase of a [`StressPlan`] does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StressMotion {
+    /// Shaking: a linear acceleration `stress.shake_mps2 sin(2 pi stress.shake_hz t)` along a
+    /// direction that wanders slowly, on top of the calm rotation.
+    Shake,
+    /// A spin about a fixed body axis ramped up to `stress.spin_deg_s` and down again.
+    Spin,
+    /// A centrifuge (or a car on a circle): carried round a horizontal circle with the
+    /// centripetal acceleration `stress.centripetal_mps2`, facing along the circle, for the whole
+    /// stress phase.
+    Centrifuge,
+}
+
+/// Length of the rests at the start and the end of a stress run, s.
+pub const STRESS_REST_S: f64 = 10.0;
+/// Calm rotation before the stress (the filters settle), s.
+pub const STRESS_SETTLE_S: f64 = 20.0;
+/// Calm rotation after the stress (the filters recover), s.
+pub const STRESS_RECOVER_S: f64 = 60.0;
+/// Ramps of the stress (shake envelope, spin rate, centrifuge speed), s.
+const STRESS_RAMP_S: f64 = 2.0;
+
+/// A stress run: rest, calm rotation (rates up to about 25 deg/s), the stress phase on top of the
+/// calm rotation, calm rotation again, rest. The stress is `[stress_start_s, stress_end_s)`.
+#[derive(Debug, Clone)]
+pub(super) struct StressPlan {
+    pub(super) motion: StressMotion,
+    pub(super) stress_start_s: f64,
+    pub(super) stress_end_s: f64,
+    pub(super) t_total: f64,
+    shake_mps2: f64,
+    shake_hz: f64,
+    spin_rad_s: f64,
+    centripetal_mps2: f64,
+    turn_rad_s: f64,
+}
+
+/// Smooth step from 0 at `u <= 0` to 1 at `u >= 1` (raised cosine).
+fn smooth_step(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    0.5 * (1.0 - (std::f64::consts::PI * u).cos())
+}
+
+/// The integral over [0, u T] of `smooth_step(s / T)` ds, for u in [0, 1], times 1 / T.
+fn smooth_step_integral(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    0.5 * (u - (std::f64::consts::PI * u).sin() / std::f64::consts::PI)
+}
+
+impl StressPlan {
+    pub(super) fn new(motion: StressMotion, s: &super::StressSettings) -> StressPlan {
+        let stress_start_s = STRESS_REST_S + STRESS_SETTLE_S;
+        let stress_end_s = stress_start_s + s.stress_s.max(2.0 * STRESS_RAMP_S);
+        StressPlan {
+            motion,
+            stress_start_s,
+            stress_end_s,
+            t_total: stress_end_s + STRESS_RECOVER_S + STRESS_REST_S,
+            shake_mps2: s.shake_mps2,
+            shake_hz: s.shake_hz,
+            spin_rad_s: s.spin_deg_s.to_radians(),
+            centripetal_mps2: s.centripetal_mps2,
+            turn_rad_s: 2.0 * std::f64::consts::PI / s.turn_s.max(0.1),
+        }
+    }
+
+    /// The envelope of the stress at `t`: 0 outside, ramped in and out over [`STRESS_RAMP_S`].
+    fn envelope(&self, t: f64) -> f64 {
+        smooth_step((t - self.stress_start_s) / STRESS_RAMP_S)
+            * smooth_step((self.stress_end_s - t) / STRESS_RAMP_S)
+    }
+
+    /// The integral of the envelope from the stress's start to `t`, s.
+    fn envelope_integral(&self, t: f64) -> f64 {
+        let (t0, t1, r) = (self.stress_start_s, self.stress_end_s, STRESS_RAMP_S);
+        let t = t.clamp(t0, t1);
+        let up = r * smooth_step_integral((t - t0) / r);
+        let hold = (t.min(t1 - r) - (t0 + r)).max(0.0);
+        let down = if t > t1 - r {
+            r * (0.5 - smooth_step_integral((t1 - t) / r))
+        } else {
+            0.0
+        };
+        up + hold + down
+    }
+
+    /// The calm rotation: slow sines about three axes (rotation vector, rad), faded in after the
+    /// first rest and out before the last.
+    fn calm(&self, t: f64) -> Vector3<f64> {
+        let w = smooth_step((t - STRESS_REST_S) / STRESS_RAMP_S)
+            * smooth_step((self.t_total - STRESS_REST_S - t) / STRESS_RAMP_S);
+        let tau = 2.0 * std::f64::consts::PI;
+        // Amplitude 0.5 rad at 0.05-0.11 Hz: rates up to about 0.35 rad/s (20 deg/s).
+        Vector3::new(
+            0.5 * (tau * 0.11 * t).sin(),
+            0.35 * (tau * 0.07 * t + 1.0).sin(),
+            0.5 * (tau * 0.05 * t + 2.0).sin(),
+        ) * w
+    }
+
+    /// The heading turned by the centrifuge by `t`, rad.
+    fn centrifuge_angle(&self, t: f64) -> f64 {
+        self.turn_rad_s * self.envelope_integral(t)
+    }
+
+    pub(super) fn attitude(&self, t: f64) -> Quat {
+        let start = super::quat_from_euler_deg(10.0, -5.0, 30.0);
+        let calm = Quat::from_scaled_axis(self.calm(t));
+        match self.motion {
+            StressMotion::Shake => start * calm,
+            StressMotion::Spin => {
+                let axis = Vector3::new(1.0, 0.3, 0.2).normalize();
+                let phi = self.spin_rad_s * self.envelope_integral(t);
+                start * calm * Quat::from_scaled_axis(axis * phi)
+            }
+            StressMotion::Centrifuge => {
+                let yaw = Quat::from_axis_angle(&Vector3::z_axis(), self.centrifuge_angle(t));
+                yaw * start * calm
+            }
+        }
+    }
+
+    pub(super) fn accel_ned(&self, t: f64) -> Vector3<f64> {
+        let env = self.envelope(t);
+        if env == 0.0 {
+            return Vector3::zeros();
+        }
+        match self.motion {
+            StressMotion::Shake => {
+                // A direction that wanders slowly over the sphere; the acceleration's mean is zero
+                // over each cycle, so the velocity stays bounded.
+                let u = Vector3::new((0.3 * t).cos(), (0.3 * t).sin(), 0.6 * (0.2 * t).sin())
+                    .normalize();
+                let phase = 2.0 * std::f64::consts::PI * self.shake_hz * t;
+                u * (self.shake_mps2 * env * phase.sin())
+            }
+            StressMotion::Spin => Vector3::zeros(),
+            StressMotion::Centrifuge => {
+                // On a circle of radius r = a / w^2 at the full rate w: centripetal w^2 r towards
+                // the centre, tangential r dw/dt while the rate ramps.
+                let w_full = self.turn_rad_s;
+                let r = self.centripetal_mps2 / (w_full * w_full);
+                let w = w_full * env;
+                let h = 1e-3;
+                let dw = w_full * (self.envelope(t + h) - self.envelope(t - h)) / (2.0 * h);
+                let psi = self.centrifuge_angle(t);
+                let radial = Vector3::new(psi.cos(), psi.sin(), 0.0);
+                let tangential = Vector3::new(-psi.sin(), psi.cos(), 0.0);
+                -radial * (w * w * r) + tangential * (r * dw)
+            }
+        }
+    }
 }
