@@ -63,7 +63,6 @@ fn send(stdin: &mut std::process::ChildStdin, cmd: &str) {
 
 #[test]
 fn mavproxy_magcal_start_calibrates_and_accepts() {
-    let mp = mavproxy();
     let dir = tempfile::tempdir().unwrap();
     let port = common::free_udp_port();
     let (cal, mut svc) = common::spawn_on_command_service(
@@ -73,25 +72,13 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
             format!("{{ address = \"udpin:127.0.0.1:{port}\" }}"),
         ],
     );
-    let mut gcs = Command::new(&mp)
-        .arg(format!("--master=udpout:127.0.0.1:{port}"))
-        // The service's system id: MAVProxy takes a target from autopilot heartbeats only, and
-        // the service's says onboard controller.
-        .args(["--daemon", "--target-system=1", "--cmd=magcal start"])
-        .current_dir(dir.path())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let (tx, rx) = std::sync::mpsc::channel::<String>();
-    let out = gcs.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
+    // The service's system id: MAVProxy takes a target from autopilot heartbeats only, and the
+    // service's says onboard controller.
+    let (mut gcs, _stdin, rx) = mavproxy_session(
+        dir.path(),
+        port,
+        &["--target-system=1", "--cmd=magcal start"],
+    );
     let mut seen = Vec::new();
     let deadline = Instant::now() + Duration::from_secs(90);
     let mut report = None;
