@@ -182,8 +182,38 @@ pub enum FrameParse {
     Frame(Box<Frame>, usize),
     /// The buffer holds the start of a frame but not all of it.
     Incomplete,
-    /// Not a frame here (or a damaged one): skip `usize` bytes and count `&'static str`.
-    Skip(usize, &'static str),
+    /// Not a frame here (or a damaged one): skip `usize` bytes, counted under the reason.
+    Skip(usize, SkipReason),
+}
+
+/// Why bytes of a MAVLink stream were skipped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SkipReason {
+    /// No frame starts here: look for the next magic byte.
+    Resync,
+    /// A whole frame of a message this build does not know.
+    UnknownMessage,
+    /// A frame whose checksum does not match: its first byte is skipped.
+    BadCrc,
+    /// A frame whose payload the bindings refuse.
+    BadPayload,
+}
+
+impl SkipReason {
+    /// The name counted in [`DecodeStats::skipped`] and shown in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            SkipReason::Resync => "resync",
+            SkipReason::UnknownMessage => "unknown_message",
+            SkipReason::BadCrc => "bad_crc",
+            SkipReason::BadPayload => "bad_payload",
+        }
+    }
+
+    /// A whole frame is skipped (the stream goes on after it), not a byte to resynchronise.
+    pub fn whole_frame(self) -> bool {
+        matches!(self, SkipReason::UnknownMessage | SkipReason::BadPayload)
+    }
 }
 
 const V1_MAGIC: u8 = 0xFE;
@@ -210,12 +240,12 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
             let len = buf[1] as usize;
             let incompat = buf[2];
             if incompat & !0x01 != 0 {
-                return FrameParse::Skip(1, "resync");
+                return FrameParse::Skip(1, SkipReason::Resync);
             }
             let sig = if incompat & 0x01 != 0 { 13 } else { 0 };
             (MavlinkVersion::V2, 10usize, 10 + len + 2 + sig)
         }
-        _ => return FrameParse::Skip(1, "resync"),
+        _ => return FrameParse::Skip(1, SkipReason::Resync),
     };
     if buf.len() < total {
         return FrameParse::Incomplete;
@@ -233,11 +263,11 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
     let crc_got = u16::from_le_bytes([buf[header_len + len], buf[header_len + len + 1]]);
     if !known_message(msgid) {
         // The CRC cannot be checked without the message's extra CRC: skip the frame as unknown.
-        return FrameParse::Skip(total, "unknown_message");
+        return FrameParse::Skip(total, SkipReason::UnknownMessage);
     }
     let crc = frame_crc(&buf[1..header_len + len], MavMessage::extra_crc(msgid));
     if crc != crc_got {
-        return FrameParse::Skip(1, "bad_crc");
+        return FrameParse::Skip(1, SkipReason::BadCrc);
     }
     match MavMessage::parse(version, msgid, payload) {
         Ok(message) => FrameParse::Frame(
@@ -249,7 +279,7 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
             }),
             total,
         ),
-        Err(_) => FrameParse::Skip(total, "bad_payload"),
+        Err(_) => FrameParse::Skip(total, SkipReason::BadPayload),
     }
 }
 
@@ -298,8 +328,11 @@ impl FrameDecoder {
                 FrameParse::Incomplete => break,
                 FrameParse::Skip(n, why) => {
                     // Count a bad frame once, not once per byte of it.
-                    if why != "resync" || self.buf[pos] == V1_MAGIC || self.buf[pos] == V2_MAGIC {
-                        self.stats.skip(why);
+                    if why != SkipReason::Resync
+                        || self.buf[pos] == V1_MAGIC
+                        || self.buf[pos] == V2_MAGIC
+                    {
+                        self.stats.skip(why.name());
                     }
                     pos += n;
                 }
@@ -1131,8 +1164,8 @@ impl Iterator for TlogRecords<'_> {
                     return None;
                 }
                 FrameParse::Skip(len, why) => {
-                    self.stats.skip(why);
-                    if why == "unknown_message" || why == "bad_payload" {
+                    self.stats.skip(why.name());
+                    if why.whole_frame() {
                         self.last_ts = Some(ts);
                         self.pos += 8 + len;
                     } else {
@@ -1579,7 +1612,10 @@ mod tests {
             let mut bad = b.clone();
             let k = bad.len() - 4;
             bad[k] ^= 0x55;
-            assert!(matches!(parse_frame(&bad), FrameParse::Skip(_, "bad_crc")));
+            assert!(matches!(
+                parse_frame(&bad),
+                FrameParse::Skip(_, SkipReason::BadCrc)
+            ));
             assert!(matches!(
                 parse_frame(&b[..b.len() - 1]),
                 FrameParse::Incomplete

@@ -16,7 +16,9 @@
 //! ([`LinkStatus::Connected`]). Nothing here panics on bad input or a vanished peer, and every
 //! loop watches the shutdown flag.
 
-use crate::io::decode::{self, DecodeStats, Frame, FrameDecoder, FrameParse, TlogRecords};
+use crate::io::decode::{
+    self, DecodeStats, Frame, FrameDecoder, FrameParse, SkipReason, TlogRecords,
+};
 
 mod udp_batch;
 use crate::error::Error;
@@ -647,11 +649,11 @@ fn decode_datagram(buf: &[u8], stats: &mut DecodeStats, mut emit: impl FnMut(Box
                 break;
             }
             FrameParse::Skip(n, why) => {
-                if why != "resync" || !in_garbage {
-                    stats.skip(why);
+                if why != SkipReason::Resync || !in_garbage {
+                    stats.skip(why.name());
                 }
                 // The bytes after a damaged frame's first byte are its rest, not new garbage.
-                in_garbage = why == "resync" || why == "bad_crc";
+                in_garbage = matches!(why, SkipReason::Resync | SkipReason::BadCrc);
                 pos += n.max(1);
             }
         }
