@@ -258,6 +258,7 @@ impl State {
                 let now = table(&self.cfg, &self.cals[c]);
                 let answer = mavout::param_value(&n, now[i].value, i as u16, count);
                 self.send_mav(To::Cal(c), &[answer]).await;
+                let severity = if result.is_ok() { 6 } else { 4 };
                 let text = match result {
                     Ok(meaning) => format!("{n} set to {v} ({meaning}) for this run"),
                     Err(Refused::ReadOnly) => format!("{n} is read only"),
@@ -265,11 +266,6 @@ impl State {
                         "{n} not changed: parameters are read only unless the config sets daemon.params_writable = true"
                     ),
                     Err(Refused::BadValue(takes)) => format!("{n} not changed: it takes {takes}, got {v}"),
-                };
-                let severity = if now[i].value == v && params[i].value != v {
-                    6
-                } else {
-                    4
                 };
                 self.status(severity, text).await;
             }
