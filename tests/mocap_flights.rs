@@ -210,6 +210,14 @@ fn px4_indoor_flights_against_motion_capture() {
         );
         table += &(row("imucald 9D", &ev.filter.metrics) + "\n");
         table += &(row("imucald 6D", &six.metrics) + "\n");
+        // The settings before the tuning on BROAD, which never saw these flights.
+        let untuned = imucald::attitude::eval::evaluate_filter(
+            &prepared.samples,
+            &common::untuned_fusion(),
+            Alignment::Heading,
+        )
+        .unwrap();
+        table += &(row("imucald 9D, untuned", &untuned.metrics) + "\n");
         table += &(row("PX4 EKF (vehicle_attitude)", &px4) + "\n");
         if let Some(py) = &py {
             for (name, six_d) in [("VQF 9D", false), ("VQF 6D", true)] {

@@ -77,10 +77,10 @@ fn score(errs: &[(f64, f64)], stress_end_s: f64) -> Score {
     }
 }
 
-fn imucald_estimates(samples: &[Sample]) -> Vec<UnitQuaternion<f64>> {
+fn imucald_estimates(samples: &[Sample], cfg: &FusionConfig) -> Vec<UnitQuaternion<f64>> {
     let mut f = OrientationFilter::new(FusionConfig {
         world: WorldFrame::Enu,
-        ..FusionConfig::default()
+        ..*cfg
     });
     let dt = median_dt(samples);
     samples
@@ -123,33 +123,66 @@ fn vqf_estimates(samples: &[Sample]) -> Option<Vec<UnitQuaternion<f64>>> {
     )
 }
 
+/// Bounds on imucald alone, about three times the measured value (2026-11-26, seed 1), so the
+/// test holds without the Python peer too: (scenario, total RMSE deg, recovery s).
+const BOUNDS: [(&str, f64, f64); 4] = [
+    // measured 0.11 deg, recovered at once (the error never reaches 2 deg)
+    ("shake", 0.33, 3.0),
+    // measured 0.40 deg, 0 s
+    ("spin", 1.2, 3.0),
+    // measured 1.42 deg, 5 s: the tilt noise grows by the linear acceleration itself, so the
+    // centripetal force barely tilts the estimate
+    ("centrifuge", 4.3, 15.0),
+    // measured 0.88 deg, 0 s: clipped readings grow the attitude's uncertainty, and gravity and
+    // the field hold the attitude until the gyro reads again
+    ("saturation", 2.6, 3.0),
+];
+
 /// Runs `name`, prints its row, and returns (imucald, VQF) scores.
 fn run(name: &str) -> (Score, Option<Score>) {
     let sc = Scenario::named(name).unwrap();
     let stress_end_s = STRESS_START_S + sc.stress.stress_s;
     let samples = simulate(&sc, 1).samples;
     let ours = score(
-        &total_errors_deg(&samples, &imucald_estimates(&samples)),
+        &total_errors_deg(&samples, &imucald_estimates(&samples, &FusionConfig::default())),
+        stress_end_s,
+    );
+    // The settings before the tuning on BROAD, which never saw these streams.
+    let untuned = score(
+        &total_errors_deg(
+            &samples,
+            &imucald_estimates(&samples, &common::untuned_fusion()),
+        ),
         stress_end_s,
     );
     let vqf = vqf_estimates(&samples).map(|q| score(&total_errors_deg(&samples, &q), stress_end_s));
     let fmt = |s: &Score| format!("{:7.2} {:7.1} {:7.1}", s.rmse_deg, s.peak_deg, s.recovery_s);
     eprintln!(
-        "{name:<11} {}   {}",
+        "{name:<11} {}   {}   {}",
         fmt(&ours),
-        vqf.as_ref().map_or("-".into(), fmt)
+        vqf.as_ref().map_or("-".into(), fmt),
+        fmt(&untuned)
     );
     (ours, vqf)
 }
 
 #[test]
 fn stress_scenarios_against_vqf() {
-    eprintln!("scenario    imucald: RMSE, peak (deg), recovery (s)   VQF: the same");
-    for name in ["shake", "spin", "centrifuge", "saturation"] {
+    eprintln!(
+        "scenario    imucald: RMSE, peak (deg), recovery (s)   VQF: the same   imucald untuned: the same"
+    );
+    let (mut ours_sum, mut vqf_sum) = (0.0, 0.0);
+    for (name, rmse_bound, recovery_bound) in BOUNDS {
         let (ours, vqf) = run(name);
         assert!(
-            ours.recovery_s.is_finite(),
-            "{name}: imucald never recovers"
+            ours.rmse_deg <= rmse_bound,
+            "{name}: imucald RMSE {:.2} deg, bound {rmse_bound}",
+            ours.rmse_deg
+        );
+        assert!(
+            ours.recovery_s <= recovery_bound,
+            "{name}: imucald recovers in {} s, bound {recovery_bound}",
+            ours.recovery_s
         );
         if let Some(v) = vqf {
             // Half a degree: below it both are as good as a real reference can tell.
@@ -159,6 +192,21 @@ fn stress_scenarios_against_vqf() {
                 ours.rmse_deg,
                 v.rmse_deg
             );
+            ours_sum += ours.rmse_deg;
+            vqf_sum += v.rmse_deg;
         }
+    }
+    if vqf_sum > 0.0 {
+        // Measured 0.07 (mean RMSE 0.70 deg against 10.62).
+        let ratio = ours_sum / vqf_sum;
+        eprintln!(
+            "mean RMSE imucald {:.2} deg, VQF {:.2}: ratio {ratio:.2}",
+            ours_sum / 4.0,
+            vqf_sum / 4.0
+        );
+        assert!(
+            ratio <= 0.8,
+            "mean RMSE ratio to VQF {ratio:.2}, target 0.8"
+        );
     }
 }

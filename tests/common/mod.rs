@@ -13,7 +13,10 @@ use std::process::{Child, Command, Output, Stdio};
 use std::time::Duration;
 
 mod python;
+mod untuned;
 pub use python::{python_importing, python_path};
+#[allow(unused_imports)]
+pub use untuned::untuned_fusion;
 
 /// A UDP port on the loopback that was free a moment ago.
 pub fn free_udp_port() -> u16 {
