@@ -779,7 +779,10 @@ fn main() {
     let mut ours = Vec::new();
     let (mut secs, mut n) = (0.0, 0usize);
     for t in &trials {
+        // The fastest of three runs, as for VQF (scripts/vqf_peer.py): the machine's other work
+        // only ever adds time.
         let (q, s) = run_ours(&t.samples, &cfg);
+        let s = (0..2).fold(s, |best, _| best.min(run_ours(&t.samples, &cfg).1));
         secs += s;
         n += t.samples.len();
         ours.push(evaluate(&t.samples, &q));
