@@ -811,7 +811,11 @@ fn main() {
     // saw, to set beside what it gains on data it never saw (tests/stress.rs, tests/mocap_flights.rs).
     if trials.iter().all(|t| t.vqf.is_some()) {
         let untuned = score_all(&all, &start_point());
-        let m_vqf = mean(trials.iter().map(|t| t.vqf.expect("VQF ran").0.total_rmse_deg));
+        let m_vqf = mean(
+            trials
+                .iter()
+                .map(|t| t.vqf.expect("VQF ran").0.total_rmse_deg),
+        );
         let worst = untuned
             .iter()
             .zip(&trials)

@@ -144,7 +144,10 @@ fn run(name: &str) -> (Score, Option<Score>) {
     let stress_end_s = STRESS_START_S + sc.stress.stress_s;
     let samples = simulate(&sc, 1).samples;
     let ours = score(
-        &total_errors_deg(&samples, &imucald_estimates(&samples, &FusionConfig::default())),
+        &total_errors_deg(
+            &samples,
+            &imucald_estimates(&samples, &FusionConfig::default()),
+        ),
         stress_end_s,
     );
     // The settings before the tuning on BROAD, which never saw these streams.

@@ -3,6 +3,7 @@
 //! (theta, phi) projection of Camps, Harasse and Monin, "Numerical calibration for 3-axis
 //! accelerometers and magnetometers" (2009). Directions are taken about the current hard-iron centre.
 
+use crate::calib::sections::{section80, set_section};
 use crate::types::Vec3;
 use serde::{Deserialize, Serialize};
 
@@ -210,8 +211,8 @@ impl DirectionBins {
 }
 
 /// Which parts of the sphere magnetometer points cover about one centre: the coverage regions
-/// ([`region`]) and ArduPilot's 80 sections ([`crate::io::mavout::section80`]). Built up point by point,
-/// so a progress report costs the points kept since the last one, not all.
+/// ([`region`]) and ArduPilot's 80 sections ([`section80`]). Built up point by point, so a
+/// progress report costs the points kept since the last one, not all.
 #[derive(Debug, Clone)]
 pub struct CoverageMap {
     pub centre: Vec3,
@@ -245,8 +246,8 @@ impl CoverageMap {
                     self.regions_filled += 1;
                 }
             }
-            if let Some(s) = crate::io::mavout::section80(&d) {
-                self.mask[s / 8] |= 1 << (s % 8);
+            if let Some(s) = section80(&d) {
+                set_section(&mut self.mask, s);
             }
             self.last_dir = d;
         }
@@ -387,7 +388,7 @@ mod tests {
             .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
             .collect();
         let full = coverage(&dirs, &[0.0; 3]);
-        let (mask, sections) = crate::io::mavout::completion_mask(dirs.iter().copied());
+        let (mask, sections) = crate::calib::sections::completion_mask(dirs.iter().copied());
         assert_eq!(stepped.regions_filled, full.filled);
         assert!(full.filled > 30 && full.filled < 100, "{}", full.filled);
         assert_eq!(stepped.mask, mask);

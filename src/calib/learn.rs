@@ -10,7 +10,7 @@
 //! with the time constant [`LearnSettings::memory_s`] (recursive least squares with exponential
 //! forgetting), so a compass whose hard iron changes (a payload fitted) is followed. A second
 //! accumulator carries the current term; it is used once the current has varied by
-//! [`crate::calib::magmethod::MIN_CURRENT_SD_A`].
+//! [`crate::calib::vector::MIN_CURRENT_SD_A`].
 //!
 //! [`VectorLearner::offer`] solves the sums (a 4x4 or 5x5 eigen-decomposition, microseconds) and
 //! offers the result only when the attitudes seen determine the offset (`offset_identifiable`):
@@ -230,7 +230,7 @@ impl VectorLearner {
     /// Solve the sums: the fit, whatever it determines (for reports), or why there is none.
     pub fn solve(&self) -> Result<VectorFit, VectorFailure> {
         let acc = match (&self.with_current, &self.plain) {
-            (Some(c), _) if self.current.sd() >= crate::calib::magmethod::MIN_CURRENT_SD_A => c,
+            (Some(c), _) if self.current.sd() >= crate::calib::vector::MIN_CURRENT_SD_A => c,
             (_, Some(p)) => p,
             _ => {
                 return Err(VectorFailure::NotEnoughPoints {

@@ -12,14 +12,10 @@
 
 use crate::attitude::Place;
 use crate::calib::model::{Calibration, ModelKind};
-use crate::calib::pipeline::SensorResult;
-use crate::calib::vector::{VectorFit, VectorPoint};
+use crate::calib::outcome::SensorResult;
+use crate::calib::vector::{VectorFit, VectorPoint, MIN_CURRENT_SD_A};
 use crate::types::{DateSource, GeoPoint, LogWhere, Sample, Vec3};
 use serde::{Deserialize, Serialize};
-
-/// The current term is fitted only when the logged current varies at least this much (standard
-/// deviation, A): a constant current cannot be told from the offset.
-pub const MIN_CURRENT_SD_A: f64 = 1.0;
 
 /// A rotation within the vector fit's soft iron above this is named in the reason, deg.
 pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;

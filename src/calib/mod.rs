@@ -1,9 +1,11 @@
 //! Calibration as pure math: samples in, calibrations with their uncertainties and verdicts out.
 //!
-//! [`gate`] finds static poses, [`coverage`] tracks which directions they cover, [`model`] holds
-//! the calibration models (`calibrated = M (raw - offset)`), [`fit`] fits them with the one
+//! [`gate`] finds static poses, [`coverage`] tracks which directions they cover (its regions and
+//! ArduPilot's 80 [`sections`], the MAG_CAL_PROGRESS mask), [`model`] holds the calibration models
+//! (`calibrated = M (raw - offset)`), [`fit`] fits them with the one
 //! Levenberg-Marquardt solver ([`lm`]), [`pipeline`] composes these per sample for `replay` and the
-//! live service. Methods beside the sphere fit: [`vector`] (attitude and the earth field),
+//! live service, each sensor's fit ending as an [`outcome`]. Methods beside the sphere fit:
+//! [`vector`] (attitude and the earth field),
 //! [`fixedyaw`] (one known heading), [`planar`] (ground vehicles), chosen by [`magmethod`], and [`learn`] (the vector fit
 //! learnt continuously by the live service); [`gyro`] for the gyroscope;
 //! [`export`] converts a calibration to flight-stack parameters.
@@ -22,6 +24,8 @@ pub mod lm;
 pub mod magmethod;
 pub mod model;
 pub mod mounting;
+pub mod outcome;
 pub mod pipeline;
 pub mod planar;
+pub mod sections;
 pub mod vector;

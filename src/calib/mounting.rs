@@ -618,7 +618,7 @@ pub fn detect(
 /// without rotation (so a fitted matrix cannot hide the turn), and turned back into the
 /// compass's axes. Nothing happens without a calibration or with an unknown `configured`.
 pub fn check(
-    mag: &mut crate::calib::pipeline::SensorResult,
+    mag: &mut crate::calib::outcome::SensorResult,
     accel: Option<&crate::calib::model::Calibration>,
     poses: &[crate::calib::gate::Pose],
     attitudes: &[Option<UnitQuaternion<f64>>],

@@ -17,6 +17,9 @@ use crate::report::{CalStatus, Candidate, GyroCalibration, RefitReport, SensorCa
 use crate::types::{norm, Sample, Unit, Vec3};
 use nalgebra::Matrix3;
 
+// The pipeline's output, named by this path too by the callers above it.
+pub use crate::calib::outcome::SensorResult;
+
 /// Everything a refit needs, cloned out of the pipeline so the fit can run elsewhere.
 #[derive(Debug, Clone)]
 pub struct FitInput {
@@ -69,24 +72,6 @@ impl NoiseMeter {
     pub fn sigma(&self) -> Option<f64> {
         (self.n >= 3 * NOISE_MIN_READINGS).then(|| (self.sum_sq / self.n as f64 / 6.0).sqrt())
     }
-}
-
-/// One sensor's outcome.
-#[derive(Debug, Clone)]
-pub struct SensorResult {
-    pub report: SensorCalibration,
-    /// The calibration when status is ok.
-    pub calibration: Option<Calibration>,
-    pub coverage_before: Coverage,
-    pub coverage_after: Coverage,
-    /// Raw points about the raw centre and calibrated points, for plots.
-    pub dirs_before: Vec<Vec3>,
-    pub dirs_after: Vec<Vec3>,
-    /// Per fitted point: time unknown for bins, so index; norm residual in calibrated units.
-    pub residuals: Vec<f64>,
-    /// Raw points held out of the fit ([`hold_out`]): what a new calibration is judged on
-    /// against the current one.
-    pub held_out: Vec<Vec3>,
 }
 
 #[derive(Debug, Clone)]

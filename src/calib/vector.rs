@@ -51,6 +51,9 @@ pub const OFFSET_ASSUMPTION_LIMIT_UT: f64 = 0.5;
 pub const MIN_POINTS: usize = 50;
 /// Points whose residual is beyond this many robust standard deviations are left out (once).
 pub const OUTLIER_SIGMAS: f64 = 5.0;
+/// The current term is fitted only when the logged current varies at least this much (standard
+/// deviation, A): a constant current cannot be told from the offset.
+pub const MIN_CURRENT_SD_A: f64 = 1.0;
 
 /// One magnetometer reading with the field the attitude says it should see.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -1,7 +1,7 @@
 //! Evidence units: the means of still static segments (split where the motor driver steps) and, when
 //! the static segments carry too little magnetometer, moving windows of magnetometer samples.
 
-use super::layout::{Ch, NCH};
+use super::channel::{Ch, NCH};
 use crate::types::{Sample, Vec3};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
@@ -102,7 +102,7 @@ pub(super) struct Unit {
     pub drv: f64,
     /// Reference attitude, body -> ENU.
     pub ref_w: Option<Matrix3<f64>>,
-    /// Samples behind each channel.
+    /// Samples behind each residual channel ([`Ch::i`]).
     pub n: [usize; NCH],
     /// Sample indices (static units).
     pub idx: Vec<usize>,

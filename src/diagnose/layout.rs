@@ -1,7 +1,9 @@
-//! The forward model: residual channels, the fixed context of a diagnosis, the parameter layout of the
-//! base model plus the catalogue of effects as switchable terms, decoding a parameter vector, the
-//! residuals every evidence unit gives, and the physical plausibility of an effect's parameters.
+//! The forward model: the fixed context of a diagnosis, the parameter layout of the base model plus
+//! the catalogue of effects as switchable terms, decoding a parameter vector, the residuals every
+//! evidence unit gives in each channel ([`super::channel`]), and the physical plausibility of an
+//! effect's parameters.
 
+use super::channel::{Ch, NCH};
 use super::evidence::{
     v3, Driver, Evidence, MagObs, Unit, DRIVER_LAGS_S, MIN_TEMP_RANGE_C, N_DRIVER_LAGS,
     N_TEMP_LAGS, TEMP_LAGS_S,
@@ -32,48 +34,6 @@ pub const MAX_GYRO_BIAS_CHANGE_RAD_S: f64 = 0.2;
 const SANE_SCALE: std::ops::Range<f64> = 0.5..2.0;
 /// Newton steps of the per-axis inverse of the cubic scale term.
 const CUBIC_NEWTON_STEPS: usize = 4;
-
-// Residual channels
-
-pub(super) const NCH: usize = 6;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Ch {
-    MagNorm,
-    AccNorm,
-    Dip,
-    VecAcc,
-    VecMag,
-    Gyro,
-}
-
-pub(super) const ALL_CH: [Ch; NCH] = [
-    Ch::MagNorm,
-    Ch::AccNorm,
-    Ch::Dip,
-    Ch::VecAcc,
-    Ch::VecMag,
-    Ch::Gyro,
-];
-
-impl Ch {
-    pub(super) fn i(self) -> usize {
-        self as usize
-    }
-    pub(super) fn name(self) -> &'static str {
-        [
-            "mag_norm",
-            "accel_norm",
-            "dip",
-            "vector_accel",
-            "vector_mag",
-            "gyro",
-        ][self.i()]
-    }
-    pub(super) fn unit(self) -> &'static str {
-        ["uT", "m/s^2", "1", "rad", "rad", "rad/s"][self.i()]
-    }
-}
 
 /// Fixed context of one diagnosis.
 pub(super) struct Ctx {

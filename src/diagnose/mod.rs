@@ -63,13 +63,16 @@
 //! (both fitted on the fit units); the parameters in `effects` come from a final fit on all units.
 
 //! # What this module owns, and what it must not touch
-//! It owns the evidence units ([`evidence`]), the forward model with its catalogue of effects as
-//! switchable terms ([`layout`]), the tests ([`stats`]), the nested selection rounds ([`rounds`]) and
-//! the `imucald.diagnosis/1` report ([`report`]). It runs the calibration pipeline
+//! It owns the residual channels ([`channel`]), the evidence units ([`evidence`]), the forward model
+//! with its catalogue of effects as switchable terms ([`layout`]), the tests ([`stats`]), the nested
+//! selection rounds ([`rounds`]) with the record of what each decided ([`decision`]), and the
+//! `imucald.diagnosis/1` report ([`report`]). It runs the calibration pipeline
 //! ([`crate::calib::pipeline`]) for the static poses and the start fits, and solves with [`crate::calib::lm`]. It does
 //! no I/O (the caller reads the log and writes the report) and knows nothing of tokio; it never
 //! changes a calibration in use.
 
+mod channel;
+mod decision;
 mod evidence;
 mod layout;
 mod report;
@@ -80,13 +83,13 @@ mod tests;
 #[cfg(test)]
 mod tests_mismatch;
 
+pub use decision::{CandidateReport, Decision, RoundReport};
 pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MAX_STILL_TURN_DEG, MIN_STATIC_MAG_UNITS,
     TEMP_LAGS_S, WINDOW_BLOCK, WINDOW_S,
 };
 pub use report::{
-    summary_table, CandidateReport, ChannelRms, Decision, DiagnosisReport, EvidenceSummary,
-    ParamEstimate, ResidualSeries, RoundReport,
+    summary_table, ChannelRms, DiagnosisReport, EvidenceSummary, ParamEstimate, ResidualSeries,
 };
 pub use rounds::EXCESS_RATIO;
 

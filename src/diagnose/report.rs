@@ -1,8 +1,12 @@
-//! The `imucald.diagnosis/1` report: its types, the residual series of each effect found (the data of
-//! `--plot`), the fitted effect parameters with uncertainties, and the terminal table.
+//! The `imucald.diagnosis/1` report: its types (the record of each round comes from
+//! [`super::decision`]), its assembly from the finished selection rounds, the residual series of each
+//! effect found (the data of `--plot`), the fitted effect parameters with uncertainties, and the
+//! terminal table.
 
+use super::channel::{ALL_CH, NCH};
+use super::decision::{shown_unit, Decision, RoundReport};
 use super::evidence::Driver;
-use super::layout::{decode, residuals, tags, Layout, ALL_CH, NCH};
+use super::layout::{decode, residuals, tags, Layout};
 use super::rounds::{median_count, Run, Selection, Split};
 use super::{Effect, SCHEMA};
 use crate::calib::model::ModelKind;
@@ -10,74 +14,6 @@ use nalgebra::{DVector, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-
-/// One candidate effect of a round.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CandidateReport {
-    pub name: String,
-    /// F statistic of the nested test (joint refit when `refit`, else linearised at the current fit).
-    pub statistic: f64,
-    /// Uncorrected p-value of that test (compare with alpha / number of identifiable candidates).
-    pub p_value: f64,
-    /// Fraction of the current model's weighted squared residual (fit units) the effect removes.
-    pub improvement: f64,
-    pub plausible: bool,
-    pub identifiable: bool,
-    /// Number of parameters the effect adds.
-    pub params: usize,
-    /// Whether it was refitted jointly with the current model.
-    pub refit: bool,
-    /// Whether the improvement holds on the held-out groups (refitted candidates only).
-    pub held_out: Option<bool>,
-    pub note: String,
-}
-
-/// How a round of the search ended: "named", "none", "unexplained" or "not_identifiable" in the
-/// report.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Decision {
-    /// An effect passed every test and joins the model.
-    Named,
-    /// No candidate is significant (or the significant ones failed a check), and no channel's
-    /// residual is well above its noise.
-    #[serde(rename = "none")]
-    NoEffect,
-    /// Nothing named, but some channel's residual variance is well above its noise.
-    Unexplained,
-    /// A significant candidate cannot be told apart: a degenerate joint fit, or collinear with
-    /// another candidate.
-    NotIdentifiable,
-}
-
-impl Decision {
-    /// The report's name of the decision.
-    pub fn name(self) -> &'static str {
-        match self {
-            Decision::Named => "named",
-            Decision::NoEffect => "none",
-            Decision::Unexplained => "unexplained",
-            Decision::NotIdentifiable => "not_identifiable",
-        }
-    }
-}
-
-impl std::fmt::Display for Decision {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-/// One round of the search.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RoundReport {
-    pub round: usize,
-    pub decision: Decision,
-    /// The effect named (or the one that could not be told apart, for not_identifiable).
-    pub effect: Option<Effect>,
-    pub detail: String,
-    pub candidates: Vec<CandidateReport>,
-}
 
 /// A fitted parameter with its 1-sigma uncertainty.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -612,13 +548,4 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         let _ = writeln!(s, "note: {n}");
     }
     s
-}
-
-/// A unit as the terminal shows it: a dimensionless one (`1` in the report) as nothing.
-pub(super) fn shown_unit(u: &str) -> &str {
-    if u == "1" {
-        ""
-    } else {
-        u
-    }
 }

@@ -1,13 +1,14 @@
 //! The nested selection rounds: the held-out split, start values and noise levels, the base fit, and
 //! per round the linearised screen of every candidate effect, the joint refits in rank order and the
-//! decision (named, none, unexplained, not_identifiable).
+//! decision (named, none, unexplained, not_identifiable), recorded as [`super::decision`] types.
 
+use super::channel::{Ch, ALL_CH, NCH};
+use super::decision::{shown_unit, CandidateReport, Decision, RoundReport};
 use super::evidence::{quat_rot, v3, Evidence, MagObs, Unit};
 use super::layout::{
-    applicable, build_layout, carry_params, decode, eval_units, plausibility, residuals, tags, Ch,
-    Ctx, Layout, ALL_CH, NCH,
+    applicable, build_layout, carry_params, decode, eval_units, plausibility, residuals, tags, Ctx,
+    Layout,
 };
-use super::report::{CandidateReport, Decision, RoundReport};
 use super::stats::{columns, condition, explained, mean_sd, nested_f, select_cols, t_sf};
 use super::{DiagnoseOptions, Effect};
 use crate::calib::lm::LmFit;
@@ -1054,7 +1055,7 @@ fn refit(
             (0..b.len)
                 .map(|k| {
                     let (name, unit) = &lay1.names[b.start + k];
-                    let unit = super::report::shown_unit(unit);
+                    let unit = shown_unit(unit);
                     format!("{name} {:.4} {unit}", alt.p[b.start + k])
                         .trim_end()
                         .to_string()

@@ -3,10 +3,12 @@
 //!
 //! * [`MavEncoder`]: one complete MAVLink frame per message, with its own sequence counter.
 //! * Being a MAVLink component: [`heartbeat`], and [`OwnIds`] to tell our own frames echoed back.
-//! * The ground station's calibration commands (ArduPilot's DO_START/ACCEPT/CANCEL_MAG_CAL): the
-//!   run's status [`MagCalRun`] with its one transition function [`MagCalRun::on`], [`command_ack`].
-//! * Calibration progress and result in ArduPilot's messages: [`section80`], [`completion_mask`],
-//!   [`mag_cal_progress`] (MAG_CAL_PROGRESS, 191) and [`mag_cal_report`] (MAG_CAL_REPORT, 192).
+//! * The ground station's calibration commands (ArduPilot's DO_START/ACCEPT/CANCEL_MAG_CAL), read:
+//!   [`MagCalStart`], [`mask_param`], [`mask_selects`]; answered: [`command_ack`]. What a command
+//!   does to a calibration run is decided above, by the live service (`app::daemon`'s `MagCalRun`).
+//! * Calibration progress and result in ArduPilot's messages: [`mag_cal_progress`]
+//!   (MAG_CAL_PROGRESS, 191; its completion mask of sections from [`crate::calib::sections`]) and
+//!   [`mag_cal_report`] (MAG_CAL_REPORT, 192).
 //! * Heading and vectors: [`named_float`], [`debug_vect`], [`statustext`], [`attitude`].
 //! * Fused attitude from a quaternion (body FRD -> NED): [`attitude_quaternion`]
 //!   (ATTITUDE_QUATERNION, 31) and [`attitude_from_quaternion`] (ATTITUDE, 30).
@@ -175,184 +177,7 @@ fn array_text<const N: usize>(a: &CharArray<N>) -> String {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Sphere sections (ArduPilot's geodesic grid)
-
-/// Golden ratio.
-const GOLDEN: f64 = 1.618_033_988_749_895;
-
-/// The 12 icosahedron vertices (0, +-1, +-g) and their cyclic permutations, named so that the faces
-/// below read in ArduPilot's `AP_GeodesicGrid` order.
-const ICO_V: [[f64; 3]; 12] = [
-    [-GOLDEN, 1.0, 0.0],  // 0
-    [-1.0, 0.0, -GOLDEN], // 1
-    [-GOLDEN, -1.0, 0.0], // 2
-    [0.0, -GOLDEN, -1.0], // 3
-    [0.0, -GOLDEN, 1.0],  // 4
-    [1.0, 0.0, -GOLDEN],  // 5
-    [GOLDEN, -1.0, 0.0],  // 6
-    [GOLDEN, 1.0, 0.0],   // 7
-    [0.0, GOLDEN, -1.0],  // 8
-    [-1.0, 0.0, GOLDEN],  // 9
-    [1.0, 0.0, GOLDEN],   // 10
-    [0.0, GOLDEN, 1.0],   // 11
-];
-
-/// The 20 faces (a, b, c) in the order and vertex order of ArduPilot's geodesic grid, so that our
-/// section numbers (and so the MAG_CAL_PROGRESS completion mask) mean the same sections as the
-/// firmware's and a ground station's drawing of them.
-const ICO_F: [[usize; 3]; 20] = [
-    [0, 1, 2],
-    [1, 2, 3],
-    [2, 3, 4],
-    [1, 3, 5],
-    [3, 4, 6],
-    [3, 5, 6],
-    [6, 5, 7],
-    [5, 7, 8],
-    [5, 8, 1],
-    [8, 0, 1],
-    [0, 9, 2],
-    [9, 2, 4],
-    [9, 4, 10],
-    [4, 10, 6],
-    [6, 10, 7],
-    [10, 7, 11],
-    [7, 11, 8],
-    [10, 11, 9],
-    [11, 8, 0],
-    [11, 0, 9],
-];
-
-/// Number of sphere sections in the completion mask.
-pub const SECTIONS: usize = 80;
-
-fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-/// Triple product a . (b x c).
-fn det3(a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> f64 {
-    dot(a, &cross(b, c))
-}
-
-fn unit(v: [f64; 3]) -> [f64; 3] {
-    let n = dot(&v, &v).sqrt();
-    [v[0] / n, v[1] / n, v[2] / n]
-}
-
-fn mid(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [
-        0.5 * (a[0] + b[0]),
-        0.5 * (a[1] + b[1]),
-        0.5 * (a[2] + b[2]),
-    ]
-}
-
-/// Section (0..80) of a direction (any length, not zero): the icosahedron face `i` whose cone holds
-/// the direction, and the sub-triangle `j` of that face, as `4 i + j`.
-///
-/// Each face (a, b, c) is cut at its edge midpoints m_a = (a+b)/2, m_b = (b+c)/2, m_c = (c+a)/2 into
-/// W_0 = (m_a, m_b, m_c) (the middle), W_1 = (a, m_a, m_c), W_2 = (m_a, b, m_b), W_3 = (m_c, m_b, c),
-/// and the 80 flat triangles are projected from the centre onto the sphere (ArduPilot's numbering).
-/// For each icosahedron face (a, b, c): the rows `(b x c, c x a, a x b) / det(a, b, c)`, whose dot
-/// products with a direction are its barycentric coordinates in the face's plane (computed once).
-fn face_rows() -> &'static [[[f64; 3]; 3]; 20] {
-    static ROWS: std::sync::OnceLock<[[[f64; 3]; 3]; 20]> = std::sync::OnceLock::new();
-    ROWS.get_or_init(|| {
-        ICO_F.map(|f| {
-            let (a, b, c) = (&ICO_V[f[0]], &ICO_V[f[1]], &ICO_V[f[2]]);
-            let d = det3(a, b, c);
-            [cross(b, c), cross(c, a), cross(a, b)].map(|r| r.map(|x| x / d))
-        })
-    })
-}
-
-/// Write the ray through the face plane in barycentric coordinates (alpha, beta, gamma) of (a, b, c):
-/// the face holds the ray when all are >= 0, and the corner triangles are alpha >= 1/2, beta >= 1/2,
-/// gamma >= 1/2 respectively. On an edge the first face found wins.
-pub fn section80(dir: &[f64; 3]) -> Option<usize> {
-    if !dir.iter().all(|x| x.is_finite()) || !(dot(dir, dir) > 0.0) {
-        return None;
-    }
-    // Most-inside face: the largest smallest normalised barycentric coordinate. A face that holds the
-    // ray has it >= 0, so the search also closes any gap left by rounding on an edge.
-    let mut best: Option<(usize, [f64; 3])> = None;
-    let mut best_min = f64::NEG_INFINITY;
-    for (i, rows) in face_rows().iter().enumerate() {
-        // Cramer's rule with the face's determinants taken once: w_0 = det(dir, b, c) / det(a, b, c)
-        // = dir . (b x c) / det(a, b, c), and so on.
-        let w = rows.map(|r| dot(dir, &r));
-        let s = w[0] + w[1] + w[2];
-        if !(s > 0.0) {
-            continue; // the ray meets this face's plane behind the centre
-        }
-        let n = [w[0] / s, w[1] / s, w[2] / s];
-        let m = n[0].min(n[1]).min(n[2]);
-        if m > best_min {
-            best_min = m;
-            best = Some((i, n));
-            if m >= 0.0 {
-                break;
-            }
-        }
-    }
-    let (face, n) = best?;
-    let sub = if n[0] >= 0.5 {
-        1
-    } else if n[1] >= 0.5 {
-        2
-    } else if n[2] >= 0.5 {
-        3
-    } else {
-        0
-    };
-    Some(4 * face + sub)
-}
-
-/// The corners of a section on the unit sphere, in the order [`section80`] describes (for drawing
-/// the completion mask). None for an index of 80 or more.
-pub fn section80_triangle(section: usize) -> Option<[[f64; 3]; 3]> {
-    if section >= SECTIONS {
-        return None;
-    }
-    let f = ICO_F[section / 4];
-    let (a, b, c) = (ICO_V[f[0]], ICO_V[f[1]], ICO_V[f[2]]);
-    let (ma, mb, mc) = (mid(&a, &b), mid(&b, &c), mid(&c, &a));
-    let t = match section % 4 {
-        0 => [ma, mb, mc],
-        1 => [a, ma, mc],
-        2 => [ma, b, mb],
-        _ => [mc, mb, c],
-    };
-    Some(t.map(unit))
-}
-
-/// ArduPilot's 80-bit completion mask (section `s` sets bit `s % 8` of byte `s / 8`) of a set of
-/// directions, and how many sections hold at least one. Give directions about the current hard-iron
-/// centre (and preferably corrected), as ArduPilot does; zero or non-finite ones are ignored.
-pub fn completion_mask(dirs: impl IntoIterator<Item = [f64; 3]>) -> ([u8; 10], usize) {
-    let mut mask = [0u8; 10];
-    for d in dirs {
-        if let Some(s) = section80(&d) {
-            mask[s / 8] |= 1 << (s % 8);
-        }
-    }
-    let filled = mask.iter().map(|b| b.count_ones() as usize).sum();
-    (mask, filled)
-}
-
-/// Whether section `s` is set in a completion mask.
-pub fn mask_has(mask: &[u8; 10], s: usize) -> bool {
-    s < SECTIONS && mask[s / 8] & (1 << (s % 8)) != 0
-}
+// MAG_CAL_PROGRESS
 
 /// `1 << compass_id` for the MAG_CAL_* `cal_mask` (0 for ids of 8 and more, which it cannot hold).
 fn cal_mask(compass_id: u8) -> u8 {
@@ -387,7 +212,7 @@ pub fn mag_cal_progress(
 }
 
 // ---------------------------------------------------------------------------------------------
-// Ground-station magnetometer calibration (MAV_CMD_DO_START/ACCEPT/CANCEL_MAG_CAL)
+// Ground-station magnetometer calibration commands (MAV_CMD_DO_START/ACCEPT/CANCEL_MAG_CAL)
 
 /// MAV_CMD_DO_START_MAG_CAL's parameters, as ArduPilot reads them.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -405,6 +230,8 @@ pub struct MagCalStart {
 }
 
 impl MagCalStart {
+    /// The parameters of a DO_START_MAG_CAL command (`delay_s` clamped to 0..3600 s, 0 when not
+    /// finite).
     pub fn from_command(c: &COMMAND_LONG_DATA) -> MagCalStart {
         MagCalStart {
             mask: mask_param(c.param1),
@@ -432,166 +259,6 @@ pub fn mask_param(p: f32) -> u8 {
 /// Whether a compass mask selects compass `compass_id`: 0 means all.
 pub fn mask_selects(mask: u8, compass_id: u8) -> bool {
     mask == 0 || (compass_id < 8 && mask & (1 << compass_id) != 0)
-}
-
-/// Where the magnetometer calibration stands, in the manner of ArduPilot's compass calibrator:
-/// one status, changed only by [`MagCalRun::on`].
-#[derive(Debug, Clone, PartialEq)]
-pub enum MagCalRun {
-    /// No commanded run: passing fits are installed as they come when the service calibrates
-    /// continuously (`daemon.mag_cal = "continuous"`), and not at all otherwise.
-    Idle,
-    /// Started with a delay: collecting from zero coverage begins at `start_at_s`.
-    Waiting { start_at_s: f64, opts: MagCalStart },
-    /// Collecting from zero coverage; the next passing fit ends the run.
-    Running { opts: MagCalStart },
-    /// Passed with autosave off: the result waits for DO_ACCEPT_MAG_CAL (not installed, not written).
-    Held { cal: Box<SensorCalibration> },
-    /// Failed with retry off; stays so until a new start or a cancel.
-    Failed,
-}
-
-/// What happens to a calibration run.
-#[derive(Debug, Clone, PartialEq)]
-pub enum MagCalEvent {
-    Start {
-        opts: MagCalStart,
-        now_s: f64,
-    },
-    Accept {
-        mask: u8,
-    },
-    Cancel {
-        mask: u8,
-    },
-    /// Time passes (for the start delay).
-    Tick {
-        now_s: f64,
-    },
-    /// A fit passed its checks (and is no worse than the calibration in use); `complete`: the data
-    /// covered the sphere (progress 100 %). A commanded run ends only on a complete one, as
-    /// ArduPilot's fits only once its sections are filled.
-    FitPassed {
-        cal: Box<SensorCalibration>,
-        complete: bool,
-    },
-    /// A fit failed after the data covered the sphere.
-    FitFailed,
-}
-
-/// What the service does on a transition.
-#[derive(Debug, Clone, PartialEq)]
-pub enum MagCalEffect {
-    /// COMMAND_ACK with this result to the command's sender.
-    Ack(MavResult),
-    /// Drop what was collected: a new run from zero coverage.
-    Restart,
-    /// Install the calibration and write it.
-    Install(Box<SensorCalibration>),
-    /// MAG_CAL_REPORT of a passing fit; `commanded`: it ends a commanded run (always reported).
-    ReportSuccess {
-        cal: Box<SensorCalibration>,
-        autosaved: bool,
-        commanded: bool,
-    },
-    /// MAG_CAL_REPORT of the failed fit.
-    ReportFailure,
-}
-
-impl MagCalRun {
-    /// The transition function of compass `compass_id`'s run: the next status and what to do,
-    /// given whether the service calibrates without a command (`continuous`). Commands whose
-    /// compass mask leaves this compass out are refused (MAV_RESULT_FAILED) and change nothing.
-    pub fn on(
-        self,
-        ev: MagCalEvent,
-        continuous: bool,
-        compass_id: u8,
-    ) -> (MagCalRun, Vec<MagCalEffect>) {
-        let ours = |mask: u8| mask_selects(mask, compass_id);
-        use MagCalEffect as E;
-        use MagCalEvent as V;
-        use MagCalRun as R;
-        let ack = E::Ack;
-        // A passing fit installed and written at once, and reported.
-        let autosave = |cal: Box<SensorCalibration>, commanded: bool| {
-            vec![
-                E::Install(cal.clone()),
-                E::ReportSuccess {
-                    cal,
-                    autosaved: true,
-                    commanded,
-                },
-            ]
-        };
-        match (self, ev) {
-            (s, V::Start { opts, .. }) if !ours(opts.mask) => {
-                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
-            }
-            (_, V::Start { opts, now_s }) if opts.delay_s > 0.0 => (
-                R::Waiting {
-                    start_at_s: now_s + opts.delay_s,
-                    opts,
-                },
-                vec![ack(MavResult::MAV_RESULT_ACCEPTED)],
-            ),
-            (_, V::Start { opts, .. }) => (
-                R::Running { opts },
-                vec![ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart],
-            ),
-            (R::Waiting { start_at_s, opts }, V::Tick { now_s }) if now_s >= start_at_s => {
-                (R::Running { opts }, vec![E::Restart])
-            }
-            (
-                R::Running { opts },
-                V::FitPassed {
-                    complete: false, ..
-                },
-            ) => (R::Running { opts }, vec![]),
-            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => {
-                (R::Idle, autosave(cal, true))
-            }
-            (R::Running { .. }, V::FitPassed { cal, .. }) => (
-                R::Held { cal: cal.clone() },
-                vec![E::ReportSuccess {
-                    cal,
-                    autosaved: false,
-                    commanded: true,
-                }],
-            ),
-            (R::Idle, V::FitPassed { cal, .. }) if continuous => (R::Idle, autosave(cal, false)),
-            (R::Running { opts }, V::FitFailed) if opts.retry => {
-                (R::Running { opts }, vec![E::ReportFailure, E::Restart])
-            }
-            (R::Running { .. }, V::FitFailed) => (R::Failed, vec![E::ReportFailure]),
-            (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
-            (s, V::Accept { mask } | V::Cancel { mask }) if !ours(mask) => {
-                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
-            }
-            (R::Held { cal }, V::Accept { .. }) => (
-                R::Idle,
-                vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
-            ),
-            // Nothing waits to be accepted (the run saved its result, or none ran): accepted, as
-            // ArduPilot's compass calibration answers when its result is already saved, so a
-            // ground station that accepts every report (MAVProxy) sees it succeed.
-            (R::Idle, V::Accept { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
-            // Still collecting, or failed: nothing to accept.
-            (s, V::Accept { .. }) => (s, vec![ack(MavResult::MAV_RESULT_FAILED)]),
-            (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
-            (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
-        }
-    }
-
-    /// Whether magnetometer progress is reported: during a commanded run, or while idle when the
-    /// service calibrates continuously.
-    pub fn reports_progress(&self, continuous: bool) -> bool {
-        match self {
-            MagCalRun::Running { .. } => true,
-            MagCalRun::Idle => continuous,
-            _ => false,
-        }
-    }
 }
 
 /// COMMAND_ACK for `command` to its sender.
@@ -1267,239 +934,6 @@ mod tests {
         assert_eq!(h.mavlink_version, 3);
     }
 
-    fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
-        Box::new(crate::testdata::passing_mag_calibration(
-            "sym9",
-            [offset_x, 0.0, 0.0],
-        ))
-    }
-
-    #[test]
-    fn mavout_mag_cal_run_follows_the_ground_station_protocol() {
-        use MagCalEffect as E;
-        use MagCalEvent as V;
-        let accepted = E::Ack(MavResult::MAV_RESULT_ACCEPTED);
-        let failed = E::Ack(MavResult::MAV_RESULT_FAILED);
-        let opts = |autosave: bool, retry: bool, delay_s: f64| MagCalStart {
-            mask: 0,
-            retry,
-            autosave,
-            delay_s,
-            autoreboot: false,
-        };
-        // Autosave off: start -> ack + restart; a passing fit is held and reported (not saved);
-        // accept installs it.
-        let (s, fx) = MagCalRun::Idle.on(
-            V::Start {
-                opts: opts(false, false, 0.0),
-                now_s: 5.0,
-            },
-            false,
-            0,
-        );
-        assert_eq!(fx, vec![accepted.clone(), E::Restart]);
-        assert!(s.reports_progress(false));
-        // A fit that passes before the data covers the sphere does not end the run.
-        let (s, fx) = s.on(
-            V::FitPassed {
-                cal: run_cal(2.0),
-                complete: false,
-            },
-            false,
-            0,
-        );
-        assert!(fx.is_empty() && matches!(s, MagCalRun::Running { .. }));
-        let (s, fx) = s.on(
-            V::FitPassed {
-                cal: run_cal(3.0),
-                complete: true,
-            },
-            false,
-            0,
-        );
-        assert_eq!(s, MagCalRun::Held { cal: run_cal(3.0) });
-        assert_eq!(
-            fx,
-            vec![E::ReportSuccess {
-                cal: run_cal(3.0),
-                autosaved: false,
-                commanded: true
-            }]
-        );
-        assert!(!s.reports_progress(true));
-        // Held: later fits change nothing.
-        let (s, fx) = s.on(
-            V::FitPassed {
-                cal: run_cal(4.0),
-                complete: true,
-            },
-            true,
-            0,
-        );
-        assert!(fx.is_empty() && s == MagCalRun::Held { cal: run_cal(3.0) });
-        let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
-        assert_eq!(s, MagCalRun::Idle);
-        assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
-        // Accept with nothing held (already saved) is accepted, as ArduPilot answers; during a
-        // run it fails. Cancel always succeeds and discards the held result.
-        let (s, fx) = s.on(V::Accept { mask: 1 }, false, 0);
-        assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![accepted.clone()]));
-        let running = MagCalRun::Running {
-            opts: opts(false, false, 0.0),
-        };
-        let (_, fx) = running.on(V::Accept { mask: 0 }, false, 0);
-        assert_eq!(fx, vec![failed.clone()]);
-        let (s, _) = s.on(
-            V::Start {
-                opts: opts(false, false, 0.0),
-                now_s: 0.0,
-            },
-            false,
-            0,
-        );
-        let (s, _) = s.on(
-            V::FitPassed {
-                cal: run_cal(3.0),
-                complete: true,
-            },
-            false,
-            0,
-        );
-        let (s, fx) = s.on(V::Cancel { mask: 0 }, false, 0);
-        assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
-        // Autosave on: installed and reported as saved at once, back to idle.
-        let (s, _) = MagCalRun::Idle.on(
-            V::Start {
-                opts: opts(true, false, 0.0),
-                now_s: 0.0,
-            },
-            false,
-            0,
-        );
-        let (s, fx) = s.on(
-            V::FitPassed {
-                cal: run_cal(1.0),
-                complete: true,
-            },
-            false,
-            0,
-        );
-        assert_eq!(s, MagCalRun::Idle);
-        assert_eq!(
-            fx,
-            vec![
-                E::Install(run_cal(1.0)),
-                E::ReportSuccess {
-                    cal: run_cal(1.0),
-                    autosaved: true,
-                    commanded: true
-                }
-            ]
-        );
-        // Delay: collecting starts (from zero) when it has passed.
-        let (s, fx) = MagCalRun::Idle.on(
-            V::Start {
-                opts: opts(true, false, 2.0),
-                now_s: 10.0,
-            },
-            false,
-            0,
-        );
-        assert_eq!(fx, vec![accepted.clone()]);
-        assert!(!s.reports_progress(true));
-        let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false, 0);
-        assert!(fx.is_empty() && matches!(s, MagCalRun::Waiting { .. }));
-        let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false, 0);
-        assert_eq!(fx, vec![E::Restart]);
-        assert!(matches!(s, MagCalRun::Running { .. }));
-        // Failure: with retry, again from zero; without, failed until restarted or cancelled.
-        let (s, fx) = MagCalRun::Running {
-            opts: opts(true, true, 0.0),
-        }
-        .on(V::FitFailed, false, 0);
-        assert_eq!(fx, vec![E::ReportFailure, E::Restart]);
-        assert!(matches!(s, MagCalRun::Running { .. }));
-        let (s, fx) = MagCalRun::Running {
-            opts: opts(true, false, 0.0),
-        }
-        .on(V::FitFailed, false, 0);
-        assert_eq!((s.clone(), fx), (MagCalRun::Failed, vec![E::ReportFailure]));
-        let (s, fx) = s.on(
-            V::FitPassed {
-                cal: run_cal(1.0),
-                complete: true,
-            },
-            true,
-            0,
-        );
-        assert!(fx.is_empty() && s == MagCalRun::Failed);
-        // A mask without compass 0 is refused and changes nothing.
-        let other = MagCalStart {
-            mask: 0b10,
-            ..opts(true, false, 0.0)
-        };
-        let (s, fx) = MagCalRun::Idle.on(
-            V::Start {
-                opts: other,
-                now_s: 0.0,
-            },
-            false,
-            0,
-        );
-        assert_eq!((s, fx), (MagCalRun::Idle, vec![failed.clone()]));
-        // ... and taken by compass 1's run, which it selects.
-        let (s, fx) = MagCalRun::Idle.on(
-            V::Start {
-                opts: other,
-                now_s: 0.0,
-            },
-            false,
-            1,
-        );
-        assert!(matches!(s, MagCalRun::Running { .. }));
-        assert_eq!(fx, vec![E::Ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart]);
-        assert!(mask_selects(0, 5) && mask_selects(0b100, 2) && !mask_selects(0b100, 1));
-        assert!(!mask_selects(0xff, 9));
-        // Idle: continuous installs and reports passing fits and reports failures; on command only,
-        // nothing happens without a run.
-        let (_, fx) = MagCalRun::Idle.on(
-            V::FitPassed {
-                cal: run_cal(2.0),
-                complete: true,
-            },
-            true,
-            0,
-        );
-        assert_eq!(
-            fx,
-            vec![
-                E::Install(run_cal(2.0)),
-                E::ReportSuccess {
-                    cal: run_cal(2.0),
-                    autosaved: true,
-                    commanded: false
-                }
-            ]
-        );
-        assert_eq!(
-            MagCalRun::Idle.on(V::FitFailed, true, 0).1,
-            vec![E::ReportFailure]
-        );
-        assert!(MagCalRun::Idle
-            .on(
-                V::FitPassed {
-                    cal: run_cal(2.0),
-                    complete: true
-                },
-                false,
-                0
-            )
-            .1
-            .is_empty());
-        assert!(MagCalRun::Idle.on(V::FitFailed, false, 0).1.is_empty());
-        assert!(MagCalRun::Idle.reports_progress(true) && !MagCalRun::Idle.reports_progress(false));
-    }
-
     #[test]
     fn mavout_start_mag_cal_parameters_as_ardupilot_reads_them() {
         let c = COMMAND_LONG_DATA {
@@ -1530,6 +964,8 @@ mod tests {
         let o = MagCalStart::from_command(&bad);
         assert_eq!((o.mask, o.delay_s), (0, 0.0));
         assert_eq!(mask_param(300.0), 0);
+        assert!(mask_selects(0, 5) && mask_selects(0b100, 2) && !mask_selects(0b100, 1));
+        assert!(!mask_selects(0xff, 9));
     }
 
     #[test]
@@ -1543,23 +979,6 @@ mod tests {
         assert!(!own.is_own(1, 1));
         assert!(!own.is_own(2, 191));
         assert!(!own.is_own(255, 190));
-    }
-
-    fn fib_sphere(n: usize) -> impl Iterator<Item = [f64; 3]> {
-        let golden = PI * (3.0 - 5f64.sqrt());
-        (0..n).map(move |i| {
-            let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
-            let r = (1.0 - z * z).sqrt();
-            let p = golden * i as f64;
-            [r * p.cos(), r * p.sin(), z]
-        })
-    }
-
-    fn solid_angle(t: &[[f64; 3]; 3]) -> f64 {
-        let [a, b, c] = t;
-        let num = det3(a, b, c).abs();
-        let den = 1.0 + dot(a, b) + dot(b, c) + dot(c, a);
-        2.0 * num.atan2(den)
     }
 
     fn sensor_cal(status: CalStatus, failure: Option<FitFailure>) -> SensorCalibration {
@@ -1620,95 +1039,6 @@ mod tests {
             }
         }
         assert_eq!(MavEncoder::default().component_id, 191);
-    }
-
-    #[test]
-    fn icosahedron_faces_are_well_formed_and_tile_the_sphere() {
-        for f in ICO_F.iter() {
-            for (i, j) in [(0, 1), (1, 2), (2, 0)] {
-                let (a, b) = (ICO_V[f[i]], ICO_V[f[j]]);
-                let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-                assert!((dot(&d, &d) - 4.0).abs() < 1e-12, "face {f:?} edge");
-            }
-        }
-        let total: f64 = (0..SECTIONS)
-            .map(|s| solid_angle(&section80_triangle(s).unwrap()))
-            .sum();
-        assert!((total - 4.0 * PI).abs() < 1e-9, "{total}");
-        assert!(section80_triangle(80).is_none());
-    }
-
-    #[test]
-    fn every_section_is_hit_and_numbered_like_its_triangle() {
-        for s in 0..SECTIONS {
-            let t = section80_triangle(s).unwrap();
-            let c = [0, 1, 2].map(|k| t[0][k] + t[1][k] + t[2][k]);
-            assert_eq!(section80(&c), Some(s), "centroid of section {s}");
-            assert_eq!(
-                section80(&c.map(|x| x * 37.5)),
-                Some(s),
-                "length does not matter"
-            );
-        }
-        // ArduPilot's layout: the middle of face 0 is section 0, near its first corner section 1.
-        let [a, b, c] = [ICO_V[0], ICO_V[1], ICO_V[2]];
-        let near_a = [0, 1, 2].map(|k| 0.8 * a[k] + 0.1 * b[k] + 0.1 * c[k]);
-        assert_eq!(section80(&near_a), Some(1));
-        let near_c = [0, 1, 2].map(|k| 0.1 * a[k] + 0.1 * b[k] + 0.8 * c[k]);
-        assert_eq!(section80(&near_c), Some(3));
-        assert_eq!(section80(&[0.0; 3]), None);
-        assert_eq!(section80(&[f64::NAN, 1.0, 0.0]), None);
-        // Vertices and edges still land somewhere.
-        for v in ICO_V.iter() {
-            assert!(section80(v).is_some());
-        }
-        for axis in [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]] {
-            assert!(section80(&axis).is_some());
-        }
-    }
-
-    #[test]
-    fn sections_have_near_equal_solid_angle() {
-        let mean = 4.0 * PI / SECTIONS as f64;
-        let areas: Vec<f64> = (0..SECTIONS)
-            .map(|s| solid_angle(&section80_triangle(s).unwrap()))
-            .collect();
-        for (s, a) in areas.iter().enumerate() {
-            assert!((a / mean - 1.0).abs() < 0.3, "section {s}: {}", a / mean);
-        }
-        // Uniform directions fall into sections in proportion to those solid angles.
-        let n = 400_000;
-        let mut counts = [0usize; SECTIONS];
-        for d in fib_sphere(n) {
-            counts[section80(&d).unwrap()] += 1;
-        }
-        for s in 0..SECTIONS {
-            let frac = counts[s] as f64 / n as f64;
-            let want = areas[s] / (4.0 * PI);
-            assert!(
-                (frac - want).abs() < 0.05 * want,
-                "section {s}: {frac} vs {want}"
-            );
-        }
-    }
-
-    #[test]
-    fn completion_mask_sets_one_bit_per_section() {
-        let centroid = |s: usize| {
-            let t = section80_triangle(s).unwrap();
-            [0, 1, 2].map(|k| t[0][k] + t[1][k] + t[2][k])
-        };
-        let (mask, filled) = completion_mask([0, 2, 9, 79, 9].map(centroid));
-        assert_eq!(filled, 4);
-        assert_eq!(mask[0], 0b0000_0101);
-        assert_eq!(mask[1], 0b0000_0010);
-        assert_eq!(mask[9], 0b1000_0000);
-        assert!(mask[2..9].iter().all(|b| *b == 0));
-        assert!(mask_has(&mask, 79) && !mask_has(&mask, 78) && !mask_has(&mask, 80));
-        let (full, n) = completion_mask(fib_sphere(20_000));
-        assert_eq!(n, 80);
-        assert_eq!(full, [0xFF; 10]);
-        assert_eq!(completion_mask([[0.0; 3]]).1, 0);
     }
 
     #[test]
@@ -1779,7 +1109,8 @@ mod tests {
         }
         .apply(&raw);
         for i in 0..3 {
-            assert!((dot(&s[i], &m) - ours[i] * 10.0).abs() < 1e-3);
+            let corrected: f64 = s[i].iter().zip(&m).map(|(a, b)| a * b).sum();
+            assert!((corrected - ours[i] * 10.0).abs() < 1e-3);
         }
     }
 

@@ -15,10 +15,12 @@
 //! ```
 //!
 //! `service`: start-up, the run loop, shut-down. `state`: samples and frames in, heading and
-//! attitude out. `lifecycle`: each track's fits, acceptance and calibration run. `store`: the
-//! calibration on disk. `sinks`: JSON consumers. `outputs`: output cadences and means.
+//! attitude out. `lifecycle`: each track's fits, acceptance and calibration run. `magcal`: the
+//! calibration run's states and its transition function, which decides what is installed.
+//! `store`: the calibration on disk. `sinks`: JSON consumers. `outputs`: output cadences and means.
 
 mod lifecycle;
+mod magcal;
 mod outputs;
 mod params;
 mod service;
@@ -27,6 +29,7 @@ mod state;
 mod store;
 
 pub use crate::types::STATUS_TARGET;
+use magcal::{MagCalEffect, MagCalEvent, MagCalRun};
 use mavout::severity_name;
 use outputs::*;
 use service::{open_store, start_links};
@@ -51,9 +54,7 @@ use crate::error::Error;
 use crate::io::clock::{ClockSettings, SourceClock};
 use crate::io::decode::{InstanceChoice, MessageConverter};
 use crate::io::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
-use crate::io::mavout::{
-    self, LiveEvent, MagCalEffect, MagCalEvent, MagCalRun, MavEncoder, ParamWriter,
-};
+use crate::io::mavout::{self, LiveEvent, MavEncoder, ParamWriter};
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Sensor, Unit, Vec3};
 use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA};
