@@ -327,7 +327,7 @@ fn mounting_check(
 /// [`mounting_check`] of one compass: its result, its instance's accelerometer calibration and
 /// samples, its pipeline, and its compass number.
 fn check_mounting(
-    mag: &mut crate::calib::pipeline::SensorResult,
+    mag: &mut crate::calib::outcome::SensorResult,
     accel: Option<&crate::calib::model::Calibration>,
     samples: &[crate::types::Sample],
     log: &crate::io::sources::Log,
@@ -378,7 +378,7 @@ fn check_mounting(
 fn other_mag_methods(
     run: &mut Run,
     cfg: &Config,
-) -> Vec<Option<crate::calib::pipeline::SensorResult>> {
+) -> Vec<Option<crate::calib::outcome::SensorResult>> {
     let log = &run.log;
     let mut out = Vec::with_capacity(run.others.len());
     for (k, p) in run.others.iter_mut().enumerate() {
@@ -415,7 +415,7 @@ struct Run {
     other_samples: Vec<Vec<crate::types::Sample>>,
     /// Their magnetometer results after the method choice and mounting check
     /// ([`other_mag_methods`]), by the same index.
-    other_mags: Vec<Option<crate::calib::pipeline::SensorResult>>,
+    other_mags: Vec<Option<crate::calib::outcome::SensorResult>>,
     log: crate::io::sources::Log,
 }
 
@@ -767,7 +767,7 @@ fn instance_reports(
     log: &crate::io::sources::Log,
     report: &Report,
     others: &mut [Option<Pipeline>],
-    other_mags: &[Option<crate::calib::pipeline::SensorResult>],
+    other_mags: &[Option<crate::calib::outcome::SensorResult>],
 ) -> Vec<crate::report::InstanceReport> {
     if log.instances.len() < 2 {
         return Vec::new();
@@ -971,7 +971,7 @@ fn write_plots(
 }
 
 /// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise.
-fn shown_coverage(r: &crate::calib::pipeline::SensorResult) -> crate::calib::coverage::Coverage {
+fn shown_coverage(r: &crate::calib::outcome::SensorResult) -> crate::calib::coverage::Coverage {
     if r.calibration.is_some() {
         r.coverage_after.clone()
     } else {

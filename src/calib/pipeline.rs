@@ -17,8 +17,7 @@ use crate::report::{CalStatus, Candidate, GyroCalibration, RefitReport, SensorCa
 use crate::types::{norm, Sample, Unit, Vec3};
 use nalgebra::Matrix3;
 
-// The pipeline's output, named by this path too by the callers above it.
-pub use crate::calib::outcome::SensorResult;
+use crate::calib::outcome::SensorResult;
 
 /// Everything a refit needs, cloned out of the pipeline so the fit can run elsewhere.
 #[derive(Debug, Clone)]

@@ -815,7 +815,7 @@ pub(super) fn plausibility(ctx: &Ctx, lay: &Layout, p: &DVector<f64>, e: Effect)
 
 /// Start calibrations from the pipeline, falling back to a fit of the static means.
 pub(super) fn mag_start(
-    res: &crate::calib::pipeline::SensorResult,
+    res: &crate::calib::outcome::SensorResult,
     points: &[Vec3],
     base: ModelKind,
 ) -> Option<(Vector3<f64>, f64, Matrix3<f64>)> {

@@ -45,7 +45,8 @@ use crate::attitude::fusion::OrientationFilter;
 use crate::calib::coverage::Progress;
 use crate::calib::learn::{LearnSettings, VectorLearner};
 use crate::calib::model::Calibration;
-use crate::calib::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline, SensorResult};
+use crate::calib::outcome::SensorResult;
+use crate::calib::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline};
 use crate::config::{
     ArdupilotCorrectedMag, AttitudeMessage, Config, HeadingMessage, Links, MagCalMode, ParamTarget,
     SourceConfig,

@@ -6,7 +6,8 @@
 //! the log it was not fitted on (`quality`); a diagnosis when one is given. Building
 //! the page is pure; [`write`] writes it atomically.
 
-use crate::calib::pipeline::{FitResults, SensorResult};
+use crate::calib::outcome::SensorResult;
+use crate::calib::pipeline::FitResults;
 use crate::error::Error;
 use crate::report::{Report, SensorCalibration};
 use crate::types::Vec3;
