@@ -353,7 +353,13 @@ fn set(cfg: &FusionConfig, key: &str, v: f64) -> FusionConfig {
 /// plus the excess of the worst per-trial ratio over 1.2 (so that no class is given up for the
 /// mean).
 fn objective(trials: &[&Trial], cfg: &FusionConfig) -> f64 {
-    let ours = score_all(trials, cfg);
+    let (ratio, worst) = ratios(trials, &score_all(trials, cfg));
+    ratio + (worst - 1.2).max(0.0)
+}
+
+/// The ratio of `ours`' mean total RMSE to VQF's over the trials, and the worst per-trial ratio
+/// (VQF must have run on every trial).
+fn ratios(trials: &[&Trial], ours: &[EvalResult]) -> (f64, f64) {
     let m_ours = mean(ours.iter().map(|e| e.total_rmse_deg));
     let m_vqf = mean(
         trials
@@ -365,7 +371,7 @@ fn objective(trials: &[&Trial], cfg: &FusionConfig) -> f64 {
         .zip(trials)
         .map(|(e, t)| e.total_rmse_deg / t.vqf.expect("VQF ran").0.total_rmse_deg)
         .fold(0.0, f64::max);
-    m_ours / m_vqf + (worst - 1.2).max(0.0)
+    (m_ours / m_vqf, worst)
 }
 
 /// The trials scored on two threads (the machine's other work permitting), each taking the next
@@ -811,20 +817,10 @@ fn main() {
     // saw, to set beside what it gains on data it never saw (tests/stress.rs, tests/mocap_flights.rs).
     if trials.iter().all(|t| t.vqf.is_some()) {
         let untuned = score_all(&all, &start_point());
-        let m_vqf = mean(
-            trials
-                .iter()
-                .map(|t| t.vqf.expect("VQF ran").0.total_rmse_deg),
-        );
-        let worst = untuned
-            .iter()
-            .zip(&trials)
-            .map(|(e, t)| e.total_rmse_deg / t.vqf.expect("VQF ran").0.total_rmse_deg)
-            .fold(0.0, f64::max);
+        let (ratio, worst) = ratios(&all, &untuned);
         println!(
-            "untuned settings (the tuning's start point): {} deg, ratio {:.2}, worst trial {worst:.2}",
-            means(&untuned),
-            mean(untuned.iter().map(|e| e.total_rmse_deg)) / m_vqf
+            "untuned settings (the tuning's start point): {} deg, ratio {ratio:.2}, worst trial {worst:.2}",
+            means(&untuned)
         );
     }
 }
