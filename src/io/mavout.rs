@@ -375,31 +375,17 @@ pub fn debug_vect(name: &str, time_usec: u64, v: [f32; 3]) -> MavMessage {
     })
 }
 
-/// MAVLink severity from its number (0 emergency .. 7 debug; larger numbers read as debug).
-pub fn severity(level: u8) -> MavSeverity {
-    match level {
-        0 => MavSeverity::MAV_SEVERITY_EMERGENCY,
-        1 => MavSeverity::MAV_SEVERITY_ALERT,
-        2 => MavSeverity::MAV_SEVERITY_CRITICAL,
-        3 => MavSeverity::MAV_SEVERITY_ERROR,
-        4 => MavSeverity::MAV_SEVERITY_WARNING,
-        5 => MavSeverity::MAV_SEVERITY_NOTICE,
-        6 => MavSeverity::MAV_SEVERITY_INFO,
-        _ => MavSeverity::MAV_SEVERITY_DEBUG,
-    }
-}
-
-/// The JSON `level` name of a MAVLink severity number.
-pub fn severity_name(level: u8) -> &'static str {
-    match level {
-        0 => "emergency",
-        1 => "alert",
-        2 => "critical",
-        3 => "error",
-        4 => "warning",
-        5 => "notice",
-        6 => "info",
-        _ => "debug",
+/// The JSON `level` name of a MAVLink severity.
+pub fn severity_name(severity: MavSeverity) -> &'static str {
+    match severity {
+        MavSeverity::MAV_SEVERITY_EMERGENCY => "emergency",
+        MavSeverity::MAV_SEVERITY_ALERT => "alert",
+        MavSeverity::MAV_SEVERITY_CRITICAL => "critical",
+        MavSeverity::MAV_SEVERITY_ERROR => "error",
+        MavSeverity::MAV_SEVERITY_WARNING => "warning",
+        MavSeverity::MAV_SEVERITY_NOTICE => "notice",
+        MavSeverity::MAV_SEVERITY_INFO => "info",
+        MavSeverity::MAV_SEVERITY_DEBUG => "debug",
     }
 }
 
@@ -418,9 +404,8 @@ fn next_statustext_id() -> u16 {
 /// most 50 bytes (cut at character boundaries) sharing a non-zero `id` with `chunk_seq` 0, 1, ...;
 /// when the last chunk is exactly 50 bytes an empty chunk follows, since a receiver takes a chunk
 /// with a NUL in it as the last one. At most 256 chunks (longer text is cut).
-pub fn statustext(severity_level: u8, text: &str) -> Vec<MavMessage> {
+pub fn statustext(sev: MavSeverity, text: &str) -> Vec<MavMessage> {
     const N: usize = 50;
-    let sev = severity(severity_level);
     let msg = |t: &str, id: u16, chunk_seq: u8| {
         MavMessage::STATUSTEXT(STATUSTEXT_DATA {
             severity: sev,
@@ -1165,7 +1150,7 @@ mod tests {
 
     #[test]
     fn statustext_chunks_long_text() {
-        let short = statustext(6, "mag calibrated");
+        let short = statustext(MavSeverity::MAV_SEVERITY_INFO, "mag calibrated");
         assert_eq!(short.len(), 1);
         let MavMessage::STATUSTEXT(d) = &short[0] else {
             panic!()
@@ -1179,7 +1164,7 @@ mod tests {
         let long: String = (0..120)
             .map(|i| char::from(b'a' + (i % 26) as u8))
             .collect();
-        let msgs = statustext(3, &long);
+        let msgs = statustext(MavSeverity::MAV_SEVERITY_ERROR, &long);
         assert_eq!(msgs.len(), 3);
         let mut joined = String::new();
         let mut ids = vec![];
@@ -1196,22 +1181,26 @@ mod tests {
         assert_eq!(joined, long);
 
         // Exactly 100 bytes: two full chunks and an empty terminating one.
-        let msgs = statustext(4, &long[..100]);
+        let msgs = statustext(MavSeverity::MAV_SEVERITY_WARNING, &long[..100]);
         assert_eq!(msgs.len(), 3);
         let MavMessage::STATUSTEXT(d) = &msgs[2] else {
             panic!()
         };
         assert_eq!(array_text(&d.text), "");
         // Exactly 50 bytes: a single message.
-        assert_eq!(statustext(4, &long[..50]).len(), 1);
+        assert_eq!(
+            statustext(MavSeverity::MAV_SEVERITY_WARNING, &long[..50]).len(),
+            1
+        );
         // A second long text gets another id.
-        let MavMessage::STATUSTEXT(d2) = &statustext(3, &long)[0] else {
+        let MavMessage::STATUSTEXT(d2) = &statustext(MavSeverity::MAV_SEVERITY_ERROR, &long)[0]
+        else {
             panic!()
         };
         assert_ne!(d2.id, ids[0]);
         // Multi-byte characters are kept whole.
         let text = "é".repeat(40);
-        let msgs = statustext(6, &text);
+        let msgs = statustext(MavSeverity::MAV_SEVERITY_INFO, &text);
         let joined: String = msgs
             .iter()
             .map(|m| match m {
@@ -1421,7 +1410,7 @@ mod tests {
                 false,
             ),
             LiveEvent::Status {
-                level: severity_name(6).into(),
+                level: severity_name(MavSeverity::MAV_SEVERITY_INFO).into(),
                 text: "line\nbreak \"quoted\"".into(),
             },
             LiveEvent::Attitude {

@@ -239,7 +239,8 @@ impl State {
                             cal.offset[2],
                             cal.rms_residual
                         );
-                        self.status_for(c, 6, text).await;
+                        self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+                            .await;
                         self.cals[c].tracks[i].reported_mag = Some(*cal);
                     }
                 }
@@ -276,7 +277,8 @@ impl State {
             "mag calibration run started{}",
             self.cals[c].compass_label(i)
         );
-        self.status_for(c, 6, text).await;
+        self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+            .await;
     }
 
     /// COMMAND_LONG: the ground station's calibration commands for the calibrated vehicles it
@@ -410,12 +412,14 @@ impl State {
                     self.cals[c].install_mag(i, cal.clone());
                     self.cals[c].tracks[i].reported_mag = Some(cal);
                     self.send_mav(To::Cal(c), &[msg]).await;
-                    self.status_for(c, 6, text).await;
+                    self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+                        .await;
                     calibrated += 1;
                 }
                 Err(why) => {
                     let text = format!("fixed-yaw calibration refused{label}: {why}");
-                    self.status_for(c, 4, text).await;
+                    self.status_for(c, MavSeverity::MAV_SEVERITY_WARNING, text)
+                        .await;
                 }
             }
         }

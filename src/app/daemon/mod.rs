@@ -58,7 +58,9 @@ use crate::io::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, Lin
 use crate::io::mavout::{self, LiveEvent, MavEncoder, ParamWriter};
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Sensor, Unit, Vec3};
-use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage, MavResult, COMMAND_LONG_DATA};
+use mavlink::dialects::ardupilotmega::{
+    MavCmd, MavMessage, MavResult, MavSeverity, COMMAND_LONG_DATA,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::time::Duration;

@@ -250,7 +250,7 @@ impl State {
                     if component != 0 {
                         let text =
                             format!("no parameter {n} here: ours are CAL_*, MAG*, ACC_*, GYR_*");
-                        self.status(4, text).await;
+                        self.status(MavSeverity::MAV_SEVERITY_WARNING, text).await;
                     }
                     return;
                 };
@@ -258,7 +258,11 @@ impl State {
                 let now = table(&self.cfg, &self.cals[c]);
                 let answer = mavout::param_value(&n, now[i].value, i as u16, count);
                 self.send_mav(To::Cal(c), &[answer]).await;
-                let severity = if result.is_ok() { 6 } else { 4 };
+                let severity = if result.is_ok() {
+                    MavSeverity::MAV_SEVERITY_INFO
+                } else {
+                    MavSeverity::MAV_SEVERITY_WARNING
+                };
                 let text = match result {
                     Ok(meaning) => format!("{n} set to {v} ({meaning}) for this run"),
                     Err(Refused::ReadOnly) => format!("{n} is read only"),

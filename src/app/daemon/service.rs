@@ -267,7 +267,11 @@ impl State {
                     .unwrap_or_default();
                 match status {
                     LinkStatus::Connected(s) => {
-                        self.status(6, format!("{label}: connected {s}")).await
+                        self.status(
+                            MavSeverity::MAV_SEVERITY_INFO,
+                            format!("{label}: connected {s}"),
+                        )
+                        .await
                     }
                     LinkStatus::Lost(s) => {
                         let replay = self.links.get(link).is_some_and(|l| l.replay);
@@ -278,17 +282,21 @@ impl State {
                         } else {
                             format!("{label}: lost ({s}); reconnecting, calibration kept")
                         };
-                        self.status(4, text).await
+                        self.status(MavSeverity::MAV_SEVERITY_WARNING, text).await
                     }
                     LinkStatus::Silent { for_s } => {
-                        self.status(4, format!("{label}: silent for {for_s:.1} s"))
-                            .await
+                        self.status(
+                            MavSeverity::MAV_SEVERITY_WARNING,
+                            format!("{label}: silent for {for_s:.1} s"),
+                        )
+                        .await
                     }
                     LinkStatus::Ended => {
                         if let Some(l) = self.links.get_mut(link) {
                             l.ended = true;
                         }
-                        self.status(6, format!("{label}: ended")).await;
+                        self.status(MavSeverity::MAV_SEVERITY_INFO, format!("{label}: ended"))
+                            .await;
                         if self.links.iter().all(|l| l.replay && l.ended) {
                             if let Some(j) = fit_job.take() {
                                 self.fits_done(j.await).await;

@@ -160,7 +160,7 @@ impl State {
         for text in said {
             tracing::warn!("{text}");
             self.send_json(&LiveEvent::Status {
-                level: severity_name(4).into(),
+                level: severity_name(MavSeverity::MAV_SEVERITY_WARNING).into(),
                 text,
             })
             .await;
@@ -187,7 +187,7 @@ impl State {
         }
     }
 
-    pub(super) async fn status(&mut self, severity: u8, text: String) {
+    pub(super) async fn status(&mut self, severity: MavSeverity, text: String) {
         status_trace(severity, &text);
         let msgs = mavout::statustext(severity, &text);
         self.send_mav(To::All, &msgs).await;
@@ -199,7 +199,7 @@ impl State {
     }
 
     /// A STATUSTEXT and JSON `status` line about calibrated vehicle `c`, sent for it.
-    pub(super) async fn status_for(&mut self, c: usize, severity: u8, text: String) {
+    pub(super) async fn status_for(&mut self, c: usize, severity: MavSeverity, text: String) {
         if c == 0 {
             return self.status(severity, text).await;
         }
@@ -417,7 +417,7 @@ impl State {
             self.other_vehicle_samples += 1;
             if !std::mem::replace(&mut self.vehicles[v].announced, true) {
                 let text = refuse(format!("{MAX_CALIBRATED_VEHICLES} vehicles are already"));
-                self.status(4, text).await;
+                self.status(MavSeverity::MAV_SEVERITY_WARNING, text).await;
             }
             return None;
         }
@@ -439,7 +439,8 @@ impl State {
             Err(e) => {
                 self.other_vehicle_samples += 1;
                 if !std::mem::replace(&mut self.vehicles[v].announced, true) {
-                    self.status(3, refuse(e.to_string())).await;
+                    self.status(MavSeverity::MAV_SEVERITY_ERROR, refuse(e.to_string()))
+                        .await;
                 }
                 return None;
             }
@@ -453,7 +454,8 @@ impl State {
             dir.display(),
             if resumed { " (resumed)" } else { "" }
         );
-        self.status_for(c, 6, text).await;
+        self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+            .await;
         Some(c)
     }
 
@@ -488,11 +490,11 @@ impl State {
                 }
                 if !was && conv.is_ardupilot() {
                     if self.cfg.daemon.ardupilot_corrected_mag == ArdupilotCorrectedMag::Undo {
-                        self.status(6, "ArduPilot link: reading COMPASS_* to undo its calibration before fitting".into()).await;
+                        self.status(MavSeverity::MAV_SEVERITY_INFO, "ArduPilot link: reading COMPASS_* to undo its calibration before fitting".into()).await;
                         let reqs = mavout::param_request_reads(frame.system_id, frame.component_id);
                         self.send_mav(To::Link(link), &reqs).await;
                     } else {
-                        self.status(4, "ArduPilot link: its magnetometer data is already calibrated; set daemon.ardupilot_corrected_mag = \"undo\" to fit it".into()).await;
+                        self.status(MavSeverity::MAV_SEVERITY_WARNING, "ArduPilot link: its magnetometer data is already calibrated; set daemon.ardupilot_corrected_mag = \"undo\" to fit it".into()).await;
                     }
                 }
                 false
@@ -583,7 +585,8 @@ impl State {
             "{}: a further IMU instance (compass {}), calibrated on its own",
             info.name, info.compass_id
         );
-        self.status_for(c, 6, text).await;
+        self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+            .await;
         Some(n - 1)
     }
 
@@ -609,10 +612,12 @@ impl State {
             self.cals[c].writer = None;
             if failed.is_empty() {
                 let text = "parameters written and confirmed by the flight controller".into();
-                self.status_for(c, 6, text).await;
+                self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
+                    .await;
             } else {
                 let text = format!("parameters not confirmed: {}", failed.join(", "));
-                self.status_for(c, 3, text).await;
+                self.status_for(c, MavSeverity::MAV_SEVERITY_ERROR, text)
+                    .await;
             }
         }
     }
@@ -692,12 +697,17 @@ impl Cal {
 
 /// A status line for the operator, whatever the outputs: under the tracing target
 /// [`crate::types::STATUS_TARGET`] (the binary shows it on stderr), at the level of its MAVLink severity.
-fn status_trace(severity: u8, text: &str) {
-    if severity <= 3 {
-        tracing::error!(target: crate::types::STATUS_TARGET, "{text}");
-    } else if severity == 4 {
-        tracing::warn!(target: crate::types::STATUS_TARGET, "{text}");
-    } else {
-        tracing::info!(target: crate::types::STATUS_TARGET, "{text}");
+fn status_trace(severity: MavSeverity, text: &str) {
+    match severity {
+        MavSeverity::MAV_SEVERITY_EMERGENCY
+        | MavSeverity::MAV_SEVERITY_ALERT
+        | MavSeverity::MAV_SEVERITY_CRITICAL
+        | MavSeverity::MAV_SEVERITY_ERROR => {
+            tracing::error!(target: crate::types::STATUS_TARGET, "{text}")
+        }
+        MavSeverity::MAV_SEVERITY_WARNING => {
+            tracing::warn!(target: crate::types::STATUS_TARGET, "{text}")
+        }
+        _ => tracing::info!(target: crate::types::STATUS_TARGET, "{text}"),
     }
 }

@@ -369,7 +369,7 @@ impl State {
             }
             Ok((Written::Calibration(_), Err(e))) => {
                 self.status(
-                    3,
+                    MavSeverity::MAV_SEVERITY_ERROR,
                     format!("calibration not written (the previous file is kept): {e}"),
                 )
                 .await
