@@ -838,6 +838,8 @@ pub struct OrientationFilter {
     /// almost-inertial frame was turned by clipped readings since the low-pass last started.
     since_clip_s: f64,
     lp_clipped: bool,
+    /// How many axes of the last gyro reading are clipped (counted once per reading).
+    clipped_now: usize,
 }
 
 impl OrientationFilter {
@@ -872,6 +874,7 @@ impl OrientationFilter {
             acc_lp: Butter3::default(),
             since_clip_s: f64::INFINITY,
             lp_clipped: false,
+            clipped_now: 0,
         }
     }
 
@@ -923,7 +926,8 @@ impl OrientationFilter {
         if let Some(g) = gyro {
             self.last_gyro = g;
             self.rate_ms += (g.norm_squared() - self.rate_ms) * a_int;
-            if self.clipped_axes(&g).any(|_| true) {
+            self.clipped_now = self.clipped_axes(&g);
+            if self.clipped_now > 0 {
                 self.since_clip_s = 0.0;
             } else {
                 self.since_clip_s += dt;
@@ -1039,19 +1043,21 @@ impl OrientationFilter {
         // exact for one step, but that axis is known in the world only through the attitude the
         // clipping makes wrong, and correcting large tilt errors leaks into the heading.)
         let excess = CLIP_EXCESS_SD * self.cfg.gyro_range_rad_s * dt;
-        let n_clipped = self.clipped_axes(&self.last_gyro).count() as f64;
-        for i in 0..3 {
-            self.p[(i, i)] += n_clipped * excess * excess;
+        if self.clipped_now > 0 {
+            for i in 0..3 {
+                self.p[(i, i)] += self.clipped_now as f64 * excess * excess;
+            }
         }
         dq
     }
 
-    /// The axes of a gyro reading at the gyro's range (`gyro_range_rad_s`).
-    fn clipped_axes(&self, w: &Vector3<f64>) -> impl Iterator<Item = usize> {
+    /// How many axes of a gyro reading are at the gyro's range (`gyro_range_rad_s`).
+    fn clipped_axes(&self, w: &Vector3<f64>) -> usize {
+        if self.cfg.gyro_range_rad_s <= 0.0 {
+            return 0;
+        }
         let limit = CLIP_FRACTION * self.cfg.gyro_range_rad_s;
-        let on = self.cfg.gyro_range_rad_s > 0.0;
-        let w = *w;
-        (0..3).filter(move |&k| on && w[k].abs() >= limit)
+        w.iter().filter(|x| x.abs() >= limit).count()
     }
 
     /// While clipped readings (or the corrections of their error) are recent, no correction may
