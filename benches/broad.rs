@@ -35,7 +35,6 @@ mod untuned;
 
 use imucald::attitude::eval::{errors, evaluate, reference, EvalResult};
 use imucald::attitude::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
-use imucald::config::Config;
 use imucald::io::sources::read_log;
 use imucald::types::Sample;
 use nalgebra::{Quaternion, UnitQuaternion};
@@ -176,7 +175,7 @@ fn load(dir: &Path, py: Option<&str>) -> Vec<Trial> {
             .file_name()
             .map(|n| n.to_string_lossy().trim_end_matches(".csv.gz").to_string())
             .unwrap_or_default();
-        let log = match read_log(p, None, &Config::default()) {
+        let log = match read_log(p, None, &Default::default()) {
             Ok(l) => l,
             Err(e) => {
                 println!("{name:<44} cannot read: {e}");

@@ -162,8 +162,12 @@ fn bench_replay(py: Option<&str>) {
             ..*s
         }));
     }
-    imucald::sim::write_tlog(&log, &samples, &imucald::sim::TlogWriteOptions::default())
-        .expect("write tlog");
+    imucald::io::samplelog::write_tlog(
+        &log,
+        &samples,
+        &imucald::io::samplelog::TlogWriteOptions::default(),
+    )
+    .expect("write tlog");
     let cfg = imucald::config::Config::default();
     let opts = imucald::app::replay::ReplayOptions::default();
     let mut best = f64::INFINITY;

@@ -63,8 +63,9 @@ fn ours(bytes: &[u8], format: Format) -> (f64, usize) {
     let mut n = 0;
     for _ in 0..5 {
         let t = Instant::now();
-        let log = imucald::io::sources::decode_log(bytes, Path::new("bench"), Some(format), &cfg)
-            .expect("decodes");
+        let log =
+            imucald::io::sources::decode_log(bytes, Path::new("bench"), Some(format), &cfg.input)
+                .expect("decodes");
         best = best.min(t.elapsed().as_secs_f64());
         n = log.samples.len();
     }

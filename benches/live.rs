@@ -25,7 +25,8 @@
 #![allow(dead_code)]
 
 use imucald::io::mavout::MavEncoder;
-use imucald::sim::{highres_imu, simulate, Scenario};
+use imucald::io::samplelog::highres_imu;
+use imucald::sim::{simulate, Scenario};
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
 use std::process::{Child, Command, Stdio};

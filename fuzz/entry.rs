@@ -72,7 +72,7 @@ fn converter(kind: usize) -> MessageConverter {
 pub fn tlog(data: &[u8]) -> (Vec<Sample>, DecodeStats) {
     static CFG: OnceLock<Config> = OnceLock::new();
     let cfg = CFG.get_or_init(Config::default);
-    if let Ok(log) = imucald::io::sources::decode_log(data, Path::new("fuzz.tlog"), None, cfg) {
+    if let Ok(log) = imucald::io::sources::decode_log(data, Path::new("fuzz.tlog"), None, &cfg.input) {
         assert_eq!(log.samples.len() as u64, log.stats.records);
         log.samples.iter().for_each(check_sample);
     }
@@ -355,7 +355,7 @@ pub fn dataflash(data: &[u8]) -> Vec<Sample> {
         data,
         Path::new("fuzz.bin"),
         Some(imucald::io::decode::Format::Bin),
-        cfg,
+        &cfg.input,
     ) {
         assert_eq!(log.samples, samples);
     }
@@ -399,7 +399,7 @@ pub fn ulog(data: &[u8]) -> Vec<Sample> {
         bytes,
         Path::new("fuzz.ulg"),
         Some(imucald::io::decode::Format::Ulg),
-        cfg,
+        &cfg.input,
     ) {
         assert_eq!(log.samples, samples);
     }

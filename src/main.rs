@@ -533,7 +533,7 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
         alpha > 0.0 && alpha < 1.0,
         "--alpha {alpha}: must be between 0 and 1"
     );
-    let input = imucald::io::sources::read_log(&log, format, &cfg)
+    let input = imucald::io::sources::read_log(&log, format, &cfg.input)
         .with_context(|| format!("reading {}", log.display()))?;
     let spinner = indicatif::ProgressBar::new_spinner();
     spinner.set_message(format!(
@@ -579,7 +579,7 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let mut input = imucald::io::sources::read_log(&log, format, &cfg)
+    let mut input = imucald::io::sources::read_log(&log, format, &cfg.input)
         .with_context(|| format!("reading {}", log.display()))?;
     if let Some(c) = &calibration {
         let cal = imucald::app::daemon::LoadedCalibration::load(c)?;
@@ -692,9 +692,9 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
             .context("no place: give --lat and --lon, or [place] in the config")?,
     };
     let field = imucald::attitude::earth_field(&place).map_err(|e| anyhow::anyhow!(e))?;
-    let log = imucald::io::sources::read_log(&a.log, format, &cfg)
+    let log = imucald::io::sources::read_log(&a.log, format, &cfg.input)
         .with_context(|| format!("reading {}", a.log.display()))?;
-    let pipe = imucald::calib::pipeline::Pipeline::new(&cfg)?;
+    let pipe = imucald::calib::pipeline::Pipeline::new(&cfg.calib())?;
     let end_s = a.at_s.unwrap_or(f64::INFINITY);
     if let (Some(at), Some(last)) = (a.at_s, log.samples.last()) {
         let first = log.samples.first().map_or(0.0, |s| s.t_s);
@@ -754,7 +754,8 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
         message,
         mavlink_version,
     } = args;
-    use imucald::sim::{simulate, write_csv, write_tlog, ImuMessage, Scenario, TlogWriteOptions};
+    use imucald::io::samplelog::{write_csv, write_tlog, ImuMessage, TlogWriteOptions};
+    use imucald::sim::{simulate, Scenario};
     let sc = match Scenario::named(&scenario) {
         Some(s) => s,
         None => {

@@ -74,7 +74,7 @@ fn current_interference_is_named_from_a_pymavlink_flight_tlog() {
     let dir = tempfile::tempdir().unwrap();
     let tlog = common::pymavlink_flight_tlog(&out.samples, dir.path());
     let cfg = Config::default();
-    let log = imucald::io::sources::read_log(&tlog, None, &cfg).unwrap();
+    let log = imucald::io::sources::read_log(&tlog, None, &cfg.input).unwrap();
     let r = diagnose(&log.samples, &cfg, &DiagnoseOptions::default());
     eprintln!("{}", imucald::diagnose::summary_table(&r));
     assert_eq!(

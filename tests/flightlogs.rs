@@ -217,7 +217,7 @@ fn dataflash_mag_is_the_raw_field_with_the_onboard_correction_undone() {
     let dir = require_data!();
     let bin = std::fs::read(dir.join("ardupilot_plane_pixracer.bin")).unwrap();
     let cfg = Config::default();
-    let log = imucald::io::sources::decode_log(&bin, Path::new("x.bin"), None, &cfg).unwrap();
+    let log = imucald::io::sources::decode_log(&bin, Path::new("x.bin"), None, &cfg.input).unwrap();
     let on = log.flight.as_ref().unwrap().onboard.clone();
     let mut rd = DfReader::new(&bin);
     let mut logged = vec![];
@@ -511,7 +511,8 @@ fn damaged_flight_logs_are_read_without_panics() {
                 fuzz_entry::ulog(&b)
             };
             let cfg = Config::default();
-            if let Ok(log) = imucald::io::sources::decode_log(&b, Path::new(file), None, &cfg) {
+            if let Ok(log) = imucald::io::sources::decode_log(&b, Path::new(file), None, &cfg.input)
+            {
                 assert_eq!(log.samples, samples, "{file} round {round}");
                 damaged_counted += (!log.stats.skipped.is_empty()) as usize;
             }

@@ -9,8 +9,9 @@
 mod common;
 
 use imucald::config::Config;
+use imucald::io::samplelog::TLOG_EPOCH_US;
 use imucald::report::CalStatus;
-use imucald::sim::{SimOutput, TLOG_EPOCH_US};
+use imucald::sim::SimOutput;
 use mavlink::dialects::ardupilotmega::MavMessage;
 
 /// The tumble with the second compass's hard iron and soft iron changed.
@@ -25,7 +26,8 @@ fn write_tlog(path: &std::path::Path, streams: &[(&SimOutput, u8)]) {
         for (sim, id) in streams {
             let s = &sim.samples[i];
             let t_us = (s.t_s * 1e6).round() as u64;
-            let MavMessage::HIGHRES_IMU(mut d) = imucald::sim::highres_imu(s, 10_000_000 + t_us)
+            let MavMessage::HIGHRES_IMU(mut d) =
+                imucald::io::samplelog::highres_imu(s, 10_000_000 + t_us)
             else {
                 unreachable!()
             };
@@ -164,7 +166,8 @@ async fn live_service_reports_each_compass_on_its_own() {
         for (sim, id) in [(&a, 0u8), (&b, 1u8)] {
             let s = &sim.samples[i];
             let t_us = (s.t_s * 1e6).round() as u64;
-            let MavMessage::HIGHRES_IMU(mut d) = imucald::sim::highres_imu(s, 10_000_000 + t_us)
+            let MavMessage::HIGHRES_IMU(mut d) =
+                imucald::io::samplelog::highres_imu(s, 10_000_000 + t_us)
             else {
                 unreachable!()
             };
@@ -271,7 +274,7 @@ fn a_second_compass_of_an_ordinary_flight_gets_the_vector_method_too() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("cruise2.tlog");
     let mut bytes = Vec::new();
-    let mut state = imucald::sim::VehicleStateStream::default();
+    let mut state = imucald::io::samplelog::VehicleStateStream::default();
     for (sa, sb) in a.samples.iter().zip(&b.samples) {
         let t_us = (sa.t_s * 1e6).round() as u64;
         let boot_us = 10_000_000 + t_us;
@@ -279,7 +282,8 @@ fn a_second_compass_of_an_ordinary_flight_gets_the_vector_method_too() {
             common::push_tlog_record(&mut bytes, TLOG_EPOCH_US + t_us, &m);
         }
         for (s, id) in [(sa, 0u8), (sb, 1u8)] {
-            let MavMessage::HIGHRES_IMU(mut d) = imucald::sim::highres_imu(s, boot_us) else {
+            let MavMessage::HIGHRES_IMU(mut d) = imucald::io::samplelog::highres_imu(s, boot_us)
+            else {
                 unreachable!()
             };
             d.id = id;

@@ -186,7 +186,8 @@ mod config_files {
 mod simulated {
     use super::*;
     use imucald::attitude::{angle_diff_deg, attitude_deg};
-    use imucald::sim::{simulate, write_csv, write_tlog, Scenario, TlogWriteOptions};
+    use imucald::io::samplelog::{write_csv, write_tlog, TlogWriteOptions};
+    use imucald::sim::{simulate, Scenario};
 
     #[test]
     fn calibrated_out_carries_the_fused_attitude_of_a_moving_sensor() {
@@ -654,7 +655,8 @@ mod diagnose_cli {
 
 mod full12 {
     use super::*;
-    use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
+    use imucald::io::samplelog::{write_tlog, TlogWriteOptions};
+    use imucald::sim::{simulate, Scenario};
 
     /// A magnetometer rotated against the accelerometer (a misaligned mount): norms cannot see the
     /// rotation, the dip angle at static poses can.
@@ -735,7 +737,7 @@ mod live {
     /// pymavlink peer to stream and judge by.
     fn tumble_for_peer(d: &Path, seed: u64) -> imucald::sim::SimOutput {
         let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), seed);
-        imucald::sim::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
+        imucald::io::samplelog::write_csv(&d.join("tumble.csv"), &sim.samples).unwrap();
         imucald::io::publish::write_json(&d.join("truth.json"), &sim.truth).unwrap();
         sim
     }
@@ -1432,7 +1434,7 @@ mod live_ardupilot {
                 temp_c: None,
                 ..*s
             };
-            let msg = imucald::sim::highres_imu(&streamed, (1e7 + t * 1e6) as u64);
+            let msg = imucald::io::samplelog::highres_imu(&streamed, (1e7 + t * 1e6) as u64);
             fc.send_to(&enc.encode(&msg), &target).await.unwrap();
             // Answer what the daemon asked.
             while let Ok(Ok((n, _))) =
@@ -1653,7 +1655,8 @@ mod fuzz_regressions {
 
         // The file path: gzip (whole and cut), a bare gzip magic, all magic bytes, nothing.
         let cfg = Config::default();
-        let read = |b: &[u8]| imucald::io::sources::decode_log(b, Path::new("nasty"), None, &cfg);
+        let read =
+            |b: &[u8]| imucald::io::sources::decode_log(b, Path::new("nasty"), None, &cfg.input);
         let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
         std::io::Write::write_all(&mut gz, &good).unwrap();
         let gz = gz.finish().unwrap();
@@ -2014,7 +2017,7 @@ mod live_attitude {
             })
             .collect();
         let log = d.join("still.tlog");
-        imucald::sim::write_tlog(&log, &samples, &Default::default()).unwrap();
+        imucald::io::samplelog::write_tlog(&log, &samples, &Default::default()).unwrap();
 
         // The true calibration is what the daemon resumes from.
         let cal_dir = d.join("cal");
@@ -2497,7 +2500,7 @@ mod honest_progress {
         cfg: &Config,
         stored: Option<SensorCalibration>,
     ) -> Vec<(f64, ProgressReport, bool)> {
-        let mut pipe = Pipeline::new(cfg).unwrap().with_hold_out(HOLD_OUT_EVERY);
+        let mut pipe = Pipeline::new(&cfg.calib()).unwrap().with_hold_out(HOLD_OUT_EVERY);
         let mut run = Progress::new(cfg.daemon.progress_full_regions);
         let mut current = stored;
         let mut failure_report = false;
@@ -2506,7 +2509,7 @@ mod honest_progress {
         let mut out = vec![];
         for s in samples {
             if pipe.push(s) {
-                let r = fit_all(&pipe.snapshot(), cfg);
+                let r = fit_all(&pipe.snapshot(), &cfg.calib());
                 if accept(&r.mag, current.as_ref()).is_ok() {
                     current = Some(r.mag.report.clone());
                 } else {
@@ -2621,7 +2624,8 @@ mod honest_progress {
 mod gyro_scale_checked {
     use super::*;
     use imucald::calib::fit::FitFailure;
-    use imucald::sim::{simulate, write_tlog, Scenario, TlogWriteOptions};
+    use imucald::io::samplelog::{write_tlog, TlogWriteOptions};
+    use imucald::sim::{simulate, Scenario};
 
     /// A turntable log with these attitudes, replayed.
     fn turntable_replay(attitudes: Vec<[f64; 3]>) -> imucald::report::Report {

@@ -14,7 +14,6 @@ mod common;
 use imucald::attitude::align::{self, AlignOptions, MocapAlignment};
 use imucald::attitude::eval::{evaluate_with, Alignment, EvalResult};
 use imucald::attitude::fusion::FusionConfig;
-use imucald::config::Config;
 use nalgebra::{Quaternion, UnitQuaternion};
 use std::process::Command;
 
@@ -65,7 +64,7 @@ fn vqf(
     let dir = tempfile::tempdir().map_err(|e| e.to_string())?;
     let input = dir.path().join("flight.csv");
     let out = dir.path().join("vqf.csv");
-    imucald::sim::write_csv(&input, samples).map_err(|e| e.to_string())?;
+    imucald::io::samplelog::write_csv(&input, samples).map_err(|e| e.to_string())?;
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/vqf_peer.py");
     let mut cmd = Command::new(py);
     cmd.arg(script).arg(&input).arg(&out);
@@ -139,7 +138,7 @@ fn px4_indoor_flights_against_motion_capture() {
     let mut table = String::new();
     for f in &FLIGHTS {
         let log =
-            imucald::io::sources::read_log(&real.join(f.log), None, &Config::default()).unwrap();
+            imucald::io::sources::read_log(&real.join(f.log), None, &Default::default()).unwrap();
         let found: Vec<Result<MocapAlignment, _>> = poses
             .iter()
             .map(|p| align::align_to_log(&log.samples, p, &AlignOptions::default()))

@@ -76,7 +76,7 @@ fn the_live_service_never_installs_a_calibration_from_a_compass_mounted_otherwis
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let csv = d.join("tumble.csv");
-    imucald::sim::write_csv(&csv, &sim.samples).unwrap();
+    imucald::io::samplelog::write_csv(&csv, &sim.samples).unwrap();
     let (out, r) = common::run_on_file(&csv, 20, "[\"stdout\"]", "[fit]\nrefit_every_s = 0.5\n");
     let mut refits = 0;
     let mut refusals = 0;

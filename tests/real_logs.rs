@@ -264,7 +264,7 @@ fn qmc5883l_tumble_agrees_with_its_authors_fit() {
 fn a_csv_without_time_needs_its_rate_and_says_so() {
     let real = require_data!();
     let log = real.join("hand_tumble_acc_mag_no_time.csv");
-    let e = imucald::io::sources::read_log(&log, None, &Config::default()).unwrap_err();
+    let e = imucald::io::sources::read_log(&log, None, &Default::default()).unwrap_err();
     let msg = e.to_string();
     assert!(
         msg.contains("--rate-hz") && msg.contains("rate_hz"),
@@ -302,7 +302,8 @@ fn diagnose_uses_the_field_of_the_logs_day() {
     let real = require_data!();
     let cfg = Config::default();
     let log =
-        imucald::io::sources::read_log(&real.join("apm_copter_2013_a.tlog"), None, &cfg).unwrap();
+        imucald::io::sources::read_log(&real.join("apm_copter_2013_a.tlog"), None, &cfg.input)
+            .unwrap();
     let opts = imucald::diagnose::DiagnoseOptions {
         log_where: log.place(),
         ..Default::default()
@@ -334,7 +335,7 @@ fn diagnose_names_the_motor_field_of_a_real_flight() {
         let log = imucald::io::sources::read_log(
             &real.join(format!("apm_copter_2013_{f}.tlog")),
             None,
-            &cfg,
+            &cfg.input,
         )
         .unwrap();
         let opts = imucald::diagnose::DiagnoseOptions {

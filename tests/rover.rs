@@ -164,7 +164,7 @@ fn a_banking_aircraft_without_attitude_or_position_is_not_taken_for_a_rover() {
 fn exports(samples: &[imucald::types::Sample]) -> (String, String, String) {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("log.csv");
-    imucald::sim::write_csv(&log, samples).unwrap();
+    imucald::io::samplelog::write_csv(&log, samples).unwrap();
     let opts = imucald::app::replay::ReplayOptions {
         export_dir: Some(dir.path().join("out")),
         ..Default::default()

@@ -104,7 +104,7 @@ fn vqf_estimates(samples: &[Sample]) -> Option<Vec<UnitQuaternion<f64>>> {
     };
     let dir = tempfile::tempdir().unwrap();
     let (input, output) = (dir.path().join("in.csv"), dir.path().join("out.csv"));
-    imucald::sim::write_csv(&input, samples).unwrap();
+    imucald::io::samplelog::write_csv(&input, samples).unwrap();
     let out = Command::new(py)
         .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/vqf_peer.py"))
         .args([&input, &output])

@@ -12,8 +12,9 @@ mod common;
 
 use imucald::app::replay::{replay, ReplayOptions};
 use imucald::config::Config;
+use imucald::io::samplelog::TLOG_EPOCH_US;
 use imucald::report::CalStatus;
-use imucald::sim::{simulate, Scenario, SimOutput, TLOG_EPOCH_US};
+use imucald::sim::{simulate, Scenario, SimOutput};
 use imucald::types::Sample;
 use mavlink::dialects::ardupilotmega::{self as apm, MavMessage};
 use proptest::prelude::*;
@@ -124,13 +125,16 @@ fn timeline(faults: &[(usize, Fault)], msg0_us: u64, jitter_us: u64, seed: u64) 
 fn write_tlog(path: &Path, recs: &[Rec]) {
     let mut bytes = Vec::new();
     let sim = tumble();
-    let heartbeat = imucald::sim::vehicle_heartbeat();
+    let heartbeat = imucald::io::samplelog::vehicle_heartbeat();
     for (k, r) in recs.iter().enumerate() {
         let mut put = |m: &MavMessage| common::push_tlog_record(&mut bytes, r.record_us, m);
         if k % 100 == 0 {
             put(&heartbeat);
         }
-        put(&imucald::sim::highres_imu(&sim.samples[r.sample], r.msg_us));
+        put(&imucald::io::samplelog::highres_imu(
+            &sim.samples[r.sample],
+            r.msg_us,
+        ));
     }
     std::fs::write(path, bytes).unwrap();
 }
@@ -359,7 +363,7 @@ proptest! {
         prop_assert_eq!(counted as usize, dups);
         // diagnose on the same samples: a report, not a panic.
         let cfg = Config::default();
-        let logd = imucald::io::sources::read_log(&log, None, &cfg).unwrap();
+        let logd = imucald::io::sources::read_log(&log, None, &cfg.input).unwrap();
         let samples: Vec<Sample> = logd.samples;
         let d = imucald::diagnose::diagnose(&samples, &cfg, &imucald::diagnose::DiagnoseOptions::default());
         prop_assert!(serde_json::to_string(&d).is_ok());
@@ -372,7 +376,7 @@ fn streams_written_by_pymavlink_and_joined_by_cat_calibrate() {
     // reboot halfway, and two logs (a day apart) joined with `cat`.
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("tumble.csv");
-    imucald::sim::write_csv(&csv, &tumble().samples).unwrap();
+    imucald::io::samplelog::write_csv(&csv, &tumble().samples).unwrap();
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/tests/interop/pymavlink_tlog.py"

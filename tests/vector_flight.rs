@@ -275,13 +275,13 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
     let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
-    let mut state = imucald::sim::VehicleStateStream::default();
+    let mut state = imucald::io::samplelog::VehicleStateStream::default();
     let mut lines = Vec::new();
     let mut buf = vec![0u8; 65536];
     for (k, s) in sim.samples.iter().enumerate() {
         let boot_us = 10_000_000 + (s.t_s * 1e6).round() as u64;
         let mut msgs = state.messages(s, boot_us);
-        msgs.push(imucald::sim::highres_imu(s, boot_us));
+        msgs.push(imucald::io::samplelog::highres_imu(s, boot_us));
         for m in msgs {
             peer.send_to(&enc.encode(&m), ("127.0.0.1", port))
                 .await
@@ -380,10 +380,10 @@ fn the_field_is_the_one_of_the_day_the_log_was_recorded() {
         });
         let out = simulate(&sc, 3);
         let log = dir.path().join(format!("{date}.tlog"));
-        imucald::sim::write_tlog(
+        imucald::io::samplelog::write_tlog(
             &log,
             &out.samples,
-            &imucald::sim::TlogWriteOptions {
+            &imucald::io::samplelog::TlogWriteOptions {
                 epoch_us,
                 ..Default::default()
             },

@@ -144,7 +144,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         let mut enc_b = MavEncoder::new(sys_b, 1);
         // A is heard first: it takes the configured directory (B, heard first after a restart, is
         // still kept in its own: checked below).
-        let first = imucald::sim::highres_imu(&a.samples[0], 9_990_000);
+        let first = imucald::io::samplelog::highres_imu(&a.samples[0], 9_990_000);
         peer_a
             .send_to(&enc_a.encode(&first), ("127.0.0.1", ports[0]))
             .await

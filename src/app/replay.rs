@@ -361,8 +361,7 @@ fn check_mounting(
         .map(|a| a.and_then(|(_, q)| crate::attitude::body_ned_of_ref_q(q)))
         .collect();
     let field = crate::calib::magmethod::earth_field_of(samples, log.place(), cfg.place.as_ref());
-    crate::calib::mounting::check(
-        mag,
+    mag.check_mounting(
         accel,
         poses,
         &att,
@@ -427,7 +426,7 @@ fn run_pipelines(
     opts: &ReplayOptions,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<Run, Error> {
-    let mut pipe = Pipeline::new(cfg)?;
+    let mut pipe = Pipeline::new(&cfg.calib())?;
     // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
     // the same order as from a whole-file decode, so the result is the same.
@@ -437,7 +436,7 @@ fn run_pipelines(
     let decoded = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
         let decoder = scope.spawn(move || {
-            crate::io::sources::decode_log_batched(bytes, path, opts.format, cfg, &mut |b| {
+            crate::io::sources::decode_log_batched(bytes, path, opts.format, &cfg.input, &mut |b| {
                 // The receiver only goes away on a panic; nothing then to hand on to.
                 let _ = tx.send(b);
             })
@@ -751,7 +750,7 @@ fn other_pipeline<'a>(
         pipes.resize_with(k + 1, || None);
     }
     if pipes[k].is_none() {
-        let mut p = Pipeline::new(cfg).ok()?;
+        let mut p = Pipeline::new(&cfg.calib()).ok()?;
         if let Some(i) = batch.instances.get(k) {
             p.mag_units = i.units.mag;
             p.gyro_units = i.units.gyro;

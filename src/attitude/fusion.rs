@@ -2037,7 +2037,7 @@ mod tests {
             let log = crate::io::sources::read_log(
                 &data.join("broad").join(name),
                 None,
-                &crate::config::Config::default(),
+                &Default::default(),
             )
             .unwrap();
             let mut f = OrientationFilter::new(cfg);
@@ -2066,8 +2066,7 @@ mod tests {
             return;
         };
         let path = data.join("broad/02_undisturbed_slow_rotation_B.csv.gz");
-        let log =
-            crate::io::sources::read_log(&path, None, &crate::config::Config::default()).unwrap();
+        let log = crate::io::sources::read_log(&path, None, &Default::default()).unwrap();
         let cfg = FusionConfig {
             world: WorldFrame::Enu,
             ..FusionConfig::default()

@@ -13,9 +13,9 @@
 use crate::attitude::Place;
 use crate::calib::model::{Calibration, ModelKind};
 use crate::calib::outcome::SensorResult;
+pub use crate::calib::outcome::{FieldUsed, MagMethod, MethodChoice};
 use crate::calib::vector::{VectorFit, VectorPoint, MIN_CURRENT_SD_A};
 use crate::types::{DateSource, GeoPoint, LogWhere, Sample, Vec3};
-use serde::{Deserialize, Serialize};
 
 /// A rotation within the vector fit's soft iron above this is named in the reason, deg.
 pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
@@ -25,69 +25,6 @@ pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
 /// it, deg: too little tilt for the sphere (or the vector fit) to see the body-z axis, and no
 /// banked turns.
 pub const PLANAR_MAX_TILT_P95_DEG: f64 = 15.0;
-
-/// How the magnetometer calibration was made.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum MagMethod {
-    /// From the attitude and the earth field ([`crate::calib::vector`]).
-    Vector,
-    /// From the field's norm (the pipeline's fit).
-    Sphere,
-    /// In the horizontal plane with a heading deviation curve ([`crate::calib::planar`]): a vehicle
-    /// that only turns about the vertical.
-    Planar,
-}
-
-impl MagMethod {
-    /// The name the report uses (`vector`, `sphere`, `planar`).
-    pub fn name(self) -> &'static str {
-        match self {
-            MagMethod::Vector => "vector",
-            MagMethod::Sphere => "sphere",
-            MagMethod::Planar => "planar",
-        }
-    }
-}
-
-/// The method chosen and why (flattened into `calibration.mag`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MethodChoice {
-    pub method: MagMethod,
-    pub method_reason: String,
-    /// The vector fit, when one was made (chosen or not).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub vector: Option<VectorFit>,
-    /// The 2-D fit, when the planar method was chosen.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub planar: Option<crate::calib::planar::PlanarFit>,
-    /// The sphere fit's offset (uT) when it passed but the vector fit was chosen.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sphere_offset: Option<crate::types::Vec3>,
-    /// The earth field the vector and planar fits compare with, where the log was taken.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub earth_field: Option<FieldUsed>,
-}
-
-/// The earth field at the log's place and date, and where both came from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FieldUsed {
-    /// `WMM` or `IGRF-13`.
-    pub model: crate::attitude::FieldModel,
-    /// `YYYY-MM-DD`.
-    pub date: String,
-    /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`, or
-    /// `today` (the log gives no date).
-    pub date_source: String,
-    /// The place (none when the field is fitted).
-    pub latitude_deg: Option<f64>,
-    pub longitude_deg: Option<f64>,
-    /// Where the place came from: the log's position, its GPS, or `[place]`.
-    pub place_source: String,
-    pub total_ut: f64,
-    pub inclination_deg: f64,
-    pub declination_deg: f64,
-}
 
 /// Where the field is evaluated, and where that came from.
 #[derive(Debug, Clone, PartialEq)]
@@ -349,7 +286,7 @@ fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
 }
 
 /// The `model` of a calibration from the planar fit (read back as a full matrix: see
-/// [`crate::report::SensorCalibration::calibration`]).
+/// [`crate::calib::outcome::SensorCalibration::calibration`]).
 pub const PLANAR_MODEL: &str = "planar";
 
 /// The planar fit as the sensor's result, the undetermined z terms at nominal.
@@ -512,14 +449,14 @@ fn install_full12(
     mag: &mut SensorResult,
     offset: Vec3,
     matrix: [[f64; 3]; 3],
-) -> &mut crate::report::SensorCalibration {
+) -> &mut crate::calib::outcome::SensorCalibration {
     mag.calibration = Some(Calibration {
         model: ModelKind::Full12,
         offset,
         matrix,
     });
     let r = &mut mag.report;
-    r.status = crate::report::CalStatus::Ok;
+    r.status = crate::calib::outcome::CalStatus::Ok;
     r.failure = None;
     r.detail = None;
     r.model = ModelKind::Full12.name().into();
@@ -544,7 +481,7 @@ pub const QUALITY_MIN_READINGS: usize = 30;
 /// axes, uT; body -> NED attitude). `None` with fewer than [`QUALITY_MIN_READINGS`].
 pub fn held_out(
     readings: &[(Vec3, nalgebra::UnitQuaternion<f64>)],
-) -> Option<crate::report::HeldOut> {
+) -> Option<crate::calib::outcome::HeldOut> {
     let mut norms = Vec::with_capacity(readings.len());
     let mut dips = Vec::with_capacity(readings.len());
     let (mut east, mut north) = (0.0, 0.0);
@@ -577,7 +514,7 @@ pub fn held_out(
     // Circular standard deviation of the horizontal direction: sqrt(-2 ln R), R the mean
     // resultant length of its unit vectors.
     let r = (north.hypot(east) / norms.len() as f64).clamp(1e-12, 1.0);
-    Some(crate::report::HeldOut {
+    Some(crate::calib::outcome::HeldOut {
         norm_spread_pct: 100.0 * nsd / nm,
         dip_spread_deg: dsd,
         dip_mean_deg: dm,
@@ -605,7 +542,7 @@ pub fn quality(
     onboard: Option<&FieldOf<'_>>,
     log: LogWhere,
     cfg_place: Option<&Place>,
-) -> Option<crate::report::QualityReport> {
+) -> Option<crate::calib::outcome::QualityReport> {
     let t0 = samples.first()?.t_s;
     let (fit_part, held): (Vec<&Sample>, Vec<&Sample>) =
         samples.iter().partition(|s| fitting_block(t0, s.t_s));
@@ -660,7 +597,7 @@ pub fn quality(
     if let (None, Some(f)) = (&ours, &failure) {
         verdict = format!("{verdict} ({f})");
     }
-    Some(crate::report::QualityReport {
+    Some(crate::calib::outcome::QualityReport {
         instance: instance.to_string(),
         block_s: QUALITY_BLOCK_S,
         method: method.into(),
@@ -720,8 +657,8 @@ pub fn quality_points(
 /// The plain answer: is imucald's calibration better than the vehicle's on the held-out blocks?
 /// Better means no worse on both spreads and better on at least one by a tenth.
 fn verdict(
-    ours: Option<&crate::report::HeldOut>,
-    theirs: Option<&crate::report::HeldOut>,
+    ours: Option<&crate::calib::outcome::HeldOut>,
+    theirs: Option<&crate::calib::outcome::HeldOut>,
 ) -> String {
     match (ours, theirs) {
         (Some(a), Some(b)) => {

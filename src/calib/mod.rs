@@ -28,4 +28,5 @@ pub mod outcome;
 pub mod pipeline;
 pub mod planar;
 pub mod sections;
+pub mod settings;
 pub mod vector;

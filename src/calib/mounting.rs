@@ -610,28 +610,22 @@ pub fn detect(
     })
 }
 
-/// The mounting of the compass whose result is `mag`, from the static `poses` (with the attitude
-/// at each where known, `attitudes[k]` body -> NED, and the earth field where known), into
-/// `mag.report.mounting`; a mounting clearly other than `configured` (a MAV_SENSOR_ORIENTATION
-/// name) refuses the calibration (failure `orientation`, the parameter to set for compass
-/// `index` named). The readings are corrected with the calibration's offset and its soft iron
-/// without rotation (so a fitted matrix cannot hide the turn), and turned back into the
-/// compass's axes. Nothing happens without a calibration or with an unknown `configured`.
+/// The mounting of a compass calibrated with `cal`, from the static `poses` (with the attitude
+/// at each where known, `attitudes[k]` body -> NED, and the earth field where known), judged
+/// against `configured` (a MAV_SENSOR_ORIENTATION name). The readings are corrected with the
+/// calibration's offset and its soft iron without rotation (so a fitted matrix cannot hide the
+/// turn), and turned back into the compass's axes. `None` with an unknown `configured` or when
+/// nothing can be scored. What a verdict does to the calibration is
+/// [`crate::calib::outcome::SensorResult::check_mounting`]'s.
 pub fn check(
-    mag: &mut crate::calib::outcome::SensorResult,
+    cal: &crate::calib::model::Calibration,
     accel: Option<&crate::calib::model::Calibration>,
     poses: &[crate::calib::gate::Pose],
     attitudes: &[Option<UnitQuaternion<f64>>],
     field: Option<&EarthField>,
     configured: &str,
-    index: usize,
-) {
-    let Some(cal) = mag.calibration else {
-        return;
-    };
-    let Ok(r_cfg) = crate::attitude::sensor_rotation(configured) else {
-        return;
-    };
+) -> Option<MountingReport> {
+    let r_cfg = crate::attitude::sensor_rotation(configured).ok()?;
     let soft = symmetric_part(&cal.matrix);
     let points: Vec<MountPoint> = poses
         .iter()
@@ -652,17 +646,7 @@ pub fn check(
             })
         })
         .collect();
-    let Some(rep) = detect(&points, field, &r_cfg, configured) else {
-        return;
-    };
-    if let Some(why) = rep.refusal(index) {
-        let r = &mut mag.report;
-        r.status = crate::report::CalStatus::Failed;
-        r.failure = Some(crate::calib::fit::FitFailure::Orientation);
-        r.detail = Some(why);
-        mag.calibration = None;
-    }
-    mag.report.mounting = Some(rep);
+    detect(&points, field, &r_cfg, configured)
 }
 
 /// The symmetric part of a calibration matrix (polar decomposition `M = U P`, `P = sqrt(M^T M)`):

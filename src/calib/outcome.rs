@@ -2,12 +2,17 @@
 //! ([`crate::calib::pipeline`]) makes it, the magnetometer's method choice
 //! ([`crate::calib::magmethod`]) and mounting check ([`crate::calib::mounting`]) rework it.
 //!
+//! Also the report's records of a calibration: [`SensorCalibration`] (status, model, offset,
+//! matrix, figures), the gyro's, the refit history, and the held-out quality of a magnetometer
+//! calibration. The report ([`crate::report`]) holds them.
+//!
 //! Pure data: no fitting here.
 
 use crate::calib::coverage::Coverage;
+use crate::calib::fit::FitFailure;
 use crate::calib::model::Calibration;
-use crate::report::SensorCalibration;
 use crate::types::Vec3;
+use serde::{Deserialize, Serialize};
 
 /// One sensor's outcome.
 #[derive(Debug, Clone)]
@@ -25,4 +30,336 @@ pub struct SensorResult {
     /// Raw points held out of the fit ([`crate::calib::pipeline::hold_out`]): what a new
     /// calibration is judged on against the current one.
     pub held_out: Vec<Vec3>,
+}
+
+impl SensorResult {
+    /// The mounting check ([`crate::calib::mounting::check`]) of this magnetometer result, put in
+    /// `report.mounting`; a mounting clearly other than `configured` refuses the calibration
+    /// (failure `orientation`, the parameter to set for compass `index` named). Nothing happens
+    /// without a calibration or with an unknown `configured`.
+    pub fn check_mounting(
+        &mut self,
+        accel: Option<&Calibration>,
+        poses: &[crate::calib::gate::Pose],
+        attitudes: &[Option<nalgebra::UnitQuaternion<f64>>],
+        field: Option<&crate::attitude::EarthField>,
+        configured: &str,
+        index: usize,
+    ) {
+        let Some(cal) = self.calibration else {
+            return;
+        };
+        let Some(rep) =
+            crate::calib::mounting::check(&cal, accel, poses, attitudes, field, configured)
+        else {
+            return;
+        };
+        if let Some(why) = rep.refusal(index) {
+            self.report.status = CalStatus::Failed;
+            self.report.failure = Some(FitFailure::Orientation);
+            self.report.detail = Some(why);
+            self.calibration = None;
+        }
+        self.report.mounting = Some(rep);
+    }
+}
+
+/// A calibration fitted on alternate blocks of the log and scored on the others: what the field
+/// looks like through it where it was not fitted.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct QualityReport {
+    /// The instance judged.
+    pub instance: String,
+    /// Length of the alternating blocks, s: fitted on the even ones (counted from the log's
+    /// first sample), scored on the odd ones.
+    pub block_s: f64,
+    /// imucald's method on the fitting blocks (`vector`).
+    pub method: String,
+    /// Through imucald's calibration fitted on the even blocks.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imucald: Option<HeldOut>,
+    /// Through the vehicle's own calibration (as the log records it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub onboard: Option<HeldOut>,
+    /// Why imucald's held-out score is missing, when it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imucald_failure: Option<String>,
+    /// The plain answer and the next step.
+    pub verdict: String,
+}
+
+/// The field seen through one calibration on held-out readings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeldOut {
+    /// Standard deviation of the field's norm over its mean, %.
+    pub norm_spread_pct: f64,
+    /// Standard deviation of the field's dip below the horizontal (from the vehicle's attitude), deg.
+    pub dip_spread_deg: f64,
+    /// Mean dip, deg.
+    pub dip_mean_deg: f64,
+    /// Spread of the field's horizontal direction in the vehicle's NED frame (circular standard
+    /// deviation), deg: how far the compass heading wanders against the vehicle's own yaw, a
+    /// constant offset (the declination) aside.
+    #[serde(default)]
+    pub heading_spread_deg: f64,
+    /// Readings scored.
+    pub readings: usize,
+}
+
+/// Whether a calibration passed: "ok" or "failed" in the report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalStatus {
+    Ok,
+    Failed,
+}
+
+impl std::fmt::Display for CalStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl CalStatus {
+    /// The report's name of the status.
+    pub fn name(self) -> &'static str {
+        match self {
+            CalStatus::Ok => "ok",
+            CalStatus::Failed => "failed",
+        }
+    }
+}
+
+/// One sensor's calibration result.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SensorCalibration {
+    pub status: CalStatus,
+    /// Null or the reason ([`FitFailure`]): not_enough_samples, not_identifiable, coverage, radius,
+    /// offsets, diagonal_scaling, residuals, did_not_converge, disturbed, axis_fault, held_out,
+    /// orientation.
+    pub failure: Option<FitFailure>,
+    /// Human-readable detail of the failure.
+    pub detail: Option<String>,
+    pub model: String,
+    /// Units of the calibrated output: "m/s^2", "uT", or "counts" when the input's units are unknown.
+    pub units: String,
+    pub offset: Vec3,
+    /// calibrated = matrix * (raw - offset)
+    pub matrix: [[f64; 3]; 3],
+    /// Field magnitude in calibrated units.
+    pub radius: f64,
+    pub rms_residual: f64,
+    pub offset_sigma: Vec3,
+    pub samples_used: usize,
+    pub iterations: usize,
+    /// Every model tried, for `auto`.
+    pub candidates: Vec<Candidate>,
+    /// Points left out as outliers before the final fit (magnetometer: readings that do not lie on
+    /// the field's ellipsoid, e.g. while a magnet or a motor was near).
+    #[serde(default)]
+    pub outliers_rejected: usize,
+    /// Magnetometer of a replay: `method` ("vector" or "sphere"), `method_reason`, and the vector
+    /// fit (`vector`) when one was made ([`crate::calib::magmethod`]).
+    #[serde(flatten)]
+    pub method: Option<MethodChoice>,
+    /// Magnetometer of a replay: the mounting found from the static poses and the verdict on the
+    /// configured one ([`crate::calib::mounting`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mounting: Option<crate::calib::mounting::MountingReport>,
+}
+
+impl SensorCalibration {
+    /// A result of `status` for `model` in `units` with nothing fitted: no failure, zero offset,
+    /// identity matrix, every figure zero, no candidates. The base a refusal or a made-up result
+    /// fills in.
+    pub fn new(status: CalStatus, model: &str, units: &str) -> SensorCalibration {
+        SensorCalibration {
+            status,
+            failure: None,
+            detail: None,
+            model: model.into(),
+            units: units.into(),
+            offset: [0.0; 3],
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            radius: 0.0,
+            rms_residual: 0.0,
+            offset_sigma: [0.0; 3],
+            samples_used: 0,
+            iterations: 0,
+            candidates: vec![],
+            outliers_rejected: 0,
+            method: None,
+            mounting: None,
+        }
+    }
+
+    /// The calibration to apply when it passed (`status` "ok"); a model name this build does not
+    /// know reads as the general one (full12), which applies the stored matrix as it is.
+    pub fn calibration(&self) -> Option<crate::calib::model::Calibration> {
+        use crate::calib::model::ModelKind;
+        (self.status == CalStatus::Ok).then(|| crate::calib::model::Calibration {
+            model: ModelKind::parse(&self.model).unwrap_or(ModelKind::Full12),
+            offset: self.offset,
+            matrix: self.matrix,
+        })
+    }
+
+    /// [`SensorCalibration::calibration`] of a magnetometer in uT (what flight-stack parameters
+    /// can hold).
+    pub fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
+        self.calibration().filter(|_| self.units == "uT")
+    }
+
+    /// What the data did not determine of this calibration (a planar fit's z offset and z soft
+    /// iron, held at nominal): never exported.
+    pub fn unknowns(&self) -> crate::calib::export::Unknowns {
+        use crate::calib::planar::Undetermined;
+        let mut u = crate::calib::export::Unknowns::default();
+        if let Some(p) = self.method.as_ref().and_then(|m| m.planar.as_ref()) {
+            for d in &p.undetermined {
+                match d {
+                    Undetermined::OffsetZ => u.offset[2] = true,
+                    Undetermined::SoftIronZ => u.axis[2] = true,
+                    Undetermined::FieldVertical | Undetermined::HeadingDeviation => {}
+                }
+            }
+            if u.any() {
+                u.why = "turns about the vertical only: the body-z axis never sees the field from another side".into();
+            }
+        }
+        u
+    }
+
+    /// The field per ampere of battery current (uT/A, raw body axes) of a vector calibration in
+    /// use whose data determined it: what the motor-compensation parameters export.
+    pub fn motor_ut_per_a(&self) -> Option<Vec3> {
+        let m = self.method.as_ref()?;
+        let v = m.vector.as_ref()?;
+        (m.method == MagMethod::Vector
+            && self.calibration_ut().is_some()
+            && v.current_identifiable == Some(true))
+        .then_some(v.current_ut_per_a)?
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Candidate {
+    pub model: String,
+    pub rms_residual: f64,
+    pub params: usize,
+    pub chosen: bool,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GyroCalibration {
+    pub status: CalStatus,
+    /// Null or not_enough_samples.
+    pub failure: Option<FitFailure>,
+    pub units: String,
+    /// Bias = mean gyro over the static poses, rad/s.
+    pub bias: Vec3,
+    pub bias_sigma: Vec3,
+    pub poses_used: usize,
+    /// Steady poses left out of the bias because they turned faster than
+    /// [`crate::calib::gate::REST_MAX_RATE_DEG_S`] (a steady turn is not rest).
+    #[serde(default)]
+    pub poses_turning: usize,
+    /// Scale and misalignment from the rotations between static poses (replay only: it needs the
+    /// whole log), present only when its held-out check passed. `None` when not attempted or
+    /// refused; a refusal is in `scale_failure`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale: Option<GyroScaleReport>,
+    /// Why no scale is published: `failure` (not_enough_samples, not_identifiable, held_out,
+    /// needs_calibration), `detail`, and `held_out` figures when that check was made.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale_failure: Option<crate::calib::gyro::ScaleFailure>,
+}
+
+/// The 12-parameter gyro calibration `omega_rad_s = matrix (raw - bias)` and how well it carries the
+/// gravity direction from one static pose to the next.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GyroScaleReport {
+    /// Row-major scale/misalignment matrix (rad/s per input unit).
+    pub matrix: [[f64; 3]; 3],
+    /// Rotations between poses used.
+    pub segments: usize,
+    /// RMS gravity-direction error over those rotations, bias-only model then fitted, degrees.
+    pub rms_before_deg: f64,
+    pub rms_after_deg: f64,
+    /// The same on every other rotation, left out of a second fit (the check the scale passed).
+    pub held_out: Option<crate::calib::gyro::HeldOut>,
+    pub conditioning: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RefitReport {
+    pub t_s: f64,
+    pub sensor: String,
+    pub model: String,
+    pub status: CalStatus,
+    pub failure: Option<FitFailure>,
+    pub rms_residual: f64,
+}
+
+/// How the magnetometer calibration was made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MagMethod {
+    /// From the attitude and the earth field ([`crate::calib::vector`]).
+    Vector,
+    /// From the field's norm (the pipeline's fit).
+    Sphere,
+    /// In the horizontal plane with a heading deviation curve ([`crate::calib::planar`]): a vehicle
+    /// that only turns about the vertical.
+    Planar,
+}
+
+impl MagMethod {
+    /// The name the report uses (`vector`, `sphere`, `planar`).
+    pub fn name(self) -> &'static str {
+        match self {
+            MagMethod::Vector => "vector",
+            MagMethod::Sphere => "sphere",
+            MagMethod::Planar => "planar",
+        }
+    }
+}
+
+/// The method chosen and why (flattened into `calibration.mag`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MethodChoice {
+    pub method: MagMethod,
+    pub method_reason: String,
+    /// The vector fit, when one was made (chosen or not).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vector: Option<crate::calib::vector::VectorFit>,
+    /// The 2-D fit, when the planar method was chosen.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub planar: Option<crate::calib::planar::PlanarFit>,
+    /// The sphere fit's offset (uT) when it passed but the vector fit was chosen.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sphere_offset: Option<crate::types::Vec3>,
+    /// The earth field the vector and planar fits compare with, where the log was taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub earth_field: Option<FieldUsed>,
+}
+
+/// The earth field at the log's place and date, and where both came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FieldUsed {
+    /// `WMM` or `IGRF-13`.
+    pub model: crate::attitude::FieldModel,
+    /// `YYYY-MM-DD`.
+    pub date: String,
+    /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`, or
+    /// `today` (the log gives no date).
+    pub date_source: String,
+    /// The place (none when the field is fitted).
+    pub latitude_deg: Option<f64>,
+    pub longitude_deg: Option<f64>,
+    /// Where the place came from: the log's position, its GPS, or `[place]`.
+    pub place_source: String,
+    pub total_ut: f64,
+    pub inclination_deg: f64,
+    pub declination_deg: f64,
 }

@@ -12,8 +12,12 @@ use crate::calib::fit::{
 };
 use crate::calib::gate::{Pose, Prefilter3, StaticDetector};
 use crate::calib::model::{Calibration, ModelKind};
-use crate::config::{AccelUnits, AcceptLimits, Config, MagModelChoice, ModelChoice};
-use crate::report::{CalStatus, Candidate, GyroCalibration, RefitReport, SensorCalibration};
+use crate::calib::outcome::{
+    CalStatus, Candidate, GyroCalibration, RefitReport, SensorCalibration,
+};
+use crate::calib::settings::{
+    AccelUnits, AcceptLimits, CalibSettings, MagModelChoice, ModelChoice,
+};
 use crate::types::{norm, Sample, Unit, Vec3};
 use nalgebra::Matrix3;
 
@@ -83,7 +87,7 @@ pub struct FitResults {
 /// The streaming pipeline state.
 #[derive(Debug, Clone)]
 pub struct Pipeline {
-    cfg: Config,
+    cfg: CalibSettings,
     rot: Matrix3<f64>,
     pre_a: Option<Prefilter3>,
     pre_m: Option<Prefilter3>,
@@ -120,8 +124,8 @@ pub struct Pipeline {
 const MAG_BUFFER_MAX: usize = 4000;
 
 impl Pipeline {
-    pub fn new(cfg: &Config) -> Result<Self, crate::error::Error> {
-        let rot = crate::attitude::sensor_rotation(&cfg.orientation.sensor).map_err(|m| {
+    pub fn new(cfg: &CalibSettings) -> Result<Self, crate::error::Error> {
+        let rot = crate::attitude::sensor_rotation(&cfg.sensor_orientation).map_err(|m| {
             crate::error::Error::Config {
                 key: "orientation.sensor".into(),
                 message: m,
@@ -164,7 +168,8 @@ impl Pipeline {
         self
     }
 
-    pub fn config(&self) -> &Config {
+    /// The settings it runs with.
+    pub fn settings(&self) -> &CalibSettings {
         &self.cfg
     }
 
@@ -299,7 +304,7 @@ impl Pipeline {
             poses,
             mag_units: self.mag_units,
             gyro_units: self.gyro_units,
-            accel_units: self.cfg.input.accel_units,
+            accel_units: self.cfg.accel_units,
             hold_out_every: self.hold_out_every,
             mag_noise: self.mag_noise.sigma(),
         }
@@ -1326,7 +1331,7 @@ pub fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) {
 }
 
 /// All fits from a snapshot. Pure; may run on any thread.
-pub fn fit_all(input: &FitInput, cfg: &Config) -> FitResults {
+pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
     let au = accel_units(&input.poses, input.accel_units);
     let mag_full12 = cfg.fit.mag_model == MagModelChoice::Full12;
     let (mag_fit, mag_held) = hold_out(&input.mag_points, input.hold_out_every);
@@ -1633,10 +1638,10 @@ mod tests {
 
     #[test]
     fn refit_history_is_bounded_and_the_newest_kept() {
-        let mut p = Pipeline::new(&Config::default()).unwrap();
+        let mut p = Pipeline::new(&CalibSettings::default()).unwrap();
         for i in 0..2000 {
             let r = p.snapshot();
-            let res = fit_all(&r, &Config::default());
+            let res = fit_all(&r, &CalibSettings::default());
             p.install(i as f64, res);
             assert!(p.refits.len() <= MAX_REFIT_HISTORY + MAX_REFIT_HISTORY / 4);
         }
@@ -1670,8 +1675,8 @@ mod tests {
                 })
                 .collect()
         };
-        let limits = Config::default().accept.mag;
-        let spread = Config::default().fit.centre_min_spread_radii;
+        let limits = CalibSettings::default().accept.mag;
+        let spread = CalibSettings::default().fit.centre_min_spread_radii;
         // A still sensor: noise about one reading (an algebraic sphere through the noise is small).
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
@@ -1704,7 +1709,7 @@ mod tests {
 
     #[test]
     fn poses_are_bounded_and_the_newest_kept() {
-        let mut p = Pipeline::new(&Config::default()).unwrap();
+        let mut p = Pipeline::new(&CalibSettings::default()).unwrap();
         for i in 0..(MAX_POSES + 500) {
             p.add_pose(Pose {
                 t_start: i as f64,

@@ -326,7 +326,7 @@ pub(super) fn prepare(
 ) -> Result<Prepared, String> {
     let mut cfg2 = cfg.clone();
     cfg2.fit.mag_model = base.into();
-    let mut pipe = Pipeline::new(&cfg2).map_err(|e| format!("configuration: {e}"))?;
+    let mut pipe = Pipeline::new(&cfg2.calib()).map_err(|e| format!("configuration: {e}"))?;
     let mut sorted: Vec<Sample> = samples
         .iter()
         .filter(|s| s.t_s.is_finite())

@@ -274,8 +274,8 @@ pub(super) fn generate(case: Case, seed: u64) -> Blind {
     ));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("blind.csv");
-    crate::sim::write_csv(&path, &samples).unwrap();
-    let log = crate::io::sources::read_log(&path, None, &Config::default()).unwrap();
+    crate::io::samplelog::write_csv(&path, &samples).unwrap();
+    let log = crate::io::sources::read_log(&path, None, &Default::default()).unwrap();
     let _ = std::fs::remove_dir_all(&dir);
     assert_eq!(log.samples.len(), samples.len());
     Blind {
@@ -408,7 +408,7 @@ fn explore() {
 fn tyrex(set: &str) -> Option<Vec<Sample>> {
     let data = crate::testdata::shared_data()?;
     let path = data.join(format!("tyrex/{set}.csv.gz"));
-    let log = crate::io::sources::read_log(&path, None, &Config::default())
+    let log = crate::io::sources::read_log(&path, None, &Default::default())
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     Some(log.samples)
 }

@@ -13,7 +13,7 @@
 //! values known at its own time (a calibration run on the vehicle mid-log applies from then on).
 //! SENSOR_OFFSETS (compass 0's offsets) stands in where the parameters never arrived. Pure.
 
-use crate::report::OnboardCal;
+use crate::io::onboard::OnboardCal;
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::MavMessage;
 use nalgebra::{Matrix3, Vector3};

@@ -610,7 +610,7 @@ impl MessageConverter {
 
     /// An ArduPilot vehicle's onboard magnetometer calibration as its telemetry gave it, and what
     /// was undone (`None` for other vehicles or without the undo).
-    pub fn ardupilot_onboard(&self) -> Option<crate::report::OnboardReport> {
+    pub fn ardupilot_onboard(&self) -> Option<crate::io::onboard::OnboardReport> {
         if self.autopilot != Autopilot::ArduPilot || self.ardupilot_mag != ArduPilotMag::Undo {
             return None;
         }
@@ -620,7 +620,7 @@ impl MessageConverter {
             .map(|t| (t.instance.compass_id(), t.name.clone()))
             .collect();
         let (undone, not_undone) = self.ardupilot.describe(&sources);
-        Some(crate::report::OnboardReport {
+        Some(crate::io::onboard::OnboardReport {
             stack: "ardupilot".into(),
             mag: self.ardupilot.onboard_cals(&sources),
             undone,

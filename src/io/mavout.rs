@@ -53,7 +53,7 @@
 
 use crate::calib::fit::FitFailure;
 use crate::calib::model::{Calibration, ModelKind};
-use crate::report::{CalStatus, SensorCalibration};
+use crate::calib::outcome::{CalStatus, SensorCalibration};
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
     MagCalStatus, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavParamType, MavResult,

@@ -17,5 +17,7 @@ pub mod flightlog;
 pub mod link;
 pub mod mavout;
 pub mod mocap;
+pub mod onboard;
 pub mod publish;
+pub mod samplelog;
 pub mod sources;

@@ -1,13 +1,14 @@
 //! Sources: the only layer that knows where bytes come from. For now, files (`file:` addresses and
 //! plain paths) decoded whole; live transports build on the same decoders.
 
-use crate::config::{AccelUnits, Config};
+use crate::calib::settings::AccelUnits;
 use crate::error::Error;
 use crate::io::decode::{
-    decode_csv, decode_tlog_with, detect_format, maybe_gunzip, DecodeStats, Format, InstanceChoice,
-    InstanceInfo, MessageConverter,
+    decode_csv, decode_tlog_with, detect_format, maybe_gunzip, CsvMapping, DecodeStats, Format,
+    InstanceChoice, InstanceInfo, MessageConverter, RawImuScale,
 };
 use crate::types::{Sample, Unit, Units};
+use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// A decoded log.
@@ -25,7 +26,7 @@ pub struct Log {
     pub flight: Option<crate::io::flightlog::FlightLog>,
     /// A MAVLink log of an ArduPilot vehicle: its onboard magnetometer calibration as the
     /// telemetry gave it, and what was undone.
-    pub telemetry_onboard: Option<crate::report::OnboardReport>,
+    pub telemetry_onboard: Option<crate::io::onboard::OnboardReport>,
     /// The day the log was recorded, when it says (GPS time, or a `.tlog`'s record clock).
     pub date: Option<crate::types::LogDate>,
 }
@@ -40,7 +41,7 @@ impl Log {
     }
 
     /// The onboard calibration the log records (flight-controller logs, ArduPilot telemetry).
-    pub fn onboard(&self) -> Option<&crate::report::OnboardReport> {
+    pub fn onboard(&self) -> Option<&crate::io::onboard::OnboardReport> {
         match &self.flight {
             Some(f) => Some(&f.onboard),
             None => self.telemetry_onboard.as_ref(),
@@ -52,8 +53,68 @@ impl Log {
 /// its flight stack (which fixes RAW_IMU's units) is known from the first sample on.
 const HEARTBEAT_SCAN_RECORDS: usize = 4096;
 
+/// `[input]`: how logs are read: format, instance, units.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct InputConfig {
+    /// "auto" (from content), "tlog", "csv", "bin" (ArduPilot DataFlash) or "ulg" (PX4 ULog). Default: "auto".
+    pub format: InputFormat,
+    /// IMU instance in MAVLink logs: "auto" (default: every instance, each calibrated on its own in
+    /// `replay`, the first with a magnetometer primary; the live service takes the primary), or one
+    /// instance only: "highres_imu:0", "scaled_imu", "scaled_imu2", "scaled_imu3", "raw_imu:0".
+    /// Default: "auto".
+    pub instance: InstanceChoice,
+    /// Scales for RAW_IMU counts (0 = keep counts and let the fit scale them). Default: all 0.
+    pub raw_imu_scale: RawImuScale,
+    /// Column mapping and unit scales for users' own CSV files. Default: imucald's own column
+    /// names (`t,ax,ay,az,gx,gy,gz,mx,my,mz,...`) in SI units.
+    pub csv: CsvMapping,
+    /// Accelerometer units: "auto" (m/s^2 when the static norm is near g, else counts), "si", "counts".
+    /// Default: "auto".
+    pub accel_units: AccelUnits,
+}
+
+/// `input.format`: how the format of a log is found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InputFormat {
+    /// From the file's content.
+    Auto,
+    Tlog,
+    Csv,
+    /// ArduPilot DataFlash log.
+    Bin,
+    /// PX4 ULog.
+    Ulg,
+}
+
+impl InputFormat {
+    /// The format asked for; `None` for "auto".
+    pub fn format(self) -> Option<Format> {
+        match self {
+            InputFormat::Auto => None,
+            InputFormat::Tlog => Some(Format::Tlog),
+            InputFormat::Csv => Some(Format::Csv),
+            InputFormat::Bin => Some(Format::Bin),
+            InputFormat::Ulg => Some(Format::Ulg),
+        }
+    }
+}
+
+impl Default for InputConfig {
+    fn default() -> Self {
+        InputConfig {
+            format: InputFormat::Auto,
+            instance: InstanceChoice::Auto,
+            raw_imu_scale: RawImuScale::default(),
+            csv: CsvMapping::default(),
+            accel_units: AccelUnits::Auto,
+        }
+    }
+}
+
 /// Read and decode a log file (`.tlog`, `.csv`, `.csv.gz`). `format` overrides detection.
-pub fn read_log(path: &Path, format: Option<Format>, cfg: &Config) -> Result<Log, Error> {
+pub fn read_log(path: &Path, format: Option<Format>, cfg: &InputConfig) -> Result<Log, Error> {
     let bytes = std::fs::read(path).map_err(|source| Error::Read {
         path: path.to_path_buf(),
         source,
@@ -67,7 +128,7 @@ pub fn decode_log(
     bytes: &[u8],
     path: &Path,
     format: Option<Format>,
-    cfg: &Config,
+    cfg: &InputConfig,
 ) -> Result<Log, Error> {
     let mut samples = Vec::new();
     let mut log = decode_log_batched(bytes, path, format, cfg, &mut |batch| {
@@ -153,7 +214,7 @@ pub fn decode_log_batched(
     bytes: &[u8],
     path: &Path,
     format: Option<Format>,
-    cfg: &Config,
+    cfg: &InputConfig,
     sink: &mut dyn FnMut(Batch),
 ) -> Result<Log, Error> {
     let data = maybe_gunzip(bytes).map_err(|e| Error::Format {
@@ -166,7 +227,7 @@ pub fn decode_log_batched(
             message: "the file is empty (0 bytes): was the log still being written, or copied before it was closed?".into(),
         });
     }
-    let cfg_format = cfg.input.format.format();
+    let cfg_format = cfg.format.format();
     let chosen = format.or(cfg_format);
     if chosen.is_none() && detect_format(&data) == Some(Format::Csv) {
         // A binary log's name on a text file: say so rather than read it as CSV unasked.
@@ -194,8 +255,8 @@ pub fn decode_log_batched(
     };
     match format {
         Format::Tlog => {
-            let choice = cfg.input.instance.clone();
-            let mut conv = MessageConverter::new(choice, cfg.input.raw_imu_scale)
+            let choice = cfg.instance.clone();
+            let mut conv = MessageConverter::new(choice, cfg.raw_imu_scale)
                 .with_ardupilot_mag(crate::io::decode::ArduPilotMag::Undo);
             if conv.choice == InstanceChoice::Auto {
                 conv = conv.with_other_instances();
@@ -257,11 +318,11 @@ pub fn decode_log_batched(
             let text = String::from_utf8_lossy(&data);
             let mut stats = DecodeStats::default();
             let samples =
-                decode_csv(&text, &cfg.input.csv, &mut stats).map_err(|message| Error::Format {
+                decode_csv(&text, &cfg.csv, &mut stats).map_err(|message| Error::Format {
                     path: path.to_path_buf(),
                     message,
                 })?;
-            let accel_units = match cfg.input.accel_units {
+            let accel_units = match cfg.accel_units {
                 AccelUnits::Counts => Unit::Counts,
                 AccelUnits::Auto | AccelUnits::Si => Unit::Si,
             };

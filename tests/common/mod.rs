@@ -107,16 +107,16 @@ pub fn replay_log(path: &Path, cfg: &Config) -> ReplayOutcome {
 pub fn replay_samples(samples: &[Sample], cfg: &Config) -> ReplayOutcome {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("log.csv");
-    imucald::sim::write_csv(&log, samples).unwrap();
+    imucald::io::samplelog::write_csv(&log, samples).unwrap();
     replay_log(&log, cfg)
 }
 
 /// HIGHRES_IMU for a simulated sample, stamped with its time since a boot
-/// [`imucald::sim::TLOG_BOOT_OFFSET_US`] before the simulation's start (as the `.tlog` writer does).
+/// [`imucald::io::samplelog::TLOG_BOOT_OFFSET_US`] before the simulation's start (as the `.tlog` writer does).
 pub fn highres_imu_at(s: &Sample) -> mavlink::dialects::ardupilotmega::MavMessage {
-    imucald::sim::highres_imu(
+    imucald::io::samplelog::highres_imu(
         s,
-        imucald::sim::TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64,
+        imucald::io::samplelog::TLOG_BOOT_OFFSET_US + (s.t_s * 1e6).round() as u64,
     )
 }
 
@@ -260,7 +260,7 @@ pub fn run_on_file(
 /// 5 Hz), through a CSV beside it.
 pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> PathBuf {
     let csv = dir.join("flight.csv");
-    imucald::sim::write_csv(&csv, samples).unwrap();
+    imucald::io::samplelog::write_csv(&csv, samples).unwrap();
     let tlog = dir.join("flight.tlog");
     let st = Command::new(python_with("pymavlink"))
         .arg(concat!(

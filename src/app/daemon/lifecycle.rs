@@ -262,7 +262,7 @@ impl State {
     /// flight is disregarded (it saw the old data); the calibration in use stays.
     pub(super) async fn restart_mag_run(&mut self, c: usize, i: usize) {
         let t = &mut self.cals[c].tracks[i];
-        match Pipeline::new(&self.cfg) {
+        match Pipeline::new(&self.cfg.calib()) {
             Ok(p) => {
                 let (mag_units, gyro_units) = (t.pipe.mag_units, t.pipe.gyro_units);
                 t.pipe = p.with_hold_out(HOLD_OUT_EVERY);
@@ -537,11 +537,10 @@ fn fit_track(
     cfg: &Config,
     compass: Option<usize>,
 ) -> FitResults {
-    let mut r = fit_all(input, cfg);
+    let mut r = fit_all(input, &cfg.calib());
     if let Some(index) = compass {
         let accel = r.accel.calibration;
-        crate::calib::mounting::check(
-            &mut r.mag,
+        r.mag.check_mounting(
             accel.as_ref(),
             &input.poses,
             &[],

@@ -179,7 +179,7 @@ impl Track {
             instance,
             name,
             compass_id,
-            pipe: Pipeline::new(cfg)?.with_hold_out(HOLD_OUT_EVERY),
+            pipe: Pipeline::new(&cfg.calib())?.with_hold_out(HOLD_OUT_EVERY),
             mag_samples: 0,
             generation: 0,
             progress: Progress::new(cfg.daemon.progress_full_regions),
@@ -439,13 +439,15 @@ mod tests {
     fn daemon_replaces_a_calibration_only_when_better_on_points_held_out_of_the_fit() {
         let sim = crate::sim::simulate(&crate::sim::Scenario::named("tumble").unwrap(), 5);
         let cfg = Config::default();
-        let mut pipe = Pipeline::new(&cfg).unwrap().with_hold_out(HOLD_OUT_EVERY);
+        let mut pipe = Pipeline::new(&cfg.calib())
+            .unwrap()
+            .with_hold_out(HOLD_OUT_EVERY);
         for s in &sim.samples {
             pipe.push(s);
         }
         pipe.finish_poses();
         let input = pipe.snapshot();
-        let r = fit_all(&input, &cfg);
+        let r = fit_all(&input, &cfg.calib());
         let n = input.mag_points.len();
         // Every 5th kept point held out, the fit made on the rest.
         assert_eq!(r.mag.held_out.len(), n.div_ceil(HOLD_OUT_EVERY));

@@ -35,7 +35,7 @@ pub mod write;
 
 use crate::io::clock::{ClockSettings, SourceClock};
 use crate::io::decode::{DecodeStats, InstanceInfo, MAX_INSTANCES};
-use crate::report::{OnboardCal, OnboardReport, SensorStream};
+use crate::io::onboard::{OnboardCal, OnboardReport, SensorStream};
 use crate::types::{Sample, Sensor, Unit, Units, Vec3};
 use nalgebra::{Matrix3, Vector3};
 use std::collections::BTreeMap;
