@@ -54,8 +54,8 @@ pub struct SourceConfig {
     pub address: String,
     /// What the bytes are: "mavlink", "motioncal" (`Raw:` lines), "csv" (lines of `fields`).
     /// Default: "mavlink".
-    #[serde(default = "default_payload")]
-    pub payload: String,
+    #[serde(default)]
+    pub payload: PayloadKind,
     /// For "csv": field names in column order (t, ax, ay, az, gx, gy, gz, mx, my, mz, temp, ...).
     /// Default: none.
     #[serde(default)]
@@ -65,8 +65,17 @@ pub struct SourceConfig {
     pub scales: std::collections::BTreeMap<String, f64>,
 }
 
-fn default_payload() -> String {
-    "mavlink".into()
+/// `daemon.sources[].payload`: what a source's bytes are.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PayloadKind {
+    /// MAVLink frames (v1 or v2).
+    #[default]
+    Mavlink,
+    /// MotionCal's `Raw:` text lines.
+    Motioncal,
+    /// Text lines of comma-separated numbers in the order `fields` names.
+    Csv,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -379,9 +388,17 @@ impl Config {
         }
     }
 
-    /// Declination (deg, east positive) of the configured place, or `None` without a place.
+    /// The configured place, dated today (by this computer's clock) when `[place]` gives no date:
+    /// the live service's field.
+    pub fn place_today(&self) -> Option<Place> {
+        let today = crate::io::clock::today().iso();
+        self.place.as_ref().map(|p| p.dated(&today))
+    }
+
+    /// Declination (deg, east positive) of the configured place (today, when it gives no date), or
+    /// `None` without a place.
     pub fn declination_deg(&self) -> Result<Option<f64>, Error> {
-        match &self.place {
+        match &self.place_today() {
             Some(p) => Ok(Some(
                 crate::attitude::earth_field(p)
                     .map_err(|m| err("place", m))?
@@ -398,7 +415,7 @@ impl Config {
         self.validate_ui()?;
         crate::attitude::sensor_rotation(&self.orientation.sensor)
             .map_err(|m| err("orientation.sensor", m))?;
-        if let Some(p) = &self.place {
+        if let Some(p) = &self.place_today() {
             crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
         }
         Ok(())
@@ -487,13 +504,7 @@ impl Config {
         for (i, src) in d.sources.iter().enumerate() {
             crate::io::link::Address::parse(&src.address)
                 .map_err(|e| err(&format!("daemon.sources[{i}].address"), e.to_string()))?;
-            if !["mavlink", "motioncal", "csv"].contains(&src.payload.as_str()) {
-                return Err(err(
-                    &format!("daemon.sources[{i}].payload"),
-                    format!("`{}` is not mavlink, motioncal or csv", src.payload),
-                ));
-            }
-            if src.payload == "csv" && src.fields.is_empty() {
+            if src.payload == PayloadKind::Csv && src.fields.is_empty() {
                 return Err(err(&format!("daemon.sources[{i}].fields"), "a csv source needs its column order, e.g. fields = [\"ax\", \"ay\", \"az\", \"mx\", \"my\", \"mz\"]"));
             }
         }

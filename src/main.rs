@@ -447,7 +447,7 @@ fn run_cmd(args: RunArgs) -> Result<()> {
             .into_iter()
             .map(|address| imucald::config::SourceConfig {
                 address,
-                payload: "mavlink".into(),
+                payload: imucald::config::PayloadKind::Mavlink,
                 fields: vec![],
                 scales: Default::default(),
             })

@@ -54,7 +54,10 @@ pub fn level_highres_imu(
 /// A passing magnetometer calibration of `model` with hard iron `offset_ut`, no soft iron, and
 /// plausible figures (radius 50 uT, RMS residual 0.1 uT, offset sigma 0.01 uT, 500 samples, 5
 /// iterations).
-pub fn passing_mag_calibration(model: &str, offset_ut: Vec3) -> SensorCalibration {
+pub fn passing_mag_calibration(
+    model: crate::calib::model::CalModel,
+    offset_ut: Vec3,
+) -> SensorCalibration {
     SensorCalibration {
         offset: offset_ut,
         radius: 50.0,
@@ -62,7 +65,7 @@ pub fn passing_mag_calibration(model: &str, offset_ut: Vec3) -> SensorCalibratio
         offset_sigma: [0.01; 3],
         samples_used: 500,
         iterations: 5,
-        ..SensorCalibration::new(CalStatus::Ok, model, "uT")
+        ..SensorCalibration::new(CalStatus::Ok, model, crate::types::CalUnits::Ut)
     }
 }
 

@@ -44,6 +44,10 @@ pub struct GeoPoint {
     pub alt_m: f64,
 }
 
+/// Unix time of the simulator's `t_s = 0`, us (2023-11-14 22:13:20 UTC): the record clock of the
+/// `.tlog`s it writes and the day of its earth field when a scenario's place gives no date.
+pub const SIM_EPOCH_US: u64 = 1_700_000_000_000_000;
+
 /// The day a log was recorded, and what says so.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LogDate {
@@ -62,6 +66,11 @@ pub enum DateSource {
     /// The GPS receiver's time (DataFlash `GPS` week and milliseconds, ULog `time_utc_usec`,
     /// MAVLink SYSTEM_TIME).
     GpsTime,
+    /// The day the program ran (`io::clock::today`): the log gives no date.
+    Today,
+    /// The simulator's fixed day ([`crate::types::SIM_EPOCH_US`]), so a simulation gives the same
+    /// field in any year.
+    Simulated,
 }
 
 impl LogDate {
@@ -121,6 +130,49 @@ pub enum Unit {
     Si,
     /// Raw counts with unknown scale: the fit scales them.
     Counts,
+}
+
+/// The units a calibration's output is in: what `calibration.*.units` says in the report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum CalUnits {
+    /// Microtesla: a magnetometer in physical units.
+    #[serde(rename = "uT")]
+    Ut,
+    /// m/s^2: an accelerometer in physical units.
+    #[serde(rename = "m/s^2")]
+    Mps2,
+    /// rad/s: a gyroscope in physical units.
+    #[serde(rename = "rad/s")]
+    RadS,
+    /// Raw counts with unknown scale (the input's units are unknown).
+    #[serde(rename = "counts")]
+    Counts,
+}
+
+impl CalUnits {
+    /// The name the report and the messages use.
+    pub fn name(self) -> &'static str {
+        match self {
+            CalUnits::Ut => "uT",
+            CalUnits::Mps2 => "m/s^2",
+            CalUnits::RadS => "rad/s",
+            CalUnits::Counts => "counts",
+        }
+    }
+
+    /// `physical` for a stream in physical units, else counts.
+    pub fn of(unit: Unit, physical: CalUnits) -> CalUnits {
+        match unit {
+            Unit::Si => physical,
+            Unit::Counts => CalUnits::Counts,
+        }
+    }
+}
+
+impl std::fmt::Display for CalUnits {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 /// Units of each sensor stream of an input.

@@ -171,7 +171,7 @@ fn dataflash_report_lists_three_compasses_and_their_onboard_offsets() {
         .input
         .sensors
         .iter()
-        .map(|s| (s.sensor.clone(), s.instance, s.source.clone(), s.samples))
+        .map(|s| (s.sensor.name().to_string(), s.instance, s.source.clone(), s.samples))
         .collect();
     let want = [
         ("mag", 0, "MAG", 8),
@@ -444,7 +444,7 @@ fn ulog_auav_reports_its_onboard_calibration() {
         .input
         .sensors
         .iter()
-        .map(|s| (s.sensor.as_str(), s.source.as_str(), s.samples))
+        .map(|s| (s.sensor.name(), s.source.as_str(), s.samples))
         .collect();
     assert_eq!(
         s,

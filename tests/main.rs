@@ -119,8 +119,11 @@ mod real_data {
         assert!(poses >= 34, "{poses} static poses");
         assert_eq!(a.status, CalStatus::Ok, "{:?}", a.detail);
         assert!(a.rms_residual < 0.003, "{}", a.rms_residual);
-        assert_eq!(a.units, "m/s^2");
-        assert_eq!(out.report.calibration.gyro.units, "counts");
+        assert_eq!(a.units, imucald::types::CalUnits::Mps2);
+        assert_eq!(
+            out.report.calibration.gyro.units,
+            imucald::types::CalUnits::Counts
+        );
         // The gyro calibration (bias from the poses, scale and misalignment from the
         // rotations between them) carries the gravity direction from pose to pose better than the
         // bias with the best single scale, also on rotations it was not fitted on.
@@ -352,7 +355,7 @@ mod fixtures {
             (&r.calibration.accel, &truth.accel),
         ] {
             assert_eq!(fit.status, CalStatus::Ok);
-            assert_eq!(fit.model, "sym9");
+            assert_eq!(fit.model, imucald::calib::model::CalModel::Sym9);
             for k in 0..3 {
                 assert!(
                     (fit.offset[k] - t.offset[k]).abs() < 4.0 * fit.offset_sigma[k] + 1e-3,
@@ -676,8 +679,8 @@ mod full12 {
         let out = replay_log(&p, &cfg);
         let m = &out.report.calibration.mag;
         assert_eq!(
-            (m.status, m.model.as_str()),
-            (CalStatus::Ok, "full12"),
+            (m.status, m.model),
+            (CalStatus::Ok, imucald::calib::model::CalModel::Full12),
             "{:?}",
             m.detail
         );
@@ -1284,7 +1287,7 @@ mod live_serial {
         let mut cfg = Config::default();
         cfg.daemon.sources = vec![imucald::config::SourceConfig {
             address: format!("serial:{}:115200", link.display()),
-            payload: "motioncal".into(),
+            payload: imucald::config::PayloadKind::Motioncal,
             fields: vec![],
             scales: Default::default(),
         }];
@@ -1927,13 +1930,13 @@ mod live_attitude {
     use rand_distr::Distribution;
     use std::time::Duration;
 
-    fn stored(t: &SensorTruth, units: &str, radius: f64) -> SensorCalibration {
+    fn stored(t: &SensorTruth, units: imucald::types::CalUnits, radius: f64) -> SensorCalibration {
         SensorCalibration {
             status: CalStatus::Ok,
             failure: None,
             detail: None,
-            model: "sym9".into(),
-            units: units.into(),
+            model: imucald::calib::model::CalModel::Sym9,
+            units,
             offset: t.offset,
             matrix: t.matrix,
             radius,
@@ -2027,12 +2030,16 @@ mod live_attitude {
             instances: vec![],
             filter: None,
             vehicle: None,
-            mag: Some(stored(&truth.mag, "uT", (h * h + z * z).sqrt())),
-            accel: Some(stored(&truth.accel, "m/s^2", g)),
+            mag: Some(stored(
+                &truth.mag,
+                imucald::types::CalUnits::Ut,
+                (h * h + z * z).sqrt(),
+            )),
+            accel: Some(stored(&truth.accel, imucald::types::CalUnits::Mps2, g)),
             gyro: Some(GyroCalibration {
                 status: CalStatus::Ok,
                 failure: None,
-                units: "rad/s".into(),
+                units: imucald::types::CalUnits::RadS,
                 bias: truth.gyro.offset,
                 bias_sigma: [1e-4; 3],
                 poses_used: 6,
@@ -2500,7 +2507,9 @@ mod honest_progress {
         cfg: &Config,
         stored: Option<SensorCalibration>,
     ) -> Vec<(f64, ProgressReport, bool)> {
-        let mut pipe = Pipeline::new(&cfg.calib()).unwrap().with_hold_out(HOLD_OUT_EVERY);
+        let mut pipe = Pipeline::new(&cfg.calib())
+            .unwrap()
+            .with_hold_out(HOLD_OUT_EVERY);
         let mut run = Progress::new(cfg.daemon.progress_full_regions);
         let mut current = stored;
         let mut failure_report = false;
@@ -2606,7 +2615,10 @@ mod honest_progress {
         let cfg = Config::default();
         // Without a calibration: no centre, no region. With one (a restart resumes from the
         // stored calibration): the one or two regions the field points into.
-        let stored = imucald::testdata::passing_mag_calibration("sphere", sim.truth.mag.offset);
+        let stored = imucald::testdata::passing_mag_calibration(
+            imucald::calib::model::CalModel::Sphere,
+            sim.truth.mag.offset,
+        );
         for (what, stored, most) in [("no calibration", None, 0), ("stored", Some(stored), 2)] {
             let reports = live_progress(&sim.samples, &cfg, stored);
             assert!(reports.len() >= 29, "{} reports", reports.len());

@@ -124,7 +124,7 @@ fn without_a_position_or_place_the_field_is_fitted_or_the_sphere_stays_with_the_
     );
     let f = choice.earth_field.as_ref().unwrap();
     assert_eq!(f.model, imucald::attitude::FieldModel::Fitted);
-    let truth_field = imucald::attitude::earth_field(sc.place.as_ref().unwrap()).unwrap();
+    let truth_field = imucald::attitude::earth_field(&sc.place_dated().unwrap()).unwrap();
     let err = dist(&m.offset, &sc.truth.mag.offset);
     eprintln!(
         "fitted field: offset error {err:.3} uT, inclination {:.2} deg (model {:.2})",

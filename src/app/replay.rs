@@ -171,7 +171,7 @@ fn judge<R>(
     let slot = log
         .onboard()
         .and_then(|o| o.mag.iter().find(|m| m.sources.contains(&c.source)))
-        .filter(|m| m.units == "uT");
+        .filter(|m| m.units == crate::types::CalUnits::Ut);
     let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
     let onboard = slot.map(|m| {
         let mat = crate::calib::model::rows_to_mat(&m.matrix);
@@ -527,9 +527,9 @@ fn write_calibrated(
     let mut cal = Calibrator::new(results, declination);
     // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
     // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
-    let gyro_k = match (&results.gyro.scale, results.gyro.units.as_str()) {
+    let gyro_k = match (&results.gyro.scale, results.gyro.units) {
         (Some(k), _) => Some(crate::calib::model::rows_to_mat(&k.matrix)),
-        (None, "rad/s") => Some(nalgebra::Matrix3::identity()),
+        (None, crate::types::CalUnits::RadS) => Some(nalgebra::Matrix3::identity()),
         _ => None,
     };
     let fcfg = cfg.fusion_config(declination);
@@ -586,7 +586,7 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
     let export = |k: u8,
                   rep: &crate::report::SensorCalibration,
                   cal: Option<&crate::calib::model::Calibration>| {
-        cal.filter(|_| rep.units == "uT")
+        cal.filter(|_| rep.units == crate::types::CalUnits::Ut)
             .map(|c| crate::calib::export::CompassExport {
                 index: k as usize,
                 cal: *c,
@@ -656,7 +656,7 @@ fn gyro_scale(
     };
     let body: Vec<crate::types::Sample> = samples.iter().map(|s| pipe.to_body(s)).collect();
     let opt = crate::calib::gyro::ScaleOptions {
-        raw_in_counts: results.gyro.units == "counts",
+        raw_in_counts: results.gyro.units == crate::types::CalUnits::Counts,
         ..Default::default()
     };
     let Some(accel) = results.accel.calibration.as_ref() else {
@@ -821,7 +821,9 @@ fn explain_instance_mag(
         return;
     }
     let mine = f.sensors.iter().find(|s| {
-        s.sensor == "mag" && s.instance == inst.compass_id && inst.name.contains(s.source.as_str())
+        s.sensor == crate::types::Sensor::Mag
+            && s.instance == inst.compass_id
+            && inst.name.contains(s.source.as_str())
     });
     let Some(stream) = mine else {
         mag.detail = Some(format!(
@@ -843,7 +845,7 @@ fn explain_instance_mag(
     let primary_n = f
         .sensors
         .iter()
-        .find(|s| s.sensor == "mag" && s.source == primary)
+        .find(|s| s.sensor == crate::types::Sensor::Mag && s.source == primary)
         .map_or(0, |s| s.samples);
     let rate = if duration_s > 0.0 {
         stream.samples as f64 / duration_s
@@ -943,7 +945,7 @@ fn write_plots(
         }
     }
     for (name, t, res, unit) in [
-        ("mag", &tm, &rm, r.mag.report.units.as_str()),
+        ("mag", &tm, &rm, r.mag.report.units.name()),
         ("accel", &ta, &ra, "m/s^2"),
     ] {
         if t.is_empty() {

@@ -130,19 +130,30 @@ pub struct Place {
     /// Height above the WGS84 ellipsoid, m.
     #[serde(default)]
     pub altitude_m: f64,
-    /// Date as "YYYY-MM-DD"; today when absent.
+    /// Date as "YYYY-MM-DD". When absent, whoever evaluates the field supplies one (the log's
+    /// date, else the day the program runs: `Place::dated`); [`earth_field`] reads no clock.
     #[serde(default)]
     pub date: Option<String>,
 }
 
 impl Place {
-    /// A place on the ground (altitude 0) at latitude and longitude (deg), today.
+    /// A place on the ground (altitude 0) at latitude and longitude (deg), with no date yet.
     pub fn at(latitude_deg: f64, longitude_deg: f64) -> Place {
         Place {
             latitude_deg,
             longitude_deg,
             altitude_m: 0.0,
             date: None,
+        }
+    }
+}
+
+impl Place {
+    /// This place with `date` (`YYYY-MM-DD`) where it has none.
+    pub fn dated(&self, date: &str) -> Place {
+        Place {
+            date: self.date.clone().or_else(|| Some(date.to_string())),
+            ..self.clone()
         }
     }
 }
@@ -195,8 +206,9 @@ impl EarthField {
 }
 
 /// Evaluate the earth's main field: the World Magnetic Model from 2020 on, IGRF-13 for
-/// 1900-2019 (the model is named in the result). Errors name what is wrong (date outside every
-/// model's span, latitude out of range, bad date string).
+/// 1900-2019 (the model is named in the result). Errors name what is wrong (no date, date outside
+/// every model's span, latitude out of range, bad date string). Reads no clock: a place without a
+/// date is an error ([`Place::dated`] gives it one).
 pub fn earth_field(place: &Place) -> Result<EarthField, String> {
     use world_magnetic_model::time::{Date, Month};
     use world_magnetic_model::uom::si::angle::degree;
@@ -216,14 +228,7 @@ pub fn earth_field(place: &Place) -> Result<EarthField, String> {
             let month = Month::try_from(m).map_err(|_| bad())?;
             Date::from_calendar_date(y, month, d).map_err(|_| bad())?
         }
-        None => {
-            let secs = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_secs())
-                .unwrap_or(0);
-            let days = (secs / 86_400) as i32;
-            Date::from_julian_day(2_440_588 + days).map_err(|e| e.to_string())?
-        }
+        None => return Err("place has no date: set place.date (YYYY-MM-DD)".into()),
     };
     if !(-90.0..=90.0).contains(&place.latitude_deg)
         || !(-180.0..=360.0).contains(&place.longitude_deg)

@@ -98,6 +98,9 @@ pub struct VectorLearner {
     last_q: Option<nalgebra::UnitQuaternion<f64>>,
     /// Readings refused because the earth field could not be evaluated.
     pub no_field: u64,
+    /// The date (`YYYY-MM-DD`) of the field when `[place]` gives none: the day the service
+    /// started, handed in ([`VectorLearner::on_date`]); the learner reads no clock.
+    date: Option<String>,
 }
 
 /// A result the learner offers, with where its field came from.
@@ -119,7 +122,14 @@ impl VectorLearner {
             last_t_s: None,
             last_q: None,
             no_field: 0,
+            date: None,
         }
+    }
+
+    /// The learner evaluating the field on `date` (`YYYY-MM-DD`) where `[place]` gives no date.
+    pub fn on_date(mut self, date: &str) -> Self {
+        self.date = Some(date.to_string());
+        self
     }
 
     /// Add a reading: `body_mag_ut` (body axes, before calibration, uT) at `t_s` with the
@@ -202,7 +212,7 @@ impl VectorLearner {
         });
         if !fresh {
             let mut at = Place::at(lat, lon);
-            at.date = date;
+            at.date = date.or_else(|| self.date.clone());
             match crate::attitude::earth_field(&at) {
                 Ok(f) if f.total_ut > 0.0 => {
                     self.field = Some(FieldAt {
@@ -309,7 +319,7 @@ mod tests {
     /// offer anything while the vehicle only turns level.
     #[test]
     fn learns_the_offset_of_banked_turns_and_refuses_level_turns() {
-        let place = Place::at(47.37, 8.54);
+        let place = Place::at(47.37, 8.54).dated("2025-06-01");
         let b = crate::attitude::earth_field(&place).unwrap().field_ned_ut();
         let offset = [12.0, -25.0, 40.0];
         let mut level = VectorLearner::new(LearnSettings::DEFAULT);

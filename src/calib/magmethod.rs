@@ -8,10 +8,12 @@
 //! ([`crate::calib::planar`]) when the vehicle stays near level and turns about the vertical only,
 //! else the sphere fit stays, and the reason names what could not be determined. Pure: no I/O (the date is the
 //! configured one, else the log's own (its GPS time or the clock that stamped its records), else
-//! today's; the model is the WMM from 2020 on and IGRF-13 before, named in `earth_field`).
+//! the day the caller hands in for a log that gives none (`io::sources::Log::place`: today); this
+//! module reads no clock. The model is the WMM from 2020 on and IGRF-13 before, named in
+//! `earth_field`).
 
 use crate::attitude::Place;
-use crate::calib::model::{Calibration, ModelKind};
+use crate::calib::model::{CalModel, Calibration, ModelKind};
 use crate::calib::outcome::SensorResult;
 pub use crate::calib::outcome::{FieldUsed, MagMethod, MethodChoice};
 use crate::calib::vector::{VectorFit, VectorPoint, MIN_CURRENT_SD_A};
@@ -31,13 +33,14 @@ pub const PLANAR_MAX_TILT_P95_DEG: f64 = 15.0;
 struct Where {
     place: Place,
     source: &'static str,
-    /// Where the date came from (the place's `date`; `None` there is today).
+    /// Where the date came from: `configured`, the log's `record_clock` or `gps_time`, `today`
+    /// (handed in for a log with no date), `simulated`, or `none` (then no field).
     date_source: &'static str,
 }
 
 /// The place of the World Magnetic Model: the first position the samples carry, else the log's
 /// first GPS fix, else the configured place; the date is the configured one, else the log's,
-/// else today.
+/// else the date `log` carries for a log that gives none (`today`, handed in).
 fn place_of(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<Where> {
     let (date, date_source) = match (cfg.and_then(|p| p.date.clone()), log.date) {
         (Some(d), _) => (Some(d), "configured"),
@@ -46,9 +49,11 @@ fn place_of(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<Wh
             match d.source {
                 DateSource::RecordClock => "record_clock",
                 DateSource::GpsTime => "gps_time",
+                DateSource::Today => "today",
+                DateSource::Simulated => "simulated",
             },
         ),
-        (None, None) => (None, "today"),
+        (None, None) => (None, "none"),
     };
     let at = |p: GeoPoint, source| Where {
         date_source,
@@ -89,7 +94,7 @@ fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<
     let f = crate::attitude::earth_field(&w.place).ok()?;
     Some(FieldUsed {
         model: f.model,
-        date: w.place.date.clone().unwrap_or_else(|| "today".to_string()),
+        date: w.place.date.clone().unwrap_or_default(),
         date_source: w.date_source.to_string(),
         latitude_deg: Some(w.place.latitude_deg),
         longitude_deg: Some(w.place.longitude_deg),
@@ -205,7 +210,7 @@ fn planar_or(
         return other;
     }
     let field = place_of(samples, log, cfg_place)
-        .filter(|_| mag.report.units == "uT")
+        .filter(|_| mag.report.units == crate::types::CalUnits::Ut)
         .and_then(|w| crate::attitude::earth_field(&w.place).ok());
     let earth = field.map(|f| {
         let ned = f.field_ned_ut();
@@ -285,16 +290,12 @@ fn reference_tilt_p95_deg(samples: &[Sample]) -> Option<f64> {
     t.get(k).copied()
 }
 
-/// The `model` of a calibration from the planar fit (read back as a full matrix: see
-/// [`crate::calib::outcome::SensorCalibration::calibration`]).
-pub const PLANAR_MODEL: &str = "planar";
-
 /// The planar fit as the sensor's result, the undetermined z terms at nominal.
 fn install_planar(mag: &mut SensorResult, p: &crate::calib::planar::PlanarFit) {
     let (offset, matrix) = p.calibration();
     let r = install_full12(mag, offset, matrix);
     // The model is the planar fit (applied as a full matrix, z terms at nominal).
-    r.model = PLANAR_MODEL.into();
+    r.model = CalModel::Planar;
     r.radius = p.horizontal.hypot(p.vertical);
     r.rms_residual = p.rms_residual;
     // z held at nominal, not fitted (named in `planar.undetermined`).
@@ -331,7 +332,7 @@ fn decide_vector(
             None,
         );
     }
-    if mag.report.units != "uT" {
+    if mag.report.units != crate::types::CalUnits::Ut {
         return sphere(
             format!(
                 "the magnetometer is in {}, the vector method needs uT",
@@ -365,7 +366,7 @@ fn decide_vector(
         w.place.longitude_deg,
         match w.place.date.as_deref() {
             Some(d) => format!("{d}, date from {}", w.date_source.replace('_', " ")),
-            None => "today: the log gives no date".to_string(),
+            None => "no date".to_string(),
         },
         field.total_ut
     );
@@ -459,7 +460,7 @@ fn install_full12(
     r.status = crate::calib::outcome::CalStatus::Ok;
     r.failure = None;
     r.detail = None;
-    r.model = ModelKind::Full12.name().into();
+    r.model = CalModel::Full12;
     r.offset = offset;
     r.matrix = matrix;
     r.iterations = 0;

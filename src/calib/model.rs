@@ -65,6 +65,89 @@ impl ModelKind {
     }
 }
 
+/// The model a calibration result names (`calibration.*.model` in the report): one of the norm
+/// models, or how the result was made when it is not one (`six_position`, `planar`), or `auto`
+/// when nothing was fitted under the automatic choice. Read back from a file, a name this build
+/// does not know reads as `full12`, which applies the stored matrix as it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum CalModel {
+    /// Nothing fitted; the automatic choice was asked.
+    Auto,
+    Sphere,
+    Diag6,
+    Sym9,
+    Full12,
+    /// Six static poses near the axes (accelerometer).
+    SixPosition,
+    /// The horizontal-plane fit of a ground vehicle ([`crate::calib::planar`]).
+    Planar,
+}
+
+impl CalModel {
+    /// The name in the report and the files.
+    pub fn name(self) -> &'static str {
+        match self {
+            CalModel::Auto => "auto",
+            CalModel::SixPosition => "six_position",
+            CalModel::Planar => "planar",
+            m => m.kind().name(),
+        }
+    }
+
+    /// The model from its name; `None` for a name this build does not know.
+    pub fn parse(s: &str) -> Option<CalModel> {
+        match s {
+            "auto" => Some(CalModel::Auto),
+            "six_position" => Some(CalModel::SixPosition),
+            "planar" => Some(CalModel::Planar),
+            _ => ModelKind::parse(s).map(CalModel::from),
+        }
+    }
+
+    /// The norm model whose `apply` the result's matrix and offset take: its own, else full12
+    /// (the stored matrix as it is).
+    pub fn kind(self) -> ModelKind {
+        match self {
+            CalModel::Sphere => ModelKind::Sphere,
+            CalModel::Diag6 => ModelKind::Diag6,
+            CalModel::Sym9 => ModelKind::Sym9,
+            CalModel::Full12 | CalModel::Auto | CalModel::SixPosition | CalModel::Planar => {
+                ModelKind::Full12
+            }
+        }
+    }
+}
+
+impl From<ModelKind> for CalModel {
+    fn from(k: ModelKind) -> CalModel {
+        match k {
+            ModelKind::Sphere => CalModel::Sphere,
+            ModelKind::Diag6 => CalModel::Diag6,
+            ModelKind::Sym9 => CalModel::Sym9,
+            ModelKind::Full12 => CalModel::Full12,
+        }
+    }
+}
+
+impl std::fmt::Display for CalModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl Serialize for CalModel {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for CalModel {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<CalModel, D::Error> {
+        let name = String::deserialize(d)?;
+        Ok(CalModel::parse(&name).unwrap_or(CalModel::Full12))
+    }
+}
+
 /// A calibration: `calibrated = matrix * (raw - offset)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {

@@ -10,8 +10,8 @@
 
 use crate::calib::coverage::Coverage;
 use crate::calib::fit::FitFailure;
-use crate::calib::model::Calibration;
-use crate::types::Vec3;
+use crate::calib::model::{CalModel, Calibration};
+use crate::types::{CalUnits, Vec3};
 use serde::{Deserialize, Serialize};
 
 /// One sensor's outcome.
@@ -140,9 +140,9 @@ pub struct SensorCalibration {
     pub failure: Option<FitFailure>,
     /// Human-readable detail of the failure.
     pub detail: Option<String>,
-    pub model: String,
+    pub model: CalModel,
     /// Units of the calibrated output: "m/s^2", "uT", or "counts" when the input's units are unknown.
-    pub units: String,
+    pub units: CalUnits,
     pub offset: Vec3,
     /// calibrated = matrix * (raw - offset)
     pub matrix: [[f64; 3]; 3],
@@ -172,13 +172,13 @@ impl SensorCalibration {
     /// A result of `status` for `model` in `units` with nothing fitted: no failure, zero offset,
     /// identity matrix, every figure zero, no candidates. The base a refusal or a made-up result
     /// fills in.
-    pub fn new(status: CalStatus, model: &str, units: &str) -> SensorCalibration {
+    pub fn new(status: CalStatus, model: CalModel, units: CalUnits) -> SensorCalibration {
         SensorCalibration {
             status,
             failure: None,
             detail: None,
-            model: model.into(),
-            units: units.into(),
+            model,
+            units,
             offset: [0.0; 3],
             matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             radius: 0.0,
@@ -193,12 +193,11 @@ impl SensorCalibration {
         }
     }
 
-    /// The calibration to apply when it passed (`status` "ok"); a model name this build does not
-    /// know reads as the general one (full12), which applies the stored matrix as it is.
+    /// The calibration to apply when it passed (`status` "ok"), with the norm model that applies
+    /// it ([`CalModel::kind`]).
     pub fn calibration(&self) -> Option<crate::calib::model::Calibration> {
-        use crate::calib::model::ModelKind;
         (self.status == CalStatus::Ok).then(|| crate::calib::model::Calibration {
-            model: ModelKind::parse(&self.model).unwrap_or(ModelKind::Full12),
+            model: self.model.kind(),
             offset: self.offset,
             matrix: self.matrix,
         })
@@ -207,7 +206,7 @@ impl SensorCalibration {
     /// [`SensorCalibration::calibration`] of a magnetometer in uT (what flight-stack parameters
     /// can hold).
     pub fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
-        self.calibration().filter(|_| self.units == "uT")
+        self.calibration().filter(|_| self.units == CalUnits::Ut)
     }
 
     /// What the data did not determine of this calibration (a planar fit's z offset and z soft
@@ -244,7 +243,7 @@ impl SensorCalibration {
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Candidate {
-    pub model: String,
+    pub model: CalModel,
     pub rms_residual: f64,
     pub params: usize,
     pub chosen: bool,
@@ -255,7 +254,7 @@ pub struct GyroCalibration {
     pub status: CalStatus,
     /// Null or not_enough_samples.
     pub failure: Option<FitFailure>,
-    pub units: String,
+    pub units: CalUnits,
     /// Bias = mean gyro over the static poses, rad/s.
     pub bias: Vec3,
     pub bias_sigma: Vec3,
@@ -294,8 +293,8 @@ pub struct GyroScaleReport {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RefitReport {
     pub t_s: f64,
-    pub sensor: String,
-    pub model: String,
+    pub sensor: crate::types::Sensor,
+    pub model: CalModel,
     pub status: CalStatus,
     pub failure: Option<FitFailure>,
     pub rms_residual: f64,
@@ -351,8 +350,8 @@ pub struct FieldUsed {
     pub model: crate::attitude::FieldModel,
     /// `YYYY-MM-DD`.
     pub date: String,
-    /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`, or
-    /// `today` (the log gives no date).
+    /// `configured` ([place] date), `record_clock` (a `.tlog`'s record times), `gps_time`,
+    /// `today` (the log gives no date: the day of the run) or `simulated` (the simulator's day).
     pub date_source: String,
     /// The place (none when the field is fitted).
     pub latitude_deg: Option<f64>,

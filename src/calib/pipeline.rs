@@ -11,14 +11,14 @@ use crate::calib::fit::{
     fit_norm, significantly_better, six_position, FitFailure, NormFit, NormFitOptions,
 };
 use crate::calib::gate::{Pose, Prefilter3, StaticDetector};
-use crate::calib::model::{Calibration, ModelKind};
+use crate::calib::model::{CalModel, Calibration, ModelKind};
 use crate::calib::outcome::{
     CalStatus, Candidate, GyroCalibration, RefitReport, SensorCalibration,
 };
 use crate::calib::settings::{
     AccelUnits, AcceptLimits, CalibSettings, MagModelChoice, ModelChoice,
 };
-use crate::types::{norm, Sample, Unit, Vec3};
+use crate::types::{norm, CalUnits, Sample, Unit, Vec3};
 use nalgebra::Matrix3;
 
 use crate::calib::outcome::SensorResult;
@@ -314,11 +314,14 @@ impl Pipeline {
     /// new hard-iron estimate.
     pub fn install(&mut self, t_s: f64, results: FitResults) {
         self.new_inputs = 0;
-        for (name, r) in [("mag", &results.mag), ("accel", &results.accel)] {
+        for (sensor, r) in [
+            (crate::types::Sensor::Mag, &results.mag),
+            (crate::types::Sensor::Accel, &results.accel),
+        ] {
             self.refits.push(RefitReport {
                 t_s,
-                sensor: name.into(),
-                model: r.report.model.clone(),
+                sensor,
+                model: r.report.model,
                 status: r.report.status,
                 failure: r.report.failure,
                 rms_residual: r.report.rms_residual,
@@ -461,7 +464,12 @@ pub fn centre_from_spread(
 /// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
 pub const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
-fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> SensorCalibration {
+fn failed(
+    model: CalModel,
+    units: CalUnits,
+    failure: FitFailure,
+    detail: String,
+) -> SensorCalibration {
     SensorCalibration {
         failure: Some(failure),
         detail: Some(detail),
@@ -473,7 +481,7 @@ fn failed(model: &str, units: &str, failure: FitFailure, detail: String) -> Sens
 struct SensorSpec<'a> {
     model: ModelChoice,
     target_norm: Option<f64>,
-    units: &'a str,
+    units: CalUnits,
     /// Check radius and offsets in physical units.
     units_known: bool,
     limits: &'a AcceptLimits,
@@ -515,7 +523,7 @@ pub const MAX_OUTLIER_SHARE: f64 = 0.25;
 fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     if let Some(d) = axis_fault(points) {
         return empty_result(
-            failed(spec.model.name(), spec.units, FitFailure::AxisFault, d),
+            failed(spec.model.into(), spec.units, FitFailure::AxisFault, d),
             points,
         );
     }
@@ -875,7 +883,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     let mut candidates: Vec<Candidate> = fits
         .iter()
         .map(|f| Candidate {
-            model: f.calibration.model.name().into(),
+            model: f.calibration.model.into(),
             rms_residual: f.rms_residual,
             params: f.calibration.model.n_params(),
             chosen: false,
@@ -886,7 +894,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     } else {
         let Some(ci) = choose_model(&fits, n) else {
             let (why, detail) = no_fit_reason(n, &cov_before, spec);
-            return empty_result(failed(spec.model.name(), spec.units, why, detail), points);
+            return empty_result(failed(spec.model.into(), spec.units, why, detail), points);
         };
         candidates[ci].chosen = true;
         (
@@ -983,7 +991,7 @@ fn six_position_report(
     let res: Vec<f64> = points.iter().map(|p| norm(&cal.apply(p)) - g).collect();
     let rms = (res.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
     candidates.push(Candidate {
-        model: "six_position".into(),
+        model: CalModel::SixPosition,
         rms_residual: rms,
         params: 12,
         chosen: true,
@@ -992,8 +1000,8 @@ fn six_position_report(
         status: CalStatus::Ok,
         failure: None,
         detail: None,
-        model: "six_position".into(),
-        units: spec.units.into(),
+        model: CalModel::SixPosition,
+        units: spec.units,
         offset: cal.offset,
         matrix: cal.matrix,
         radius: g,
@@ -1042,8 +1050,8 @@ fn norm_fit_report(
         status: CalStatus::Ok,
         failure: None,
         detail: None,
-        model: f.calibration.model.name().into(),
-        units: spec.units.into(),
+        model: f.calibration.model.into(),
+        units: spec.units,
         offset: f.calibration.offset,
         matrix: f.calibration.matrix,
         radius: f.radius,
@@ -1244,7 +1252,11 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
     let mut norms: Vec<f64> = g.iter().map(norm).collect();
     norms.sort_by(|a, b| a.total_cmp(b));
     let counts = units == Unit::Counts || norms.get(norms.len() / 2).is_some_and(|m| *m > 35.0);
-    let units = if counts { "counts" } else { "rad/s" }.to_string();
+    let units = if counts {
+        CalUnits::Counts
+    } else {
+        CalUnits::RadS
+    };
     if g.len() < 2 {
         return GyroCalibration {
             status: CalStatus::Failed,
@@ -1344,11 +1356,7 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
                 cfg.fit.mag_model.into()
             },
             target_norm: None,
-            units: if input.mag_units == Unit::Si {
-                "uT"
-            } else {
-                "counts"
-            },
+            units: CalUnits::of(input.mag_units, CalUnits::Ut),
             units_known: input.mag_units == Unit::Si,
             limits: &cfg.accept.mag,
             is_accel: false,
@@ -1363,7 +1371,7 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
         &SensorSpec {
             model: cfg.fit.accel_model,
             target_norm: Some(cfg.fit.gravity_mps2),
-            units: "m/s^2",
+            units: CalUnits::Mps2,
             units_known: au == Unit::Si,
             limits: &cfg.accept.accel,
             is_accel: true,
@@ -1498,7 +1506,7 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
     let Some(mcal) = mag.calibration else { return };
     let fail = |mag: &mut SensorResult, d: String| {
         set_fail(&mut mag.report, FitFailure::NotIdentifiable, d);
-        mag.report.model = "full12".into();
+        mag.report.model = CalModel::Full12;
         mag.calibration = None;
     };
     let Some(acal) = accel.calibration else {
@@ -1516,7 +1524,7 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
         Some((r, _dip, _rms, cond)) if cond.is_finite() && cond < 1e8 => {
             let m = r * mcal.matrix3();
             let cal = Calibration { model: ModelKind::Full12, offset: mcal.offset, matrix: crate::calib::model::mat_to_rows(&m) };
-            mag.report.model = "full12".into();
+            mag.report.model = CalModel::Full12;
             mag.report.matrix = cal.matrix;
             mag.calibration = Some(cal);
             mag.dirs_after = mag.dirs_after.iter().map(|v| crate::attitude::rotate(&r, v)).collect();

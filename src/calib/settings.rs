@@ -65,6 +65,21 @@ pub enum MagModelChoice {
     Full12,
 }
 
+impl From<ModelChoice> for crate::calib::model::CalModel {
+    /// What a result names when nothing was fitted under this choice.
+    fn from(m: ModelChoice) -> Self {
+        use crate::calib::model::CalModel;
+        match m {
+            ModelChoice::Auto => CalModel::Auto,
+            ModelChoice::SixPosition => CalModel::SixPosition,
+            ModelChoice::Sphere => CalModel::Sphere,
+            ModelChoice::Diag6 => CalModel::Diag6,
+            ModelChoice::Sym9 => CalModel::Sym9,
+            ModelChoice::Full12 => CalModel::Full12,
+        }
+    }
+}
+
 impl From<MagModelChoice> for ModelChoice {
     fn from(m: MagModelChoice) -> ModelChoice {
         match m {

@@ -183,7 +183,7 @@ pub fn onboard_cal(
         sources,
         offset,
         matrix,
-        units: "uT".into(),
+        units: crate::types::CalUnits::Ut,
         params: param_names(k)
             .into_iter()
             .filter_map(|n| params.get(&n).map(|v| (n, *v)))

@@ -356,6 +356,27 @@ pub fn us_from_u64(t_us: u64) -> i64 {
     i64::try_from(t_us).unwrap_or(i64::MAX)
 }
 
+/// Microseconds since the Unix epoch by this computer's clock.
+pub fn now_us() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_micros() as u64)
+        .unwrap_or(0)
+}
+
+/// Today by this computer's clock (UTC): the date of the earth field when neither the
+/// configuration nor the log gives one. The one place the date is read from the clock.
+pub fn today() -> crate::types::LogDate {
+    crate::types::LogDate::from_unix_us(now_us(), crate::types::DateSource::Today).unwrap_or(
+        crate::types::LogDate {
+            year: 2000,
+            month: 1,
+            day: 1,
+            source: crate::types::DateSource::Today,
+        },
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -429,8 +429,33 @@ impl Default for RawImuScale {
 /// for [`InstanceChoice::Named`] before an instance is chosen, not once per sample.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Instance {
-    kind: &'static str,
+    kind: ImuKind,
     id: Option<u8>,
+}
+
+/// The MAVLink message an IMU instance arrives in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ImuKind {
+    HighresImu,
+    ScaledImu,
+    ScaledImu2,
+    ScaledImu3,
+    RawImu,
+    /// No instance yet.
+    Unknown,
+}
+
+impl ImuKind {
+    fn name(self) -> &'static str {
+        match self {
+            ImuKind::HighresImu => "highres_imu",
+            ImuKind::ScaledImu => "scaled_imu",
+            ImuKind::ScaledImu2 => "scaled_imu2",
+            ImuKind::ScaledImu3 => "scaled_imu3",
+            ImuKind::RawImu => "raw_imu",
+            ImuKind::Unknown => "",
+        }
+    }
 }
 
 impl Instance {
@@ -438,16 +463,16 @@ impl Instance {
     fn compass_id(&self) -> u8 {
         match (self.kind, self.id) {
             (_, Some(id)) => id,
-            ("scaled_imu2", None) => 1,
-            ("scaled_imu3", None) => 2,
+            (ImuKind::ScaledImu2, None) => 1,
+            (ImuKind::ScaledImu3, None) => 2,
             _ => 0,
         }
     }
 
     fn name(&self) -> String {
         match self.id {
-            Some(id) => format!("{}:{id}", self.kind),
-            None => self.kind.to_string(),
+            Some(id) => format!("{}:{id}", self.kind.name()),
+            None => self.kind.name().to_string(),
         }
     }
 }
@@ -664,12 +689,15 @@ impl MessageConverter {
     pub fn units(&self) -> Units {
         match self.primary {
             Some(k) => self.units_of(&self.tracks[k].instance),
-            None => self.units_of(&Instance { kind: "", id: None }),
+            None => self.units_of(&Instance {
+                kind: ImuKind::Unknown,
+                id: None,
+            }),
         }
     }
 
     fn units_of(&self, i: &Instance) -> Units {
-        let raw = i.kind == "raw_imu" && self.raw_imu_ardupilot != Some(true);
+        let raw = i.kind == ImuKind::RawImu && self.raw_imu_ardupilot != Some(true);
         let u = |scale: f64| {
             if raw && scale == 0.0 {
                 Unit::Counts
@@ -800,7 +828,7 @@ impl MessageConverter {
                 let has = m.iter().any(|v| *v != 0.0);
                 (
                     Instance {
-                        kind: "highres_imu",
+                        kind: ImuKind::HighresImu,
                         id: Some(d.id),
                     },
                     MsgTime::Usec(d.time_usec),
@@ -811,9 +839,9 @@ impl MessageConverter {
                     has,
                 )
             }
-            MavMessage::SCALED_IMU(d) => scaled_imu!("scaled_imu", d),
-            MavMessage::SCALED_IMU2(d) => scaled_imu!("scaled_imu2", d),
-            MavMessage::SCALED_IMU3(d) => scaled_imu!("scaled_imu3", d),
+            MavMessage::SCALED_IMU(d) => scaled_imu!(ImuKind::ScaledImu, d),
+            MavMessage::SCALED_IMU2(d) => scaled_imu!(ImuKind::ScaledImu2, d),
+            MavMessage::SCALED_IMU3(d) => scaled_imu!(ImuKind::ScaledImu3, d),
             MavMessage::RAW_IMU(d) => {
                 let sc = |v: i16, s: f64| if s == 0.0 { v as f64 } else { v as f64 * s };
                 // ArduPilot fills RAW_IMU as SCALED_IMU (mG, mrad/s, mGauss); a configured
@@ -834,7 +862,7 @@ impl MessageConverter {
                 let m = [sc(d.xmag, km), sc(d.ymag, km), sc(d.zmag, km)];
                 (
                     Instance {
-                        kind: "raw_imu",
+                        kind: ImuKind::RawImu,
                         id: Some(d.id),
                     },
                     MsgTime::Usec(d.time_usec),
@@ -992,7 +1020,7 @@ const MS32_WRAP_US: i64 = (1i64 << 32) * 1000;
 /// [`scaled`] of a SCALED_IMU, SCALED_IMU2 or SCALED_IMU3 message (`$d`): the same fields in three
 /// types.
 macro_rules! scaled_imu {
-    ($name:literal, $d:expr) => {
+    ($name:expr, $d:expr) => {
         scaled(
             $name,
             $d.time_boot_ms,
@@ -1006,7 +1034,7 @@ macro_rules! scaled_imu {
 use scaled_imu;
 
 fn scaled(
-    name: &'static str,
+    name: ImuKind,
     t_ms: u32,
     a: [i16; 3],
     g: [i16; 3],

@@ -670,13 +670,7 @@ fn merge_stats(dst: &mut DecodeStats, src: &DecodeStats) {
     dst.time.add(&src.time);
 }
 
-/// Microseconds since the Unix epoch.
-fn now_us() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_micros() as u64)
-        .unwrap_or(0)
-}
+use crate::io::clock::now_us;
 
 /// The link's fixed parts, shared by all its loops.
 struct Shared {

@@ -52,7 +52,7 @@
 //! ```
 
 use crate::calib::fit::FitFailure;
-use crate::calib::model::{Calibration, ModelKind};
+use crate::calib::model::{CalModel, Calibration, ModelKind};
 use crate::calib::outcome::{CalStatus, SensorCalibration};
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
@@ -325,7 +325,10 @@ pub fn mag_cal_report_autosaved(
     autosaved: bool,
 ) -> MavMessage {
     let c = Calibration {
-        model: ModelKind::parse(&cal.model).unwrap_or(ModelKind::Sym9),
+        model: match cal.model {
+            CalModel::Auto | CalModel::SixPosition | CalModel::Planar => ModelKind::Sym9,
+            m => m.kind(),
+        },
         offset: cal.offset,
         matrix: cal.matrix,
     };
@@ -797,7 +800,7 @@ pub enum LiveEvent {
         instance: u8,
         status: CalStatus,
         failure: Option<FitFailure>,
-        model: String,
+        model: CalModel,
         offset: Vec3,
         /// 1-sigma of `offset`.
         #[serde(default)]
@@ -833,7 +836,7 @@ impl LiveEvent {
             instance,
             status: cal.status,
             failure: cal.failure,
-            model: cal.model.clone(),
+            model: cal.model,
             offset: cal.offset,
             offset_sigma: cal.offset_sigma,
             matrix: cal.matrix,
@@ -971,8 +974,8 @@ mod tests {
             status,
             failure,
             detail: None,
-            model: "sym9".into(),
-            units: "uT".into(),
+            model: CalModel::Sym9,
+            units: crate::types::CalUnits::Ut,
             offset: [12.0, -30.0, 45.0],
             matrix: [[1.05, 0.02, -0.01], [0.02, 0.97, 0.03], [-0.01, 0.05, 1.01]],
             radius: 50.0,

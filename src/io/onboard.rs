@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SensorStream {
     /// "mag", "accel" or "gyro".
-    pub sensor: String,
+    pub sensor: crate::types::Sensor,
     /// The sensor's own instance number (DataFlash `MAG2` is 1; ULog the topic's `multi_id`).
     pub instance: u8,
     /// Where it was read: `MAG2`, `IMU[1]`, `sensor_mag[1]`, `sensor_combined`, ...
@@ -73,7 +73,7 @@ pub struct OnboardCal {
     /// Offset in `units` (sensor axes).
     pub offset: Vec3,
     pub matrix: [[f64; 3]; 3],
-    pub units: String,
+    pub units: crate::types::CalUnits,
     /// The parameters it was made from, as logged.
     pub params: std::collections::BTreeMap<String, f64>,
 }

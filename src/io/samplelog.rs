@@ -130,7 +130,7 @@ impl Default for TlogWriteOptions {
 }
 
 /// Unix time of `t_s = 0` in a written tlog, microseconds.
-pub const TLOG_EPOCH_US: u64 = 1_700_000_000_000_000;
+pub const TLOG_EPOCH_US: u64 = crate::types::SIM_EPOCH_US;
 /// Time since boot of `t_s = 0` in the messages' own time fields (non-zero, so readers use it).
 pub const TLOG_BOOT_OFFSET_US: u64 = 10_000_000;
 

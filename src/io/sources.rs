@@ -32,11 +32,12 @@ pub struct Log {
 }
 
 impl Log {
-    /// Where and when the log was recorded, for the earth field.
+    /// Where and when the log was recorded, for the earth field; a log that gives no date is
+    /// dated today ([`crate::io::clock::today`], `date_source` "today" in the report).
     pub fn place(&self) -> crate::types::LogWhere {
         crate::types::LogWhere {
             gps: self.onboard().and_then(|o| o.gps),
-            date: self.date,
+            date: self.date.or_else(|| Some(crate::io::clock::today())),
         }
     }
 

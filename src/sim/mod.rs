@@ -980,7 +980,7 @@ impl Scenario {
                 return bad("reference_rate_hz", format!("must be > 0, got {r}"));
             }
         }
-        if let Some(p) = &self.place {
+        if let Some(p) = &self.place_dated() {
             crate::attitude::earth_field(p).map_err(|m| Error::Config {
                 key: "place".into(),
                 message: m,
@@ -1062,9 +1062,20 @@ impl Scenario {
         range("terrain_deg", [c.terrain_deg; 2], 0.0, 30.0)
     }
 
+    /// `place` with the simulator's day ([`crate::types::SIM_EPOCH_US`]) where it gives no date.
+    pub fn place_dated(&self) -> Option<crate::attitude::Place> {
+        let day = crate::types::LogDate::from_unix_us(
+            crate::types::SIM_EPOCH_US,
+            crate::types::DateSource::Simulated,
+        )
+        .map(|d| d.iso())
+        .unwrap_or_default();
+        self.place.as_ref().map(|p| p.dated(&day))
+    }
+
     /// The earth field in NED, uT: the World Magnetic Model's at `place`, else `truth.world`'s.
     pub fn field_ned_ut(&self) -> Result<Vec3, Error> {
-        match &self.place {
+        match &self.place_dated() {
             Some(p) => crate::attitude::earth_field(p)
                 .map(|f| f.field_ned_ut())
                 .map_err(|m| Error::Config {

@@ -31,7 +31,7 @@ pub fn free_udp_port() -> u16 {
 pub fn mavlink_source(address: impl Into<String>) -> SourceConfig {
     SourceConfig {
         address: address.into(),
-        payload: "mavlink".into(),
+        payload: imucald::config::PayloadKind::Mavlink,
         fields: vec![],
         scales: Default::default(),
     }

@@ -469,7 +469,9 @@ impl Cal {
             }
             Some(_) => {}
         }
-        let current = self.in_use(i, Sensor::Mag).filter(|m| m.units == "uT");
+        let current = self
+            .in_use(i, Sensor::Mag)
+            .filter(|m| m.units == crate::types::CalUnits::Ut);
         let matrix = current.map_or(crate::calib::model::IDENTITY, |m| m.matrix);
         let accel = self.in_use(i, Sensor::Accel).and_then(|a| a.calibration());
         let samples: Vec<(Vec3, Vec3)> = t
@@ -495,8 +497,8 @@ impl Cal {
                 "fixed yaw {yaw_deg:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT",
                 fy.roll_deg, fy.pitch_deg, field.total_ut
             )),
-            model: current.map_or_else(|| "sphere".into(), |m| m.model.clone()),
-            units: "uT".into(),
+            model: current.map_or(crate::calib::model::CalModel::Sphere, |m| m.model),
+            units: crate::types::CalUnits::Ut,
             offset: fy.offset_ut,
             matrix,
             radius: field.total_ut,

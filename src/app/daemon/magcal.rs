@@ -169,7 +169,7 @@ mod tests {
 
     fn run_cal(offset_x: f64) -> Box<SensorCalibration> {
         Box::new(crate::testdata::passing_mag_calibration(
-            "sym9",
+            crate::calib::model::CalModel::Sym9,
             [offset_x, 0.0, 0.0],
         ))
     }

@@ -49,7 +49,7 @@ use crate::calib::outcome::SensorResult;
 use crate::calib::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline};
 use crate::config::{
     ArdupilotCorrectedMag, AttitudeMessage, Config, HeadingMessage, Links, MagCalMode, ParamTarget,
-    SourceConfig,
+    PayloadKind, SourceConfig,
 };
 use crate::error::Error;
 use crate::io::clock::{ClockSettings, SourceClock};
@@ -67,13 +67,13 @@ use std::time::Duration;
 use tokio::sync::{mpsc, watch};
 
 fn payload_of(s: &SourceConfig) -> Payload {
-    match s.payload.as_str() {
-        "motioncal" => Payload::MotionCal,
-        "csv" => Payload::Csv {
+    match s.payload {
+        PayloadKind::Motioncal => Payload::MotionCal,
+        PayloadKind::Csv => Payload::Csv {
             fields: s.fields.clone(),
             scales: s.scales.clone(),
         },
-        _ => Payload::Mavlink,
+        PayloadKind::Mavlink => Payload::Mavlink,
     }
 }
 
@@ -190,7 +190,8 @@ impl Track {
             refit_wanted: false,
             recent: std::collections::VecDeque::with_capacity(FIXED_YAW.window_samples),
             recent_at: None,
-            learner: VectorLearner::new(LearnSettings::DEFAULT),
+            learner: VectorLearner::new(LearnSettings::DEFAULT)
+                .on_date(&crate::io::clock::today().iso()),
             place: cfg.place.clone(),
         })
     }
@@ -230,7 +231,7 @@ impl Track {
         // A compass refused for its mounting stays refused: the vector fit's matrix would
         // turn the readings and hide the wrong mounting.
         if results.mag.calibration.is_some()
-            || results.mag.report.units != "uT"
+            || results.mag.report.units != crate::types::CalUnits::Ut
             || results.mag.report.failure == Some(crate::calib::fit::FitFailure::Orientation)
         {
             return false;
@@ -582,7 +583,7 @@ mod tests {
                 .iter()
                 .map(|p| SourceConfig {
                     address: format!("udpin:127.0.0.1:{p}"),
-                    payload: "mavlink".into(),
+                    payload: crate::config::PayloadKind::Mavlink,
                     fields: vec![],
                     scales: Default::default(),
                 })
@@ -679,7 +680,7 @@ mod tests {
         let mut cfg = Config::default();
         cfg.daemon.sources = vec![SourceConfig {
             address: format!("udpin:127.0.0.1:{port}"),
-            payload: "mavlink".into(),
+            payload: crate::config::PayloadKind::Mavlink,
             fields: vec![],
             scales: Default::default(),
         }];

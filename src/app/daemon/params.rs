@@ -28,6 +28,7 @@
 use super::*;
 use crate::calib::export::Unknowns;
 use crate::io::mavout::ParamRequest;
+use crate::types::CalUnits;
 
 /// One parameter as served.
 #[derive(Debug, Clone, PartialEq)]
@@ -95,7 +96,7 @@ fn settings(cfg: &Config) -> Vec<Param> {
 const AXES: [char; 3] = ['X', 'Y', 'Z'];
 
 /// `prefix`'s `_OK`, and when a calibration in `units` is in use its values ([`values`]).
-fn sensor(prefix: &str, cal: Option<&SensorCalibration>, units: &str) -> Vec<Param> {
+fn sensor(prefix: &str, cal: Option<&SensorCalibration>, units: CalUnits) -> Vec<Param> {
     let usable = cal.filter(|c| c.calibration().is_some() && c.units == units);
     let mut out = vec![Param {
         name: format!("{prefix}_OK"),
@@ -142,16 +143,16 @@ pub(super) fn table(cfg: &Config, cal: &Cal) -> Vec<Param> {
     out.extend(sensor(
         &format!("MAG{}", store.compass_id),
         store.mag.as_ref(),
-        "uT",
+        CalUnits::Ut,
     ));
     for i in &store.instances {
         out.extend(sensor(
             &format!("MAG{}", i.compass_id),
             i.mag.as_ref(),
-            "uT",
+            CalUnits::Ut,
         ));
     }
-    out.extend(sensor("ACC", store.accel.as_ref(), "m/s^2"));
+    out.extend(sensor("ACC", store.accel.as_ref(), CalUnits::Mps2));
     let gyro = store
         .gyro
         .as_ref()
@@ -303,7 +304,7 @@ mod tests {
 
     #[test]
     fn a_sensor_lists_only_what_the_data_determined() {
-        let none = sensor("MAG0", None, "uT");
+        let none = sensor("MAG0", None, CalUnits::Ut);
         assert_eq!(
             none,
             vec![Param {
@@ -311,13 +312,17 @@ mod tests {
                 value: 0.0
             }]
         );
-        let mut c = SensorCalibration::new(crate::report::CalStatus::Ok, "full12", "uT");
+        let mut c = SensorCalibration::new(
+            crate::report::CalStatus::Ok,
+            crate::calib::model::CalModel::Full12,
+            CalUnits::Ut,
+        );
         c.offset = [1.0, 2.0, 3.0];
-        let full = sensor("MAG0", Some(&c), "uT");
+        let full = sensor("MAG0", Some(&c), CalUnits::Ut);
         assert_eq!(full.len(), 1 + 3 + 9 + 2);
         assert!(full.iter().all(|p| p.name.len() <= 16));
         // Counts are not uT: no values.
-        assert_eq!(sensor("MAG0", Some(&c), "m/s^2").len(), 1);
+        assert_eq!(sensor("MAG0", Some(&c), CalUnits::Mps2).len(), 1);
         let planar = Unknowns {
             offset: [false, false, true],
             axis: [false, false, true],

@@ -41,7 +41,7 @@ pub(super) fn start_links(
     let sources = if d.sources.is_empty() {
         vec![SourceConfig {
             address: "sim:tumble".into(),
-            payload: "mavlink".into(),
+            payload: crate::config::PayloadKind::Mavlink,
             fields: vec![],
             scales: Default::default(),
         }]

@@ -502,7 +502,8 @@ impl LoadedCalibration {
         let v: serde_json::Value =
             serde_json::from_str(&text).map_err(|e| bad(format!("not JSON: {e}")))?;
         let gyro = |g: &crate::report::GyroCalibration| {
-            (g.status == crate::report::CalStatus::Ok && g.units == "rad/s").then_some(g.bias)
+            (g.status == crate::report::CalStatus::Ok && g.units == crate::types::CalUnits::RadS)
+                .then_some(g.bias)
         };
         match v["schema"].as_str() {
             Some(s) if s == STORE_SCHEMA => {

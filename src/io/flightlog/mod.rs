@@ -300,11 +300,10 @@ impl Assembler {
             .into_iter()
             .map(|(s, instance, source, samples, device_id)| SensorStream {
                 sensor: match s {
-                    0 => "mag",
-                    1 => "accel",
-                    _ => "gyro",
-                }
-                .to_string(),
+                    0 => Sensor::Mag,
+                    1 => Sensor::Accel,
+                    _ => Sensor::Gyro,
+                },
                 instance,
                 source,
                 samples,
@@ -388,7 +387,7 @@ fn ap_onboard(
             sources: sources.get(&(1, k)).cloned().into_iter().collect(),
             offset: offs,
             matrix: rows(&Matrix3::from_diagonal(&Vector3::from(scal))),
-            units: "m/s^2".into(),
+            units: crate::types::CalUnits::Mps2,
             params: p,
         });
     }
@@ -900,7 +899,7 @@ fn px4_onboard(
             sources,
             offset: off.map(|o| o * 100.0),
             matrix: rows(&s),
-            units: "uT".into(),
+            units: crate::types::CalUnits::Ut,
             params: pick(&format!("CAL_MAG{n}_")),
         });
     }
@@ -928,7 +927,7 @@ fn px4_onboard(
                 .collect(),
             offset: [x, y, z],
             matrix: rows(&Matrix3::from_diagonal(&Vector3::from(d))),
-            units: "m/s^2".into(),
+            units: crate::types::CalUnits::Mps2,
             params: pick(&format!("CAL_ACC{n}_")),
         });
     }
