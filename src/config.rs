@@ -587,7 +587,7 @@ mod tests {
     /// VQF documents its parameters: a new key without one fails here.
     #[test]
     fn every_setting_documents_its_default() {
-        let files: [(&str, &str, &[&str]); 3] = [
+        let files: [(&str, &str, &[&str]); 5] = [
             (
                 "config.rs",
                 include_str!("config.rs"),
@@ -595,13 +595,19 @@ mod tests {
                     "Config",
                     "SourceConfig",
                     "DaemonConfig",
-                    "InputConfig",
-                    "FitConfig",
-                    "AcceptLimits",
-                    "AcceptConfig",
                     "OrientationConfig",
                     "UiConfig",
                 ],
+            ),
+            (
+                "calib/settings.rs",
+                include_str!("calib/settings.rs"),
+                &["FitConfig", "AcceptLimits", "AcceptConfig", "CalibSettings"],
+            ),
+            (
+                "io/sources.rs",
+                include_str!("io/sources.rs"),
+                &["InputConfig"],
             ),
             (
                 "calib/gate.rs",
