@@ -41,6 +41,9 @@ pub(super) const MQTT_INFLIGHT: u16 = 100;
 pub(super) const MQTT_CLIENT_QUEUE: usize = 64;
 /// The largest MQTT packet sent or taken, bytes; a longer line is not delivered (counted).
 pub(super) const MQTT_MAX_PACKET_BYTES: usize = 64 * 1024;
+/// A PUBLISH packet's bytes besides its topic and payload, at most: the fixed header (5), the
+/// topic's length (2) and the packet id (2).
+const MQTT_PUBLISH_HEADER_BYTES: usize = 9;
 
 /// The topic of a JSON line: `PREFIX/<vehicle>/<type>`, the vehicle being the line's
 /// `vehicle.system_id`, or `first_system_id` for a line that names none (the first vehicle's
@@ -132,12 +135,12 @@ struct Connection {
 enum Ended {
     /// The service closed the queue (shutting down).
     QueueClosed,
-    /// Refused, lost or timed out.
-    Lost(ConnectionError),
+    /// Refused, lost or timed out: why.
+    Lost(String),
 }
 
 /// What the writer tells the log about the broker (as a status of the service, like a link's).
-struct Link<'a> {
+struct BrokerLog<'a> {
     label: &'a str,
     /// When the broker was last lost (for "reconnected after"), None while connected or before
     /// the first connection.
@@ -147,7 +150,7 @@ struct Link<'a> {
     outage_said: bool,
 }
 
-impl Link<'_> {
+impl BrokerLog<'_> {
     fn connected(&mut self) {
         match self.lost_at.take() {
             Some(t) => tracing::info!(
@@ -166,11 +169,15 @@ impl Link<'_> {
         self.outage_said = false;
     }
 
-    fn failed(&mut self, e: &ConnectionError, wait: Duration, lost: u64) {
+    fn failed(&mut self, e: &str, wait: Duration, lost: u64) {
         self.lost_at.get_or_insert_with(Instant::now);
         let wait_s = wait.as_secs_f64();
         if self.outage_said {
-            tracing::debug!(target: STATUS_TARGET, "{}: MQTT broker still unreachable ({e}); next try in {wait_s:.2} s", self.label);
+            tracing::debug!(
+                target: STATUS_TARGET,
+                "{}: MQTT broker still unreachable ({e}); next try in {wait_s:.2} s",
+                self.label
+            );
             return;
         }
         self.outage_said = true;
@@ -207,7 +214,9 @@ impl Connection {
     fn hand(&mut self, line: &str, topic: Option<String>, c: &SinkCounters) {
         let payload = line.trim_end_matches('\n');
         let taken = topic
-            .filter(|t| t.len() + payload.len() + 8 <= MQTT_MAX_PACKET_BYTES)
+            .filter(|t| {
+                t.len() + payload.len() + MQTT_PUBLISH_HEADER_BYTES <= MQTT_MAX_PACKET_BYTES
+            })
             .is_some_and(|t| {
                 self.client
                     .try_publish(t, QoS::AtLeastOnce, false, payload.as_bytes())
@@ -220,20 +229,20 @@ impl Connection {
         }
     }
 
-    /// What the client's event loop said: the connection made, a line acknowledged; `Err` when
-    /// the connection failed.
+    /// What the client's event loop said: the connection made, a line acknowledged; `Err` (why)
+    /// when the connection failed.
     fn on_event(
         &mut self,
         r: Result<Event, ConnectionError>,
         c: &SinkCounters,
-        link: &mut Link,
+        log: &mut BrokerLog,
         retry: &mut Backoff,
-    ) -> Result<(), ConnectionError> {
-        match r? {
+    ) -> Result<(), String> {
+        match r.map_err(|e| e.to_string())? {
             Event::Incoming(Packet::ConnAck(_)) => {
                 self.connected = true;
                 retry.reset();
-                link.connected();
+                log.connected();
             }
             Event::Incoming(Packet::PubAck(_)) => {
                 self.held = self.held.saturating_sub(1);
@@ -251,7 +260,7 @@ impl Connection {
         rx: &mut mpsc::Receiver<Arc<str>>,
         route: &Route,
         c: &SinkCounters,
-        link: &mut Link<'_>,
+        log: &mut BrokerLog<'_>,
         retry: &mut Backoff,
     ) -> Ended {
         let mut batch = Vec::with_capacity(SINK_BATCH);
@@ -267,7 +276,7 @@ impl Connection {
                 }
                 (events, r) = &mut self.turn => {
                     self.turn = turn(events);
-                    if let Err(e) = self.on_event(r, c, link, retry) {
+                    if let Err(e) = self.on_event(r, c, log, retry) {
                         return Ended::Lost(e);
                     }
                 }
@@ -277,11 +286,11 @@ impl Connection {
 
     /// At shutdown: wait for the acknowledgements of the lines held, then say goodbye to the
     /// broker. The service's exit deadline cuts this short (the task is aborted).
-    async fn finish(mut self, c: &SinkCounters, link: &mut Link<'_>, retry: &mut Backoff) {
+    async fn finish(mut self, c: &SinkCounters, log: &mut BrokerLog<'_>, retry: &mut Backoff) {
         while self.connected && self.held > 0 {
             let (events, r) = (&mut self.turn).await;
             self.turn = turn(events);
-            if self.on_event(r, c, link, retry).is_err() {
+            if self.on_event(r, c, log, retry).is_err() {
                 break;
             }
         }
@@ -341,7 +350,7 @@ pub(super) async fn mqtt_writer(
         prefix: url.prefix.clone(),
         first_system_id,
     };
-    let mut link = Link {
+    let mut log = BrokerLog {
         label: &label,
         lost_at: None,
         ever_connected: false,
@@ -350,16 +359,16 @@ pub(super) async fn mqtt_writer(
     let mut retry = Backoff::default();
     loop {
         let mut conn = Connection::start(&url);
-        match conn.serve(&mut rx, &route, &c, &mut link, &mut retry).await {
+        match conn.serve(&mut rx, &route, &c, &mut log, &mut retry).await {
             Ended::QueueClosed => {
-                conn.finish(&c, &mut link, &mut retry).await;
+                conn.finish(&c, &mut log, &mut retry).await;
                 return;
             }
             Ended::Lost(e) => {
                 // Every line the client held is gone with it (a clean session is not resumed).
                 SinkCounters::add(&c.not_delivered, conn.held);
                 let wait = retry.wait();
-                link.failed(&e, wait, conn.held);
+                log.failed(&e, wait, conn.held);
                 drop(conn);
                 if !drop_until(&mut rx, Instant::now() + wait, &c).await {
                     return;
