@@ -84,8 +84,8 @@ pub struct DaemonConfig {
     /// Inputs. Empty: the embedded default, a simulated IMU tumbling with pauses (`sim:tumble`).
     /// Default: empty.
     pub sources: Vec<SourceConfig>,
-    /// JSON-lines consumers: "stdout", "udp:IP:PORT", "tcp:IP:PORT" (schema imucald.live/1).
-    /// Default: none.
+    /// JSON-lines consumers: "stdout", "udp:IP:PORT", "tcp:IP:PORT", "mqtt://HOST:PORT/PREFIX"
+    /// (an MQTT broker, see [`MqttUrl`]) (schema imucald.live/1). Default: none.
     pub publish: Vec<String>,
     /// Where calibration files go (JSON + ArduPilot/PX4/Fusion exports); loaded at start and
     /// printed then. Default: the per-user state directory's `imucald/calibration`
@@ -509,6 +509,10 @@ impl Config {
             }
         }
         for (i, p) in d.publish.iter().enumerate() {
+            if p.starts_with(MqttUrl::SCHEME) {
+                MqttUrl::parse(p).map_err(|e| err(&format!("daemon.publish[{i}]"), e))?;
+                continue;
+            }
             let ok = p == "stdout"
                 || p.strip_prefix("udp:")
                     .or(p.strip_prefix("tcp:"))
@@ -516,7 +520,9 @@ impl Config {
             if !ok {
                 return Err(err(
                     &format!("daemon.publish[{i}]"),
-                    format!("`{p}` is not stdout, udp:IP:PORT or tcp:IP:PORT"),
+                    format!(
+                        "`{p}` is not stdout, udp:IP:PORT, tcp:IP:PORT or mqtt://HOST:PORT/PREFIX"
+                    ),
                 ));
             }
         }
@@ -579,9 +585,116 @@ fn positive(key: &str, v: f64) -> Result<(), Error> {
     }
 }
 
+/// A `publish` entry `mqtt://HOST:PORT/PREFIX`: an MQTT broker reached over plain TCP (no TLS)
+/// and the topic levels every line's topic starts with (`PREFIX/<vehicle>/<type>`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MqttUrl {
+    /// A host name, an IPv4 address or an IPv6 address (written in brackets in the URL).
+    pub host: String,
+    /// The broker's TCP port. Default (none in the URL): [`MqttUrl::DEFAULT_PORT`].
+    pub port: u16,
+    /// One or more topic levels, without wildcards (`+`, `#`), empty levels or a leading `$`.
+    pub prefix: String,
+}
+
+impl MqttUrl {
+    pub const SCHEME: &'static str = "mqtt://";
+    /// MQTT's registered port for plain TCP.
+    pub const DEFAULT_PORT: u16 = 1883;
+
+    /// Parse `mqtt://HOST[:PORT]/PREFIX`; the error says what is wrong.
+    pub fn parse(url: &str) -> Result<MqttUrl, String> {
+        let bad = |why: &str| format!("`{url}` is not mqtt://HOST:PORT/PREFIX: {why}");
+        let rest = url
+            .strip_prefix(Self::SCHEME)
+            .ok_or_else(|| bad("no mqtt://"))?;
+        let (authority, prefix) = rest.split_once('/').ok_or_else(|| bad("no topic prefix"))?;
+        let (host, port) = Self::split_authority(authority).ok_or_else(|| bad("bad HOST:PORT"))?;
+        if prefix.is_empty() || prefix.split('/').any(str::is_empty) {
+            return Err(bad("the topic prefix has an empty level"));
+        }
+        if prefix.contains(['+', '#', '\0']) || prefix.starts_with('$') {
+            return Err(bad(
+                "the topic prefix has a wildcard (+, #), a NUL or a leading $",
+            ));
+        }
+        Ok(MqttUrl {
+            host,
+            port,
+            prefix: prefix.to_string(),
+        })
+    }
+
+    /// `host`, `host:port`, `[v6]` or `[v6]:port` into the host and the port (never 0).
+    fn split_authority(a: &str) -> Option<(String, u16)> {
+        let (host, port) = match a.strip_prefix('[') {
+            Some(v6) => {
+                let (h, after) = v6.split_once(']')?;
+                h.parse::<std::net::Ipv6Addr>().ok()?;
+                (h, after.strip_prefix(':'))
+            }
+            None => match a.split_once(':') {
+                Some((h, p)) => (h, Some(p)),
+                None => (a, None),
+            },
+        };
+        let name_ok = |h: &str| {
+            !h.is_empty()
+                && h.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '.' || c == '-' || c == ':')
+        };
+        let port = match port {
+            Some(p) => p.parse::<u16>().ok().filter(|&p| p > 0)?,
+            None => Self::DEFAULT_PORT,
+        };
+        name_ok(host).then(|| (host.to_string(), port))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn config_mqtt_urls_are_parsed_and_bad_ones_say_why() {
+        let u = MqttUrl::parse("mqtt://127.0.0.1:1884/fleet/north").unwrap();
+        assert_eq!(
+            (u.host.as_str(), u.port, u.prefix.as_str()),
+            ("127.0.0.1", 1884, "fleet/north")
+        );
+        let u = MqttUrl::parse("mqtt://broker.local/fleet").unwrap();
+        assert_eq!(
+            (u.host.as_str(), u.port),
+            ("broker.local", MqttUrl::DEFAULT_PORT)
+        );
+        let u = MqttUrl::parse("mqtt://[::1]:1885/f").unwrap();
+        assert_eq!((u.host.as_str(), u.port), ("::1", 1885));
+        for (bad, why) in [
+            ("mqtt://127.0.0.1:1883", "no topic prefix"),
+            ("mqtt://127.0.0.1:1883/", "empty level"),
+            ("mqtt://127.0.0.1:1883/a//b", "empty level"),
+            ("mqtt://127.0.0.1:1883/fleet/#", "wildcard"),
+            ("mqtt://127.0.0.1:1883/+/x", "wildcard"),
+            ("mqtt://127.0.0.1:1883/$SYS", "leading $"),
+            ("mqtt://127.0.0.1:0/fleet", "HOST:PORT"),
+            ("mqtt://127.0.0.1:99999/fleet", "HOST:PORT"),
+            ("mqtt://:1883/fleet", "HOST:PORT"),
+            ("mqtt://[::1/fleet", "HOST:PORT"),
+            ("mqtt://user@host/fleet", "HOST:PORT"),
+        ] {
+            let e = MqttUrl::parse(bad).expect_err(bad);
+            assert!(e.contains(why), "{bad}: {e}");
+        }
+        let mut cfg = Config::default();
+        cfg.daemon.publish = vec!["mqtt://127.0.0.1:1883/fleet".into()];
+        cfg.validate().unwrap();
+        cfg.daemon.publish = vec!["mqtt://127.0.0.1:1883/fleet/#".into()];
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("daemon.publish[0]") && e.contains("wildcard"),
+            "{e}"
+        );
+    }
 
     /// Every setting says its default (and its unit where it has one) in its documentation, as
     /// VQF documents its parameters: a new key without one fails here.

@@ -92,7 +92,8 @@ struct RunArgs {
     /// tcpout:HOST:PORT, tcpin:IP:PORT, serial:/dev/ttyX:BAUD, file:LOG[?speed=N], sim:SCENARIO.
     #[arg(long = "source")]
     sources: Vec<String>,
-    /// JSON-lines consumer, overriding the config's (repeatable): stdout, udp:IP:PORT, tcp:IP:PORT.
+    /// JSON-lines consumer, overriding the config's (repeatable): stdout, udp:IP:PORT, tcp:IP:PORT,
+    /// mqtt://HOST:PORT/PREFIX.
     #[arg(long = "publish")]
     publish: Vec<String>,
     /// Keep the latest report (imucald.report/1) in this file.

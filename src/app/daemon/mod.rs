@@ -21,6 +21,7 @@
 
 mod lifecycle;
 mod magcal;
+mod mqtt;
 mod outputs;
 mod params;
 mod service;
@@ -373,7 +374,7 @@ pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSumm
         .daemon
         .publish
         .iter()
-        .map(|p| Sink::open(p))
+        .map(|p| Sink::open(p, cfg.daemon.target_system))
         .collect::<Result<Vec<_>, _>>()?;
     // The live page: a JSON consumer of its own feeds it.
     let ui = match &cfg.ui.listen {
@@ -532,7 +533,7 @@ mod tests {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = l.local_addr().unwrap();
         let held = std::thread::spawn(move || l.accept().map(|(c, _)| c));
-        let mut sinks = vec![Sink::open(&format!("tcp:{addr}")).unwrap()];
+        let mut sinks = vec![Sink::open(&format!("tcp:{addr}"), 1).unwrap()];
         // 20 000 lines of 1 kB: far more than the socket buffers and the queue hold.
         let line: std::sync::Arc<str> = format!("{}\n", "x".repeat(1023)).into();
         let t0 = std::time::Instant::now();
@@ -773,7 +774,7 @@ mod tests {
     #[test]
     fn daemon_json_sink_addresses_are_checked() {
         for bad in ["udp:nowhere", "tcp:1.2.3.4", "file:/tmp/x", ""] {
-            let e = Sink::open(bad).err().expect(bad).to_string();
+            let e = Sink::open(bad, 1).err().expect(bad).to_string();
             assert!(e.contains("publish"), "{e}");
         }
     }

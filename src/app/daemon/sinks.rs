@@ -1,5 +1,5 @@
 //! The JSON-line consumers: one bounded queue and one writer per consumer (stdout on a thread,
-//! UDP and TCP as tasks); a full queue drops and counts, never waits.
+//! UDP, TCP and MQTT as tasks); a full queue drops and counts, never waits.
 
 use super::*;
 
@@ -47,7 +47,8 @@ pub(super) enum SinkWriter {
 /// stops reading (a full pipe, a TCP peer that does not read) loses lines, counted, and never holds
 /// the run loop.
 pub(super) struct Sink {
-    /// The address as configured (`stdout`, `udp:IP:PORT`, `tcp:IP:PORT`).
+    /// The address as configured (`stdout`, `udp:IP:PORT`, `tcp:IP:PORT`,
+    /// `mqtt://HOST:PORT/PREFIX`).
     pub(super) label: String,
     pub(super) tx: Option<mpsc::Sender<std::sync::Arc<str>>>,
     pub(super) counters: std::sync::Arc<SinkCounters>,
@@ -57,10 +58,15 @@ pub(super) struct Sink {
 }
 
 impl Sink {
-    pub(super) fn open(spec: &str) -> Result<Sink, Error> {
+    /// The consumer at `spec`. `first_system_id`: the MAVLink system id of the first vehicle
+    /// calibrated (`daemon.target_system`), whose lines name no vehicle; an MQTT consumer puts
+    /// them under it.
+    pub(super) fn open(spec: &str, first_system_id: u8) -> Result<Sink, Error> {
         let bad = || Error::Config {
             key: "publish".into(),
-            message: format!("`{spec}` is not stdout, udp:IP:PORT or tcp:IP:PORT"),
+            message: format!(
+                "`{spec}` is not stdout, udp:IP:PORT, tcp:IP:PORT or mqtt://HOST:PORT/PREFIX"
+            ),
         };
         let (tx, rx) = mpsc::channel::<std::sync::Arc<str>>(SINK_QUEUE_LINES);
         let counters = std::sync::Arc::new(SinkCounters::default());
@@ -90,6 +96,13 @@ impl Sink {
         } else if let Some(a) = spec.strip_prefix("tcp:") {
             let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
             SinkWriter::Task(tokio::spawn(tcp_writer(addr, rx, c)))
+        } else if spec.starts_with(crate::config::MqttUrl::SCHEME) {
+            let url = crate::config::MqttUrl::parse(spec).map_err(|message| Error::Config {
+                key: "publish".into(),
+                message,
+            })?;
+            let writer = mqtt::mqtt_writer(spec.to_string(), url, first_system_id, rx, c);
+            SinkWriter::Task(tokio::spawn(writer))
         } else {
             return Err(bad());
         };
