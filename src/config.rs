@@ -509,22 +509,7 @@ impl Config {
             }
         }
         for (i, p) in d.publish.iter().enumerate() {
-            if p.starts_with(MqttUrl::SCHEME) {
-                MqttUrl::parse(p).map_err(|e| err(&format!("daemon.publish[{i}]"), e))?;
-                continue;
-            }
-            let ok = p == "stdout"
-                || p.strip_prefix("udp:")
-                    .or(p.strip_prefix("tcp:"))
-                    .is_some_and(|a| a.parse::<std::net::SocketAddr>().is_ok());
-            if !ok {
-                return Err(err(
-                    &format!("daemon.publish[{i}]"),
-                    format!(
-                        "`{p}` is not stdout, udp:IP:PORT, tcp:IP:PORT or mqtt://HOST:PORT/PREFIX"
-                    ),
-                ));
-            }
+            PublishTarget::parse(p).map_err(|e| err(&format!("daemon.publish[{i}]"), e))?;
         }
         let rate = |key: &str, v: f64| {
             if v > 0.0 && v <= MAX_RATE_HZ {
@@ -582,6 +567,42 @@ fn positive(key: &str, v: f64) -> Result<(), Error> {
         Ok(())
     } else {
         Err(err(key, format!("must be a positive number, got {v}")))
+    }
+}
+
+/// Where a `publish` entry sends the JSON lines. The one parser of those entries: the
+/// configuration's check and the service's sinks both read them through [`PublishTarget::parse`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PublishTarget {
+    /// `stdout`.
+    Stdout,
+    /// `udp:IP:PORT`: one datagram per line.
+    Udp(std::net::SocketAddr),
+    /// `tcp:IP:PORT`: a stream of lines to a listener.
+    Tcp(std::net::SocketAddr),
+    /// `mqtt://HOST:PORT/PREFIX`.
+    Mqtt(MqttUrl),
+}
+
+impl PublishTarget {
+    /// Parse one entry; the error says what the forms are, or what is wrong with an MQTT URL.
+    pub fn parse(spec: &str) -> Result<PublishTarget, String> {
+        if spec.starts_with(MqttUrl::SCHEME) {
+            return MqttUrl::parse(spec).map(PublishTarget::Mqtt);
+        }
+        let addr = |a: &str| a.parse::<std::net::SocketAddr>().ok();
+        let target = if spec == "stdout" {
+            Some(PublishTarget::Stdout)
+        } else if let Some(a) = spec.strip_prefix("udp:") {
+            addr(a).map(PublishTarget::Udp)
+        } else if let Some(a) = spec.strip_prefix("tcp:") {
+            addr(a).map(PublishTarget::Tcp)
+        } else {
+            None
+        };
+        target.ok_or_else(|| {
+            format!("`{spec}` is not stdout, udp:IP:PORT, tcp:IP:PORT or mqtt://HOST:PORT/PREFIX")
+        })
     }
 }
 

@@ -2,6 +2,7 @@
 //! UDP, TCP and MQTT as tasks); a full queue drops and counts, never waits.
 
 use super::*;
+use crate::config::PublishTarget;
 
 /// Lines a JSON consumer's queue holds; more while it is not taking them are dropped and counted.
 pub(super) const SINK_QUEUE_LINES: usize = 1024;
@@ -62,49 +63,42 @@ impl Sink {
     /// calibrated (`daemon.target_system`), whose lines name no vehicle; an MQTT consumer puts
     /// them under it.
     pub(super) fn open(spec: &str, first_system_id: u8) -> Result<Sink, Error> {
-        let bad = || Error::Config {
+        let target = PublishTarget::parse(spec).map_err(|message| Error::Config {
             key: "publish".into(),
-            message: format!(
-                "`{spec}` is not stdout, udp:IP:PORT, tcp:IP:PORT or mqtt://HOST:PORT/PREFIX"
-            ),
-        };
+            message,
+        })?;
         let (tx, rx) = mpsc::channel::<std::sync::Arc<str>>(SINK_QUEUE_LINES);
         let counters = std::sync::Arc::new(SinkCounters::default());
         let c = counters.clone();
-        let writer = if spec == "stdout" {
-            let (done_tx, done_rx) = tokio::sync::oneshot::channel();
-            std::thread::Builder::new()
-                .name("imucald-stdout".into())
-                .spawn(move || {
-                    stdout_writer(rx, &c);
-                    let _ = done_tx.send(());
-                })
-                .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
-            SinkWriter::Thread(done_rx)
-        } else if let Some(a) = spec.strip_prefix("udp:") {
-            let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
-            let bind = match (addr.ip().is_loopback(), addr.is_ipv4()) {
-                (true, true) => "127.0.0.1:0",
-                (true, false) => "[::1]:0",
-                (false, true) => "0.0.0.0:0",
-                (false, false) => "[::]:0",
-            };
-            let sock = std::net::UdpSocket::bind(bind)
-                .and_then(|s| s.set_nonblocking(true).map(|()| s))
-                .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
-            SinkWriter::Task(tokio::spawn(udp_writer(sock, addr, rx, c)))
-        } else if let Some(a) = spec.strip_prefix("tcp:") {
-            let addr: std::net::SocketAddr = a.parse().map_err(|_| bad())?;
-            SinkWriter::Task(tokio::spawn(tcp_writer(addr, rx, c)))
-        } else if spec.starts_with(crate::config::MqttUrl::SCHEME) {
-            let url = crate::config::MqttUrl::parse(spec).map_err(|message| Error::Config {
-                key: "publish".into(),
-                message,
-            })?;
-            let writer = mqtt::mqtt_writer(spec.to_string(), url, first_system_id, rx, c);
-            SinkWriter::Task(tokio::spawn(writer))
-        } else {
-            return Err(bad());
+        let writer = match target {
+            PublishTarget::Stdout => {
+                let (done_tx, done_rx) = tokio::sync::oneshot::channel();
+                std::thread::Builder::new()
+                    .name("imucald-stdout".into())
+                    .spawn(move || {
+                        stdout_writer(rx, &c);
+                        let _ = done_tx.send(());
+                    })
+                    .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
+                SinkWriter::Thread(done_rx)
+            }
+            PublishTarget::Udp(addr) => {
+                let bind = match (addr.ip().is_loopback(), addr.is_ipv4()) {
+                    (true, true) => "127.0.0.1:0",
+                    (true, false) => "[::1]:0",
+                    (false, true) => "0.0.0.0:0",
+                    (false, false) => "[::]:0",
+                };
+                let sock = std::net::UdpSocket::bind(bind)
+                    .and_then(|s| s.set_nonblocking(true).map(|()| s))
+                    .map_err(|e| Error::Other(format!("publish {spec}: {e}")))?;
+                SinkWriter::Task(tokio::spawn(udp_writer(sock, addr, rx, c)))
+            }
+            PublishTarget::Tcp(addr) => SinkWriter::Task(tokio::spawn(tcp_writer(addr, rx, c))),
+            PublishTarget::Mqtt(url) => {
+                let writer = mqtt::mqtt_writer(spec.to_string(), url, first_system_id, rx, c);
+                SinkWriter::Task(tokio::spawn(writer))
+            }
         };
         Ok(Sink {
             label: spec.to_string(),
