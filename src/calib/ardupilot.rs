@@ -3,8 +3,8 @@
 //! Pure math and names; the readers of telemetry and logs (`io::ardupilot`, `io::flightlog`),
 //! the parameter writer (`io::mavout`) and the parameter files ([`crate::calib::export`]) use it.
 //!
-//! Convention (ArduPilot's `Compass::correct_field`, `AP_Compass_Backend`): for compass k the
-//! field it logs and streams, in mGauss, is
+//! Convention (ArduPilot's `AP_Compass_Backend::correct_field`): for compass k the field it logs
+//! and streams, in mGauss, is
 //!
 //! `mag = S (scale (raw + OFS)) + MOT`
 //!
