@@ -171,7 +171,14 @@ fn dataflash_report_lists_three_compasses_and_their_onboard_offsets() {
         .input
         .sensors
         .iter()
-        .map(|s| (s.sensor.name().to_string(), s.instance, s.source.clone(), s.samples))
+        .map(|s| {
+            (
+                s.sensor.name().to_string(),
+                s.instance,
+                s.source.clone(),
+                s.samples,
+            )
+        })
         .collect();
     let want = [
         ("mag", 0, "MAG", 8),

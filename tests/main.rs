@@ -1396,7 +1396,7 @@ mod live_ardupilot {
         ] {
             params.insert(n.into(), v);
         }
-        let mut ap: Option<imucald::io::ardupilot::Correction> = None;
+        let mut ap: Option<imucald::calib::ardupilot::Correction> = None;
         let sim = imucald::sim::simulate(&imucald::sim::Scenario::named("tumble").unwrap(), 6);
         let mut enc = MavEncoder::new(1, 1);
         let mut dec = FrameDecoder::new();
@@ -1428,7 +1428,7 @@ mod live_ardupilot {
                     .iter()
                     .map(|(n, v)| (n.clone(), f64::from(*v)))
                     .collect();
-                ap = imucald::io::ardupilot::correction(&p, 0, false);
+                ap = imucald::calib::ardupilot::correction(&p, 0, false);
             }
             // ArduPilot streams its corrected field: S (raw + OFS), in gauss in HIGHRES_IMU.
             // No temperature in the stream.

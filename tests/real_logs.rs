@@ -100,7 +100,11 @@ fn apm_telemetry_export_is_the_vehicles_offsets_plus_the_fitted_residual() {
         let full = replay(&log, &cfg, &opts, &mut |_, _| {}).unwrap();
         let mag = &full.report.calibration.mag;
         assert_eq!(mag.status, imucald::report::CalStatus::Ok, "{x}: {mag:?}");
-        assert_eq!(mag.units, imucald::types::CalUnits::Ut, "{x}: ArduPilot sends mGauss, not counts");
+        assert_eq!(
+            mag.units,
+            imucald::types::CalUnits::Ut,
+            "{x}: ArduPilot sends mGauss, not counts"
+        );
         let onboard = full.report.onboard.as_ref().expect("an onboard block");
         assert_eq!(onboard.stack, "ardupilot");
         assert!(

@@ -1,16 +1,18 @@
 //! Exports of a calibration in flight-stack conventions (from the ArduPilot
 //! and PX4 sources' correction code):
 //!
-//! * ArduPilot: mag += COMPASS_OFS (mGauss, so OFS = -offset); mag = S mag with
-//!   S = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]].
+//! * ArduPilot: the compass correction and its parameters are [`crate::calib::ardupilot`]
+//!   (COMPASS_OFS = -offset in mGauss, COMPASS_DIA/ODI the symmetric part of the matrix).
 //!   Accel: (raw - INS_ACCOFFS) * INS_ACCSCAL per axis (m/s^2).
 //! * PX4: corrected = S (raw - CAL_MAG0_*OFF) in gauss, S from CAL_MAG0_[XYZ]SCALE and
-//!   CAL_MAG0_[XYZ]ODIAG (same layout as ArduPilot's ODI). Accel: (raw - CAL_ACC0_*OFF) * CAL_ACC0_*SCALE.
+//!   CAL_MAG0_[XYZ]ODIAG (ArduPilot's DIA/ODI layout, [`crate::calib::ardupilot::symmetric`]).
+//!   Accel: (raw - CAL_ACC0_*OFF) * CAL_ACC0_*SCALE.
 //! * x-io Fusion: m_c = S (m_u - h) (softIronMatrix, hardIronOffset); inertial
 //!   misalignment * ((u - offset) * sensitivity) with accel in g.
 //!
 //! Pure formatting: the caller writes the text to disk.
 
+use crate::calib::ardupilot;
 use crate::calib::model::Calibration;
 use crate::types::{Vec3, STANDARD_GRAVITY_MPS2};
 
@@ -153,36 +155,24 @@ fn representability(cal: &Calibration, allow_offdiag: bool) -> Vec<String> {
     w
 }
 
-fn sym(m: &[[f64; 3]; 3], i: usize, j: usize) -> f64 {
-    0.5 * (m[i][j] + m[j][i])
-}
-
-/// ArduPilot's name of a compass parameter: `COMPASS_OFS_X` for compass index 0, `COMPASS_OFS2_X`
-/// for index 1, `COMPASS_DIA3_Z` ...
-pub fn ardupilot_compass_param(base: &str, compass_index: usize, axis: &str) -> String {
-    if compass_index == 0 {
-        format!("COMPASS_{base}_{axis}")
-    } else {
-        format!("COMPASS_{base}{}_{axis}", compass_index + 1)
-    }
-}
-
-/// ArduPilot compass parameters from a magnetometer calibration in uT (1 uT = 10 mGauss).
+/// ArduPilot compass parameters from a magnetometer calibration in uT
+/// ([`ardupilot::Correction::from_model`]): OFS X Y Z, DIA X Y Z, ODI X Y Z; none, with a
+/// warning, for a compass index ArduPilot keeps no calibration for.
 pub fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Vec<String>) {
-    let name = |base: &str, axis: &str| ardupilot_compass_param(base, compass_index, axis);
-    let m = &cal.matrix;
-    let params = vec![
-        (name("OFS", "X"), -cal.offset[0] * 10.0),
-        (name("OFS", "Y"), -cal.offset[1] * 10.0),
-        (name("OFS", "Z"), -cal.offset[2] * 10.0),
-        (name("DIA", "X"), m[0][0]),
-        (name("DIA", "Y"), m[1][1]),
-        (name("DIA", "Z"), m[2][2]),
-        (name("ODI", "X"), sym(m, 0, 1)),
-        (name("ODI", "Y"), sym(m, 0, 2)),
-        (name("ODI", "Z"), sym(m, 1, 2)),
-    ];
-    (params, representability(cal, true))
+    let correction = ardupilot::Correction::from_model(&cal.offset, &cal.matrix);
+    match u8::try_from(compass_index)
+        .ok()
+        .and_then(|k| correction.params(k))
+    {
+        Some(params) => (params, representability(cal, true)),
+        None => (
+            Vec::new(),
+            vec![format!(
+                "compass index {compass_index} not written: ArduPilot keeps a calibration for compasses 0 to {} only",
+                ardupilot::COMPASSES - 1
+            )],
+        ),
+    }
 }
 
 /// ArduPilot accelerometer parameters from an accel calibration in m/s^2.
@@ -202,18 +192,18 @@ pub fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
 /// PX4 magnetometer parameters of calibration slot `index` (CAL_MAG0_*, CAL_MAG1_* ...; gauss,
 /// 1 uT = 0.01 gauss).
 pub fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
-    let m = &cal.matrix;
+    let (d, o) = ardupilot::diagonal_off_diagonal(&cal.matrix);
     let n = |field: &str| format!("CAL_MAG{index}_{field}");
     let params = vec![
         (n("XOFF"), cal.offset[0] * 0.01),
         (n("YOFF"), cal.offset[1] * 0.01),
         (n("ZOFF"), cal.offset[2] * 0.01),
-        (n("XSCALE"), m[0][0]),
-        (n("YSCALE"), m[1][1]),
-        (n("ZSCALE"), m[2][2]),
-        (n("XODIAG"), sym(m, 0, 1)),
-        (n("YODIAG"), sym(m, 0, 2)),
-        (n("ZODIAG"), sym(m, 1, 2)),
+        (n("XSCALE"), d[0]),
+        (n("YSCALE"), d[1]),
+        (n("ZSCALE"), d[2]),
+        (n("XODIAG"), o[0]),
+        (n("YODIAG"), o[1]),
+        (n("ZODIAG"), o[2]),
     ];
     (params, representability(cal, true))
 }
@@ -236,15 +226,21 @@ pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
 /// (the vector fit's `k` of raw = A h + o + k c, uT/A) and the calibration's matrix `m`.
 /// ArduPilot adds COMPASS_MOT x current after the soft-iron matrix (mGauss), so
 /// COMPASS_MOT = -(M k) x 10 in mGauss/A, with COMPASS_MOTCT = 2 (current-based).
+/// None for a compass index ArduPilot has no parameters for.
 pub fn ardupilot_motor(k_ut_per_a: &Vec3, m: &[[f64; 3]; 3], compass_index: usize) -> Vec<Param> {
-    let name = |axis: &str| ardupilot_compass_param("MOT", compass_index, axis);
+    let Some(names) = u8::try_from(compass_index)
+        .ok()
+        .and_then(|k| ardupilot::triple(ardupilot::Triple::Mot, k))
+    else {
+        return Vec::new();
+    };
     let mk = |r: usize| (0..3).map(|c| m[r][c] * k_ut_per_a[c]).sum::<f64>();
-    vec![
-        (name("X"), -mk(0) * 10.0),
-        (name("Y"), -mk(1) * 10.0),
-        (name("Z"), -mk(2) * 10.0),
-        ("COMPASS_MOTCT".into(), 2.0),
-    ]
+    let mot = [0, 1, 2].map(|r| -mk(r) * ardupilot::MGAUSS_PER_UT);
+    names
+        .into_iter()
+        .zip(mot)
+        .chain([(ardupilot::MOTCT.to_string(), 2.0)])
+        .collect()
 }
 
 /// PX4's power compensation of slot `index` from the field per ampere `k_ut_per_a` (uT/A). PX4

@@ -13,6 +13,7 @@
 //! Must not: do I/O, know tokio, or read the clock. Fits are plain functions the live service
 //! runs off its executor.
 
+pub mod ardupilot;
 pub mod coverage;
 pub mod export;
 pub mod fit;

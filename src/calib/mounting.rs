@@ -194,8 +194,13 @@ impl Mounting {
 
     /// The parameters to set for compass `index` (0 for COMPASS_ORIENT and CAL_MAG0_ROT).
     pub fn parameters(&self, index: usize) -> String {
-        let ap = crate::calib::export::ardupilot_compass_param("COMPASS_ORIENT", index, "");
-        let ap = ap.trim_end_matches('_');
+        use crate::calib::ardupilot::{single, Single};
+        let ap = u8::try_from(index)
+            .ok()
+            .and_then(|k| single(Single::Orient, k));
+        let ap = ap
+            .as_deref()
+            .unwrap_or("COMPASS_ORIENT (none for this compass)");
         match self {
             Mounting::Standard { number, .. } => {
                 format!("{ap} = {number} (ArduPilot) or CAL_MAG{index}_ROT = {number} (PX4)")

@@ -1,11 +1,7 @@
-//! ArduPilot's compass correction: one place for its parameter names, its matrix and bounds, and
-//! undoing it, for every reader of ArduPilot data (DataFlash `MAG` records, telemetry).
-//!
-//! Convention (ArduPilot's `Compass::correct_field`, fields in mGauss): the field it logs and streams
-//! is `mag = S (scale (raw + OFS)) + MOT`, with OFS = COMPASS_OFS{,2,3}_X/Y/Z, S the symmetric
-//! matrix of COMPASS_DIA (diagonal; all zero read as 1) and COMPASS_ODI (xy, xz, yz), scale =
-//! COMPASS_SCALE{,2,3} when within 1/1.5..1.5 (else 1) and MOT the motor term. In imucald's model
-//! (calibrated = M (raw - offset), uT) that is offset = -OFS / 10 and M = S scale.
+//! Reading ArduPilot's compass correction from what a vehicle sends and logs, and undoing it
+//! from its readings, for every reader of ArduPilot data (DataFlash `MAG` records, telemetry).
+//! The correction itself (names, matrix, bounds, apply, undo, imucald's model) is
+//! [`crate::calib::ardupilot`].
 //!
 //! Telemetry ([`Telemetry`]): ArduPilot fills RAW_IMU and SCALED_IMU2/3 with the field *after* that
 //! correction (mGauss, body axes), so a fit of the stream as it arrives fits a residual. The
@@ -13,161 +9,13 @@
 //! values known at its own time (a calibration run on the vehicle mid-log applies from then on).
 //! SENSOR_OFFSETS (compass 0's offsets) stands in where the parameters never arrived. Pure.
 
+use crate::calib::ardupilot::{
+    correction, dev_id, param_names, suffix, triple, Correction, Triple, COMPASSES,
+};
 use crate::io::onboard::OnboardCal;
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::MavMessage;
-use nalgebra::{Matrix3, Vector3};
 use std::collections::BTreeMap;
-
-/// Compasses ArduPilot keeps a calibration for (COMPASS_OFS, COMPASS_OFS2, COMPASS_OFS3).
-pub const COMPASSES: u8 = 3;
-
-/// ArduPilot applies COMPASS_SCALE only within these bounds (COMPASS_MIN/MAX_SCALE_FACTOR).
-pub const SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
-
-/// The parameter suffix of compass k: `COMPASS_OFS_X`, `COMPASS_OFS2_X`, `COMPASS_OFS3_X`.
-pub fn suffix(k: u8) -> Option<&'static str> {
-    ["", "2", "3"].get(k as usize).copied()
-}
-
-/// The name of one of compass k's parameters: `param("OFS", 1, "X")` is `COMPASS_OFS2_X`.
-pub fn param(base: &str, k: u8, axis: &str) -> String {
-    format!("COMPASS_{base}{}_{axis}", suffix(k).unwrap_or(""))
-}
-
-/// ArduPilot's correction of one compass, as it applies it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Correction {
-    /// COMPASS_OFS, mGauss.
-    pub ofs_mg: [f64; 3],
-    /// The soft-iron matrix S from COMPASS_DIA/ODI.
-    pub s: Matrix3<f64>,
-    /// COMPASS_SCALE as applied (1 outside [`SCALE_RANGE`]).
-    pub scale: f64,
-}
-
-impl Correction {
-    /// No correction at all (offsets zero, S identity).
-    pub fn offsets_only(ofs_mg: [f64; 3]) -> Correction {
-        Correction {
-            ofs_mg,
-            s: Matrix3::identity(),
-            scale: 1.0,
-        }
-    }
-
-    /// The raw field (uT) behind a corrected one (mGauss) with the motor term `mot_mg` removed:
-    /// raw = (S^-1 (mag - MOT)) / scale - OFS. `None` when S is singular or a value not finite.
-    pub fn undo(&self, mag_mg: Vec3, mot_mg: Option<Vec3>) -> Option<Vec3> {
-        let inv = self.s.try_inverse()?;
-        let m = mot_mg.unwrap_or([0.0; 3]);
-        let c = Vector3::new(mag_mg[0] - m[0], mag_mg[1] - m[1], mag_mg[2] - m[2]);
-        let u = inv * c / self.scale;
-        let raw = [0, 1, 2].map(|i| (u[i] - self.ofs_mg[i]) / 10.0);
-        raw.iter().all(|x| x.is_finite()).then_some(raw)
-    }
-
-    /// ArduPilot's forward correction (raw uT in, corrected mGauss out, no motor term).
-    pub fn apply(&self, raw_ut: Vec3) -> Vec3 {
-        let m = Vector3::new(
-            raw_ut[0] * 10.0 + self.ofs_mg[0],
-            raw_ut[1] * 10.0 + self.ofs_mg[1],
-            raw_ut[2] * 10.0 + self.ofs_mg[2],
-        );
-        let c = self.s * m * self.scale;
-        [c.x, c.y, c.z]
-    }
-
-    /// In imucald's model: (offset uT, matrix rows), calibrated = matrix (raw - offset) in uT.
-    pub fn model(&self) -> (Vec3, [[f64; 3]; 3]) {
-        (
-            self.ofs_mg.map(|o| -o / 10.0),
-            crate::calib::model::mat_to_rows(&(self.s * self.scale)),
-        )
-    }
-}
-
-/// The symmetric soft-iron matrix: diagonal `d`, off-diagonal (xy, xz, yz) `o`.
-fn soft_iron(d: [f64; 3], o: [f64; 3]) -> Matrix3<f64> {
-    Matrix3::new(d[0], o[0], o[1], o[0], d[1], o[2], o[1], o[2], d[2])
-}
-
-/// Compass k's correction from its parameters. COMPASS_OFS is needed; COMPASS_DIA/ODI/SCALE
-/// missing are taken as ArduPilot's defaults (none) only when `absent_is_default` (the whole
-/// parameter list is known, so a missing one is missing from the firmware), else `None`.
-pub fn correction(
-    params: &BTreeMap<String, f64>,
-    k: u8,
-    absent_is_default: bool,
-) -> Option<Correction> {
-    suffix(k)?;
-    let get3 = |what: &str| -> Option<[f64; 3]> {
-        let mut v = [0.0; 3];
-        for (i, ax) in ["X", "Y", "Z"].iter().enumerate() {
-            v[i] = *params.get(&param(what, k, ax))?;
-        }
-        v.iter().all(|x| x.is_finite()).then_some(v)
-    };
-    let ofs_mg = get3("OFS")?;
-    let or_default = |v: Option<[f64; 3]>, d: [f64; 3]| match v {
-        Some(v) => Some(v),
-        None if absent_is_default => Some(d),
-        None => None,
-    };
-    let mut dia = or_default(get3("DIA"), [1.0; 3])?;
-    if dia.iter().all(|d| *d == 0.0) {
-        dia = [1.0; 3];
-    }
-    let odi = or_default(get3("ODI"), [0.0; 3])?;
-    let scale = match params.get(&format!("COMPASS_SCALE{}", suffix(k)?)) {
-        Some(&v) if (SCALE_RANGE.0..=SCALE_RANGE.1).contains(&v) => v,
-        _ => 1.0,
-    };
-    Some(Correction {
-        ofs_mg,
-        s: soft_iron(dia, odi),
-        scale,
-    })
-}
-
-/// Compass k's parameters that describe it: OFS, DIA, ODI, MOT, orientation, device id, external,
-/// scale and use.
-pub fn param_names(k: u8) -> Vec<String> {
-    let Some(s) = suffix(k) else {
-        return Vec::new();
-    };
-    let mut n = Vec::new();
-    for what in ["OFS", "DIA", "ODI", "MOT"] {
-        for ax in ["X", "Y", "Z"] {
-            n.push(param(what, k, ax));
-        }
-    }
-    let (orient, dev, ext) = match k {
-        0 => ("COMPASS_ORIENT", "COMPASS_DEV_ID", "COMPASS_EXTERNAL"),
-        1 => ("COMPASS_ORIENT2", "COMPASS_DEV_ID2", "COMPASS_EXTERN2"),
-        _ => ("COMPASS_ORIENT3", "COMPASS_DEV_ID3", "COMPASS_EXTERN3"),
-    };
-    n.extend(
-        [orient, dev, ext]
-            .iter()
-            .map(|x| x.to_string())
-            .chain([format!("COMPASS_SCALE{s}"), format!("COMPASS_USE{s}")]),
-    );
-    n
-}
-
-/// Compass k's device id (COMPASS_DEV_ID{,2,3}), when set.
-pub fn dev_id(params: &BTreeMap<String, f64>, k: u8) -> Option<u32> {
-    let n = match k {
-        0 => "COMPASS_DEV_ID",
-        1 => "COMPASS_DEV_ID2",
-        _ => "COMPASS_DEV_ID3",
-    };
-    params
-        .get(n)
-        .filter(|v| **v > 0.0 && **v < u32::MAX as f64)
-        .map(|v| *v as u32)
-}
 
 /// Compass k's onboard calibration in imucald's model, with the parameters it was made from.
 pub fn onboard_cal(
@@ -286,11 +134,17 @@ impl Telemetry {
             return Some((c, CorrectionSource::Params));
         }
         match (k, self.sensor_offsets_mg) {
-            (0, Some(o)) if !self.params.contains_key(&param("OFS", 0, "X")) => {
+            (0, Some(o)) if !self.has_compass0_offsets() => {
                 Some((Correction::offsets_only(o), CorrectionSource::SensorOffsets))
             }
             _ => None,
         }
+    }
+
+    /// Whether COMPASS_OFS_X has arrived (the parameters then describe compass 0, not
+    /// SENSOR_OFFSETS).
+    fn has_compass0_offsets(&self) -> bool {
+        triple(Triple::Ofs, 0).is_some_and(|[x, _, _]| self.params.contains_key(&x))
     }
 
     /// The raw field (uT) behind compass k's reading `mag_mg` (mGauss, as streamed) at time
@@ -409,25 +263,6 @@ fn fmt3(v: &[f64; 3]) -> String {
     format!("[{:.1}, {:.1}, {:.1}]", v[0], v[1], v[2])
 }
 
-/// Compass 2's parameters of a real vehicle (offsets, soft iron), for tests.
-#[cfg(test)]
-pub(crate) fn example_compass2() -> BTreeMap<String, f64> {
-    [
-        ("COMPASS_OFS2_X", -171.9),
-        ("COMPASS_OFS2_Y", 546.3),
-        ("COMPASS_OFS2_Z", -565.6),
-        ("COMPASS_DIA2_X", 1.02),
-        ("COMPASS_DIA2_Y", 0.98),
-        ("COMPASS_DIA2_Z", 1.14),
-        ("COMPASS_ODI2_X", -0.01),
-        ("COMPASS_ODI2_Y", 0.007),
-        ("COMPASS_ODI2_Z", 0.014),
-    ]
-    .iter()
-    .map(|(n, v)| (n.to_string(), *v))
-    .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -442,21 +277,6 @@ mod tests {
             param_id: mavlink::types::CharArray::from(name),
             param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
         })
-    }
-
-    #[test]
-    fn undo_inverts_the_correction() {
-        let mut p = example_compass2();
-        let c = correction(&p, 1, false).unwrap();
-        let raw = [12.0, -30.0, 41.0];
-        let back = c.undo(c.apply(raw), None).unwrap();
-        for i in 0..3 {
-            assert!((back[i] - raw[i]).abs() < 1e-9, "{back:?}");
-        }
-        // Missing DIA/ODI: unknown unless the list is whole.
-        p.remove("COMPASS_DIA2_Y");
-        assert!(correction(&p, 1, false).is_none());
-        assert_eq!(correction(&p, 1, true).unwrap().s[(1, 1)], 1.0);
     }
 
     #[test]
@@ -532,10 +352,8 @@ mod tests {
     }
 
     fn compass0(v: [f64; 9]) -> Vec<(String, f64)> {
-        let names = ["OFS", "DIA", "ODI"]
-            .iter()
-            .flat_map(|b| ["X", "Y", "Z"].map(|a| param(b, 0, a)));
-        names.zip(v).collect()
+        let names = crate::calib::ardupilot::correction_names(0).unwrap();
+        names.into_iter().zip(v).collect()
     }
 
     #[test]

@@ -51,8 +51,9 @@
 //! {"schema":"imucald.live/1","type":"status","level":"info","text":"mag calibrated"}
 //! ```
 
+use crate::calib::ardupilot;
 use crate::calib::fit::FitFailure;
-use crate::calib::model::{CalModel, Calibration, ModelKind};
+use crate::calib::model::CalModel;
 use crate::calib::outcome::{CalStatus, SensorCalibration};
 use crate::types::Vec3;
 use mavlink::dialects::ardupilotmega::{
@@ -314,9 +315,9 @@ pub fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
     mag_cal_report_autosaved(compass_id, cal, false)
 }
 
-/// MAG_CAL_REPORT in ArduPilot's conventions: `fitness` the RMS residual in mGauss; `ofs_*` as
-/// COMPASS_OFS (mGauss, added: -offset * 10); `diag_*`/`offdiag_*` as COMPASS_DIA/ODI from the
-/// symmetric part of the matrix (via [`crate::calib::export::ardupilot_mag`]); `cal_status` from
+/// MAG_CAL_REPORT in ArduPilot's conventions: `fitness` the RMS residual in mGauss; `ofs_*`,
+/// `diag_*` and `offdiag_*` as COMPASS_OFS/DIA/ODI ([`ardupilot::Correction::from_model`]: the
+/// offset negated in mGauss, the symmetric part of the matrix); `cal_status` from
 /// [`mag_cal_status_code`]; `cal_mask` = 1 << compass_id; `scale_factor` 1.0; orientation fields
 /// unused (ROTATION_NONE, confidence 0). The calibration's numbers are taken to be in uT.
 pub fn mag_cal_report_autosaved(
@@ -324,28 +325,22 @@ pub fn mag_cal_report_autosaved(
     cal: &SensorCalibration,
     autosaved: bool,
 ) -> MavMessage {
-    let c = Calibration {
-        model: match cal.model {
-            CalModel::Auto | CalModel::SixPosition | CalModel::Planar => ModelKind::Sym9,
-            m => m.kind(),
-        },
-        offset: cal.offset,
-        matrix: cal.matrix,
-    };
-    // Order: OFS X Y Z, DIA X Y Z, ODI X Y Z (the names do not matter here).
-    let (p, _) = crate::calib::export::ardupilot_mag(&c, 0);
-    let v: Vec<f32> = p.iter().map(|(_, x)| *x as f32).collect();
+    let c = ardupilot::Correction::from_model(&cal.offset, &cal.matrix);
+    let [ofs_x, ofs_y, ofs_z] = c.ofs_mg.map(|x| x as f32);
+    let (dia, odi) = c.dia_odi();
+    let [diag_x, diag_y, diag_z] = dia.map(|x| x as f32);
+    let [offdiag_x, offdiag_y, offdiag_z] = odi.map(|x| x as f32);
     MavMessage::MAG_CAL_REPORT(MAG_CAL_REPORT_DATA {
-        fitness: (cal.rms_residual * 10.0) as f32,
-        ofs_x: v[0],
-        ofs_y: v[1],
-        ofs_z: v[2],
-        diag_x: v[3],
-        diag_y: v[4],
-        diag_z: v[5],
-        offdiag_x: v[6],
-        offdiag_y: v[7],
-        offdiag_z: v[8],
+        fitness: (cal.rms_residual * ardupilot::MGAUSS_PER_UT) as f32,
+        ofs_x,
+        ofs_y,
+        ofs_z,
+        diag_x,
+        diag_y,
+        diag_z,
+        offdiag_x,
+        offdiag_y,
+        offdiag_z,
         compass_id,
         cal_mask: cal_mask(compass_id),
         cal_status: mag_cal_status_enum(mag_cal_status_code(cal)),
@@ -512,48 +507,12 @@ pub fn attitude_from_quaternion(
 // ---------------------------------------------------------------------------------------------
 // Undoing ArduPilot's correction
 
-/// ArduPilot's compass parameters in `correct_field` order, as (name part, axis).
-const AP_COMPASS_FIELDS: [(&str, &str); 9] = [
-    ("OFS", "X"),
-    ("OFS", "Y"),
-    ("OFS", "Z"),
-    ("DIA", "X"),
-    ("DIA", "Y"),
-    ("DIA", "Z"),
-    ("ODI", "X"),
-    ("ODI", "Y"),
-    ("ODI", "Z"),
-];
-
-/// Compasses whose ArduPilot parameters the service reads to undo their correction (COMPASS_OFS,
-/// COMPASS_OFS2, COMPASS_OFS3 ...: ArduPilot keeps three sets).
-pub const AP_COMPASSES: u8 = 3;
-
-/// The nine parameters of compass `compass` (0-based) in `correct_field` order, then its optional
-/// scale (`COMPASS_SCALE`, `COMPASS_SCALE2` ...: applied only when read and within ArduPilot's
-/// bounds).
-pub fn ap_compass_params(compass: u8) -> [String; 10] {
-    let name = |base: &str, axis: &str| {
-        crate::calib::export::ardupilot_compass_param(base, compass as usize, axis)
-    };
-    let scale = if compass == 0 {
-        "COMPASS_SCALE".to_string()
-    } else {
-        format!("COMPASS_SCALE{}", compass + 1)
-    };
-    let mut out: [String; 10] = Default::default();
-    for (k, (base, axis)) in AP_COMPASS_FIELDS.iter().enumerate() {
-        out[k] = name(base, axis);
-    }
-    out[9] = scale;
-    out
-}
-
-/// PARAM_REQUEST_READ by name (`param_index` -1) for the parameters of compasses 0 to
-/// [`AP_COMPASSES`] - 1 ([`ap_compass_params`]: ten per compass).
+/// PARAM_REQUEST_READ by name (`param_index` -1) for what undoing the correction of each compass
+/// ArduPilot calibrates needs ([`ardupilot::correction_names`]: ten per compass).
 pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
-    (0..AP_COMPASSES)
-        .flat_map(ap_compass_params)
+    (0..ardupilot::COMPASSES)
+        .filter_map(ardupilot::correction_names)
+        .flatten()
         .map(|name| {
             MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
                 param_index: -1,
@@ -894,6 +853,7 @@ pub fn json_line_for(ev: &LiveEvent, vehicle: Option<&VehicleTag>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::calib::model::{Calibration, ModelKind};
     use crate::io::decode::{parse_frame, Frame, FrameParse};
     use mavlink::dialects::ardupilotmega::PARAM_VALUE_DATA;
     use std::f64::consts::PI;
@@ -1244,7 +1204,10 @@ mod tests {
     fn param_request_reads_name_every_compass_parameter() {
         let reqs = param_request_reads(1, 1);
         assert_eq!(reqs.len(), 30);
-        let names: Vec<String> = (0..AP_COMPASSES).flat_map(ap_compass_params).collect();
+        let names: Vec<String> = (0..ardupilot::COMPASSES)
+            .filter_map(ardupilot::correction_names)
+            .flatten()
+            .collect();
         assert_eq!(names[0], "COMPASS_OFS_X");
         assert_eq!(names[9], "COMPASS_SCALE");
         assert_eq!(names[10], "COMPASS_OFS2_X");

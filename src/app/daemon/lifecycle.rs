@@ -379,10 +379,12 @@ impl State {
         cmd: &COMMAND_LONG_DATA,
     ) {
         let (lat, lon) = (cmd.param3 as f64, cmd.param4 as f64);
+        // The field of today where `[place]` gives no date: a fixed-yaw calibration is of now.
+        let today = crate::io::clock::today().iso();
         let place = if lat == 0.0 && lon == 0.0 {
-            self.cfg.place.clone()
+            self.cfg.place.as_ref().map(|p| p.dated(&today))
         } else {
-            Some(crate::attitude::Place::at(lat, lon))
+            Some(crate::attitude::Place::at(lat, lon).dated(&today))
         };
         let field = match place.as_ref().map(crate::attitude::earth_field) {
             Some(Ok(f)) => Ok(f),

@@ -14,8 +14,8 @@
 //! readings since the last one (as a MAVLink IMU message does); an instance without an
 //! accelerometer gives a sample per reading. Each instance has its own [`SourceClock`].
 //!
-//! Onboard correction undone. ArduPilot logs `MAG` after
-//! `mag = S (scale (raw + OFS)) + MOfs` (mGauss): raw = (S^-1 (mag - MOfs)) / scale - OFS, with
+//! Onboard correction undone. ArduPilot logs `MAG` after its correction
+//! ([`crate::calib::ardupilot`], the motor term logged as MOfs), undone with
 //! COMPASS_OFS/DIA/ODI/SCALE of that compass (the record's own OfsX/Y/Z where the parameter is
 //! absent or differs by more than 1 mGauss: an offset changed in flight). PX4's
 //! `vehicle_magnetometer` and `sensor_combined.magnetometer_ga` are `R S (raw - OFF)` (gauss) of
@@ -23,7 +23,7 @@
 //! R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
 //! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations, else not undone and said
 //! so (`onboard.not_undone`). Onboard calibrations are reported in imucald's model, calibrated =
-//! M (raw - offset) in uT: ArduPilot's hard iron is -COMPASS_OFS/10, M = S (x scale); PX4's is
+//! M (raw - offset) in uT: ArduPilot's as [`crate::calib::ardupilot::Correction::model`]; PX4's is
 //! CAL_MAGn_?OFF x 100, M = S (the CAL_MAGn_?COMP power compensation is not undone).
 //! `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
 //! board); their onboard calibration is reported, not undone.
@@ -326,17 +326,8 @@ pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
     Some((roll, pitch))
 }
 
-fn mat3(rows: [[f64; 3]; 3]) -> Matrix3<f64> {
-    crate::calib::model::rows_to_mat(&rows)
-}
-
 fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
     crate::calib::model::mat_to_rows(m)
-}
-
-/// The symmetric soft-iron matrix both stacks use: diagonal `d`, off-diagonal (xy, xz, yz) `o`.
-fn soft_iron(d: [f64; 3], o: [f64; 3]) -> Matrix3<f64> {
-    mat3([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -350,8 +341,8 @@ fn ap_onboard(
         stack: "ardupilot".into(),
         ..Default::default()
     };
-    for k in 0..crate::io::ardupilot::COMPASSES {
-        let Some(c) = crate::io::ardupilot::correction(params, k, true) else {
+    for k in 0..crate::calib::ardupilot::COMPASSES {
+        let Some(c) = crate::calib::ardupilot::correction(params, k, true) else {
             continue;
         };
         let sources = sources.get(&(0, k)).cloned().into_iter().collect();
@@ -403,7 +394,7 @@ fn ap_undo(
     rec_ofs: Option<Vec3>,
     mofs: Option<Vec3>,
 ) -> Option<Vec3> {
-    use crate::io::ardupilot::{correction, Correction};
+    use crate::calib::ardupilot::{correction, Correction};
     let mut c = match correction(params, k, true) {
         Some(c) => c,
         // No parameters: the record's offsets, no soft iron.
@@ -642,7 +633,7 @@ impl DfConv {
             Sensor::Mag,
             k,
             src,
-            crate::io::ardupilot::dev_id(&self.params, k),
+            crate::calib::ardupilot::dev_id(&self.params, k),
         );
         self.sources
             .entry((0, k))
@@ -810,7 +801,7 @@ fn px4_mag_cal(params: &BTreeMap<String, f64>, n: u8) -> Option<([f64; 3], Matri
         p("YODIAG").unwrap_or(0.0),
         p("ZODIAG").unwrap_or(0.0),
     ];
-    Some((off, soft_iron(d, o), id))
+    Some((off, crate::calib::ardupilot::symmetric(d, o), id))
 }
 
 /// The rotation PX4 applies to calibration n's compass (CAL_MAGn_ROT, -1: the board's).
@@ -1457,9 +1448,9 @@ mod tests {
 
     #[test]
     fn ardupilot_undo_inverts_its_correction() {
-        let p = crate::io::ardupilot::example_compass2();
+        let p = crate::calib::ardupilot::example_compass2();
         let raw_ut = [12.0, -30.0, 41.0];
-        let c = crate::io::ardupilot::correction(&p, 1, true)
+        let c = crate::calib::ardupilot::correction(&p, 1, true)
             .unwrap()
             .apply(raw_ut);
         let back = ap_undo(&p, 1, [c[0], c[1], c[2]], None, None).unwrap();
@@ -1470,7 +1461,7 @@ mod tests {
         let r = ap_onboard(&p, &BTreeMap::new());
         let cal = &r.mag[0];
         assert_eq!(cal.instance, 1);
-        let mm = mat3(cal.matrix);
+        let mm = crate::calib::model::rows_to_mat(&cal.matrix);
         let d = Vector3::new(
             raw_ut[0] - cal.offset[0],
             raw_ut[1] - cal.offset[1],
