@@ -682,63 +682,76 @@ fn eval_against_reference(
 }
 
 fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
+    use imucald::app::fixedyaw::{from_log, FixedYawError, LogRequest, PlaceSource};
     let cfg = load_config(a.config.as_ref())?;
-    let format = a.format;
-    let place = match (a.lat, a.lon) {
-        (Some(lat), Some(lon)) => imucald::attitude::Place::at(lat, lon),
-        _ => cfg
-            .place
-            .clone()
-            .context("no place: give --lat and --lon, or [place] in the config")?,
+    let req = LogRequest {
+        yaw_deg: a.yaw_deg,
+        given: a.lat.zip(a.lon),
+        at_s: a.at_s,
+        format: a.format,
+        ..Default::default()
     };
-    let field = imucald::attitude::earth_field(&place).map_err(|e| anyhow::anyhow!(e))?;
-    let log = imucald::io::sources::read_log(&a.log, format, &cfg)
-        .with_context(|| format!("reading {}", a.log.display()))?;
-    let pipe = imucald::calib::pipeline::Pipeline::new(&cfg)?;
-    let end_s = a.at_s.unwrap_or(f64::INFINITY);
-    if let (Some(at), Some(last)) = (a.at_s, log.samples.last()) {
-        let first = log.samples.first().map_or(0.0, |s| s.t_s);
-        if at > last.t_s || at < first {
-            anyhow::bail!(
-                "--at-s {at} is outside the log ({first:.1} to {:.1} s): give the time the rest ended",
-                last.t_s
-            );
+    let log = a.log.display();
+    let r = from_log(&a.log, &cfg, &req).map_err(|e| match e {
+        FixedYawError::NoPlace => anyhow::anyhow!(
+            "no place: give --lat and --lon, or [place] in the config ({log} has no position or GPS fix)"
+        ),
+        FixedYawError::OutsideLog {
+            at_s,
+            first_s,
+            last_s,
+        } => anyhow::anyhow!(
+            "--at-s {at_s} is outside the log ({first_s:.1} to {last_s:.1} s): give the time the rest ended"
+        ),
+        FixedYawError::Refused(why) => {
+            anyhow::anyhow!("{log}: {why} (--at-s picks the end of the rest)")
         }
-    }
-    let pairs: Vec<_> = log
-        .samples
-        .iter()
-        .filter(|s| s.t_s <= end_s)
-        .filter_map(|s| {
-            let b = pipe.to_body(s);
-            Some((b.mag_ut?, b.accel_mps2?))
-        })
-        .collect();
-    let identity = imucald::calib::model::IDENTITY;
-    let settings = imucald::calib::fixedyaw::FixedYawSettings::default();
-    let fy =
-        imucald::calib::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
-            .map_err(|e| {
-                anyhow::anyhow!(
-                    "{}: {e} (--at-s picks the end of the rest)",
-                    a.log.display()
-                )
-            })?;
-    let o = fy.offset_ut;
+        FixedYawError::Input(e) => anyhow::Error::new(e).context(format!("reading {log}")),
+        other => anyhow::anyhow!("{log}: {other}"),
+    })?;
+    let (fy, cal) = (&r.found.fixed, &r.found.calibration);
+    let o = cal.offset;
     println!(
         "fixed yaw {:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT ({} samples): offset [{:.2}, {:.2}, {:.2}] uT",
-        a.yaw_deg, fy.roll_deg, fy.pitch_deg, field.total_ut, fy.samples, o[0], o[1], o[2]
+        a.yaw_deg, fy.roll_deg, fy.pitch_deg, r.field.total_ut, fy.samples, o[0], o[1], o[2]
     );
-    let cal = imucald::calib::model::Calibration {
-        model: imucald::calib::model::ModelKind::Sphere,
-        offset: o,
-        matrix: identity,
+    let source = match &r.place_source {
+        PlaceSource::Given => "--lat/--lon",
+        PlaceSource::Found(s) => s.as_str(),
     };
-    for p in imucald::calib::export::ardupilot_mag(&cal, 0)
+    let model = match r.place.model {
+        imucald::attitude::FieldModel::Wmm => "WMM",
+        imucald::attitude::FieldModel::Igrf13 => "IGRF-13",
+        imucald::attitude::FieldModel::Fitted => "fitted",
+    };
+    let day = match r.place.date_source.as_str() {
+        "today" => "today".to_string(),
+        from => format!("{} (from the {})", r.place.date, from.replace('_', " ")),
+    };
+    println!(
+        "place {:.5}, {:.5} from {source}; {model} field of {day}",
+        r.place.latitude_deg.unwrap_or(f64::NAN),
+        r.place.longitude_deg.unwrap_or(f64::NAN),
+    );
+    match (&r.mag_fit, r.found.soft_iron_kept) {
+        (Some(m), true) => println!("soft iron: the log's {m} fit, kept"),
+        (Some(m), false) => println!("soft iron: none (the log's {m} fit left out)"),
+        (None, _) => println!("soft iron: none (the log's magnetometer fit did not pass)"),
+    }
+    if r.found.accel_calibrated {
+        println!("tilt: from the accelerometer calibrated by the log's fit");
+    } else {
+        println!("tilt: from the uncalibrated accelerometer (the log's fit did not pass)");
+    }
+    let Some(c) = cal.calibration_ut() else {
+        return Ok(());
+    };
+    // The offset goes with the soft iron it was found with: its parameters too when one was kept.
+    for p in imucald::calib::export::ardupilot_mag(&c, 0)
         .0
         .iter()
-        .chain(imucald::calib::export::px4_mag(&cal, 0).0.iter())
-        .filter(|(name, _)| name.contains("OFS") || name.contains("OFF"))
+        .chain(imucald::calib::export::px4_mag(&c, 0).0.iter())
+        .filter(|(name, _)| r.found.soft_iron_kept || name.contains("OFS") || name.contains("OFF"))
     {
         println!("{} {}", p.0, p.1);
     }
@@ -746,6 +759,8 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
 }
 
 fn simulate_cmd(args: SimulateArgs) -> Result<()> {
+    use imucald::app::simulate::{SimLog, SimulateRequest};
+    use imucald::sim::{ImuMessage, TlogWriteOptions};
     let SimulateArgs {
         scenario,
         out,
@@ -754,61 +769,39 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
         message,
         mavlink_version,
     } = args;
-    use imucald::sim::{simulate, write_csv, write_tlog, ImuMessage, Scenario, TlogWriteOptions};
-    let sc = match Scenario::named(&scenario) {
-        Some(s) => s,
-        None => {
-            let text = std::fs::read_to_string(&scenario).with_context(|| {
-                format!(
-                    "--scenario `{scenario}` is neither a built-in ({}) nor a readable file",
-                    Scenario::names().join(", ")
-                )
-            })?;
-            Scenario::from_toml_str(&text).with_context(|| format!("scenario file {scenario}"))?
-        }
+    let sc = imucald::sim::named::scenario(&scenario)
+        .with_context(|| format!("--scenario {scenario}"))?;
+    let Some(kind) = SimLog::of(&out) else {
+        anyhow::bail!("--out {}: use a {} name", out.display(), SimLog::NAMES);
     };
-    let sim = simulate(&sc, seed);
-    let name = out.to_string_lossy().to_lowercase();
-    if name.ends_with(".tlog") {
-        let message = match message {
-            Message::HighresImu => ImuMessage::HighresImu,
-            Message::ScaledImu => ImuMessage::ScaledImu,
-        };
-        write_tlog(
-            &out,
-            &sim.samples,
-            &TlogWriteOptions {
-                message,
-                mavlink_version,
-                ..Default::default()
-            },
-        )?;
-    } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
-        write_csv(&out, &sim.samples)?;
-    } else if name.ends_with(".bin") || name.ends_with(".ulg") {
-        // The magnetometer logged corrected by a known onboard calibration, as flight
-        // controllers log it; replay undoes it from the log's parameters.
-        let onboard = imucald::io::flightlog::write::OnboardMag::example();
-        imucald::io::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+    let message = match message {
+        Message::HighresImu => ImuMessage::HighresImu,
+        Message::ScaledImu => ImuMessage::ScaledImu,
+    };
+    let req = SimulateRequest {
+        seed,
+        tlog: TlogWriteOptions {
+            message,
+            mavlink_version,
+            ..Default::default()
+        },
+        truth,
+    };
+    let w = imucald::app::simulate::write(&sc, &out, kind, &req)?;
+    if let Some(onboard) = &w.onboard {
         println!(
             "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
             onboard.offset_ut, onboard.matrix
-        );
-    } else {
-        anyhow::bail!(
-            "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
-            out.display()
         );
     }
     println!(
         "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",
         out.display(),
-        sim.samples.len(),
-        sim.samples.last().map_or(0.0, |s| s.t_s),
+        w.samples,
+        w.duration_s,
         sc.name
     );
-    if let Some(t) = truth {
-        imucald::io::publish::write_json(&t, &sim.truth)?;
+    if let Some(t) = &w.truth {
         println!("wrote {}", t.display());
     }
     Ok(())
