@@ -34,9 +34,9 @@ enum Cmd {
     /// heading and inclination RMSE over the movement phase, by BROAD's definitions.
     Eval(EvalArgs),
     /// Magnetometer offsets of a vehicle resting at a known yaw (for vehicles that cannot be
-    /// tumbled): tilt from the accelerometer, the earth field from the World Magnetic Model at the
-    /// place, the soft iron left as it is. The live service does the same for
-    /// MAV_CMD_FIXED_MAG_CAL_YAW.
+    /// tumbled): tilt from the accelerometer (calibrated by the log's fit when it passed), the
+    /// earth field from the World Magnetic Model at the place, the soft iron fitted on the log
+    /// kept (none without one). The live service does the same for MAV_CMD_FIXED_MAG_CAL_YAW.
     FixedYaw(FixedYawArgs),
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
     /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
@@ -173,7 +173,8 @@ struct FixedYawArgs {
     /// The vehicle's true yaw while it rested, degrees clockwise from true north.
     #[arg(long)]
     yaw_deg: f64,
-    /// Where it rested (degrees); without both, `[place]` from the config.
+    /// Where it rested (degrees); without both, the log's position or GPS fix, else `[place]`
+    /// from the config.
     #[arg(long, requires = "lon", allow_hyphen_values = true)]
     lat: Option<f64>,
     /// Longitude of where it rested (degrees east); with --lat.
@@ -579,12 +580,8 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let mut input = imucald::io::sources::read_log(&log, format, &cfg)
+    let input = imucald::app::eval::read_log(&log, format, &cfg, calibration.as_deref())
         .with_context(|| format!("reading {}", log.display()))?;
-    if let Some(c) = &calibration {
-        let cal = imucald::app::daemon::LoadedCalibration::load(c)?;
-        input.samples = cal.apply(&input.samples);
-    }
     let fcfg = imucald::attitude::fusion::FusionConfig {
         use_mag: !no_mag,
         ..Default::default()
@@ -634,22 +631,12 @@ fn eval_against_reference(
     alignment: Alignment,
     report: Option<PathBuf>,
 ) -> Result<()> {
-    use imucald::attitude::align;
-    let mut takes = Vec::new();
-    for path in references {
-        takes.push(imucald::io::mocap::read_motive(path, rigid_body)?);
-    }
-    let poses: Vec<Vec<align::Pose>> = takes.iter().map(|t| t.poses()).collect();
-    let opts = align::AlignOptions::default();
-    let found: Vec<_> = poses
-        .iter()
-        .map(|p| align::align_to_log(&input.samples, p, &opts))
-        .collect();
-    let best = align::best_alignment(&found);
-    for (take, a) in takes.iter().zip(&found) {
+    let captures = imucald::app::eval::align_captures(input, references, rigid_body)?;
+    let several = captures.takes.len() > 1;
+    for (take, a) in captures.takes.iter().zip(&captures.alignments) {
         print!("{}", take.summary());
         match a {
-            Ok(a) if takes.len() > 1 => println!(
+            Ok(a) if several => println!(
                 "  rate correlation {:.3} at offset {:.3} s",
                 a.correlation, a.time_offset_s
             ),
@@ -657,22 +644,10 @@ fn eval_against_reference(
             Err(e) => println!("  not aligned: {e}"),
         }
     }
-    let Some(i) = best else {
-        anyhow::bail!("no capture could be aligned with the log");
-    };
-    if takes.len() > 1 {
-        println!("using {}", takes[i].path.display());
+    if let (Some(i), true) = (captures.best, several) {
+        println!("using {}", captures.takes[i].path.display());
     }
-    let fc_name = match input.format {
-        Format::Ulg => Some("PX4 EKF (vehicle_attitude)"),
-        Format::Bin => Some("ArduPilot attitude (ATT)"),
-        Format::Tlog => Some("vehicle attitude (ATTITUDE)"),
-        // A CSV's ref_q is a reference, not an estimate.
-        Format::Csv => None,
-    };
-    let a = found[i].as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let r =
-        align::evaluate_against_reference(&input.samples, &poses[i], a, fcfg, alignment, fc_name)?;
+    let r = captures.evaluate(input, fcfg, alignment)?;
     print!("{}", r.to_text());
     if let Some(path) = report {
         imucald::io::publish::write_json(&path, &r)?;
@@ -743,17 +718,8 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
     } else {
         println!("tilt: from the uncalibrated accelerometer (the log's fit did not pass)");
     }
-    let Some(c) = cal.calibration_ut() else {
-        return Ok(());
-    };
-    // The offset goes with the soft iron it was found with: its parameters too when one was kept.
-    for p in imucald::calib::export::ardupilot_mag(&c, 0)
-        .0
-        .iter()
-        .chain(imucald::calib::export::px4_mag(&c, 0).0.iter())
-        .filter(|(name, _)| r.found.soft_iron_kept || name.contains("OFS") || name.contains("OFF"))
-    {
-        println!("{} {}", p.0, p.1);
+    for (name, value) in r.params() {
+        println!("{name} {value}");
     }
     Ok(())
 }

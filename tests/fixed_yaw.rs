@@ -266,7 +266,9 @@ fn fixed_yaw_subcommand_takes_the_place_from_the_log() {
         // The soft iron fitted on the tumble is kept, its parameters printed with the offset.
         assert!(found_text.contains("soft iron: the log's"), "{found_text}");
         assert!(found_text.contains("COMPASS_DIA_X"), "{found_text}");
-        let err = (0..3).map(|k| (found[k] - hard[k]).abs()).fold(0.0, f64::max);
+        let err = (0..3)
+            .map(|k| (found[k] - hard[k]).abs())
+            .fold(0.0, f64::max);
         // Measured: 0.17 uT (.tlog), 0.09 uT (CSV, on today's field rather than the simulated
         // day's); mostly the fitted soft iron's overall scale (0.3 % below the truth's) times the
         // 57 uT field.

@@ -50,7 +50,11 @@ pub enum FixedYawError {
     NoField,
     /// The rest was said to end outside the log.
     #[error("the rest cannot end at {at_s} s: the log runs from {first_s:.1} to {last_s:.1} s")]
-    OutsideLog { at_s: f64, first_s: f64, last_s: f64 },
+    OutsideLog {
+        at_s: f64,
+        first_s: f64,
+        last_s: f64,
+    },
     /// The readings do not allow it (moved, tilted, too few).
     #[error("{0}")]
     Refused(FixedYawFailure),
@@ -189,6 +193,24 @@ pub struct LogFixedYaw {
     pub place_source: PlaceSource,
     /// The log's magnetometer fit when it passed (its model), kept or not as asked.
     pub mag_fit: Option<String>,
+}
+
+impl LogFixedYaw {
+    /// The flight-stack parameters to set, ArduPilot's (compass 1) then PX4's (CAL_MAG0): the
+    /// offset, and with it the soft iron it was found with when one was kept (otherwise the
+    /// vehicle keeps its own).
+    pub fn params(&self) -> Vec<crate::calib::export::Param> {
+        let Some(c) = self.found.calibration.calibration_ut() else {
+            return Vec::new();
+        };
+        let offset = |name: &str| name.contains("OFS") || name.contains("OFF");
+        crate::calib::export::ardupilot_mag(&c, 0)
+            .0
+            .into_iter()
+            .chain(crate::calib::export::px4_mag(&c, 0).0)
+            .filter(|(name, _)| self.found.soft_iron_kept || offset(name))
+            .collect()
+    }
 }
 
 /// The fixed-yaw offset of the vehicle resting at the end of the log at `path` (or at
@@ -418,7 +440,11 @@ mod tests {
         }
         let accel = SensorCalibration {
             offset: [0.3, 0.0, 0.0],
-            matrix: [[1.0 / 0.95, 0.0, 0.0], [0.0, 1.0 / 0.95, 0.0], [0.0, 0.0, 1.0 / 0.95]],
+            matrix: [
+                [1.0 / 0.95, 0.0, 0.0],
+                [0.0, 1.0 / 0.95, 0.0],
+                [0.0, 0.0, 1.0 / 0.95],
+            ],
             ..SensorCalibration::new(CalStatus::Ok, "diag6", "m/s^2")
         };
         let pipe = Pipeline::new(&Config::default()).unwrap();
@@ -437,10 +463,7 @@ mod tests {
         )
         .unwrap();
         let norm = |v: Vec3| v.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let (eg, eb) = (
-            norm(good.calibration.offset),
-            norm(bad.calibration.offset),
-        );
+        let (eg, eb) = (norm(good.calibration.offset), norm(bad.calibration.offset));
         // Measured: 0.00022 uT with the calibration, 1.46 uT without; pitch 8.0001 deg with it,
         // 9.82 deg without.
         assert!(eg < 0.0007 && eb > 0.49, "{eg} {eb}");

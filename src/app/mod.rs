@@ -1,5 +1,5 @@
 //! What a user runs: [`daemon`] (the live service, `imucald run`), [`replay`] (a log through the
-//! same pipeline), [`fixedyaw`] (offsets at one known heading, for `imucald fixed-yaw` and the
+//! same pipeline), [`eval`] (the orientation filter against a reference), [`fixedyaw`] (offsets at one known heading, for `imucald fixed-yaw` and the
 //! service), [`simulate`] (a simulated log written), [`ui`] (the live page and the HTML report) and
 //! [`plot`] (PNG and SVG pictures).
 //!
@@ -7,6 +7,7 @@
 //! and only the daemon spawns tasks; every queue it makes is bounded and counts its drops.
 
 pub mod daemon;
+pub mod eval;
 pub mod fixedyaw;
 pub mod plot;
 pub mod replay;
