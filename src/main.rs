@@ -34,9 +34,9 @@ enum Cmd {
     /// heading and inclination RMSE over the movement phase, by BROAD's definitions.
     Eval(EvalArgs),
     /// Magnetometer offsets of a vehicle resting at a known yaw (for vehicles that cannot be
-    /// tumbled): tilt from the accelerometer, the earth field from the World Magnetic Model at the
-    /// place, the soft iron left as it is. The live service does the same for
-    /// MAV_CMD_FIXED_MAG_CAL_YAW.
+    /// tumbled): tilt from the accelerometer (calibrated by the log's fit when it passed), the
+    /// earth field from the World Magnetic Model at the place, the soft iron fitted on the log
+    /// kept (none without one). The live service does the same for MAV_CMD_FIXED_MAG_CAL_YAW.
     FixedYaw(FixedYawArgs),
     /// Simulate an IMU with known calibration errors and write a log (.tlog, .csv, .csv.gz, or a
     /// flight-controller log .bin / .ulg with a known onboard magnetometer calibration applied).
@@ -174,7 +174,8 @@ struct FixedYawArgs {
     /// The vehicle's true yaw while it rested, degrees clockwise from true north.
     #[arg(long)]
     yaw_deg: f64,
-    /// Where it rested (degrees); without both, `[place]` from the config.
+    /// Where it rested (degrees); without both, the log's position or GPS fix, else `[place]`
+    /// from the config.
     #[arg(long, requires = "lon", allow_hyphen_values = true)]
     lat: Option<f64>,
     /// Longitude of where it rested (degrees east); with --lat.
@@ -580,12 +581,8 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         report,
     } = args;
     let cfg = load_config(config.as_ref())?;
-    let mut input = imucald::io::sources::read_log(&log, format, &cfg.input)
+    let input = imucald::app::eval::read_log(&log, format, &cfg, calibration.as_deref())
         .with_context(|| format!("reading {}", log.display()))?;
-    if let Some(c) = &calibration {
-        let cal = imucald::app::daemon::LoadedCalibration::load(c)?;
-        input.samples = cal.apply(&input.samples);
-    }
     let fcfg = imucald::attitude::fusion::FusionConfig {
         use_mag: !no_mag,
         ..Default::default()
@@ -635,22 +632,12 @@ fn eval_against_reference(
     alignment: Alignment,
     report: Option<PathBuf>,
 ) -> Result<()> {
-    use imucald::attitude::align;
-    let mut takes = Vec::new();
-    for path in references {
-        takes.push(imucald::io::mocap::read_motive(path, rigid_body)?);
-    }
-    let poses: Vec<Vec<align::Pose>> = takes.iter().map(|t| t.poses()).collect();
-    let opts = align::AlignOptions::default();
-    let found: Vec<_> = poses
-        .iter()
-        .map(|p| align::align_to_log(&input.samples, p, &opts))
-        .collect();
-    let best = align::best_alignment(&found);
-    for (take, a) in takes.iter().zip(&found) {
+    let captures = imucald::app::eval::align_captures(input, references, rigid_body)?;
+    let several = captures.takes.len() > 1;
+    for (take, a) in captures.takes.iter().zip(&captures.alignments) {
         print!("{}", take.summary());
         match a {
-            Ok(a) if takes.len() > 1 => println!(
+            Ok(a) if several => println!(
                 "  rate correlation {:.3} at offset {:.3} s",
                 a.correlation, a.time_offset_s
             ),
@@ -658,22 +645,10 @@ fn eval_against_reference(
             Err(e) => println!("  not aligned: {e}"),
         }
     }
-    let Some(i) = best else {
-        anyhow::bail!("no capture could be aligned with the log");
-    };
-    if takes.len() > 1 {
-        println!("using {}", takes[i].path.display());
+    if let (Some(i), true) = (captures.best, several) {
+        println!("using {}", captures.takes[i].path.display());
     }
-    let fc_name = match input.format {
-        Format::Ulg => Some("PX4 EKF (vehicle_attitude)"),
-        Format::Bin => Some("ArduPilot attitude (ATT)"),
-        Format::Tlog => Some("vehicle attitude (ATTITUDE)"),
-        // A CSV's ref_q is a reference, not an estimate.
-        Format::Csv => None,
-    };
-    let a = found[i].as_ref().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let r =
-        align::evaluate_against_reference(&input.samples, &poses[i], a, fcfg, alignment, fc_name)?;
+    let r = captures.evaluate(input, fcfg, alignment)?;
     print!("{}", r.to_text());
     if let Some(path) = report {
         imucald::io::publish::write_json(&path, &r)?;
@@ -683,70 +658,76 @@ fn eval_against_reference(
 }
 
 fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
+    use imucald::app::fixedyaw::{from_log, FixedYawError, LogRequest, PlaceSource};
     let cfg = load_config(a.config.as_ref())?;
-    let format = a.format;
-    let place = match (a.lat, a.lon) {
-        (Some(lat), Some(lon)) => imucald::attitude::Place::at(lat, lon),
-        _ => cfg
-            .place
-            .clone()
-            .context("no place: give --lat and --lon, or [place] in the config")?,
+    let req = LogRequest {
+        yaw_deg: a.yaw_deg,
+        given: a.lat.zip(a.lon),
+        at_s: a.at_s,
+        format: a.format,
+        ..Default::default()
     };
-    let field = imucald::attitude::earth_field(&place).map_err(|e| anyhow::anyhow!(e))?;
-    let log = imucald::io::sources::read_log(&a.log, format, &cfg.input)
-        .with_context(|| format!("reading {}", a.log.display()))?;
-    let pipe = imucald::calib::pipeline::Pipeline::new(&cfg.calib())?;
-    let end_s = a.at_s.unwrap_or(f64::INFINITY);
-    if let (Some(at), Some(last)) = (a.at_s, log.samples.last()) {
-        let first = log.samples.first().map_or(0.0, |s| s.t_s);
-        if at > last.t_s || at < first {
-            anyhow::bail!(
-                "--at-s {at} is outside the log ({first:.1} to {:.1} s): give the time the rest ended",
-                last.t_s
-            );
+    let log = a.log.display();
+    let r = from_log(&a.log, &cfg, &req).map_err(|e| match e {
+        FixedYawError::NoPlace => anyhow::anyhow!(
+            "no place: give --lat and --lon, or [place] in the config ({log} has no position or GPS fix)"
+        ),
+        FixedYawError::OutsideLog {
+            at_s,
+            first_s,
+            last_s,
+        } => anyhow::anyhow!(
+            "--at-s {at_s} is outside the log ({first_s:.1} to {last_s:.1} s): give the time the rest ended"
+        ),
+        FixedYawError::Refused(why) => {
+            anyhow::anyhow!("{log}: {why} (--at-s picks the end of the rest)")
         }
-    }
-    let pairs: Vec<_> = log
-        .samples
-        .iter()
-        .filter(|s| s.t_s <= end_s)
-        .filter_map(|s| {
-            let b = pipe.to_body(s);
-            Some((b.mag_ut?, b.accel_mps2?))
-        })
-        .collect();
-    let identity = imucald::calib::model::IDENTITY;
-    let settings = imucald::calib::fixedyaw::FixedYawSettings::default();
-    let fy =
-        imucald::calib::fixedyaw::fixed_yaw_offset(&pairs, a.yaw_deg, &field, &identity, &settings)
-            .map_err(|e| {
-                anyhow::anyhow!(
-                    "{}: {e} (--at-s picks the end of the rest)",
-                    a.log.display()
-                )
-            })?;
-    let o = fy.offset_ut;
+        FixedYawError::Input(e) => anyhow::Error::new(e).context(format!("reading {log}")),
+        other => anyhow::anyhow!("{log}: {other}"),
+    })?;
+    let (fy, cal) = (&r.found.fixed, &r.found.calibration);
+    let o = cal.offset;
     println!(
         "fixed yaw {:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT ({} samples): offset [{:.2}, {:.2}, {:.2}] uT",
-        a.yaw_deg, fy.roll_deg, fy.pitch_deg, field.total_ut, fy.samples, o[0], o[1], o[2]
+        a.yaw_deg, fy.roll_deg, fy.pitch_deg, r.field.total_ut, fy.samples, o[0], o[1], o[2]
     );
-    let cal = imucald::calib::model::Calibration {
-        model: imucald::calib::model::ModelKind::Sphere,
-        offset: o,
-        matrix: identity,
+    let source = match &r.place_source {
+        PlaceSource::Given => "--lat/--lon",
+        PlaceSource::Found(s) => s.as_str(),
     };
-    for p in imucald::calib::export::ardupilot_mag(&cal, 0)
-        .0
-        .iter()
-        .chain(imucald::calib::export::px4_mag(&cal, 0).0.iter())
-        .filter(|(name, _)| name.contains("OFS") || name.contains("OFF"))
-    {
-        println!("{} {}", p.0, p.1);
+    let model = match r.place.model {
+        imucald::attitude::FieldModel::Wmm => "WMM",
+        imucald::attitude::FieldModel::Igrf13 => "IGRF-13",
+        imucald::attitude::FieldModel::Fitted => "fitted",
+    };
+    let day = match r.place.date_source.as_str() {
+        "today" => "today".to_string(),
+        from => format!("{} (from the {})", r.place.date, from.replace('_', " ")),
+    };
+    println!(
+        "place {:.5}, {:.5} from {source}; {model} field of {day}",
+        r.place.latitude_deg.unwrap_or(f64::NAN),
+        r.place.longitude_deg.unwrap_or(f64::NAN),
+    );
+    match (&r.mag_fit, r.found.soft_iron_kept) {
+        (Some(m), true) => println!("soft iron: the log's {m} fit, kept"),
+        (Some(m), false) => println!("soft iron: none (the log's {m} fit left out)"),
+        (None, _) => println!("soft iron: none (the log's magnetometer fit did not pass)"),
+    }
+    if r.found.accel_calibrated {
+        println!("tilt: from the accelerometer calibrated by the log's fit");
+    } else {
+        println!("tilt: from the uncalibrated accelerometer (the log's fit did not pass)");
+    }
+    for (name, value) in r.params() {
+        println!("{name} {value}");
     }
     Ok(())
 }
 
 fn simulate_cmd(args: SimulateArgs) -> Result<()> {
+    use imucald::app::simulate::{SimLog, SimulateRequest};
+    use imucald::io::samplelog::{ImuMessage, TlogWriteOptions};
     let SimulateArgs {
         scenario,
         out,
@@ -755,62 +736,39 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
         message,
         mavlink_version,
     } = args;
-    use imucald::io::samplelog::{write_csv, write_tlog, ImuMessage, TlogWriteOptions};
-    use imucald::sim::{simulate, Scenario};
-    let sc = match Scenario::named(&scenario) {
-        Some(s) => s,
-        None => {
-            let text = std::fs::read_to_string(&scenario).with_context(|| {
-                format!(
-                    "--scenario `{scenario}` is neither a built-in ({}) nor a readable file",
-                    Scenario::names().join(", ")
-                )
-            })?;
-            Scenario::from_toml_str(&text).with_context(|| format!("scenario file {scenario}"))?
-        }
+    let sc = imucald::sim::named::scenario(&scenario)
+        .with_context(|| format!("--scenario {scenario}"))?;
+    let Some(kind) = SimLog::of(&out) else {
+        anyhow::bail!("--out {}: use a {} name", out.display(), SimLog::NAMES);
     };
-    let sim = simulate(&sc, seed);
-    let name = out.to_string_lossy().to_lowercase();
-    if name.ends_with(".tlog") {
-        let message = match message {
-            Message::HighresImu => ImuMessage::HighresImu,
-            Message::ScaledImu => ImuMessage::ScaledImu,
-        };
-        write_tlog(
-            &out,
-            &sim.samples,
-            &TlogWriteOptions {
-                message,
-                mavlink_version,
-                ..Default::default()
-            },
-        )?;
-    } else if name.ends_with(".csv") || name.ends_with(".csv.gz") {
-        write_csv(&out, &sim.samples)?;
-    } else if name.ends_with(".bin") || name.ends_with(".ulg") {
-        // The magnetometer logged corrected by a known onboard calibration, as flight
-        // controllers log it; replay undoes it from the log's parameters.
-        let onboard = imucald::io::flightlog::write::OnboardMag::example();
-        imucald::io::flightlog::write::write_flight_log(&out, &sim.samples, &onboard)?;
+    let message = match message {
+        Message::HighresImu => ImuMessage::HighresImu,
+        Message::ScaledImu => ImuMessage::ScaledImu,
+    };
+    let req = SimulateRequest {
+        seed,
+        tlog: TlogWriteOptions {
+            message,
+            mavlink_version,
+            ..Default::default()
+        },
+        truth,
+    };
+    let w = imucald::app::simulate::write(&sc, &out, kind, &req)?;
+    if let Some(onboard) = &w.onboard {
         println!(
             "onboard magnetometer calibration applied in the log: offset {:?} uT, matrix {:?}",
             onboard.offset_ut, onboard.matrix
-        );
-    } else {
-        anyhow::bail!(
-            "--out {}: use a .tlog, .csv, .csv.gz, .bin or .ulg name",
-            out.display()
         );
     }
     println!(
         "wrote {} ({} samples, {:.1} s, scenario {}, seed {seed})",
         out.display(),
-        sim.samples.len(),
-        sim.samples.last().map_or(0.0, |s| s.t_s),
+        w.samples,
+        w.duration_s,
         sc.name
     );
-    if let Some(t) = truth {
-        imucald::io::publish::write_json(&t, &sim.truth)?;
+    if let Some(t) = &w.truth {
         println!("wrote {}", t.display());
     }
     Ok(())

@@ -89,7 +89,7 @@ fn place_of(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<Wh
 }
 
 /// The field at the log's place and date, as the report states it.
-fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<FieldUsed> {
+pub fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<FieldUsed> {
     let w = place_of(samples, log, cfg)?;
     let f = crate::attitude::earth_field(&w.place).ok()?;
     Some(FieldUsed {

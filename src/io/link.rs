@@ -187,16 +187,8 @@ impl Address {
             }
             "sim" => {
                 let (name, opts) = split_query(s, rest, &["seed", "speed"])?;
-                let known = crate::sim::Scenario::names();
-                if name.is_empty() || !(known.contains(&name) || name.ends_with(".toml")) {
-                    return Err(source_err(
-                        s,
-                        format!(
-                            "sim: needs a scenario name ({}) or a path to a scenario .toml",
-                            known.join(", ")
-                        ),
-                    ));
-                }
+                crate::sim::named::check_name(name)
+                    .map_err(|e| source_err(s, format!("sim: {e}")))?;
                 let seed = match opts.get("seed") {
                     None => DEFAULT_SIM_SEED,
                     Some(v) => v.parse::<u64>().map_err(|_| {
@@ -1666,15 +1658,7 @@ async fn replay_samples(sh: &Shared, ctl: &mut Control, samples: Vec<Sample>, sp
 async fn run_sim(sh: &Shared, ctl: &mut Control, scenario: &str, seed: u64, speed: f64) {
     let name = scenario.to_string();
     let made = blocking(sh, ctl, move || {
-        let sc = match crate::sim::Scenario::named(&name) {
-            Some(sc) => sc,
-            None => {
-                let text = std::fs::read_to_string(&name).map_err(|e| {
-                    format!("scenario {name} is neither a built-in name nor a readable file: {e}")
-                })?;
-                crate::sim::Scenario::from_toml_str(&text).map_err(|e| format!("{name}: {e}"))?
-            }
-        };
+        let sc = crate::sim::named::scenario(&name).map_err(|e| e.to_string())?;
         Ok(crate::sim::simulate(&sc, seed).samples)
     })
     .await;

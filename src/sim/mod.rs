@@ -11,6 +11,7 @@ use crate::types::{Sample, Sensor, Vec3, STANDARD_GRAVITY_MPS2};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+pub mod named;
 mod trajectory;
 use trajectory::{
     build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan,

@@ -443,8 +443,8 @@ impl State {
 
 impl Cal {
     /// Track `i`'s magnetometer calibration from its latest samples at true yaw `yaw_deg` in
-    /// `field`: the offset found, the soft iron and model of the calibration in use kept. Err: why
-    /// not, in words for the user.
+    /// `field` ([`crate::app::fixedyaw::calibrate`]): the offset found, the soft iron and model of
+    /// the calibration in use kept. Err: why not, in words for the user.
     fn fixed_yaw_of(
         &self,
         i: usize,
@@ -452,9 +452,6 @@ impl Cal {
         field: &crate::attitude::EarthField,
     ) -> Result<SensorCalibration, String> {
         let t = &self.tracks[i];
-        if t.pipe.mag_units != Unit::Si {
-            return Err("the magnetometer's units are not known (uT needed)".into());
-        }
         if !matches!(t.mag_run, MagCalRun::Idle) {
             return Err(
                 "a calibration run is in progress: cancel it first (MAVProxy `magcal cancel`)"
@@ -471,48 +468,14 @@ impl Cal {
             }
             Some(_) => {}
         }
-        let current = self
-            .in_use(i, Sensor::Mag)
-            .filter(|m| m.units == crate::types::CalUnits::Ut);
-        let matrix = current.map_or(crate::calib::model::IDENTITY, |m| m.matrix);
-        let accel = self.in_use(i, Sensor::Accel).and_then(|a| a.calibration());
-        let samples: Vec<(Vec3, Vec3)> = t
-            .recent
-            .iter()
-            .map(|&(m, a)| {
-                let b = t.pipe.to_body(&Sample {
-                    mag_ut: Some(m),
-                    accel_mps2: Some(a),
-                    ..Sample::default()
-                });
-                let (m, a) = (b.mag_ut.unwrap_or(m), b.accel_mps2.unwrap_or(a));
-                (m, accel.as_ref().map_or(a, |c| c.apply(&a)))
-            })
-            .collect();
-        let fy =
-            crate::calib::fixedyaw::fixed_yaw_offset(&samples, yaw_deg, field, &matrix, &FIXED_YAW)
-                .map_err(|e| e.to_string())?;
-        Ok(SensorCalibration {
-            status: crate::report::CalStatus::Ok,
-            failure: None,
-            detail: Some(format!(
-                "fixed yaw {yaw_deg:.1} deg, roll {:.1} deg, pitch {:.1} deg, field {:.1} uT",
-                fy.roll_deg, fy.pitch_deg, field.total_ut
-            )),
-            model: current.map_or(crate::calib::model::CalModel::Sphere, |m| m.model),
-            units: crate::types::CalUnits::Ut,
-            offset: fy.offset_ut,
-            matrix,
-            radius: field.total_ut,
-            rms_residual: 0.0,
-            offset_sigma: [0.0; 3],
-            samples_used: fy.samples,
-            iterations: 0,
-            candidates: vec![],
-            outliers_rejected: 0,
-            method: None,
-            mounting: None,
-        })
+        let in_use = crate::app::fixedyaw::InUse {
+            mag: self.in_use(i, Sensor::Mag),
+            accel: self.in_use(i, Sensor::Accel),
+        };
+        let recent: Vec<(Vec3, Vec3)> = t.recent.iter().copied().collect();
+        crate::app::fixedyaw::calibrate(&recent, &t.pipe, &in_use, yaw_deg, field, &FIXED_YAW)
+            .map(|f| f.calibration)
+            .map_err(|e| e.to_string())
     }
 
     /// Write every compass's calibration in use to the flight controller (`daemon.write_params`).
