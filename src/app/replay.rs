@@ -27,6 +27,10 @@ pub struct ReplayOptions {
     /// Directory for the readings of each compass's held-out check, for a peer's fit on the same
     /// blocks (`write_quality_points`).
     pub quality_points: Option<PathBuf>,
+    /// Refit while reading, every `fit.refit_every_s` of data as the live service does, and keep
+    /// that history (the report's `refits`). Default false: a replay is a batch, one fit per
+    /// sensor on all the data at the end.
+    pub refits: bool,
 }
 
 pub struct ReplayOutcome {
@@ -449,13 +453,13 @@ fn run_pipelines(
                 first = false;
             }
             for s in &batch.samples {
-                if pipe.push(s) {
+                if pipe.push(s) && opts.refits {
                     pipe.refit();
                 }
             }
             for &(k, ref s) in &batch.others {
                 if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
-                    if p.push(s) {
+                    if p.push(s) && opts.refits {
                         p.refit();
                     }
                     if other_samples.len() <= k {
