@@ -61,6 +61,10 @@ struct ReplayArgs {
     /// field): to fit another tool on the same blocks.
     #[arg(long)]
     quality_points: Option<PathBuf>,
+    /// Refit while reading, every `fit.refit_every_s` of data as the live service does, and keep
+    /// the history in the report's `refits` (default: one fit per sensor on all the data).
+    #[arg(long)]
+    refits: bool,
     /// Write the JSON report here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -374,6 +378,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         diagnosis,
         rate_hz,
         quality_points,
+        refits,
     } = args;
     let mut cfg = load_config(config.as_ref())?;
     if rate_hz.is_some() {
@@ -395,6 +400,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         html,
         diagnosis,
         quality_points,
+        refits,
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
