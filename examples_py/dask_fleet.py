@@ -113,21 +113,28 @@ def compass_rows(log, report):
 
 def error_row(log, message):
     """The one row of a log that could not be replayed."""
-    row = {name: None for name in table_schema().names}
-    row.update(log=log, status="error", failure=message)
+    row = compass_row(log, None, None, {}, None)
+    row.update(status="error", failure=message)
     return row
 
 
 def replay_rows(log, config=None):
-    """On a worker: the rows of one log; a log imucald cannot use gives its error row."""
+    """On a worker: the rows of one log; a log imucald cannot use gives its error row, and so
+    does a panic in the library (PyO3 raises it as PanicException, a BaseException), so that it
+    costs its own log only, not the task's other logs."""
     try:
         return compass_rows(log, imucald.replay(log, config))
     except imucald.Error as e:
         return [error_row(log, str(e))]
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as e:  # noqa: BLE001 - see the docstring
+        return [error_row(log, f"{type(e).__name__}: {e}")]
 
 
 class Progress:
-    """Lines on stderr: logs done of the total, failed ones, rate; at most every few seconds."""
+    """Lines on stderr: logs done of the total, those not replayed, the rate; at most every
+    PROGRESS_EVERY_S seconds."""
 
     def __init__(self, total):
         self.total = total
@@ -144,7 +151,7 @@ class Progress:
             self.last = now
             rate = self.done / max(now - self.start, 1e-9)
             print(
-                f"{self.done}/{self.total} logs, {self.errors} unreadable, {rate:.1f} logs/s",
+                f"{self.done}/{self.total} logs, {self.errors} not replayed, {rate:.1f} logs/s",
                 file=sys.stderr,
                 flush=True,
             )
@@ -258,7 +265,7 @@ def main(argv=None):
     table = write_parquet(rows, args.out)
     errors = sum(r["status"] == "error" for r in rows)
     print(
-        f"wrote {args.out}: {table.num_rows} rows from {len(logs)} logs ({errors} unreadable) "
+        f"wrote {args.out}: {table.num_rows} rows from {len(logs)} logs ({errors} not replayed) "
         f"in {elapsed:.1f} s on {workers} workers, {batch} a task: {len(logs) / elapsed:.1f} logs/s"
     )
     return 0

@@ -1,5 +1,6 @@
 """examples_py/dask_fleet.py on a LocalCluster of two worker processes against the CLI."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -9,6 +10,13 @@ import pyarrow.parquet as pq
 from conftest import ROOT, cli_report, simulate
 
 EXAMPLE = ROOT / "examples_py" / "dask_fleet.py"
+
+
+def load_example():
+    spec = importlib.util.spec_from_file_location("dask_fleet", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_fleet_table_is_the_cli_result(tmp_path):
@@ -27,7 +35,7 @@ def test_fleet_table_is_the_cli_result(tmp_path):
         timeout=600,
     )
     assert run.returncode == 0, run.stderr
-    assert "9/9 logs, 1 unreadable" in run.stderr
+    assert "9/9 logs, 1 not replayed" in run.stderr
     assert "on 2 workers" in run.stdout
     rows = pq.read_table(out).to_pylist()
     by_log = {r["log"]: r for r in rows}
@@ -50,3 +58,23 @@ def test_fleet_table_is_the_cli_result(tmp_path):
     assert failed["status"] == "error"
     assert failed["failure"].startswith(f"{bad}: ")
     assert failed["instance"] is None and failed["offset_x"] is None
+
+
+class PanicException(BaseException):
+    """Like PyO3's exception for a panic: a BaseException, not an Exception."""
+
+
+def test_a_panic_costs_its_own_log_only(tmp_path, monkeypatch):
+    fleet = load_example()
+    good = simulate(str(tmp_path / "good.tlog"), 1)
+    real_replay = fleet.imucald.replay
+
+    def replay(log, config=None):
+        if log.endswith("bad.tlog"):
+            raise PanicException("index out of bounds")
+        return real_replay(log, config)
+
+    monkeypatch.setattr(fleet.imucald, "replay", replay)
+    rows = fleet.replay_batch([str(tmp_path / "bad.tlog"), good])
+    assert rows[0] == [fleet.error_row(str(tmp_path / "bad.tlog"), "PanicException: index out of bounds")]
+    assert rows[1][0]["status"] == "ok" and rows[1][0]["log"] == good
