@@ -52,7 +52,7 @@ struct ReplayArgs {
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
-    format: Option<Format>,
+    format: Option<FormatArg>,
     /// Rows per second (Hz) of a CSV without a time column (as `rate_hz` under [input.csv]).
     #[arg(long)]
     rate_hz: Option<f64>,
@@ -117,7 +117,7 @@ struct DiagnoseArgs {
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
-    format: Option<Format>,
+    format: Option<FormatArg>,
     /// Base calibration model: diag6 (cross_axis is then a candidate) or sym9.
     #[arg(long, value_enum, default_value_t = BaseModel::Diag6)]
     base_model: BaseModel,
@@ -144,11 +144,11 @@ struct EvalArgs {
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
-    format: Option<Format>,
+    format: Option<FormatArg>,
     /// Constant offsets to remove first: none (BROAD's published, pre-aligned reference; the
     /// default), heading (the default with --reference), or heading-and-misalignment.
     #[arg(long, value_enum, ignore_case = true)]
-    align: Option<Alignment>,
+    align: Option<AlignArg>,
     /// Score against optical motion capture (an OptiTrack Motive CSV export) instead of the log's
     /// own reference: its clock offset, the rigid body's rotation to the log's axes and the tilt of
     /// its world are found from the gyro and accelerometer; the flight controller's attitude, when
@@ -193,7 +193,7 @@ struct FixedYawArgs {
     config: Option<PathBuf>,
     /// Override format detection: tlog, csv, bin (ArduPilot DataFlash) or ulg (PX4 ULog).
     #[arg(long, value_enum)]
-    format: Option<Format>,
+    format: Option<FormatArg>,
 }
 
 #[derive(Args)]
@@ -233,6 +233,52 @@ enum Message {
     HighresImu,
     #[value(name = "scaled_imu")]
     ScaledImu,
+}
+
+/// `--format`: a log format as the command line names it (the library's [`Format`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum FormatArg {
+    /// MAVLink telemetry log (.tlog)
+    Tlog,
+    /// CSV (plain or .gz)
+    Csv,
+    /// ArduPilot DataFlash log (.bin)
+    Bin,
+    /// PX4 ULog (.ulg)
+    Ulg,
+}
+
+impl From<FormatArg> for Format {
+    fn from(f: FormatArg) -> Format {
+        match f {
+            FormatArg::Tlog => Format::Tlog,
+            FormatArg::Csv => Format::Csv,
+            FormatArg::Bin => Format::Bin,
+            FormatArg::Ulg => Format::Ulg,
+        }
+    }
+}
+
+/// `--align`: which constant offsets `eval` removes (the library's [`Alignment`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum AlignArg {
+    /// None: the reference is already aligned
+    None,
+    /// A constant heading offset between the reference and the estimate world frames
+    Heading,
+    /// The heading offset and a constant sensor-to-marker misalignment
+    #[value(alias = "heading_and_misalignment", alias = "full")]
+    HeadingAndMisalignment,
+}
+
+impl From<AlignArg> for Alignment {
+    fn from(a: AlignArg) -> Alignment {
+        match a {
+            AlignArg::None => Alignment::None,
+            AlignArg::Heading => Alignment::Heading,
+            AlignArg::HeadingAndMisalignment => Alignment::HeadingAndMisalignment,
+        }
+    }
 }
 
 fn load_config(path: Option<&PathBuf>) -> Result<Config> {
@@ -392,7 +438,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         }
     };
     let opts = imucald::app::replay::ReplayOptions {
-        format,
+        format: format.map(Into::into),
         report,
         calibrated_out,
         plot_dir: plot,
@@ -541,7 +587,7 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
         alpha > 0.0 && alpha < 1.0,
         "--alpha {alpha}: must be between 0 and 1"
     );
-    let input = imucald::io::sources::read_log(&log, format, &cfg.input)
+    let input = imucald::io::sources::read_log(&log, format.map(Into::into), &cfg.input)
         .with_context(|| format!("reading {}", log.display()))?;
     let spinner = indicatif::ProgressBar::new_spinner();
     spinner.set_message(format!(
@@ -586,9 +632,11 @@ fn eval_cmd(args: EvalArgs) -> Result<()> {
         calibration,
         report,
     } = args;
+    let align = align.map(Alignment::from);
     let cfg = load_config(config.as_ref())?;
-    let input = imucald::app::eval::read_log(&log, format, &cfg, calibration.as_deref())
-        .with_context(|| format!("reading {}", log.display()))?;
+    let input =
+        imucald::app::eval::read_log(&log, format.map(Into::into), &cfg, calibration.as_deref())
+            .with_context(|| format!("reading {}", log.display()))?;
     let fcfg = imucald::attitude::fusion::FusionConfig {
         use_mag: !no_mag,
         ..Default::default()
@@ -670,7 +718,7 @@ fn fixed_yaw_cmd(a: FixedYawArgs) -> Result<()> {
         yaw_deg: a.yaw_deg,
         given: a.lat.zip(a.lon),
         at_s: a.at_s,
-        format: a.format,
+        format: a.format.map(Into::into),
         ..Default::default()
     };
     let log = a.log.display();

@@ -48,7 +48,7 @@ pub struct EvalResult {
 
 /// Which constant offsets [`evaluate_with`] estimates and removes before the metrics (the command
 /// line's `--align`: `none`, `heading` or `heading-and-misalignment`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum Alignment {
     /// None: the reference is already aligned (BROAD's published data).
@@ -57,7 +57,6 @@ pub enum Alignment {
     /// A constant heading offset between the reference and the estimate world frames.
     Heading,
     /// The heading offset and a constant sensor-to-marker misalignment.
-    #[value(alias = "heading_and_misalignment", alias = "full")]
     HeadingAndMisalignment,
 }
 

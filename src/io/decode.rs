@@ -1527,7 +1527,7 @@ pub fn sample_from_fields(
 }
 
 /// Input formats (also the command line's `--format`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Format {
     Tlog,
