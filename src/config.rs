@@ -161,7 +161,7 @@ pub struct DaemonConfig {
 }
 
 /// The per-user state directory's `imucald/calibration` (see [`DaemonConfig::calibration_dir`]).
-pub fn default_calibration_dir() -> String {
+pub(crate) fn default_calibration_dir() -> String {
     dirs::state_dir()
         .or_else(dirs::data_local_dir)
         .map(|d| d.join("imucald").join("calibration").display().to_string())
@@ -241,7 +241,7 @@ fn key_at_line(text: &str, line: usize) -> String {
 }
 
 /// Highest publication rate of the live service, per second (the timers need a non-zero period).
-pub const MAX_RATE_HZ: f64 = 1000.0;
+pub(crate) const MAX_RATE_HZ: f64 = 1000.0;
 
 /// `daemon.heading_message`: the MAVLink message of the heading.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -276,7 +276,7 @@ impl AttitudeMessage {
             AttitudeMessage::AttitudeQuaternion | AttitudeMessage::Both
         )
     }
-    pub fn euler(self) -> bool {
+    pub(crate) fn euler(self) -> bool {
         matches!(self, AttitudeMessage::Attitude | AttitudeMessage::Both)
     }
 }
@@ -375,7 +375,7 @@ impl Config {
 
     /// The orientation filter's settings for this configuration: world NED, the given declination
     /// (true north) or none (magnetic north), gravity as the fit's. Used by `run` and `replay`.
-    pub fn fusion_config(
+    pub(crate) fn fusion_config(
         &self,
         declination_deg: Option<f64>,
     ) -> crate::attitude::fusion::FusionConfig {
@@ -390,7 +390,7 @@ impl Config {
 
     /// The configured place, dated today (by this computer's clock) when `[place]` gives no date:
     /// the live service's field.
-    pub fn place_today(&self) -> Option<Place> {
+    pub(crate) fn place_today(&self) -> Option<Place> {
         let today = crate::io::clock::today().iso();
         self.place.as_ref().map(|p| p.dated(&today))
     }
@@ -573,7 +573,7 @@ fn positive(key: &str, v: f64) -> Result<(), Error> {
 /// Where a `publish` entry sends the JSON lines. The one parser of those entries: the
 /// configuration's check and the service's sinks both read them through [`PublishTarget::parse`].
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PublishTarget {
+pub(crate) enum PublishTarget {
     /// `stdout`.
     Stdout,
     /// `udp:IP:PORT`: one datagram per line.
@@ -609,7 +609,7 @@ impl PublishTarget {
 /// A `publish` entry `mqtt://HOST:PORT/PREFIX`: an MQTT broker reached over plain TCP (no TLS)
 /// and the topic levels every line's topic starts with (`PREFIX/<vehicle>/<type>`).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct MqttUrl {
+pub(crate) struct MqttUrl {
     /// A host name, an IPv4 address or an IPv6 address (written in brackets in the URL).
     pub host: String,
     /// The broker's TCP port. Default (none in the URL): [`MqttUrl::DEFAULT_PORT`].
@@ -619,9 +619,9 @@ pub struct MqttUrl {
 }
 
 impl MqttUrl {
-    pub const SCHEME: &'static str = "mqtt://";
+    pub(crate) const SCHEME: &'static str = "mqtt://";
     /// MQTT's registered port for plain TCP.
-    pub const DEFAULT_PORT: u16 = 1883;
+    pub(crate) const DEFAULT_PORT: u16 = 1883;
 
     /// Parse `mqtt://HOST[:PORT]/PREFIX`; the error says what is wrong.
     pub fn parse(url: &str) -> Result<MqttUrl, String> {

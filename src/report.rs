@@ -12,7 +12,7 @@ pub use crate::calib::outcome::{
 };
 pub use crate::io::onboard::{OnboardCal, OnboardComparison, OnboardReport, SensorStream};
 
-pub const SCHEMA: &str = "imucald.report/1";
+pub(crate) const SCHEMA: &str = "imucald.report/1";
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Report {

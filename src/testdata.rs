@@ -8,7 +8,7 @@ use crate::types::Vec3;
 use std::path::PathBuf;
 
 /// Environment variable that turns "recordings absent" into a test failure when set to `1`.
-pub const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
+pub(crate) const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
 
 /// The shared recordings directory, or `None` (with a message) when it is absent.
 ///

@@ -46,7 +46,7 @@ pub struct GeoPoint {
 
 /// Unix time of the simulator's `t_s = 0`, us (2023-11-14 22:13:20 UTC): the record clock of the
 /// `.tlog`s it writes and the day of its earth field when a scenario's place gives no date.
-pub const SIM_EPOCH_US: u64 = 1_700_000_000_000_000;
+pub(crate) const SIM_EPOCH_US: u64 = 1_700_000_000_000_000;
 
 /// The day a log was recorded, and what says so.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -76,7 +76,7 @@ pub enum DateSource {
 impl LogDate {
     /// The day of a Unix time in microseconds, if it is after 2000-01-01 (earlier is a clock that
     /// counts from boot, not a date).
-    pub fn from_unix_us(us: u64, source: DateSource) -> Option<LogDate> {
+    pub(crate) fn from_unix_us(us: u64, source: DateSource) -> Option<LogDate> {
         const Y2000_US: u64 = 946_684_800_000_000;
         if us < Y2000_US {
             return None;
@@ -209,7 +209,7 @@ pub fn norm(v: &Vec3) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }
 
-pub fn is_finite3(v: &Vec3) -> bool {
+pub(crate) fn is_finite3(v: &Vec3) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 

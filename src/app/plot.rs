@@ -26,7 +26,7 @@ use crate::error::Error;
 // ---------------------------------------------------------------------------------------------
 
 /// Number of MotionCal coverage regions.
-pub const REGIONS: usize = 100;
+pub(crate) const REGIONS: usize = 100;
 
 /// The 2-D projection of measured directions of Camps, Harasse and Monin, "Numerical calibration for 3-axis accelerometers and magnetometers" (2009): theta = polar angle from +z (0..180 deg) on the
 /// y axis (0 at the top), phi = azimuth atan2(y, x) (-180..180 deg) on the x axis; one point per
@@ -34,7 +34,7 @@ pub const REGIONS: usize = 100;
 /// 100 equal-area region boundaries drawn faintly and filled regions shaded (`filled[i]` for region
 /// `i` as numbered by [`region_outline`]; a missing entry counts as not filled). Two panels side by
 /// side: "before" (raw directions about the raw centroid) and "after" (directions after calibration).
-pub fn coverage_map(
+pub(crate) fn coverage_map(
     path: &Path,
     title: &str,
     before: &[[f64; 3]],
@@ -76,7 +76,7 @@ pub fn residuals(
 
 /// Residual plot against any regressor: as [`residuals`], with `x_label` (naming the regressor and
 /// its unit) on the x axis instead of time.
-pub fn residuals_vs(
+pub(crate) fn residuals_vs(
     path: &Path,
     title: &str,
     x_label: &str,
@@ -160,7 +160,7 @@ pub fn diagnosis(
 ///
 /// # Panics
 /// If `index >= 100`.
-pub fn region_outline(index: usize) -> (f64, f64, f64, f64) {
+pub(crate) fn region_outline(index: usize) -> (f64, f64, f64, f64) {
     assert!(
         index < REGIONS,
         "coverage region {index} out of range 0..{REGIONS}"

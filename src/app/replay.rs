@@ -868,7 +868,7 @@ fn explain_instance_mag(
 }
 
 /// The report for a pipeline's current state.
-pub fn make_report(
+pub(crate) fn make_report(
     input: InputReport,
     pipe: &Pipeline,
     results: &FitResults,

@@ -48,9 +48,9 @@ pub struct Pose {
 }
 
 /// Grid of the rate series, Hz.
-pub const GRID_HZ: f64 = 100.0;
+pub(crate) const GRID_HZ: f64 = 100.0;
 /// Half the window a rate is averaged over, s.
-pub const RATE_HALF_WINDOW_S: f64 = 0.01;
+pub(crate) const RATE_HALF_WINDOW_S: f64 = 0.01;
 /// Longest interval between capture frames still interpolated, s (default of
 /// [`AlignOptions::max_gap_s`]).
 pub const MAX_GAP_S: f64 = 0.05;
@@ -100,7 +100,7 @@ impl Default for AlignOptions {
 
 /// Angular velocities on an even time grid (`None` where a side has no data).
 #[derive(Debug, Clone, PartialEq)]
-pub struct RateSeries {
+pub(crate) struct RateSeries {
     /// Time of the first grid point, s.
     pub t0_s: f64,
     /// Grid step, s.
@@ -183,7 +183,7 @@ impl GyroTrack {
 /// The gyro's rates of a log on a grid of `step_s`, each the mean over `+-half_window_s` (the
 /// integral of the rate, linear between readings, over the window's length: the same average the
 /// capture's rotation across the window gives).
-pub fn gyro_rates(samples: &[Sample], step_s: f64, half_window_s: f64) -> RateSeries {
+pub(crate) fn gyro_rates(samples: &[Sample], step_s: f64, half_window_s: f64) -> RateSeries {
     let g = GyroTrack::new(samples);
     let (Some(&first), Some(&last)) = (g.t_s.first(), g.t_s.last()) else {
         return RateSeries {
@@ -216,7 +216,12 @@ fn grid_len(first: f64, last: f64, step_s: f64) -> usize {
 
 /// The capture's rigid-body rates (in the rigid body's axes) on a grid of `step_s`: the rotation
 /// from `tau - half_window_s` to `tau + half_window_s` over its duration.
-pub fn mocap_rates(poses: &[Pose], step_s: f64, half_window_s: f64, max_gap_s: f64) -> RateSeries {
+pub(crate) fn mocap_rates(
+    poses: &[Pose],
+    step_s: f64,
+    half_window_s: f64,
+    max_gap_s: f64,
+) -> RateSeries {
     let (Some(first), Some(last)) = (poses.first(), poses.last()) else {
         return RateSeries {
             t0_s: 0.0,
@@ -243,7 +248,7 @@ pub fn mocap_rates(poses: &[Pose], step_s: f64, half_window_s: f64, max_gap_s: f
 /// The capture's rotation at `t_s`, interpolated (slerp, the shorter way) between the frames
 /// around it; `None` before the first, after the last, or where they are more than `max_gap_s`
 /// apart.
-pub fn interpolate(poses: &[Pose], t_s: f64, max_gap_s: f64) -> Option<UnitQuaternion<f64>> {
+pub(crate) fn interpolate(poses: &[Pose], t_s: f64, max_gap_s: f64) -> Option<UnitQuaternion<f64>> {
     if !t_s.is_finite() {
         return None;
     }
@@ -266,7 +271,7 @@ pub fn interpolate(poses: &[Pose], t_s: f64, max_gap_s: f64) -> Option<UnitQuate
 
 /// The clock offset found by [`offset_by_rate_correlation`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct OffsetEstimate {
+pub(crate) struct OffsetEstimate {
     /// Log time minus capture time, s.
     pub time_offset_s: f64,
     /// Normalised correlation (Pearson) of the rate magnitudes at the peak.
@@ -280,7 +285,7 @@ pub struct OffsetEstimate {
 /// the offsets in `window_s` (default: every offset at which they overlap by at least 5 s and half
 /// the shorter series). The peak is refined between grid steps by a parabola through it and its
 /// neighbours.
-pub fn offset_by_rate_correlation(
+pub(crate) fn offset_by_rate_correlation(
     log: &RateSeries,
     mocap: &RateSeries,
     window_s: Option<(f64, f64)>,
@@ -375,7 +380,7 @@ pub fn offset_by_rate_correlation(
 
 /// The body rotation fitted by [`fit_body_rotation`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RateFit {
+pub(crate) struct RateFit {
     /// `B`: capture rigid body -> log sensor axes (`omega_log = B omega_m + bias`).
     pub rotation: UnitQuaternion<f64>,
     /// The constant difference fitted with it (the gyro's bias), rad/s.
@@ -440,7 +445,7 @@ fn kabsch(pairs: &[RatePair], mask: &[bool]) -> Result<(Rotation3<f64>, Vector3<
 /// `(omega_m, omega_log)` (rad/s), fitted by least squares (Kabsch, Wahba; see the module docs)
 /// with pairs more than three robust sigmas (and 2 deg/s) off the fit left out, refitted until the
 /// set stays the same.
-pub fn fit_body_rotation(pairs: &[RatePair]) -> Result<RateFit, Error> {
+pub(crate) fn fit_body_rotation(pairs: &[RatePair]) -> Result<RateFit, Error> {
     let mut mask = vec![true; pairs.len()];
     let mut fit = kabsch(pairs, &mask)?;
     for _ in 0..OUTLIER_PASSES {
@@ -490,7 +495,7 @@ fn rate_fit(pairs: &[RatePair], mask: &[bool], fit: (Rotation3<f64>, Vector3<f64
 /// The rotation taking the capture world to a z-up world: the shortest one taking `up_in_mocap`
 /// (the direction of the specific force at rest, in capture-world axes) to +z. Its heading about
 /// the vertical is arbitrary (the capture does not observe north).
-pub fn world_tilt(up_in_mocap: &Vector3<f64>) -> Result<UnitQuaternion<f64>, Error> {
+pub(crate) fn world_tilt(up_in_mocap: &Vector3<f64>) -> Result<UnitQuaternion<f64>, Error> {
     let n = up_in_mocap.norm();
     if !(n > 0.0) || !n.is_finite() {
         return Err(Error::Other(
@@ -510,7 +515,7 @@ pub fn world_tilt(up_in_mocap: &Vector3<f64>) -> Result<UnitQuaternion<f64>, Err
 /// accelerometer rotated by `B^-1` and the capture's rotation at each sample's time, and how many
 /// samples gave it. Resting samples (gyro below 3 deg/s, specific force within 0.5 m/s^2 of its
 /// median norm) when there are at least 100; every captured sample otherwise.
-pub fn up_in_mocap_world(
+pub(crate) fn up_in_mocap_world(
     samples: &[Sample],
     poses: &[Pose],
     time_offset_s: f64,
@@ -605,7 +610,7 @@ impl MocapAlignment {
 
     /// Angle between the capture world's tilt and the nearest of its axes taken as up, deg (how
     /// far the capture's ground plane is from level, with the accelerometer's errors).
-    pub fn tilt_from_nearest_axis_deg(&self) -> f64 {
+    pub(crate) fn tilt_from_nearest_axis_deg(&self) -> f64 {
         let m = self
             .up_in_mocap
             .iter()
@@ -668,11 +673,16 @@ mod quat_wxyz {
     use nalgebra::{Quaternion, UnitQuaternion};
     use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
-    pub fn serialize<S: Serializer>(q: &UnitQuaternion<f64>, s: S) -> Result<S::Ok, S::Error> {
+    pub(crate) fn serialize<S: Serializer>(
+        q: &UnitQuaternion<f64>,
+        s: S,
+    ) -> Result<S::Ok, S::Error> {
         [q.w, q.i, q.j, q.k].serialize(s)
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<UnitQuaternion<f64>, D::Error> {
+    pub(crate) fn deserialize<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<UnitQuaternion<f64>, D::Error> {
         let [w, x, y, z] = <[f64; 4]>::deserialize(d)?;
         let q = Quaternion::new(w, x, y, z);
         if !(q.norm() > 0.5) || !q.norm().is_finite() {
@@ -683,7 +693,7 @@ mod quat_wxyz {
 }
 
 /// A capture rate and the gyro's at the same instant, `(omega_m, omega_log)`, rad/s.
-pub type RatePair = (Vector3<f64>, Vector3<f64>);
+pub(crate) type RatePair = (Vector3<f64>, Vector3<f64>);
 
 /// Rate pairs `(omega_m, omega_log)` at the capture's grid points (their indices kept) with the
 /// log's gyro window shifted by `offset_s`.
@@ -796,7 +806,7 @@ pub fn best_alignment(candidates: &[Result<MocapAlignment, Error>]) -> Option<us
 /// The reference attitude (sensor -> a z-up world, ENU up to heading) at each of `times_s` (log
 /// time): `T q_m(t - offset) B^-1`, with `q_m` interpolated between capture frames; `None` outside
 /// the capture and where its frames are more than `max_gap_s` apart.
-pub fn reference_quaternions(
+pub(crate) fn reference_quaternions(
     times_s: &[f64],
     poses: &[Pose],
     alignment: &MocapAlignment,

@@ -793,7 +793,7 @@ pub struct FilterState {
 
 /// Smallest bias uncertainty a restored state starts with, rad/s (0.01 deg/s): a bias moves
 /// between runs (temperature, turn-on repeatability), so a saved one is never taken as exact.
-pub const RESTORED_BIAS_SIGMA_MIN_RAD_S: f64 = 1.75e-4;
+pub(crate) const RESTORED_BIAS_SIGMA_MIN_RAD_S: f64 = 1.75e-4;
 
 /// The orientation filter. Feed samples in time order with [`OrientationFilter::update`].
 #[derive(Debug, Clone)]
@@ -1359,21 +1359,21 @@ impl OrientationFilter {
     }
 
     /// The magnetometer latency in use, s.
-    pub fn mag_delay_s(&self) -> f64 {
+    pub(crate) fn mag_delay_s(&self) -> f64 {
         self.cfg
             .mag_delay_s
             .unwrap_or_else(|| self.delay.estimate(self.cfg.mag_delay_max_s))
     }
 
     /// True once the first accelerometer sample has set the tilt.
-    pub fn initialized(&self) -> bool {
+    pub(crate) fn initialized(&self) -> bool {
         self.tilt_init
     }
 
     /// The gyro fed to the filter has `removed_rad_s` more bias taken out from now on (a new gyro
     /// calibration upstream): the residual bias estimate moves by as much the other way, its
     /// uncertainty unchanged, so the filter neither removes the bias twice nor learns it again.
-    pub fn gyro_bias_removed(&mut self, removed_rad_s: &Vec3) {
+    pub(crate) fn gyro_bias_removed(&mut self, removed_rad_s: &Vec3) {
         if crate::types::is_finite3(removed_rad_s) {
             self.bias -= v3(removed_rad_s);
         }
@@ -1390,7 +1390,7 @@ impl OrientationFilter {
     }
 
     /// The gyro's per-axis scale learnt between rests and its 1-sigma, once learnt.
-    pub fn gyro_scale(&self) -> Option<(Vec3, Vec3)> {
+    pub(crate) fn gyro_scale(&self) -> Option<(Vec3, Vec3)> {
         (self.scale.enabled() && self.scale.steps > 0).then(|| {
             let sd = |i: usize| self.scale.p[(i, i)].sqrt();
             (
@@ -1403,7 +1403,7 @@ impl OrientationFilter {
     /// Start again after a new magnetometer calibration moved the field the filter sees: what does
     /// not depend on the field (the gyro bias) is kept; the field reference and the gyro scale,
     /// learnt against the rests' headings in the old field, are learnt again.
-    pub fn restart_for_new_field(&mut self) {
+    pub(crate) fn restart_for_new_field(&mut self) {
         let kept = FilterState {
             mag_reference: None,
             gyro_scale: None,
@@ -1417,7 +1417,7 @@ impl OrientationFilter {
     /// [`RESTORED_BIAS_SIGMA_MIN_RAD_S`]), and the magnetic reference when given (taken as learnt for
     /// `mag_ref_tau_s`, so it changes only slowly from here). The attitude is not part of it: the
     /// next samples set it as they would in a new filter. Values that are not finite are ignored.
-    pub fn set_state(&mut self, s: &FilterState) {
+    pub(crate) fn set_state(&mut self, s: &FilterState) {
         let finite = |v: &Vec3| v.iter().all(|x| x.is_finite());
         if finite(&s.gyro_bias_rad_s) && finite(&s.gyro_bias_sigma_rad_s) {
             self.bias = v3(&s.gyro_bias_rad_s);

@@ -16,14 +16,14 @@ use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Quaternion (w, x, y, z) of body -> NED from roll, pitch, yaw (rad), Euler ZYX.
-pub fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
+pub(crate) fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
     let q = nalgebra::UnitQuaternion::from_euler_angles(roll, pitch, yaw);
     [q.w, q.i, q.j, q.k]
 }
 
 /// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
 /// the rotation of 180 deg about (1, 1, 0)/sqrt(2).
-pub fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
+pub(crate) fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
     let h = std::f64::consts::FRAC_1_SQRT_2;
     let a = [0.0, h, h, 0.0];
     let r = [
@@ -38,7 +38,7 @@ pub fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
 
 /// Body -> NED from a reference attitude (sensor -> ENU, as [`crate::types::Sample::ref_q`]): NED -> ENU is a
 /// half turn about (1, 1, 0)/sqrt(2), its own inverse.
-pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<nalgebra::UnitQuaternion<f64>> {
+pub(crate) fn body_ned_of_ref_q(q: [f64; 4]) -> Option<nalgebra::UnitQuaternion<f64>> {
     // ENU -> NED is the same half-turn as NED -> ENU.
     let b = ned_to_enu(q)?;
     Some(nalgebra::UnitQuaternion::new_unchecked(
@@ -47,7 +47,7 @@ pub fn body_ned_of_ref_q(q: [f64; 4]) -> Option<nalgebra::UnitQuaternion<f64>> {
 }
 
 /// Roll, pitch (deg) from calibrated specific force `f` (FRD; reads (0, 0, -g) level at rest).
-pub fn roll_pitch_deg(f: &Vec3) -> (f64, f64) {
+pub(crate) fn roll_pitch_deg(f: &Vec3) -> (f64, f64) {
     let pitch = f[0].atan2((f[1] * f[1] + f[2] * f[2]).sqrt());
     let roll = (-f[1]).atan2(-f[2]);
     (roll.to_degrees(), pitch.to_degrees())
@@ -62,7 +62,7 @@ pub fn heading_deg(m: &Vec3, roll_deg: f64, pitch_deg: f64) -> f64 {
 }
 
 /// Wrap an angle in degrees to [0, 360).
-pub fn wrap360(a: f64) -> f64 {
+pub(crate) fn wrap360(a: f64) -> f64 {
     let w = a.rem_euclid(360.0);
     if w >= 360.0 {
         0.0
@@ -72,7 +72,7 @@ pub fn wrap360(a: f64) -> f64 {
 }
 
 /// An angle in radians wrapped to (-pi, pi] (not finite: returned as it is).
-pub fn wrap_pi(a: f64) -> f64 {
+pub(crate) fn wrap_pi(a: f64) -> f64 {
     use std::f64::consts::{PI, TAU};
     let w = a.rem_euclid(TAU);
     if w > PI {
@@ -150,7 +150,7 @@ impl Place {
 
 impl Place {
     /// This place with `date` (`YYYY-MM-DD`) where it has none.
-    pub fn dated(&self, date: &str) -> Place {
+    pub(crate) fn dated(&self, date: &str) -> Place {
         Place {
             date: self.date.clone().or_else(|| Some(date.to_string())),
             ..self.clone()
@@ -283,7 +283,7 @@ fn igrf13(place: &Place, date: world_magnetic_model::time::Date) -> Result<Earth
 /// `ROTATION_NONE`, `ROTATION_YAW_90`, `ROTATION_ROLL_180_YAW_45`, `ROTATION_PITCH_270`
 /// (the `MAV_SENSOR_` / `ROTATION_` prefix is optional). The name's roll, pitch and yaw make
 /// R = Rz(yaw) Ry(pitch) Rx(roll), and body = R sensor.
-pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
+pub(crate) fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
     let n = name.trim().to_ascii_uppercase();
     let n = n
         .trim_start_matches("MAV_SENSOR_")
@@ -324,7 +324,7 @@ pub fn sensor_rotation(name: &str) -> Result<Matrix3<f64>, String> {
     Ok(*Rotation3::from_euler_angles(r.to_radians(), p.to_radians(), y.to_radians()).matrix())
 }
 
-pub fn rotate(r: &Matrix3<f64>, v: &Vec3) -> Vec3 {
+pub(crate) fn rotate(r: &Matrix3<f64>, v: &Vec3) -> Vec3 {
     let o = r * Vector3::new(v[0], v[1], v[2]);
     [o[0], o[1], o[2]]
 }

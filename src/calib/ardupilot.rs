@@ -28,23 +28,23 @@ use nalgebra::{Matrix3, Vector3};
 use std::collections::BTreeMap;
 
 /// Compasses ArduPilot keeps a calibration for (COMPASS_OFS, COMPASS_OFS2, COMPASS_OFS3).
-pub const COMPASSES: u8 = 3;
+pub(crate) const COMPASSES: u8 = 3;
 
 /// ArduPilot applies COMPASS_SCALE only within these bounds (COMPASS_MIN/MAX_SCALE_FACTOR).
-pub const SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
+pub(crate) const SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
 
 /// mGauss (ArduPilot's unit) per uT (imucald's).
-pub const MGAUSS_PER_UT: f64 = 10.0;
+pub(crate) const MGAUSS_PER_UT: f64 = 10.0;
 
 /// The axis letters of the three-axis parameters, in order.
-pub const AXES: [&str; 3] = ["X", "Y", "Z"];
+pub(crate) const AXES: [&str; 3] = ["X", "Y", "Z"];
 
 /// The motor compensation type, one for all compasses (2: current-based, mGauss/A).
-pub const MOTCT: &str = "COMPASS_MOTCT";
+pub(crate) const MOTCT: &str = "COMPASS_MOTCT";
 
 /// A three-axis parameter of one compass (`COMPASS_OFS2_X` ...).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Triple {
+pub(crate) enum Triple {
     /// COMPASS_OFS: hard-iron offsets, mGauss, added.
     Ofs,
     /// COMPASS_DIA: the soft-iron matrix's diagonal.
@@ -82,13 +82,13 @@ pub enum Single {
 }
 
 /// The parameter suffix of compass k: `COMPASS_OFS_X`, `COMPASS_OFS2_X`, `COMPASS_OFS3_X`.
-pub fn suffix(k: u8) -> Option<&'static str> {
+pub(crate) fn suffix(k: u8) -> Option<&'static str> {
     ["", "2", "3"].get(k as usize).copied()
 }
 
 /// The X, Y, Z names of compass k's parameter `t`: `triple(Triple::Ofs, 1)` is
 /// `COMPASS_OFS2_X/Y/Z`.
-pub fn triple(t: Triple, k: u8) -> Option<[String; 3]> {
+pub(crate) fn triple(t: Triple, k: u8) -> Option<[String; 3]> {
     let s = suffix(k)?;
     Some(AXES.map(|a| format!("COMPASS_{}{s}_{a}", t.base())))
 }
@@ -108,7 +108,7 @@ pub fn single(p: Single, k: u8) -> Option<String> {
 
 /// The parameters [`correction`] reads for compass k, in `correct_field` order: OFS X Y Z,
 /// DIA X Y Z, ODI X Y Z, then SCALE.
-pub fn correction_names(k: u8) -> Option<[String; 10]> {
+pub(crate) fn correction_names(k: u8) -> Option<[String; 10]> {
     let [o, d, i] = [Triple::Ofs, Triple::Dia, Triple::Odi].map(|t| triple(t, k));
     let names: Vec<String> = [o?, d?, i?]
         .into_iter()
@@ -120,7 +120,7 @@ pub fn correction_names(k: u8) -> Option<[String; 10]> {
 
 /// Compass k's parameters that describe it: OFS, DIA, ODI, MOT, orientation, device id, external,
 /// scale and use (empty beyond [`COMPASSES`]).
-pub fn param_names(k: u8) -> Vec<String> {
+pub(crate) fn param_names(k: u8) -> Vec<String> {
     let triples = [Triple::Ofs, Triple::Dia, Triple::Odi, Triple::Mot]
         .into_iter()
         .filter_map(|t| triple(t, k))
@@ -138,7 +138,7 @@ pub fn param_names(k: u8) -> Vec<String> {
 }
 
 /// Compass k's device id (COMPASS_DEV_ID{,2,3}), when set.
-pub fn dev_id(params: &BTreeMap<String, f64>, k: u8) -> Option<u32> {
+pub(crate) fn dev_id(params: &BTreeMap<String, f64>, k: u8) -> Option<u32> {
     params
         .get(&single(Single::DevId, k)?)
         .filter(|v| **v > 0.0 && **v < u32::MAX as f64)
@@ -153,7 +153,7 @@ pub fn symmetric(d: [f64; 3], o: [f64; 3]) -> Matrix3<f64> {
 
 /// The diagonal and off-diagonal (xy, xz, yz) of the symmetric part of `m` (rows): the inverse
 /// of [`symmetric`] for a symmetric matrix.
-pub fn diagonal_off_diagonal(m: &[[f64; 3]; 3]) -> ([f64; 3], [f64; 3]) {
+pub(crate) fn diagonal_off_diagonal(m: &[[f64; 3]; 3]) -> ([f64; 3], [f64; 3]) {
     let sym = |i: usize, j: usize| 0.5 * (m[i][j] + m[j][i]);
     (
         [m[0][0], m[1][1], m[2][2]],
@@ -173,7 +173,7 @@ pub fn soft_iron(dia: [f64; 3], odi: [f64; 3]) -> Matrix3<f64> {
 }
 
 /// COMPASS_SCALE as ArduPilot applies it: `scale` within [`SCALE_RANGE`], else 1.
-pub fn applied_scale(scale: Option<f64>) -> f64 {
+pub(crate) fn applied_scale(scale: Option<f64>) -> f64 {
     match scale {
         Some(v) if (SCALE_RANGE.0..=SCALE_RANGE.1).contains(&v) => v,
         _ => 1.0,
@@ -193,7 +193,7 @@ pub struct Correction {
 
 impl Correction {
     /// Offsets only (S identity, scale 1).
-    pub fn offsets_only(ofs_mg: [f64; 3]) -> Correction {
+    pub(crate) fn offsets_only(ofs_mg: [f64; 3]) -> Correction {
         Correction {
             ofs_mg,
             s: Matrix3::identity(),
@@ -204,7 +204,7 @@ impl Correction {
     /// The correction that makes imucald's calibration (offset uT, matrix rows; calibrated =
     /// matrix (raw - offset)): OFS = -10 offset, S = the symmetric part of the matrix, scale 1.
     /// An asymmetric matrix is not representable; its symmetric part is taken.
-    pub fn from_model(offset_ut: &Vec3, matrix: &[[f64; 3]; 3]) -> Correction {
+    pub(crate) fn from_model(offset_ut: &Vec3, matrix: &[[f64; 3]; 3]) -> Correction {
         let (d, o) = diagonal_off_diagonal(matrix);
         Correction {
             ofs_mg: offset_ut.map(|x| -x * MGAUSS_PER_UT),
@@ -230,7 +230,7 @@ impl Correction {
 
     /// The raw field (uT) behind a corrected one (mGauss) with the motor term `mot_mg` removed:
     /// raw = (S^-1 (mag - MOT)) / scale - OFS. `None` when S is singular or a value not finite.
-    pub fn undo(&self, mag_mg: Vec3, mot_mg: Option<Vec3>) -> Option<Vec3> {
+    pub(crate) fn undo(&self, mag_mg: Vec3, mot_mg: Option<Vec3>) -> Option<Vec3> {
         let inv = self.s.try_inverse()?;
         let c = Vector3::from(mag_mg) - Vector3::from(mot_mg.unwrap_or([0.0; 3]));
         let u = inv * c / self.scale;
@@ -240,7 +240,7 @@ impl Correction {
 
     /// COMPASS_DIA and COMPASS_ODI (xy, xz, yz) that make this correction with COMPASS_SCALE unset
     /// (0, its default) or 1: the symmetric part of scale S.
-    pub fn dia_odi(&self) -> ([f64; 3], [f64; 3]) {
+    pub(crate) fn dia_odi(&self) -> ([f64; 3], [f64; 3]) {
         diagonal_off_diagonal(&crate::calib::model::mat_to_rows(&(self.s * self.scale)))
     }
 

@@ -8,12 +8,12 @@ use crate::types::Vec3;
 use serde::{Deserialize, Serialize};
 
 /// Number of regions.
-pub const REGIONS: usize = 100;
+pub(crate) const REGIONS: usize = 100;
 
 /// Latitude bands north to south as (lowest z = sin(latitude), regions in the band). Equal areas
 /// on a sphere are equal spans of z, so with 100 regions the edges are z = 0.98, 0.68, 0, -0.68,
 /// -0.98 (latitudes 78.52, 42.84, 0, -42.84, -78.52 deg).
-pub const BANDS: [(f64, usize); 6] = [
+pub(crate) const BANDS: [(f64, usize); 6] = [
     (0.98, 1),
     (0.68, 15),
     (0.0, 34),
@@ -56,7 +56,7 @@ pub fn theta_phi(v: &Vec3) -> (f64, f64) {
 
 /// Regions as 25 hexadecimal digits (region `i` is bit `i % 4` of digit `i / 4`), as the JSON
 /// `progress` line and the pages carry them.
-pub fn regions_hex(regions: &[bool]) -> String {
+pub(crate) fn regions_hex(regions: &[bool]) -> String {
     regions
         .chunks(4)
         .map(|c| {
@@ -109,7 +109,7 @@ pub fn coverage(points: &[Vec3], centre: &Vec3) -> Coverage {
 }
 
 /// Most field vectors [`DirectionBins`] keeps (about 3 deg cells over the whole sphere).
-pub const MAX_BINNED: usize = 4000;
+pub(crate) const MAX_BINNED: usize = 4000;
 
 /// Keeps fit points at least about a minimum angle apart: directions about a centre are binned on a
 /// grid of cells about `min_separation_deg` wide and each cell keeps the first raw vector that fell in
@@ -182,12 +182,12 @@ impl DirectionBins {
     }
 
     /// Current cell width, degrees.
-    pub fn cell_deg(&self) -> f64 {
+    pub(crate) fn cell_deg(&self) -> f64 {
         self.cell_rad.to_degrees()
     }
 
     /// Re-bin the kept vectors about a new centre (after a fit moved the hard-iron estimate).
-    pub fn recentre(&mut self, centre: Vec3) {
+    pub(crate) fn recentre(&mut self, centre: Vec3) {
         let mut old: Vec<Vec3> = std::mem::take(&mut self.cells).into_values().collect();
         // Deterministic order whatever the hash map did.
         old.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));

@@ -17,13 +17,13 @@ use crate::calib::model::Calibration;
 use crate::types::{Vec3, STANDARD_GRAVITY_MPS2};
 
 /// A parameter name and value.
-pub type Param = (String, f64);
+pub(crate) type Param = (String, f64);
 
 /// The parts of a calibration the data did not determine (held at nominal in the fit): they are
 /// never exported. A flight-stack file leaves them out, so the vehicle keeps its own value, or
 /// writes the vehicle's own value from the log with a comment saying so.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct Unknowns {
+pub(crate) struct Unknowns {
     /// Offset axes not determined.
     pub offset: [bool; 3],
     /// Matrix rows and columns not determined (the whole row and column of that axis).
@@ -50,7 +50,7 @@ impl Unknowns {
 /// COMPASS_OFS2 and CAL_MAG1 ...), its calibration in uT, what the data did not determine, and
 /// the vehicle's own parameters as the log carries them (by name), to keep where ours is unknown.
 #[derive(Debug, Clone)]
-pub struct CompassExport {
+pub(crate) struct CompassExport {
     pub index: usize,
     pub cal: Calibration,
     pub unknown: Unknowns,
@@ -59,7 +59,7 @@ pub struct CompassExport {
 
 impl CompassExport {
     /// A compass whose every parameter the data determined.
-    pub fn determined(index: usize, cal: Calibration) -> CompassExport {
+    pub(crate) fn determined(index: usize, cal: Calibration) -> CompassExport {
         CompassExport {
             index,
             cal,
@@ -87,7 +87,7 @@ fn unknown_mask(u: &Unknowns) -> [bool; 9] {
 
 /// The parameters of one compass the data determined (for writing to a flight controller, which
 /// then keeps its own value of the rest), in ArduPilot's or PX4's names.
-pub fn determined_mag_params(c: &CompassExport, px4: bool) -> Vec<Param> {
+pub(crate) fn determined_mag_params(c: &CompassExport, px4: bool) -> Vec<Param> {
     let params = if px4 {
         px4_mag(&c.cal, c.index).0
     } else {
@@ -158,7 +158,7 @@ fn representability(cal: &Calibration, allow_offdiag: bool) -> Vec<String> {
 /// ArduPilot compass parameters from a magnetometer calibration in uT
 /// ([`ardupilot::Correction::from_model`]): OFS X Y Z, DIA X Y Z, ODI X Y Z; none, with a
 /// warning, for a compass index ArduPilot keeps no calibration for.
-pub fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Vec<String>) {
+pub(crate) fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Vec<String>) {
     let correction = ardupilot::Correction::from_model(&cal.offset, &cal.matrix);
     match u8::try_from(compass_index)
         .ok()
@@ -176,7 +176,7 @@ pub fn ardupilot_mag(cal: &Calibration, compass_index: usize) -> (Vec<Param>, Ve
 }
 
 /// ArduPilot accelerometer parameters from an accel calibration in m/s^2.
-pub fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
+pub(crate) fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
     let m = &cal.matrix;
     let params = vec![
         ("INS_ACCOFFS_X".into(), cal.offset[0]),
@@ -191,7 +191,7 @@ pub fn ardupilot_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
 
 /// PX4 magnetometer parameters of calibration slot `index` (CAL_MAG0_*, CAL_MAG1_* ...; gauss,
 /// 1 uT = 0.01 gauss).
-pub fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
+pub(crate) fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
     let (d, o) = ardupilot::diagonal_off_diagonal(&cal.matrix);
     let n = |field: &str| format!("CAL_MAG{index}_{field}");
     let params = vec![
@@ -209,7 +209,7 @@ pub fn px4_mag(cal: &Calibration, index: usize) -> (Vec<Param>, Vec<String>) {
 }
 
 /// PX4 accelerometer parameters (m/s^2).
-pub fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
+pub(crate) fn px4_accel(cal: &Calibration) -> (Vec<Param>, Vec<String>) {
     let m = &cal.matrix;
     let params = vec![
         ("CAL_ACC0_XOFF".into(), cal.offset[0]),
@@ -259,13 +259,13 @@ pub fn px4_motor(k_ut_per_a: &Vec3, index: usize) -> Vec<Param> {
 
 /// Motor (battery current) interference per compass index, uT/A: what [`ardupilot_motor`] and
 /// [`px4_motor`] export beside the calibrations.
-pub type CompassMotors = [(usize, Vec3)];
+pub(crate) type CompassMotors = [(usize, Vec3)];
 
 /// Magnetometer calibrations to export, one per compass.
-pub type CompassCalibrations = [CompassExport];
+pub(crate) type CompassCalibrations = [CompassExport];
 
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
-pub fn ardupilot_file(
+pub(crate) fn ardupilot_file(
     mags: &CompassCalibrations,
     motors: &CompassMotors,
     accel: Option<&Calibration>,
@@ -302,7 +302,7 @@ pub fn ardupilot_file(
 }
 
 /// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
-pub fn px4_file(
+pub(crate) fn px4_file(
     mags: &CompassCalibrations,
     motors: &CompassMotors,
     accel: Option<&Calibration>,
@@ -335,7 +335,7 @@ pub fn px4_file(
 /// x-io Fusion C snippet: the magnetometer soft/hard iron and the accelerometer inertial model.
 /// Fusion takes the whole matrix and offset, so a magnetometer calibration with an undetermined
 /// part is left out, with a comment saying why.
-pub fn fusion_file(mag: Option<&CompassExport>, accel: Option<&Calibration>) -> String {
+pub(crate) fn fusion_file(mag: Option<&CompassExport>, accel: Option<&Calibration>) -> String {
     let mat = |m: &[[f64; 3]; 3]| {
         format!(
             "{{{:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f, {:.9}f}}",

@@ -75,7 +75,7 @@ pub struct Start {
 }
 
 /// Linear least-squares sphere fit: |x|^2 = 2 c.x + k.
-pub fn sphere_start(points: &[Vec3]) -> Option<Start> {
+pub(crate) fn sphere_start(points: &[Vec3]) -> Option<Start> {
     if points.len() < 4 {
         return None;
     }
@@ -152,7 +152,7 @@ fn sphere_from_ellipsoid_moments(
 
 /// Algebraic ellipsoid fit: the general quadric x^T Q x + 2 g.x = 1, solved linearly; returns `None`
 /// when the quadric is not an ellipsoid (poor coverage), so the caller falls back to a sphere.
-pub fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
+pub(crate) fn ellipsoid_start(points: &[Vec3]) -> Option<Start> {
     if points.len() < 9 {
         return None;
     }
@@ -317,11 +317,11 @@ fn condition_number<const N: usize>(
 /// [`LmShortcuts::reuse_jtj`] for norm fits, in the sphere-normalised frame (centre in radii,
 /// matrix near the identity): J^T J, and so the reported uncertainties, from within 1e-4 of the
 /// solution. The ellipsoid start usually lands this close, so the last evaluation forms no J^T J.
-pub const NORM_REUSE_JTJ: f64 = 1e-4;
+pub(crate) const NORM_REUSE_JTJ: f64 = 1e-4;
 
 /// [`LmOptions::stop_rel_gain`] of norm fits and the dip rotation fit: analytic gradients, so the
 /// fit can go on to a relative gain near rounding.
-pub const NORM_STOP_REL_GAIN: f64 = 1e-14;
+pub(crate) const NORM_STOP_REL_GAIN: f64 = 1e-14;
 
 fn solve_norm<const K: u8, const N: usize>(
     pts: &kernel::Soa,
@@ -364,7 +364,7 @@ pub fn fit_norm(
 
 /// Norm fits of several models to the same points, sharing the work they have in common: the
 /// points in fit layout, the normalising sphere fit and the algebraic ellipsoid start.
-pub struct NormFitter {
+pub(crate) struct NormFitter {
     soa: kernel::Soa,
     scratch: kernel::Scratch,
     /// Normalising sphere fit (centre, radius), raw units; `None` if the points are not enough or
@@ -435,7 +435,7 @@ impl NormFitter {
     }
 
     /// Centre of the plain sphere fit, raw units.
-    pub fn sphere_centre(&self) -> Option<Vec3> {
+    pub(crate) fn sphere_centre(&self) -> Option<Vec3> {
         self.sphere.map(|(c, _)| [c[0], c[1], c[2]])
     }
 
@@ -530,14 +530,14 @@ impl NormFitter {
 
 /// Upper 0.999 quantile of chi-square with `df` degrees of freedom, used for the nested-model test
 /// of automatic model choice.
-pub fn chi2_quantile_999(df: usize) -> f64 {
+pub(crate) fn chi2_quantile_999(df: usize) -> f64 {
     use statrs::distribution::{ChiSquared, ContinuousCDF};
     ChiSquared::new(df.max(1) as f64).map_or(f64::INFINITY, |d| d.inverse_cdf(0.999))
 }
 
 /// Is the more complex nested fit a significant improvement? F-test in its chi-square form, plus a
 /// floor on the relative improvement so that numerically tiny gains on huge samples do not count.
-pub fn significantly_better(
+pub(crate) fn significantly_better(
     simple_ssr: f64,
     complex_ssr: f64,
     extra_params: usize,
@@ -559,7 +559,7 @@ pub fn significantly_better(
 /// section IV): the linear 12-parameter model raw = K f + b, solved by least squares against the
 /// nominal specific force of each pose (+-g on one axis). Returns `None` unless every one of the six
 /// directions has a pose within `max_angle_deg`.
-pub fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<Calibration> {
+pub(crate) fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<Calibration> {
     if pose_means.len() < 6 {
         return None;
     }
@@ -624,7 +624,7 @@ pub fn six_position(pose_means: &[Vec3], g: f64, max_angle_deg: f64) -> Option<C
 /// static pose the angle between calibrated gravity direction `g_i` (unit, down) and calibrated field
 /// `m_i` (unit) is the same (the dip). Finds the rotation `R` (applied to the field) and the dip that
 /// make `g_i . (R m_i) = sin(dip)` hold best. Returns (R, dip_rad, rms, condition).
-pub fn fit_dip_rotation(
+pub(crate) fn fit_dip_rotation(
     gravity_dirs: &[Vec3],
     field_dirs: &[Vec3],
 ) -> Option<(Matrix3<f64>, f64, f64, f64)> {

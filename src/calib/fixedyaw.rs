@@ -34,7 +34,7 @@ pub struct FixedYawSettings {
 
 impl FixedYawSettings {
     /// The defaults, as a constant (the live service sizes its sample buffers with it).
-    pub const DEFAULT: FixedYawSettings = FixedYawSettings {
+    pub(crate) const DEFAULT: FixedYawSettings = FixedYawSettings {
         window_samples: 100,
         max_accel_sd_mps2: 0.15,
         max_mag_sd_ut: 1.0,
@@ -118,7 +118,7 @@ fn mean_and_sd(v: &[Vec3]) -> (Vec3, f64) {
 /// The offset from the latest samples of a vehicle resting at true heading `yaw_deg`.
 /// `samples`: (raw magnetometer uT, specific force m/s^2), both body axes, oldest first; the last
 /// `settings.window_samples` are used. `matrix`: the soft iron in use (calibrated = M (raw - o)).
-pub fn fixed_yaw_offset(
+pub(crate) fn fixed_yaw_offset(
     samples: &[(Vec3, Vec3)],
     yaw_deg: f64,
     field: &EarthField,

@@ -8,7 +8,7 @@ use std::collections::VecDeque;
 /// Ren and Liu, "Calibration of MEMS Accelerometers and Magnetometers for Rotor UAV Attitude Estimation", eq. 3: a random-constant Kalman filter per channel.
 /// x_k|k-1 = x, P_k|k-1 = P + Q, K = P/(P + R), x += K (z - x), P = (1 - K) P.
 #[derive(Debug, Clone, Copy)]
-pub struct ScalarKalman {
+pub(crate) struct ScalarKalman {
     pub x: f64,
     pub p: f64,
     pub q: f64,
@@ -43,7 +43,7 @@ impl ScalarKalman {
 
 /// Three channels of [`ScalarKalman`].
 #[derive(Debug, Clone, Copy)]
-pub struct Prefilter3([ScalarKalman; 3]);
+pub(crate) struct Prefilter3([ScalarKalman; 3]);
 
 impl Prefilter3 {
     pub fn new(q: f64, r: f64) -> Self {
@@ -123,7 +123,7 @@ impl Pose {
 /// moves the attitude by less than its noise, and would bias the gyro bias by at most this.
 /// The straight-line fit over a pose of 100 readings of an attitude with 0.5 deg of noise finds
 /// the rate to about 0.1 deg/s.
-pub const REST_MAX_RATE_DEG_S: f64 = 0.25;
+pub(crate) const REST_MAX_RATE_DEG_S: f64 = 0.25;
 
 /// Running sums for the straight-line fit of `N` components against time.
 #[derive(Debug, Clone, Copy)]
@@ -413,7 +413,7 @@ impl LogHistogram {
 /// the window centred on it (so output lags input by half a window); a run of still samples at least
 /// `min_pose_s` long becomes a [`Pose`].
 #[derive(Debug, Clone)]
-pub struct StaticDetector {
+pub(crate) struct StaticDetector {
     cfg: GateConfig,
     window: VecDeque<(Sample, Vec3)>,
     half: usize,
@@ -454,7 +454,7 @@ impl StaticDetector {
     }
 
     /// The noise-floor variance estimate (10th percentile of window variances so far).
-    pub fn noise_floor(&self) -> Option<f64> {
+    pub(crate) fn noise_floor(&self) -> Option<f64> {
         self.hist.quantile()
     }
 

@@ -59,7 +59,7 @@ impl GyroBias {
 
 /// Settings of [`bias_from_poses`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BiasOptions {
+pub(crate) struct BiasOptions {
     /// Smallest temperature spread over the poses that allows a drift fit, deg C.
     pub min_temp_span_c: f64,
     /// Smallest number of poses with a temperature for a drift fit.
@@ -78,7 +78,7 @@ impl Default for BiasOptions {
 /// Bias (and its temperature drift when temperatures vary) from the static poses' mean gyro readings,
 /// each weighted by its sample count, the poses at rest only ([`Pose::at_rest`]: a steady turn
 /// holds the gyro steady too). `None` without a pose at rest that has gyro data.
-pub fn bias_from_poses(poses: &[Pose], opt: &BiasOptions) -> Option<GyroBias> {
+pub(crate) fn bias_from_poses(poses: &[Pose], opt: &BiasOptions) -> Option<GyroBias> {
     let pts: Vec<(Vec3, f64, Option<f64>)> = poses
         .iter()
         .filter(|p| p.at_rest())
@@ -199,7 +199,7 @@ impl GyroFit {
 
 /// Settings of [`fit_scale`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ScaleOptions {
+pub(crate) struct ScaleOptions {
     /// Fewest pose pairs.
     pub min_segments: usize,
     /// Smallest rotation between two poses that is used, degrees (smaller ones carry little scale
@@ -448,15 +448,15 @@ impl std::fmt::Display for ScaleFailure {
 
 /// The fitted `K` may do this much worse (relative RMS) than the bias-only model on the held-out
 /// rotations and still be published (the half fit is noisier than the full one).
-pub const HELD_OUT_MARGIN: f64 = 0.1;
+pub(crate) const HELD_OUT_MARGIN: f64 = 0.1;
 
 /// Rotations off the main axis (or off the main plane) below this share of the RMS rotation count as
 /// none: about 6 degrees of spread.
-pub const MIN_AXIS_SPREAD: f64 = 0.1;
+pub(crate) const MIN_AXIS_SPREAD: f64 = 0.1;
 
 /// Which directions the rotations between poses turn about.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum AxisSpan {
+pub(crate) enum AxisSpan {
     /// About one axis only (unit vector, sensor axes).
     OneAxis(Vec3),
     /// About axes in one plane only (its normal).
@@ -513,7 +513,7 @@ fn axis_span(segs: &[Segment], k: &Matrix3<f64>) -> AxisSpan {
 /// The span of the rotations between the static poses ([`AxisSpan`]), with the bias and the
 /// accelerometer calibration (identity for raw directions) that select them, as [`fit_scale`] does.
 /// `None` without rotations.
-pub fn rotation_axes(
+pub(crate) fn rotation_axes(
     samples: &[Sample],
     poses: &[Pose],
     bias: &GyroBias,
@@ -547,7 +547,7 @@ fn start_k(segs: &[Segment], opt: &ScaleOptions) -> Matrix3<f64> {
 /// rotations about all three directions ([`AxisSpan`]); a second fit on every other rotation is
 /// scored on the rest ([`GyroFit::held_out`]) and must not be worse than the starting `K` there by
 /// more than [`HELD_OUT_MARGIN`]. Each refusal is a [`ScaleFailure`] naming its reason.
-pub fn fit_scale(
+pub(crate) fn fit_scale(
     samples: &[Sample],
     poses: &[Pose],
     bias: &GyroBias,

@@ -37,7 +37,7 @@ pub struct LearnSettings {
 }
 
 impl LearnSettings {
-    pub const DEFAULT: LearnSettings = LearnSettings {
+    pub(crate) const DEFAULT: LearnSettings = LearnSettings {
         min_interval_s: 0.1,
         memory_s: 1800.0,
         current_scale_a: 100.0,
@@ -52,7 +52,7 @@ impl Default for LearnSettings {
 
 /// The earth field is evaluated again when the vehicle is this far from where it last was, km
 /// (the field changes by well under 0.1 % over it).
-pub const FIELD_REFRESH_KM: f64 = 20.0;
+pub(crate) const FIELD_REFRESH_KM: f64 = 20.0;
 
 /// The earth field where it was last evaluated.
 #[derive(Debug, Clone, PartialEq)]
@@ -105,7 +105,7 @@ pub struct VectorLearner {
 
 /// A result the learner offers, with where its field came from.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Offer {
+pub(crate) struct Offer {
     pub fit: VectorFit,
     /// "GPS (lat, lon), 48.3 uT" or "[place] (...)".
     pub field_from: String,
@@ -127,7 +127,7 @@ impl VectorLearner {
     }
 
     /// The learner evaluating the field on `date` (`YYYY-MM-DD`) where `[place]` gives no date.
-    pub fn on_date(mut self, date: &str) -> Self {
+    pub(crate) fn on_date(mut self, date: &str) -> Self {
         self.date = Some(date.to_string());
         self
     }
@@ -238,7 +238,7 @@ impl VectorLearner {
     }
 
     /// Solve the sums: the fit, whatever it determines (for reports), or why there is none.
-    pub fn solve(&self) -> Result<VectorFit, VectorFailure> {
+    pub(crate) fn solve(&self) -> Result<VectorFit, VectorFailure> {
         let acc = match (&self.with_current, &self.plain) {
             (Some(c), _) if self.current.sd() >= crate::calib::vector::MIN_CURRENT_SD_A => c,
             (_, Some(p)) => p,
@@ -253,7 +253,7 @@ impl VectorLearner {
     }
 
     /// The fit when it may be installed: the attitudes seen determine the offset.
-    pub fn offer(&self) -> Option<Offer> {
+    pub(crate) fn offer(&self) -> Option<Offer> {
         let fit = self.solve().ok().filter(|f| f.offset_identifiable)?;
         let f = self.field.as_ref()?;
         Some(Offer {
@@ -269,15 +269,15 @@ impl VectorLearner {
 /// The largest RMS residual of a fit the live service installs, as a fraction of the field: 5 %
 /// (2.5 uT in a 50 uT field) is several times what attitude noise of a degree leaves, and far less
 /// than an earth field that does not match the place (a wrong `[place]`, a simulator's own field).
-pub const MAX_RMS_FRACTION: f64 = 0.05;
+pub(crate) const MAX_RMS_FRACTION: f64 = 0.05;
 /// The soft iron's singular values must lie within this factor of 1: a compass that reads the
 /// field 25 % too strong or weak is not a calibration the attitudes justify, but a field model
 /// that does not fit the place.
-pub const MAX_SCALE_FACTOR: f64 = 1.25;
+pub(crate) const MAX_SCALE_FACTOR: f64 = 1.25;
 
 /// The checks a learnt fit passes before the live service installs it, beside identifiability:
 /// residuals and scale consistent with the earth field it was fitted against.
-pub fn acceptable(fit: &VectorFit) -> Result<(), String> {
+pub(crate) fn acceptable(fit: &VectorFit) -> Result<(), String> {
     if !(fit.rms_residual_ut <= MAX_RMS_FRACTION * fit.field_ut) {
         return Err(format!(
             "rms residual {:.2} uT is over {:.0} % of the {:.1} uT field",

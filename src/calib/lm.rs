@@ -26,21 +26,21 @@ use nalgebra::{
 };
 
 /// Damping at the start, relative to the diagonal of J^T J.
-pub const INITIAL_DAMPING: f64 = 1e-3;
+pub(crate) const INITIAL_DAMPING: f64 = 1e-3;
 /// Factor the damping grows by after a step that does not lower the sum of squares.
-pub const DAMPING_UP: f64 = 10.0;
+pub(crate) const DAMPING_UP: f64 = 10.0;
 /// Factor the damping is multiplied by after an accepted step.
-pub const DAMPING_DOWN: f64 = 0.1;
+pub(crate) const DAMPING_DOWN: f64 = 0.1;
 /// Smallest damping (relative to the diagonal).
-pub const MIN_DAMPING: f64 = 1e-15;
+pub(crate) const MIN_DAMPING: f64 = 1e-15;
 /// Above this damping no descent direction is left: the fit stops.
-pub const MAX_DAMPING: f64 = 1e12;
+pub(crate) const MAX_DAMPING: f64 = 1e12;
 /// [`minimise`]'s [`LmOptions::stop_rel_gain`]: its residuals come through finite differences.
-pub const STOP_REL_GAIN: f64 = 1e-11;
+pub(crate) const STOP_REL_GAIN: f64 = 1e-11;
 /// A step shorter than this, relative to the parameter vector, ends the fit.
-pub const STOP_REL_STEP: f64 = 1e-12;
+pub(crate) const STOP_REL_STEP: f64 = 1e-12;
 /// Forward-difference step, relative to max(|p_i|, typical size of p_i).
-pub const DIFF_REL_STEP: f64 = 1e-6;
+pub(crate) const DIFF_REL_STEP: f64 = 1e-6;
 /// Floor of a diagonal entry of J^T J when it scales the damping (a column without influence).
 const DIAG_FLOOR: f64 = 1e-30;
 
@@ -49,7 +49,7 @@ const DIAG_FLOOR: f64 = 1e-30;
 /// definite to working precision (nalgebra refuses a pivot that is not positive; from finite
 /// entries a pivot cannot grow past the diagonal entry it starts from, so the factor is then
 /// finite).
-pub fn cholesky<D: Dim>(a: &OMatrix<f64, D, D>) -> Option<Cholesky<f64, D>>
+pub(crate) fn cholesky<D: Dim>(a: &OMatrix<f64, D, D>) -> Option<Cholesky<f64, D>>
 where
     DefaultAllocator: Allocator<D, D>,
 {
@@ -71,7 +71,7 @@ where
 
 /// A least-squares problem as the iteration sees it: the sum of squares at a point, and the normal
 /// equations at a point the iteration keeps.
-pub trait Problem<D: Dim>
+pub(crate) trait Problem<D: Dim>
 where
     DefaultAllocator: Allocator<D> + Allocator<D, D>,
 {
@@ -86,7 +86,7 @@ where
 /// Work a run may skip near the solution, where it would only confirm what the linear model
 /// already says. Both 0 (the default) skip nothing.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct LmShortcuts {
+pub(crate) struct LmShortcuts {
     /// When the reduction the linear model predicts for the next step is at most this fraction of
     /// the sum of squares, the step is taken without evaluating where it lands, and the sum of
     /// squares becomes the predicted one. Norm fits pass `1e-6 / dof`: the step is then at most a
@@ -104,7 +104,7 @@ pub struct LmShortcuts {
 
 /// When a run stops.
 #[derive(Debug, Clone, Copy)]
-pub struct LmOptions {
+pub(crate) struct LmOptions {
     /// Most steps tried (taken or refused).
     pub max_iter: usize,
     /// A step that lowers the sum of squares by at most this fraction of it (or that the linear
@@ -126,7 +126,7 @@ impl LmOptions {
 
 /// Outcome of a run.
 #[derive(Debug, Clone)]
-pub struct LmOutcome<D: Dim>
+pub(crate) struct LmOutcome<D: Dim>
 where
     DefaultAllocator: Allocator<D> + Allocator<D, D>,
 {
@@ -142,7 +142,7 @@ where
 }
 
 /// The Levenberg-Marquardt iteration on `problem` from `x0`.
-pub fn solve<D: Dim, P: Problem<D> + ?Sized>(
+pub(crate) fn solve<D: Dim, P: Problem<D> + ?Sized>(
     x0: OVector<f64, D>,
     opts: &LmOptions,
     problem: &mut P,
@@ -261,7 +261,7 @@ where
 
 /// [`solve`] on normal equations that `eval(p, with_jtj)` builds whole: the sum of squared
 /// residuals, J^T J (when `with_jtj`; `None` keeps the earlier one) and J^T r at `p`.
-pub fn minimise_normal<D: Dim>(
+pub(crate) fn minimise_normal<D: Dim>(
     x0: OVector<f64, D>,
     opts: &LmOptions,
     eval: impl FnMut(&OVector<f64, D>, bool) -> (f64, Option<OMatrix<f64, D, D>>, OVector<f64, D>),
@@ -276,7 +276,7 @@ where
 /// its result is handed to every `resid(prepared, p, i, grad)` call (a matrix built from the
 /// parameters, say), which returns residual `i` and writes its gradient. The normal equations are
 /// accumulated point by point, so memory is O(N^2) whatever the number of points.
-pub fn minimise_pointwise<const N: usize, P>(
+pub(crate) fn minimise_pointwise<const N: usize, P>(
     x0: SVector<f64, N>,
     n_points: usize,
     opts: &LmOptions,
@@ -313,11 +313,11 @@ pub fn minimise_pointwise<const N: usize, P>(
 }
 
 /// Residual function: parameters in, residuals written to the (cleared or overwritten) vector.
-pub type Residuals<'a> = &'a dyn Fn(&[f64], &mut Vec<f64>);
+pub(crate) type Residuals<'a> = &'a dyn Fn(&[f64], &mut Vec<f64>);
 
 /// The result of [`minimise`].
 #[derive(Debug, Clone)]
-pub struct LmFit {
+pub(crate) struct LmFit {
     pub p: DVector<f64>,
     /// Sum of squared residuals at `p`.
     pub ssr: f64,
@@ -329,7 +329,7 @@ pub struct LmFit {
 
 /// Forward-difference Jacobian of `f` at `p` (`r0` = f(p)); `typ` gives each parameter's typical size,
 /// which sets the step where the parameter is near zero.
-pub fn jacobian(f: Residuals, p: &DVector<f64>, r0: &[f64], typ: &[f64]) -> DMatrix<f64> {
+pub(crate) fn jacobian(f: Residuals, p: &DVector<f64>, r0: &[f64], typ: &[f64]) -> DMatrix<f64> {
     let m = r0.len();
     let n = p.len();
     let mut j = DMatrix::zeros(m, n);
@@ -382,7 +382,7 @@ impl Problem<Dyn> for Differenced<'_> {
 
 /// Minimise the sum of squares of `f` from `p0` (at most `max_iter` steps tried), differencing
 /// the Jacobian with steps set by `typ`, the typical size of each parameter.
-pub fn minimise(f: Residuals, p0: DVector<f64>, typ: &[f64], max_iter: usize) -> LmFit {
+pub(crate) fn minimise(f: Residuals, p0: DVector<f64>, typ: &[f64], max_iter: usize) -> LmFit {
     let mut problem = Differenced {
         f,
         typ,

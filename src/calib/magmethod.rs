@@ -20,13 +20,13 @@ use crate::calib::vector::{VectorFit, VectorPoint, MIN_CURRENT_SD_A};
 use crate::types::{DateSource, GeoPoint, LogWhere, Sample, Vec3};
 
 /// A rotation within the vector fit's soft iron above this is named in the reason, deg.
-pub const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
+pub(crate) const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
 
 /// The planar method is taken when 95 % of the readings are within this of level (by the logged
 /// attitude when there is one, else by the accelerometer) and the turns' mean bank is within
 /// it, deg: too little tilt for the sphere (or the vector fit) to see the body-z axis, and no
 /// banked turns.
-pub const PLANAR_MAX_TILT_P95_DEG: f64 = 15.0;
+pub(crate) const PLANAR_MAX_TILT_P95_DEG: f64 = 15.0;
 
 /// Where the field is evaluated, and where that came from.
 #[derive(Debug, Clone, PartialEq)]
@@ -89,7 +89,11 @@ fn place_of(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<Wh
 }
 
 /// The field at the log's place and date, as the report states it.
-pub fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Option<FieldUsed> {
+pub(crate) fn field_used(
+    samples: &[Sample],
+    log: LogWhere,
+    cfg: Option<&Place>,
+) -> Option<FieldUsed> {
     let w = place_of(samples, log, cfg)?;
     let f = crate::attitude::earth_field(&w.place).ok()?;
     Some(FieldUsed {
@@ -106,7 +110,7 @@ pub fn field_used(samples: &[Sample], log: LogWhere, cfg: Option<&Place>) -> Opt
 }
 
 /// The earth field where the log was taken (the place as for the vector fit), if known.
-pub fn earth_field_of(
+pub(crate) fn earth_field_of(
     samples: &[Sample],
     log: LogWhere,
     cfg_place: Option<&Place>,
@@ -160,7 +164,7 @@ fn sphere_words(sphere: &SensorResult) -> String {
 /// Choose the method for the primary magnetometer; with the vector method, replace the sphere
 /// fit's result by the vector fit's (report fields and the calibration applied downstream).
 /// `body` gives a sample in body axes (the pipeline's sensor rotation).
-pub fn choose(
+pub(crate) fn choose(
     mag: &mut SensorResult,
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
@@ -415,7 +419,7 @@ fn decide_vector(
 
 /// The live service's learnt vector fit ([`crate::calib::learn`]) as the sensor's result, with
 /// the method and its reason in the report (the sphere fit's failure kept in the reason).
-pub fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer) {
+pub(crate) fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer) {
     let v = &offer.fit;
     let reason = format!(
         "learnt live from {} readings with the vehicle's attitude, field from {}; {}",
@@ -473,10 +477,10 @@ fn install_full12(
 
 /// Length of the alternating blocks of the held-out check, s: long enough to hold a turn or two
 /// of an ordinary flight, short enough that a flight of a few minutes gives several of each.
-pub const QUALITY_BLOCK_S: f64 = 20.0;
+pub(crate) const QUALITY_BLOCK_S: f64 = 20.0;
 
 /// Readings a held-out score needs at least.
-pub const QUALITY_MIN_READINGS: usize = 30;
+pub(crate) const QUALITY_MIN_READINGS: usize = 30;
 
 /// The spread of the field seen through a calibration: `readings` are (calibrated field in body
 /// axes, uT; body -> NED attitude). `None` with fewer than [`QUALITY_MIN_READINGS`].
@@ -525,7 +529,7 @@ pub fn held_out(
 }
 
 /// The calibrated field of a sample in body axes (uT), when it has a magnetometer reading.
-pub type FieldOf<'a> = dyn Fn(&Sample) -> Option<Vec3> + 'a;
+pub(crate) type FieldOf<'a> = dyn Fn(&Sample) -> Option<Vec3> + 'a;
 
 /// Whether a sample falls in a fitting block (even) of the held-out check.
 fn fitting_block(t0: f64, t: f64) -> bool {
@@ -705,7 +709,7 @@ const FIELD_FIT_TOL: f64 = 1e-7;
 /// against A's scale, so it is held at the strength of the mean of the readings turned into NED
 /// (the start); its direction (inclination and declination against the attitude's north) is fitted.
 /// `None` with fewer than [`crate::calib::vector::MIN_POINTS`] readings with an attitude.
-pub fn fit_with_field(
+pub(crate) fn fit_with_field(
     samples: &[Sample],
     body_mag: &FieldOf<'_>,
     start_ned_ut: Option<Vec3>,

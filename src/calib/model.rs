@@ -24,7 +24,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// The 3x3 identity (no soft iron, no scale).
-pub const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+pub(crate) const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
 /// Which model a calibration uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
@@ -38,7 +38,7 @@ pub enum ModelKind {
 
 impl ModelKind {
     /// Number of free parameters, offset included.
-    pub fn n_params(self) -> usize {
+    pub(crate) fn n_params(self) -> usize {
         match self {
             ModelKind::Sphere => 4,
             ModelKind::Diag6 => 6,
@@ -184,7 +184,7 @@ impl Calibration {
         ]
     }
 
-    pub fn matrix3(&self) -> Matrix3<f64> {
+    pub(crate) fn matrix3(&self) -> Matrix3<f64> {
         rows_to_mat(&self.matrix)
     }
 
@@ -215,7 +215,7 @@ pub fn mat_to_rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
 /// `A` is built from the `a` entries by the model:
 /// sphere `[a]`, diag6 `[a11 a22 a33]`, sym9 `[a11 a22 a33 a12 a13 a23]`,
 /// full12 (upper triangular) `[a11 a22 a33 a12 a13 a23]` with a21 = a31 = a32 = 0.
-pub fn a_from_params(kind: ModelKind, a: &[f64]) -> Matrix3<f64> {
+pub(crate) fn a_from_params(kind: ModelKind, a: &[f64]) -> Matrix3<f64> {
     match kind {
         ModelKind::Sphere => Matrix3::identity() * a[0],
         ModelKind::Diag6 => Matrix3::from_diagonal(&Vector3::new(a[0], a[1], a[2])),
@@ -225,7 +225,7 @@ pub fn a_from_params(kind: ModelKind, a: &[f64]) -> Matrix3<f64> {
 }
 
 /// Inverse of [`a_from_params`]: the model's entries of a matrix (off-model entries are dropped).
-pub fn params_from_a(kind: ModelKind, m: &Matrix3<f64>) -> Vec<f64> {
+pub(crate) fn params_from_a(kind: ModelKind, m: &Matrix3<f64>) -> Vec<f64> {
     match kind {
         ModelKind::Sphere => vec![m.trace() / 3.0],
         ModelKind::Diag6 => vec![m[(0, 0)], m[(1, 1)], m[(2, 2)]],
@@ -249,7 +249,7 @@ pub fn params_from_a(kind: ModelKind, m: &Matrix3<f64>) -> Vec<f64> {
 }
 
 /// Number of fitted parameters for the norm-only fit (the rotation of `full12` is not among them).
-pub fn n_norm_params(kind: ModelKind) -> usize {
+pub(crate) fn n_norm_params(kind: ModelKind) -> usize {
     3 + match kind {
         ModelKind::Sphere => 1,
         ModelKind::Diag6 => 3,

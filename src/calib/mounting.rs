@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 /// stacks differ and are left out. 26 (PITCH_180_YAW_90) is the same rotation as 14
 /// (ROLL_180_YAW_270), and 27 (PITCH_180_YAW_270) the same as 10 (ROLL_180_YAW_90): a detected
 /// rotation is named by the lower number.
-pub const ORIENTATIONS: [(u8, &str); 41] = [
+pub(crate) const ORIENTATIONS: [(u8, &str); 41] = [
     (0, "ROTATION_NONE"),
     (1, "ROTATION_YAW_45"),
     (2, "ROTATION_YAW_90"),
@@ -79,35 +79,35 @@ pub const ORIENTATIONS: [(u8, &str); 41] = [
 /// ArduPilot's COMPASS_ORIENTn value of a custom rotation (ROTATION_CUSTOM_1, with the angles in
 /// CUST_ROT1_ROLL/PITCH/YAW and CUST_ROT_ENABLE = 1; ArduPilot 4.1 and older used 100,
 /// ROTATION_CUSTOM, which newer versions convert to this). PX4's CAL_MAGn_ROT has no custom value.
-pub const ARDUPILOT_CUSTOM_ROTATION: i32 = 101;
+pub(crate) const ARDUPILOT_CUSTOM_ROTATION: i32 = 101;
 
 /// Fewer static poses with a magnetometer reading than this: undetermined. Count.
-pub const MIN_POSES: usize = 6;
+pub(crate) const MIN_POSES: usize = 6;
 
 /// The reference directions (gravity, or the expected field with an attitude) in body axes must
 /// span at least this largest angle between two poses, deg; less and most rotations cannot be told
 /// apart (a vehicle that only turned about the vertical).
-pub const MIN_SPREAD_DEG: f64 = 30.0;
+pub(crate) const MIN_SPREAD_DEG: f64 = 30.0;
 
 /// The best rotation's score must be below this, deg: above it no rotation fits (a disturbed or
 /// uncalibrated compass), and nothing is said about the mounting.
-pub const MAX_BEST_SCORE_DEG: f64 = 6.0;
+pub(crate) const MAX_BEST_SCORE_DEG: f64 = 6.0;
 
 /// The runner-up (the best rotation that is not the same as the best) must score at least this
 /// many times the best's score ...
-pub const MIN_MARGIN_RATIO: f64 = 3.0;
+pub(crate) const MIN_MARGIN_RATIO: f64 = 3.0;
 
 /// ... and at least this many degrees above it; otherwise the two fit alike and the verdict is
 /// undetermined. Deg.
-pub const MIN_MARGIN_DEG: f64 = 5.0;
+pub(crate) const MIN_MARGIN_DEG: f64 = 5.0;
 
 /// A continuous yaw replaces the best standard rotation only when it scores this many times better
 /// (a standard rotation seen through noise finds a custom yaw next to it scoring about the same).
-pub const CUSTOM_GAIN_RATIO: f64 = 2.0;
+pub(crate) const CUSTOM_GAIN_RATIO: f64 = 2.0;
 
 /// Two rotations closer than this are the same mounting (the detected one is the configured one,
 /// or two table entries are one rotation), deg.
-pub const SAME_ROTATION_DEG: f64 = 3.0;
+pub(crate) const SAME_ROTATION_DEG: f64 = 3.0;
 
 /// Grid step of the custom yaw search before the golden-section refinement, deg.
 const YAW_GRID_DEG: f64 = 1.0;
@@ -115,7 +115,7 @@ const YAW_GRID_DEG: f64 = 1.0;
 /// A static pose's readings: the corrected magnetometer (at least hard iron removed) in the
 /// compass's own axes, the specific force in body axes, and the attitude when known.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MountPoint {
+pub(crate) struct MountPoint {
     pub mag: Vec3,
     pub specific_force_mps2: Vec3,
     /// Body -> NED.
@@ -344,7 +344,7 @@ fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
 }
 
 /// The angle of the rotation taking `a` to `b`, deg.
-pub fn rotation_angle_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
+pub(crate) fn rotation_angle_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
     (((a.transpose() * b).trace() - 1.0) / 2.0)
         .clamp(-1.0, 1.0)
         .acos()
@@ -498,7 +498,7 @@ impl Scored {
 /// magnetometer in the compass's own axes; `field` is the earth field where the data were taken
 /// (its direction is used with the attitude; its inclination is reported). `None` when no point
 /// has a usable (finite, non-zero) field and specific force.
-pub fn detect(
+pub(crate) fn detect(
     points: &[MountPoint],
     field: Option<&EarthField>,
     configured: &Matrix3<f64>,
@@ -657,7 +657,7 @@ pub fn check(
 /// The symmetric part of a calibration matrix (polar decomposition `M = U P`, `P = sqrt(M^T M)`):
 /// a soft-iron correction without any rotation it holds (a vector or full12 fit can turn the
 /// readings onto the body frame and so hide a wrong mounting).
-pub fn symmetric_part(m: &[[f64; 3]; 3]) -> Matrix3<f64> {
+pub(crate) fn symmetric_part(m: &[[f64; 3]; 3]) -> Matrix3<f64> {
     let m = Matrix3::from_fn(|i, j| m[i][j]);
     let e = (m.transpose() * m).symmetric_eigen();
     let d = Matrix3::from_diagonal(&e.eigenvalues.map(|x| x.max(0.0).sqrt()));

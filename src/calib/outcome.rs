@@ -37,7 +37,7 @@ impl SensorResult {
     /// `report.mounting`; a mounting clearly other than `configured` refuses the calibration
     /// (failure `orientation`, the parameter to set for compass `index` named). Nothing happens
     /// without a calibration or with an unknown `configured`.
-    pub fn check_mounting(
+    pub(crate) fn check_mounting(
         &mut self,
         accel: Option<&Calibration>,
         poses: &[crate::calib::gate::Pose],
@@ -205,13 +205,13 @@ impl SensorCalibration {
 
     /// [`SensorCalibration::calibration`] of a magnetometer in uT (what flight-stack parameters
     /// can hold).
-    pub fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
+    pub(crate) fn calibration_ut(&self) -> Option<crate::calib::model::Calibration> {
         self.calibration().filter(|_| self.units == CalUnits::Ut)
     }
 
     /// What the data did not determine of this calibration (a planar fit's z offset and z soft
     /// iron, held at nominal): never exported.
-    pub fn unknowns(&self) -> crate::calib::export::Unknowns {
+    pub(crate) fn unknowns(&self) -> crate::calib::export::Unknowns {
         use crate::calib::planar::Undetermined;
         let mut u = crate::calib::export::Unknowns::default();
         if let Some(p) = self.method.as_ref().and_then(|m| m.planar.as_ref()) {

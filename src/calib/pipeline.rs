@@ -41,14 +41,14 @@ pub struct FitInput {
 }
 
 /// Readings a [`NoiseMeter`] needs before it gives a noise level.
-pub const NOISE_MIN_READINGS: u64 = 500;
+pub(crate) const NOISE_MIN_READINGS: u64 = 500;
 
 /// A sensor's white noise from its stream: the second difference of three successive readings,
 /// x[i+1] - 2 x[i] + x[i-1], removes the reading's value and any steady rate of change (a turn),
 /// and for white noise of standard deviation sigma per axis has variance 6 sigma^2. A break in
 /// time starts a new triple.
 #[derive(Debug, Clone, Default)]
-pub struct NoiseMeter {
+pub(crate) struct NoiseMeter {
     last: Option<(Vec3, Option<Vec3>, u32)>,
     sum_sq: f64,
     n: u64,
@@ -371,7 +371,7 @@ impl Pipeline {
     }
 
     /// Close a still run at the end of input.
-    pub fn finish_poses(&mut self) {
+    pub(crate) fn finish_poses(&mut self) {
         if let Some(p) = self.detector.finish() {
             self.add_pose(p);
         }
@@ -395,12 +395,12 @@ impl Pipeline {
     /// epoch stays the same, [`Pipeline::mag_points`] is the points of earlier calls plus these
     /// (a consumer can update what it derived from them); a new epoch means points were dropped or
     /// re-binned, so start again from [`Pipeline::mag_points`].
-    pub fn take_fresh_mag(&mut self) -> (u64, Vec<Vec3>) {
+    pub(crate) fn take_fresh_mag(&mut self) -> (u64, Vec<Vec3>) {
         (self.mag_epoch, std::mem::take(&mut self.fresh_mag))
     }
 
     /// The magnetometer points kept so far (raw units, body axes).
-    pub fn mag_points(&self) -> Vec<Vec3> {
+    pub(crate) fn mag_points(&self) -> Vec<Vec3> {
         match &self.mag_bins {
             Some(b) => b.points(),
             None => self.mag_buffer.clone(),
@@ -410,7 +410,7 @@ impl Pipeline {
     /// The magnetometer's centre (hard iron, raw units) as far as it is known: the last fit that
     /// passed its checks, or before one the centre of the kept points once they spread enough
     /// ([`centre_from_spread`]). `None` before either.
-    pub fn mag_centre(&self) -> Option<Vec3> {
+    pub(crate) fn mag_centre(&self) -> Option<Vec3> {
         self.mag_bins.as_ref().map(|b| b.centre)
     }
 
@@ -428,7 +428,7 @@ impl Pipeline {
 /// along their narrowest direction is at least `min_spread_radii` of its radius, and with `limits`
 /// (units known) the radius is within them. A still sensor's points (a small cluster, on which an
 /// algebraic sphere fit gives a small sphere through the noise) never pass.
-pub fn centre_from_spread(
+pub(crate) fn centre_from_spread(
     points: &[Vec3],
     min_spread_radii: f64,
     limits: Option<&AcceptLimits>,
@@ -462,7 +462,7 @@ pub fn centre_from_spread(
 }
 
 /// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
-pub const CENTRE_MAX_RMS_RADII: f64 = 0.1;
+pub(crate) const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
 fn failed(
     model: CalModel,
@@ -506,13 +506,13 @@ fn empty_result(report: SensorCalibration, points: &[Vec3]) -> SensorResult {
 
 /// Most refit records (one per sensor per refit) the pipeline keeps for its report: the newest
 /// 1000 to 1250 (a stream that runs for days refits every 10 s).
-pub const MAX_REFIT_HISTORY: usize = 1000;
+pub(crate) const MAX_REFIT_HISTORY: usize = 1000;
 
 /// Most static poses the pipeline keeps (the oldest are dropped).
-pub const MAX_POSES: usize = 2000;
+pub(crate) const MAX_POSES: usize = 2000;
 
 /// Largest share of magnetometer points that may be outliers before the fit is refused as disturbed.
-pub const MAX_OUTLIER_SHARE: f64 = 0.25;
+pub(crate) const MAX_OUTLIER_SHARE: f64 = 0.25;
 
 /// Fit one sensor: a saturated or stuck axis is refused first ([`axis_fault`]); then candidate
 /// models, automatic choice, acceptance checks ([`fit_sensor_on`]). When the magnetometer fit shows
@@ -1300,7 +1300,7 @@ fn fit_gyro(poses: &[Pose], units: Unit) -> GyroCalibration {
 const MAX_FRESH_MAG: usize = 4096;
 
 /// Detect accelerometer units from the static norms: near g means m/s^2, otherwise counts.
-pub fn accel_units(poses: &[Pose], setting: AccelUnits) -> Unit {
+pub(crate) fn accel_units(poses: &[Pose], setting: AccelUnits) -> Unit {
     match setting {
         AccelUnits::Si => Unit::Si,
         AccelUnits::Counts => Unit::Counts,
@@ -1321,13 +1321,13 @@ pub fn accel_units(poses: &[Pose], setting: AccelUnits) -> Unit {
 }
 
 /// Fewest points held out for a comparison: below `MIN_HELD_OUT * every` points none are.
-pub const MIN_HELD_OUT: usize = 4;
+pub(crate) const MIN_HELD_OUT: usize = 4;
 
 /// Every `every`-th point (the 1st, the `every+1`-th, ...) held out, the rest to fit: `(fit, held)`.
 /// Deterministic; on the direction bins' points (ordered by direction) the held-out ones spread
 /// over the whole sphere, on poses (in time order) over the whole run. With `every` 0 or fewer
 /// than `MIN_HELD_OUT * every` points, none are held out.
-pub fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) {
+pub(crate) fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) {
     if every < 2 || points.len() < MIN_HELD_OUT * every {
         return (points.to_vec(), vec![]);
     }
@@ -1389,7 +1389,7 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
 /// Applies finished calibrations to samples and derives attitude, holding the last accel and mag
 /// so that sensors at different rates still give a heading on every row.
 #[derive(Debug, Clone)]
-pub struct Calibrator {
+pub(crate) struct Calibrator {
     pub accel: Option<Calibration>,
     pub mag: Option<Calibration>,
     pub gyro_bias: Option<Vec3>,
@@ -1400,7 +1400,7 @@ pub struct Calibrator {
 
 /// A calibrated sample (body frame) with attitude in degrees.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Calibrated {
+pub(crate) struct Calibrated {
     pub t_s: f64,
     /// The sample's time segment.
     pub segment: u32,
@@ -1414,7 +1414,7 @@ pub struct Calibrated {
 
 impl Calibrated {
     /// The calibrated vectors as a sample (for the orientation filter); nothing else carried over.
-    pub fn as_sample(&self) -> Sample {
+    pub(crate) fn as_sample(&self) -> Sample {
         Sample {
             t_s: self.t_s,
             segment: self.segment,
@@ -1461,7 +1461,7 @@ impl Calibrator {
     /// [`Calibrator::apply`] without the roll, pitch and heading (left `None`): for a caller that
     /// averages the vectors and takes the angles of the means, at its output rate, rather than
     /// three arctangents per sample. [`Calibrator::add_attitude`] adds them later if wanted.
-    pub fn apply_vectors(&mut self, s: &Sample) -> Calibrated {
+    pub(crate) fn apply_vectors(&mut self, s: &Sample) -> Calibrated {
         let a = s.accel_mps2.map(|v| self.accel.map_or(v, |c| c.apply(&v)));
         let m = s.mag_ut.map(|v| self.mag.map_or(v, |c| c.apply(&v)));
         let g = s.gyro_rad_s.map(|v| match self.gyro_bias {
@@ -1486,7 +1486,7 @@ impl Calibrator {
 
     /// Set `out`'s roll, pitch and heading from the latest calibrated accelerometer and
     /// magnetometer seen by [`Calibrator::apply_vectors`] (none before an accelerometer reading).
-    pub fn add_attitude(&self, out: &mut Calibrated) {
+    pub(crate) fn add_attitude(&self, out: &mut Calibrated) {
         if let Some(f) = self.last_accel {
             let (r, p) = crate::attitude::roll_pitch_deg(&f);
             out.roll_deg = Some(r);

@@ -44,28 +44,28 @@ use nalgebra::{DMatrix, DVector, Matrix2, SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
 /// Default largest tilt from level of a reading the fit uses, deg (the rest are left out, counted).
-pub const DEFAULT_MAX_TILT_DEG: f64 = 20.0;
+pub(crate) const DEFAULT_MAX_TILT_DEG: f64 = 20.0;
 /// Default least number of readings.
-pub const DEFAULT_MIN_POINTS: usize = 200;
+pub(crate) const DEFAULT_MIN_POINTS: usize = 200;
 /// Default outlier cut: residuals beyond this many robust standard deviations are left out.
-pub const DEFAULT_OUTLIER_SIGMAS: f64 = 5.0;
+pub(crate) const DEFAULT_OUTLIER_SIGMAS: f64 = 5.0;
 /// Default: V counts as determined when its 1-sigma is at most this fraction of the horizontal
 /// intensity (1 deg of heading per degree of tilt at this fraction).
-pub const DEFAULT_MAX_VERTICAL_SIGMA_FRACTION: f64 = 0.02;
+pub(crate) const DEFAULT_MAX_VERTICAL_SIGMA_FRACTION: f64 = 0.02;
 /// Default least number of readings with a heading reference for the deviation curve.
-pub const DEFAULT_MIN_REFERENCE_POINTS: usize = 50;
+pub(crate) const DEFAULT_MIN_REFERENCE_POINTS: usize = 50;
 /// Default least number of the [`YAW_SECTORS`] sectors the calibrated headings must visit.
-pub const DEFAULT_MIN_YAW_SECTORS: usize = 10;
+pub(crate) const DEFAULT_MIN_YAW_SECTORS: usize = 10;
 /// Default least number of sectors the referenced readings must visit for the deviation curve
 /// (five coefficients; a course over ground comes from straight stretches only).
-pub const DEFAULT_MIN_REFERENCE_SECTORS: usize = 6;
+pub(crate) const DEFAULT_MIN_REFERENCE_SECTORS: usize = 6;
 
 /// The circle of headings is split into this many equal sectors (30 deg each) for coverage.
-pub const YAW_SECTORS: usize = 12;
+pub(crate) const YAW_SECTORS: usize = 12;
 /// Readings turning at least this fast give the turn axis's tilt, rad/s.
-pub const MIN_TURN_RATE_RAD_S: f64 = 0.1;
+pub(crate) const MIN_TURN_RATE_RAD_S: f64 = 0.1;
 /// A specific force below this is no tilt reference (free fall, a broken reading), m/s^2.
-pub const MIN_SPECIFIC_FORCE_MPS2: f64 = 4.0;
+pub(crate) const MIN_SPECIFIC_FORCE_MPS2: f64 = 4.0;
 /// Gauss-Newton stops when the step changes no parameter by more than this fraction of the
 /// horizontal intensity.
 const STEP_TOL_FRACTION: f64 = 1e-9;
@@ -77,13 +77,13 @@ const MAX_ITERATIONS: usize = 60;
 const MAD_TO_SIGMA: f64 = 1.4826;
 
 /// Course over ground: the displacement between GNSS fixes at least this far apart, s.
-pub const COURSE_BASELINE_S: f64 = 1.0;
+pub(crate) const COURSE_BASELINE_S: f64 = 1.0;
 /// A ground track is used for a reading at most this far from its time, s.
-pub const MAX_TRACK_AGE_S: f64 = 1.0;
+pub(crate) const MAX_TRACK_AGE_S: f64 = 1.0;
 /// The course over ground is a heading reference only above this ground speed, m/s.
-pub const MIN_COURSE_SPEED_MPS: f64 = 1.0;
+pub(crate) const MIN_COURSE_SPEED_MPS: f64 = 1.0;
 /// ... and only while turning slower than this, rad/s (a straight stretch: 3 deg/s).
-pub const MAX_COURSE_YAW_RATE_RAD_S: f64 = 0.052;
+pub(crate) const MAX_COURSE_YAW_RATE_RAD_S: f64 = 0.052;
 /// The earth's mean radius for the local north/east displacement between fixes, m.
 const EARTH_RADIUS_M: f64 = 6_371_000.0;
 
@@ -108,7 +108,7 @@ pub struct PlanarSettings {
 }
 
 impl PlanarSettings {
-    pub const DEFAULT: PlanarSettings = PlanarSettings {
+    pub(crate) const DEFAULT: PlanarSettings = PlanarSettings {
         max_tilt_deg: DEFAULT_MAX_TILT_DEG,
         min_points: DEFAULT_MIN_POINTS,
         outlier_sigmas: DEFAULT_OUTLIER_SIGMAS,
@@ -154,7 +154,7 @@ pub struct PlanarPoint {
 impl PlanarPoint {
     /// The specific force of gravity alone: the measured one minus the acceleration of a turn at
     /// the ground speed (`omega x v`, v along body x), when both are known.
-    pub fn gravity_force(&self) -> Vec3 {
+    pub(crate) fn gravity_force(&self) -> Vec3 {
         let f = self.accel_mps2;
         match (self.gyro_rad_s, self.ground_speed_mps) {
             (Some(w), Some(v)) if w.iter().all(|x| x.is_finite()) && v.is_finite() => {
@@ -165,7 +165,7 @@ impl PlanarPoint {
     }
 
     /// Roll and pitch, rad, from [`PlanarPoint::gravity_force`].
-    pub fn roll_pitch_rad(&self) -> (f64, f64) {
+    pub(crate) fn roll_pitch_rad(&self) -> (f64, f64) {
         let f = self.gravity_force();
         let pitch = f[0].atan2((f[1] * f[1] + f[2] * f[2]).sqrt());
         let roll = (-f[1]).atan2(-f[2]);
@@ -173,7 +173,7 @@ impl PlanarPoint {
     }
 
     /// Angle between the body z axis and the vertical, deg.
-    pub fn tilt_deg(&self) -> f64 {
+    pub(crate) fn tilt_deg(&self) -> f64 {
         let f = self.gravity_force();
         let n = crate::types::norm(&f);
         (-f[2] / n).clamp(-1.0, 1.0).acos().to_degrees()
@@ -213,7 +213,7 @@ pub enum Undetermined {
 }
 
 impl Undetermined {
-    pub fn describe(self) -> &'static str {
+    pub(crate) fn describe(self) -> &'static str {
         match self {
             Undetermined::OffsetZ => "z offset (held at 0)",
             Undetermined::SoftIronZ => "z soft iron (held at identity)",
@@ -296,14 +296,14 @@ pub struct PlanarFit {
 
 impl PlanarFit {
     /// calibrated body (x, y).
-    pub fn calibrated_xy(&self, mag: &Vec3) -> [f64; 2] {
+    pub(crate) fn calibrated_xy(&self, mag: &Vec3) -> [f64; 2] {
         let s = &self.soft_iron_xy;
         let (dx, dy) = (mag[0] - self.offset_xy[0], mag[1] - self.offset_xy[1]);
         [s[0][0] * dx + s[0][1] * dy, s[1][0] * dx + s[1][1] * dy]
     }
 
     /// Magnetic heading of the compass (before the deviation curve), deg in [0, 360).
-    pub fn compass_heading_deg(&self, p: &PlanarPoint) -> f64 {
+    pub(crate) fn compass_heading_deg(&self, p: &PlanarPoint) -> f64 {
         let (roll, pitch) = p.roll_pitch_rad();
         let l = level_xy(self.calibrated_xy(&p.mag), roll, pitch, self.vertical);
         wrap360((-l[1]).atan2(l[0]).to_degrees())
@@ -359,7 +359,7 @@ pub enum PlanarFailure {
 /// when the determinant is not positive, to the larger eigenvalue's size): the bounds ArduPilot's
 /// CompassCalibrator puts on the diagonal of its normalised soft iron (0.2 to 5). Outside, the
 /// fit has found a mirror or a degenerate ellipse, not the soft iron of a board.
-pub const SOFT_IRON_EIGEN_BOUNDS: (f64, f64) = (0.2, 5.0);
+pub(crate) const SOFT_IRON_EIGEN_BOUNDS: (f64, f64) = (0.2, 5.0);
 
 /// The eigenvalues of the symmetric 2x2 `s`, normalised (see [`SOFT_IRON_EIGEN_BOUNDS`]).
 fn normalised_eigenvalues(s: &[[f64; 2]; 2]) -> [f64; 2] {
@@ -825,7 +825,7 @@ fn deviation(
 
 /// A ground track from GNSS fixes: speed and course over ground at a time.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Track {
+pub(crate) struct Track {
     pub t_s: f64,
     pub speed_mps: f64,
     /// Course over ground, deg clockwise from true north.
@@ -834,7 +834,7 @@ pub struct Track {
 
 /// Ground tracks from fixes (time, position): each from a fix to the first at least
 /// [`COURSE_BASELINE_S`] later, placed at the middle time. Non-finite fixes are skipped.
-pub fn ground_tracks(fixes: &[(f64, GeoPoint)]) -> Vec<Track> {
+pub(crate) fn ground_tracks(fixes: &[(f64, GeoPoint)]) -> Vec<Track> {
     let ok: Vec<&(f64, GeoPoint)> = fixes
         .iter()
         .filter(|(t, p)| t.is_finite() && p.lat_deg.is_finite() && p.lon_deg.is_finite())

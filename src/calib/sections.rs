@@ -57,10 +57,10 @@ const ICO_F: [[usize; 3]; 20] = [
 ];
 
 /// Number of sphere sections in the completion mask.
-pub const SECTIONS: usize = 80;
+pub(crate) const SECTIONS: usize = 80;
 
 /// Bytes of a completion mask: one bit per section.
-pub const MASK_BYTES: usize = SECTIONS / 8;
+pub(crate) const MASK_BYTES: usize = SECTIONS / 8;
 
 fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -151,7 +151,7 @@ fn sub_triangle(n: &[f64; 3]) -> usize {
 /// icosahedron face `i` and its sub-triangle `j`. A face (a, b, c) with edge midpoints
 /// m_a = (a+b)/2, m_b = (b+c)/2, m_c = (c+a)/2 has the sub-triangles W_0 = (m_a, m_b, m_c) in the
 /// middle, W_1 = (a, m_a, m_c), W_2 = (m_a, b, m_b) and W_3 = (m_c, m_b, c).
-pub fn section80(dir: &[f64; 3]) -> Option<usize> {
+pub(crate) fn section80(dir: &[f64; 3]) -> Option<usize> {
     if !dir.iter().all(|x| x.is_finite()) || !(dot(dir, dir) > 0.0) {
         return None;
     }
@@ -179,7 +179,7 @@ pub fn section80_triangle(section: usize) -> Option<[[f64; 3]; 3]> {
 
 /// Set section `s` in a completion mask (bit `s % 8` of byte `s / 8`); sections of 80 or more are
 /// ignored.
-pub fn set_section(mask: &mut [u8; MASK_BYTES], s: usize) {
+pub(crate) fn set_section(mask: &mut [u8; MASK_BYTES], s: usize) {
     if s < SECTIONS {
         mask[s / 8] |= 1 << (s % 8);
     }

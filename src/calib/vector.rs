@@ -41,19 +41,19 @@ use serde::{Deserialize, Serialize};
 
 /// The smallest RMS spread (relative to the field strength) of a combination of terms that the
 /// fit takes as determined: 0.03 of the field is the field change of a 1.7 deg attitude error.
-pub const MIN_SPREAD: f64 = 0.03;
+pub(crate) const MIN_SPREAD: f64 = 0.03;
 /// The size of a soft-iron element assumed when judging what an unidentified direction does to the
 /// offset (a compass near ferrous parts: a few percent).
-pub const SOFT_IRON_PRIOR: f64 = 0.05;
+pub(crate) const SOFT_IRON_PRIOR: f64 = 0.05;
 /// Above this the offset depends on what was assumed: not identifiable, uT.
-pub const OFFSET_ASSUMPTION_LIMIT_UT: f64 = 0.5;
+pub(crate) const OFFSET_ASSUMPTION_LIMIT_UT: f64 = 0.5;
 /// Fewest points the fit takes.
-pub const MIN_POINTS: usize = 50;
+pub(crate) const MIN_POINTS: usize = 50;
 /// Points whose residual is beyond this many robust standard deviations are left out (once).
-pub const OUTLIER_SIGMAS: f64 = 5.0;
+pub(crate) const OUTLIER_SIGMAS: f64 = 5.0;
 /// The current term is fitted only when the logged current varies at least this much (standard
 /// deviation, A): a constant current cannot be told from the offset.
-pub const MIN_CURRENT_SD_A: f64 = 1.0;
+pub(crate) const MIN_CURRENT_SD_A: f64 = 1.0;
 
 /// One magnetometer reading with the field the attitude says it should see.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -297,7 +297,7 @@ impl VectorAccumulator {
 
     /// Discount everything added so far by `factor` (0..=1): a reading's weight halves every
     /// ln 2 / -ln factor calls. Identifiability and uncertainties follow the weights left.
-    pub fn forget(&mut self, factor: f64) {
+    pub(crate) fn forget(&mut self, factor: f64) {
         let f = factor.clamp(0.0, 1.0);
         self.nm *= f;
         self.g *= f;
@@ -320,7 +320,7 @@ impl VectorAccumulator {
 
     /// The fit of what was added: a small eigen-decomposition and solve of the `k x k` normal
     /// matrix (k = 4 or 5), whatever the number of readings.
-    pub fn solve(&self) -> Result<VectorFit, VectorFailure> {
+    pub(crate) fn solve(&self) -> Result<VectorFit, VectorFailure> {
         reverse(self, &solve(self)?)
     }
 }
@@ -623,7 +623,7 @@ fn polar_rotation_deg(a: &nalgebra::Matrix3<f64>) -> f64 {
 }
 
 /// The earth field `b_ned` (uT) in body axes at the attitude `q_body_ned` (body -> NED): `R^T B`.
-pub fn expected_field(q_body_ned: &nalgebra::UnitQuaternion<f64>, b_ned: &Vec3) -> Vec3 {
+pub(crate) fn expected_field(q_body_ned: &nalgebra::UnitQuaternion<f64>, b_ned: &Vec3) -> Vec3 {
     let h = q_body_ned.inverse() * nalgebra::Vector3::from(*b_ned);
     [h.x, h.y, h.z]
 }

@@ -25,9 +25,9 @@ pub const MAX_STILL_TURN_DEG: f64 = 5.0;
 /// comes at a tenth of the IMU's rate).
 const MIN_UNIT_REF_SAMPLES: usize = 2;
 /// Smallest range of the logged current that makes it the motor driver, A.
-pub const MIN_CURRENT_RANGE_A: f64 = 0.5;
+pub(crate) const MIN_CURRENT_RANGE_A: f64 = 0.5;
 /// Smallest range of the throttle (0..1) that makes it the motor driver, when current does not vary.
-pub const MIN_THROTTLE_RANGE: f64 = 0.02;
+pub(crate) const MIN_THROTTLE_RANGE: f64 = 0.02;
 /// A static pose is split into units where the driver moves by more than this fraction of its range.
 const DRIVER_STEP_FRACTION: f64 = 0.05;
 /// A split piece of a pose is a unit when it has at least this fraction of the pose's samples...
@@ -49,7 +49,7 @@ const WINDOW_GAP_INTERVALS: f64 = 2.5;
 /// it...
 const MIN_TEMP_COVERAGE: (usize, usize) = (4, 5);
 /// ...and it spans at least this range over the units, degrees C.
-pub const MIN_TEMP_RANGE_C: f64 = 0.5;
+pub(crate) const MIN_TEMP_RANGE_C: f64 = 0.5;
 /// Time constants, s, of the first-order lags of the temperature the temperature effect is fitted
 /// on (the first, 0, is the temperature itself). A sensor follows the temperature logged beside it
 /// late when the two sit apart on the board or the package heats through: seconds for a bare
@@ -60,16 +60,16 @@ pub const TEMP_LAGS_S: [f64; N_TEMP_LAGS] = [
     0.0, 5.0, 7.07, 10.0, 14.1, 20.0, 28.3, 40.0, 56.6, 80.0, 113.0, 160.0, 226.0,
 ];
 /// How many lags [`TEMP_LAGS_S`] holds.
-pub const N_TEMP_LAGS: usize = 13;
+pub(crate) const N_TEMP_LAGS: usize = 13;
 /// Time constants, s, of the first-order lags of the motor driver (throttle or current) the motor
 /// field is fitted on (the first, 0, is the driver itself). The field follows the current as the
 /// motors spin up and the ESCs settle (tens to hundreds of ms), and a logged current is often
 /// filtered: steps of sqrt(2) from 0.05 s to 1.6 s.
-pub const DRIVER_LAGS_S: [f64; N_DRIVER_LAGS] = [
+pub(crate) const DRIVER_LAGS_S: [f64; N_DRIVER_LAGS] = [
     0.0, 0.05, 0.0707, 0.1, 0.141, 0.2, 0.283, 0.4, 0.566, 0.8, 1.13, 1.6,
 ];
 /// How many lags [`DRIVER_LAGS_S`] holds.
-pub const N_DRIVER_LAGS: usize = 12;
+pub(crate) const N_DRIVER_LAGS: usize = 12;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct MagObs {

@@ -14,21 +14,21 @@ use crate::types::Vec3;
 use nalgebra::{DVector, Matrix3, Vector3};
 
 /// Plausibility: largest symmetric off-diagonal term of a normalised matrix (cross_axis), 1.
-pub const MAX_CROSS_AXIS: f64 = 0.2;
+pub(crate) const MAX_CROSS_AXIS: f64 = 0.2;
 /// Plausibility: largest rotation between the magnetometer and accelerometer frames, degrees.
-pub const MAX_MISALIGNMENT_DEG: f64 = 10.0;
+pub(crate) const MAX_MISALIGNMENT_DEG: f64 = 10.0;
 /// Plausibility: largest magnetometer bias per degree, uT/degC.
-pub const MAX_MAG_TEMP_UT_PER_C: f64 = 2.0;
+pub(crate) const MAX_MAG_TEMP_UT_PER_C: f64 = 2.0;
 /// Plausibility: largest accelerometer bias per degree, m/s^2/degC.
-pub const MAX_ACCEL_TEMP_MPS2_PER_C: f64 = 0.05;
+pub(crate) const MAX_ACCEL_TEMP_MPS2_PER_C: f64 = 0.05;
 /// Plausibility: largest motor field over the driver's range, in multiples of the earth field.
-pub const MAX_MOTOR_FIELD_RATIO: f64 = 2.0;
+pub(crate) const MAX_MOTOR_FIELD_RATIO: f64 = 2.0;
 /// Plausibility: largest mounting yaw against the reference attitude, degrees.
-pub const MAX_HEADING_OFFSET_DEG: f64 = 30.0;
+pub(crate) const MAX_HEADING_OFFSET_DEG: f64 = 30.0;
 /// Plausibility: largest per-axis cubic scale coefficient, 1.
-pub const MAX_CUBIC: f64 = 0.15;
+pub(crate) const MAX_CUBIC: f64 = 0.15;
 /// Plausibility: largest change of the gyro bias over the log's time or temperature range, rad/s.
-pub const MAX_GYRO_BIAS_CHANGE_RAD_S: f64 = 0.2;
+pub(crate) const MAX_GYRO_BIAS_CHANGE_RAD_S: f64 = 0.2;
 /// Plausibility: each diagonal entry of a calibration matrix scaled to unit determinant stays in
 /// this range with the effect in (else the base calibration collapsed), 1.
 const SANE_SCALE: std::ops::Range<f64> = 0.5..2.0;

@@ -18,7 +18,7 @@ use mavlink::dialects::ardupilotmega::MavMessage;
 use std::collections::BTreeMap;
 
 /// Compass k's onboard calibration in imucald's model, with the parameters it was made from.
-pub fn onboard_cal(
+pub(crate) fn onboard_cal(
     params: &BTreeMap<String, f64>,
     k: u8,
     c: &Correction,
@@ -41,7 +41,7 @@ pub fn onboard_cal(
 
 /// Where a telemetry correction came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CorrectionSource {
+pub(crate) enum CorrectionSource {
     /// The vehicle's PARAM_VALUE messages.
     Params,
     /// SENSOR_OFFSETS' `mag_ofs` (compass 0's offsets only; no soft iron known).
@@ -50,7 +50,7 @@ pub enum CorrectionSource {
 
 /// One change of a compass's correction seen in a telemetry log.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CorrectionChange {
+pub(crate) struct CorrectionChange {
     /// The time of the first reading undone with the new values, s (the instance's clock).
     pub t_s: f64,
     pub compass: u8,
@@ -61,7 +61,7 @@ pub struct CorrectionChange {
 /// An ArduPilot vehicle's compass corrections as its telemetry gives them, kept as they change,
 /// to undo them from each magnetometer reading at its time.
 #[derive(Debug, Clone, Default)]
-pub struct Telemetry {
+pub(crate) struct Telemetry {
     /// Every parameter received so far (the vehicle's, newest value).
     params: BTreeMap<String, f64>,
     /// PARAM_VALUE's `param_count` and the indices received: when every index has arrived the
@@ -86,7 +86,7 @@ impl Telemetry {
     /// Take a PARAM_VALUE or SENSOR_OFFSETS message; true when it was one. SENSOR_OFFSETS is
     /// deprecated in the dialect, but the firmware of older logs sends it and nothing else.
     #[allow(deprecated)]
-    pub fn absorb(&mut self, msg: &MavMessage) -> bool {
+    pub(crate) fn absorb(&mut self, msg: &MavMessage) -> bool {
         self.cached = Default::default();
         match msg {
             MavMessage::PARAM_VALUE(p) => {
@@ -123,7 +123,7 @@ impl Telemetry {
     }
 
     /// Every parameter of the vehicle's list has arrived.
-    pub fn list_complete(&self) -> bool {
+    pub(crate) fn list_complete(&self) -> bool {
         self.param_count
             .is_some_and(|n| self.indices_seen == n as usize)
     }
@@ -150,7 +150,7 @@ impl Telemetry {
     /// The raw field (uT) behind compass k's reading `mag_mg` (mGauss, as streamed) at time
     /// `t_s`, undone with the correction in force now. `None` (counted in `held`) until one is
     /// known.
-    pub fn undo(&mut self, k: u8, mag_mg: Vec3, t_s: f64) -> Option<Vec3> {
+    pub(crate) fn undo(&mut self, k: u8, mag_mg: Vec3, t_s: f64) -> Option<Vec3> {
         let ki = k as usize;
         if ki >= COMPASSES as usize {
             return None;
@@ -177,13 +177,13 @@ impl Telemetry {
     }
 
     /// Compass k's correction used for its last reading, and where it came from.
-    pub fn last_used(&self, k: u8) -> Option<(Correction, CorrectionSource)> {
+    pub(crate) fn last_used(&self, k: u8) -> Option<(Correction, CorrectionSource)> {
         self.in_use.get(k as usize).copied().flatten()
     }
 
     /// The onboard calibrations used, one per compass undone: the one in force at the log's end
     /// (the vehicle flies with it afterwards), with the vehicle's parameters.
-    pub fn onboard_cals(&self, sources: &BTreeMap<u8, String>) -> Vec<OnboardCal> {
+    pub(crate) fn onboard_cals(&self, sources: &BTreeMap<u8, String>) -> Vec<OnboardCal> {
         (0..COMPASSES)
             .filter_map(|k| {
                 let (c, _) = self.last_used(k)?;
@@ -199,7 +199,7 @@ impl Telemetry {
 
     /// What was undone, per compass, in words for the report (`onboard.undone`), and what could
     /// not be (`onboard.not_undone`).
-    pub fn describe(&self, sources: &BTreeMap<u8, String>) -> (Vec<String>, Vec<String>) {
+    pub(crate) fn describe(&self, sources: &BTreeMap<u8, String>) -> (Vec<String>, Vec<String>) {
         let mut undone = Vec::new();
         let mut not = Vec::new();
         for k in 0..COMPASSES {

@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 
 /// Settings of [`SourceClock`], with defaults.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ClockSettings {
+pub(crate) struct ClockSettings {
     /// A forward step longer than this is a gap and starts a new segment, s. Default 2.0.
     pub max_step_s: f64,
     /// A backward step shorter than this is jitter, not a fault: the time holds until the clock
@@ -119,7 +119,7 @@ impl TimeStats {
 
 /// The time of one sample: seconds since the stream's first sample, and its time segment.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Stamp {
+pub(crate) struct Stamp {
     pub t_s: f64,
     pub segment: u32,
 }
@@ -127,7 +127,7 @@ pub struct Stamp {
 /// One source's clock (see the module doc). Feed every sample's times to [`SourceClock::stamp`] in
 /// arrival order.
 #[derive(Debug, Clone)]
-pub struct SourceClock {
+pub(crate) struct SourceClock {
     cfg: ClockSettings,
     pub stats: TimeStats,
     /// Samples stamped so far.
@@ -170,7 +170,7 @@ impl SourceClock {
     }
 
     /// Changes whenever [`SourceClock::stats`] do.
-    pub fn revision(&self) -> u64 {
+    pub(crate) fn revision(&self) -> u64 {
         self.revision
     }
 
@@ -263,7 +263,7 @@ impl SourceClock {
     }
 
     /// A repeated frame (same time, same readings), which the caller drops: counted.
-    pub fn duplicate(&mut self) {
+    pub(crate) fn duplicate(&mut self) {
         self.fault(TimeFault::Duplicate);
     }
 
@@ -347,17 +347,17 @@ fn to_s(us: i64) -> f64 {
 }
 
 /// A time in seconds as whole microseconds for [`SourceClock::stamp`] (saturating; NaN as 0).
-pub fn us_from_s(t_s: f64) -> i64 {
+pub(crate) fn us_from_s(t_s: f64) -> i64 {
     (t_s * 1e6).round() as i64
 }
 
 /// A u64 microsecond time field as i64 (saturating).
-pub fn us_from_u64(t_us: u64) -> i64 {
+pub(crate) fn us_from_u64(t_us: u64) -> i64 {
     i64::try_from(t_us).unwrap_or(i64::MAX)
 }
 
 /// Microseconds since the Unix epoch by this computer's clock.
-pub fn now_us() -> u64 {
+pub(crate) fn now_us() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_micros() as u64)

@@ -30,12 +30,12 @@ impl DecodeStats {
     pub fn skip(&mut self, reason: &str) {
         bump(&mut self.skipped, reason, 1);
     }
-    pub fn skip_n(&mut self, reason: &str, n: u64) {
+    pub(crate) fn skip_n(&mut self, reason: &str, n: u64) {
         if n > 0 {
             bump(&mut self.skipped, reason, n);
         }
     }
-    pub fn count_sample(&mut self, s: &Sample) {
+    pub(crate) fn count_sample(&mut self, s: &Sample) {
         let c = &mut self.counts;
         c.accel += s.accel_mps2.is_some() as u64;
         c.gyro += s.gyro_rad_s.is_some() as u64;
@@ -145,7 +145,7 @@ const CRC_TABLES: [[u16; 256]; 8] = {
 /// The MAVLink frame checksum over `data` (the frame after the magic byte, up to the payload's
 /// end) and the message's extra CRC byte: the same value as `mavlink::calculate_crc`, eight bytes
 /// per step instead of a bit loop per byte (that loop was a tenth of replay time).
-pub fn frame_crc(data: &[u8], extra_crc: u8) -> u16 {
+pub(crate) fn frame_crc(data: &[u8], extra_crc: u8) -> u16 {
     let t = &CRC_TABLES;
     let mut crc = 0xFFFFu16;
     let mut chunks = data.chunks_exact(8);
@@ -211,7 +211,7 @@ impl SkipReason {
     }
 
     /// A whole frame is skipped (the stream goes on after it), not a byte to resynchronise.
-    pub fn whole_frame(self) -> bool {
+    pub(crate) fn whole_frame(self) -> bool {
         matches!(self, SkipReason::UnknownMessage | SkipReason::BadPayload)
     }
 }
@@ -521,7 +521,7 @@ pub struct MessageConverter {
 /// What a converter does with an ArduPilot vehicle's magnetometer readings, which carry the
 /// vehicle's own calibration.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ArduPilotMag {
+pub(crate) enum ArduPilotMag {
     /// Pass them on as streamed.
     Keep,
     /// Undo the calibration ([`crate::io::ardupilot::Telemetry`]); readings before it is known
@@ -544,10 +544,10 @@ enum Autopilot {
 
 /// An attitude received longer before a sample than this is not attached to it, us: ArduPilot and
 /// PX4 stream ATTITUDE at 10 Hz or more, so this lets one message be lost.
-pub const ATTITUDE_MAX_AGE_US: u64 = 250_000;
+pub(crate) const ATTITUDE_MAX_AGE_US: u64 = 250_000;
 
 /// Instances of one stream a converter keeps apart; more are skipped (`too_many_instances`).
-pub const MAX_INSTANCES: usize = 8;
+pub(crate) const MAX_INSTANCES: usize = 8;
 
 /// One instance's state in a converter.
 #[derive(Debug, Clone)]
@@ -623,19 +623,19 @@ impl MessageConverter {
     /// What to do with an ArduPilot vehicle's magnetometer readings ([`ArduPilotMag`]; `Keep`
     /// unless set). `Undo` uses the COMPASS_* values its telemetry gives at each reading's time
     /// ([`crate::io::ardupilot`]).
-    pub fn with_ardupilot_mag(mut self, mode: ArduPilotMag) -> Self {
+    pub(crate) fn with_ardupilot_mag(mut self, mode: ArduPilotMag) -> Self {
         self.ardupilot_mag = mode;
         self
     }
 
     /// A HEARTBEAT has named the vehicle's flight stack ArduPilot.
-    pub fn is_ardupilot(&self) -> bool {
+    pub(crate) fn is_ardupilot(&self) -> bool {
         self.autopilot == Autopilot::ArduPilot
     }
 
     /// An ArduPilot vehicle's onboard magnetometer calibration as its telemetry gave it, and what
     /// was undone (`None` for other vehicles or without the undo).
-    pub fn ardupilot_onboard(&self) -> Option<crate::io::onboard::OnboardReport> {
+    pub(crate) fn ardupilot_onboard(&self) -> Option<crate::io::onboard::OnboardReport> {
         if self.autopilot != Autopilot::ArduPilot || self.ardupilot_mag != ArduPilotMag::Undo {
             return None;
         }
@@ -656,7 +656,7 @@ impl MessageConverter {
     }
 
     /// Take every instance, not only the primary: [`MessageConverter::convert_any`] gives them.
-    pub fn with_other_instances(mut self) -> Self {
+    pub(crate) fn with_other_instances(mut self) -> Self {
         self.others = true;
         self
     }
@@ -667,7 +667,7 @@ impl MessageConverter {
     }
 
     /// The index of the primary instance among [`MessageConverter::instances`], once chosen.
-    pub fn primary_index(&self) -> Option<usize> {
+    pub(crate) fn primary_index(&self) -> Option<usize> {
         self.primary
     }
 
@@ -887,7 +887,11 @@ impl MessageConverter {
     /// unusable. A repeated frame (same time and readings) gives `None`, counted in its clock's
     /// statistics.
     #[allow(deprecated)] // SENSOR_OFFSETS: deprecated in the dialect, sent by older ArduPilot
-    pub fn convert_any(&mut self, msg: &MavMessage, time_us: u64) -> Option<(usize, Sample)> {
+    pub(crate) fn convert_any(
+        &mut self,
+        msg: &MavMessage,
+        time_us: u64,
+    ) -> Option<(usize, Sample)> {
         let (name, t_us, acc, gyr, mag, temp, has_mag) = match msg {
             MavMessage::VFR_HUD(d) => {
                 let th = d.throttle as f64 / 100.0;
@@ -1077,7 +1081,7 @@ pub fn decode_tlog(bytes: &[u8], conv: &mut MessageConverter) -> Vec<Sample> {
 
 /// As [`decode_tlog`], handing each sample of every instance the converter takes to
 /// `emit(instance_index, sample, bytes_read_so_far, converter)` as it is decoded.
-pub fn decode_tlog_with(
+pub(crate) fn decode_tlog_with(
     bytes: &[u8],
     conv: &mut MessageConverter,
     emit: &mut dyn FnMut(usize, Sample, usize, &MessageConverter),
@@ -1259,7 +1263,7 @@ const CSV_RATE_KEYS: [&str; 5] = [
 ];
 
 /// Field names of CSV input, in the order [`sample_from_fields`] indexes them.
-pub const FIELDS: [&str; 21] = [
+pub(crate) const FIELDS: [&str; 21] = [
     "t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp", "throttle", "current",
     "ref_qw", "ref_qx", "ref_qy", "ref_qz", "moving", "lat", "lon", "alt",
 ];
@@ -1469,7 +1473,7 @@ fn csv_header<'a>(
 /// A sample from per-field values indexed like [`FIELDS`] (already scaled). A vector needs all three
 /// components finite; a partial or non-finite one is dropped and, with `stats`, counted
 /// (`partial_vector`, `non_finite`).
-pub fn sample_from_fields(
+pub(crate) fn sample_from_fields(
     t_s: f64,
     vals: &[Option<f64>; FIELDS.len()],
     mut stats: Option<&mut DecodeStats>,

@@ -63,11 +63,12 @@ pub enum Address {
 }
 
 /// The accepted address forms, for error messages.
-pub const ADDRESS_FORMS: &str = "udpin:IP:PORT, udpout:IP:PORT, tcpout:HOST:PORT, tcpin:IP:PORT, \
+pub(crate) const ADDRESS_FORMS: &str =
+    "udpin:IP:PORT, udpout:IP:PORT, tcpout:HOST:PORT, tcpin:IP:PORT, \
 serial:PATH:BAUD, file:PATH[?speed=N], sim:SCENARIO[?seed=N&speed=N]";
 
 /// Seed of `sim:` when the address names none (the same as `imucald simulate`).
-pub const DEFAULT_SIM_SEED: u64 = 1;
+pub(crate) const DEFAULT_SIM_SEED: u64 = 1;
 
 fn source_err(s: &str, why: impl std::fmt::Display) -> Error {
     Error::Config {
@@ -274,7 +275,7 @@ pub enum Payload {
 }
 
 /// The field names a [`Payload::Csv`] line may carry (those of `decode`'s CSV reader).
-pub const CSV_FIELDS: [&str; crate::io::decode::FIELDS.len()] = crate::io::decode::FIELDS;
+pub(crate) const CSV_FIELDS: [&str; crate::io::decode::FIELDS.len()] = crate::io::decode::FIELDS;
 
 impl Payload {
     /// Check a CSV payload's field names and scales (the others are always valid).
@@ -315,7 +316,7 @@ impl Payload {
 
 /// One item from a link to the service.
 #[derive(Debug, Clone)]
-pub enum Inbound {
+pub(crate) enum Inbound {
     /// A MAVLink frame; `time_us` is the arrival time (Unix microseconds) or, for `file:`, the
     /// tlog timestamp.
     Frame {
@@ -332,7 +333,7 @@ pub enum Inbound {
 
 /// State changes of a link.
 #[derive(Debug, Clone, PartialEq)]
-pub enum LinkStatus {
+pub(crate) enum LinkStatus {
     /// Up (again); the text says with what.
     Connected(String),
     /// Down, with the reason; a live link retries with backoff.
@@ -345,7 +346,7 @@ pub enum LinkStatus {
 
 /// Counters of one link, readable while it runs.
 #[derive(Default, Debug)]
-pub struct LinkCounters {
+pub(crate) struct LinkCounters {
     pub bytes_in: AtomicU64,
     pub frames_in: AtomicU64,
     pub samples_in: AtomicU64,
@@ -367,7 +368,7 @@ impl LinkCounters {
 
 /// What [`spawn_link`] returns.
 #[derive(Debug)]
-pub struct LinkHandle {
+pub(crate) struct LinkHandle {
     /// Bytes to write to the link (already-encoded frames or text).
     pub outbound: mpsc::Sender<Vec<u8>>,
     pub counters: Arc<LinkCounters>,
@@ -378,7 +379,7 @@ pub struct LinkHandle {
 
 /// Tuning of a link.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LinkOptions {
+pub(crate) struct LinkOptions {
     /// Report [`LinkStatus::Silent`] after this many seconds without bytes (0 = never).
     pub silent_after_s: f64,
     /// First reconnect delay, s.
@@ -458,11 +459,11 @@ impl Tuning {
 // Text lines
 
 /// MotionCal accelerometer counts per g.
-pub const MOTIONCAL_ACCEL_COUNTS_PER_G: f64 = 8192.0;
+pub(crate) const MOTIONCAL_ACCEL_COUNTS_PER_G: f64 = 8192.0;
 /// MotionCal gyroscope counts per deg/s.
-pub const MOTIONCAL_GYRO_COUNTS_PER_DPS: f64 = 16.0;
+pub(crate) const MOTIONCAL_GYRO_COUNTS_PER_DPS: f64 = 16.0;
 /// MotionCal magnetometer counts per uT.
-pub const MOTIONCAL_MAG_COUNTS_PER_UT: f64 = 10.0;
+pub(crate) const MOTIONCAL_MAG_COUNTS_PER_UT: f64 = 10.0;
 
 /// Parse one MotionCal line `Raw:ax,ay,az,gx,gy,gz,mx,my,mz` (int16 counts) into a sample at
 /// `t_s`: m/s^2, rad/s, uT. Anything else (`Uni:`, `Cal1:`, garbage, out-of-range numbers) is
@@ -944,7 +945,7 @@ async fn open(addr: &Address) -> Result<Conn, String> {
 }
 
 /// Start a link task. Must be called inside a tokio runtime.
-pub fn spawn_link(
+pub(crate) fn spawn_link(
     index: usize,
     addr: Address,
     payload: Payload,
@@ -1437,7 +1438,7 @@ async fn serve_udp_polled(
 // Replays
 
 /// Longest pause a replay makes for one gap in its timestamps (recorded time), s.
-pub const MAX_REPLAY_GAP_S: f64 = 10.0;
+pub(crate) const MAX_REPLAY_GAP_S: f64 = 10.0;
 
 /// Maps recorded times onto the clock at `speed` (0 = no waiting). Backwards steps do not wait;
 /// gaps longer than [`MAX_REPLAY_GAP_S`] are shortened to it.

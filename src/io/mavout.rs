@@ -71,7 +71,7 @@ use serde::{Deserialize, Serialize};
 // Framing
 
 /// Default component id of the daemon: MAV_COMP_ID_ONBOARD_COMPUTER.
-pub const DEFAULT_COMPONENT_ID: u8 = 191;
+pub(crate) const DEFAULT_COMPONENT_ID: u8 = 191;
 
 /// Turns messages into complete MAVLink frames with an incrementing sequence number.
 #[derive(Debug, Clone)]
@@ -125,7 +125,7 @@ impl MavEncoder {
 /// Our own MAVLink ids. A frame that carries both came from us: a router or a link that loops our
 /// output back. It is not a vehicle's, and is never taken as input.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct OwnIds {
+pub(crate) struct OwnIds {
     pub system_id: u8,
     pub component_id: u8,
 }
@@ -133,7 +133,7 @@ pub struct OwnIds {
 impl OwnIds {
     /// Whether a frame from `system_id`/`component_id` is our own (both must match: a flight
     /// controller shares our system id on the same vehicle).
-    pub fn is_own(&self, system_id: u8, component_id: u8) -> bool {
+    pub(crate) fn is_own(&self, system_id: u8, component_id: u8) -> bool {
         system_id == self.system_id && component_id == self.component_id
     }
 }
@@ -187,7 +187,7 @@ fn cal_mask(compass_id: u8) -> u8 {
 
 /// MAG_CAL_PROGRESS: `cal_status` is RUNNING_STEP_ONE below 100 % and RUNNING_STEP_TWO at 100 %
 /// (`completion_pct` is capped at 100); `direction` is the latest sample's direction for display.
-pub fn mag_cal_progress(
+pub(crate) fn mag_cal_progress(
     compass_id: u8,
     completion_pct: u8,
     mask: [u8; 10],
@@ -217,7 +217,7 @@ pub fn mag_cal_progress(
 
 /// MAV_CMD_DO_START_MAG_CAL's parameters, as ArduPilot reads them.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MagCalStart {
+pub(crate) struct MagCalStart {
     /// p1: compasses to calibrate (bit i: compass i; 0: all).
     pub mask: u8,
     /// p2: after a failed fit, start again from zero coverage.
@@ -233,7 +233,7 @@ pub struct MagCalStart {
 impl MagCalStart {
     /// The parameters of a DO_START_MAG_CAL command (`delay_s` clamped to 0..3600 s, 0 when not
     /// finite).
-    pub fn from_command(c: &COMMAND_LONG_DATA) -> MagCalStart {
+    pub(crate) fn from_command(c: &COMMAND_LONG_DATA) -> MagCalStart {
         MagCalStart {
             mask: mask_param(c.param1),
             retry: c.param2 != 0.0,
@@ -249,7 +249,7 @@ impl MagCalStart {
 }
 
 /// A compass mask sent as a float parameter (0..255; anything else reads as 0, all compasses).
-pub fn mask_param(p: f32) -> u8 {
+pub(crate) fn mask_param(p: f32) -> u8 {
     if p.is_finite() && (0.0..=255.0).contains(&p) {
         p as u8
     } else {
@@ -258,12 +258,12 @@ pub fn mask_param(p: f32) -> u8 {
 }
 
 /// Whether a compass mask selects compass `compass_id`: 0 means all.
-pub fn mask_selects(mask: u8, compass_id: u8) -> bool {
+pub(crate) fn mask_selects(mask: u8, compass_id: u8) -> bool {
     mask == 0 || (compass_id < 8 && mask & (1 << compass_id) != 0)
 }
 
 /// COMMAND_ACK for `command` to its sender.
-pub fn command_ack(
+pub(crate) fn command_ack(
     command: MavCmd,
     result: MavResult,
     target_system: u8,
@@ -285,7 +285,7 @@ pub fn command_ack(
 /// "ok"; for a failure, by reason: radius 7 (MAG_CAL_FAILED_RADIUS), offsets 8
 /// (MAG_CAL_FAILED_OFFSETS), diagonal_scaling 9 (MAG_CAL_FAILED_DIAG_SCALING), residuals 10
 /// (MAG_CAL_FAILED_RESIDUALS_HIGH), anything else 5 (MAG_CAL_FAILED).
-pub fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
+pub(crate) fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
     if cal.status == CalStatus::Ok {
         return 4;
     }
@@ -311,7 +311,7 @@ fn mag_cal_status_enum(code: u8) -> MagCalStatus {
 
 /// MAG_CAL_REPORT for a magnetometer calibration in uT, with `autosaved` = 0.
 /// See [`mag_cal_report_autosaved`].
-pub fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
+pub(crate) fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
     mag_cal_report_autosaved(compass_id, cal, false)
 }
 
@@ -320,7 +320,7 @@ pub fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
 /// offset negated in mGauss, the symmetric part of the matrix); `cal_status` from
 /// [`mag_cal_status_code`]; `cal_mask` = 1 << compass_id; `scale_factor` 1.0; orientation fields
 /// unused (ROTATION_NONE, confidence 0). The calibration's numbers are taken to be in uT.
-pub fn mag_cal_report_autosaved(
+pub(crate) fn mag_cal_report_autosaved(
     compass_id: u8,
     cal: &SensorCalibration,
     autosaved: bool,
@@ -354,7 +354,7 @@ pub fn mag_cal_report_autosaved(
 // Heading, vectors, text
 
 /// NAMED_VALUE_FLOAT (name cut to 10 bytes), e.g. `named_float("HEADING", t, deg)`.
-pub fn named_float(name: &str, t_boot_ms: u32, value: f32) -> MavMessage {
+pub(crate) fn named_float(name: &str, t_boot_ms: u32, value: f32) -> MavMessage {
     MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
         time_boot_ms: t_boot_ms,
         value,
@@ -363,7 +363,7 @@ pub fn named_float(name: &str, t_boot_ms: u32, value: f32) -> MavMessage {
 }
 
 /// DEBUG_VECT (name cut to 10 bytes).
-pub fn debug_vect(name: &str, time_usec: u64, v: [f32; 3]) -> MavMessage {
+pub(crate) fn debug_vect(name: &str, time_usec: u64, v: [f32; 3]) -> MavMessage {
     MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
         time_usec,
         x: v[0],
@@ -374,7 +374,7 @@ pub fn debug_vect(name: &str, time_usec: u64, v: [f32; 3]) -> MavMessage {
 }
 
 /// The JSON `level` name of a MAVLink severity.
-pub fn severity_name(severity: MavSeverity) -> &'static str {
+pub(crate) fn severity_name(severity: MavSeverity) -> &'static str {
     match severity {
         MavSeverity::MAV_SEVERITY_EMERGENCY => "emergency",
         MavSeverity::MAV_SEVERITY_ALERT => "alert",
@@ -402,7 +402,7 @@ fn next_statustext_id() -> u16 {
 /// most 50 bytes (cut at character boundaries) sharing a non-zero `id` with `chunk_seq` 0, 1, ...;
 /// when the last chunk is exactly 50 bytes an empty chunk follows, since a receiver takes a chunk
 /// with a NUL in it as the last one. At most 256 chunks (longer text is cut).
-pub fn statustext(sev: MavSeverity, text: &str) -> Vec<MavMessage> {
+pub(crate) fn statustext(sev: MavSeverity, text: &str) -> Vec<MavMessage> {
     const N: usize = 50;
     let msg = |t: &str, id: u16, chunk_seq: u8| {
         MavMessage::STATUSTEXT(STATUSTEXT_DATA {
@@ -453,7 +453,7 @@ fn unit_wxyz(q: [f64; 4]) -> Option<[f64; 4]> {
 
 /// Roll, pitch, yaw in radians (ZYX) of a body FRD -> NED quaternion `[w, x, y, z]`: roll and yaw in
 /// (-pi, pi], pitch in [-pi/2, pi/2]. `None` for a quaternion that is not finite or zero.
-pub fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
+pub(crate) fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
     let [w, x, y, z] = unit_wxyz(q_wxyz)?;
     let q = nalgebra::UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(w, x, y, z));
     let [roll, pitch, yaw] = crate::attitude::euler_zyx_deg(&q).map(f64::to_radians);
@@ -463,7 +463,7 @@ pub fn euler_from_quaternion(q_wxyz: [f64; 4]) -> Option<[f64; 3]> {
 /// ATTITUDE_QUATERNION: `q1..q4` = w, x, y, z of the body FRD -> NED rotation (normalised; the sign
 /// is chosen with w >= 0), body rates in rad/s; `repr_offset_q` is left at zero ("not supported").
 /// `None` for a quaternion that is not finite or zero.
-pub fn attitude_quaternion(
+pub(crate) fn attitude_quaternion(
     t_boot_ms: u32,
     q_wxyz: [f64; 4],
     rates_rad_s: Vec3,
@@ -486,7 +486,7 @@ pub fn attitude_quaternion(
 
 /// ATTITUDE from a body FRD -> NED quaternion `[w, x, y, z]`: roll, pitch, yaw radians (ZYX; yaw in
 /// (-pi, pi]) and body rates in rad/s. `None` for a quaternion that is not finite or zero.
-pub fn attitude_from_quaternion(
+pub(crate) fn attitude_from_quaternion(
     t_boot_ms: u32,
     q_wxyz: [f64; 4],
     rates_rad_s: Vec3,
@@ -509,7 +509,7 @@ pub fn attitude_from_quaternion(
 
 /// PARAM_REQUEST_READ by name (`param_index` -1) for what undoing the correction of each compass
 /// ArduPilot calibrates needs ([`ardupilot::correction_names`]: ten per compass).
-pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
+pub(crate) fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMessage> {
     (0..ardupilot::COMPASSES)
         .filter_map(ardupilot::correction_names)
         .flatten()
@@ -529,7 +529,7 @@ pub fn param_request_reads(target_system: u8, target_component: u8) -> Vec<MavMe
 
 /// A ground station's request of the parameter protocol addressed to a component.
 #[derive(Debug, Clone, PartialEq)]
-pub enum ParamRequest {
+pub(crate) enum ParamRequest {
     /// PARAM_REQUEST_LIST: every parameter.
     List,
     /// PARAM_REQUEST_READ by name.
@@ -542,7 +542,7 @@ pub enum ParamRequest {
 
 /// The parameter request in `msg` with its target (system, component), or `None` when `msg` is
 /// not one.
-pub fn param_request(msg: &MavMessage) -> Option<((u8, u8), ParamRequest)> {
+pub(crate) fn param_request(msg: &MavMessage) -> Option<((u8, u8), ParamRequest)> {
     match msg {
         MavMessage::PARAM_REQUEST_LIST(r) => {
             Some(((r.target_system, r.target_component), ParamRequest::List))
@@ -577,9 +577,9 @@ pub fn param_value(name: &str, value: f32, index: u16, count: u16) -> MavMessage
 // Writing parameters
 
 /// Seconds before an unconfirmed PARAM_SET is sent again.
-pub const PARAM_RETRY_S: f64 = 1.0;
+pub(crate) const PARAM_RETRY_S: f64 = 1.0;
 /// Sends per parameter at most.
-pub const PARAM_MAX_TRIES: u8 = 3;
+pub(crate) const PARAM_MAX_TRIES: u8 = 3;
 
 #[derive(Debug, Clone)]
 struct ParamEntry {
@@ -629,7 +629,7 @@ impl ParamWriter {
 
     /// PARAM_SET for every parameter not yet confirmed that is due: never sent, or last sent at least
     /// [`PARAM_RETRY_S`] ago and sent fewer than [`PARAM_MAX_TRIES`] times.
-    pub fn next_messages(&mut self, now_s: f64) -> Vec<MavMessage> {
+    pub(crate) fn next_messages(&mut self, now_s: f64) -> Vec<MavMessage> {
         self.now = self.now.max(now_s);
         let mut out = Vec::new();
         for e in self.entries.iter_mut() {
@@ -654,7 +654,7 @@ impl ParamWriter {
     /// Take a PARAM_VALUE: one with a name being written and a value within 1e-4 (relative) of the
     /// value sent confirms it; a different value is remembered as a mismatch (the parameter is sent
     /// again while tries remain). Confirmation is final.
-    pub fn absorb(&mut self, msg: &MavMessage) {
+    pub(crate) fn absorb(&mut self, msg: &MavMessage) {
         let MavMessage::PARAM_VALUE(p) = msg else {
             return;
         };
@@ -709,7 +709,7 @@ impl ParamWriter {
 // JSON lines
 
 /// Schema name carried by every JSON line.
-pub const JSON_SCHEMA: &str = "imucald.live/1";
+pub(crate) const JSON_SCHEMA: &str = "imucald.live/1";
 
 /// One event of the JSON-lines stream (see the module documentation for the schema).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -818,7 +818,7 @@ struct Line<'a> {
 /// Which vehicle a JSON line is about, on lines about a vehicle other than the first the live
 /// service calibrates: `"vehicle": {"link": "udpin:0.0.0.0:14550", "system_id": 2}`.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct VehicleTag {
+pub(crate) struct VehicleTag {
     /// The link it was heard on (its address as configured).
     pub link: String,
     /// Its MAVLink system id.
@@ -831,7 +831,7 @@ pub fn json_line(ev: &LiveEvent) -> String {
 }
 
 /// [`json_line`] for an event about a vehicle: `schema`, `vehicle` (when given), `type`, fields.
-pub fn json_line_for(ev: &LiveEvent, vehicle: Option<&VehicleTag>) -> String {
+pub(crate) fn json_line_for(ev: &LiveEvent, vehicle: Option<&VehicleTag>) -> String {
     let mut s = serde_json::to_string(&Line {
         schema: JSON_SCHEMA,
         vehicle,

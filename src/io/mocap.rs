@@ -130,7 +130,7 @@ struct BodyColumns {
 }
 
 /// As [`read_motive`], from the file's bytes; `path` only names it in errors.
-pub fn parse_motive(
+pub(crate) fn parse_motive(
     bytes: &[u8],
     path: &Path,
     rigid_body: Option<&str>,

@@ -12,7 +12,7 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// directory, so the rename is atomic; same extension, for writers that pick a format by it), which
 /// [`AtomicFile::commit`] syncs to disk and renames over `path`. Dropped without a commit, the
 /// temporary file is removed. A reader of `path` sees the old file or the new one, never a part.
-pub struct AtomicFile {
+pub(crate) struct AtomicFile {
     path: PathBuf,
     tmp: PathBuf,
     committed: bool,
@@ -46,12 +46,12 @@ impl AtomicFile {
     }
 
     /// Where to write the content.
-    pub fn temp_path(&self) -> &Path {
+    pub(crate) fn temp_path(&self) -> &Path {
         &self.tmp
     }
 
     /// Sync the written temporary file and rename it over the destination.
-    pub fn commit(mut self) -> Result<(), Error> {
+    pub(crate) fn commit(mut self) -> Result<(), Error> {
         let res = std::fs::File::open(&self.tmp)
             .and_then(|f| f.sync_all())
             .and_then(|()| std::fs::rename(&self.tmp, &self.path));
@@ -72,7 +72,7 @@ impl Drop for AtomicFile {
 }
 
 /// Write `path` atomically ([`AtomicFile`]) with `body` writing the content into the new file.
-pub fn write_atomic_with<F>(path: &Path, body: F) -> Result<(), Error>
+pub(crate) fn write_atomic_with<F>(path: &Path, body: F) -> Result<(), Error>
 where
     F: FnOnce(&mut std::fs::File) -> std::io::Result<()>,
 {
@@ -92,7 +92,7 @@ where
 }
 
 /// Write `bytes` to `path` atomically ([`AtomicFile`]).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     write_atomic_with(path, |f| f.write_all(bytes))
 }
 

@@ -9,7 +9,7 @@ use crate::types::STANDARD_GRAVITY_MPS2;
 use serde::{Deserialize, Serialize};
 
 /// The CSV header [`write_csv`] writes.
-pub const CSV_HEADER: &str = "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle";
+pub(crate) const CSV_HEADER: &str = "t,ax,ay,az,gx,gy,gz,mx,my,mz,temp,throttle";
 
 fn csv_rows<W: std::io::Write>(w: &mut W, samples: &[Sample]) -> std::io::Result<()> {
     // Battery current and the reference attitude only when some sample carries them.
@@ -298,7 +298,7 @@ pub struct VehicleStateStream {
 
 impl VehicleStateStream {
     /// Period of the position and battery messages, s (5 Hz).
-    pub const PERIOD_S: f64 = 0.2;
+    pub(crate) const PERIOD_S: f64 = 0.2;
 
     /// The messages due before sample `s`; `boot_us` is its time since boot.
     pub fn messages(

@@ -140,7 +140,7 @@ pub fn decode_log(
 }
 
 /// Samples handed on while a log is decoded, with what is known so far.
-pub struct Batch {
+pub(crate) struct Batch {
     /// Samples of the primary instance.
     pub samples: Vec<Sample>,
     /// Samples of the other instances (MAVLink logs with `input.instance = "auto"`), with their
@@ -156,7 +156,7 @@ pub struct Batch {
 }
 
 /// Samples per [`Batch`].
-pub const BATCH_SAMPLES: usize = 8192;
+pub(crate) const BATCH_SAMPLES: usize = 8192;
 
 /// Gathers decoded samples into [`Batch`]es of [`BATCH_SAMPLES`]: the primary instance's in
 /// `samples`, the others' in `others`.
@@ -211,7 +211,7 @@ impl Batcher {
 /// As [`decode_log`], handing the samples on in batches of [`BATCH_SAMPLES`] as they are decoded
 /// (a tlog; a CSV comes as one batch), so a consumer can work while decoding goes on. The returned
 /// [`Log`] has everything but the samples.
-pub fn decode_log_batched(
+pub(crate) fn decode_log_batched(
     bytes: &[u8],
     path: &Path,
     format: Option<Format>,

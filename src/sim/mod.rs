@@ -54,7 +54,7 @@ impl SensorTruth {
     }
 
     /// The smallest model that represents this truth exactly (diagonal -> diag6, symmetric -> sym9).
-    pub fn model_kind(&self) -> ModelKind {
+    pub(crate) fn model_kind(&self) -> ModelKind {
         let m = &self.matrix;
         let off = [m[0][1], m[0][2], m[1][0], m[1][2], m[2][0], m[2][1]];
         if off.iter().all(|x| *x == 0.0) {
@@ -124,7 +124,7 @@ impl Default for World {
 }
 
 impl World {
-    pub fn field_strength_ut(&self) -> f64 {
+    pub(crate) fn field_strength_ut(&self) -> f64 {
         crate::types::norm(&self.field_ned_ut)
     }
     /// Inclination (dip), degrees, positive down.
@@ -1450,7 +1450,7 @@ pub fn simulate(scenario: &Scenario, seed: u64) -> SimOutput {
 }
 
 /// The rotation taking NED vectors to ENU (180 deg about (1, 1, 0)/sqrt 2).
-pub fn ned_to_enu() -> UnitQuaternion<f64> {
+pub(crate) fn ned_to_enu() -> UnitQuaternion<f64> {
     UnitQuaternion::from_axis_angle(
         &nalgebra::Unit::new_normalize(Vector3::new(1.0, 1.0, 0.0)),
         std::f64::consts::PI,

@@ -38,7 +38,7 @@ pub enum ScenarioError {
 
 /// Whether `name` can name a scenario before any file is read: a built-in name or a path ending
 /// in `.toml` (for addresses checked when they are given, the file read later by [`scenario`]).
-pub fn check_name(name: &str) -> Result<(), ScenarioError> {
+pub(crate) fn check_name(name: &str) -> Result<(), ScenarioError> {
     if name.is_empty() {
         return Err(ScenarioError::Missing);
     }

@@ -606,7 +606,7 @@ pub(super) fn tumble_attitudes<R: rand::Rng>(n: usize, rng: &mut R) -> Vec<[f64;
 
 /// What the stress phase of a [`StressPlan`] does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StressMotion {
+pub(crate) enum StressMotion {
     /// Shaking: a linear acceleration `stress.shake_mps2 sin(2 pi stress.shake_hz t)` along a
     /// direction that wanders slowly, on top of the calm rotation.
     Shake,
@@ -619,11 +619,11 @@ pub enum StressMotion {
 }
 
 /// Length of the rests at the start and the end of a stress run, s.
-pub const STRESS_REST_S: f64 = 10.0;
+pub(crate) const STRESS_REST_S: f64 = 10.0;
 /// Calm rotation before the stress (the filters settle), s.
-pub const STRESS_SETTLE_S: f64 = 20.0;
+pub(crate) const STRESS_SETTLE_S: f64 = 20.0;
 /// Calm rotation after the stress (the filters recover), s.
-pub const STRESS_RECOVER_S: f64 = 60.0;
+pub(crate) const STRESS_RECOVER_S: f64 = 60.0;
 /// Ramps of the stress (shake envelope, spin rate, centrifuge speed), s.
 const STRESS_RAMP_S: f64 = 2.0;
 

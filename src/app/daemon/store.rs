@@ -70,11 +70,11 @@ impl StoredCalibration {
     pub fn mag_cal(&self) -> Option<Calibration> {
         self.mag.as_ref()?.calibration()
     }
-    pub fn accel_cal(&self) -> Option<Calibration> {
+    pub(crate) fn accel_cal(&self) -> Option<Calibration> {
         self.accel.as_ref()?.calibration()
     }
     /// Every compass's magnetometer calibration in uT with its compass id (what parameters hold).
-    pub fn mags_ut(&self) -> Vec<crate::calib::export::CompassExport> {
+    pub(crate) fn mags_ut(&self) -> Vec<crate::calib::export::CompassExport> {
         let export = |k: u8, m: &crate::report::SensorCalibration| {
             let mut e =
                 crate::calib::export::CompassExport::determined(k as usize, m.calibration_ut()?);

@@ -15,11 +15,11 @@ use serde::Serialize;
 use std::path::Path;
 
 /// Schema of the data embedded in the page.
-pub const HTML_SCHEMA: &str = "imucald.html/1";
+pub(crate) const HTML_SCHEMA: &str = "imucald.html/1";
 /// Most directions drawn per sphere (evenly thinned beyond).
-pub const MAX_DIRECTIONS: usize = 1500;
+pub(crate) const MAX_DIRECTIONS: usize = 1500;
 /// Most residuals plotted per sensor (evenly thinned beyond).
-pub const MAX_RESIDUALS: usize = 2000;
+pub(crate) const MAX_RESIDUALS: usize = 2000;
 
 /// One sphere: unit directions and the regions they fill.
 #[derive(Debug, Clone, Serialize)]
@@ -199,7 +199,7 @@ pub fn page(
 }
 
 /// Read a diagnosis report (imucald.diagnosis/1) to show.
-pub fn read_diagnosis(path: &Path) -> Result<serde_json::Value, Error> {
+pub(crate) fn read_diagnosis(path: &Path) -> Result<serde_json::Value, Error> {
     let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
         path: path.to_path_buf(),
         source,

@@ -9,18 +9,18 @@ use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
 
 /// Schema of `/api/state`.
-pub const UI_SCHEMA: &str = "imucald.ui/1";
+pub(crate) const UI_SCHEMA: &str = "imucald.ui/1";
 /// Status lines the page's log keeps.
-pub const LOG_LINES: usize = 50;
+pub(crate) const LOG_LINES: usize = 50;
 /// Field directions the sphere's trail keeps (one per progress line).
-pub const TRAIL_POINTS: usize = 600;
+pub(crate) const TRAIL_POINTS: usize = 600;
 /// Lines arriving within this long count as a live stream, s.
-pub const LIVE_WITHIN_S: f64 = 3.0;
+pub(crate) const LIVE_WITHIN_S: f64 = 3.0;
 
 /// Whether the service's lines are arriving.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
-pub enum LinkState {
+pub(crate) enum LinkState {
     /// No line yet.
     Waiting,
     /// A line within the last [`LIVE_WITHIN_S`].
@@ -79,7 +79,7 @@ struct LinkStatus {
 
 /// The page stream's counters, for the snapshot.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct StreamStats {
+pub(crate) struct StreamStats {
     /// Pages connected to the event stream now.
     pub clients: u64,
     /// Lines a slow page missed (it fell behind the stream's buffer), all pages together.
@@ -89,7 +89,7 @@ pub struct StreamStats {
 impl UiState {
     /// Take one JSON line received at `now_s`; a line that is not an event of the schema is
     /// counted and otherwise ignored.
-    pub fn apply_line(&mut self, line: &str, now_s: f64) {
+    pub(crate) fn apply_line(&mut self, line: &str, now_s: f64) {
         self.lines += 1;
         self.last_line_s = Some(now_s);
         // The page shows the first vehicle; lines about a further one say so (`vehicle`).
@@ -150,7 +150,7 @@ impl UiState {
     }
 
     /// Whether lines are arriving, at `now_s`.
-    pub fn link_state(&self, now_s: f64) -> LinkState {
+    pub(crate) fn link_state(&self, now_s: f64) -> LinkState {
         match self.last_line_s {
             None => LinkState::Waiting,
             Some(t) if now_s - t <= LIVE_WITHIN_S => LinkState::Live,
@@ -167,7 +167,7 @@ impl UiState {
     }
 
     /// `/api/state` (schema [`UI_SCHEMA`]) at `now_s`.
-    pub fn snapshot_json(&self, now_s: f64, stream: StreamStats) -> String {
+    pub(crate) fn snapshot_json(&self, now_s: f64, stream: StreamStats) -> String {
         let s = Snapshot {
             schema: UI_SCHEMA,
             lines: self.lines,

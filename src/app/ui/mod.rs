@@ -17,7 +17,7 @@ pub(crate) const CSS: &str = include_str!("assets/style.css");
 pub(crate) const DRAW_JS: &str = include_str!("assets/draw.js");
 
 /// The live page, whole (its data comes from `/api/state` and `/api/events`).
-pub const LIVE_PAGE: &str = concat!(
+pub(crate) const LIVE_PAGE: &str = concat!(
     "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\n",
     "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n",
     "<title>imucald live calibration</title>\n<style>\n",

@@ -21,12 +21,12 @@ use tokio::sync::{broadcast, watch};
 
 /// Lines the event stream buffers for a page that has not taken them yet; past that the page
 /// misses the oldest (counted as `lagged_lines`).
-pub const STREAM_BUFFER_LINES: usize = 256;
+pub(crate) const STREAM_BUFFER_LINES: usize = 256;
 /// How long [`LiveUi::stop`] waits for the server to close its connections before dropping it.
-pub const STOP_WAIT: Duration = Duration::from_millis(200);
+pub(crate) const STOP_WAIT: Duration = Duration::from_millis(200);
 
 /// The state and the stream, shared by the service's feed and the HTTP handlers.
-pub struct Hub {
+pub(crate) struct Hub {
     start: Instant,
     state: Mutex<UiState>,
     tx: broadcast::Sender<Arc<str>>,
@@ -48,7 +48,7 @@ impl Hub {
     }
 
     /// `/api/state`.
-    pub fn snapshot_json(&self) -> String {
+    pub(crate) fn snapshot_json(&self) -> String {
         let st = self.state.lock().unwrap_or_else(|p| p.into_inner());
         st.snapshot_json(self.now_s(), self.stats())
     }
@@ -66,7 +66,7 @@ impl Hub {
 
 /// Where the service hands its JSON lines (cheap to clone).
 #[derive(Clone)]
-pub struct Feed(Arc<Hub>);
+pub(crate) struct Feed(Arc<Hub>);
 
 impl Feed {
     /// Take one line: the state is updated and the line passed on to the connected pages (never
@@ -144,7 +144,7 @@ impl LiveUi {
     }
 
     /// Where the service hands its lines.
-    pub fn feed(&self) -> Feed {
+    pub(crate) fn feed(&self) -> Feed {
         Feed(self.hub.clone())
     }
 

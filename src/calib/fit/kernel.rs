@@ -10,13 +10,13 @@ use crate::types::Vec3;
 use nalgebra::{Matrix3, SMatrix, SVector};
 
 /// Points processed together; the padding of every column is a multiple of this.
-pub const LANES: usize = 8;
+pub(crate) const LANES: usize = 8;
 
 /// Model kinds as const-generic tags, so each kind's per-point code has no branch in the loop.
-pub const SPHERE: u8 = 0;
-pub const DIAG6: u8 = 1;
-pub const SYM9: u8 = 2;
-pub const FULL12: u8 = 3;
+pub(crate) const SPHERE: u8 = 0;
+pub(crate) const DIAG6: u8 = 1;
+pub(crate) const SYM9: u8 = 2;
+pub(crate) const FULL12: u8 = 3;
 
 /// The model a tag stands for.
 pub const fn kind(tag: u8) -> ModelKind {
@@ -30,7 +30,7 @@ pub const fn kind(tag: u8) -> ModelKind {
 
 /// Points as three padded columns plus a weight column (1 for a point, 0 for padding).
 #[derive(Debug, Clone)]
-pub struct Soa {
+pub(crate) struct Soa {
     pub n: usize,
     pub padded: usize,
     pub x: Vec<f64>,
@@ -71,7 +71,7 @@ impl Soa {
     }
 
     /// Re-centre and re-scale in place: `(p - centre) / scale`.
-    pub fn renormalise(&mut self, centre: [f64; 3], scale: f64) {
+    pub(crate) fn renormalise(&mut self, centre: [f64; 3], scale: f64) {
         let inv = 1.0 / scale;
         for (col, c) in [&mut self.x, &mut self.y, &mut self.z]
             .into_iter()
@@ -271,7 +271,7 @@ fn design_columns<const K: usize>(
 
 /// Scratch space for one fit: up to nine Jacobian or design columns, owned by the caller (a
 /// [`crate::calib::fit::NormFitter`] keeps one for all the models it fits).
-pub struct Scratch {
+pub(crate) struct Scratch {
     pub cols: Vec<f64>,
 }
 
@@ -286,7 +286,7 @@ impl Scratch {
 
 /// Sum of squared residuals, J^T J and J^T r of the norm residual at `params`; J^T J only when
 /// `with_jtj` (without it, a pass costs the residuals and gradients alone).
-pub fn norm_normal_equations<const K: u8, const N: usize>(
+pub(crate) fn norm_normal_equations<const K: u8, const N: usize>(
     params: &SVector<f64, N>,
     pts: &Soa,
     scratch: &mut Scratch,
@@ -298,7 +298,7 @@ pub fn norm_normal_equations<const K: u8, const N: usize>(
 }
 
 /// Normal equations of the linear sphere fit on `pts`: `(b.b, A^T A, A^T b)`.
-pub fn sphere_normal_equations(
+pub(crate) fn sphere_normal_equations(
     pts: &Soa,
     scratch: &mut Scratch,
 ) -> (f64, SMatrix<f64, 4, 4>, SVector<f64, 4>) {
@@ -307,7 +307,7 @@ pub fn sphere_normal_equations(
 }
 
 /// Normal equations of the algebraic ellipsoid fit on `pts`: `(b.b, A^T A, A^T b)`.
-pub fn ellipsoid_normal_equations(
+pub(crate) fn ellipsoid_normal_equations(
     pts: &Soa,
     scratch: &mut Scratch,
 ) -> (f64, SMatrix<f64, 9, 9>, SVector<f64, 9>) {

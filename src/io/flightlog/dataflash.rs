@@ -16,9 +16,9 @@ use super::number::Number;
 use std::collections::BTreeMap;
 
 /// The two bytes that start every record.
-pub const HEAD: [u8; 2] = [0xA3, 0x95];
+pub(crate) const HEAD: [u8; 2] = [0xA3, 0x95];
 /// The type id of FMT records.
-pub const FMT_TYPE: u8 = 0x80;
+pub(crate) const FMT_TYPE: u8 = 0x80;
 /// FMT's own length (head and type included).
 const FMT_LEN: usize = 89;
 
@@ -39,7 +39,7 @@ pub enum Kind {
 
 impl Kind {
     /// The kind of a DataFlash format character, `None` for an unknown one.
-    pub fn from_char(c: u8) -> Option<Kind> {
+    pub(crate) fn from_char(c: u8) -> Option<Kind> {
         Some(match c {
             b'b' => Kind::Number(Number::I8),
             b'B' | b'M' => Kind::Number(Number::U8),

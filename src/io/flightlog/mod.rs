@@ -320,7 +320,7 @@ impl Assembler {
 }
 
 /// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
-pub fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
+pub(crate) fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
     let b = crate::attitude::body_ned_of_ref_q(q)?;
     let [roll, pitch, _] = crate::attitude::euler_zyx_deg(&b);
     Some((roll, pitch))

@@ -23,11 +23,11 @@ use std::collections::BTreeMap;
 /// The file magic (`ULog`, then 01 12 35), followed by a version byte and the start time.
 pub const MAGIC: [u8; 7] = [0x55, 0x4c, 0x6f, 0x67, 0x01, 0x12, 0x35];
 /// A sync message's payload.
-pub const SYNC: [u8; 8] = [0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12];
-pub const MAX_FORMATS: usize = 4096;
-pub const MAX_SUBSCRIPTIONS: usize = 4096;
+pub(crate) const SYNC: [u8; 8] = [0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12];
+pub(crate) const MAX_FORMATS: usize = 4096;
+pub(crate) const MAX_SUBSCRIPTIONS: usize = 4096;
 pub const MAX_PARAMS: usize = 16384;
-pub const MAX_FIELDS: usize = 8192;
+pub(crate) const MAX_FIELDS: usize = 8192;
 const MAX_NESTING: usize = 8;
 
 /// A primitive field type.
@@ -210,7 +210,7 @@ impl<'a> UlogReader<'a> {
     }
 
     /// Subscriptions made so far, by message id.
-    pub fn subscriptions(&self) -> impl Iterator<Item = &Subscription> {
+    pub(crate) fn subscriptions(&self) -> impl Iterator<Item = &Subscription> {
         self.subs.values()
     }
 

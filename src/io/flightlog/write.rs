@@ -80,7 +80,7 @@ fn fmt_record(id: u8, name: &str, format: &str, cols: &str) -> Vec<u8> {
 /// ArduPilot DataFlash: FMT, PARM (COMPASS_OFS/DIA/ODI from `onboard`, INS offsets 0 and scales 1),
 /// then per sample `MAG` (mGauss, int16, after ArduPilot's correction `S (raw + OFS)`, with OfsX/Y/Z)
 /// and `IMU` (rad/s, m/s^2).
-pub fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
+pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
     if !onboard.symmetric() {
         return Err(Error::Other(
             "ArduPilot's compass matrix is symmetric (DIA/ODI)".into(),
@@ -230,7 +230,7 @@ pub struct FurtherCompass {
 /// PX4 ULog: CAL_MAG0_* from `onboard` (CAL_MAG_PRIME its id, no rotation), `sensor_combined`
 /// (gyroscope, accelerometer) and `vehicle_magnetometer` (gauss, after PX4's correction
 /// `S (raw - OFF)`).
-pub fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
+pub(crate) fn ulog_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
     ulog_bytes_with(samples, onboard, &[])
 }
 

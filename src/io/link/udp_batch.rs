@@ -6,13 +6,13 @@ use std::io;
 use std::net::{SocketAddr, UdpSocket};
 
 /// Datagrams taken per call at most.
-pub const BATCH: usize = 32;
+pub(crate) const BATCH: usize = 32;
 /// Room for each datagram: the largest a UDP datagram can be, so none is ever cut short. The
 /// buffers are allocated zeroed, so only the pages the kernel writes to become resident.
 const DATAGRAM_MAX: usize = 65_536;
 
 /// Buffers for one batch, and what the last read put in them.
-pub struct UdpBatch {
+pub(crate) struct UdpBatch {
     bufs: Vec<Vec<u8>>,
     lens: [usize; BATCH],
     from: [Option<SocketAddr>; BATCH],
@@ -104,7 +104,7 @@ impl UdpBatch {
 /// Ask for a receive buffer of `bytes` (SO_RCVBUF; the kernel caps it at `net.core.rmem_max`),
 /// so datagrams can wait longer between reads. Only ever grows the buffer.
 #[cfg(target_os = "linux")]
-pub fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<()> {
+pub(crate) fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<()> {
     use std::os::fd::AsRawFd;
     let fd = sock.as_raw_fd();
     let mut cur: libc::c_int = 0;
@@ -144,7 +144,7 @@ pub fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<()> {
 
 /// Elsewhere the buffer is left as the system made it.
 #[cfg(not(target_os = "linux"))]
-pub fn grow_receive_buffer(_sock: &UdpSocket, _bytes: usize) -> io::Result<()> {
+pub(crate) fn grow_receive_buffer(_sock: &UdpSocket, _bytes: usize) -> io::Result<()> {
     Ok(())
 }
 
