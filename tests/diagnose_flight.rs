@@ -72,7 +72,9 @@ fn current_interference_is_named_from_a_pymavlink_flight_tlog() {
     sc.effects.motor_driver = MotorDriver::Current;
     let out = simulate(&sc, 1);
     let dir = tempfile::tempdir().unwrap();
-    let tlog = common::pymavlink_flight_tlog(&out.samples, dir.path());
+    let Some(tlog) = common::pymavlink_flight_tlog(&out.samples, dir.path()) else {
+        return;
+    };
     let cfg = Config::default();
     let log = imucald::io::sources::read_log(&tlog, None, &cfg.input).unwrap();
     let r = diagnose(&log.samples, &cfg, &DiagnoseOptions::default());

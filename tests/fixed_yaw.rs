@@ -20,7 +20,6 @@ fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {
         dir.path(),
         &[format!("{{ address = \"udpin:127.0.0.1:{port}\" }}")],
     );
-    std::thread::sleep(Duration::from_millis(500));
     // The field the service will use: the WMM at the place, today (the service's date too).
     let (lat, lon) = (47.4, 8.5);
     let place = Place {
@@ -84,7 +83,6 @@ fn fixed_yaw_on_stale_data_is_refused_with_the_reason() {
         dir.path(),
         &[format!("{{ address = \"udpin:127.0.0.1:{port}\" }}")],
     );
-    std::thread::sleep(Duration::from_millis(500));
     let out = Command::new(common::python_with("pymavlink"))
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),

@@ -18,23 +18,18 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// `../shared/data/flightlogs`, or `None` (with a message) when absent; absent with
-/// `IMUCALD_REQUIRE_DATA=1` is a failure.
+/// `../shared/data/flightlogs`, or `None` (SKIPPED said) when absent; absent with
+/// `IMUCALD_REQUIRE_DATA=1` is a failure ([`imucald::testdata::shared_data`]).
 fn flightlogs() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/flightlogs");
+    let p = imucald::testdata::shared_data()?.join("flightlogs");
     if p.is_dir() {
         return Some(p);
     }
-    assert!(
-        std::env::var("IMUCALD_REQUIRE_DATA").as_deref() != Ok("1"),
-        "{} is absent and IMUCALD_REQUIRE_DATA=1",
-        p.display()
-    );
-    eprintln!(
-        "SKIPPED: {} is absent; these tests need the shared flight logs beside the checkout",
-        p.display()
-    );
-    None
+    imucald::testdata::absent(
+        &p.display().to_string(),
+        imucald::testdata::REQUIRE_DATA_ENV,
+        "these tests need the shared flight logs beside the checkout",
+    )
 }
 
 macro_rules! require_data {
@@ -254,8 +249,9 @@ fn dataflash_mag_is_the_raw_field_with_the_onboard_correction_undone() {
 // ---------------------------------------------------------------------------------------------
 // ULog against pyulog
 
-fn pyulog(path: &Path) -> Value {
-    let out = Command::new(common::python_with("pyulog"))
+/// pyulog's reading of `path`, or `None` (SKIPPED said) without a Python with pyulog.
+fn pyulog(path: &Path) -> Option<Value> {
+    let out = Command::new(common::python("pyulog")?)
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/interop/pyulog_dump.py"
@@ -268,14 +264,15 @@ fn pyulog(path: &Path) -> Value {
         "pyulog_dump.py: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    serde_json::from_slice(&out.stdout).expect("JSON from pyulog_dump.py")
+    Some(serde_json::from_slice(&out.stdout).expect("JSON from pyulog_dump.py"))
 }
 
-fn ulog_parity(file: &str) -> (u64, usize) {
+/// Records and values read, compared with pyulog's (`None`: no pyulog, SKIPPED said).
+fn ulog_parity(file: &str) -> Option<(u64, usize)> {
     let dir = require_data_or_panic();
     let path = dir.join(file);
     let bytes = std::fs::read(&path).unwrap();
-    let py = pyulog(&path);
+    let py = pyulog(&path)?;
     let mut rd = UlogReader::new(&bytes).expect("a ULog header");
     // (name, multi_id) -> field -> values
     type Values = BTreeMap<String, Vec<f64>>;
@@ -336,7 +333,7 @@ fn ulog_parity(file: &str) -> (u64, usize) {
     }
     assert_eq!(rd.stats.dropouts, py["dropouts"].as_u64().unwrap());
     assert!(rd.stats.skipped.is_empty(), "{:?}", rd.stats.skipped);
-    (rd.stats.data, values)
+    Some((rd.stats.data, values))
 }
 
 /// A number pyulog_dump.py gave as text (Rust's parsing is correctly rounded, so the double is
@@ -356,7 +353,9 @@ fn require_data_or_panic() -> PathBuf {
 #[test]
 fn ulog_auav_matches_pyulog_field_by_field() {
     let dir = require_data!();
-    let (records, values) = ulog_parity("px4_auav_x21.ulg");
+    let Some((records, values)) = ulog_parity("px4_auav_x21.ulg") else {
+        return;
+    };
     // The stored pyulog summary agrees too: data points per topic and the dropouts.
     let info = std::fs::read_to_string(dir.join("px4_auav_x21.ulg.pyulog_info.txt")).unwrap();
     assert!(info.contains("Dropouts: count: 4"));
@@ -368,7 +367,9 @@ fn ulog_auav_matches_pyulog_field_by_field() {
 #[test]
 fn ulog_cubeorange_matches_pyulog_field_by_field() {
     let _ = require_data!();
-    let (_, values) = ulog_parity("px4_cubeorange_two_mags.ulg");
+    let Some((_, values)) = ulog_parity("px4_cubeorange_two_mags.ulg") else {
+        return;
+    };
     assert!(values > 1298 * 10, "{values}");
 }
 
@@ -376,7 +377,7 @@ fn ulog_cubeorange_matches_pyulog_field_by_field() {
 fn ulog_reports_two_sensor_mags_matched_to_their_calibrations() {
     let dir = require_data!();
     let path = dir.join("px4_cubeorange_two_mags.ulg");
-    let py = pyulog(&path);
+    let Some(py) = pyulog(&path) else { return };
     let r = run_replay(&path);
     assert_eq!(r.input.format, "ulg");
     let mags: Vec<_> = r

@@ -3,7 +3,8 @@
 //! `mavproxy.py --master=udpout:... --target-system=1` connects and sends `magcal start`; its
 //! calibration module
 //! prints the MAG_CAL_REPORT and answers it with DO_ACCEPT_MAG_CAL (ACCEPTED: the result is
-//! already saved), and the service writes the calibration. `./scripts/test` installs MAVProxy into `.venv`.
+//! already saved), and the service writes the calibration. `./scripts/test` installs MAVProxy into
+//! `.venv`; without it these tests say SKIPPED ([`common::python`]).
 
 mod common;
 
@@ -12,19 +13,16 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn mavproxy() -> PathBuf {
-    let p = PathBuf::from(common::python_path()).with_file_name("mavproxy.py");
-    assert!(
-        p.exists(),
-        "no MAVProxy at {}: run ./scripts/test (it installs MAVProxy into .venv)",
-        p.display()
-    );
-    p
+/// `mavproxy.py` beside the Python that imports MAVProxy, or `None` (SKIPPED said).
+fn mavproxy() -> Option<PathBuf> {
+    let py = common::python("MAVProxy")?;
+    Some(PathBuf::from(py).with_file_name("mavproxy.py"))
 }
 
-/// MAVProxy on `port` (UDP out) in `dir`, with `args`, its commands from a pipe and its output
-/// lines through a channel.
+/// MAVProxy (`mavproxy`) on `port` (UDP out) in `dir`, with `args`, its commands from a pipe and
+/// its output lines through a channel.
 fn mavproxy_session(
+    mavproxy: &std::path::Path,
     dir: &std::path::Path,
     port: u16,
     args: &[&str],
@@ -33,7 +31,7 @@ fn mavproxy_session(
     std::process::ChildStdin,
     std::sync::mpsc::Receiver<String>,
 ) {
-    let mut gcs = Command::new(mavproxy())
+    let mut gcs = Command::new(mavproxy)
         .arg(format!("--master=udpout:127.0.0.1:{port}"))
         .args(args)
         .current_dir(dir)
@@ -55,6 +53,25 @@ fn mavproxy_session(
     (gcs, stdin, rx)
 }
 
+/// The next of MAVProxy's lines (from `rx`, each kept in `seen`) that `want` accepts; `None` when
+/// it does not come `within`.
+fn next_line(
+    rx: &std::sync::mpsc::Receiver<String>,
+    seen: &mut Vec<String>,
+    want: impl Fn(&str) -> bool,
+    within: Duration,
+) -> Option<String> {
+    let deadline = Instant::now() + within;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let l = rx.recv_timeout(left).ok()?;
+        seen.push(l.clone());
+        if want(&l) {
+            return Some(l);
+        }
+    }
+}
+
 /// Send one command line to MAVProxy.
 fn send(stdin: &mut std::process::ChildStdin, cmd: &str) {
     use std::io::Write;
@@ -63,8 +80,24 @@ fn send(stdin: &mut std::process::ChildStdin, cmd: &str) {
 
 #[test]
 fn mavproxy_magcal_start_calibrates_and_accepts() {
+    let Some(mavproxy) = mavproxy() else { return };
     let dir = tempfile::tempdir().unwrap();
     let port = common::free_udp_port();
+    // MAVProxy first (the service's system id given: MAVProxy takes a target from autopilot
+    // heartbeats only, and the service's says onboard controller), then the service, whose
+    // simulated tumble starts with it, and the command once MAVProxy has heard the service: the
+    // run sees the whole tumble however long MAVProxy takes to start.
+    let (mut gcs, mut stdin, rx) =
+        mavproxy_session(&mavproxy, dir.path(), port, &["--target-system=1"]);
+    let mut seen = Vec::new();
+    let within = Duration::from_secs(60);
+    let up = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Waiting for heartbeat"),
+        within,
+    );
+    assert!(up.is_some(), "MAVProxy did not start:\n{}", seen.join("\n"));
     let (cal, mut svc) = common::spawn_on_command_service(
         dir.path(),
         &[
@@ -72,34 +105,41 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
             format!("{{ address = \"udpin:127.0.0.1:{port}\" }}"),
         ],
     );
-    // The service's system id: MAVProxy takes a target from autopilot heartbeats only, and the
-    // service's says onboard controller.
-    let (mut gcs, _stdin, rx) = mavproxy_session(
-        dir.path(),
-        port,
-        &["--target-system=1", "--cmd=magcal start"],
+    let heard = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Detected vehicle 1:191"),
+        within,
     );
-    let mut seen = Vec::new();
-    let deadline = Instant::now() + Duration::from_secs(90);
-    let mut report = None;
-    while Instant::now() < deadline && report.is_none() {
-        if let Ok(l) = rx.recv_timeout(Duration::from_millis(200)) {
-            if l.starts_with("Calibration of compass") {
-                report = Some(l.clone());
-            }
-            seen.push(l);
-        }
-    }
+    assert!(
+        heard.is_some(),
+        "MAVProxy never heard the service:\n{}",
+        seen.join("\n")
+    );
+    send(&mut stdin, "magcal start");
+    let report = next_line(
+        &rx,
+        &mut seen,
+        |l| l.starts_with("Calibration of compass"),
+        Duration::from_secs(90),
+    );
     // The accept goes out right after the report (MAVProxy accepts every report); its answer,
-    // and a moment for the service to write.
-    let until = Instant::now() + Duration::from_secs(5);
-    while Instant::now() < until && !seen.iter().any(|l| l.contains("DO_ACCEPT_MAG_CAL: ")) {
-        if let Ok(l) = rx.recv_timeout(Duration::from_millis(200)) {
-            seen.push(l);
-        }
-    }
-    std::thread::sleep(Duration::from_secs(1));
-    let stored = std::fs::read_to_string(cal.join("calibration.json")).unwrap_or_default();
+    // and the calibration the service writes.
+    next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("DO_ACCEPT_MAG_CAL: "),
+        Duration::from_secs(5),
+    );
+    let written = |text: &str| {
+        serde_json::from_str::<serde_json::Value>(text).is_ok_and(|v| v["mag"]["status"] == "ok")
+    };
+    let stored = common::wait_for_file(
+        &cal.join("calibration.json"),
+        written,
+        Duration::from_secs(20),
+    )
+    .unwrap_or_default();
     let _ = Command::new("kill").arg(svc.id().to_string()).status();
     let _ = gcs.kill();
     let _ = svc.wait();
@@ -146,6 +186,7 @@ fn mavproxy_magcal_start_calibrates_and_accepts() {
 /// a calibration value stays read only.
 #[test]
 fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
+    let Some(mavproxy) = mavproxy() else { return };
     let dir = tempfile::tempdir().unwrap();
     let port = common::free_udp_port();
     let cfg = dir.path().join("svc.toml");
@@ -161,6 +202,7 @@ fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
     let mut svc = common::spawn_service(&cfg);
     // Our component: MAVProxy keeps the parameters of each component apart.
     let (mut gcs, mut stdin, rx) = mavproxy_session(
+        &mavproxy,
         dir.path(),
         port,
         &[
@@ -227,6 +269,7 @@ fn mavproxy_lists_the_service_parameters_and_sets_only_writable_ones() {
 /// vehicle's yaw now is not known; nothing is written.
 #[test]
 fn mavproxy_magcal_yaw_on_stale_data_is_refused_with_the_reason() {
+    let Some(mavproxy) = mavproxy() else { return };
     let dir = tempfile::tempdir().unwrap();
     let port = common::free_udp_port();
     let cfg = dir.path().join("svc.toml");
@@ -242,7 +285,8 @@ fn mavproxy_magcal_yaw_on_stale_data_is_refused_with_the_reason() {
     )
     .unwrap();
     let mut svc = common::spawn_service(&cfg);
-    let (mut gcs, mut stdin, rx) = mavproxy_session(dir.path(), port, &["--target-system=1"]);
+    let (mut gcs, mut stdin, rx) =
+        mavproxy_session(&mavproxy, dir.path(), port, &["--target-system=1"]);
     let mut seen = Vec::new();
     let mut ended = None;
     let mut answered = false;

@@ -121,18 +121,20 @@ async fn live_service_reports_each_compass_on_its_own() {
     let (a, b) = two_compasses();
     let dir = tempfile::tempdir().unwrap();
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut sink = common::JsonSink::bind().await;
     let (port, mut cfg) = common::udpin_config(dir.path());
     let cal_dir = dir.path().join("cal");
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    cfg.daemon.publish = vec![sink.publish()];
     cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
     cfg.fit.refit_every_s = 5.0;
     cfg.validate().unwrap();
-    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
+    let daemon = common::Daemon::ready(cfg).await;
 
-    // What comes back from the service: the last MAG_CAL_REPORT and the progress per compass.
+    // What comes back from the service: the last MAG_CAL_REPORT and the progress per compass, and
+    // the answer to a ping.
     let reports = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
     let progress = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
+    let (pong_tx, mut pong_rx) = tokio::sync::watch::channel(false);
     let listen = {
         let peer_rx = std::sync::Arc::new(peer);
         let peer_tx = peer_rx.clone();
@@ -142,6 +144,9 @@ async fn live_service_reports_each_compass_on_its_own() {
             let mut buf = vec![0u8; 4096];
             while let Ok((n, _)) = peer_rx.recv_from(&mut buf).await {
                 for f in dec.push(&buf[..n]) {
+                    if imucald::testdata::pong(&f).is_some() {
+                        pong_tx.send_replace(true);
+                    }
                     match f.message {
                         MavMessage::MAG_CAL_REPORT(r) => {
                             reports.lock().unwrap().insert(r.compass_id, r);
@@ -178,7 +183,17 @@ async fn live_service_reports_each_compass_on_its_own() {
         }
         common::pace(i, t0, a.samples[i].t_s, speed).await;
     }
-    tokio::time::sleep(Duration::from_millis(1500)).await;
+    // Stopped once it took everything: the answer to a ping sent after the last sample.
+    peer.send_to(
+        &imucald::testdata::ping(1, imucald::testdata::SERVICE_IDS),
+        &target,
+    )
+    .await
+    .unwrap();
+    tokio::time::timeout(Duration::from_secs(20), pong_rx.wait_for(|p| *p))
+        .await
+        .expect("the service answers the ping")
+        .unwrap();
     let summary = daemon.stop(Duration::from_secs(2)).await;
     listener.abort();
     eprintln!("{summary:?}");
@@ -211,17 +226,13 @@ async fn live_service_reports_each_compass_on_its_own() {
     }
 
     // Its own JSON lines.
-    let mut buf = vec![0u8; 65536];
-    let mut instances = std::collections::BTreeSet::new();
-    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
-    {
-        for line in String::from_utf8_lossy(&buf[..n]).lines() {
-            let v: serde_json::Value = serde_json::from_str(line).unwrap();
-            if v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok" {
-                instances.insert(v["instance"].as_u64().unwrap());
-            }
-        }
-    }
+    let instances: std::collections::BTreeSet<u64> = sink
+        .drain()
+        .await
+        .iter()
+        .filter(|v| v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok")
+        .map(|v| v["instance"].as_u64().unwrap())
+        .collect();
     assert_eq!(instances.into_iter().collect::<Vec<_>>(), vec![0, 1]);
 
     // Its own entry in the calibration file, and its own parameter names.

@@ -44,7 +44,9 @@ fn parm_values(text: &str) -> std::collections::BTreeMap<String, f64> {
 #[test]
 fn apm_telemetry_export_is_the_vehicles_offsets_plus_the_fitted_residual() {
     let real = require_data!();
-    let py = common::python_with("pymavlink");
+    let Some(py) = common::python("pymavlink") else {
+        return;
+    };
     let script =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/pymavlink_ardupilot_stream.py");
     let dir = tempfile::tempdir().unwrap();

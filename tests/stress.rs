@@ -94,12 +94,8 @@ fn imucald_estimates(samples: &[Sample], cfg: &FusionConfig) -> Vec<UnitQuaterni
 
 /// VQF's estimates through `scripts/vqf_peer.py`, or `None` (said) without a Python with `vqf`.
 fn vqf_estimates(samples: &[Sample]) -> Option<Vec<UnitQuaternion<f64>>> {
-    let Some(py) = common::python_importing("vqf") else {
-        assert!(
-            std::env::var_os("IMUCALD_PYTHON").is_none(),
-            "IMUCALD_PYTHON has no `vqf`: run ./scripts/test (it installs it)"
-        );
-        eprintln!("no Python with `vqf`: scoring imucald alone");
+    let Some(py) = common::python("vqf") else {
+        eprintln!("scoring imucald alone");
         return None;
     };
     let dir = tempfile::tempdir().unwrap();

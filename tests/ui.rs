@@ -3,34 +3,24 @@
 //! its fd 3, answers on fd 4, each message ended by a NUL byte).
 //!
 //! Without Chromium these tests say SKIPPED and pass, unless `IMUCALD_REQUIRE_BROWSER=1`
-//! (`scripts/test`) makes its absence a failure.
+//! (`scripts/test`) makes its absence a failure ([`common::chromium`]).
+//!
+//! Nothing here waits for a guessed time: the page is watched for the state awaited (a
+//! MutationObserver in the page), the service for its `ready` line and its event stream.
 //!
 //! Screenshots go to `IMUCALD_SCREENSHOT_DIR` when set (`docs/` for the README's pictures:
 //! `IMUCALD_SCREENSHOT_DIR=docs cargo test --release --test ui`), else to a temporary directory.
 
 mod common;
 
+use common::chromium;
 use serde_json::{json, Value};
-use std::io::{Read, Write};
+use std::io::{BufRead, Read, Write};
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
-
-const CHROMIUM: &str = "/usr/bin/chromium";
-
-/// Chromium's path, or `None` with a message (a failure under `IMUCALD_REQUIRE_BROWSER=1`).
-fn chromium() -> Option<&'static str> {
-    if Path::new(CHROMIUM).exists() {
-        return Some(CHROMIUM);
-    }
-    if std::env::var("IMUCALD_REQUIRE_BROWSER").is_ok_and(|v| v == "1") {
-        panic!("{CHROMIUM} is absent and IMUCALD_REQUIRE_BROWSER=1 (scripts/test installs it)");
-    }
-    eprintln!("SKIPPED: {CHROMIUM} is absent (apt-get install chromium; scripts/test does)");
-    None
-}
 
 /// A headless Chromium with one page, spoken to over the DevTools pipe.
 struct Browser {
@@ -179,12 +169,50 @@ impl Browser {
         r["result"]["value"].clone()
     }
 
-    /// Evaluate `expr` every 50 ms until it is true (panics after `secs`).
+    /// Waits until `expr` is true in the page (panics after `secs`): the page watches for it
+    /// itself, looking again at every change of its document (a MutationObserver: elements,
+    /// attributes, text), and answers once it holds or the time is up.
     fn wait_for(&mut self, expr: &str, secs: f64) {
-        let until = Instant::now() + Duration::from_secs_f64(secs);
-        while self.eval(expr) != json!(true) {
-            assert!(Instant::now() < until, "page never got {expr}");
-            std::thread::sleep(Duration::from_millis(50));
+        let ms = (secs * 1000.0).round() as u64;
+        let js = format!(
+            "new Promise(done => {{ \
+               const ok = () => {{ try {{ return !!({expr}); }} catch (e) {{ return false; }} }}; \
+               if (ok()) {{ done(true); return; }} \
+               const watch = new MutationObserver(() => {{ if (ok()) {{ watch.disconnect(); done(true); }} }}); \
+               watch.observe(document, {{subtree: true, childList: true, attributes: true, characterData: true}}); \
+               setTimeout(() => {{ watch.disconnect(); done(ok()); }}, {ms}); \
+             }})"
+        );
+        let r = self.page(
+            "Runtime.evaluate",
+            json!({"expression": js, "awaitPromise": true, "returnByValue": true}),
+        );
+        assert_eq!(r["result"]["value"], json!(true), "page never got {expr}");
+    }
+
+    /// Navigates to `url` and waits for the page's load event (its document is then the one
+    /// the next evaluation runs in). Needs `Page.enable`.
+    fn navigate(&mut self, url: &str) {
+        self.page("Page.navigate", json!({ "url": url }));
+        if let Some(i) = self
+            .events
+            .iter()
+            .position(|e| e["method"] == "Page.loadEventFired")
+        {
+            self.events.remove(i);
+            return;
+        }
+        let until = Instant::now() + Duration::from_secs(30);
+        loop {
+            let left = until.saturating_duration_since(Instant::now());
+            let v = self
+                .from
+                .recv_timeout(left)
+                .unwrap_or_else(|_| panic!("{url} did not load"));
+            if v["method"] == "Page.loadEventFired" {
+                return;
+            }
+            self.events.push(v);
         }
     }
 
@@ -266,14 +294,6 @@ fn screenshot_dir() -> (PathBuf, Option<tempfile::TempDir>) {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// GET on loopback; the body.
 fn http_get(port: u16, path: &str) -> Option<String> {
     let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
@@ -299,12 +319,47 @@ fn state_completion(port: u16) -> Option<f64> {
         .as_f64()
 }
 
-struct Service(Child);
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
+/// The page's event stream (`/api/events`), read until the magnetometer's completion (compass 0)
+/// is above 0 in a line (or in the first, the snapshot); fails after `within`. The state
+/// (`/api/state`) is updated before a line goes out on the stream.
+fn wait_for_completion(port: u16, within: Duration) -> f64 {
+    let until = Instant::now() + within;
+    let mut c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    write!(
+        c,
+        "GET /api/events HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut lines = std::io::BufReader::new(c.try_clone().unwrap());
+    let mut line = String::new();
+    loop {
+        let left = until.saturating_duration_since(Instant::now());
+        assert!(
+            !left.is_zero(),
+            "no progress on /api/events within {within:?}"
+        );
+        c.set_read_timeout(Some(left)).unwrap();
+        line.clear();
+        let n = lines
+            .read_line(&mut line)
+            .unwrap_or_else(|e| panic!("no progress on /api/events: {e}"));
+        assert!(n > 0, "/api/events ended");
+        let Some(at) = line.find('{') else { continue };
+        let Ok(v) = serde_json::from_str::<Value>(line[at..].trim()) else {
+            continue;
+        };
+        let mag0 = |p: &Value| p["sensor"] == "mag" && p["instance"] == 0;
+        let pct = if v["type"] == "progress" && mag0(&v) {
+            v["completion_pct"].as_f64()
+        } else {
+            v["progress"]
+                .as_array()
+                .and_then(|a| a.iter().find(|p| mag0(p)))
+                .and_then(|p| p["completion_pct"].as_f64())
+        };
+        if let Some(pct) = pct.filter(|p| *p > 0.0) {
+            return pct;
+        }
     }
 }
 
@@ -315,31 +370,32 @@ impl Drop for Service {
 fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
     let Some(exe) = chromium() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
     let cfg = dir.path().join("live.toml");
+    // Port 0: the service's `ready` line says which port the page got.
     std::fs::write(
         &cfg,
         format!(
-            "[daemon]\nsources = [{{ address = \"sim:tumble?speed=2\" }}]\ncalibration_dir = \"{}\"\n\n[ui]\nlisten = \"127.0.0.1:{port}\"\n",
+            "[daemon]\nsources = [{{ address = \"sim:tumble?speed=2\" }}]\ncalibration_dir = \"{}\"\n\n[ui]\nlisten = \"127.0.0.1:0\"\n",
             dir.path().join("cal").display()
         ),
     )
     .unwrap();
-    let mut svc = Service(common::spawn_service(&cfg));
+    let mut svc = common::Service::start(&[
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--publish".as_ref(),
+        "stdout".as_ref(),
+    ]);
+    let ui: std::net::SocketAddr = svc.ready_json()["ui"].as_str().unwrap().parse().unwrap();
+    let port = ui.port();
     // The centre is known and regions counted: completion above 0 (the tumble at twice its pace
     // reaches it in about 10 s).
-    let until = Instant::now() + Duration::from_secs(60);
-    while !state_completion(port).is_some_and(|c| c > 0.0) {
-        assert!(Instant::now() < until, "no progress on /api/state");
-        std::thread::sleep(Duration::from_millis(100));
-    }
-    let loaded_at = state_completion(port).unwrap();
+    let loaded_at = wait_for_completion(port, Duration::from_secs(60));
+    // Completion never goes down within a run: the state has it too.
+    assert!(state_completion(port).is_some_and(|c| c >= loaded_at));
     let mut b = Browser::start(exe);
     b.page("Page.enable", json!({}));
-    b.page(
-        "Page.navigate",
-        json!({"url": format!("http://127.0.0.1:{port}/")}),
-    );
+    b.navigate(&format!("http://127.0.0.1:{port}/"));
     b.wait_for("!!document.getElementById('completion-0')", 20.0);
     // The page's completion against the service's, read just before and after it: equal to one
     // of them (the progress line at 1 Hz may land between the two reads), or to the service's
@@ -369,12 +425,14 @@ fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
         }
         compared += 1;
         rising.push(shown);
+        // Samples spread over 3 s of the stream (a measurement's spacing, not a wait).
         std::thread::sleep(Duration::from_millis(150));
     }
     eprintln!("page completion over 3 s: {rising:?}");
     // Update rate: events the page took and renders it made over 2 s of its own clock.
     let counts = "[Number(document.body.dataset.events||0), Number(document.body.dataset.rendered||0), performance.now()]";
     let a = b.eval(counts);
+    // The window the rate is measured over.
     std::thread::sleep(Duration::from_secs(2));
     let z = b.eval(counts);
     let dt_s = (z[2].as_f64().unwrap() - a[2].as_f64().unwrap()) / 1000.0;
@@ -410,18 +468,10 @@ fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
     assert!(page_bytes + state_bytes < 200_000);
     // SIGTERM with the page (its event stream) open.
     let t = Instant::now();
-    // SAFETY: kill(2) on our own child's pid.
-    assert_eq!(unsafe { libc::kill(svc.0.id() as i32, libc::SIGTERM) }, 0);
-    let mut stopped = None;
-    while t.elapsed() < Duration::from_secs(5) {
-        if let Some(s) = svc.0.try_wait().unwrap() {
-            assert!(s.success(), "{s:?}");
-            stopped = Some(t.elapsed().as_secs_f64());
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    let stop_s = stopped.expect("imucald did not exit within 5 s of SIGTERM with a page open");
+    let (status, log) = svc.stop(Duration::from_secs(5));
+    let status = status.expect("imucald did not exit within 5 s of SIGTERM with a page open");
+    let stop_s = t.elapsed().as_secs_f64();
+    assert!(status.success(), "{status:?}: {log}");
     eprintln!("stopped {stop_s:.3} s after SIGTERM, {compared} comparisons");
     assert!(stop_s < 1.0, "{stop_s}");
     // The page says the connection went.
@@ -456,7 +506,7 @@ fn ui_html_report_renders_offline() {
         json!({"width": 1280, "height": 2000, "deviceScaleFactor": 1, "mobile": false}),
     );
     let url = format!("file://{}", html.display());
-    b.page("Page.navigate", json!({"url": url}));
+    b.navigate(&url);
     b.wait_for("document.body && document.body.dataset.ready === '1'", 20.0);
     let spheres = b.eval("document.querySelectorAll('canvas[role=img]').length");
     // Mag and accel, before and after, and their residual plots.
@@ -506,7 +556,7 @@ fn ui_html_report_answers_whether_it_is_better_than_the_vehicles() {
     let mut b = Browser::start(exe);
     b.page("Page.enable", json!({}));
     let url = format!("file://{}", html.display());
-    b.page("Page.navigate", json!({"url": url}));
+    b.navigate(&url);
     b.wait_for("document.body && document.body.dataset.ready === '1'", 20.0);
     let text = b.eval("document.body.innerText");
     let text = text.as_str().unwrap_or("");

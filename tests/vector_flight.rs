@@ -272,7 +272,7 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
     let (port, mut cfg) = common::udpin_config(dir.path());
     let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
-    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
+    let daemon = common::Daemon::ready(cfg).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
     let mut state = imucald::io::samplelog::VehicleStateStream::default();
@@ -287,7 +287,8 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
                 .await
                 .unwrap();
         }
-        // Paced like a fast link (the service's queue is bounded), and the JSON lines read.
+        // Paced like a fast link, 2 ms per 200 samples (the service's queue is bounded), and the
+        // JSON lines read.
         if k % 200 == 199 {
             tokio::time::sleep(Duration::from_millis(2)).await;
             while let Ok(n) = sink.try_recv(&mut buf) {
@@ -299,7 +300,9 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
             }
         }
     }
-    tokio::time::sleep(Duration::from_millis(500)).await;
+    // Stopped once it took everything sent.
+    let to = imucald::testdata::SERVICE_IDS;
+    imucald::testdata::taken(&peer, port, to, Duration::from_secs(20), |_| {}).await;
     daemon.stop(Duration::from_secs(5)).await;
     while let Ok(n) = sink.try_recv(&mut buf) {
         lines.extend(
@@ -346,7 +349,9 @@ fn replay_of_a_pymavlink_flight_tlog_takes_attitude_position_and_current_from_it
     let sc = Scenario::named("cruise").unwrap();
     let out = simulate(&sc, 1);
     let dir = tempfile::tempdir().unwrap();
-    let tlog = common::pymavlink_flight_tlog(&out.samples, dir.path());
+    let Some(tlog) = common::pymavlink_flight_tlog(&out.samples, dir.path()) else {
+        return;
+    };
     let r = common::replay_log(&tlog, &Config::default()).report;
     let m = &r.calibration.mag;
     let choice = vector_from_the_logs_position(m);

@@ -10,14 +10,17 @@
 mod common;
 
 use common::{free_udp_port, mavlink_source};
-use imucald::app::daemon::RunSummary;
 use imucald::config::Config;
 use imucald::io::mavout::MavEncoder;
 use imucald::sim::SimOutput;
+use imucald::testdata::{ping, pong, taken, SERVICE_IDS};
 use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
+
+/// How long a test waits for the service's answer: a deadline, not a pause.
+const ANSWER_WITHIN: Duration = Duration::from_secs(20);
 
 /// The tumble, and the tumble with another vehicle's hard and soft iron.
 fn two_vehicles() -> (SimOutput, SimOutput) {
@@ -26,24 +29,26 @@ fn two_vehicles() -> (SimOutput, SimOutput) {
 
 /// A service configuration listening on UDP `ports` (one link each), keeping its calibration in
 /// `cal_dir` and publishing JSON lines to `sink`.
-fn service_config(
-    cal_dir: &std::path::Path,
-    ports: &[u16],
-    sink: &tokio::net::UdpSocket,
-) -> Config {
+fn service_config(cal_dir: &std::path::Path, ports: &[u16], sink: &common::JsonSink) -> Config {
     let mut cfg = Config::default();
     cfg.daemon.sources = ports
         .iter()
         .map(|p| mavlink_source(format!("udpin:127.0.0.1:{p}")))
         .collect();
     cfg.daemon.calibration_dir = cal_dir.display().to_string();
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    cfg.daemon.publish = vec![sink.publish()];
     cfg
 }
 
-/// Run the service on `cfg`, send the first `n` samples of `sim` as system 1 to `port`, stop it.
-async fn feed_and_stop(cfg: Config, port: u16, sim: &SimOutput, n: usize) -> RunSummary {
-    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
+/// Run the service on `cfg` and send the first `n` samples of `sim` as system 1 to `port`: the
+/// service, and the socket the samples came from.
+async fn feed(
+    cfg: Config,
+    port: u16,
+    sim: &SimOutput,
+    n: usize,
+) -> (common::Daemon, tokio::net::UdpSocket) {
+    let daemon = common::Daemon::ready(cfg).await;
     let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let mut enc = MavEncoder::new(1, 1);
     for s in &sim.samples[..n] {
@@ -52,27 +57,20 @@ async fn feed_and_stop(cfg: Config, port: u16, sim: &SimOutput, n: usize) -> Run
             .await
             .unwrap();
     }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    daemon.stop(Duration::from_secs(2)).await
-}
-
-/// The JSON lines waiting at `sink`.
-async fn lines(sink: &tokio::net::UdpSocket) -> Vec<serde_json::Value> {
-    let mut out = vec![];
-    let mut buf = vec![0u8; 65536];
-    while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(20), sink.recv(&mut buf)).await
-    {
-        for line in String::from_utf8_lossy(&buf[..n]).lines() {
-            out.push(serde_json::from_str(line).unwrap());
-        }
-    }
-    out
+    (daemon, peer)
 }
 
 /// The last MAG_CAL_REPORT a peer received, keyed by the sender's (system, component) ids.
 type Reports = Arc<Mutex<BTreeMap<(u8, u8), MAG_CAL_REPORT_DATA>>>;
 
-fn listen(peer: Arc<tokio::net::UdpSocket>) -> (Reports, tokio::task::JoinHandle<()>) {
+/// The marks of the pings answered, on whichever peer's socket (a watch, to wait on).
+type Pongs = Arc<tokio::sync::watch::Sender<BTreeSet<u8>>>;
+
+/// What a peer hears: the MAG_CAL_REPORTs (returned), and the answers to pings (into `pongs`).
+fn listen(
+    peer: Arc<tokio::net::UdpSocket>,
+    pongs: Pongs,
+) -> (Reports, tokio::task::JoinHandle<()>) {
     let reports: Reports = Default::default();
     let r = reports.clone();
     let task = tokio::spawn(async move {
@@ -80,6 +78,11 @@ fn listen(peer: Arc<tokio::net::UdpSocket>) -> (Reports, tokio::task::JoinHandle
         let mut buf = vec![0u8; 4096];
         while let Ok((n, _)) = peer.recv_from(&mut buf).await {
             for f in dec.push(&buf[..n]) {
+                if let Some(mark) = pong(&f) {
+                    pongs.send_modify(|p| {
+                        p.insert(mark);
+                    });
+                }
                 if let MavMessage::MAG_CAL_REPORT(m) = f.message {
                     r.lock().unwrap().insert((f.system_id, f.component_id), m);
                 }
@@ -87,6 +90,19 @@ fn listen(peer: Arc<tokio::net::UdpSocket>) -> (Reports, tokio::task::JoinHandle
         }
     });
     (reports, task)
+}
+
+/// Pings the service (as 1/191) from `peer` to `port` with `mark`, and waits until a listener
+/// heard the answer: the service took everything `peer` sent before.
+async fn taken_by(peer: &tokio::net::UdpSocket, port: u16, mark: u8, pongs: &Pongs) {
+    let mut heard = pongs.subscribe();
+    peer.send_to(&ping(mark, SERVICE_IDS), ("127.0.0.1", port))
+        .await
+        .unwrap();
+    tokio::time::timeout(ANSWER_WITHIN, heard.wait_for(|p| p.contains(&mark)))
+        .await
+        .unwrap_or_else(|_| panic!("no answer to ping {mark} within {ANSWER_WITHIN:?}"))
+        .unwrap();
 }
 
 /// COMPASS_OFS error of a report against a simulated truth (mGauss, added: -10 x offset in uT).
@@ -113,13 +129,13 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         let dir = tempfile::tempdir().unwrap();
         let ports = [free_udp_port(), free_udp_port()];
         let links = if shared_link { 1 } else { 2 };
-        let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let mut sink = common::JsonSink::bind().await;
         let cal_dir = dir.path().join("cal");
         let mut cfg = service_config(&cal_dir, &ports[..links], &sink);
         cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
         cfg.fit.refit_every_s = 5.0;
         cfg.validate().unwrap();
-        let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
+        let daemon = common::Daemon::ready(cfg).await;
 
         // Vehicle A: system 1 on link 0. Vehicle B: system 1 on link 1, or system 2 on link 0.
         // One link: both vehicles behind one router (one address); two: one radio each.
@@ -134,11 +150,12 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         } else {
             (1, ports[1])
         };
-        let (got_a, task_a) = listen(peer_a.clone());
+        let pongs: Pongs = Arc::new(tokio::sync::watch::channel(BTreeSet::new()).0);
+        let (got_a, task_a) = listen(peer_a.clone(), pongs.clone());
         let (got_b, task_b) = if shared_link {
             (Reports::default(), tokio::spawn(async {}))
         } else {
-            listen(peer_b.clone())
+            listen(peer_b.clone(), pongs.clone())
         };
         let mut enc_a = MavEncoder::new(1, 1);
         let mut enc_b = MavEncoder::new(sys_b, 1);
@@ -149,7 +166,7 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
             .send_to(&enc_a.encode(&first), ("127.0.0.1", ports[0]))
             .await
             .unwrap();
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        taken_by(&peer_a, ports[0], 1, &pongs).await;
         let speed = 20.0;
         let t0 = tokio::time::Instant::now();
         for i in 0..a.samples.len().min(b.samples.len()) {
@@ -165,7 +182,12 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
             }
             common::pace(i, t0, a.samples[i].t_s, speed).await;
         }
-        tokio::time::sleep(Duration::from_millis(1500)).await;
+        // Everything taken on each link (a ping on B's own link, where system 1 is B, is answered
+        // as the first vehicle with those ids, on A's link).
+        taken_by(&peer_a, ports[0], 2, &pongs).await;
+        if !shared_link {
+            taken_by(&peer_b, port_b, 3, &pongs).await;
+        }
         daemon.stop(Duration::from_secs(2)).await;
         task_a.abort();
         task_b.abort();
@@ -226,7 +248,8 @@ async fn live_service_calibrates_each_vehicle_on_its_own() {
         assert_eq!(vehicles[0]["input"]["samples"], n);
 
         // Its own JSON lines: a further vehicle's say which it is.
-        let calibrated: std::collections::BTreeSet<_> = lines(&sink)
+        let calibrated: std::collections::BTreeSet<_> = sink
+            .drain()
             .await
             .iter()
             .filter(|v| v["type"] == "calibration" && v["sensor"] == "mag" && v["status"] == "ok")
@@ -252,18 +275,24 @@ async fn restart_with_the_other_vehicle_first(
     b: &SimOutput,
 ) {
     let before = std::fs::read_to_string(cal_dir.join("calibration.json")).unwrap();
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    feed_and_stop(service_config(cal_dir, ports, &sink), ports[1], b, 200).await;
-    let said: Vec<String> = lines(&sink)
-        .await
-        .iter()
-        .filter(|v| v["type"] == "status")
-        .map(|v| v["text"].as_str().unwrap_or("").to_string())
-        .collect();
+    let mut sink = common::JsonSink::bind().await;
+    let cfg = service_config(cal_dir, ports, &sink);
+    let (daemon, _peer) = feed(cfg, ports[1], b, 200).await;
+    // Stopped once B was heard: the status line naming its directory (a ping on B's link would
+    // be answered on A's, where nobody listens: the service answers as the first vehicle).
+    let names_b = |v: &serde_json::Value| {
+        v["type"] == "status"
+            && v["text"]
+                .as_str()
+                .is_some_and(|t| t.contains("vehicle-1-1"))
+    };
+    let said = sink
+        .wait_for("B's status line", names_b, ANSWER_WITHIN)
+        .await;
+    daemon.stop(Duration::from_secs(2)).await;
     assert!(
-        said.iter()
-            .any(|t| t.contains("vehicle-1-1") && t.contains("(resumed)")),
-        "{said:?}"
+        said["text"].as_str().unwrap().contains("(resumed)"),
+        "{said}"
     );
     let after: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(cal_dir.join("calibration.json")).unwrap())
@@ -285,10 +314,10 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     let (a, b) = two_vehicles();
     let dir = tempfile::tempdir().unwrap();
     let port = free_udp_port();
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut sink = common::JsonSink::bind().await;
     let mut cfg = service_config(&dir.path().join("cal"), &[port], &sink);
     cfg.daemon.heartbeat_rate_hz = 0.0;
-    let daemon = common::Daemon::start(cfg, Duration::from_millis(200)).await;
+    let daemon = common::Daemon::ready(cfg).await;
     let peer = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
     let (mut v1, mut v2, mut gcs) = (
         MavEncoder::new(1, 1),
@@ -304,7 +333,8 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
                 .unwrap();
         }
     }
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    // Both vehicles heard before the commands.
+    taken(&peer, port, SERVICE_IDS, ANSWER_WITHIN, |_| {}).await;
     // Who answers each command: the (system, component) of every COMMAND_ACK.
     let mut answers = vec![];
     let mut dec = imucald::io::decode::FrameDecoder::new();
@@ -340,7 +370,7 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
     );
     // The runs restarted: one per vehicle for its own command, one each for the broadcast.
     let mut started = BTreeMap::new();
-    for v in lines(&sink).await {
+    for v in sink.drain().await {
         if v["type"] == "status" && v["text"] == "mag calibration run started" {
             let sys = v["vehicle"]["system_id"].as_u64().unwrap_or(1);
             *started.entry(sys).or_insert(0) += 1;
@@ -353,9 +383,11 @@ async fn commands_reach_the_vehicle_they_are_addressed_to() {
 /// the configured directory's calibration, and the store records the new address.
 async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, a: &SimOutput) {
     let new_port = free_udp_port();
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let sink = common::JsonSink::bind().await;
     let cfg = service_config(cal_dir, &[new_port, port_b], &sink);
-    let summary = feed_and_stop(cfg, new_port, a, 200).await;
+    let (daemon, peer) = feed(cfg, new_port, a, 200).await;
+    taken(&peer, new_port, SERVICE_IDS, ANSWER_WITHIN, |_| {}).await;
+    let summary = daemon.stop(Duration::from_secs(2)).await;
     // Taken by the first calibration (the summary counts its samples), not a further vehicle's.
     assert_eq!(summary.samples, 200, "{summary:?}");
     let store = imucald::app::daemon::load_store(cal_dir).unwrap().unwrap();

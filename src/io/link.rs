@@ -14,7 +14,8 @@
 //! A live link that fails (refused, closed, serial port gone, I/O error) reports
 //! [`LinkStatus::Lost`] once, then retries with exponential backoff until it is back
 //! ([`LinkStatus::Connected`]). Nothing here panics on bad input or a vanished peer, and every
-//! loop watches the shutdown flag.
+//! loop watches the shutdown flag. How the first opening went (the bound local address, the port
+//! the system chose for port 0, or why it failed) is told once, on [`LinkHandle::opening`].
 
 use crate::io::decode::{
     self, DecodeStats, Frame, FrameDecoder, FrameParse, SkipReason, TlogRecords,
@@ -344,6 +345,23 @@ pub(crate) enum LinkStatus {
     Ended,
 }
 
+/// How a link's first opening went: what the live service's `ready` line lists for it. Set once,
+/// before the link's first [`LinkStatus`], and never changed after (a link that fails later says
+/// so with [`LinkStatus::Lost`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[serde(tag = "state", rename_all = "snake_case")]
+pub enum LinkOpening {
+    /// Open: a socket bound (a UDP link, a TCP listener), a connection made, a serial port or a
+    /// file opened, a simulation made. `local` is the bound local address when the link has one
+    /// (the port the system chose when the address asked for port 0).
+    Open {
+        local: Option<SocketAddr>,
+        detail: String,
+    },
+    /// The first attempt failed: a live link keeps trying with backoff, a replay never works.
+    Failed { detail: String },
+}
+
 /// Counters of one link, readable while it runs.
 #[derive(Default, Debug)]
 pub(crate) struct LinkCounters {
@@ -374,6 +392,9 @@ pub(crate) struct LinkHandle {
     pub counters: Arc<LinkCounters>,
     /// Decode counters of this link (frames/lines decoded, skips by reason).
     pub decode_stats: Arc<Mutex<DecodeStats>>,
+    /// `None` until the link first opened or failed to ([`LinkOpening`]); closed without a value
+    /// when the link stopped before that.
+    pub opening: watch::Receiver<Option<LinkOpening>>,
     pub task: tokio::task::JoinHandle<()>,
 }
 
@@ -673,6 +694,8 @@ struct Shared {
     stats: Arc<Mutex<DecodeStats>>,
     tuning: Tuning,
     start: Instant,
+    /// Where the link's first opening is told ([`LinkHandle::opening`]).
+    opening: watch::Sender<Option<LinkOpening>>,
 }
 
 impl Shared {
@@ -686,6 +709,18 @@ impl Shared {
             }
             Err(mpsc::error::TrySendError::Closed(_)) => false,
         }
+    }
+
+    /// Tell how the first opening went (later ones are not told: the first is the start-up's).
+    fn opened(&self, how: LinkOpening) {
+        self.opening.send_if_modified(|o| {
+            if o.is_some() {
+                return false;
+            }
+            tracing::debug!("link {}: {how:?}", self.index);
+            *o = Some(how);
+            true
+        });
     }
 
     fn status(&self, status: LinkStatus) -> bool {
@@ -857,6 +892,8 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> Io for T {}
 enum Conn {
     Stream {
         io: Box<dyn Io>,
+        /// The local end of a TCP connection (none for a serial port).
+        local: Option<SocketAddr>,
         desc: String,
         eof: &'static str,
     },
@@ -866,6 +903,22 @@ enum Conn {
         target: Option<SocketAddr>,
         desc: String,
     },
+}
+
+impl Conn {
+    /// What the link's `ready` entry says of this connection.
+    fn opening(&self) -> LinkOpening {
+        match self {
+            Conn::Stream { local, desc, .. } => LinkOpening::Open {
+                local: *local,
+                detail: desc.clone(),
+            },
+            Conn::Udp { sock, desc, .. } => LinkOpening::Open {
+                local: sock.local_addr().ok(),
+                detail: desc.clone(),
+            },
+        }
+    }
 }
 
 const TCP_CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
@@ -917,12 +970,14 @@ async fn open(addr: &Address) -> Result<Conn, String> {
                 Err(_) => return Err(format!("cannot connect to tcp {h}: timed out")),
             };
             let _ = s.set_nodelay(true);
+            let local = s.local_addr().ok();
             let peer = s
                 .peer_addr()
                 .map(|p| p.to_string())
                 .unwrap_or_else(|_| h.clone());
             Ok(Conn::Stream {
                 io: Box::new(s),
+                local,
                 desc: format!("tcp {peer}"),
                 eof: "connection closed by the remote end",
             })
@@ -934,6 +989,7 @@ async fn open(addr: &Address) -> Result<Conn, String> {
                 .map_err(|e| format!("cannot open serial {path}: {e}"))?;
             Ok(Conn::Stream {
                 io: Box::new(port),
+                local: None,
                 desc: format!("serial {path} at {baud} baud"),
                 eof: "serial port closed (end of stream)",
             })
@@ -956,6 +1012,7 @@ pub(crate) fn spawn_link(
     let (out_tx, out_rx) = mpsc::channel(opts.outbound_capacity.max(1));
     let counters = Arc::new(LinkCounters::default());
     let decode_stats = Arc::new(Mutex::new(DecodeStats::default()));
+    let (opening_tx, opening) = watch::channel(None);
     let sh = Shared {
         index,
         inbound,
@@ -963,6 +1020,7 @@ pub(crate) fn spawn_link(
         stats: decode_stats.clone(),
         tuning: Tuning::from(&opts),
         start: Instant::now(),
+        opening: opening_tx,
     };
     let ctl = Control {
         shutdown,
@@ -974,6 +1032,7 @@ pub(crate) fn spawn_link(
         outbound: out_tx,
         counters,
         decode_stats,
+        opening,
         task,
     }
 }
@@ -1016,8 +1075,9 @@ async fn run_dialled(sh: &Shared, ctl: &mut Control, addr: &Address, payload: &P
             Ok(conn) => {
                 let up = Instant::now();
                 let mut rx = Rx::new(payload);
+                sh.opened(conn.opening());
                 let end = match conn {
-                    Conn::Stream { io, desc, eof } => {
+                    Conn::Stream { io, desc, eof, .. } => {
                         if !sh.status(LinkStatus::Connected(desc)) {
                             return;
                         }
@@ -1050,6 +1110,9 @@ async fn run_dialled(sh: &Shared, ctl: &mut Control, addr: &Address, payload: &P
                 }
             }
             Err(reason) => {
+                sh.opened(LinkOpening::Failed {
+                    detail: reason.clone(),
+                });
                 if !lost_reported {
                     if !sh.status(LinkStatus::Lost(reason)) {
                         return;
@@ -1081,8 +1144,12 @@ async fn run_tcp_in(sh: &Shared, ctl: &mut Control, a: SocketAddr, payload: &Pay
             None => return,
             Some(Ok(l)) => l,
             Some(Err(e)) => {
+                let reason = format!("cannot listen on tcp {a}: {e}");
+                sh.opened(LinkOpening::Failed {
+                    detail: reason.clone(),
+                });
                 if !lost_reported {
-                    if !sh.status(LinkStatus::Lost(format!("cannot listen on tcp {a}: {e}"))) {
+                    if !sh.status(LinkStatus::Lost(reason)) {
                         return;
                     }
                     lost_reported = true;
@@ -1098,7 +1165,13 @@ async fn run_tcp_in(sh: &Shared, ctl: &mut Control, a: SocketAddr, payload: &Pay
                 continue;
             }
         };
-        tracing::info!("link {}: listening on tcp {a}", sh.index);
+        let local = listener.local_addr().ok();
+        let shown = local.map_or_else(|| a.to_string(), |l| l.to_string());
+        tracing::info!("link {}: listening on tcp {shown}", sh.index);
+        sh.opened(LinkOpening::Open {
+            local,
+            detail: format!("listening on tcp {shown}"),
+        });
         loop {
             let Some(acc) = guarded(ctl, &sh.counters, listener.accept()).await else {
                 return;
@@ -1492,7 +1565,17 @@ async fn deliver(sh: &Shared, ctl: &mut Control, item: Inbound) -> bool {
     )
 }
 
+/// A replay's status, waiting for room; its first says how the opening went (a replay connects
+/// once, or fails once).
 async fn deliver_status(sh: &Shared, ctl: &mut Control, status: LinkStatus) -> bool {
+    match &status {
+        LinkStatus::Connected(d) => sh.opened(LinkOpening::Open {
+            local: None,
+            detail: d.clone(),
+        }),
+        LinkStatus::Lost(d) => sh.opened(LinkOpening::Failed { detail: d.clone() }),
+        LinkStatus::Silent { .. } | LinkStatus::Ended => {}
+    }
     let link = sh.index;
     deliver(sh, ctl, Inbound::Status { link, status }).await
 }
@@ -1821,6 +1904,25 @@ mod tests {
         s.local_addr().expect("addr").port()
     }
 
+    /// Waits until `done` holds: a counter the link task moves, looked at every 5 ms (an atomic
+    /// counter has no event to wait on). Fails after [`WAIT`].
+    async fn until(what: &str, mut done: impl FnMut() -> bool) {
+        let t0 = std::time::Instant::now();
+        while !done() {
+            assert!(t0.elapsed() < WAIT, "not within {WAIT:?}: {what}");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    }
+
+    /// How the link's first opening went, once it is known.
+    async fn opening(rig: &mut Rig) -> LinkOpening {
+        let o = tokio::time::timeout(WAIT, rig.handle.opening.wait_for(Option::is_some))
+            .await
+            .expect("opened or failed within WAIT")
+            .expect("told before the link stopped");
+        o.clone().expect("some")
+    }
+
     // --- addresses -----------------------------------------------------------------------------
 
     #[test]
@@ -2082,6 +2184,77 @@ mod tests {
         rig.stop().await;
     }
 
+    /// The first opening is told once, before the first status: the bound address of a link asked
+    /// for port 0, the failure of one that cannot open (and not again on its retries), no local
+    /// address for a replay.
+    #[tokio::test]
+    async fn link_opening_tells_the_bound_port_or_the_failure() {
+        let mut udp = start(
+            Address::parse("udpin:127.0.0.1:0").unwrap(),
+            Payload::Mavlink,
+            fast_opts(),
+            64,
+        );
+        let local = match opening(&mut udp).await {
+            LinkOpening::Open { local: Some(a), .. } => a,
+            other => panic!("{other:?}"),
+        };
+        assert!(local.ip().is_loopback() && local.port() != 0, "{local}");
+        match udp.status().await {
+            LinkStatus::Connected(s) => assert!(s.contains(&local.to_string()), "{s}"),
+            s => panic!("{s:?}"),
+        }
+        // It listens there: a datagram sent to the told port arrives.
+        let client = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        client
+            .send_to(&frame_bytes(&imu(5.0), MavlinkVersion::V2), local)
+            .await
+            .unwrap();
+        assert!(matches!(
+            udp.frame().await.0.message,
+            apm::MavMessage::HIGHRES_IMU(_)
+        ));
+        udp.stop().await;
+
+        let refused = {
+            let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+            l.local_addr().unwrap()
+        };
+        let mut tcp = start(
+            Address::TcpOut(refused.to_string()),
+            Payload::Mavlink,
+            fast_opts(),
+            64,
+        );
+        match opening(&mut tcp).await {
+            LinkOpening::Failed { detail } => {
+                assert!(detail.contains("cannot connect"), "{detail}")
+            }
+            other => panic!("{other:?}"),
+        }
+        let c = tcp.handle.counters.clone();
+        until("a retry", || c.reconnects.load(Relaxed) >= 1).await;
+        assert!(!tcp.handle.opening.has_changed().unwrap(), "told once");
+        tcp.stop().await;
+
+        let mut sim = start(
+            Address::parse("sim:turntable?speed=0").unwrap(),
+            Payload::Mavlink,
+            fast_opts(),
+            64,
+        );
+        match opening(&mut sim).await {
+            LinkOpening::Open {
+                local: None,
+                detail,
+            } => {
+                assert!(detail.contains("turntable"), "{detail}")
+            }
+            other => panic!("{other:?}"),
+        }
+        sim.stop().await;
+    }
+
     #[tokio::test]
     async fn udpin_frames_v1_v2_garbage_counted_and_reply_to_sender() {
         let port = free_udp_port();
@@ -2148,11 +2321,10 @@ mod tests {
         let c = rig.handle.counters.clone();
         for round in 1..=2u64 {
             client.send_to(&dgram, ("127.0.0.1", port)).await.unwrap();
-            let t0 = std::time::Instant::now();
-            while c.frames_in.load(Relaxed) < 5 * round {
-                assert!(t0.elapsed() < WAIT, "reader stalled");
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
+            until("the reader takes both datagrams", || {
+                c.frames_in.load(Relaxed) >= 5 * round
+            })
+            .await;
         }
         // 2 fit in the channel; the other 8 were dropped, and the reader went on.
         assert_eq!(c.inbound_dropped.load(Relaxed), 8);
@@ -2257,10 +2429,9 @@ mod tests {
             s => panic!("{s:?}"),
         }
         rig.handle.outbound.send(b"x".to_vec()).await.unwrap();
-        tokio::time::sleep(Duration::from_millis(400)).await;
-        let c = &rig.handle.counters;
+        let c = rig.handle.counters.clone();
+        until("retries with backoff", || c.reconnects.load(Relaxed) >= 2).await;
         assert_eq!(c.outbound_dropped.load(Relaxed), 1);
-        assert!(c.reconnects.load(Relaxed) >= 2, "retries with backoff");
         // Repeated failures are not reported again.
         assert!(rig.rx.try_recv().is_err());
         rig.stop().await;
@@ -2268,21 +2439,21 @@ mod tests {
 
     #[tokio::test]
     async fn tcpin_serves_one_client_at_a_time() {
-        let port = {
-            let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-            l.local_addr().unwrap().port()
-        };
-        let addr = Address::parse(&format!("tcpin:127.0.0.1:{port}")).unwrap();
+        // Port 0: the listener's opening says which port it got.
+        let addr = Address::parse("tcpin:127.0.0.1:0").unwrap();
         let mut rig = start(addr, Payload::MotionCal, fast_opts(), 64);
-        let mut c1 = None;
-        for _ in 0..100 {
-            if let Ok(s) = TcpStream::connect(("127.0.0.1", port)).await {
-                c1 = Some(s);
-                break;
+        let port = match opening(&mut rig).await {
+            LinkOpening::Open {
+                local: Some(a),
+                detail,
+            } => {
+                assert!(detail.contains(&a.to_string()), "{detail}");
+                a.port()
             }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let mut c1 = c1.expect("tcpin listening");
+            other => panic!("{other:?}"),
+        };
+        assert_ne!(port, 0);
+        let mut c1 = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
         assert!(matches!(rig.status().await, LinkStatus::Connected(s) if s.contains("client")));
         // A second client is closed at once.
         let mut c2 = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
@@ -2355,11 +2526,7 @@ mod tests {
         assert_eq!(samples[1].mag_ut, Some([0.0, 0.0, -50.0]));
         assert!(samples[1].t_s >= samples[0].t_s && samples[0].t_s >= 0.0);
         let c = rig.handle.counters.clone();
-        let t0 = std::time::Instant::now();
-        while c.lines_skipped.load(Relaxed) < 2 {
-            assert!(t0.elapsed() < WAIT);
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
+        until("two lines skipped", || c.lines_skipped.load(Relaxed) >= 2).await;
         assert_eq!(c.samples_in.load(Relaxed), 2);
 
         drop(master);

@@ -1,22 +1,27 @@
 //! Set-up the integration tests share: loopback ports, service configurations, the service run
-//! in this process or as a child, replays, and the Python peers that `scripts/test` installs.
+//! in this process or as a child (each waited for until it is ready, not for a guessed time),
+//! replays, and the resources a test may lack (the shared recordings, Chromium, the Python peers
+//! that `scripts/test` installs), each skipped alike: SKIPPED said plainly, or a failure under its
+//! `IMUCALD_REQUIRE_*=1` ([`imucald::testdata::absent`]).
 
 // Each test file uses a part of this module.
 #![allow(dead_code)]
 
-use imucald::app::daemon::RunSummary;
+use imucald::app::daemon::{Ready, RunSummary};
 use imucald::app::replay::{replay, ReplayOptions, ReplayOutcome};
 use imucald::config::{Config, SourceConfig};
 use imucald::types::Sample;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Child, Command, ExitStatus, Output, Stdio};
 use std::time::Duration;
 
 mod python;
 mod untuned;
-pub use python::{python_importing, python_path};
+mod wait;
+pub use python::python_path;
 #[allow(unused_imports)]
 pub use untuned::untuned_fusion;
+pub use wait::*;
 
 /// A UDP port on the loopback that was free a moment ago.
 pub fn free_udp_port() -> u16 {
@@ -47,9 +52,26 @@ pub fn udpin_config(dir: &Path) -> (u16, Config) {
     (port, cfg)
 }
 
-/// [`python_path`], checked to import `module` (pymavlink, pyulog).
+/// Environment variable that turns "no Python with the test peers" into a test failure when set
+/// to `1` (`scripts/test` sets it).
+pub const REQUIRE_PYTHON_ENV: &str = "IMUCALD_REQUIRE_PYTHON";
+
+/// [`python_path`] when it imports `modules` (`"pymavlink"`, `"vqf, numpy"`, `"MAVProxy"`), or
+/// `None` with SKIPPED said (a failure under `IMUCALD_REQUIRE_PYTHON=1`).
+pub fn python(modules: &str) -> Option<String> {
+    python::python_importing(modules).or_else(|| {
+        imucald::testdata::absent(
+            &format!("a Python importing {modules} ({})", python_path()),
+            REQUIRE_PYTHON_ENV,
+            "run ./scripts/test (it installs them into .venv) or set IMUCALD_PYTHON",
+        )
+    })
+}
+
+/// [`python`], failing the test without it whatever the switch says: for a caller that cannot
+/// skip.
 pub fn python_with(module: &str) -> String {
-    python_importing(module).unwrap_or_else(|| {
+    python::python_importing(module).unwrap_or_else(|| {
         panic!(
             "no Python with {module} at {}: run ./scripts/test (it installs a venv) or set IMUCALD_PYTHON",
             python_path()
@@ -57,15 +79,99 @@ pub fn python_with(module: &str) -> String {
     })
 }
 
-/// `imucald run --config CONFIG`, its output discarded (the caller waits for it to bind).
+/// Chromium's path, or `None` with SKIPPED said (a failure under `IMUCALD_REQUIRE_BROWSER=1`).
+pub fn chromium() -> Option<&'static str> {
+    const CHROMIUM: &str = "/usr/bin/chromium";
+    if Path::new(CHROMIUM).exists() {
+        return Some(CHROMIUM);
+    }
+    imucald::testdata::absent(
+        CHROMIUM,
+        "IMUCALD_REQUIRE_BROWSER",
+        "apt-get install chromium; scripts/test does",
+    )
+}
+
+/// `imucald run` as a child process: its stdout and stderr read as lines, started and waited for
+/// until it said it is ready (its links open). Killed when dropped.
+pub struct Service {
+    /// `None` once handed out ([`Service::into_child`]).
+    child: Option<Child>,
+    pub stdout: Lines,
+    pub stderr: Lines,
+    /// Its `ready` log line.
+    pub ready: String,
+}
+
+impl Service {
+    /// `imucald run` with `args`, once its `ready` line came (within [`READY_WITHIN`]).
+    pub fn start<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> Service {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .arg("run")
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdout = Lines::read(child.stdout.take().unwrap());
+        let mut stderr = Lines::read(child.stderr.take().unwrap());
+        let ready = wait_for_line(&mut stderr, "ready line", is_ready_log, READY_WITHIN);
+        Service {
+            child: Some(child),
+            stdout,
+            stderr,
+            ready,
+        }
+    }
+
+    pub fn child(&mut self) -> &mut Child {
+        self.child.as_mut().expect("the child was handed out")
+    }
+
+    /// The JSON `ready` line on stdout (with `--publish stdout`).
+    pub fn ready_json(&mut self) -> serde_json::Value {
+        let l = wait_for_line(
+            &mut self.stdout,
+            "JSON ready line",
+            is_ready_json,
+            READY_WITHIN,
+        );
+        serde_json::from_str(&l).unwrap()
+    }
+
+    /// SIGTERM; its exit status (`None`: still running `within` after, then killed) and all it
+    /// logged.
+    pub fn stop(&mut self, within: Duration) -> (Option<ExitStatus>, String) {
+        let child = self.child();
+        sigterm(child);
+        let status = wait_exit(child, within);
+        if status.is_none() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        (status, self.stderr.until_end())
+    }
+
+    /// The child alone, its output still drained (and dropped) so that it never blocks on a pipe.
+    pub fn into_child(mut self) -> Child {
+        self.stdout.drain_in_background();
+        self.stderr.drain_in_background();
+        self.child.take().expect("the child was handed out")
+    }
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        if let Some(c) = self.child.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// `imucald run --config CONFIG`, once it is ready; its output drained and dropped.
 pub fn spawn_service(config: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_imucald"))
-        .args(["run", "--config"])
-        .arg(config)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap()
+    Service::start(&["--config".as_ref(), config.as_os_str()]).into_child()
 }
 
 /// The service with `mag_cal = "on_command"` (nothing installs a calibration unless commanded),
@@ -120,8 +226,8 @@ pub fn highres_imu_at(s: &Sample) -> mavlink::dialects::ardupilotmega::MavMessag
     )
 }
 
-/// Sleeps, every 50th sample (`i`), until the time of a sample at `t_s` played `speed` times
-/// faster than recorded from `t0`.
+/// Paces a stream in real time: sleeps, every 50th sample (`i`), until the time of a sample at
+/// `t_s` played `speed` times faster than recorded from `t0`.
 pub async fn pace(i: usize, t0: tokio::time::Instant, t_s: f64, speed: f64) {
     if i.is_multiple_of(50) {
         tokio::time::sleep_until(t0 + Duration::from_secs_f64(t_s / speed)).await;
@@ -132,15 +238,41 @@ pub async fn pace(i: usize, t0: tokio::time::Instant, t_s: f64, speed: f64) {
 pub struct Daemon {
     stop: tokio::sync::watch::Sender<bool>,
     task: tokio::task::JoinHandle<Result<RunSummary, imucald::error::Error>>,
+    /// What its `ready` line said: each link's bound address.
+    pub ready: Ready,
 }
 
 impl Daemon {
-    /// The service on `cfg`, given `settle` to open its links.
-    pub async fn start(cfg: Config, settle: Duration) -> Daemon {
+    /// The service on `cfg`, once every link has opened (or failed to: see [`Ready`]). Needs no
+    /// deadline: the service is ready or stopped within its first connection attempt.
+    pub async fn ready(cfg: Config) -> Daemon {
         let (stop, stop_rx) = tokio::sync::watch::channel(false);
-        let task = tokio::spawn(imucald::app::daemon::run(cfg, stop_rx));
-        tokio::time::sleep(settle).await;
-        Daemon { stop, task }
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let task = tokio::spawn(imucald::app::daemon::run_reporting_ready(
+            cfg,
+            stop_rx,
+            Some(tx),
+        ));
+        match rx.await {
+            Ok(ready) => Daemon { stop, task, ready },
+            Err(_) => panic!("the service stopped before it was ready: {:?}", task.await),
+        }
+    }
+
+    /// [`Daemon::ready`], then `play` more of the tokio clock: under a paused clock, the time a
+    /// replay is given to play, at no cost.
+    pub async fn start(cfg: Config, play: Duration) -> Daemon {
+        let d = Daemon::ready(cfg).await;
+        tokio::time::sleep(play).await;
+        d
+    }
+
+    /// The address link `i` is bound to (a udpin source asked for port 0 learns its port).
+    pub fn local(&self, i: usize) -> std::net::SocketAddr {
+        match &self.ready.links[i].opening {
+            imucald::io::link::LinkOpening::Open { local: Some(a), .. } => *a,
+            other => panic!("link {i} has no bound address: {other:?}"),
+        }
     }
 
     /// Asks it to stop; its summary, once it stopped (however long it takes: for tokio's paused
@@ -158,6 +290,90 @@ impl Daemon {
             .expect("stops")
             .unwrap()
             .unwrap()
+    }
+}
+
+/// A JSON-lines consumer over UDP on the loopback, for a service in this process. A task of its
+/// own reads the socket as lines come (a socket left unread for seconds fills and drops them), and
+/// keeps them for the test: a test's service sends a few MB at most.
+pub struct JsonSink {
+    addr: std::net::SocketAddr,
+    rx: tokio::sync::mpsc::UnboundedReceiver<serde_json::Value>,
+    reader: tokio::task::JoinHandle<()>,
+    /// Every line taken so far, in order.
+    pub lines: Vec<serde_json::Value>,
+}
+
+impl JsonSink {
+    pub async fn bind() -> JsonSink {
+        let sock = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let addr = sock.local_addr().unwrap();
+        let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+        let reader = tokio::spawn(async move {
+            let mut buf = vec![0u8; 65_536];
+            while let Ok(n) = sock.recv(&mut buf).await {
+                for l in String::from_utf8_lossy(&buf[..n]).lines() {
+                    if tx.send(serde_json::from_str(l).unwrap()).is_err() {
+                        return;
+                    }
+                }
+            }
+        });
+        JsonSink {
+            addr,
+            rx,
+            reader,
+            lines: vec![],
+        }
+    }
+
+    /// Its `daemon.publish` entry.
+    pub fn publish(&self) -> String {
+        format!("udp:{}", self.addr)
+    }
+
+    /// Every line received, once those still on their way arrived: for after the service stopped
+    /// (its writers passed on what was queued), read until 20 ms pass without one.
+    pub async fn drain(&mut self) -> &[serde_json::Value] {
+        while let Ok(Some(v)) =
+            tokio::time::timeout(Duration::from_millis(20), self.rx.recv()).await
+        {
+            self.lines.push(v);
+        }
+        &self.lines
+    }
+
+    /// The next line `want` accepts, once it came (it and those before it are kept in
+    /// `lines`); fails the test, naming what was `awaited`, when it does not come `within`.
+    pub async fn wait_for(
+        &mut self,
+        awaited: &str,
+        mut want: impl FnMut(&serde_json::Value) -> bool,
+        within: Duration,
+    ) -> serde_json::Value {
+        let until = tokio::time::Instant::now() + within;
+        loop {
+            let Ok(Some(v)) = tokio::time::timeout_at(until, self.rx.recv()).await else {
+                let said: Vec<String> = (self.lines.iter())
+                    .filter(|v| v["type"] == "status")
+                    .map(|v| v["text"].to_string())
+                    .collect();
+                panic!(
+                    "no {awaited} within {within:?} among {} lines; the status lines: {said:?}",
+                    self.lines.len()
+                );
+            };
+            self.lines.push(v.clone());
+            if want(&v) {
+                return v;
+            }
+        }
+    }
+}
+
+impl Drop for JsonSink {
+    fn drop(&mut self) {
+        self.reader.abort();
     }
 }
 
@@ -257,12 +473,13 @@ pub fn run_on_file(
 
 /// `samples` as a `.tlog` in `dir` written by pymavlink (`tests/interop/pymavlink_flight_tlog.py`:
 /// HIGHRES_IMU, ATTITUDE when the reference attitude changes, GPS_RAW_INT and SYS_STATUS at
-/// 5 Hz), through a CSV beside it.
-pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> PathBuf {
+/// 5 Hz), through a CSV beside it; `None` (SKIPPED said) without pymavlink ([`python`]).
+pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> Option<PathBuf> {
+    let py = python("pymavlink")?;
     let csv = dir.join("flight.csv");
     imucald::io::samplelog::write_csv(&csv, samples).unwrap();
     let tlog = dir.join("flight.tlog");
-    let st = Command::new(python_with("pymavlink"))
+    let st = Command::new(py)
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/interop/pymavlink_flight_tlog.py"
@@ -272,5 +489,5 @@ pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> PathBuf {
         .status()
         .unwrap();
     assert!(st.success(), "pymavlink_flight_tlog.py");
-    tlog
+    Some(tlog)
 }

@@ -33,6 +33,7 @@ pub use crate::types::STATUS_TARGET;
 use magcal::{MagCalEffect, MagCalEvent, MagCalRun};
 use mavout::severity_name;
 use outputs::*;
+pub use outputs::{Ready, ReadyLink};
 use service::{open_store, start_links};
 use sinks::*;
 pub use store::{
@@ -55,7 +56,9 @@ use crate::config::{
 use crate::error::Error;
 use crate::io::clock::{ClockSettings, SourceClock};
 use crate::io::decode::{InstanceChoice, MessageConverter};
-use crate::io::link::{spawn_link, Address, Inbound, LinkHandle, LinkOptions, LinkStatus, Payload};
+use crate::io::link::{
+    spawn_link, Address, Inbound, LinkHandle, LinkOpening, LinkOptions, LinkStatus, Payload,
+};
 use crate::io::mavout::{self, LiveEvent, MavEncoder, ParamWriter};
 use crate::report::{GyroCalibration, SensorCalibration};
 use crate::types::{norm, Sample, Sensor, Unit, Vec3};
@@ -338,6 +341,8 @@ struct State {
     report: Option<PathBuf>,
     start: tokio::time::Instant,
     declination: Option<f64>,
+    /// The start-up's `ready` line.
+    ready: Readiness,
 }
 
 /// Oldest the newest sample of a fixed-yaw calibration may be, s: the vehicle must be standing at
@@ -366,6 +371,17 @@ fn mag_cal_moved(old: Option<&Calibration>, new: Option<&Calibration>, raw: &Vec
 }
 /// Run the service until `shutdown` turns true, or until every replay/sim source has ended.
 pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSummary, Error> {
+    run_reporting_ready(cfg, shutdown, None).await
+}
+
+/// [`run`], handing `ready` what the `ready` line says once every link has opened or failed to:
+/// for a caller in the same process (a test) that must not send before the service listens, or
+/// that asked for port 0. Dropped unsent when the service stops before that.
+pub async fn run_reporting_ready(
+    cfg: Config,
+    shutdown: watch::Receiver<bool>,
+    ready: Option<tokio::sync::oneshot::Sender<Ready>>,
+) -> Result<RunSummary, Error> {
     // Checked here too (callers may build the config in code): bad rates would stop the timers.
     cfg.validate()?;
     let store = open_store(&cfg.daemon)?;
@@ -387,7 +403,12 @@ pub async fn run(cfg: Config, shutdown: watch::Receiver<bool>) -> Result<RunSumm
     let epoch = tokio::time::Instant::now();
     let (link_stop_tx, link_stop_rx) = watch::channel(false);
     let links = start_links(&cfg.daemon, epoch, tx, link_stop_rx)?;
-    let mut st = State::new(cfg, store, declination, links, sinks)?;
+    let readiness = Readiness {
+        told: false,
+        ui: ui.as_ref().map(|u| u.addr),
+        notify: ready,
+    };
+    let mut st = State::new(cfg, store, declination, links, sinks, readiness)?;
     let mut timers = Timers::new(&st.cfg.daemon, st.links.iter().any(|l| l.polled), epoch);
     let fit_job = st.serve(rx, shutdown, &mut timers).await;
     let _ = link_stop_tx.send(true);
@@ -526,9 +547,10 @@ mod tests {
         assert_eq!(r.take(), Some([1.0, 1.0, 1.0]));
     }
 
-    /// A TCP consumer that accepts and never reads: queueing lines for it never waits, what its
-    /// queue cannot hold is counted, and closing it is bounded by the deadline.
-    #[tokio::test]
+    /// A TCP consumer that accepts and never reads: queueing lines for it never waits (no time
+    /// passes on the paused clock), what its queue cannot hold is counted, and closing it ends at
+    /// the deadline.
+    #[tokio::test(start_paused = true)]
     async fn daemon_json_sink_for_a_stuck_consumer_drops_counts_and_closes_in_time() {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let addr = l.local_addr().unwrap();
@@ -536,15 +558,15 @@ mod tests {
         let mut sinks = vec![Sink::open(&format!("tcp:{addr}"), 1).unwrap()];
         // 20 000 lines of 1 kB: far more than the socket buffers and the queue hold.
         let line: std::sync::Arc<str> = format!("{}\n", "x".repeat(1023)).into();
-        let t0 = std::time::Instant::now();
+        let t0 = tokio::time::Instant::now();
         for i in 0..20_000 {
             sinks[0].send(&line);
             if i % 256 == 0 {
                 // Let the writer run (connect, fill the socket, block).
-                tokio::time::sleep(Duration::from_millis(1)).await;
+                tokio::task::yield_now().await;
             }
         }
-        let queued_s = t0.elapsed().as_secs_f64();
+        let queued = t0.elapsed();
         let r = sinks[0].report();
         // Measured: 3841 sent, 15071 dropped with the queue full.
         assert!(r.queue_full > 5_000, "{r:?}");
@@ -557,11 +579,54 @@ mod tests {
         assert_eq!(sinks[0].lost(), r.queue_full + r.not_delivered);
         let t1 = tokio::time::Instant::now();
         close_sinks(&mut sinks, t1 + Duration::from_millis(100)).await;
-        let closed_s = t1.elapsed().as_secs_f64();
-        eprintln!("{r:?}: queued in {queued_s:.3} s, closed in {closed_s:.3} s");
-        // Measured: queueing ~0.15 s (mostly the sleeps), closing 0.10 s (the deadline).
-        assert!(queued_s < 2.0 && closed_s < 0.5, "{queued_s} {closed_s}");
+        let closed = t1.elapsed();
+        eprintln!("{r:?}: queued in {queued:?}, closed in {closed:?} (the paused clock)");
+        assert_eq!(queued, Duration::ZERO);
+        // The stuck writer is given the deadline and no more (the timer's 1 ms grain).
+        assert!(
+            (Duration::from_millis(100)..=Duration::from_millis(101)).contains(&closed),
+            "{closed:?}"
+        );
         drop(held);
+    }
+
+    /// How long a test waits for the service's answer: a deadline, not a pause.
+    const ANSWER_WITHIN: Duration = Duration::from_secs(20);
+
+    /// The service on `cfg` in this process, once its links are open: its task, its stop switch
+    /// and the local port of each link (the sources ask for port 0).
+    async fn started(
+        cfg: Config,
+    ) -> (
+        tokio::task::JoinHandle<Result<RunSummary, Error>>,
+        watch::Sender<bool>,
+        Vec<u16>,
+    ) {
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let (ready_tx, ready_rx) = tokio::sync::oneshot::channel();
+        let daemon = tokio::spawn(run_reporting_ready(cfg, stop_rx, Some(ready_tx)));
+        let ready = ready_rx
+            .await
+            .expect("the service stopped before it was ready");
+        let ports = ready
+            .links
+            .iter()
+            .map(|l| match &l.opening {
+                LinkOpening::Open { local: Some(a), .. } => a.port(),
+                other => panic!("{}: {other:?}", l.source),
+            })
+            .collect();
+        (daemon, stop_tx, ports)
+    }
+
+    /// A `udpin` source on the loopback, its port chosen by the system.
+    fn udpin_any_port() -> SourceConfig {
+        SourceConfig {
+            address: "udpin:127.0.0.1:0".into(),
+            payload: crate::config::PayloadKind::Mavlink,
+            fields: vec![],
+            scales: Default::default(),
+        }
     }
 
     /// Two links, two vehicles: an ArduPilot HEARTBEAT on one does not make the service undo the
@@ -570,25 +635,12 @@ mod tests {
     /// vehicle.
     #[tokio::test]
     async fn daemon_keeps_links_apart_as_vehicles() {
+        use crate::testdata::{taken, SERVICE_IDS};
         use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
         for merged in [false, true] {
             let dir = tempfile::tempdir().unwrap();
-            let ports: Vec<u16> = (0..2)
-                .map(|_| {
-                    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
-                    s.local_addr().unwrap().port()
-                })
-                .collect();
             let mut cfg = Config::default();
-            cfg.daemon.sources = ports
-                .iter()
-                .map(|p| SourceConfig {
-                    address: format!("udpin:127.0.0.1:{p}"),
-                    payload: crate::config::PayloadKind::Mavlink,
-                    fields: vec![],
-                    scales: Default::default(),
-                })
-                .collect();
+            cfg.daemon.sources = vec![udpin_any_port(), udpin_any_port()];
             let report = dir.path().join("report.json");
             cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
             cfg.daemon.report = Some(report.display().to_string());
@@ -600,9 +652,7 @@ mod tests {
             };
             cfg.daemon.heartbeat_rate_hz = 0.0;
             cfg.fit.refit_every_s = 0.1;
-            let (stop_tx, stop_rx) = watch::channel(false);
-            let daemon = tokio::spawn(run(cfg, stop_rx));
-            tokio::time::sleep(Duration::from_millis(200)).await;
+            let (daemon, stop_tx, ports) = started(cfg).await;
             let imu = |i: u64| {
                 MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
                     time_usec: 1_000_000 + i * 10_000,
@@ -619,12 +669,13 @@ mod tests {
             px4.connect(("127.0.0.1", ports[0])).await.unwrap();
             ap.connect(("127.0.0.1", ports[1])).await.unwrap();
             let (mut px4_enc, mut ap_enc) = (MavEncoder::new(1, 1), MavEncoder::new(7, 1));
-            // The PX4 vehicle's IMU data first (it is the one calibrated), then an ArduPilot
-            // vehicle on the other link: its HEARTBEAT and IMU data, then more PX4 data.
+            // The PX4 vehicle's IMU data first, taken before the other link says anything (it is
+            // the one calibrated), then an ArduPilot vehicle on the other link: its HEARTBEAT and
+            // IMU data, then more PX4 data.
             for i in 0..30 {
                 px4.send(&px4_enc.encode(&imu(i))).await.unwrap();
             }
-            tokio::time::sleep(Duration::from_millis(150)).await;
+            taken(&px4, ports[0], SERVICE_IDS, ANSWER_WITHIN, |_| {}).await;
             let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
                 autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
                 mavtype: MavType::MAV_TYPE_QUADROTOR,
@@ -634,11 +685,14 @@ mod tests {
             for i in 0..20 {
                 ap.send(&ap_enc.encode(&imu(i))).await.unwrap();
             }
-            tokio::time::sleep(Duration::from_millis(150)).await;
             for i in 30..60 {
                 px4.send(&px4_enc.encode(&imu(i))).await.unwrap();
             }
-            tokio::time::sleep(Duration::from_millis(300)).await;
+            // Everything taken on both links. The service answers the ArduPilot link as the
+            // vehicle heard there: its own (system 7) when apart, the one merged vehicle (1).
+            taken(&px4, ports[0], SERVICE_IDS, ANSWER_WITHIN, |_| {}).await;
+            let ap_system = if merged { 1 } else { 7 };
+            taken(&ap, ports[1], (ap_system, 191), ANSWER_WITHIN, |_| {}).await;
             stop_tx.send(true).unwrap();
             let summary = daemon.await.unwrap().unwrap();
             let r: serde_json::Value =
@@ -667,24 +721,15 @@ mod tests {
     }
 
     /// Our own frames echoed back (same system and component id) are dropped and counted, never
-    /// samples and never a vehicle's HEARTBEAT; our HEARTBEAT goes out on the link.
-    #[tokio::test]
+    /// samples and never a vehicle's HEARTBEAT; our HEARTBEAT goes out on the link, once a second
+    /// of the (paused) clock.
+    #[tokio::test(start_paused = true)]
     async fn daemon_drops_its_own_echo_and_sends_heartbeats() {
         use mavlink::dialects::ardupilotmega::{MavType, HEARTBEAT_DATA, HIGHRES_IMU_DATA};
         let dir = tempfile::tempdir().unwrap();
-        let port = std::net::UdpSocket::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
         let json = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         let mut cfg = Config::default();
-        cfg.daemon.sources = vec![SourceConfig {
-            address: format!("udpin:127.0.0.1:{port}"),
-            payload: crate::config::PayloadKind::Mavlink,
-            fields: vec![],
-            scales: Default::default(),
-        }];
+        cfg.daemon.sources = vec![udpin_any_port()];
         cfg.daemon.calibration_dir = dir.path().join("cal").display().to_string();
         cfg.daemon.report = Some(dir.path().join("report.json").display().to_string());
         cfg.daemon.publish = vec![format!("udp:{}", json.local_addr().unwrap())];
@@ -692,9 +737,9 @@ mod tests {
         cfg.daemon.system_id = 1;
         cfg.daemon.component_id = 190;
         cfg.fit.refit_every_s = 0.1;
-        let (stop_tx, stop_rx) = watch::channel(false);
-        let daemon = tokio::spawn(run(cfg, stop_rx));
-        tokio::time::sleep(Duration::from_millis(200)).await;
+        let t0 = tokio::time::Instant::now();
+        let (daemon, stop_tx, ports) = started(cfg).await;
+        let port = ports[0];
         let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
         peer.connect(("127.0.0.1", port)).await.unwrap();
         let imu = |i: u64| {
@@ -720,22 +765,25 @@ mod tests {
         for i in 0..30 {
             peer.send(&fc.encode(&imu(100 + i))).await.unwrap();
         }
-        let mut dec = crate::io::decode::FrameDecoder::new();
         let mut heartbeats = vec![];
-        let mut buf = vec![0u8; 65_536];
-        let until = tokio::time::Instant::now() + Duration::from_millis(2300);
-        while let Ok(Ok(n)) = tokio::time::timeout_at(until, peer.recv(&mut buf)).await {
-            for f in dec.push(&buf[..n]) {
-                if let MavMessage::HEARTBEAT(h) = f.message {
-                    heartbeats.push((f.system_id, f.component_id, h.mavtype, h.autopilot));
-                }
+        let mut heard = |f: &crate::io::decode::Frame| {
+            if let MavMessage::HEARTBEAT(h) = &f.message {
+                heartbeats.push((f.system_id, f.component_id, h.mavtype, h.autopilot));
             }
+        };
+        crate::testdata::taken(&peer, port, (1, 190), ANSWER_WITHIN, &mut heard).await;
+        // What comes back until 2.3 s of the clock after the start.
+        let mut dec = crate::io::decode::FrameDecoder::new();
+        let mut buf = vec![0u8; 65_536];
+        let until = t0 + Duration::from_millis(2300);
+        while let Ok(Ok(n)) = tokio::time::timeout_at(until, peer.recv(&mut buf)).await {
+            dec.push(&buf[..n]).iter().for_each(&mut heard);
         }
         stop_tx.send(true).unwrap();
         let summary = daemon.await.unwrap().unwrap();
         assert_eq!(summary.samples, 30);
         // At 1 s and 2 s (the one at the start went nowhere: no peer had sent anything yet).
-        assert!((2..=3).contains(&heartbeats.len()), "{heartbeats:?}");
+        assert_eq!(heartbeats.len(), 2, "{heartbeats:?}");
         for h in &heartbeats {
             assert_eq!(
                 *h,
@@ -764,7 +812,21 @@ mod tests {
         {
             lines.push(String::from_utf8_lossy(&buf[..n]).to_string());
         }
-        assert!(!lines.is_empty());
+        // One line says the link is open, on the port the system chose.
+        let ready: Vec<serde_json::Value> = lines
+            .iter()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l.trim()).unwrap())
+            .filter(|v| v["type"] == "ready")
+            .collect();
+        assert_eq!(ready.len(), 1, "{lines:?}");
+        let ready = &ready[0];
+        assert_eq!(ready["schema"], "imucald.live/1");
+        assert_eq!(ready["links"][0]["source"], "udpin:127.0.0.1:0");
+        assert_eq!(ready["links"][0]["state"], "open");
+        assert_eq!(
+            ready["links"][0]["local"],
+            format!("127.0.0.1:{port}").as_str()
+        );
         assert!(
             lines.iter().all(|l| !l.contains("ArduPilot")),
             "our own HEARTBEAT was taken for a vehicle's: {lines:?}"

@@ -210,3 +210,115 @@ impl Timers {
         }
     }
 }
+
+/// What the start-up's `ready` line says: every link opened, or failed to the first time (a live
+/// link then keeps trying), and where the service listens.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Ready {
+    /// One per configured source, in the configured order.
+    pub links: Vec<ReadyLink>,
+    /// The live page's address (`[ui] listen`, the port chosen when 0 was asked), when served.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ui: Option<std::net::SocketAddr>,
+}
+
+/// A link in the `ready` line: its address as configured, and how its opening went
+/// (`"state": "open"` with its bound `local` address, or `"failed"`, each with a `detail`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReadyLink {
+    pub source: String,
+    #[serde(flatten)]
+    pub opening: LinkOpening,
+}
+
+impl Ready {
+    /// The JSON line (`schema`, `"type": "ready"`, then the fields), terminated by `\n`.
+    pub(super) fn json_line(&self) -> String {
+        #[derive(Serialize)]
+        struct Line<'a> {
+            schema: &'static str,
+            #[serde(rename = "type")]
+            kind: &'static str,
+            #[serde(flatten)]
+            ready: &'a Ready,
+        }
+        let line = Line {
+            schema: mavout::JSON_SCHEMA,
+            kind: "ready",
+            ready: self,
+        };
+        // Strings, numbers and addresses only: serialising cannot fail.
+        let mut s = serde_json::to_string(&line).unwrap_or_default();
+        s.push('\n');
+        s
+    }
+
+    /// The log line's text: each link and how it opened, the live page's address.
+    pub(super) fn summary(&self) -> String {
+        let mut parts: Vec<String> = self
+            .links
+            .iter()
+            .map(|l| match &l.opening {
+                LinkOpening::Open { local: Some(a), .. } => format!("{} open on {a}", l.source),
+                LinkOpening::Open { detail, .. } => format!("{} open ({detail})", l.source),
+                LinkOpening::Failed { detail } => format!("{} failed ({detail})", l.source),
+            })
+            .collect();
+        parts.extend(self.ui.map(|a| format!("live page on http://{a}/")));
+        parts.join("; ")
+    }
+}
+
+/// The `ready` line's state: told once, at start-up, when every link has opened or failed to.
+pub(super) struct Readiness {
+    pub(super) told: bool,
+    /// The live page's address.
+    pub(super) ui: Option<std::net::SocketAddr>,
+    /// A caller in this process waiting for it ([`super::run_reporting_ready`]).
+    pub(super) notify: Option<tokio::sync::oneshot::Sender<Ready>>,
+}
+
+/// Resolves once every link in `opening` has opened or failed to (or stopped before either).
+pub(super) async fn all_opened(opening: &mut [watch::Receiver<Option<LinkOpening>>]) {
+    for o in opening.iter_mut() {
+        let _ = o.wait_for(Option::is_some).await;
+    }
+}
+
+impl State {
+    /// The `ready` line (JSON consumers, log, a waiting caller) once every link has opened or
+    /// failed to; nothing before, and only once.
+    pub(super) fn tell_ready_if_open(&mut self) {
+        if self.ready.told {
+            return;
+        }
+        let mut links = Vec::with_capacity(self.links.len());
+        for l in &self.links {
+            let opening = match l.handle.opening.borrow().clone() {
+                Some(o) => o,
+                // The link's task ended before it opened (the service is stopping).
+                None if l.handle.opening.has_changed().is_err() => LinkOpening::Failed {
+                    detail: "stopped before it opened".into(),
+                },
+                None => return,
+            };
+            links.push(ReadyLink {
+                source: l.label.clone(),
+                opening,
+            });
+        }
+        self.ready.told = true;
+        let ready = Ready {
+            links,
+            ui: self.ready.ui,
+        };
+        tracing::info!(target: super::STATUS_TARGET, "ready: {}", ready.summary());
+        let line: std::sync::Arc<str> = ready.json_line().into();
+        for s in &self.sinks {
+            s.send(&line);
+        }
+        if let Some(tx) = self.ready.notify.take() {
+            let _ = tx.send(ready);
+        }
+    }
+}

@@ -129,6 +129,7 @@ impl State {
         declination: Option<f64>,
         links: Vec<LinkEntry>,
         sinks: Vec<Sink>,
+        ready: Readiness,
     ) -> Result<State, Error> {
         let d = cfg.daemon.clone();
         let choice = cfg.input.instance.clone();
@@ -167,6 +168,7 @@ impl State {
             report: d.report.as_ref().map(PathBuf::from),
             start: tokio::time::Instant::now(),
             declination,
+            ready,
             cfg,
         })
     }
@@ -188,6 +190,11 @@ impl State {
     ) -> FitJob {
         let mut fit_job: FitJob = None;
         let mut inbox: Vec<Inbound> = Vec::with_capacity(INBOX_BATCH);
+        let mut opening: Vec<_> = self
+            .links
+            .iter()
+            .map(|l| l.handle.opening.clone())
+            .collect();
         loop {
             // `daemon.attitude_every_samples`: the attitude right after the sample that made it due.
             self.attitude_if_due().await;
@@ -218,6 +225,7 @@ impl State {
                     fit_job = None;
                     self.fits_done(r).await;
                 }
+                _ = all_opened(&mut opening), if !self.ready.told => self.tell_ready_if_open(),
                 t = tm.clock.tick() => self.on_clock(t, tm).await,
                 _ = tm.heading.own_tick(), if tm.heading.own.is_some() => self.on_heading_tick().await,
                 _ = tm.progress.own_tick(), if tm.progress.own.is_some() => self.publish_progress().await,
@@ -260,6 +268,9 @@ impl State {
                 self.on_frame(link, &frame, time_us).await;
             }
             Inbound::Status { link, status } => {
+                // A link's opening is told before its first status: the `ready` line comes
+                // before the status lines of the last link to open (and before any end).
+                self.tell_ready_if_open();
                 let label = self
                     .links
                     .get(link)
