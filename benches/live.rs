@@ -13,6 +13,10 @@
 //! 4. **Latency**: sample-in to fused-attitude-out round trip at 1 kHz for `IMUCALD_BENCH_LATENCY_S`
 //!    seconds (default 30), with `daemon.attitude_every_samples = 1`: p50/p90/p99/p99.9/max.
 //!
+//! 6. **Three IMUs** (`IMUCALD_BENCH_ONLY=imus`): CPU and memory of a vehicle with one IMU
+//!    against one with three (HIGHRES_IMU ids 0-2 with their compasses, each at 1 kHz), in
+//!    alternating runs of `IMUCALD_BENCH_IMUS_S` seconds (default 30), `IMUCALD_BENCH_IMUS_ROUNDS`
+//!    rounds (default 2).
 //! 5. **Live page cost** (`IMUCALD_BENCH_ONLY=ui`): CPU at 1 kHz as in 1., in alternating runs of
 //!    `IMUCALD_BENCH_UI_S` seconds (default 30), `IMUCALD_BENCH_UI_ROUNDS` rounds (default 3): no
 //!    page served, the page served with no one connected, and one page connected (an event-stream
@@ -184,12 +188,18 @@ impl Daemon {
 
     /// SIGTERM, wait, and the daemon's closing line ("N samples, K calibrations accepted, D samples
     /// dropped") as (samples, dropped).
-    fn stop(mut self) -> (u64, u64) {
+    fn stop(self) -> (u64, u64) {
+        let (n, _, d) = self.stop_counts();
+        (n, d)
+    }
+
+    /// [`Daemon::stop`] as (samples, calibrations accepted, dropped).
+    fn stop_counts(mut self) -> (u64, u64, u64) {
         let _ = Command::new("kill")
             .args(["-TERM", &self.child.id().to_string()])
             .status();
         let stderr = self.child.stderr.take().unwrap();
-        let mut last = (0, 0);
+        let mut last = (0, 0, 0);
         for line in BufReader::new(stderr).lines().map_while(Result::ok) {
             if let Some(rest) = line.strip_prefix("imucald run: ") {
                 let nums: Vec<u64> = rest
@@ -197,7 +207,7 @@ impl Daemon {
                     .filter_map(|x| x.parse().ok())
                     .collect();
                 if nums.len() >= 3 {
-                    last = (nums[0], nums[2]);
+                    last = (nums[0], nums[1], nums[2]);
                 }
             }
         }
@@ -249,6 +259,18 @@ fn send_paced(
     samples: &[imucald::types::Sample],
     rate_hz: f64,
 ) -> u64 {
+    send_paced_imus(sock, enc, samples, rate_hz, 1)
+}
+
+/// [`send_paced`] for a vehicle with `imus` IMUs (HIGHRES_IMU ids 0 .. imus-1), each sending
+/// every sample: `imus` frames per instant, each IMU at `rate_hz`.
+fn send_paced_imus(
+    sock: &UdpSocket,
+    enc: &mut MavEncoder,
+    samples: &[imucald::types::Sample],
+    rate_hz: f64,
+    imus: u8,
+) -> u64 {
     let start = Instant::now();
     let mut sent = 0u64;
     for (i, s) in samples.iter().enumerate() {
@@ -265,9 +287,14 @@ fn send_paced(
                 std::hint::spin_loop();
             }
         }
-        let frame = enc.encode(&highres_imu(s, (s.t_s * 1e6) as u64 + 1_000_000));
-        if sock.send(&frame).is_ok() {
-            sent += 1;
+        for id in 0..imus {
+            let mut msg = highres_imu(s, (s.t_s * 1e6) as u64 + 1_000_000);
+            if let mavlink::dialects::ardupilotmega::MavMessage::HIGHRES_IMU(h) = &mut msg {
+                h.id = id;
+            }
+            if sock.send(&enc.encode(&msg)).is_ok() {
+                sent += 1;
+            }
         }
     }
     sent
@@ -481,15 +508,20 @@ fn latency(seconds: f64) {
 
 /// The service's CPU over `seconds` of 1 kHz frames: (whole process, main thread), % of one core.
 fn cpu_run(d: &Daemon, seconds: f64, seed_minute: u64) -> (f64, f64) {
+    cpu_run_imus(d, seconds, seed_minute, 1)
+}
+
+/// [`cpu_run`] for a vehicle with `imus` IMUs and compasses, each at 1 kHz.
+fn cpu_run_imus(d: &Daemon, seconds: f64, seed_minute: u64, imus: u8) -> (f64, f64) {
     let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
     sock.connect(("127.0.0.1", d.port)).unwrap();
     let mut enc = MavEncoder::new(1, 1); // a flight controller: (1, 191) is the service itself
     let mut s = minute(seed_minute);
     s.truncate(((seconds + 1.0).min(60.0) * 1000.0) as usize);
     let warm = 1000.min(s.len());
-    send_paced(&sock, &mut enc, &s[..warm], 1000.0);
+    send_paced_imus(&sock, &mut enc, &s[..warm], 1000.0, imus);
     let (cpu0, loop0, t0) = (d.cpu_s(), d.loop_cpu_s(), Instant::now());
-    send_paced(&sock, &mut enc, &s[warm..], 1000.0);
+    send_paced_imus(&sock, &mut enc, &s[warm..], 1000.0, imus);
     let wall = t0.elapsed().as_secs_f64();
     (
         100.0 * (d.cpu_s() - cpu0) / wall,
@@ -590,6 +622,24 @@ fn ui_cost(seconds: f64, rounds: u64) {
     }
 }
 
+/// One IMU against three (HIGHRES_IMU ids 0-2, each with its compass, each at 1 kHz), in
+/// alternating runs of `seconds`, `rounds` times: the whole process's CPU (% of one core), the
+/// live loop's, and the resident memory at the end of each run; then whether all three were
+/// calibrated (the report's instances).
+fn imus_cost(seconds: f64, rounds: u64) {
+    for round in 0..rounds {
+        for imus in [1u8, 3] {
+            let d = Daemon::start();
+            let (cpu, lp) = cpu_run_imus(&d, seconds, round, imus);
+            let rss = d.rss_mb();
+            let (taken, accepted, dropped) = d.stop_counts();
+            println!(
+                "{imus} IMU(s) at 1 kHz, round {round}: {cpu:.2}% of one core (live loop {lp:.2}%), RSS {rss:.1} MB; {taken} samples taken, {accepted} calibrations accepted, {dropped} dropped"
+            );
+        }
+    }
+}
+
 fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
@@ -613,6 +663,12 @@ fn main() {
     }
     if only.is_empty() || only == "load" {
         load(env_f64("IMUCALD_BENCH_LOAD_S", 60.0));
+    }
+    if only.is_empty() || only == "imus" {
+        imus_cost(
+            env_f64("IMUCALD_BENCH_IMUS_S", 30.0),
+            env_f64("IMUCALD_BENCH_IMUS_ROUNDS", 2.0) as u64,
+        );
     }
     if only.is_empty() || only == "ui" {
         ui_cost(

@@ -29,8 +29,13 @@ pub mod error;
 pub mod io;
 pub mod report;
 pub mod sim;
-#[doc(hidden)]
-pub mod testdata;
+/// Test set-up shared with the integration tests (`tests/common` includes the same file).
+#[cfg(test)]
+mod testdata;
+/// `imucald::` names this crate in test builds, as it does in the integration tests, so that
+/// [`testdata`] is one text for both.
+#[cfg(test)]
+extern crate self as imucald;
 pub mod types;
 
 pub use error::Error;

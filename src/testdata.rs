@@ -3,14 +3,21 @@
 //! Python peers in `tests/common`): it says SKIPPED plainly and returns, unless the resource's
 //! `IMUCALD_REQUIRE_*=1` (set by `scripts/test`, which CI runs) makes the absence a failure. Also a
 //! HIGHRES_IMU message and a passing magnetometer calibration for tests that need one to send or
-//! store. For tests only; no other use.
+//! store, and the ping that tells a test the service took what it was sent.
+//!
+//! For tests only, and not in the library: the library compiles it under `#[cfg(test)]` for its
+//! unit tests, and `tests/common` includes the same file for the integration tests. It names the
+//! crate `imucald::` (the library calls itself so in test builds), so one text serves both.
 
-use crate::report::{CalStatus, SensorCalibration};
-use crate::types::Vec3;
+// Each test binary uses a part of it.
+#![allow(dead_code)]
+
+use imucald::report::{CalStatus, SensorCalibration};
+use imucald::types::Vec3;
 use std::path::PathBuf;
 
 /// Environment variable that turns "recordings absent" into a test failure when set to `1`.
-pub(crate) const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
+pub const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
 
 /// The shared recordings directory, or `None` (SKIPPED said) when it is absent.
 ///
@@ -64,7 +71,7 @@ pub fn level_highres_imu(
 /// plausible figures (radius 50 uT, RMS residual 0.1 uT, offset sigma 0.01 uT, 500 samples, 5
 /// iterations).
 pub fn passing_mag_calibration(
-    model: crate::calib::model::CalModel,
+    model: imucald::calib::model::CalModel,
     offset_ut: Vec3,
 ) -> SensorCalibration {
     SensorCalibration {
@@ -74,7 +81,7 @@ pub fn passing_mag_calibration(
         offset_sigma: [0.01; 3],
         samples_used: 500,
         iterations: 5,
-        ..SensorCalibration::new(CalStatus::Ok, model, crate::types::CalUnits::Ut)
+        ..SensorCalibration::new(CalStatus::Ok, model, imucald::types::CalUnits::Ut)
     }
 }
 
@@ -82,7 +89,7 @@ pub fn passing_mag_calibration(
 pub const PING_SYSTEM: u8 = 250;
 
 /// The live service's ids as configured by default (system 1, component 191): whom a ping goes to.
-pub const SERVICE_IDS: (u8, u8) = (1, crate::io::mavout::DEFAULT_COMPONENT_ID);
+pub const SERVICE_IDS: (u8, u8) = (1, imucald::io::mavout::DEFAULT_COMPONENT_ID);
 
 /// A ping for the live service: a command it does not support (REQUEST_MESSAGE), addressed to it as
 /// `to` (system, component), from ground station [`PING_SYSTEM`] as component `mark`. The service
@@ -90,7 +97,7 @@ pub const SERVICE_IDS: (u8, u8) = (1, crate::io::mavout::DEFAULT_COMPONENT_ID);
 /// link delivered before: a link is read in order.
 pub fn ping(mark: u8, to: (u8, u8)) -> Vec<u8> {
     use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage, COMMAND_LONG_DATA};
-    crate::io::mavout::MavEncoder::new(PING_SYSTEM, mark).encode(&MavMessage::COMMAND_LONG(
+    imucald::io::mavout::MavEncoder::new(PING_SYSTEM, mark).encode(&MavMessage::COMMAND_LONG(
         COMMAND_LONG_DATA {
             command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
             target_system: to.0,
@@ -101,7 +108,7 @@ pub fn ping(mark: u8, to: (u8, u8)) -> Vec<u8> {
 }
 
 /// The mark of the [`ping`] a frame answers, if it is such an answer.
-pub fn pong(f: &crate::io::decode::Frame) -> Option<u8> {
+pub fn pong(f: &imucald::io::decode::Frame) -> Option<u8> {
     use mavlink::dialects::ardupilotmega::{MavCmd, MavMessage};
     match &f.message {
         MavMessage::COMMAND_ACK(a)
@@ -124,13 +131,13 @@ pub async fn taken(
     port: u16,
     to: (u8, u8),
     within: std::time::Duration,
-    mut other: impl FnMut(&crate::io::decode::Frame),
+    mut other: impl FnMut(&imucald::io::decode::Frame),
 ) {
     const MARK: u8 = 1;
     sock.send_to(&ping(MARK, to), ("127.0.0.1", port))
         .await
         .expect("send the ping");
-    let mut dec = crate::io::decode::FrameDecoder::new();
+    let mut dec = imucald::io::decode::FrameDecoder::new();
     let mut buf = vec![0u8; 65_536];
     let until = tokio::time::Instant::now() + within;
     loop {

@@ -19,15 +19,15 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 /// `../shared/data/flightlogs`, or `None` (SKIPPED said) when absent; absent with
-/// `IMUCALD_REQUIRE_DATA=1` is a failure ([`imucald::testdata::shared_data`]).
+/// `IMUCALD_REQUIRE_DATA=1` is a failure ([`common::testdata::shared_data`]).
 fn flightlogs() -> Option<PathBuf> {
-    let p = imucald::testdata::shared_data()?.join("flightlogs");
+    let p = common::testdata::shared_data()?.join("flightlogs");
     if p.is_dir() {
         return Some(p);
     }
-    imucald::testdata::absent(
+    common::testdata::absent(
         &p.display().to_string(),
-        imucald::testdata::REQUIRE_DATA_ENV,
+        common::testdata::REQUIRE_DATA_ENV,
         "these tests need the shared flight logs beside the checkout",
     )
 }

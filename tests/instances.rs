@@ -144,7 +144,7 @@ async fn live_service_reports_each_compass_on_its_own() {
             let mut buf = vec![0u8; 4096];
             while let Ok((n, _)) = peer_rx.recv_from(&mut buf).await {
                 for f in dec.push(&buf[..n]) {
-                    if imucald::testdata::pong(&f).is_some() {
+                    if common::testdata::pong(&f).is_some() {
                         pong_tx.send_replace(true);
                     }
                     match f.message {
@@ -185,7 +185,7 @@ async fn live_service_reports_each_compass_on_its_own() {
     }
     // Stopped once it took everything: the answer to a ping sent after the last sample.
     peer.send_to(
-        &imucald::testdata::ping(1, imucald::testdata::SERVICE_IDS),
+        &common::testdata::ping(1, common::testdata::SERVICE_IDS),
         &target,
     )
     .await

@@ -11,10 +11,10 @@ use imucald::report::CalStatus;
 use std::path::{Path, PathBuf};
 
 /// Return early from a test (with a plain message) when the shared data is absent; a failure instead
-/// under `IMUCALD_REQUIRE_DATA=1` ([`imucald::testdata::shared_data`]).
+/// under `IMUCALD_REQUIRE_DATA=1` ([`common::testdata::shared_data`]).
 macro_rules! require_data {
     () => {
-        match imucald::testdata::shared_data() {
+        match common::testdata::shared_data() {
             Some(p) => p,
             None => return,
         }
@@ -1590,7 +1590,7 @@ mod fuzz_regressions {
     }
 
     fn highres(i: usize) -> MavMessage {
-        imucald::testdata::level_highres_imu(1_000 + i as u64 * 10_000, 0.1 * i as f32)
+        crate::common::testdata::level_highres_imu(1_000 + i as u64 * 10_000, 0.1 * i as f32)
     }
 
     /// `n` tlog records of HIGHRES_IMU, 10 ms apart.
@@ -2217,7 +2217,7 @@ mod live_consumers {
                     let Ok(n) = rx.recv(&mut buf) else { continue };
                     for f in dec.push(&buf[..n]) {
                         seen.frames += 1;
-                        if imucald::testdata::pong(&f).is_some() {
+                        if common::testdata::pong(&f).is_some() {
                             let _ = heard_tx.send("ping answered");
                         }
                         match f.message {
@@ -2256,7 +2256,7 @@ mod live_consumers {
             let frame = enc.encode(&common::highres_imu_at(s));
             let _ = sock.send(&frame);
         }
-        sock.send(&imucald::testdata::ping(1, imucald::testdata::SERVICE_IDS))
+        sock.send(&common::testdata::ping(1, common::testdata::SERVICE_IDS))
             .unwrap();
         let mut awaited = vec!["ping answered", "report"];
         let until = Instant::now() + Duration::from_secs(30);
@@ -2589,7 +2589,7 @@ mod honest_progress {
         let cfg = Config::default();
         // Without a calibration: no centre, no region. With one (a restart resumes from the
         // stored calibration): the one or two regions the field points into.
-        let stored = imucald::testdata::passing_mag_calibration(
+        let stored = common::testdata::passing_mag_calibration(
             imucald::calib::model::CalModel::Sphere,
             sim.truth.mag.offset,
         );

@@ -115,7 +115,7 @@ fn row(name: &str, e: &EvalResult) -> String {
 /// estimators are scored against the capture.
 #[test]
 fn px4_indoor_flights_against_motion_capture() {
-    let Some(data) = imucald::testdata::shared_data() else {
+    let Some(data) = common::testdata::shared_data() else {
         return;
     };
     let real = data.join("real");

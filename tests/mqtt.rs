@@ -5,16 +5,18 @@
 //! Without them the test says SKIPPED and passes, unless `IMUCALD_REQUIRE_BROKER=1`
 //! (`scripts/test`) makes their absence a failure.
 
+mod common;
+
+use common::{wait_for_line, Lines};
 use serde_json::Value;
 use std::collections::BTreeSet;
-use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Every type of JSON line the live service emits (`imucald.live/1`).
-const LINE_TYPES: [&str; 6] = [
+const LINE_TYPES: [&str; 7] = [
+    "ready",
     "attitude",
     "heading",
     "calibrated",
@@ -25,7 +27,7 @@ const LINE_TYPES: [&str; 6] = [
 /// The longest any one awaited event may take (they come within seconds on an idle machine).
 const EVENT_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// The broker and the subscriber, or `None` with a message (a failure under
+/// The broker and the subscriber, or `None` with SKIPPED said (a failure under
 /// `IMUCALD_REQUIRE_BROKER=1`).
 fn mosquitto() -> Option<(PathBuf, PathBuf)> {
     let find = |names: &[&str]| names.iter().map(PathBuf::from).find(|p| p.exists());
@@ -34,44 +36,18 @@ fn mosquitto() -> Option<(PathBuf, PathBuf)> {
     if let (Some(b), Some(s)) = (broker.clone(), sub.clone()) {
         return Some((b, s));
     }
-    let missing = format!("mosquitto {broker:?}, mosquitto_sub {sub:?}");
-    if std::env::var("IMUCALD_REQUIRE_BROKER").is_ok_and(|v| v == "1") {
-        panic!("{missing} and IMUCALD_REQUIRE_BROKER=1 (scripts/test installs them)");
-    }
-    eprintln!(
-        "SKIPPED: no MQTT broker here ({missing}): apt-get install mosquitto mosquitto-clients (scripts/test does)"
-    );
-    None
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// The lines of a process's output, read on a thread of their own.
-fn lines_of(r: impl Read + Send + 'static) -> mpsc::Receiver<String> {
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(r).lines() {
-            let Ok(line) = line else { break };
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    rx
+    common::testdata::absent(
+        &format!("an MQTT broker (mosquitto {broker:?}, mosquitto_sub {sub:?})"),
+        "IMUCALD_REQUIRE_BROKER",
+        "apt-get install mosquitto mosquitto-clients; scripts/test does",
+    )
 }
 
 /// A child process with its output lines; killed when dropped.
 struct Proc {
-    name: String,
     child: Child,
-    out: mpsc::Receiver<String>,
-    err: mpsc::Receiver<String>,
+    out: Lines,
+    err: Lines,
 }
 
 impl Proc {
@@ -82,14 +58,9 @@ impl Proc {
             .stderr(Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("{name}: {e}"));
-        let out = lines_of(child.stdout.take().unwrap());
-        let err = lines_of(child.stderr.take().unwrap());
-        Proc {
-            name: name.into(),
-            child,
-            out,
-            err,
-        }
+        let out = Lines::read(child.stdout.take().unwrap());
+        let err = Lines::read(child.stderr.take().unwrap());
+        Proc { child, out, err }
     }
 
     fn kill(&mut self) {
@@ -104,26 +75,19 @@ impl Drop for Proc {
     }
 }
 
-/// Lines from `rx` until one for which `f` says true (every line is shown to `f`); a failure
-/// naming `what` when none comes within [`EVENT_TIMEOUT`].
-fn wait_until(rx: &mpsc::Receiver<String>, what: &str, mut f: impl FnMut(&str) -> bool) {
-    let until = Instant::now() + EVENT_TIMEOUT;
-    loop {
-        let left = until.saturating_duration_since(Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(line) if f(&line) => return,
-            Ok(_) => {}
-            Err(e) => panic!("waiting for {what}: {e:?}"),
-        }
-    }
+/// Lines until one for which `f` says true (every line is shown to `f`); a failure naming `what`
+/// when none comes within [`EVENT_TIMEOUT`].
+#[track_caller]
+fn wait_until(lines: &mut Lines, what: &str, f: impl FnMut(&str) -> bool) {
+    wait_for_line(lines, what, f, EVENT_TIMEOUT);
 }
 
 /// `mosquitto -p PORT` (Mosquitto 2 alone listens on loopback only), once it says it runs.
 fn start_broker(exe: &Path, port: u16) -> Proc {
     let mut c = Command::new(exe);
     c.args(["-p", &port.to_string()]);
-    let b = Proc::spawn("mosquitto", c);
-    wait_until(&b.err, "the broker to run", |l| {
+    let mut b = Proc::spawn("mosquitto", c);
+    wait_until(&mut b.err, "the broker to run", |l| {
         assert!(!l.contains("Error"), "mosquitto: {l}");
         l.contains(" running")
     });
@@ -139,8 +103,10 @@ fn start_subscriber(exe: &Path, port: u16, prefix: &str) -> Proc {
         .arg(exe)
         .args(["-h", "127.0.0.1", "-p", &port.to_string()])
         .args(["-t", &format!("{prefix}/#"), "-v", "-d"]);
-    let s = Proc::spawn("mosquitto_sub", c);
-    wait_until(&s.out, "the subscription", |l| l.starts_with("Subscribed"));
+    let mut s = Proc::spawn("mosquitto_sub", c);
+    wait_until(&mut s.out, "the subscription", |l| {
+        l.starts_with("Subscribed")
+    });
     s
 }
 
@@ -159,8 +125,8 @@ fn message(line: &str, prefix: &str) -> Option<(String, Value)> {
 }
 
 /// The types of the JSON lines the service has written to stdout so far.
-fn types_so_far(out: &mpsc::Receiver<String>, seen: &mut BTreeSet<String>) {
-    while let Ok(line) = out.try_recv() {
+fn types_so_far(out: &mut Lines, seen: &mut BTreeSet<String>) {
+    while let Some(line) = out.next_where(|_| true, Duration::ZERO) {
         let v: Value = serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"));
         seen.insert(v["type"].as_str().expect(&line).to_string());
     }
@@ -176,40 +142,41 @@ fn mqtt_lines_reach_a_real_broker_and_survive_its_restart() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port();
+    let port = common::free_tcp_port();
     let url = format!("mqtt://127.0.0.1:{port}/fleet");
-    let cfg = dir.path().join("live.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "[daemon]\nsources = [{{ address = \"sim:tumble?speed=2\" }}]\ncalibration_dir = \"{}\"\n",
-            dir.path().join("cal").display()
-        ),
-    )
-    .unwrap();
+    let cfg = common::sim_service_toml(dir.path(), "tumble?speed=2", "");
     let report = dir.path().join("report.json");
     let mut broker = start_broker(&broker_exe, port);
     let mut sub = start_subscriber(&sub_exe, port, "fleet");
-    let mut c = Command::new(env!("CARGO_BIN_EXE_imucald"));
-    c.args(["run", "--config"])
-        .arg(&cfg)
-        .args(["--publish", &url, "--publish", "stdout", "--report"])
-        .arg(&report);
-    let mut svc = Proc::spawn("imucald", c);
+    let mut svc = common::Service::start(&[
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--publish".as_ref(),
+        url.as_ref(),
+        "--publish".as_ref(),
+        "stdout".as_ref(),
+        "--report".as_ref(),
+        report.as_os_str(),
+    ]);
 
     // Every type, each on its topic (`message` checks each line).
     let mut over_mqtt = BTreeSet::new();
-    wait_until(&sub.out, "every type of line over MQTT", |l| {
+    wait_until(&mut sub.out, "every type of line over MQTT", |l| {
         if let Some((kind, _)) = message(l, "fleet") {
             over_mqtt.insert(kind);
         }
         LINE_TYPES.iter().all(|t| over_mqtt.contains(*t))
     });
-    wait_until(&svc.err, "the service's word that it connected", |l| {
-        l.contains(&format!("{url}: connected to the MQTT broker"))
-    });
+    // Said before the service was ready, or after.
+    let connected = format!("{url}: connected to the MQTT broker");
+    assert!(
+        svc.stderr
+            .seen_or_next(|l| l.contains(&connected), EVENT_TIMEOUT)
+            .is_some(),
+        "the service never said it connected"
+    );
     let mut on_stdout = BTreeSet::new();
-    types_so_far(&svc.out, &mut on_stdout);
+    types_so_far(&mut svc.stdout, &mut on_stdout);
     assert!(
         on_stdout.is_subset(&over_mqtt),
         "stdout {on_stdout:?}, MQTT {over_mqtt:?}"
@@ -218,12 +185,14 @@ fn mqtt_lines_reach_a_real_broker_and_survive_its_restart() {
     // The broker goes away mid-run.
     broker.kill();
     sub.kill();
-    wait_until(&svc.err, "the service's word that the broker went", |l| {
-        l.contains(&format!("{url}: lost the MQTT broker"))
-    });
+    wait_until(
+        &mut svc.stderr,
+        "the service's word that the broker went",
+        |l| l.contains(&format!("{url}: lost the MQTT broker")),
+    );
     // It keeps calibrating, and says (in a status line) that the MQTT consumer lost lines.
     let (mut calibrated, mut undelivered) = (0, None::<u64>);
-    wait_until(&svc.out, "calibrations and a drop report", |l| {
+    wait_until(&mut svc.stdout, "calibrations and a drop report", |l| {
         let v: Value = serde_json::from_str(l).unwrap();
         on_stdout.insert(v["type"].as_str().unwrap().to_string());
         calibrated += usize::from(v["type"] == "calibration");
@@ -241,16 +210,20 @@ fn mqtt_lines_reach_a_real_broker_and_survive_its_restart() {
 
     // Back on the same port: the service reconnects and calibration lines come again.
     let _broker = start_broker(&broker_exe, port);
-    let sub = start_subscriber(&sub_exe, port, "fleet");
-    wait_until(&svc.err, "the service's word that it reconnected", |l| {
-        let said = l.contains(&format!("{url}: reconnected to the MQTT broker after"));
-        if said {
-            eprintln!("{l}");
-        }
-        said
-    });
+    let mut sub = start_subscriber(&sub_exe, port, "fleet");
+    wait_until(
+        &mut svc.stderr,
+        "the service's word that it reconnected",
+        |l| {
+            let said = l.contains(&format!("{url}: reconnected to the MQTT broker after"));
+            if said {
+                eprintln!("{l}");
+            }
+            said
+        },
+    );
     let mut after = 0;
-    wait_until(&sub.out, "calibration lines after the restart", |l| {
+    wait_until(&mut sub.out, "calibration lines after the restart", |l| {
         if let Some((kind, _)) = message(l, "fleet") {
             after += usize::from(kind == "calibration");
         }
@@ -258,14 +231,12 @@ fn mqtt_lines_reach_a_real_broker_and_survive_its_restart() {
     });
 
     // Stop it; the report counts what went to the broker and what did not.
-    // SAFETY: kill(2) on our own child's pid.
-    assert_eq!(
-        unsafe { libc::kill(svc.child.id() as i32, libc::SIGTERM) },
-        0
+    let (status, said) = svc.stop(EVENT_TIMEOUT);
+    assert!(
+        status.is_some_and(|s| s.success()),
+        "imucald: {status:?}\n{said}"
     );
-    let status = svc.child.wait().unwrap();
-    assert!(status.success(), "{}: {status:?}", svc.name);
-    types_so_far(&svc.out, &mut on_stdout);
+    types_so_far(&mut svc.stdout, &mut on_stdout);
     assert!(
         on_stdout.is_subset(&LINE_TYPES.iter().map(|t| t.to_string()).collect()),
         "a type this test does not know: {on_stdout:?}"

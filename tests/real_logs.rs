@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn real_dir() -> Option<PathBuf> {
-    Some(imucald::testdata::shared_data()?.join("real"))
+    Some(common::testdata::shared_data()?.join("real"))
 }
 
 macro_rules! require_data {

@@ -370,16 +370,12 @@ fn wait_for_completion(port: u16, within: Duration) -> f64 {
 fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
     let Some(exe) = chromium() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let cfg = dir.path().join("live.toml");
     // Port 0: the service's `ready` line says which port the page got.
-    std::fs::write(
-        &cfg,
-        format!(
-            "[daemon]\nsources = [{{ address = \"sim:tumble?speed=2\" }}]\ncalibration_dir = \"{}\"\n\n[ui]\nlisten = \"127.0.0.1:0\"\n",
-            dir.path().join("cal").display()
-        ),
-    )
-    .unwrap();
+    let cfg = common::sim_service_toml(
+        dir.path(),
+        "tumble?speed=2",
+        "[ui]\nlisten = \"127.0.0.1:0\"\n",
+    );
     let mut svc = common::Service::start(&[
         "--config".as_ref(),
         cfg.as_os_str(),
@@ -540,7 +536,7 @@ fn ui_html_report_renders_offline() {
 #[test]
 fn ui_html_report_answers_whether_it_is_better_than_the_vehicles() {
     let Some(exe) = chromium() else { return };
-    let Some(data) = imucald::testdata::shared_data() else {
+    let Some(data) = common::testdata::shared_data() else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

@@ -221,7 +221,7 @@ fn current_interference_fitted_jointly_within_a_percent() {
 /// cannot determine, and keeps the sphere fit.
 #[test]
 fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
-    let Some(data) = imucald::testdata::shared_data() else {
+    let Some(data) = common::testdata::shared_data() else {
         return;
     };
     let path = data.join("flightlogs/px4_auav_x21.ulg");
@@ -301,8 +301,8 @@ async fn live_service_learns_the_vector_calibration_in_flight() {
         }
     }
     // Stopped once it took everything sent.
-    let to = imucald::testdata::SERVICE_IDS;
-    imucald::testdata::taken(&peer, port, to, Duration::from_secs(20), |_| {}).await;
+    let to = common::testdata::SERVICE_IDS;
+    common::testdata::taken(&peer, port, to, Duration::from_secs(20), |_| {}).await;
     daemon.stop(Duration::from_secs(5)).await;
     while let Ok(n) = sink.try_recv(&mut buf) {
         lines.extend(

@@ -9,11 +9,11 @@
 
 mod common;
 
+use common::testdata::{ping, pong, taken, SERVICE_IDS};
 use common::{free_udp_port, mavlink_source};
 use imucald::config::Config;
 use imucald::io::mavout::MavEncoder;
 use imucald::sim::SimOutput;
-use imucald::testdata::{ping, pong, taken, SERVICE_IDS};
 use mavlink::dialects::ardupilotmega::{MavMessage, MAG_CAL_REPORT_DATA};
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::{Arc, Mutex};

@@ -71,7 +71,7 @@ use serde::{Deserialize, Serialize};
 // Framing
 
 /// Default component id of the daemon: MAV_COMP_ID_ONBOARD_COMPUTER.
-pub(crate) const DEFAULT_COMPONENT_ID: u8 = 191;
+pub const DEFAULT_COMPONENT_ID: u8 = 191;
 
 /// Turns messages into complete MAVLink frames with an incrementing sequence number.
 #[derive(Debug, Clone)]

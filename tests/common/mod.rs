@@ -2,7 +2,7 @@
 //! in this process or as a child (each waited for until it is ready, not for a guessed time),
 //! replays, and the resources a test may lack (the shared recordings, Chromium, the Python peers
 //! that `scripts/test` installs), each skipped alike: SKIPPED said plainly, or a failure under its
-//! `IMUCALD_REQUIRE_*=1` ([`imucald::testdata::absent`]).
+//! `IMUCALD_REQUIRE_*=1` ([`testdata::absent`]).
 
 // Each test file uses a part of this module.
 #![allow(dead_code)]
@@ -16,6 +16,9 @@ use std::process::{Child, Command, ExitStatus, Output, Stdio};
 use std::time::Duration;
 
 mod python;
+/// The library's test set-up: the recordings, the skip policy, pings, a passing calibration.
+#[path = "../../src/testdata.rs"]
+pub mod testdata;
 mod untuned;
 mod wait;
 pub use python::python_path;
@@ -30,6 +33,30 @@ pub fn free_udp_port() -> u16 {
         .local_addr()
         .unwrap()
         .port()
+}
+
+/// A TCP port on the loopback that was free a moment ago.
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A service configuration file `dir/live.toml`: one source `sim:SCENARIO` (`tumble?speed=2`),
+/// the calibration directory under `dir`, and `extra` TOML after it (`[ui]` ...).
+pub fn sim_service_toml(dir: &Path, scenario: &str, extra: &str) -> PathBuf {
+    let cfg = dir.join("live.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[daemon]\nsources = [{{ address = \"sim:{scenario}\" }}]\ncalibration_dir = \"{}\"\n\n{extra}",
+            dir.join("cal").display()
+        ),
+    )
+    .unwrap();
+    cfg
 }
 
 /// A MAVLink source at `address` (`udpin:IP:PORT`, `file:LOG`, `sim:SCENARIO` ...).
@@ -60,7 +87,7 @@ pub const REQUIRE_PYTHON_ENV: &str = "IMUCALD_REQUIRE_PYTHON";
 /// `None` with SKIPPED said (a failure under `IMUCALD_REQUIRE_PYTHON=1`).
 pub fn python(modules: &str) -> Option<String> {
     python::python_importing(modules).or_else(|| {
-        imucald::testdata::absent(
+        testdata::absent(
             &format!("a Python importing {modules} ({})", python_path()),
             REQUIRE_PYTHON_ENV,
             "run ./scripts/test (it installs them into .venv) or set IMUCALD_PYTHON",
@@ -85,7 +112,7 @@ pub fn chromium() -> Option<&'static str> {
     if Path::new(CHROMIUM).exists() {
         return Some(CHROMIUM);
     }
-    imucald::testdata::absent(
+    testdata::absent(
         CHROMIUM,
         "IMUCALD_REQUIRE_BROWSER",
         "apt-get install chromium; scripts/test does",

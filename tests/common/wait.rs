@@ -1,7 +1,7 @@
 //! Waiting on events, not the clock: a child's output lines (the service's `ready` line among
 //! them), its exit, a file written. Each wait has a deadline and returns as soon as the event
 //! comes; none sleeps for a guessed time. (That the service took everything sent to it:
-//! [`imucald::testdata::taken`].)
+//! [`testdata::taken`].)
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -51,6 +51,19 @@ impl Lines {
                 return Some(line);
             }
         }
+    }
+
+    /// A line `want` accepts among those already taken, or else the next one that comes
+    /// ([`Lines::next_where`]): for an event that may have been said before the test looked.
+    pub fn seen_or_next(
+        &mut self,
+        mut want: impl FnMut(&str) -> bool,
+        within: Duration,
+    ) -> Option<String> {
+        if let Some(l) = self.seen.iter().find(|l| want(l)) {
+            return Some(l.clone());
+        }
+        self.next_where(want, within)
     }
 
     /// The whole output, once the child closed it (it exited).

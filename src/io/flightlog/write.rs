@@ -4,6 +4,7 @@
 //! undoes the correction ([`crate::io::flightlog`]) and so sees the raw field again. A sample's
 //! reference attitude (`ref_q`) is written as the flight controller's (`ATT`, `vehicle_attitude`).
 
+use crate::calib::ardupilot::Correction;
 use crate::error::Error;
 use crate::types::{Sample, Vec3};
 use nalgebra::{Matrix3, Vector3};
@@ -106,30 +107,31 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
         "QhhhhhhhhhBI",
         "TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ,Health,S",
     ));
-    // ArduPilot adds COMPASS_OFS (mGauss): OFS = -offset * 10.
-    let ofs = onboard.offset_ut.map(|o| -o * 10.0);
-    let m = &onboard.matrix;
-    let params: Vec<(String, f64)> = [
-        ("COMPASS_OFS_X", ofs[0]),
-        ("COMPASS_OFS_Y", ofs[1]),
-        ("COMPASS_OFS_Z", ofs[2]),
-        ("COMPASS_DIA_X", m[0][0]),
-        ("COMPASS_DIA_Y", m[1][1]),
-        ("COMPASS_DIA_Z", m[2][2]),
-        ("COMPASS_ODI_X", m[0][1]),
-        ("COMPASS_ODI_Y", m[0][2]),
-        ("COMPASS_ODI_Z", m[1][2]),
-        ("COMPASS_DEV_ID", 97539.0),
-        ("INS_ACCOFFS_X", 0.0),
-        ("INS_ACCOFFS_Y", 0.0),
-        ("INS_ACCOFFS_Z", 0.0),
-        ("INS_ACCSCAL_X", 1.0),
-        ("INS_ACCSCAL_Y", 1.0),
-        ("INS_ACCSCAL_Z", 1.0),
-    ]
-    .into_iter()
-    .map(|(n, v)| (n.to_string(), v))
-    .collect();
+    // The onboard calibration as ArduPilot's parameters, stored and applied as float32.
+    let exact = Correction::from_model(&onboard.offset_ut, &onboard.matrix);
+    let ap = Correction {
+        ofs_mg: exact.ofs_mg.map(|o| o as f32 as f64),
+        s: exact.s.map(|x| x as f32 as f64),
+        scale: 1.0,
+    };
+    let compass = ap
+        .params(0)
+        .ok_or_else(|| Error::Other("ArduPilot has no compass 0".into()))?;
+    let params: Vec<(String, f64)> = compass
+        .into_iter()
+        .chain(
+            [
+                ("COMPASS_DEV_ID", 97539.0),
+                ("INS_ACCOFFS_X", 0.0),
+                ("INS_ACCOFFS_Y", 0.0),
+                ("INS_ACCOFFS_Z", 0.0),
+                ("INS_ACCSCAL_X", 1.0),
+                ("INS_ACCSCAL_Y", 1.0),
+                ("INS_ACCSCAL_Z", 1.0),
+            ]
+            .map(|(n, v)| (n.to_string(), v)),
+        )
+        .collect();
     for (n, v) in &params {
         out.extend([0xA3, 0x95, 129]);
         out.extend(T0_US.to_le_bytes());
@@ -138,13 +140,6 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
         out.extend(name);
         out.extend((*v as f32).to_le_bytes());
     }
-    // The parameters as the flight controller uses them (float32).
-    let ofs32 = ofs.map(|o| o as f32 as f64);
-    let m32 = m.map(|r| r.map(|x| x as f32 as f64));
-    let used = OnboardMag {
-        offset_ut: ofs32.map(|o| -o / 10.0),
-        matrix: m32,
-    };
     let i16_of = |x: f64| x.round().clamp(i16::MIN as f64, i16::MAX as f64) as i16;
     for s in samples {
         let t = time_us(s.t_s);
@@ -162,13 +157,12 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
             out.extend([0u8; 4]);
         }
         if let Some(raw) = s.mag_ut {
-            let c = used.correct(&raw);
             out.extend([0xA3, 0x95, 131]);
             out.extend(t.to_le_bytes());
-            for v in c {
-                out.extend(i16_of(v * 10.0).to_le_bytes());
+            for v in ap.apply(raw) {
+                out.extend(i16_of(v).to_le_bytes());
             }
-            for v in ofs32 {
+            for v in ap.ofs_mg {
                 out.extend(i16_of(v).to_le_bytes());
             }
             out.extend([0u8; 6]);
