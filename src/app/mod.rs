@@ -10,6 +10,7 @@ pub mod daemon;
 pub mod eval;
 pub mod fixedyaw;
 pub mod plot;
+pub mod batch;
 pub mod replay;
 pub mod simulate;
 pub mod ui;
