@@ -590,7 +590,11 @@ fn say_skipped(skipped: &[(PathBuf, imucald::app::batch::SkipReason)]) {
         skipped.len(),
         if skipped.len() == 1 { "" } else { "s" },
         named.join(", "),
-        if more > 0 { format!(" and {more} more") } else { String::new() }
+        if more > 0 {
+            format!(" and {more} more")
+        } else {
+            String::new()
+        }
     );
 }
 

@@ -74,7 +74,11 @@ fn table(path: &Path) -> Vec<std::collections::HashMap<String, String>> {
     r.records()
         .map(|rec| {
             let rec = rec.unwrap();
-            header.iter().cloned().zip(rec.iter().map(String::from)).collect()
+            header
+                .iter()
+                .cloned()
+                .zip(rec.iter().map(String::from))
+                .collect()
         })
         .collect()
 }
@@ -108,7 +112,10 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
     assert_eq!(run.status.code(), Some(3), "{said}");
     assert!(said.contains("5 logs, 4 calibrated, 1 failed"), "{said}");
     assert!(said.contains("notes.txt (not a log name)"), "{said}");
-    assert!(said.contains(&out.join("table2.csv").display().to_string()), "{said}");
+    assert!(
+        said.contains(&out.join("table2.csv").display().to_string()),
+        "{said}"
+    );
 
     let rows = table(&out.join("table2.csv"));
     let lines: Vec<Value> = std::fs::read_to_string(out.join("reports2.jsonl"))
@@ -116,7 +123,11 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(rows.len(), 5, "one compass per simulated log, one row for the bad one");
+    assert_eq!(
+        rows.len(),
+        5,
+        "one compass per simulated log, one row for the bad one"
+    );
     assert_eq!(lines.len(), 5);
     for ((row, line), log) in rows.iter().zip(&lines).zip(&logs) {
         let name = log.display().to_string();
@@ -125,7 +136,10 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
         if log.ends_with("a0-broken.tlog") {
             assert_eq!(row["status"], "error");
             assert!(row["failure"].contains("cannot tell the format"), "{row:?}");
-            assert!(line["error"].as_str().unwrap().contains("cannot tell the format"));
+            assert!(line["error"]
+                .as_str()
+                .unwrap()
+                .contains("cannot tell the format"));
             continue;
         }
         // The same log replayed alone, its report written by `--report`.
@@ -139,21 +153,30 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
         assert!(alone.status.success(), "{}", text(&alone));
         let report: Value =
             serde_json::from_str(&std::fs::read_to_string(&report_path).unwrap()).unwrap();
-        assert_eq!(line["report"], report, "{name}: the reports line is the full report");
+        assert_eq!(
+            line["report"], report,
+            "{name}: the reports line is the full report"
+        );
         let mag = &report["calibration"]["mag"];
         assert_eq!(row["status"], "ok", "{name}");
         assert!(cell_matches(&row["instance"], &report["input"]["instance"]));
         for key in ["failure", "detail", "method", "model", "units"] {
             assert!(cell_matches(&row[key], &mag[key]), "{name} {key}: {row:?}");
         }
-        assert!(cell_matches(&row["mounting_verdict"], &mag["mounting"]["verdict"]));
+        assert!(cell_matches(
+            &row["mounting_verdict"],
+            &mag["mounting"]["verdict"]
+        ));
         let verdict = report["quality"]
             .as_array()
             .and_then(|q| q.first())
             .map_or(Value::Null, |q| q["verdict"].clone());
         assert!(cell_matches(&row["verdict"], &verdict), "{row:?}");
         for (k, axis) in ["x", "y", "z"].iter().enumerate() {
-            assert!(cell_matches(&row[&format!("offset_{axis}")], &mag["offset"][k]));
+            assert!(cell_matches(
+                &row[&format!("offset_{axis}")],
+                &mag["offset"][k]
+            ));
         }
         for r in 0..3 {
             for c in 0..3 {
@@ -186,7 +209,9 @@ fn one_worker_and_two_workers_give_the_same_table_and_reports() {
 #[test]
 fn a_batch_of_good_logs_exits_0_and_one_log_is_replayed_as_before() {
     let d = tempfile::tempdir().unwrap();
-    let logs: Vec<PathBuf> = (1..=2).map(|i| d.path().join(format!("g{i}.tlog"))).collect();
+    let logs: Vec<PathBuf> = (1..=2)
+        .map(|i| d.path().join(format!("g{i}.tlog")))
+        .collect();
     for (i, p) in logs.iter().enumerate() {
         let seed = (10 + i).to_string();
         let out = imucald(&[
@@ -200,7 +225,11 @@ fn a_batch_of_good_logs_exits_0_and_one_log_is_replayed_as_before() {
     }
     let run = imucald(&["replay".as_ref(), logs[0].as_os_str(), logs[1].as_os_str()]);
     assert_eq!(run.status.code(), Some(0), "{}", text(&run));
-    assert!(text(&run).contains("2 logs, 2 calibrated, 0 failed"), "{}", text(&run));
+    assert!(
+        text(&run).contains("2 logs, 2 calibrated, 0 failed"),
+        "{}",
+        text(&run)
+    );
     // One log: the per-sensor summary, not a batch line.
     let one = imucald(&["replay".as_ref(), logs[0].as_os_str()]);
     assert_eq!(one.status.code(), Some(0));
@@ -217,7 +246,11 @@ fn a_batch_of_good_logs_exits_0_and_one_log_is_replayed_as_before() {
         d.path().join("r.json").as_os_str(),
     ]);
     assert_eq!(refused.status.code(), Some(1));
-    assert!(text(&refused).contains("--reports FILE.jsonl"), "{}", text(&refused));
+    assert!(
+        text(&refused).contains("--reports FILE.jsonl"),
+        "{}",
+        text(&refused)
+    );
 }
 
 /// The table's columns are those of the Python example's Parquet rows, its 9-value matrix spread

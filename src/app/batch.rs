@@ -519,7 +519,10 @@ fn work(
         // poisoned lock still hands out its queue.
         let next = queue.lock().unwrap_or_else(|p| p.into_inner()).recv();
         let Ok(index) = next else { return };
-        if done.send(replay_log(index, &logs[index], replay_one)).is_err() {
+        if done
+            .send(replay_log(index, &logs[index], replay_one))
+            .is_err()
+        {
             return;
         }
     }
@@ -657,7 +660,9 @@ mod tests {
     use super::*;
 
     fn logs(n: usize) -> Vec<PathBuf> {
-        (0..n).map(|i| PathBuf::from(format!("log{i}.tlog"))).collect()
+        (0..n)
+            .map(|i| PathBuf::from(format!("log{i}.tlog")))
+            .collect()
     }
 
     #[test]
@@ -690,7 +695,8 @@ mod tests {
     fn reports_lines_follow_the_logs_order() {
         let d = tempfile::tempdir().unwrap();
         let out = d.path().join("r.jsonl");
-        let replay_one = |p: &Path| -> Result<Report, Error> { Err(Error::Other(p.display().to_string())) };
+        let replay_one =
+            |p: &Path| -> Result<Report, Error> { Err(Error::Other(p.display().to_string())) };
         let opts = BatchOptions {
             jobs: Some(3),
             reports: Some(out.clone()),
@@ -700,7 +706,10 @@ mod tests {
         let s = run_with(&logs(40), &opts, &replay_one, &mut |_| {}).unwrap();
         assert_eq!(s.written, vec![out.clone(), d.path().join("t.csv")]);
         let text = std::fs::read_to_string(&out).unwrap();
-        let lines: Vec<Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        let lines: Vec<Value> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
         assert_eq!(lines.len(), 40);
         for (i, l) in lines.iter().enumerate() {
             assert_eq!(l["log"], format!("log{i}.tlog"));
@@ -718,16 +727,34 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let sub = d.path().join("b");
         std::fs::create_dir(&sub).unwrap();
-        for f in ["z.tlog", "a.CSV.GZ", "notes.txt", "b/c.ulg", "b/a.bin", "b/x.csv"] {
+        for f in [
+            "z.tlog",
+            "a.CSV.GZ",
+            "notes.txt",
+            "b/c.ulg",
+            "b/a.bin",
+            "b/x.csv",
+        ] {
             std::fs::write(d.path().join(f), b"x").unwrap();
         }
         let given = d.path().join("notes.txt");
         let f = find_logs(&[d.path().to_path_buf(), given.clone()]).unwrap();
-        let rel: Vec<_> = f.logs.iter().map(|p| p.strip_prefix(d.path()).unwrap_or(p)).collect();
-        let want: Vec<&Path> = ["a.CSV.GZ", "b/a.bin", "b/c.ulg", "b/x.csv", "z.tlog", "notes.txt"]
+        let rel: Vec<_> = f
+            .logs
             .iter()
-            .map(Path::new)
+            .map(|p| p.strip_prefix(d.path()).unwrap_or(p))
             .collect();
+        let want: Vec<&Path> = [
+            "a.CSV.GZ",
+            "b/a.bin",
+            "b/c.ulg",
+            "b/x.csv",
+            "z.tlog",
+            "notes.txt",
+        ]
+        .iter()
+        .map(Path::new)
+        .collect();
         assert_eq!(rel, want);
         assert_eq!(f.skipped, vec![(given, SkipReason::NotALogName)]);
     }

@@ -6,11 +6,11 @@
 //! Composes `io`, `calib` and `attitude`; holds no math of its own. Only here does tokio appear,
 //! and only the daemon spawns tasks; every queue it makes is bounded and counts its drops.
 
+pub mod batch;
 pub mod daemon;
 pub mod eval;
 pub mod fixedyaw;
 pub mod plot;
-pub mod batch;
 pub mod replay;
 pub mod simulate;
 pub mod ui;
