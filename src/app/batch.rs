@@ -28,7 +28,7 @@ const QUEUE_PER_WORKER: usize = 2;
 /// The table's columns, in order: the same as the Parquet rows of `examples_py/dask_fleet.py`,
 /// with its 9-value `matrix` spread over `matrix_RC` (row R, column C; calibrated = matrix *
 /// (raw - offset)).
-pub const COLUMNS: [&str; 23] = [
+pub(crate) const COLUMNS: [&str; 23] = [
     "log",
     "instance",
     "primary",
@@ -118,7 +118,7 @@ pub fn find_logs(paths: &[PathBuf]) -> Result<Found, Error> {
 }
 
 /// Whether `path`'s name ends with one of the [`LOG_SUFFIXES`] (any case).
-pub fn is_log_name(path: &Path) -> bool {
+fn is_log_name(path: &Path) -> bool {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().to_ascii_lowercase())
@@ -185,7 +185,7 @@ pub struct BatchSummary {
     /// Worker threads used.
     pub jobs: usize,
     /// The rows, in the order of the logs (also in the table, when one was asked for).
-    pub rows: Vec<Row>,
+    pub(crate) rows: Vec<Row>,
     /// The files written.
     pub written: Vec<PathBuf>,
 }
@@ -219,7 +219,7 @@ impl BatchSummary {
 
 /// A row's status: the compass's fit (`ok`, `failed`) or the log's (`error`: not replayed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RowStatus {
+pub(crate) enum RowStatus {
     Ok,
     Failed,
     Error,
@@ -237,7 +237,7 @@ impl RowStatus {
 
 /// One compass of one log (or the one row of a log not replayed): the [`COLUMNS`].
 #[derive(Debug, Clone, PartialEq)]
-pub struct Row {
+pub(crate) struct Row {
     pub log: String,
     pub instance: Option<String>,
     pub primary: Option<bool>,
@@ -281,7 +281,7 @@ impl Row {
 
     /// The CSV record, in [`COLUMNS`] order; a missing value is an empty cell, a number is
     /// written as the report writes it (the shortest text that reads back to the same f64).
-    pub fn record(&self) -> Vec<String> {
+    fn record(&self) -> Vec<String> {
         let text = |v: &Option<String>| v.clone().unwrap_or_default();
         let mut r = vec![
             self.log.clone(),
@@ -310,7 +310,7 @@ impl Row {
 /// contract) as `examples_py/dask_fleet.py` reads them: each instance of a multi-instance log, the
 /// primary first as the report lists them, else the log's one compass; the quality verdict is the
 /// held-out entry of the same instance.
-pub fn compass_rows(log: &str, report: &Value) -> Vec<Row> {
+pub(crate) fn compass_rows(log: &str, report: &Value) -> Vec<Row> {
     let quality: BTreeMap<&str, &Value> = report["quality"]
         .as_array()
         .into_iter()
@@ -377,7 +377,7 @@ fn numbers<'a, const N: usize>(values: impl Iterator<Item = &'a Value>) -> Optio
 }
 
 /// One log's replay, as a worker runs it.
-pub type ReplayOne<'a> = dyn Fn(&Path) -> Result<Report, Error> + Sync + 'a;
+pub(crate) type ReplayOne<'a> = dyn Fn(&Path) -> Result<Report, Error> + Sync + 'a;
 
 /// What a worker hands back for one log.
 struct Done {
@@ -410,7 +410,7 @@ pub fn run(
 }
 
 /// [`run`] with each log's replay done by `replay_one`.
-pub fn run_with(
+pub(crate) fn run_with(
     logs: &[PathBuf],
     opts: &BatchOptions,
     replay_one: &ReplayOne<'_>,
@@ -644,7 +644,7 @@ impl ReportsFile {
 }
 
 /// The rows as CSV (header [`COLUMNS`]) at `path`, atomically.
-pub fn write_table(path: &Path, rows: &[Row]) -> Result<(), Error> {
+fn write_table(path: &Path, rows: &[Row]) -> Result<(), Error> {
     write_atomic_with(path, |f| {
         let mut w = csv::Writer::from_writer(f);
         w.write_record(COLUMNS)?;
