@@ -45,8 +45,22 @@ enum Cmd {
 
 #[derive(Args)]
 struct ReplayArgs {
-    /// The log file. Default: a simulated tumble built into the binary (140 s, `.tlog`).
-    log: Option<PathBuf>,
+    /// The log file. Default: a simulated tumble built into the binary (140 s, `.tlog`). Several
+    /// logs, or a directory (every .tlog, .csv, .csv.gz, .bin and .ulg under it), make a batch:
+    /// one log per core, one table of every log's compasses (--table) and their reports (--reports).
+    #[arg(value_name = "LOG")]
+    logs: Vec<PathBuf>,
+    /// A batch's table: one CSV row per log and compass (status, method, offset, matrix, the
+    /// quality verdict against the onboard calibration, the failure).
+    #[arg(long, value_name = "FILE.csv")]
+    table: Option<PathBuf>,
+    /// A batch's reports: one JSON line per log, {"log": ..., "report": {...}} or {"log": ...,
+    /// "error": "..."}.
+    #[arg(long, value_name = "FILE.jsonl")]
+    reports: Option<PathBuf>,
+    /// A batch's worker threads (default: the cores).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    jobs: Option<u32>,
     /// TOML configuration (see config/).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -412,8 +426,16 @@ impl Drop for EmbeddedLog {
 }
 
 fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
+    let is_batch = args.logs.len() > 1
+        || args.logs.iter().any(|p| p.is_dir())
+        || args.table.is_some()
+        || args.reports.is_some()
+        || args.jobs.is_some();
+    if is_batch {
+        return replay_batch_cmd(args);
+    }
     let ReplayArgs {
-        log,
+        logs,
         config,
         format,
         report,
@@ -425,12 +447,13 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         rate_hz,
         quality_points,
         refits,
+        ..
     } = args;
     let mut cfg = load_config(config.as_ref())?;
     if rate_hz.is_some() {
         cfg.input.csv.rate_hz = rate_hz;
     }
-    let (log, _embedded) = match log {
+    let (log, _embedded) = match logs.into_iter().next() {
         Some(p) => (p, None),
         None => {
             let e = EmbeddedLog::write()?;
@@ -474,6 +497,105 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         return Ok(Outcome::NothingCalibrated);
     }
     Ok(Outcome::Done)
+}
+
+/// `imucald replay` over several logs or directories ([`imucald::app::batch`]): one bar, one line.
+fn replay_batch_cmd(args: ReplayArgs) -> Result<Outcome> {
+    let per_log = [
+        ("--report", args.report.is_some(), "--reports FILE.jsonl"),
+        ("--calibrated-out", args.calibrated_out.is_some(), ""),
+        ("--plot", args.plot.is_some(), ""),
+        ("--export", args.export.is_some(), ""),
+        ("--html", args.html.is_some(), ""),
+        ("--quality-points", args.quality_points.is_some(), ""),
+    ];
+    if let Some((name, _, instead)) = per_log.iter().find(|(_, given, _)| *given) {
+        let instead = match *instead {
+            "" => String::new(),
+            i => format!(" (in a batch: {i})"),
+        };
+        anyhow::bail!("{name} writes one log's output: replay that log alone{instead}");
+    }
+    let mut cfg = load_config(args.config.as_ref())?;
+    if args.rate_hz.is_some() {
+        cfg.input.csv.rate_hz = args.rate_hz;
+    }
+    let found = imucald::app::batch::find_logs(&args.logs)?;
+    say_skipped(&found.skipped);
+    if found.logs.is_empty() {
+        anyhow::bail!(
+            "no logs ({}) in {}",
+            imucald::app::batch::LOG_SUFFIXES.join(", "),
+            args.logs
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let opts = imucald::app::batch::BatchOptions {
+        jobs: args.jobs.map(|j| j as usize),
+        replay: imucald::app::replay::ReplayOptions {
+            format: args.format.map(Into::into),
+            refits: args.refits,
+            ..Default::default()
+        },
+        table: args.table,
+        reports: args.reports,
+    };
+    let bar = indicatif::ProgressBar::new(found.logs.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:40} {pos}/{len} logs, {msg}, {elapsed} elapsed, eta {eta}",
+        )
+        .expect("template"),
+    );
+    bar.set_message("0 failed");
+    let s = imucald::app::batch::run(&found.logs, &cfg, &opts, &mut |p| {
+        bar.set_position(p.done as u64);
+        bar.set_message(format!("{} failed", p.failed));
+    })?;
+    bar.finish_and_clear();
+    println!("{}", s.line());
+    if s.failed() > 0 {
+        eprintln!(
+            "error: {} of {} logs calibrated nothing or were not replayed (exit status {EXIT_NOTHING_CALIBRATED}): {}",
+            s.failed(),
+            s.logs,
+            if s.written.is_empty() {
+                "give --table FILE.csv for each log's failure".to_string()
+            } else {
+                "each log's failure is in its row".to_string()
+            }
+        );
+        return Ok(Outcome::NothingCalibrated);
+    }
+    Ok(Outcome::Done)
+}
+
+/// The files a batch's directories held besides logs: how many of each kind, the first few named.
+fn say_skipped(skipped: &[(PathBuf, imucald::app::batch::SkipReason)]) {
+    const NAMED: usize = 3;
+    if skipped.is_empty() {
+        return;
+    }
+    let named: Vec<String> = skipped
+        .iter()
+        .take(NAMED)
+        .map(|(p, why)| format!("{} ({})", p.display(), why.name()))
+        .collect();
+    let more = skipped.len().saturating_sub(NAMED);
+    eprintln!(
+        "skipped {} file{} in the directories: {}{}",
+        skipped.len(),
+        if skipped.len() == 1 { "" } else { "s" },
+        named.join(", "),
+        if more > 0 {
+            format!(" and {more} more")
+        } else {
+            String::new()
+        }
+    );
 }
 
 fn run_cmd(args: RunArgs) -> Result<()> {

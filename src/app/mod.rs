@@ -6,6 +6,7 @@
 //! Composes `io`, `calib` and `attitude`; holds no math of its own. Only here does tokio appear,
 //! and only the daemon spawns tasks; every queue it makes is bounded and counts its drops.
 
+pub mod batch;
 pub mod daemon;
 pub mod eval;
 pub mod fixedyaw;
