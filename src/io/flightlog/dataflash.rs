@@ -250,11 +250,50 @@ impl DfStats {
     }
 }
 
-/// Reads the records of a DataFlash log in order ([`DfReader::next_record`]).
+/// What a record of a type does to the reader besides being returned: FMT defines a type, FMTU
+/// gives units and multipliers, MULT gives multipliers. Set once per FMT, so records are not told
+/// apart by name one by one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Meta {
+    None,
+    Fmt,
+    Fmtu,
+    Mult,
+}
+
+impl Meta {
+    fn of(f: &MessageFormat) -> Meta {
+        match f.name.as_str() {
+            "FMT" => Meta::Fmt,
+            "FMTU" => Meta::Fmtu,
+            "MULT" => Meta::Mult,
+            _ => Meta::None,
+        }
+    }
+}
+
+/// The longest record: its length is one byte.
+const MAX_RECORD: usize = 255;
+
+/// A stream a [`DfReader`] reads through a window, rather than whole bytes.
+struct Stream<'a> {
+    reader: Box<dyn std::io::Read + 'a>,
+    buf: Vec<u8>,
+    /// Offset of `buf` in the stream.
+    base: usize,
+    eof: bool,
+    error: Option<std::io::Error>,
+}
+
+/// Reads the records of a DataFlash log in order ([`DfReader::next_record`]), from whole bytes
+/// or from a stream through a window of [`crate::io::decode::STREAM_CHUNK_BYTES`].
 pub struct DfReader<'a> {
     data: &'a [u8],
+    stream: Option<Stream<'a>>,
+    /// Offset of the next record in the window (`data`, or the stream's buffer).
     pos: usize,
     formats: Vec<Option<MessageFormat>>,
+    meta: [Meta; 256],
     /// MULT ids to multipliers.
     mults: BTreeMap<char, f64>,
     pub stats: DfStats,
@@ -270,18 +309,40 @@ impl<'a> DfReader<'a> {
             "BBnNZ",
             "Type,Length,Name,Format,Columns",
         );
+        let mut meta = [Meta::None; 256];
+        meta[FMT_TYPE as usize] = Meta::Fmt;
         DfReader {
             data,
+            stream: None,
             pos: 0,
             formats,
+            meta,
             mults: BTreeMap::new(),
             stats: DfStats::default(),
         }
     }
 
+    /// A reader of the log `reader` gives, holding a window of it rather than the whole.
+    pub fn from_reader(reader: impl std::io::Read + 'a) -> Self {
+        let mut rd = DfReader::new(&[]);
+        rd.stream = Some(Stream {
+            reader: Box::new(reader),
+            buf: Vec::new(),
+            base: 0,
+            eof: false,
+            error: None,
+        });
+        rd
+    }
+
     /// Bytes consumed so far.
     pub fn position(&self) -> usize {
-        self.pos
+        self.pos + self.stream.as_ref().map_or(0, |s| s.base)
+    }
+
+    /// The error that ended a stream early, if one did (taken).
+    pub fn take_error(&mut self) -> Option<std::io::Error> {
+        self.stream.as_mut().and_then(|s| s.error.take())
     }
 
     /// The format of type `id`, once defined.
@@ -294,39 +355,72 @@ impl<'a> DfReader<'a> {
         self.mults.get(&col.mult_id?).copied()
     }
 
+    /// The bytes of the window.
+    fn window(&self) -> &[u8] {
+        match &self.stream {
+            Some(s) => &s.buf,
+            None => self.data,
+        }
+    }
+
+    /// Read more of a stream when less than a record is left in its window.
+    fn refill(&mut self) {
+        let Some(s) = self.stream.as_mut() else {
+            return;
+        };
+        if s.eof || s.buf.len() - self.pos >= MAX_RECORD {
+            return;
+        }
+        crate::io::decode::fill_window(
+            &mut s.reader,
+            &mut s.buf,
+            (&mut self.pos, &mut s.base),
+            &mut s.eof,
+            &mut s.error,
+        );
+    }
+
     /// The next record, or `None` at the end (a truncated last record is counted, not returned).
     pub fn next_record(&mut self) -> Option<Record<'_>> {
         loop {
-            let rest = &self.data[self.pos..];
-            if rest.len() < 3 {
-                if !rest.is_empty() {
+            self.refill();
+            let (left, head, id) = {
+                let rest = &self.window()[self.pos..];
+                (rest.len(), rest.get(..2) == Some(&HEAD[..]), rest.get(2))
+            };
+            if left < 3 {
+                if left > 0 {
                     self.stats.skip("truncated", 1);
-                    self.pos = self.data.len();
+                    self.pos += left;
                 }
                 return None;
             }
-            if rest[..2] != HEAD {
+            if !head {
                 self.garbage(1);
                 continue;
             }
-            let id = rest[2];
-            let Some(len) = self.formats[id as usize].as_ref().map(|f| f.length) else {
+            let id = *id.expect("3 bytes left") as usize;
+            let Some(len) = self.formats[id].as_ref().map(|f| f.length) else {
                 self.stats.skip("unknown_type", 1);
                 self.garbage(1);
                 continue;
             };
-            if rest.len() < len {
+            if left < len {
                 self.stats.skip("truncated", 1);
-                self.pos = self.data.len();
+                self.pos += left;
                 return None;
             }
             let start = self.pos + 3;
             self.pos += len;
             self.stats.records += 1;
-            let payload = &self.data[start..start + len - 3];
-            self.absorb_meta(id, payload);
+            if self.meta[id] != Meta::None {
+                let mut payload = [0u8; MAX_RECORD];
+                payload[..len - 3].copy_from_slice(&self.window()[start..start + len - 3]);
+                self.absorb_meta(id, &payload[..len - 3]);
+            }
+            let payload = &self.window()[start..start + len - 3];
             return Some(Record {
-                format: self.formats[id as usize].as_ref()?,
+                format: self.formats[id].as_ref()?,
                 payload,
             });
         }
@@ -338,26 +432,22 @@ impl<'a> DfReader<'a> {
     }
 
     /// FMT defines a type; FMTU gives units and multipliers; MULT gives multipliers.
-    fn absorb_meta(&mut self, id: u8, payload: &[u8]) {
-        if id == FMT_TYPE {
-            match MessageFormat::from_fmt(payload) {
+    fn absorb_meta(&mut self, id: usize, payload: &[u8]) {
+        match self.meta[id] {
+            Meta::None => {}
+            Meta::Fmt => match MessageFormat::from_fmt(payload) {
                 // FMT cannot be redefined: its layout is what every log is read by.
                 Some(f) if f.type_id != FMT_TYPE => {
                     let k = f.type_id as usize;
+                    self.meta[k] = Meta::of(&f);
                     self.formats[k] = Some(f);
                 }
                 Some(_) => {}
                 None => self.stats.skip("bad_fmt", 1),
-            }
-            return;
-        }
-        let Some(name) = self.formats[id as usize].as_ref().map(|f| f.name.as_str()) else {
-            return;
-        };
-        match name {
-            "MULT" => {
+            },
+            Meta::Mult => {
                 let rec = Record {
-                    format: self.formats[id as usize].as_ref().expect("checked"),
+                    format: self.formats[id].as_ref().expect("a type with a meaning has a format"),
                     payload,
                 };
                 let m = rec.get("Mult");
@@ -366,30 +456,31 @@ impl<'a> DfReader<'a> {
                     self.mults.insert(k as u8 as char, m);
                 }
             }
-            "FMTU" => {
-                let rec = Record {
-                    format: self.formats[id as usize].as_ref().expect("checked"),
-                    payload,
-                };
-                let ty = rec.get("FmtType").filter(|v| (0.0..256.0).contains(v));
-                let (Some(ty), Some(units), Some(mults)) =
-                    (ty, rec.text("UnitIds"), rec.text("MultIds"))
-                else {
-                    return;
-                };
-                if let Some(f) = self.formats[ty as usize].as_mut() {
-                    for (i, c) in f.columns.iter_mut().enumerate() {
-                        c.unit = units.chars().nth(i);
-                        c.mult_id = mults.chars().nth(i);
-                    }
-                    if let Some(k) = units.chars().position(|u| u == '#') {
-                        if k < f.columns.len() {
-                            f.instance = Some(k);
-                        }
-                    }
+            Meta::Fmtu => self.absorb_fmtu(id, payload),
+        }
+    }
+
+    /// An FMTU record: the units and multiplier ids of a type's columns, and its instance column.
+    fn absorb_fmtu(&mut self, id: usize, payload: &[u8]) {
+        let rec = Record {
+            format: self.formats[id].as_ref().expect("a type with a meaning has a format"),
+            payload,
+        };
+        let ty = rec.get("FmtType").filter(|v| (0.0..256.0).contains(v));
+        let (Some(ty), Some(units), Some(mults)) = (ty, rec.text("UnitIds"), rec.text("MultIds"))
+        else {
+            return;
+        };
+        if let Some(f) = self.formats[ty as usize].as_mut() {
+            for (i, c) in f.columns.iter_mut().enumerate() {
+                c.unit = units.chars().nth(i);
+                c.mult_id = mults.chars().nth(i);
+            }
+            if let Some(k) = units.chars().position(|u| u == '#') {
+                if k < f.columns.len() {
+                    f.instance = Some(k);
                 }
             }
-            _ => {}
         }
     }
 }

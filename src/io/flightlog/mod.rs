@@ -425,7 +425,34 @@ pub fn decode_dataflash_with(
     bytes: &[u8],
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> FlightLog {
-    let mut rd = dataflash::DfReader::new(bytes);
+    decode_dataflash_from(dataflash::DfReader::new(bytes), emit)
+}
+
+/// As [`decode_dataflash_with`], the log read from a stream through a window
+/// ([`dataflash::DfReader::from_reader`]); a read error comes back after what came before it.
+pub(crate) fn decode_dataflash_stream(
+    reader: impl std::io::Read,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> (FlightLog, Option<std::io::Error>) {
+    let mut error = None;
+    let rd = dataflash::DfReader::from_reader(reader);
+    let log = decode_dataflash_records(rd, emit, &mut error);
+    (log, error)
+}
+
+fn decode_dataflash_from(
+    rd: dataflash::DfReader<'_>,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> FlightLog {
+    decode_dataflash_records(rd, emit, &mut None)
+}
+
+/// The records of `rd` through the conversion; a stream's read error into `error`.
+fn decode_dataflash_records(
+    mut rd: dataflash::DfReader<'_>,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    error: &mut Option<std::io::Error>,
+) -> FlightLog {
     let mut conv = DfConv::new();
     // Column indices of the fields used ([`DF_FIELDS`]) per type id, found once per definition.
     let mut cols: Vec<Option<Vec<Option<usize>>>> = vec![None; 256];
@@ -447,7 +474,9 @@ pub fn decode_dataflash_with(
             emit(gi, s, read, conv.asm.primary);
         }
     }
-    conv.finish(&rd, bytes.len(), emit)
+    *error = rd.take_error();
+    let end = rd.position();
+    conv.finish(&rd, end, emit)
 }
 
 /// One DataFlash record with the columns of the fields the conversion reads.
