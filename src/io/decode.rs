@@ -1755,7 +1755,7 @@ pub fn detect_format(bytes: &[u8]) -> Option<Format> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -1859,6 +1859,75 @@ mod tests {
         let m = s[0].mag_ut.unwrap();
         assert!((m[0] - 20.0).abs() < 1e-4 && (m[2] - 40.0).abs() < 1e-4);
         assert_eq!(conv.instance(), Some("highres_imu:0"));
+    }
+
+    /// A reader that hands out at most `step` bytes a read, the way a pipe or a gzip stream may.
+    pub(crate) struct Trickle<'a> {
+        pub bytes: &'a [u8],
+        pub step: usize,
+    }
+
+    impl std::io::Read for Trickle<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            let n = buf.len().min(self.step).min(self.bytes.len());
+            buf[..n].copy_from_slice(&self.bytes[..n]);
+            self.bytes = &self.bytes[n..];
+            Ok(n)
+        }
+    }
+
+    #[test]
+    fn a_tlog_streamed_through_a_window_reads_as_the_whole_bytes() {
+        // Over a megabyte (several windows) of records with damage of every kind spread
+        // through it, so that windows end inside garbage, inside a resynchronisation and inside
+        // records; the last record cut.
+        let mut log = Vec::new();
+        let mut x = 0x9E37_79B9u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..24_000u64 {
+            let v = if i % 2 == 0 {
+                MavlinkVersion::V2
+            } else {
+                MavlinkVersion::V1
+            };
+            let at = log.len();
+            log.extend((1_700_000_000_000_000u64 + i * 10_000).to_be_bytes());
+            log.extend(frame_bytes(&imu_msg(i as f32), v));
+            match next() % 97 {
+                0 => log.extend((0..next() % 700).map(|_| next() as u8)),
+                1 => log[at + 12] ^= 0x5A,
+                2 => log.extend([0xFD, 0x09, 0x00]),
+                _ => {}
+            }
+        }
+        log.truncate(log.len() - 20);
+        assert!(log.len() > 4 * STREAM_CHUNK_BYTES, "{} bytes", log.len());
+        let mut whole = TlogRecords::new(&log);
+        let expected: Vec<(u64, f32)> = whole.by_ref().map(|(t, f)| (t, xacc(&f))).collect();
+        for step in [1 << 20, 4093] {
+            let mut stream = TlogStream::new(Trickle { bytes: &log, step });
+            let got: Vec<(u64, f32)> = stream.by_ref().map(|(t, f)| (t, xacc(&f))).collect();
+            assert_eq!(got.len(), expected.len());
+            assert!(got == expected, "records differ at step {step}");
+            assert_eq!(stream.stats, whole.stats, "step {step}");
+            assert_eq!(stream.bytes_read(), log.len());
+        }
+        assert!(whole.stats.skipped["resync"] > 100, "{:?}", whole.stats);
+        assert!(whole.stats.skipped["bad_crc"] > 100, "{:?}", whole.stats);
+        assert_eq!(whole.stats.skipped["truncated"], 1);
+    }
+
+    /// The x acceleration of a HIGHRES_IMU frame, NaN for another.
+    fn xacc(f: &Frame) -> f32 {
+        match &f.message {
+            MavMessage::HIGHRES_IMU(m) => m.xacc,
+            _ => f32::NAN,
+        }
     }
 
     #[test]

@@ -321,14 +321,20 @@ fn open_stream(path: &Path) -> Result<Opened, Error> {
         read: read.clone(),
     };
     let mut buffered = std::io::BufReader::with_capacity(HEAD_BYTES, counted);
-    let gzip = buffered.fill_buf().map_err(read_err)?.starts_with(&[0x1F, 0x8B]);
+    let gzip = buffered
+        .fill_buf()
+        .map_err(read_err)?
+        .starts_with(&[0x1F, 0x8B]);
     let mut content: Box<dyn Read> = if gzip {
         Box::new(flate2::read::MultiGzDecoder::new(buffered))
     } else {
         Box::new(buffered)
     };
     let mut head = Vec::with_capacity(HEAD_BYTES);
-    match (&mut content).take(HEAD_BYTES as u64).read_to_end(&mut head) {
+    match (&mut content)
+        .take(HEAD_BYTES as u64)
+        .read_to_end(&mut head)
+    {
         Ok(_) => {}
         // A truncated .gz still yields what came before the cut.
         Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !head.is_empty() => {}
@@ -373,13 +379,16 @@ pub(crate) fn decode_file_batched(
             let (read, total) = (opened.read.clone(), opened.total as usize);
             let mut records = crate::io::decode::TlogStream::new(opened.reader);
             let mut b = Batcher::new();
-            let error =
-                crate::io::decode::decode_tlog_stream(&mut records, &mut conv, &mut |k, s, _, conv| {
+            let error = crate::io::decode::decode_tlog_stream(
+                &mut records,
+                &mut conv,
+                &mut |k, s, _, conv| {
                     if b.push(k, s, conv.primary_index()) {
                         let at = (read.get() as usize).min(total);
                         b.flush(sink, (conv.instances(), conv.units()), (at, total));
                     }
-                });
+                },
+            );
             if let Some(e) = error {
                 return Err(io_err(e));
             }

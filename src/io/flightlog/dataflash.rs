@@ -218,6 +218,17 @@ impl Record<'_> {
         }
     }
 
+    /// Text column `col` (`n`, `N`, `Z`), borrowed when it is UTF-8.
+    pub(crate) fn text_at(&self, col: usize) -> Option<std::borrow::Cow<'_, str>> {
+        let c = self.format.columns.get(col)?;
+        let Kind::Text(n) = c.kind else {
+            return None;
+        };
+        let b = self.payload.get(c.offset..c.offset + n)?;
+        let end = b.iter().position(|&x| x == 0).unwrap_or(b.len());
+        Some(String::from_utf8_lossy(&b[..end]))
+    }
+
     /// The record's time in us: `TimeUS`, or `TimeMS` (older logs) * 1000.
     pub fn time_us(&self) -> Option<u64> {
         self.get_u64("TimeUS")
@@ -293,6 +304,9 @@ pub struct DfReader<'a> {
     /// Offset of the next record in the window (`data`, or the stream's buffer).
     pos: usize,
     formats: Vec<Option<MessageFormat>>,
+    /// Per type id, the FMT payload that defined it and the instance column it gave: an FMT
+    /// the same as the last (a log repeats them all at each start) is not parsed again.
+    defined_by: Vec<Option<(Box<[u8]>, Option<usize>)>>,
     meta: [Meta; 256],
     /// MULT ids to multipliers.
     mults: BTreeMap<char, f64>,
@@ -316,6 +330,7 @@ impl<'a> DfReader<'a> {
             stream: None,
             pos: 0,
             formats,
+            defined_by: vec![None; 256],
             meta,
             mults: BTreeMap::new(),
             stats: DfStats::default(),
@@ -435,19 +450,12 @@ impl<'a> DfReader<'a> {
     fn absorb_meta(&mut self, id: usize, payload: &[u8]) {
         match self.meta[id] {
             Meta::None => {}
-            Meta::Fmt => match MessageFormat::from_fmt(payload) {
-                // FMT cannot be redefined: its layout is what every log is read by.
-                Some(f) if f.type_id != FMT_TYPE => {
-                    let k = f.type_id as usize;
-                    self.meta[k] = Meta::of(&f);
-                    self.formats[k] = Some(f);
-                }
-                Some(_) => {}
-                None => self.stats.skip("bad_fmt", 1),
-            },
+            Meta::Fmt => self.absorb_fmt(payload),
             Meta::Mult => {
                 let rec = Record {
-                    format: self.formats[id].as_ref().expect("a type with a meaning has a format"),
+                    format: self.formats[id]
+                        .as_ref()
+                        .expect("a type with a meaning has a format"),
                     payload,
                 };
                 let m = rec.get("Mult");
@@ -460,10 +468,38 @@ impl<'a> DfReader<'a> {
         }
     }
 
+    /// An FMT record: a type defined, or defined again. The same definition again leaves the
+    /// format as its parse would (units and multipliers unknown until an FMTU gives them).
+    fn absorb_fmt(&mut self, payload: &[u8]) {
+        let k = payload.first().map_or(FMT_TYPE, |&t| t) as usize;
+        if let (Some((raw, instance)), Some(f)) = (&self.defined_by[k], self.formats[k].as_mut()) {
+            if **raw == *payload {
+                for c in f.columns.iter_mut() {
+                    c.unit = None;
+                    c.mult_id = None;
+                }
+                f.instance = *instance;
+                return;
+            }
+        }
+        match MessageFormat::from_fmt(payload) {
+            // FMT cannot be redefined: its layout is what every log is read by.
+            Some(f) if f.type_id != FMT_TYPE => {
+                self.meta[k] = Meta::of(&f);
+                self.defined_by[k] = Some((payload.into(), f.instance));
+                self.formats[k] = Some(f);
+            }
+            Some(_) => {}
+            None => self.stats.skip("bad_fmt", 1),
+        }
+    }
+
     /// An FMTU record: the units and multiplier ids of a type's columns, and its instance column.
     fn absorb_fmtu(&mut self, id: usize, payload: &[u8]) {
         let rec = Record {
-            format: self.formats[id].as_ref().expect("a type with a meaning has a format"),
+            format: self.formats[id]
+                .as_ref()
+                .expect("a type with a meaning has a format"),
             payload,
         };
         let ty = rec.get("FmtType").filter(|v| (0.0..256.0).contains(v));
@@ -551,6 +587,55 @@ pub(crate) mod tests {
         assert_eq!(r.stats.skipped["truncated"], 1);
         assert_eq!(r.stats.skipped["unknown_type"], 1);
         assert!(r.stats.skipped["resync"] >= 3);
+    }
+
+    #[test]
+    fn a_log_streamed_through_a_window_reads_as_the_whole_bytes() {
+        let mut log = self_fmt();
+        log.extend(fmt(201, "MULT", "Qbd", "TimeUS,Id,Mult"));
+        log.extend(fmt(200, "ATT", "Qcc", "TimeUS,Roll,Pitch"));
+        let mut x = 0x2545_F491u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..120_000u64 {
+            let mut p = i.to_le_bytes().to_vec();
+            p.extend((i as i16).to_le_bytes());
+            p.extend((-(i as i16)).to_le_bytes());
+            log.extend(rec(200, &p));
+            match next() % 53 {
+                0 => log.extend((0..next() % 300).map(|_| next() as u8)),
+                1 => log.extend(rec(7, &[0; 9])),
+                _ => {}
+            }
+        }
+        log.truncate(log.len() - 5);
+        assert!(log.len() > 4 * crate::io::decode::STREAM_CHUNK_BYTES);
+        let read = |mut r: DfReader<'_>| {
+            let mut got = Vec::new();
+            while let Some(rec) = r.next_record() {
+                got.push((rec.format.type_id, rec.time_us(), rec.get("Roll")));
+            }
+            (got, r.stats.clone(), r.position())
+        };
+        let whole = read(DfReader::new(&log));
+        for step in [1 << 20, 4093] {
+            let trickle = crate::io::decode::tests::Trickle { bytes: &log, step };
+            let streamed = read(DfReader::from_reader(trickle));
+            assert_eq!(streamed.0.len(), whole.0.len());
+            assert!(
+                streamed == whole,
+                "step {step}: {:?} vs {:?}",
+                streamed.1,
+                whole.1
+            );
+        }
+        assert_eq!(whole.2, log.len());
+        assert!(whole.1.skipped["resync"] > 1000, "{:?}", whole.1);
+        assert_eq!(whole.1.skipped["truncated"], 1);
     }
 
     #[test]
