@@ -86,7 +86,7 @@ impl Thinned {
         self.last_t_s = s.t_s;
         let at = self.seen;
         self.seen += 1;
-        if at % self.stride != 0 {
+        if !at.is_multiple_of(self.stride) {
             return;
         }
         if self.samples.len() >= KEPT_SAMPLES_MAX {
@@ -96,7 +96,7 @@ impl Thinned {
                 k % 2 == 1
             });
             self.stride *= 2;
-            if at % self.stride != 0 {
+            if !at.is_multiple_of(self.stride) {
                 return;
             }
         }
@@ -829,23 +829,22 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
     Ok(written)
 }
 
+/// The gyro scale fitted or why none, and the samples it was fitted on.
+type GyroScaleOutcome = (
+    Option<crate::report::GyroScaleReport>,
+    Option<crate::calib::gyro::ScaleFailure>,
+    usize,
+);
+
 /// The gyro scale ([`gyro_scale`]) of a run: on the samples kept when they are every one, else on
 /// the rotations [`gyro_spans`] reads again; with the samples it was fitted on.
-#[allow(clippy::type_complexity)]
 fn gyro_scale_of(
     path: &Path,
     cfg: &Config,
     opts: &ReplayOptions,
     run: &Run,
     results: &FitResults,
-) -> Result<
-    (
-        Option<crate::report::GyroScaleReport>,
-        Option<crate::calib::gyro::ScaleFailure>,
-        usize,
-    ),
-    Error,
-> {
+) -> Result<GyroScaleOutcome, Error> {
     if results.gyro.status != CalStatus::Ok {
         return Ok((None, None, 0));
     }
@@ -922,7 +921,7 @@ fn gyro_spans(
     let relabelled = chosen.enumerate().flat_map(|(j, &i)| {
         [&poses[i], &poses[i + 1]].map(|p| crate::calib::gate::Pose {
             segment: j as u32,
-            ..p.clone()
+            ..*p
         })
     });
     Ok((body, relabelled.collect()))

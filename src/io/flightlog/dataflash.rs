@@ -296,6 +296,13 @@ struct Stream<'a> {
     error: Option<std::io::Error>,
 }
 
+/// The FMT payload a type was defined by, and the instance column that gave.
+#[derive(Debug, Clone)]
+struct Definition {
+    payload: Box<[u8]>,
+    instance: Option<usize>,
+}
+
 /// Reads the records of a DataFlash log in order ([`DfReader::next_record`]), from whole bytes
 /// or from a stream through a window of [`crate::io::decode::STREAM_CHUNK_BYTES`].
 pub struct DfReader<'a> {
@@ -306,7 +313,7 @@ pub struct DfReader<'a> {
     formats: Vec<Option<MessageFormat>>,
     /// Per type id, the FMT payload that defined it and the instance column it gave: an FMT
     /// the same as the last (a log repeats them all at each start) is not parsed again.
-    defined_by: Vec<Option<(Box<[u8]>, Option<usize>)>>,
+    defined_by: Vec<Option<Definition>>,
     meta: [Meta; 256],
     /// MULT ids to multipliers.
     mults: BTreeMap<char, f64>,
@@ -472,13 +479,13 @@ impl<'a> DfReader<'a> {
     /// format as its parse would (units and multipliers unknown until an FMTU gives them).
     fn absorb_fmt(&mut self, payload: &[u8]) {
         let k = payload.first().map_or(FMT_TYPE, |&t| t) as usize;
-        if let (Some((raw, instance)), Some(f)) = (&self.defined_by[k], self.formats[k].as_mut()) {
-            if **raw == *payload {
+        if let (Some(d), Some(f)) = (&self.defined_by[k], self.formats[k].as_mut()) {
+            if *d.payload == *payload {
                 for c in f.columns.iter_mut() {
                     c.unit = None;
                     c.mult_id = None;
                 }
-                f.instance = *instance;
+                f.instance = d.instance;
                 return;
             }
         }
@@ -486,7 +493,10 @@ impl<'a> DfReader<'a> {
             // FMT cannot be redefined: its layout is what every log is read by.
             Some(f) if f.type_id != FMT_TYPE => {
                 self.meta[k] = Meta::of(&f);
-                self.defined_by[k] = Some((payload.into(), f.instance));
+                self.defined_by[k] = Some(Definition {
+                    payload: payload.into(),
+                    instance: f.instance,
+                });
                 self.formats[k] = Some(f);
             }
             Some(_) => {}
