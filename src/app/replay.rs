@@ -37,22 +37,94 @@ pub struct ReplayOutcome {
     pub report: Report,
     pub results: FitResults,
     pub written: Vec<PathBuf>,
+    /// What the replay held of the log's samples: bounded, whatever the log's length.
+    pub kept: Kept,
+}
+
+/// Samples of each instance a replay keeps for the steps after the fit (method choice, mounting
+/// check, held-out quality, onboard comparison, plots): 2^17, 22 minutes at 100 Hz. A longer
+/// log is thinned evenly in time ([`Thinned`]): those steps judge directions and attitudes, which
+/// a vehicle repeats, not every reading. About 36 MB per instance at the most.
+pub(crate) const KEPT_SAMPLES_MAX: usize = 1 << 17;
+
+/// Samples of the rotations between static poses the gyro scale is fitted on, at most: as many
+/// as [`KEPT_SAMPLES_MAX`] (every rotation of a log that fits in it whole). A longer log gives an
+/// evenly spread choice of its rotations, each read again from the file at the full rate (the
+/// rotation is integrated sample by sample), a hundred and more of them for the 9 terms fitted.
+pub(crate) const GYRO_SPAN_SAMPLES_MAX: usize = KEPT_SAMPLES_MAX;
+
+/// What a replay held of a log's samples ([`ReplayOutcome::kept`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Kept {
+    /// Samples decoded, every instance.
+    pub seen: u64,
+    /// Samples held for the steps after the fit, every instance.
+    pub held: usize,
+    /// The most one instance held, and the cap on it ([`KEPT_SAMPLES_MAX`]).
+    pub largest: usize,
+    pub cap: usize,
+    /// Samples of the rotations the gyro scale was fitted on, at most [`GYRO_SPAN_SAMPLES_MAX`].
+    pub gyro_span_samples: usize,
+}
+
+/// An evenly thinned record of a stream of samples, at most [`KEPT_SAMPLES_MAX`]: every
+/// `stride`-th, the stride doubling (and every other sample held dropped) when it is full.
+#[derive(Debug, Default)]
+struct Thinned {
+    samples: Vec<crate::types::Sample>,
+    stride: u64,
+    seen: u64,
+    /// The time of the first sample and of the last, s.
+    first_t_s: Option<f64>,
+    last_t_s: f64,
+}
+
+impl Thinned {
+    fn push(&mut self, s: &crate::types::Sample) {
+        self.stride = self.stride.max(1);
+        self.first_t_s.get_or_insert(s.t_s);
+        self.last_t_s = s.t_s;
+        let at = self.seen;
+        self.seen += 1;
+        if !at.is_multiple_of(self.stride) {
+            return;
+        }
+        if self.samples.len() >= KEPT_SAMPLES_MAX {
+            let mut k = 0;
+            self.samples.retain(|_| {
+                k += 1;
+                k % 2 == 1
+            });
+            self.stride *= 2;
+            if !at.is_multiple_of(self.stride) {
+                return;
+            }
+        }
+        self.samples.push(*s);
+    }
+
+    /// Every sample seen is held.
+    fn whole(&self) -> bool {
+        self.stride <= 1
+    }
+
+    fn duration_s(&self) -> f64 {
+        self.first_t_s.map_or(0.0, |t| self.last_t_s - t)
+    }
 }
 
 /// Run a log through the pipeline. `progress(bytes_done, bytes_total)` is called now and then.
+/// The log is read as a stream and what is kept of it is bounded ([`Kept`]); the outputs that
+/// need every sample read it again.
 pub fn replay(
     path: &Path,
     cfg: &Config,
     opts: &ReplayOptions,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplayOutcome, Error> {
-    let bytes = std::fs::read(path).map_err(|source| Error::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut run = run_pipelines(&bytes, path, cfg, opts, progress)?;
+    let mut run = run_pipelines(path, cfg, opts, progress)?;
     let mut results = run.pipe.finish().clone();
-    let (scale, failure) = gyro_scale(&run.log.samples, &run.pipe, &results);
+    let (scale, failure, span_samples) = gyro_scale_of(path, cfg, opts, &run, &results)?;
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
     mag_method(&mut results, &run.log, &run.pipe, cfg);
@@ -68,7 +140,13 @@ pub fn replay(
         written.push(p.clone());
     }
     if let Some(p) = &opts.calibrated_out {
-        write_calibrated(p, &log.samples, pipe, &results, cfg, declination)?;
+        let out = CalibratedOut {
+            pipe,
+            results: &results,
+            cfg,
+            declination,
+        };
+        write_calibrated(p, path, opts, &out)?;
         written.push(p.clone());
     }
     if let Some(dir) = &opts.export_dir {
@@ -88,10 +166,12 @@ pub fn replay(
         })?;
         written.extend(write_quality_points(dir, &run, cfg)?);
     }
+    let kept = run.kept(span_samples);
     Ok(ReplayOutcome {
         report,
         results,
         written,
+        kept,
     })
 }
 
@@ -414,17 +494,38 @@ struct Run {
     pipe: Pipeline,
     /// The other IMU instances of a log, each through a pipeline of its own.
     others: Vec<Option<Pipeline>>,
-    /// Their samples, by the same index.
+    /// Their samples as kept ([`Thinned`]), by the same index.
     other_samples: Vec<Vec<crate::types::Sample>>,
+    /// Samples seen of every instance, and held.
+    seen: u64,
+    held: usize,
+    largest: usize,
+    /// The primary's samples were all held ([`Thinned::whole`]).
+    whole: bool,
+    /// The primary's samples seen, and the time they span, s.
+    primary_seen: u64,
+    duration_s: f64,
     /// Their magnetometer results after the method choice and mounting check
     /// ([`other_mag_methods`]), by the same index.
     other_mags: Vec<Option<crate::calib::outcome::SensorResult>>,
     log: crate::io::sources::Log,
 }
 
-/// Decode `bytes` and push every sample through its instance's pipeline.
+impl Run {
+    fn kept(&self, gyro_span_samples: usize) -> Kept {
+        Kept {
+            seen: self.seen,
+            held: self.held,
+            largest: self.largest,
+            cap: KEPT_SAMPLES_MAX,
+            gyro_span_samples,
+        }
+    }
+}
+
+/// Read the log at `path` as a stream and push every sample through its instance's pipeline,
+/// keeping a bounded, thinned record of each instance's samples ([`Thinned`]).
 fn run_pipelines(
-    bytes: &[u8],
     path: &Path,
     cfg: &Config,
     opts: &ReplayOptions,
@@ -434,13 +535,13 @@ fn run_pipelines(
     // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
     // the same order as from a whole-file decode, so the result is the same.
-    let mut samples = Vec::new();
+    let mut samples = Thinned::default();
     let mut others: Vec<Option<Pipeline>> = Vec::new();
-    let mut other_samples: Vec<Vec<crate::types::Sample>> = Vec::new();
+    let mut other_samples: Vec<Thinned> = Vec::new();
     let decoded = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
         let decoder = scope.spawn(move || {
-            crate::io::sources::decode_log_batched(bytes, path, opts.format, &cfg.input, &mut |b| {
+            crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
                 // The receiver only goes away on a panic; nothing then to hand on to.
                 let _ = tx.send(b);
             })
@@ -456,6 +557,7 @@ fn run_pipelines(
                 if pipe.push(s) && opts.refits {
                     pipe.refit();
                 }
+                samples.push(s);
             }
             for &(k, ref s) in &batch.others {
                 if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
@@ -463,26 +565,36 @@ fn run_pipelines(
                         p.refit();
                     }
                     if other_samples.len() <= k {
-                        other_samples.resize_with(k + 1, Vec::new);
+                        other_samples.resize_with(k + 1, Thinned::default);
                     }
-                    other_samples[k].push(*s);
+                    other_samples[k].push(s);
                 }
             }
             progress(batch.bytes_read as u64, batch.bytes_total as u64);
-            samples.extend_from_slice(&batch.samples);
         }
         decoder
             .join()
             .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
     });
     let mut log = decoded?;
-    log.samples = samples;
+    let all = std::iter::once(&samples).chain(&other_samples);
+    let seen = all.clone().map(|t| t.seen).sum();
+    let held = all.clone().map(|t| t.samples.len()).sum();
+    let largest = all.map(|t| t.samples.len()).max().unwrap_or(0);
+    let (whole, primary_seen, duration_s) = (samples.whole(), samples.seen, samples.duration_s());
+    log.samples = samples.samples;
     Ok(Run {
         pipe,
         others,
-        other_samples,
+        other_samples: other_samples.into_iter().map(|t| t.samples).collect(),
         other_mags: Vec::new(),
         log,
+        seen,
+        held,
+        largest,
+        whole,
+        primary_seen,
+        duration_s,
     })
 }
 
@@ -494,17 +606,13 @@ fn full_report(
     declination: Option<f64>,
 ) -> Report {
     let log = &run.log;
-    let duration = match (log.samples.first(), log.samples.last()) {
-        (Some(a), Some(b)) => b.t_s - a.t_s,
-        _ => 0.0,
-    };
     let input = InputReport::new(
         log.format.name(),
         Some(path.display().to_string()),
         log.instance.clone(),
         &log.stats,
-        log.samples.len() as u64,
-        duration,
+        run.primary_seen,
+        run.duration_s,
     );
     let mut report = make_report(input, &run.pipe, results, declination);
     report.instances = instance_reports(log, &report, &mut run.others, &run.other_mags);
@@ -519,36 +627,121 @@ fn full_report(
     report
 }
 
-/// The calibrated samples as CSV at `p`, with the attitude from them and the fused attitude.
+/// What the calibrated CSV is made with.
+struct CalibratedOut<'a> {
+    pipe: &'a Pipeline,
+    results: &'a FitResults,
+    cfg: &'a Config,
+    declination: Option<f64>,
+}
+
+/// The calibrated samples as CSV at `p`, with the attitude from them and the fused attitude: the
+/// log at `log_path` read again as a stream, a row written per sample as it comes.
 fn write_calibrated(
     p: &Path,
-    samples: &[crate::types::Sample],
-    pipe: &Pipeline,
-    results: &FitResults,
-    cfg: &Config,
-    declination: Option<f64>,
+    log_path: &Path,
+    opts: &ReplayOptions,
+    out: &CalibratedOut<'_>,
 ) -> Result<(), Error> {
-    let mut cal = Calibrator::new(results, declination);
-    // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
-    // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
-    let gyro_k = match (&results.gyro.scale, results.gyro.units) {
-        (Some(k), _) => Some(crate::calib::model::rows_to_mat(&k.matrix)),
-        (None, crate::types::CalUnits::RadS) => Some(nalgebra::Matrix3::identity()),
-        _ => None,
-    };
-    let fcfg = cfg.fusion_config(declination);
-    let mut filter = gyro_k.map(|k| (k, crate::attitude::fusion::OrientationFilter::new(fcfg)));
-    let dt = crate::attitude::fusion::median_dt(samples);
-    let mut out = csv::Writer::from_writer(Vec::with_capacity(samples.len() * 180));
-    let write_err = |e: csv::Error| Error::Write {
-        path: p.to_path_buf(),
-        source: e.into(),
-    };
-    out.write_record(CALIBRATED_COLUMNS).map_err(write_err)?;
-    for s in samples {
-        let mut c = cal.apply(&pipe.to_body(s));
+    let mut decoded = Ok(());
+    crate::io::publish::write_atomic_with(p, |file| {
+        let mut csv = csv::Writer::from_writer(std::io::BufWriter::new(file));
+        csv.write_record(CALIBRATED_COLUMNS)?;
+        let mut rows = CalibratedRows::new(out);
+        let mut failed: Option<csv::Error> = None;
+        let r = crate::io::sources::decode_file_batched(
+            log_path,
+            opts.format,
+            &out.cfg.input,
+            &mut |b| {
+                if failed.is_none() {
+                    failed = rows.take(&mut csv, &b.samples).err();
+                }
+            },
+        );
+        if let Some(e) = failed {
+            return Err(e.into());
+        }
+        rows.finish(&mut csv)?;
+        csv.flush()?;
+        decoded = r.map(|_| ());
+        Ok(())
+    })?;
+    decoded
+}
+
+/// Samples the step of the fused attitude is found from ([`crate::attitude::fusion::median_dt`]
+/// looks at the first 2000 steps).
+const STEP_SAMPLES: usize = 2001;
+
+/// The rows of the calibrated CSV, made sample by sample.
+struct CalibratedRows<'a> {
+    pipe: &'a Pipeline,
+    cal: Calibrator,
+    /// The gyro scale and the fused attitude's filter, when the gyro is in rad/s or scaled.
+    filter: Option<(
+        nalgebra::Matrix3<f64>,
+        crate::attitude::fusion::OrientationFilter,
+    )>,
+    /// The first samples, held until the step is known from them.
+    pending: Vec<crate::types::Sample>,
+    dt: Option<f64>,
+}
+
+impl<'a> CalibratedRows<'a> {
+    fn new(out: &CalibratedOut<'a>) -> Self {
+        let results = out.results;
+        // The fused attitude (gyro + accel + mag filter, body FRD -> NED, true north when the place
+        // is known): needs the gyro in rad/s, so a raw-count gyro needs its scale fit.
+        let gyro_k = match (&results.gyro.scale, results.gyro.units) {
+            (Some(k), _) => Some(crate::calib::model::rows_to_mat(&k.matrix)),
+            (None, crate::types::CalUnits::RadS) => Some(nalgebra::Matrix3::identity()),
+            _ => None,
+        };
+        let fcfg = out.cfg.fusion_config(out.declination);
+        CalibratedRows {
+            pipe: out.pipe,
+            cal: Calibrator::new(results, out.declination),
+            filter: gyro_k.map(|k| (k, crate::attitude::fusion::OrientationFilter::new(fcfg))),
+            pending: Vec::with_capacity(STEP_SAMPLES),
+            dt: None,
+        }
+    }
+
+    /// Rows for `samples`, or hold them while the step is not known.
+    fn take<W: std::io::Write>(
+        &mut self,
+        out: &mut csv::Writer<W>,
+        samples: &[crate::types::Sample],
+    ) -> Result<(), csv::Error> {
+        if let Some(dt) = self.dt {
+            return samples.iter().try_for_each(|s| self.row(out, s, dt));
+        }
+        self.pending.extend_from_slice(samples);
+        if self.pending.len() >= STEP_SAMPLES {
+            self.finish(out)?;
+        }
+        Ok(())
+    }
+
+    /// Rows for the samples held.
+    fn finish<W: std::io::Write>(&mut self, out: &mut csv::Writer<W>) -> Result<(), csv::Error> {
+        let pending = std::mem::take(&mut self.pending);
+        let dt = *self
+            .dt
+            .get_or_insert_with(|| crate::attitude::fusion::median_dt(&pending));
+        pending.iter().try_for_each(|s| self.row(out, s, dt))
+    }
+
+    fn row<W: std::io::Write>(
+        &mut self,
+        out: &mut csv::Writer<W>,
+        s: &crate::types::Sample,
+        dt: f64,
+    ) -> Result<(), csv::Error> {
+        let mut c = self.cal.apply(&self.pipe.to_body(s));
         let mut fused = None;
-        if let Some((k, f)) = filter.as_mut() {
+        if let Some((k, f)) = self.filter.as_mut() {
             c.gyro_rad_s = c.gyro_rad_s.map(|g| {
                 let w = *k * nalgebra::Vector3::new(g[0], g[1], g[2]);
                 [w.x, w.y, w.z]
@@ -556,12 +749,8 @@ fn write_calibrated(
             f.update_sample(&c.as_sample(), dt);
             fused = f.initialized().then(|| f.orientation());
         }
-        write_row(&mut out, &c, fused.as_ref(), s.ref_q).map_err(write_err)?;
+        write_row(out, &c, fused.as_ref(), s.ref_q)
     }
-    let bytes = out
-        .into_inner()
-        .map_err(|e| write_err(e.into_error().into()))?;
-    crate::io::publish::write_atomic(p, &bytes)
 }
 
 /// ArduPilot, PX4 and Fusion parameter files in `dir`: every compass of the log under its own
@@ -640,12 +829,112 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
     Ok(written)
 }
 
-/// Gyro scale and misalignment from the rotations between the log's static poses (see
-/// [`crate::calib::gyro::fit_scale`]). `(None, None)` when the log has no gyro; a refusal says why. Without
+/// The gyro scale fitted or why none, and the samples it was fitted on.
+type GyroScaleOutcome = (
+    Option<crate::report::GyroScaleReport>,
+    Option<crate::calib::gyro::ScaleFailure>,
+    usize,
+);
+
+/// The gyro scale ([`gyro_scale`]) of a run: on the samples kept when they are every one, else on
+/// the rotations [`gyro_spans`] reads again; with the samples it was fitted on.
+fn gyro_scale_of(
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    run: &Run,
+    results: &FitResults,
+) -> Result<GyroScaleOutcome, Error> {
+    if results.gyro.status != CalStatus::Ok {
+        return Ok((None, None, 0));
+    }
+    let pipe = &run.pipe;
+    let (body, poses) = if run.whole {
+        let body: Vec<_> = run.log.samples.iter().map(|s| pipe.to_body(s)).collect();
+        (body, pipe.poses().to_vec())
+    } else {
+        gyro_spans(path, cfg, opts, run)?
+    };
+    let (scale, failure) = gyro_scale(&body, &poses, pipe, results);
+    Ok((scale, failure, body.len()))
+}
+
+/// The rotations between consecutive static poses of a log too long to keep whole: every pair
+/// of poses that [`crate::calib::gyro::fit_scale`] could use (same time segment, gap at most its
+/// `max_gap_s`), or an evenly spread choice of them when their samples would be more than
+/// [`GYRO_SPAN_SAMPLES_MAX`]; the samples from one pose's middle to the next's read again from
+/// the file, in body axes. Each chosen pair comes back as two poses of a time segment of its own
+/// (its samples relabelled alike, those of another segment set apart), so the fit integrates
+/// within pairs only, as it does on the whole log.
+fn gyro_spans(
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    run: &Run,
+) -> Result<(Vec<crate::types::Sample>, Vec<crate::calib::gate::Pose>), Error> {
+    let poses = run.pipe.poses();
+    let max_gap_s = crate::calib::gyro::ScaleOptions::default().max_gap_s;
+    let mid = |p: &crate::calib::gate::Pose| 0.5 * (p.t_start + p.t_end);
+    let pairs: Vec<usize> = (1..poses.len())
+        .filter(|&i| {
+            let (a, b) = (&poses[i - 1], &poses[i]);
+            a.segment == b.segment && b.t_start - a.t_end <= max_gap_s
+        })
+        .map(|i| i - 1)
+        .collect();
+    let rate_hz = run.primary_seen as f64 / run.duration_s.max(f64::MIN_POSITIVE);
+    let expected: f64 = pairs
+        .iter()
+        .map(|&i| (mid(&poses[i + 1]) - mid(&poses[i])) * rate_hz)
+        .sum();
+    let every = (expected / GYRO_SPAN_SAMPLES_MAX as f64).ceil().max(1.0) as usize;
+    // (from, to, time segment) of each chosen rotation, in time order.
+    let spans: Vec<(f64, f64, u32)> = pairs
+        .iter()
+        .step_by(every)
+        .map(|&i| (mid(&poses[i]), mid(&poses[i + 1]), poses[i].segment))
+        .collect();
+    let (mut body, mut k, mut whole) = (Vec::new(), 0usize, spans.len());
+    crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
+        for s in &b.samples {
+            while k < spans.len() && s.t_s >= spans[k].1 {
+                k += 1;
+            }
+            if k >= whole || s.t_s < spans[k].0 {
+                continue;
+            }
+            if body.len() >= GYRO_SPAN_SAMPLES_MAX {
+                // Full: the rotation under way is left out, and those after it.
+                whole = k;
+                continue;
+            }
+            let mut x = run.pipe.to_body(s);
+            x.segment = if s.segment == spans[k].2 {
+                k as u32
+            } else {
+                u32::MAX
+            };
+            body.push(x);
+        }
+    })?;
+    let chosen = pairs.iter().step_by(every).take(whole);
+    let relabelled = chosen.enumerate().flat_map(|(j, &i)| {
+        [&poses[i], &poses[i + 1]].map(|p| crate::calib::gate::Pose {
+            segment: j as u32,
+            ..*p
+        })
+    });
+    Ok((body, relabelled.collect()))
+}
+
+/// Gyro scale and misalignment from the rotations between `poses` (see
+/// [`crate::calib::gyro::fit_scale`]), `body` the samples in body axes; the bias from all the
+/// pipeline's poses. `(None, None)` when the log has no gyro; a refusal says why. Without
 /// an accelerometer calibration the rotations are still looked at (with the raw accelerometer
 /// directions): about one axis or in one plane only, the scale could not be determined with one.
 fn gyro_scale(
-    samples: &[crate::types::Sample],
+    body: &[crate::types::Sample],
+    poses: &[crate::calib::gate::Pose],
     pipe: &Pipeline,
     results: &FitResults,
 ) -> (
@@ -658,7 +947,6 @@ fn gyro_scale(
     let Some(bias) = crate::calib::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
         return (None, None);
     };
-    let body: Vec<crate::types::Sample> = samples.iter().map(|s| pipe.to_body(s)).collect();
     let opt = crate::calib::gyro::ScaleOptions {
         raw_in_counts: results.gyro.units == crate::types::CalUnits::Counts,
         ..Default::default()
@@ -669,7 +957,7 @@ fn gyro_scale(
             offset: [0.0; 3],
             matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         };
-        let span = crate::calib::gyro::rotation_axes(&body, pipe.poses(), &bias, &raw, &opt);
+        let span = crate::calib::gyro::rotation_axes(body, poses, &bias, &raw, &opt);
         let failure = match span.and_then(|(s, n)| s.failure(n)) {
             Some(f) => f,
             None => crate::calib::gyro::ScaleFailure {
@@ -681,7 +969,7 @@ fn gyro_scale(
         };
         return (None, Some(failure));
     };
-    match crate::calib::gyro::fit_scale(&body, pipe.poses(), &bias, accel, &opt) {
+    match crate::calib::gyro::fit_scale(body, poses, &bias, accel, &opt) {
         Ok(f) => (
             Some(crate::report::GyroScaleReport {
                 matrix: f.matrix,
@@ -1013,8 +1301,8 @@ const CALIBRATED_COLUMNS: [&str; 24] = [
 ];
 
 /// One calibrated sample as a row of [`CALIBRATED_COLUMNS`]: empty cells for what it lacks.
-fn write_row(
-    out: &mut csv::Writer<Vec<u8>>,
+fn write_row<W: std::io::Write>(
+    out: &mut csv::Writer<W>,
     c: &Calibrated,
     fused: Option<&crate::attitude::fusion::Orientation>,
     ref_q: Option<[f64; 4]>,

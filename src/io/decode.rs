@@ -1105,8 +1105,25 @@ pub struct TlogRecords<'a> {
     bytes: &'a [u8],
     pos: usize,
     last_ts: Option<u64>,
+    /// More bytes follow `bytes` (a window of a [`TlogStream`]): nothing within
+    /// [`TLOG_LOOKAHEAD`] of its end is decided on, and its end is no truncation.
+    more: bool,
+    /// A resynchronisation reached the end of the window: the next window goes on with it.
+    resyncing: bool,
     pub stats: DecodeStats,
 }
+
+/// Bytes a window of a stream keeps beyond the last offset it decides on: a resynchronisation
+/// checks a whole record and the next, each a timestamp and a frame of at most
+/// [`MAX_FRAME_BYTES`].
+const TLOG_LOOKAHEAD: usize = 2 * (8 + MAX_FRAME_BYTES) + 8;
+
+/// The longest MAVLink frame: a v2 header of 10 bytes, 255 of payload, a CRC and a 13-byte signature.
+const MAX_FRAME_BYTES: usize = 280;
+
+/// Bytes read from a stream at a time into a decoder's window ([`TlogStream`], the DataFlash
+/// reader): large enough that a read costs little per record, small against a log.
+pub(crate) const STREAM_CHUNK_BYTES: usize = 256 * 1024;
 
 /// How far from the last record time a resynchronisation trusts a timestamp on its own, us.
 const RESYNC_NEAR_US: u64 = 86_400_000_000;
@@ -1117,7 +1134,19 @@ impl<'a> TlogRecords<'a> {
             bytes,
             pos: 0,
             last_ts: None,
+            more: false,
+            resyncing: false,
             stats: DecodeStats::default(),
+        }
+    }
+
+    /// The offset up to which records are read: the end, or short of it by [`TLOG_LOOKAHEAD`]
+    /// when more bytes follow.
+    fn limit(&self) -> usize {
+        if self.more {
+            self.bytes.len().saturating_sub(TLOG_LOOKAHEAD)
+        } else {
+            self.bytes.len()
         }
     }
 
@@ -1144,10 +1173,16 @@ impl<'a> TlogRecords<'a> {
     /// The next offset from `from` that holds a good record: one whose timestamp is within a day
     /// of the last, or (two logs joined, days apart) one followed by another good record. A
     /// CRC-checked pair does not happen by chance in garbage.
+    fn skip_to(&mut self, from: usize) {
+        self.pos = self.resync(from);
+        self.resyncing = self.more && self.pos >= self.limit();
+    }
+
     fn resync(&self, from: usize) -> usize {
         let n = self.bytes.len();
+        let end = self.limit();
         let mut p = from;
-        while p + 9 < n {
+        while p < end && p + 9 < n {
             let m = self.bytes[p + 8];
             if m == V1_MAGIC || m == V2_MAGIC {
                 if let Some(len) = self.record_at(p) {
@@ -1163,7 +1198,11 @@ impl<'a> TlogRecords<'a> {
             }
             p += 1;
         }
-        n
+        if self.more {
+            p
+        } else {
+            n
+        }
     }
 }
 
@@ -1172,7 +1211,12 @@ impl Iterator for TlogRecords<'_> {
 
     fn next(&mut self) -> Option<(u64, Box<Frame>)> {
         let n = self.bytes.len();
-        while self.pos + 8 < n {
+        let end = self.limit();
+        if self.resyncing {
+            self.resyncing = false;
+            self.skip_to(self.pos);
+        }
+        while self.pos < end && self.pos + 8 < n {
             let ts = self.ts_at(self.pos);
             let rest = &self.bytes[self.pos + 8..];
             // Where a record is expected, a magic byte and a frame that checks out are enough:
@@ -1180,7 +1224,7 @@ impl Iterator for TlogRecords<'_> {
             // days); the source's clock sorts that out.
             if !(rest[0] == V1_MAGIC || rest[0] == V2_MAGIC) {
                 self.stats.skip("resync");
-                self.pos = self.resync(self.pos + 1);
+                self.skip_to(self.pos + 1);
                 continue;
             }
             match parse_frame(rest) {
@@ -1201,17 +1245,146 @@ impl Iterator for TlogRecords<'_> {
                         self.last_ts = Some(ts);
                         self.pos += 8 + len;
                     } else {
-                        self.pos = self.resync(self.pos + 1);
+                        self.skip_to(self.pos + 1);
                     }
                 }
             }
         }
-        if self.pos < n {
+        if !self.more && self.pos < n {
             self.stats.skip("truncated");
             self.pos = n;
         }
         None
     }
+}
+
+/// [`TlogRecords`] read from a stream (a file, gunzipped or not) through a window of about
+/// [`STREAM_CHUNK_BYTES`]: the same records and counts as from the whole bytes, in memory that
+/// does not grow with the log. A read error ends the records and is kept ([`TlogStream::error`]).
+pub(crate) struct TlogStream<R> {
+    reader: R,
+    buf: Vec<u8>,
+    /// Offset in `buf` of the next record, and of `buf` in the stream.
+    pos: usize,
+    base: usize,
+    eof: bool,
+    last_ts: Option<u64>,
+    resyncing: bool,
+    pub stats: DecodeStats,
+    pub error: Option<std::io::Error>,
+}
+
+impl<R: std::io::Read> TlogStream<R> {
+    pub fn new(reader: R) -> Self {
+        TlogStream {
+            reader,
+            buf: Vec::with_capacity(STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD),
+            pos: 0,
+            base: 0,
+            eof: false,
+            last_ts: None,
+            resyncing: false,
+            stats: DecodeStats::default(),
+            error: None,
+        }
+    }
+
+    /// Bytes of the stream read so far as records (or skipped).
+    pub fn bytes_read(&self) -> usize {
+        self.base + self.pos
+    }
+
+    /// The next record, as [`TlogRecords::next`] gives it.
+    pub fn next_record(&mut self) -> Option<(u64, Box<Frame>)> {
+        loop {
+            let mut window = TlogRecords {
+                bytes: &self.buf[self.pos..],
+                pos: 0,
+                last_ts: self.last_ts,
+                more: !self.eof,
+                resyncing: self.resyncing,
+                stats: std::mem::take(&mut self.stats),
+            };
+            let record = window.next();
+            self.pos += window.pos;
+            self.last_ts = window.last_ts;
+            self.resyncing = window.resyncing;
+            self.stats = window.stats;
+            if record.is_some() || self.eof {
+                return record;
+            }
+            fill_window(
+                &mut self.reader,
+                &mut self.buf,
+                (&mut self.pos, &mut self.base),
+                &mut self.eof,
+                &mut self.error,
+            );
+        }
+    }
+}
+
+impl<R: std::io::Read> Iterator for TlogStream<R> {
+    type Item = (u64, Box<Frame>);
+
+    fn next(&mut self) -> Option<(u64, Box<Frame>)> {
+        self.next_record()
+    }
+}
+
+/// Drop the bytes of `buf` before `pos` (moving `base` on by as many) and read up to
+/// [`STREAM_CHUNK_BYTES`] more; the end of the stream or a read error sets `eof` (a truncated
+/// gzip member ends the stream as its end would; other errors are kept in `error`).
+pub(crate) fn fill_window(
+    reader: &mut impl std::io::Read,
+    buf: &mut Vec<u8>,
+    (pos, base): (&mut usize, &mut usize),
+    eof: &mut bool,
+    error: &mut Option<std::io::Error>,
+) {
+    buf.drain(..*pos);
+    *base += *pos;
+    *pos = 0;
+    let want = buf.len() + STREAM_CHUNK_BYTES;
+    while buf.len() < want {
+        let have = buf.len();
+        buf.resize(want, 0);
+        match reader.read(&mut buf[have..]) {
+            Ok(0) => {
+                buf.truncate(have);
+                *eof = true;
+                return;
+            }
+            Ok(k) => buf.truncate(have + k),
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => buf.truncate(have),
+            Err(e) => {
+                buf.truncate(have);
+                *eof = true;
+                if e.kind() != std::io::ErrorKind::UnexpectedEof {
+                    *error = Some(e);
+                }
+                return;
+            }
+        }
+    }
+}
+
+/// As [`decode_tlog_with`], the records read from a stream ([`TlogStream`]); `emit` gets the
+/// bytes of the stream read so far. A read error is returned after what came before it.
+pub(crate) fn decode_tlog_stream(
+    records: &mut TlogStream<impl std::io::Read>,
+    conv: &mut MessageConverter,
+    emit: &mut dyn FnMut(usize, Sample, usize, &MessageConverter),
+) -> Option<std::io::Error> {
+    while let Some((ts, f)) = records.next_record() {
+        if let Some((k, s)) = conv.convert_any(&f.message, ts) {
+            emit(k, s, records.bytes_read(), conv);
+        }
+    }
+    for (why, n) in &records.stats.skipped {
+        conv.stats.skip_n(why, *n);
+    }
+    records.error.take()
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1582,7 +1755,7 @@ pub fn detect_format(bytes: &[u8]) -> Option<Format> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -1686,6 +1859,75 @@ mod tests {
         let m = s[0].mag_ut.unwrap();
         assert!((m[0] - 20.0).abs() < 1e-4 && (m[2] - 40.0).abs() < 1e-4);
         assert_eq!(conv.instance(), Some("highres_imu:0"));
+    }
+
+    /// A reader that hands out at most `step` bytes a read, the way a pipe or a gzip stream may.
+    pub(crate) struct Trickle<'a> {
+        pub bytes: &'a [u8],
+        pub step: usize,
+    }
+
+    impl std::io::Read for Trickle<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            let n = buf.len().min(self.step).min(self.bytes.len());
+            buf[..n].copy_from_slice(&self.bytes[..n]);
+            self.bytes = &self.bytes[n..];
+            Ok(n)
+        }
+    }
+
+    #[test]
+    fn a_tlog_streamed_through_a_window_reads_as_the_whole_bytes() {
+        // Over a megabyte (several windows) of records with damage of every kind spread
+        // through it, so that windows end inside garbage, inside a resynchronisation and inside
+        // records; the last record cut.
+        let mut log = Vec::new();
+        let mut x = 0x9E37_79B9u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..24_000u64 {
+            let v = if i % 2 == 0 {
+                MavlinkVersion::V2
+            } else {
+                MavlinkVersion::V1
+            };
+            let at = log.len();
+            log.extend((1_700_000_000_000_000u64 + i * 10_000).to_be_bytes());
+            log.extend(frame_bytes(&imu_msg(i as f32), v));
+            match next() % 97 {
+                0 => log.extend((0..next() % 700).map(|_| next() as u8)),
+                1 => log[at + 12] ^= 0x5A,
+                2 => log.extend([0xFD, 0x09, 0x00]),
+                _ => {}
+            }
+        }
+        log.truncate(log.len() - 20);
+        assert!(log.len() > 4 * STREAM_CHUNK_BYTES, "{} bytes", log.len());
+        let mut whole = TlogRecords::new(&log);
+        let expected: Vec<(u64, f32)> = whole.by_ref().map(|(t, f)| (t, xacc(&f))).collect();
+        for step in [1 << 20, 4093] {
+            let mut stream = TlogStream::new(Trickle { bytes: &log, step });
+            let got: Vec<(u64, f32)> = stream.by_ref().map(|(t, f)| (t, xacc(&f))).collect();
+            assert_eq!(got.len(), expected.len());
+            assert!(got == expected, "records differ at step {step}");
+            assert_eq!(stream.stats, whole.stats, "step {step}");
+            assert_eq!(stream.bytes_read(), log.len());
+        }
+        assert!(whole.stats.skipped["resync"] > 100, "{:?}", whole.stats);
+        assert!(whole.stats.skipped["bad_crc"] > 100, "{:?}", whole.stats);
+        assert_eq!(whole.stats.skipped["truncated"], 1);
+    }
+
+    /// The x acceleration of a HIGHRES_IMU frame, NaN for another.
+    fn xacc(f: &Frame) -> f32 {
+        match &f.message {
+            MavMessage::HIGHRES_IMU(m) => m.xacc,
+            _ => f32::NAN,
+        }
     }
 
     #[test]

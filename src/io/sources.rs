@@ -222,62 +222,11 @@ pub(crate) fn decode_log_batched(
         path: path.to_path_buf(),
         message: format!("gzip: {e}"),
     })?;
-    if data.is_empty() {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            message: "the file is empty (0 bytes): was the log still being written, or copied before it was closed?".into(),
-        });
-    }
-    let cfg_format = cfg.format.format();
-    let chosen = format.or(cfg_format);
-    if chosen.is_none() && detect_format(&data) == Some(Format::Csv) {
-        // A binary log's name on a text file: say so rather than read it as CSV unasked.
-        let name = path.display().to_string().to_ascii_lowercase();
-        if let Some(ext) = [".tlog", ".bin", ".ulg"]
-            .iter()
-            .find(|e| name.ends_with(*e))
-        {
-            return Err(Error::Format {
-                path: path.to_path_buf(),
-                message: format!(
-                    "named {ext} but holds text: a CSV, or a log exported as text? Give --format csv to read it as CSV"
-                ),
-            });
-        }
-    }
-    let format = match chosen.or_else(|| detect_format(&data)) {
-        Some(f) => f,
-        None => {
-            return Err(Error::Format {
-                path: path.to_path_buf(),
-                message: "cannot tell the format: neither a MAVLink .tlog (u64 timestamp + frame), an ArduPilot DataFlash .bin, a PX4 .ulg nor CSV with a header row; use --format tlog|csv|bin|ulg".into(),
-            })
-        }
-    };
+    let format = log_format(&data, path, format, cfg)?;
     match format {
         Format::Tlog => {
-            let choice = cfg.instance.clone();
-            let mut conv = MessageConverter::new(choice, cfg.raw_imu_scale)
-                .with_ardupilot_mag(crate::io::decode::ArduPilotMag::Undo);
-            if conv.choice == InstanceChoice::Auto {
-                conv = conv.with_other_instances();
-            }
-            let heartbeat = crate::io::decode::TlogRecords::new(&data)
-                .take(HEARTBEAT_SCAN_RECORDS)
-                .find(|(_, f)| {
-                    matches!(&f.message, mavlink::dialects::ardupilotmega::MavMessage::HEARTBEAT(h)
-                        if h.autopilot != mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_INVALID)
-                });
-            if let Some((ts, f)) = heartbeat {
-                conv.convert_any(&f.message, ts);
-            }
-            // The clock that stamped the records is the ground station's: a date, unless it
-            // counted from its own start.
-            let date = crate::io::decode::TlogRecords::new(&data)
-                .next()
-                .and_then(|(ts, _)| {
-                    crate::types::LogDate::from_unix_us(ts, crate::types::DateSource::RecordClock)
-                });
+            let mut conv = tlog_converter(cfg);
+            let date = tlog_prescan(crate::io::decode::TlogRecords::new(&data), &mut conv);
             let total = data.len();
             let mut b = Batcher::new();
             decode_tlog_with(&data, &mut conv, &mut |k, s, read, conv| {
@@ -287,33 +236,7 @@ pub(crate) fn decode_log_batched(
                 }
             });
             b.flush(sink, (conv.instances(), conv.units()), (total, total));
-            if !b.any {
-                let what = match &conv.choice {
-                    InstanceChoice::Auto => {
-                        "no IMU message with a magnetometer (HIGHRES_IMU, SCALED_IMU*, RAW_IMU)"
-                            .to_string()
-                    }
-                    InstanceChoice::Named(n) => format!(
-                        "no messages of instance `{n}` (set input.instance to one the log has)"
-                    ),
-                };
-                return Err(Error::Format {
-                    path: path.to_path_buf(),
-                    message: format!("{what}{}", skipped_text(&conv.stats.skipped)),
-                });
-            }
-            let units = conv.units();
-            Ok(Log {
-                format,
-                samples: Vec::new(),
-                instance: conv.instance().map(String::from),
-                instances: conv.instances(),
-                telemetry_onboard: conv.ardupilot_onboard(),
-                date,
-                stats: conv.stats,
-                units,
-                flight: None,
-            })
+            tlog_log(conv, date, b.any, path)
         }
         Format::Csv => {
             let text = String::from_utf8_lossy(&data);
@@ -356,48 +279,291 @@ pub(crate) fn decode_log_batched(
     }
 }
 
-/// A DataFlash or ULog file: samples of every instance handed on in batches, as for a tlog.
-fn decode_flight_log(
-    data: &[u8],
+/// Bytes of a file's (gunzipped) content read ahead to tell its format.
+const HEAD_BYTES: usize = 64 * 1024;
+
+/// A file opened for streaming: the first [`HEAD_BYTES`] of its content (gunzipped when it is
+/// gzip) to tell its format by, and a reader of the whole content from its start.
+struct Opened {
+    head: Vec<u8>,
+    reader: Box<dyn std::io::Read>,
+    /// Bytes of the file read so far (compressed ones for a gzip file), and its length.
+    read: std::rc::Rc<std::cell::Cell<u64>>,
+    total: u64,
+}
+
+/// A reader that counts the bytes read through it.
+struct Counted<R> {
+    inner: R,
+    read: std::rc::Rc<std::cell::Cell<u64>>,
+}
+
+impl<R: std::io::Read> std::io::Read for Counted<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.read.set(self.read.get() + n as u64);
+        Ok(n)
+    }
+}
+
+/// Open `path` for streaming ([`Opened`]).
+fn open_stream(path: &Path) -> Result<Opened, Error> {
+    use std::io::{BufRead, Read};
+    let read_err = |source| Error::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(read_err)?;
+    let total = file.metadata().map_err(read_err)?.len();
+    let read = std::rc::Rc::new(std::cell::Cell::new(0));
+    let counted = Counted {
+        inner: file,
+        read: read.clone(),
+    };
+    let mut buffered = std::io::BufReader::with_capacity(HEAD_BYTES, counted);
+    let gzip = buffered
+        .fill_buf()
+        .map_err(read_err)?
+        .starts_with(&[0x1F, 0x8B]);
+    let mut content: Box<dyn Read> = if gzip {
+        Box::new(flate2::read::MultiGzDecoder::new(buffered))
+    } else {
+        Box::new(buffered)
+    };
+    let mut head = Vec::with_capacity(HEAD_BYTES);
+    match (&mut content)
+        .take(HEAD_BYTES as u64)
+        .read_to_end(&mut head)
+    {
+        Ok(_) => {}
+        // A truncated .gz still yields what came before the cut.
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !head.is_empty() => {}
+        Err(e) if gzip => {
+            return Err(Error::Format {
+                path: path.to_path_buf(),
+                message: format!("gzip: {e}"),
+            })
+        }
+        Err(e) => return Err(read_err(e)),
+    }
+    let reader = Box::new(std::io::Cursor::new(head.clone()).chain(content));
+    Ok(Opened {
+        head,
+        reader,
+        read,
+        total,
+    })
+}
+
+/// As [`decode_log_batched`], the file at `path` read as a stream (gunzipped when it is gzip):
+/// a tlog and a DataFlash log through a window of
+/// [`crate::io::decode::STREAM_CHUNK_BYTES`], so memory does not grow with the log's length; a
+/// CSV and a ULog are read whole. Progress counts the file's bytes.
+pub(crate) fn decode_file_batched(
     path: &Path,
-    format: Format,
+    format: Option<Format>,
+    cfg: &InputConfig,
     sink: &mut dyn FnMut(Batch),
 ) -> Result<Log, Error> {
-    let total = data.len();
-    let mut b = Batcher::new();
-    // Instance names are known only at the end; batches carry placeholders with SI units
-    // (flight-controller logs are in physical units throughout).
-    let placeholder = |n: usize| -> (Vec<InstanceInfo>, Units) {
-        let info = (0..n)
-            .map(|k| InstanceInfo {
-                name: format!("instance {k}"),
-                compass_id: 0,
-                samples: 0,
-                units: Units::default(),
-                time: Default::default(),
-            })
-            .collect();
-        (info, Units::default())
+    let opened = open_stream(path)?;
+    let format = log_format(&opened.head, path, format, cfg)?;
+    let io_err = |e: std::io::Error| Error::Format {
+        path: path.to_path_buf(),
+        message: format!("reading: {e}"),
     };
-    let mut seen = 0usize;
-    let mut emit = |k: usize, s: Sample, read: usize, primary: Option<usize>| {
-        seen = seen.max(k + 1);
-        if b.push(k, s, primary) {
-            b.flush(sink, placeholder(seen), (read, total));
+    match format {
+        Format::Tlog => {
+            let mut conv = tlog_converter(cfg);
+            let first = open_stream(path)?;
+            let date = tlog_prescan(crate::io::decode::TlogStream::new(first.reader), &mut conv);
+            let (read, total) = (opened.read.clone(), opened.total as usize);
+            let mut records = crate::io::decode::TlogStream::new(opened.reader);
+            let mut b = Batcher::new();
+            let error = crate::io::decode::decode_tlog_stream(
+                &mut records,
+                &mut conv,
+                &mut |k, s, _, conv| {
+                    if b.push(k, s, conv.primary_index()) {
+                        let at = (read.get() as usize).min(total);
+                        b.flush(sink, (conv.instances(), conv.units()), (at, total));
+                    }
+                },
+            );
+            if let Some(e) = error {
+                return Err(io_err(e));
+            }
+            b.flush(sink, (conv.instances(), conv.units()), (total, total));
+            tlog_log(conv, date, b.any, path)
         }
-    };
-    let flight = match format {
-        Format::Bin => Some(crate::io::flightlog::decode_dataflash_with(data, &mut emit)),
-        _ => crate::io::flightlog::decode_ulog_with(data, &mut emit),
-    };
-    let Some(flight) = flight else {
+        Format::Bin => {
+            let (read, total) = (opened.read.clone(), opened.total as usize);
+            let mut b = Batcher::new();
+            let mut seen = 0usize;
+            let mut emit = |k: usize, s: Sample, _: usize, primary: Option<usize>| {
+                seen = seen.max(k + 1);
+                if b.push(k, s, primary) {
+                    let at = (read.get() as usize).min(total);
+                    b.flush(sink, placeholder_instances(seen), (at, total));
+                }
+            };
+            let (flight, error) =
+                crate::io::flightlog::decode_dataflash_stream(opened.reader, &mut emit);
+            if let Some(e) = error {
+                return Err(io_err(e));
+            }
+            b.flush(sink, placeholder_instances(seen), (total, total));
+            flight_log(flight, format, b.any, path)
+        }
+        Format::Csv | Format::Ulg => {
+            let mut data = Vec::new();
+            let mut reader = opened.reader;
+            match std::io::Read::read_to_end(&mut reader, &mut data) {
+                Ok(_) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !data.is_empty() => {}
+                Err(e) => return Err(io_err(e)),
+            }
+            decode_log_batched(&data, path, Some(format), cfg, sink)
+        }
+    }
+}
+
+/// The format of a log whose content begins with `head`: the one asked for, else the
+/// configured one, else detected; an error for a text file under a binary log's name (unless
+/// asked for) and for content of no known format.
+fn log_format(
+    head: &[u8],
+    path: &Path,
+    format: Option<Format>,
+    cfg: &InputConfig,
+) -> Result<Format, Error> {
+    if head.is_empty() {
         return Err(Error::Format {
             path: path.to_path_buf(),
-            message: "not a ULog file (no `ULog` header)".into(),
+            message: "the file is empty (0 bytes): was the log still being written, or copied before it was closed?".into(),
         });
-    };
-    b.flush(sink, placeholder(seen), (total, total));
-    if !b.any {
+    }
+    let chosen = format.or(cfg.format.format());
+    if chosen.is_none() && detect_format(head) == Some(Format::Csv) {
+        // A binary log's name on a text file: say so rather than read it as CSV unasked.
+        let name = path.display().to_string().to_ascii_lowercase();
+        if let Some(ext) = [".tlog", ".bin", ".ulg"]
+            .iter()
+            .find(|e| name.ends_with(*e))
+        {
+            return Err(Error::Format {
+                path: path.to_path_buf(),
+                message: format!(
+                    "named {ext} but holds text: a CSV, or a log exported as text? Give --format csv to read it as CSV"
+                ),
+            });
+        }
+    }
+    chosen.or_else(|| detect_format(head)).ok_or_else(|| Error::Format {
+        path: path.to_path_buf(),
+        message: "cannot tell the format: neither a MAVLink .tlog (u64 timestamp + frame), an ArduPilot DataFlash .bin, a PX4 .ulg nor CSV with a header row; use --format tlog|csv|bin|ulg".into(),
+    })
+}
+
+/// The converter of a tlog's messages for `input`: every instance when it is "auto".
+fn tlog_converter(cfg: &InputConfig) -> MessageConverter {
+    let mut conv = MessageConverter::new(cfg.instance.clone(), cfg.raw_imu_scale)
+        .with_ardupilot_mag(crate::io::decode::ArduPilotMag::Undo);
+    if conv.choice == InstanceChoice::Auto {
+        conv = conv.with_other_instances();
+    }
+    conv
+}
+
+/// The first records of a tlog: the vehicle's HEARTBEAT among the first
+/// [`HEARTBEAT_SCAN_RECORDS`] into `conv` (its flight stack fixes RAW_IMU's units from the first
+/// sample on), and the day of the first record. The clock that stamped the records is the
+/// ground station's: a date, unless it counted from its own start.
+fn tlog_prescan(
+    mut records: impl Iterator<Item = (u64, Box<crate::io::decode::Frame>)>,
+    conv: &mut MessageConverter,
+) -> Option<crate::types::LogDate> {
+    let first = records.next();
+    let date = first.as_ref().and_then(|(ts, _)| {
+        crate::types::LogDate::from_unix_us(*ts, crate::types::DateSource::RecordClock)
+    });
+    let heartbeat = first
+        .into_iter()
+        .chain(records)
+        .take(HEARTBEAT_SCAN_RECORDS)
+        .find(|(_, f)| is_vehicle_heartbeat(&f.message));
+    if let Some((ts, f)) = heartbeat {
+        conv.convert_any(&f.message, ts);
+    }
+    date
+}
+
+/// A HEARTBEAT of a vehicle (an autopilot), not of a ground station.
+fn is_vehicle_heartbeat(m: &mavlink::dialects::ardupilotmega::MavMessage) -> bool {
+    matches!(m, mavlink::dialects::ardupilotmega::MavMessage::HEARTBEAT(h)
+        if h.autopilot != mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_INVALID)
+}
+
+/// The [`Log`] of a decoded tlog (without its samples), or the error of one with none of the
+/// instance asked for.
+fn tlog_log(
+    conv: MessageConverter,
+    date: Option<crate::types::LogDate>,
+    any: bool,
+    path: &Path,
+) -> Result<Log, Error> {
+    if !any {
+        let what = match &conv.choice {
+            InstanceChoice::Auto => {
+                "no IMU message with a magnetometer (HIGHRES_IMU, SCALED_IMU*, RAW_IMU)".to_string()
+            }
+            InstanceChoice::Named(n) => {
+                format!("no messages of instance `{n}` (set input.instance to one the log has)")
+            }
+        };
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: format!("{what}{}", skipped_text(&conv.stats.skipped)),
+        });
+    }
+    let units = conv.units();
+    Ok(Log {
+        format: Format::Tlog,
+        samples: Vec::new(),
+        instance: conv.instance().map(String::from),
+        instances: conv.instances(),
+        telemetry_onboard: conv.ardupilot_onboard(),
+        date,
+        stats: conv.stats,
+        units,
+        flight: None,
+    })
+}
+
+/// Instance names of a flight-controller log are known only at its end: batches carry
+/// placeholders for the `n` seen so far, with SI units (such logs are in physical units
+/// throughout).
+fn placeholder_instances(n: usize) -> (Vec<InstanceInfo>, Units) {
+    let info = (0..n)
+        .map(|k| InstanceInfo {
+            name: format!("instance {k}"),
+            compass_id: 0,
+            samples: 0,
+            units: Units::default(),
+            time: Default::default(),
+        })
+        .collect();
+    (info, Units::default())
+}
+
+/// The [`Log`] of a decoded flight-controller log (without its samples), or the error of one
+/// with no samples.
+fn flight_log(
+    flight: crate::io::flightlog::FlightLog,
+    format: Format,
+    any: bool,
+    path: &Path,
+) -> Result<Log, Error> {
+    if !any {
         let what = match format {
             Format::Bin => "no IMU or MAG record with a known layout (FMT) in the DataFlash log",
             _ => "no sensor_combined, vehicle_magnetometer or sensor_* data in the ULog file",
@@ -421,6 +587,36 @@ fn decode_flight_log(
         flight: Some(flight),
         telemetry_onboard: None,
     })
+}
+
+/// A DataFlash or ULog file: samples of every instance handed on in batches, as for a tlog.
+fn decode_flight_log(
+    data: &[u8],
+    path: &Path,
+    format: Format,
+    sink: &mut dyn FnMut(Batch),
+) -> Result<Log, Error> {
+    let total = data.len();
+    let mut b = Batcher::new();
+    let mut seen = 0usize;
+    let mut emit = |k: usize, s: Sample, read: usize, primary: Option<usize>| {
+        seen = seen.max(k + 1);
+        if b.push(k, s, primary) {
+            b.flush(sink, placeholder_instances(seen), (read, total));
+        }
+    };
+    let flight = match format {
+        Format::Bin => Some(crate::io::flightlog::decode_dataflash_with(data, &mut emit)),
+        _ => crate::io::flightlog::decode_ulog_with(data, &mut emit),
+    };
+    let Some(flight) = flight else {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            message: "not a ULog file (no `ULog` header)".into(),
+        });
+    };
+    b.flush(sink, placeholder_instances(seen), (total, total));
+    flight_log(flight, format, b.any, path)
 }
 
 /// "; skipped: 12 bad_crc, 3 resync" for an error message, or nothing when nothing was skipped.

@@ -218,6 +218,17 @@ impl Record<'_> {
         }
     }
 
+    /// Text column `col` (`n`, `N`, `Z`), borrowed when it is UTF-8.
+    pub(crate) fn text_at(&self, col: usize) -> Option<std::borrow::Cow<'_, str>> {
+        let c = self.format.columns.get(col)?;
+        let Kind::Text(n) = c.kind else {
+            return None;
+        };
+        let b = self.payload.get(c.offset..c.offset + n)?;
+        let end = b.iter().position(|&x| x == 0).unwrap_or(b.len());
+        Some(String::from_utf8_lossy(&b[..end]))
+    }
+
     /// The record's time in us: `TimeUS`, or `TimeMS` (older logs) * 1000.
     pub fn time_us(&self) -> Option<u64> {
         self.get_u64("TimeUS")
@@ -250,11 +261,60 @@ impl DfStats {
     }
 }
 
-/// Reads the records of a DataFlash log in order ([`DfReader::next_record`]).
+/// What a record of a type does to the reader besides being returned: FMT defines a type, FMTU
+/// gives units and multipliers, MULT gives multipliers. Set once per FMT, so records are not told
+/// apart by name one by one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Meta {
+    None,
+    Fmt,
+    Fmtu,
+    Mult,
+}
+
+impl Meta {
+    fn of(f: &MessageFormat) -> Meta {
+        match f.name.as_str() {
+            "FMT" => Meta::Fmt,
+            "FMTU" => Meta::Fmtu,
+            "MULT" => Meta::Mult,
+            _ => Meta::None,
+        }
+    }
+}
+
+/// The longest record: its length is one byte.
+const MAX_RECORD: usize = 255;
+
+/// A stream a [`DfReader`] reads through a window, rather than whole bytes.
+struct Stream<'a> {
+    reader: Box<dyn std::io::Read + 'a>,
+    buf: Vec<u8>,
+    /// Offset of `buf` in the stream.
+    base: usize,
+    eof: bool,
+    error: Option<std::io::Error>,
+}
+
+/// The FMT payload a type was defined by, and the instance column that gave.
+#[derive(Debug, Clone)]
+struct Definition {
+    payload: Box<[u8]>,
+    instance: Option<usize>,
+}
+
+/// Reads the records of a DataFlash log in order ([`DfReader::next_record`]), from whole bytes
+/// or from a stream through a window of [`crate::io::decode::STREAM_CHUNK_BYTES`].
 pub struct DfReader<'a> {
     data: &'a [u8],
+    stream: Option<Stream<'a>>,
+    /// Offset of the next record in the window (`data`, or the stream's buffer).
     pos: usize,
     formats: Vec<Option<MessageFormat>>,
+    /// Per type id, the FMT payload that defined it and the instance column it gave: an FMT
+    /// the same as the last (a log repeats them all at each start) is not parsed again.
+    defined_by: Vec<Option<Definition>>,
+    meta: [Meta; 256],
     /// MULT ids to multipliers.
     mults: BTreeMap<char, f64>,
     pub stats: DfStats,
@@ -270,18 +330,41 @@ impl<'a> DfReader<'a> {
             "BBnNZ",
             "Type,Length,Name,Format,Columns",
         );
+        let mut meta = [Meta::None; 256];
+        meta[FMT_TYPE as usize] = Meta::Fmt;
         DfReader {
             data,
+            stream: None,
             pos: 0,
             formats,
+            defined_by: vec![None; 256],
+            meta,
             mults: BTreeMap::new(),
             stats: DfStats::default(),
         }
     }
 
+    /// A reader of the log `reader` gives, holding a window of it rather than the whole.
+    pub fn from_reader(reader: impl std::io::Read + 'a) -> Self {
+        let mut rd = DfReader::new(&[]);
+        rd.stream = Some(Stream {
+            reader: Box::new(reader),
+            buf: Vec::new(),
+            base: 0,
+            eof: false,
+            error: None,
+        });
+        rd
+    }
+
     /// Bytes consumed so far.
     pub fn position(&self) -> usize {
-        self.pos
+        self.pos + self.stream.as_ref().map_or(0, |s| s.base)
+    }
+
+    /// The error that ended a stream early, if one did (taken).
+    pub fn take_error(&mut self) -> Option<std::io::Error> {
+        self.stream.as_mut().and_then(|s| s.error.take())
     }
 
     /// The format of type `id`, once defined.
@@ -294,39 +377,72 @@ impl<'a> DfReader<'a> {
         self.mults.get(&col.mult_id?).copied()
     }
 
+    /// The bytes of the window.
+    fn window(&self) -> &[u8] {
+        match &self.stream {
+            Some(s) => &s.buf,
+            None => self.data,
+        }
+    }
+
+    /// Read more of a stream when less than a record is left in its window.
+    fn refill(&mut self) {
+        let Some(s) = self.stream.as_mut() else {
+            return;
+        };
+        if s.eof || s.buf.len() - self.pos >= MAX_RECORD {
+            return;
+        }
+        crate::io::decode::fill_window(
+            &mut s.reader,
+            &mut s.buf,
+            (&mut self.pos, &mut s.base),
+            &mut s.eof,
+            &mut s.error,
+        );
+    }
+
     /// The next record, or `None` at the end (a truncated last record is counted, not returned).
     pub fn next_record(&mut self) -> Option<Record<'_>> {
         loop {
-            let rest = &self.data[self.pos..];
-            if rest.len() < 3 {
-                if !rest.is_empty() {
+            self.refill();
+            let (left, head, id) = {
+                let rest = &self.window()[self.pos..];
+                (rest.len(), rest.get(..2) == Some(&HEAD[..]), rest.get(2))
+            };
+            if left < 3 {
+                if left > 0 {
                     self.stats.skip("truncated", 1);
-                    self.pos = self.data.len();
+                    self.pos += left;
                 }
                 return None;
             }
-            if rest[..2] != HEAD {
+            if !head {
                 self.garbage(1);
                 continue;
             }
-            let id = rest[2];
-            let Some(len) = self.formats[id as usize].as_ref().map(|f| f.length) else {
+            let id = *id.expect("3 bytes left") as usize;
+            let Some(len) = self.formats[id].as_ref().map(|f| f.length) else {
                 self.stats.skip("unknown_type", 1);
                 self.garbage(1);
                 continue;
             };
-            if rest.len() < len {
+            if left < len {
                 self.stats.skip("truncated", 1);
-                self.pos = self.data.len();
+                self.pos += left;
                 return None;
             }
             let start = self.pos + 3;
             self.pos += len;
             self.stats.records += 1;
-            let payload = &self.data[start..start + len - 3];
-            self.absorb_meta(id, payload);
+            if self.meta[id] != Meta::None {
+                let mut payload = [0u8; MAX_RECORD];
+                payload[..len - 3].copy_from_slice(&self.window()[start..start + len - 3]);
+                self.absorb_meta(id, &payload[..len - 3]);
+            }
+            let payload = &self.window()[start..start + len - 3];
             return Some(Record {
-                format: self.formats[id as usize].as_ref()?,
+                format: self.formats[id].as_ref()?,
                 payload,
             });
         }
@@ -338,26 +454,15 @@ impl<'a> DfReader<'a> {
     }
 
     /// FMT defines a type; FMTU gives units and multipliers; MULT gives multipliers.
-    fn absorb_meta(&mut self, id: u8, payload: &[u8]) {
-        if id == FMT_TYPE {
-            match MessageFormat::from_fmt(payload) {
-                // FMT cannot be redefined: its layout is what every log is read by.
-                Some(f) if f.type_id != FMT_TYPE => {
-                    let k = f.type_id as usize;
-                    self.formats[k] = Some(f);
-                }
-                Some(_) => {}
-                None => self.stats.skip("bad_fmt", 1),
-            }
-            return;
-        }
-        let Some(name) = self.formats[id as usize].as_ref().map(|f| f.name.as_str()) else {
-            return;
-        };
-        match name {
-            "MULT" => {
+    fn absorb_meta(&mut self, id: usize, payload: &[u8]) {
+        match self.meta[id] {
+            Meta::None => {}
+            Meta::Fmt => self.absorb_fmt(payload),
+            Meta::Mult => {
                 let rec = Record {
-                    format: self.formats[id as usize].as_ref().expect("checked"),
+                    format: self.formats[id]
+                        .as_ref()
+                        .expect("a type with a meaning has a format"),
                     payload,
                 };
                 let m = rec.get("Mult");
@@ -366,30 +471,62 @@ impl<'a> DfReader<'a> {
                     self.mults.insert(k as u8 as char, m);
                 }
             }
-            "FMTU" => {
-                let rec = Record {
-                    format: self.formats[id as usize].as_ref().expect("checked"),
-                    payload,
-                };
-                let ty = rec.get("FmtType").filter(|v| (0.0..256.0).contains(v));
-                let (Some(ty), Some(units), Some(mults)) =
-                    (ty, rec.text("UnitIds"), rec.text("MultIds"))
-                else {
-                    return;
-                };
-                if let Some(f) = self.formats[ty as usize].as_mut() {
-                    for (i, c) in f.columns.iter_mut().enumerate() {
-                        c.unit = units.chars().nth(i);
-                        c.mult_id = mults.chars().nth(i);
-                    }
-                    if let Some(k) = units.chars().position(|u| u == '#') {
-                        if k < f.columns.len() {
-                            f.instance = Some(k);
-                        }
-                    }
+            Meta::Fmtu => self.absorb_fmtu(id, payload),
+        }
+    }
+
+    /// An FMT record: a type defined, or defined again. The same definition again leaves the
+    /// format as its parse would (units and multipliers unknown until an FMTU gives them).
+    fn absorb_fmt(&mut self, payload: &[u8]) {
+        let k = payload.first().map_or(FMT_TYPE, |&t| t) as usize;
+        if let (Some(d), Some(f)) = (&self.defined_by[k], self.formats[k].as_mut()) {
+            if *d.payload == *payload {
+                for c in f.columns.iter_mut() {
+                    c.unit = None;
+                    c.mult_id = None;
+                }
+                f.instance = d.instance;
+                return;
+            }
+        }
+        match MessageFormat::from_fmt(payload) {
+            // FMT cannot be redefined: its layout is what every log is read by.
+            Some(f) if f.type_id != FMT_TYPE => {
+                self.meta[k] = Meta::of(&f);
+                self.defined_by[k] = Some(Definition {
+                    payload: payload.into(),
+                    instance: f.instance,
+                });
+                self.formats[k] = Some(f);
+            }
+            Some(_) => {}
+            None => self.stats.skip("bad_fmt", 1),
+        }
+    }
+
+    /// An FMTU record: the units and multiplier ids of a type's columns, and its instance column.
+    fn absorb_fmtu(&mut self, id: usize, payload: &[u8]) {
+        let rec = Record {
+            format: self.formats[id]
+                .as_ref()
+                .expect("a type with a meaning has a format"),
+            payload,
+        };
+        let ty = rec.get("FmtType").filter(|v| (0.0..256.0).contains(v));
+        let (Some(ty), Some(units), Some(mults)) = (ty, rec.text("UnitIds"), rec.text("MultIds"))
+        else {
+            return;
+        };
+        if let Some(f) = self.formats[ty as usize].as_mut() {
+            for (i, c) in f.columns.iter_mut().enumerate() {
+                c.unit = units.chars().nth(i);
+                c.mult_id = mults.chars().nth(i);
+            }
+            if let Some(k) = units.chars().position(|u| u == '#') {
+                if k < f.columns.len() {
+                    f.instance = Some(k);
                 }
             }
-            _ => {}
         }
     }
 }
@@ -460,6 +597,55 @@ pub(crate) mod tests {
         assert_eq!(r.stats.skipped["truncated"], 1);
         assert_eq!(r.stats.skipped["unknown_type"], 1);
         assert!(r.stats.skipped["resync"] >= 3);
+    }
+
+    #[test]
+    fn a_log_streamed_through_a_window_reads_as_the_whole_bytes() {
+        let mut log = self_fmt();
+        log.extend(fmt(201, "MULT", "Qbd", "TimeUS,Id,Mult"));
+        log.extend(fmt(200, "ATT", "Qcc", "TimeUS,Roll,Pitch"));
+        let mut x = 0x2545_F491u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..120_000u64 {
+            let mut p = i.to_le_bytes().to_vec();
+            p.extend((i as i16).to_le_bytes());
+            p.extend((-(i as i16)).to_le_bytes());
+            log.extend(rec(200, &p));
+            match next() % 53 {
+                0 => log.extend((0..next() % 300).map(|_| next() as u8)),
+                1 => log.extend(rec(7, &[0; 9])),
+                _ => {}
+            }
+        }
+        log.truncate(log.len() - 5);
+        assert!(log.len() > 4 * crate::io::decode::STREAM_CHUNK_BYTES);
+        let read = |mut r: DfReader<'_>| {
+            let mut got = Vec::new();
+            while let Some(rec) = r.next_record() {
+                got.push((rec.format.type_id, rec.time_us(), rec.get("Roll")));
+            }
+            (got, r.stats.clone(), r.position())
+        };
+        let whole = read(DfReader::new(&log));
+        for step in [1 << 20, 4093] {
+            let trickle = crate::io::decode::tests::Trickle { bytes: &log, step };
+            let streamed = read(DfReader::from_reader(trickle));
+            assert_eq!(streamed.0.len(), whole.0.len());
+            assert!(
+                streamed == whole,
+                "step {step}: {:?} vs {:?}",
+                streamed.1,
+                whole.1
+            );
+        }
+        assert_eq!(whole.2, log.len());
+        assert!(whole.1.skipped["resync"] > 1000, "{:?}", whole.1);
+        assert_eq!(whole.1.skipped["truncated"], 1);
     }
 
     #[test]

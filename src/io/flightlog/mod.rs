@@ -387,6 +387,7 @@ fn ap_onboard(
 
 /// Undo ArduPilot's correction of one MAG record (mGauss in, uT out). `rec_ofs` is the record's
 /// OfsX/Y/Z and `mofs` its MOfsX/Y/Z when logged.
+#[cfg(test)]
 fn ap_undo(
     params: &BTreeMap<String, f64>,
     k: u8,
@@ -394,8 +395,23 @@ fn ap_undo(
     rec_ofs: Option<Vec3>,
     mofs: Option<Vec3>,
 ) -> Option<Vec3> {
-    use crate::calib::ardupilot::{correction, Correction};
-    let mut c = match correction(params, k, true) {
+    ap_undo_with(
+        crate::calib::ardupilot::correction(params, k, true),
+        mag_mg,
+        rec_ofs,
+        mofs,
+    )
+}
+
+/// [`ap_undo`] with the compass's correction from its parameters, when they give one.
+fn ap_undo_with(
+    correction: Option<crate::calib::ardupilot::Correction>,
+    mag_mg: Vec3,
+    rec_ofs: Option<Vec3>,
+    mofs: Option<Vec3>,
+) -> Option<Vec3> {
+    use crate::calib::ardupilot::Correction;
+    let mut c = match correction {
         Some(c) => c,
         // No parameters: the record's offsets, no soft iron.
         None => Correction::offsets_only(rec_ofs?),
@@ -425,29 +441,123 @@ pub fn decode_dataflash_with(
     bytes: &[u8],
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> FlightLog {
-    let mut rd = dataflash::DfReader::new(bytes);
+    decode_dataflash_from(dataflash::DfReader::new(bytes), emit)
+}
+
+/// As [`decode_dataflash_with`], the log read from a stream through a window
+/// ([`dataflash::DfReader::from_reader`]); a read error comes back after what came before it.
+pub(crate) fn decode_dataflash_stream(
+    reader: impl std::io::Read,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> (FlightLog, Option<std::io::Error>) {
+    let mut error = None;
+    let rd = dataflash::DfReader::from_reader(reader);
+    let log = decode_dataflash_records(rd, emit, &mut error);
+    (log, error)
+}
+
+fn decode_dataflash_from(
+    rd: dataflash::DfReader<'_>,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> FlightLog {
+    decode_dataflash_records(rd, emit, &mut None)
+}
+
+/// The records of `rd` through the conversion; a stream's read error into `error`.
+fn decode_dataflash_records(
+    mut rd: dataflash::DfReader<'_>,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+    error: &mut Option<std::io::Error>,
+) -> FlightLog {
     let mut conv = DfConv::new();
-    // Column indices of the fields used ([`DF_FIELDS`]) per type id, found once per definition.
-    let mut cols: Vec<Option<Vec<Option<usize>>>> = vec![None; 256];
+    // Per type id, found once per definition: the columns of the fields used ([`DF_FIELDS`]) and
+    // what the type is to the conversion ([`DfType`]).
+    let mut types: Vec<Option<(DfType, Vec<Option<usize>>)>> = vec![None; 256];
+    // The FMT payload each type was last defined by: the same again keeps what was found.
+    let mut defined_by: Vec<Option<Box<[u8]>>> = vec![None; 256];
     while let Some(rec) = rd.next_record() {
-        let c = cols[rec.format.type_id as usize]
-            .get_or_insert_with(|| DF_FIELDS.iter().map(|f| rec.format.column(f)).collect());
+        let (ty, c) = types[rec.format.type_id as usize].get_or_insert_with(|| {
+            let cols = DF_FIELDS.iter().map(|f| rec.format.column(f)).collect();
+            (DfType::of(&rec.format.name), cols)
+        });
+        let ty = *ty;
         let f = DfFields { c, rec };
-        let (base, k) = conv.count(&rec);
-        if base == "FMT" {
-            // A type (re)defined: its columns are looked up again.
+        let k = conv.count(&rec, ty);
+        if ty.kind == DfKind::Fmt {
+            // A type (re)defined otherwise: its columns are looked up again.
             if let Some(t) = f.get(DfField::Type).filter(|t| (0.0..256.0).contains(t)) {
-                cols[t as usize] = None;
+                let t = t as usize;
+                if defined_by[t].as_deref() != Some(rec.payload) {
+                    types[t] = None;
+                    defined_by[t] = Some(rec.payload.into());
+                }
             }
             continue;
         }
-        let out = conv.sample(base, k, &f);
+        let out = conv.sample(ty.kind, k, &f);
         let read = rd.position();
         if let Some((gi, s)) = out {
             emit(gi, s, read, conv.asm.primary);
         }
     }
-    conv.finish(&rd, bytes.len(), emit)
+    *error = rd.take_error();
+    let end = rd.position();
+    conv.finish(&rd, end, emit)
+}
+
+/// What a DataFlash message type is to the conversion, by its name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DfKind {
+    Fmt,
+    Parm,
+    Imu,
+    Mag,
+    Att,
+    Rcou,
+    Ctun,
+    /// `BAT` and `CURR`.
+    Battery,
+    Gps,
+    Other,
+}
+
+/// A message type's kind, and the instance its name gives (`IMU2`: 1) for a type without an
+/// instance column.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct DfType {
+    kind: DfKind,
+    name_instance: u8,
+}
+
+impl DfType {
+    fn of(name: &str) -> DfType {
+        let named = |kind| DfType {
+            kind,
+            name_instance: 0,
+        };
+        if let Some(k) = df_name_instance(name, "IMU") {
+            return DfType {
+                kind: DfKind::Imu,
+                name_instance: k,
+            };
+        }
+        if let Some(k) = df_name_instance(name, "MAG") {
+            return DfType {
+                kind: DfKind::Mag,
+                name_instance: k,
+            };
+        }
+        named(match name {
+            "FMT" => DfKind::Fmt,
+            "PARM" => DfKind::Parm,
+            "ATT" => DfKind::Att,
+            "RCOU" => DfKind::Rcou,
+            "CTUN" => DfKind::Ctun,
+            "BAT" | "CURR" => DfKind::Battery,
+            "GPS" => DfKind::Gps,
+            _ => DfKind::Other,
+        })
+    }
 }
 
 /// One DataFlash record with the columns of the fields the conversion reads.
@@ -466,6 +576,11 @@ impl DfFields<'_> {
         let k = f as usize;
         let v = |i: usize| self.c[i].and_then(|c| self.rec.value(c));
         Some([v(k)?, v(k + 1)?, v(k + 2)?])
+    }
+
+    /// A text field, without a copy when it is UTF-8 (as parameter names are).
+    fn text(&self, f: DfField) -> Option<std::borrow::Cow<'_, str>> {
+        self.c[f as usize].and_then(|k| self.rec.text_at(k))
     }
 
     /// `TimeUS`, or `TimeMS` * 1000 (older logs), us.
@@ -495,6 +610,27 @@ struct DfConv {
     inst_counts: BTreeMap<(u8, u8), u64>,
     /// (type id, instance of an instanced type) -> its name (`MAG[1]`, `MAG2`).
     names: BTreeMap<(u8, Option<u8>), String>,
+    /// Bumped whenever a parameter changes.
+    params_version: u64,
+    /// Per compass instance, what its parameters give, as of a `params_version`.
+    compasses: Vec<Option<CompassParams>>,
+}
+
+/// A compass's correction and device id from the parameters, as of a version of them.
+struct CompassParams {
+    version: u64,
+    correction: Option<crate::calib::ardupilot::Correction>,
+    dev_id: Option<u32>,
+}
+
+impl CompassParams {
+    fn new(params: &BTreeMap<String, f64>, k: u8, version: u64) -> CompassParams {
+        CompassParams {
+            version,
+            correction: crate::calib::ardupilot::correction(params, k, true),
+            dev_id: crate::calib::ardupilot::dev_id(params, k),
+        }
+    }
 }
 
 impl DfConv {
@@ -510,52 +646,50 @@ impl DfConv {
             type_counts: [0; 256],
             inst_counts: BTreeMap::new(),
             names: BTreeMap::new(),
+            params_version: 0,
+            compasses: (0..256).map(|_| None).collect(),
         }
     }
 
-    /// Count `rec` under its name; its base name (`IMU` for `IMU2`) and instance.
-    fn count<'r>(&mut self, rec: &dataflash::Record<'r>) -> (&'r str, u8) {
+    /// Count `rec` (of type `ty`) under its name; its instance.
+    fn count(&mut self, rec: &dataflash::Record<'_>, ty: DfType) -> u8 {
         let name = rec.format.name.as_str();
         let id = rec.format.type_id;
         let inst_col = rec.format.instance.is_some();
-        let (base, k) = if inst_col {
-            (name, rec.instance())
-        } else if let Some(k) = df_name_instance(name, "IMU") {
-            ("IMU", k)
-        } else if let Some(k) = df_name_instance(name, "MAG") {
-            ("MAG", k)
+        let k = if inst_col {
+            rec.instance()
         } else {
-            (name, 0)
+            ty.name_instance
         };
         if inst_col {
-            *self.inst_counts.entry((id, k)).or_insert(0) += 1;
-            self.names
-                .entry((id, Some(k)))
-                .or_insert_with(|| format!("{name}[{k}]"));
+            let n = self.inst_counts.entry((id, k)).or_insert(0);
+            *n += 1;
+            if *n == 1 {
+                self.names
+                    .entry((id, Some(k)))
+                    .or_insert_with(|| format!("{name}[{k}]"));
+            }
         } else {
             self.type_counts[id as usize] += 1;
             if self.type_counts[id as usize] == 1 {
                 self.names.insert((id, None), name.to_string());
             }
         }
-        (base, k)
+        k
     }
 
     /// Convert one record (base name `base`, instance `k`): the sample it completes.
-    fn sample(&mut self, base: &str, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
-        match base {
-            "PARM" => {
-                if let (Some(n), Some(v)) = (f.rec.text("Name"), f.get(DfField::Value)) {
-                    if self.params.len() < 16384 || self.params.contains_key(&n) {
-                        self.first_params.entry(n.clone()).or_insert(v);
-                        self.params.insert(n, v);
-                    }
+    fn sample(&mut self, kind: DfKind, k: u8, f: &DfFields) -> Option<(usize, Sample)> {
+        match kind {
+            DfKind::Parm => {
+                if let (Some(n), Some(v)) = (f.text(DfField::Name), f.get(DfField::Value)) {
+                    self.parameter(&n, v);
                 }
                 None
             }
-            "IMU" => self.imu(k, f),
-            "MAG" => self.mag(k, f),
-            "ATT" => {
+            DfKind::Imu => self.imu(k, f),
+            DfKind::Mag => self.mag(k, f),
+            DfKind::Att => {
                 if let (Some(t), Some(r), Some(p), Some(y)) = (
                     f.time_us(),
                     f.get(DfField::Roll),
@@ -571,14 +705,14 @@ impl DfConv {
                 }
                 None
             }
-            "RCOU" => {
+            DfKind::Rcou => {
                 // Channel 3 is the throttle by ArduPilot's default RCMAP.
                 if let Some(pwm) = f.get(DfField::C3).filter(|p| *p >= 900.0 && *p <= 2200.0) {
                     self.asm.throttle = Some(((pwm - 1000.0) / 1000.0).clamp(0.0, 1.5));
                 }
                 None
             }
-            "CTUN" => {
+            DfKind::Ctun => {
                 // Copter logs ThO (0..1); Plane ThrOut (percent).
                 if let Some(v) = f.get(DfField::ThO).filter(|v| v.is_finite()) {
                     self.asm.throttle = Some(v.clamp(0.0, 1.5));
@@ -587,18 +721,46 @@ impl DfConv {
                 }
                 None
             }
-            "BAT" | "CURR" if k == 0 => {
+            DfKind::Battery if k == 0 => {
                 if let Some(c) = f.get(DfField::Curr).filter(|c| c.is_finite()) {
                     self.asm.current_a = Some(c);
                 }
                 None
             }
-            "GPS" if k == 0 && self.gps.is_none() => {
+            DfKind::Gps if k == 0 && self.gps.is_none() => {
                 self.gps_fix(f);
                 None
             }
             _ => None,
         }
+    }
+
+    /// A PARM record: the parameter's value (its first kept too), at most 16384 parameters. A
+    /// parameter logged again at its value (a log repeats them all at each start) changes nothing.
+    fn parameter(&mut self, name: &str, v: f64) {
+        if let Some(old) = self.params.get_mut(name) {
+            if old.to_bits() != v.to_bits() {
+                *old = v;
+                self.params_version += 1;
+            }
+        } else if self.params.len() < 16384 {
+            self.first_params.entry(name.to_string()).or_insert(v);
+            self.params.insert(name.to_string(), v);
+            self.params_version += 1;
+        }
+    }
+
+    /// Compass `k`'s correction as the parameters give it ([`crate::calib::ardupilot::correction`])
+    /// and its device id, worked out again only when a parameter changed.
+    fn compass(&mut self, k: u8) -> (Option<crate::calib::ardupilot::Correction>, Option<u32>) {
+        let version = self.params_version;
+        let params = &self.params;
+        let c = self.compasses[k as usize]
+            .get_or_insert_with(|| CompassParams::new(params, k, version));
+        if c.version != version {
+            *c = CompassParams::new(params, k, version);
+        }
+        (c.correction, c.dev_id)
     }
 
     /// An IMU record: accelerometer and gyroscope of instance `k`.
@@ -628,19 +790,15 @@ impl DfConv {
             self.asm.stats.skip("bad_record");
             return None;
         };
+        let (correction, dev_id) = self.compass(k);
         let src = df_source(&self.names, &f.rec, k);
-        self.asm.stream(
-            Sensor::Mag,
-            k,
-            src,
-            crate::calib::ardupilot::dev_id(&self.params, k),
-        );
+        self.asm.stream(Sensor::Mag, k, src, dev_id);
         self.sources
             .entry((0, k))
             .or_insert_with(|| src.to_string());
         let ofs = f.get3(DfField::OfsX);
         let mofs = f.get3(DfField::MOfsX);
-        let Some(raw) = ap_undo(&self.params, k, m, ofs, mofs) else {
+        let Some(raw) = ap_undo_with(correction, m, ofs, mofs) else {
             self.asm.stats.skip("not_undone");
             return None;
         };
@@ -753,12 +911,13 @@ enum DfField {
     Type,
     GWk,
     Gms,
+    Name,
 }
 
-const DF_FIELDS: [&str; 33] = [
+const DF_FIELDS: [&str; 34] = [
     "TimeUS", "TimeMS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ", "T", "MagX", "MagY",
     "MagZ", "OfsX", "OfsY", "OfsZ", "MOfsX", "MOfsY", "MOfsZ", "Roll", "Pitch", "Yaw", "C3", "ThO",
-    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type", "GWk", "GMS",
+    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type", "GWk", "GMS", "Name",
 ];
 
 fn df_group_name(instanced: bool, k: u8) -> String {
