@@ -36,7 +36,7 @@
 //! Pure: no I/O.
 
 use crate::types::Vec3;
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
 /// The smallest RMS spread (relative to the field strength) of a combination of terms that the
@@ -171,9 +171,9 @@ pub fn fit(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, Vecto
     let first = solve_batch(&kept, fit_current)?;
     let r = residual_norms(&kept, &first);
     let mut sorted = r.clone();
-    sorted.sort_by(f64::total_cmp);
+    let mid = sorted.len() / 2;
     // The median of a 3-D residual norm is 1.54 sigma per axis (chi with 3 degrees of freedom).
-    let sigma = sorted[sorted.len() / 2] / 1.538;
+    let sigma = *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 / 1.538;
     let limit = OUTLIER_SIGMAS * 3f64.sqrt() * sigma;
     let before = kept.len();
     let mut i = 0;
@@ -277,13 +277,19 @@ impl VectorAccumulator {
         {
             return false;
         }
+        let k = self.reg.k;
         let u = self.reg.of(p.expected_ut, p.current_a);
         let u_r = self.reg.of(p.raw_ut, p.current_a);
-        self.nm += &u * u.transpose();
-        self.nm_r += &u_r * u_r.transpose();
+        // In place: no temporaries per reading.
+        for c in 0..k {
+            for r in 0..k {
+                self.nm[(r, c)] += u[r] * u[c];
+                self.nm_r[(r, c)] += u_r[r] * u_r[c];
+            }
+        }
         for j in 0..3 {
             let y = p.raw_ut[j] - p.expected_ut[j];
-            for r in 0..self.reg.k {
+            for r in 0..k {
                 self.g[(r, j)] += u[r] * y;
                 self.g_r[(r, j)] -= u_r[r] * y;
             }
@@ -335,9 +341,9 @@ struct Regressors {
 
 impl Regressors {
     /// The regressors of a point: the field `v` (the expected one, or the reading in the reverse
-    /// regression) over the field strength, 1, and the current over its scale.
-    fn of(&self, v: Vec3, current_a: Option<f64>) -> DVector<f64> {
-        let mut u = DVector::zeros(self.k);
+    /// regression) over the field strength, 1, and the current over its scale (0 past `k`).
+    fn of(&self, v: Vec3, current_a: Option<f64>) -> [f64; 5] {
+        let mut u = [0.0; 5];
         for c in 0..3 {
             u[c] = v[c] / self.field_ut;
         }
