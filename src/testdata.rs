@@ -10,7 +10,7 @@ use crate::types::Vec3;
 use std::path::PathBuf;
 
 /// Environment variable that turns "recordings absent" into a test failure when set to `1`.
-pub(crate) const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
+pub const REQUIRE_DATA_ENV: &str = "IMUCALD_REQUIRE_DATA";
 
 /// The shared recordings directory, or `None` (SKIPPED said) when it is absent.
 ///

@@ -1082,7 +1082,11 @@ mod tests {
             b[j] -= h;
             let d = (residual(&a, &r, H) - residual(&b, &r, H)) / (2.0 * h);
             // Measured below 1e-8 (the differences' own error).
-            assert!((d - g[j]).abs() < 1e-6 * d.abs().max(1.0), "{j}: {d} {}", g[j]);
+            assert!(
+                (d - g[j]).abs() < 1e-6 * d.abs().max(1.0),
+                "{j}: {d} {}",
+                g[j]
+            );
         }
     }
 

@@ -914,14 +914,19 @@ mod tests {
         assert!(rots
             .iter()
             .zip(&pts)
-            .all(|(r, p)| (r.transpose() * b - nalgebra::Vector3::from(p.expected_ut)).amax() < 1e-9));
+            .all(
+                |(r, p)| (r.transpose() * b - nalgebra::Vector3::from(p.expected_ut)).amax() < 1e-9
+            ));
         let (direct, summed) = (fit(&pts, false).unwrap(), sums.fit(&b).unwrap());
         assert_eq!(direct.outliers_rejected, 15);
         assert_eq!(summed.outliers_rejected, direct.outliers_rejected);
         assert_eq!(summed.points, direct.points);
         // Rounding apart: measured 1e-12 uT.
         for j in 0..3 {
-            assert!((summed.offset_ut[j] - direct.offset_ut[j]).abs() < 1e-9, "{summed:?}");
+            assert!(
+                (summed.offset_ut[j] - direct.offset_ut[j]).abs() < 1e-9,
+                "{summed:?}"
+            );
             for c in 0..3 {
                 assert!((summed.matrix[j][c] - direct.matrix[j][c]).abs() < 1e-11);
             }
