@@ -8,7 +8,6 @@ mod common;
 
 use imucald::attitude::{earth_field, Place};
 use std::process::Command;
-use std::time::Duration;
 
 #[test]
 fn pymavlink_ground_station_runs_a_fixed_yaw_calibration() {

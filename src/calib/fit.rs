@@ -341,8 +341,7 @@ fn within_frame(kind: ModelKind, p: &[f64]) -> bool {
     let centre = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
     let scale = a_from_params(kind, &p[3..]).determinant().abs().cbrt();
     centre <= NORM_RUNAWAY_FACTOR
-        && scale >= 1.0 / NORM_RUNAWAY_FACTOR
-        && scale <= NORM_RUNAWAY_FACTOR
+        && (1.0 / NORM_RUNAWAY_FACTOR..=NORM_RUNAWAY_FACTOR).contains(&scale)
 }
 
 fn solve_norm<const K: u8, const N: usize>(
