@@ -323,7 +323,29 @@ pub(crate) const NORM_REUSE_JTJ: f64 = 1e-4;
 /// fit can go on to a relative gain near rounding.
 pub(crate) const NORM_STOP_REL_GAIN: f64 = 1e-14;
 
+/// A norm fit is given up, not converged, once it leaves the normalising sphere fit's frame by
+/// this factor: its centre more than this many of that sphere's radii from that sphere's centre,
+/// or its radius (`1 / cbrt(det A)`) more than this factor away from that sphere's radius. Where
+/// the readings outline a sphere or an ellipsoid, the linear sphere fit through them and the norm
+/// fit land close together (the fits from the start of [`NormFitter::fit`] stay within a few
+/// tenths of that frame); a norm fit that walks off to a far larger sphere has readings that
+/// outline none (a patch a few degrees wide), and there the residual, relative to the fitted
+/// radius, keeps shrinking as the radius grows, so the iteration would run to its limit. (On a PX4
+/// hover log with readings spanning about 6 deg of the field, every norm fit went 200 iterations,
+/// its radius from 7.8 to 131 uT and growing.)
+pub(crate) const NORM_RUNAWAY_FACTOR: f64 = 3.0;
+
+/// Whether the norm fit's parameters `p` (centre, then the shape's) are within
+/// [`NORM_RUNAWAY_FACTOR`] of the normalising sphere (the unit sphere at the origin).
+fn within_frame(kind: ModelKind, p: &[f64]) -> bool {
+    let centre = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+    let scale = a_from_params(kind, &p[3..]).determinant().abs().cbrt();
+    centre <= NORM_RUNAWAY_FACTOR
+        && (1.0 / NORM_RUNAWAY_FACTOR..=NORM_RUNAWAY_FACTOR).contains(&scale)
+}
+
 fn solve_norm<const K: u8, const N: usize>(
+    kind: ModelKind,
     pts: &kernel::Soa,
     scratch: &mut kernel::Scratch,
     x0: &[f64],
@@ -339,9 +361,12 @@ fn solve_norm<const K: u8, const N: usize>(
             reuse_jtj: NORM_REUSE_JTJ,
         },
     };
-    let out = crate::calib::lm::minimise_normal(x0v, &opts, |p, with_jtj| {
-        kernel::norm_normal_equations::<K, N>(p, pts, scratch, with_jtj)
-    });
+    let out = crate::calib::lm::minimise_normal_within(
+        x0v,
+        &opts,
+        |p, with_jtj| kernel::norm_normal_equations::<K, N>(p, pts, scratch, with_jtj),
+        |p| within_frame(kind, p.as_slice()),
+    );
     let inv = cholesky(&out.jtj).map(|c| c.inverse());
     NormSolution {
         params: out.params.as_slice().to_vec(),
@@ -468,10 +493,10 @@ impl NormFitter {
         x0.extend(params_from_a(kind, &shape0));
         let (sc, it) = (scratch, opts.max_iterations);
         let sol = match kind {
-            ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4>(soa, sc, &x0, it),
-            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6>(soa, sc, &x0, it),
-            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9>(soa, sc, &x0, it),
-            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9>(soa, sc, &x0, it),
+            ModelKind::Sphere => solve_norm::<{ kernel::SPHERE }, 4>(kind, soa, sc, &x0, it),
+            ModelKind::Diag6 => solve_norm::<{ kernel::DIAG6 }, 6>(kind, soa, sc, &x0, it),
+            ModelKind::Sym9 => solve_norm::<{ kernel::SYM9 }, 9>(kind, soa, sc, &x0, it),
+            ModelKind::Full12 => solve_norm::<{ kernel::FULL12 }, 9>(kind, soa, sc, &x0, it),
         };
         let p = &sol.params;
         if p.iter().any(|v| !v.is_finite()) {

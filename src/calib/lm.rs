@@ -81,6 +81,11 @@ where
     /// J^T J (when it was asked for, else `None`) and J^T r at the point last given to
     /// [`Problem::ssr`], which the iteration keeps.
     fn normal(&mut self) -> Normal<D>;
+    /// Whether `x`, a point the iteration kept, still stands for a solution the problem can have;
+    /// when not, the run ends there, not converged. Every point does by default.
+    fn plausible(&self, _x: &OVector<f64, D>) -> bool {
+        true
+    }
 }
 
 /// Work a run may skip near the solution, where it would only confirm what the linear model
@@ -210,6 +215,9 @@ where
                 None => drift += step.amax(),
             }
             lambda = (lambda * DAMPING_DOWN).max(MIN_DAMPING);
+            if !problem.plausible(&x) {
+                break;
+            }
             if small_step || small_gain || ssr == 0.0 {
                 converged = true;
                 break;
@@ -233,21 +241,27 @@ where
 }
 
 /// Normal equations built whole at each point by `eval(x, with_jtj) -> (ssr, J^T J when asked,
-/// J^T r)`, as a [`Problem`].
-struct Batch<D: Dim, F>
+/// J^T r)`, as a [`Problem`] whose plausible points are those `plausible` accepts.
+struct Batch<D: Dim, F, G>
 where
     DefaultAllocator: Allocator<D> + Allocator<D, D>,
 {
     eval: F,
+    plausible: G,
     /// The normal equations of the last point evaluated.
     last: Option<Normal<D>>,
 }
 
-impl<D: Dim, F> Problem<D> for Batch<D, F>
+impl<D: Dim, F, G> Problem<D> for Batch<D, F, G>
 where
     DefaultAllocator: Allocator<D> + Allocator<D, D>,
     F: FnMut(&OVector<f64, D>, bool) -> (f64, Option<OMatrix<f64, D, D>>, OVector<f64, D>),
+    G: Fn(&OVector<f64, D>) -> bool,
 {
+    fn plausible(&self, x: &OVector<f64, D>) -> bool {
+        (self.plausible)(x)
+    }
+
     fn ssr(&mut self, x: &OVector<f64, D>, with_jtj: bool) -> f64 {
         let (ssr, jtj, jtr) = (self.eval)(x, with_jtj);
         self.last = Some(Normal { jtj, jtr });
@@ -269,7 +283,29 @@ pub(crate) fn minimise_normal<D: Dim>(
 where
     DefaultAllocator: Allocator<D> + Allocator<D, D>,
 {
-    solve(x0, opts, &mut Batch { eval, last: None })
+    minimise_normal_within(x0, opts, eval, |_| true)
+}
+
+/// [`minimise_normal`] that ends, not converged, at the first point it keeps that `plausible`
+/// refuses ([`Problem::plausible`]).
+pub(crate) fn minimise_normal_within<D: Dim>(
+    x0: OVector<f64, D>,
+    opts: &LmOptions,
+    eval: impl FnMut(&OVector<f64, D>, bool) -> (f64, Option<OMatrix<f64, D, D>>, OVector<f64, D>),
+    plausible: impl Fn(&OVector<f64, D>) -> bool,
+) -> LmOutcome<D>
+where
+    DefaultAllocator: Allocator<D> + Allocator<D, D>,
+{
+    solve(
+        x0,
+        opts,
+        &mut Batch {
+            eval,
+            plausible,
+            last: None,
+        },
+    )
 }
 
 /// [`solve`] on residuals given point by point: `prepare(p)` runs once per parameter vector and

@@ -714,33 +714,22 @@ pub(crate) fn fit_with_field(
     body_mag: &FieldOf<'_>,
     start_ned_ut: Option<Vec3>,
 ) -> Option<Result<(VectorFit, Vec3), crate::calib::vector::VectorFailure>> {
-    let pairs: Vec<(
-        nalgebra::Vector3<f64>,
-        nalgebra::UnitQuaternion<f64>,
-        Option<f64>,
-    )> = samples
-        .iter()
-        .filter_map(|s| {
-            let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
-            Some((nalgebra::Vector3::from(body_mag(s)?), q, s.current_a))
-        })
-        .collect();
-    if pairs.len() < crate::calib::vector::MIN_POINTS {
+    // Every round fits the same readings against another field: their sums serve them all.
+    let sums = crate::calib::vector::AttitudeSums::new(samples.iter().filter_map(|s| {
+        let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
+        Some((
+            nalgebra::Vector3::from(body_mag(s)?),
+            q.to_rotation_matrix().into_inner(),
+        ))
+    }));
+    if sums.len() < crate::calib::vector::MIN_POINTS {
         return None;
     }
-    let n = pairs.len() as f64;
-    let mean_ned = |f: &dyn Fn(&nalgebra::Vector3<f64>) -> nalgebra::Vector3<f64>| {
-        pairs
-            .iter()
-            .map(|(m, q, _)| q * f(m))
-            .sum::<nalgebra::Vector3<f64>>()
-            / n
-    };
     // Start: the readings turned into NED, averaged: the hard iron, fixed in the body, averages
     // out as the vehicle turns, and what is left is the earth field. Its strength is kept.
     let mut b = match start_ned_ut {
         Some(f) => nalgebra::Vector3::from(f),
-        None => mean_ned(&|m| *m),
+        None => sums.mean_ned(&nalgebra::Matrix3::identity(), &nalgebra::Vector3::zeros()),
     };
     let strength = b.norm();
     if !(strength > 0.0) {
@@ -748,24 +737,13 @@ pub(crate) fn fit_with_field(
     }
     let mut fit = None;
     for _ in 0..FIELD_FIT_ROUNDS {
-        let pts: Vec<VectorPoint> = pairs
-            .iter()
-            .map(|(m, q, c)| VectorPoint {
-                raw_ut: [m.x, m.y, m.z],
-                expected_ut: {
-                    let e = q.inverse() * b;
-                    [e.x, e.y, e.z]
-                },
-                current_a: *c,
-            })
-            .collect();
-        let v = match crate::calib::vector::fit(&pts, false) {
+        let v = match sums.fit(&b) {
             Ok(v) => v,
             Err(e) => return Some(Err(e)),
         };
         let m = crate::calib::model::rows_to_mat(&v.matrix);
         let o = nalgebra::Vector3::from(v.offset_ut);
-        let mut nb = mean_ned(&|r| m * (r - o));
+        let mut nb = sums.mean_ned(&m, &o);
         if !(nb.norm() > 0.0) {
             return Some(Ok((v, [b.x, b.y, b.z])));
         }

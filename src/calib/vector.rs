@@ -36,7 +36,7 @@
 //! Pure: no I/O.
 
 use crate::types::Vec3;
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
 /// The smallest RMS spread (relative to the field strength) of a combination of terms that the
@@ -167,27 +167,228 @@ pub fn fit(points: &[VectorPoint], fit_current: bool) -> Result<VectorFit, Vecto
             && crate::types::is_finite3(&p.expected_ut)
             && (!fit_current || p.current_a.is_some_and(f64::is_finite))
     };
-    let mut kept: Vec<VectorPoint> = points.iter().filter(usable).copied().collect();
-    let first = solve_batch(&kept, fit_current)?;
-    let r = residual_norms(&kept, &first);
+    let kept: Vec<VectorPoint> = points.iter().filter(usable).copied().collect();
+    fit_with_cut(
+        || solve_batch(&kept, fit_current),
+        |first| residual_norms(&kept, first),
+        |keep| {
+            let within: Vec<VectorPoint> = kept
+                .iter()
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .map(|(p, _)| *p)
+                .collect();
+            solve_batch(&within, fit_current)
+        },
+    )
+}
+
+/// The fit of all readings (`solve_all`); when some of their residual norms (`residuals`) are
+/// beyond [`OUTLIER_SIGMAS`] robust standard deviations, the fit of those within
+/// (`solve_kept`, given which are).
+fn fit_with_cut(
+    solve_all: impl FnOnce() -> Result<VectorFit, VectorFailure>,
+    residuals: impl FnOnce(&VectorFit) -> Vec<f64>,
+    solve_kept: impl FnOnce(&[bool]) -> Result<VectorFit, VectorFailure>,
+) -> Result<VectorFit, VectorFailure> {
+    let first = solve_all()?;
+    let r = residuals(&first);
     let mut sorted = r.clone();
-    sorted.sort_by(f64::total_cmp);
+    let mid = sorted.len() / 2;
     // The median of a 3-D residual norm is 1.54 sigma per axis (chi with 3 degrees of freedom).
-    let sigma = sorted[sorted.len() / 2] / 1.538;
+    let sigma = *sorted.select_nth_unstable_by(mid, f64::total_cmp).1 / 1.538;
     let limit = OUTLIER_SIGMAS * 3f64.sqrt() * sigma;
-    let before = kept.len();
-    let mut i = 0;
-    kept.retain(|_| {
-        i += 1;
-        r[i - 1] <= limit
-    });
-    let rejected = before - kept.len();
+    let keep: Vec<bool> = r.iter().map(|x| *x <= limit).collect();
+    let rejected = keep.iter().filter(|k| !**k).count();
     if rejected == 0 {
         return Ok(first);
     }
-    let mut f = solve_batch(&kept, fit_current)?;
+    let mut f = solve_kept(&keep)?;
     f.outliers_rejected = rejected;
     Ok(f)
+}
+
+/// Readings with their attitudes, summed so that the vector fit (no current term) for any earth
+/// field `b` (NED, uT) needs no sums over the readings: with `e = R^T b` the expected field, every
+/// sum the fit takes ([`VectorAccumulator`]) is a fixed combination of `b` and the sums of `R`,
+/// `R (x) R`, `R (x) raw`, `raw` and `raw raw^T`. Only the outlier cut still looks at each
+/// reading. For fits that try many fields on the same readings
+/// (`crate::calib::magmethod::fit_with_field`).
+pub(crate) struct AttitudeSums {
+    /// The readings (body axes, uT) and their attitudes (body -> NED), finite ones only.
+    raw: Vec<nalgebra::Vector3<f64>>,
+    rot: Vec<nalgebra::Matrix3<f64>>,
+    totals: Sums,
+}
+
+/// The sums of [`AttitudeSums`].
+#[derive(Debug, Clone, Default)]
+struct Sums {
+    n: f64,
+    /// Sum of R.
+    r: nalgebra::Matrix3<f64>,
+    /// Sum of R[p][a] R[q][c] at (3p + a, 3q + c).
+    rr: nalgebra::SMatrix<f64, 9, 9>,
+    /// Sum of R[p][a] raw[j] at (3p + a, j).
+    r_raw: nalgebra::SMatrix<f64, 9, 3>,
+    raw: nalgebra::Vector3<f64>,
+    raw_raw: nalgebra::Matrix3<f64>,
+}
+
+impl Sums {
+    /// Add (`sign` 1) or take out (-1) one reading.
+    fn add(&mut self, rot: &nalgebra::Matrix3<f64>, raw: &nalgebra::Vector3<f64>, sign: f64) {
+        self.n += sign;
+        self.r += rot * sign;
+        for p in 0..3 {
+            for a in 0..3 {
+                let x = sign * rot[(p, a)];
+                for q in 0..3 {
+                    for c in 0..3 {
+                        self.rr[(3 * p + a, 3 * q + c)] += x * rot[(q, c)];
+                    }
+                }
+                for j in 0..3 {
+                    self.r_raw[(3 * p + a, j)] += x * raw[j];
+                }
+            }
+        }
+        self.raw += raw * sign;
+        self.raw_raw += raw * raw.transpose() * sign;
+    }
+}
+
+impl AttitudeSums {
+    /// From (reading in body axes, uT; body -> NED attitude) pairs; pairs with a value that is
+    /// not finite are left out.
+    pub(crate) fn new(
+        pairs: impl Iterator<Item = (nalgebra::Vector3<f64>, nalgebra::Matrix3<f64>)>,
+    ) -> AttitudeSums {
+        let mut out = AttitudeSums {
+            raw: Vec::new(),
+            rot: Vec::new(),
+            totals: Sums::default(),
+        };
+        for (raw, rot) in pairs {
+            if raw.iter().chain(rot.iter()).all(|v| v.is_finite()) {
+                out.totals.add(&rot, &raw, 1.0);
+                out.raw.push(raw);
+                out.rot.push(rot);
+            }
+        }
+        out
+    }
+
+    /// Readings summed.
+    pub(crate) fn len(&self) -> usize {
+        self.raw.len()
+    }
+
+    /// The mean over the readings of `R m (raw - o)`: the readings calibrated by `m`, `o` and
+    /// turned into NED.
+    pub(crate) fn mean_ned(
+        &self,
+        m: &nalgebra::Matrix3<f64>,
+        o: &nalgebra::Vector3<f64>,
+    ) -> nalgebra::Vector3<f64> {
+        let t = &self.totals;
+        // sum R m raw: component x is sum over a, j of m[a][j] (sum R[x][a] raw[j]).
+        let r_m_raw = nalgebra::Vector3::from_fn(|x, _| {
+            let mut v = 0.0;
+            for a in 0..3 {
+                for j in 0..3 {
+                    v += m[(a, j)] * t.r_raw[(3 * x + a, j)];
+                }
+            }
+            v
+        });
+        (r_m_raw - t.r * (m * o)) / t.n
+    }
+
+    /// [`fit`] (no current term) of the readings against the earth field `b`: what it gives for
+    /// points with `expected_ut = R^T b`, to rounding.
+    pub(crate) fn fit(&self, b: &nalgebra::Vector3<f64>) -> Result<VectorFit, VectorFailure> {
+        fit_with_cut(
+            || accumulator_of(&self.totals, b)?.solve(),
+            |first| self.residual_norms(first, b),
+            |keep| {
+                let mut s = self.totals.clone();
+                for (i, _) in keep.iter().enumerate().filter(|(_, k)| !**k) {
+                    s.add(&self.rot[i], &self.raw[i], -1.0);
+                }
+                accumulator_of(&s, b)?.solve()
+            },
+        )
+    }
+
+    /// [`residual_norms`] of the readings against `b`.
+    fn residual_norms(&self, f: &VectorFit, b: &nalgebra::Vector3<f64>) -> Vec<f64> {
+        let a = crate::calib::model::rows_to_mat(&f.soft_iron);
+        let o = nalgebra::Vector3::from(f.offset_ut);
+        self.raw
+            .iter()
+            .zip(&self.rot)
+            .map(|(raw, rot)| (raw - a * (rot.transpose() * b) - o).norm())
+            .collect()
+    }
+}
+
+/// The accumulator (no current term) that pushing every reading of `s` against the field `b`
+/// would give: the regressors' scale is `|b|` (the mean strength of `R^T b`).
+fn accumulator_of(
+    s: &Sums,
+    b: &nalgebra::Vector3<f64>,
+) -> Result<VectorAccumulator, VectorFailure> {
+    let need = MIN_POINTS.max(2 * 4);
+    if s.n < need as f64 {
+        return Err(VectorFailure::NotEnoughPoints {
+            have: s.n.max(0.0).round() as usize,
+            need,
+        });
+    }
+    let f = b.norm();
+    let mut acc = VectorAccumulator::new(f, None)?;
+    // Sums of e, e e^T and e raw^T, with e = R^T b.
+    let se = s.r.transpose() * b;
+    let see = nalgebra::Matrix3::from_fn(|a, c| {
+        let mut v = 0.0;
+        for p in 0..3 {
+            for q in 0..3 {
+                v += b[p] * b[q] * s.rr[(3 * p + a, 3 * q + c)];
+            }
+        }
+        v
+    });
+    let ser = nalgebra::Matrix3::<f64>::from_fn(|a, j| {
+        (0..3).map(|p| b[p] * s.r_raw[(3 * p + a, j)]).sum::<f64>()
+    });
+    for a in 0..3 {
+        for c in 0..3 {
+            acc.nm[(a, c)] = see[(a, c)] / (f * f);
+            acc.nm_r[(a, c)] = s.raw_raw[(a, c)] / (f * f);
+        }
+        acc.nm[(a, OFFSET)] = se[a] / f;
+        acc.nm[(OFFSET, a)] = se[a] / f;
+        acc.nm_r[(a, OFFSET)] = s.raw[a] / f;
+        acc.nm_r[(OFFSET, a)] = s.raw[a] / f;
+    }
+    acc.nm[(OFFSET, OFFSET)] = s.n;
+    acc.nm_r[(OFFSET, OFFSET)] = s.n;
+    for j in 0..3 {
+        for a in 0..3 {
+            // Push adds u y^T with u = (e / f, 1), y = raw - e; reverse: -(raw / f, 1) y^T.
+            acc.g[(a, j)] = (ser[(a, j)] - see[(a, j)]) / f;
+            acc.g_r[(a, j)] = -(s.raw_raw[(a, j)] - ser[(j, a)]) / f;
+        }
+        acc.g[(OFFSET, j)] = s.raw[j] - se[j];
+        acc.g_r[(OFFSET, j)] = -(s.raw[j] - se[j]);
+        let yy = s.raw_raw[(j, j)] - 2.0 * ser[(j, j)] + see[(j, j)];
+        acc.yy[j] = yy;
+        acc.yy_r[j] = yy;
+    }
+    acc.weight = s.n;
+    acc.points = s.n.max(0.0).round() as usize;
+    Ok(acc)
 }
 
 /// The points' scales (mean field strength, largest current), then their sums.
@@ -277,13 +478,19 @@ impl VectorAccumulator {
         {
             return false;
         }
+        let k = self.reg.k;
         let u = self.reg.of(p.expected_ut, p.current_a);
         let u_r = self.reg.of(p.raw_ut, p.current_a);
-        self.nm += &u * u.transpose();
-        self.nm_r += &u_r * u_r.transpose();
+        // In place: no temporaries per reading.
+        for c in 0..k {
+            for r in 0..k {
+                self.nm[(r, c)] += u[r] * u[c];
+                self.nm_r[(r, c)] += u_r[r] * u_r[c];
+            }
+        }
         for j in 0..3 {
             let y = p.raw_ut[j] - p.expected_ut[j];
-            for r in 0..self.reg.k {
+            for r in 0..k {
                 self.g[(r, j)] += u[r] * y;
                 self.g_r[(r, j)] -= u_r[r] * y;
             }
@@ -335,9 +542,9 @@ struct Regressors {
 
 impl Regressors {
     /// The regressors of a point: the field `v` (the expected one, or the reading in the reverse
-    /// regression) over the field strength, 1, and the current over its scale.
-    fn of(&self, v: Vec3, current_a: Option<f64>) -> DVector<f64> {
-        let mut u = DVector::zeros(self.k);
+    /// regression) over the field strength, 1, and the current over its scale (0 past `k`).
+    fn of(&self, v: Vec3, current_a: Option<f64>) -> [f64; 5] {
+        let mut u = [0.0; 5];
         for c in 0..3 {
             u[c] = v[c] / self.field_ut;
         }
@@ -678,6 +885,65 @@ mod tests {
                 ]
             })
             .collect()
+    }
+
+    #[test]
+    fn the_sums_give_the_fit_of_the_points() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let att = sphere(1500, &mut rng);
+        let mut pts = points(&att, 0.3, false, &mut rng);
+        // A few wild readings, so the outlier cut takes some out.
+        for p in pts.iter_mut().step_by(100) {
+            p.raw_ut[0] += 30.0;
+        }
+        let rots: Vec<nalgebra::Matrix3<f64>> = att
+            .iter()
+            .map(|e| {
+                crate::sim::quat_from_euler_deg(e[0], e[1], e[2])
+                    .to_rotation_matrix()
+                    .into_inner()
+            })
+            .collect();
+        let sums = AttitudeSums::new(
+            pts.iter()
+                .zip(&rots)
+                .map(|(p, r)| (nalgebra::Vector3::from(p.raw_ut), *r)),
+        );
+        let b = nalgebra::Vector3::from(B);
+        // The points' expected field is R^T B.
+        assert!(rots
+            .iter()
+            .zip(&pts)
+            .all(
+                |(r, p)| (r.transpose() * b - nalgebra::Vector3::from(p.expected_ut)).amax() < 1e-9
+            ));
+        let (direct, summed) = (fit(&pts, false).unwrap(), sums.fit(&b).unwrap());
+        assert_eq!(direct.outliers_rejected, 15);
+        assert_eq!(summed.outliers_rejected, direct.outliers_rejected);
+        assert_eq!(summed.points, direct.points);
+        // Rounding apart: measured 1e-12 uT.
+        for j in 0..3 {
+            assert!(
+                (summed.offset_ut[j] - direct.offset_ut[j]).abs() < 1e-9,
+                "{summed:?}"
+            );
+            for c in 0..3 {
+                assert!((summed.matrix[j][c] - direct.matrix[j][c]).abs() < 1e-11);
+            }
+        }
+        assert!((summed.rms_residual_ut - direct.rms_residual_ut).abs() < 1e-9);
+        // The mean of R m (raw - o) over the readings.
+        let (m, o) = (
+            nalgebra::Matrix3::new(1.1, 0.1, 0.0, -0.05, 0.9, 0.02, 0.0, 0.03, 1.0),
+            nalgebra::Vector3::new(3.0, -2.0, 1.0),
+        );
+        let mean = pts
+            .iter()
+            .zip(&rots)
+            .map(|(p, r)| r * (m * (nalgebra::Vector3::from(p.raw_ut) - o)))
+            .sum::<nalgebra::Vector3<f64>>()
+            / pts.len() as f64;
+        assert!((sums.mean_ned(&m, &o) - mean).amax() < 1e-9);
     }
 
     #[test]
