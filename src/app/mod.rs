@@ -1,5 +1,6 @@
 //! What a user runs: [`daemon`] (the live service, `imucald run`), [`replay`] (a log through the
-//! same pipeline), [`eval`] (the orientation filter against a reference), [`fixedyaw`] (offsets at one known heading, for `imucald fixed-yaw` and the
+//! same pipeline), [`batch`] (many logs, one table), [`eval`] (the orientation filter against a
+//! reference), [`fixedyaw`] (offsets at one known heading, for `imucald fixed-yaw` and the
 //! service), [`simulate`] (a simulated log written), [`ui`] (the live page and the HTML report) and
 //! [`plot`] (PNG and SVG pictures).
 //!
