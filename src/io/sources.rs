@@ -1,5 +1,6 @@
-//! Sources: the only layer that knows where bytes come from. For now, files (`file:` addresses and
-//! plain paths) decoded whole; live transports build on the same decoders.
+//! Sources: the only layer that knows where bytes come from. Files (`file:` addresses and plain
+//! paths) decoded whole ([`read_log`]) or as a stream ([`decode_file_batched`]: a tlog and a
+//! DataFlash log through a bounded window); live transports build on the same decoders.
 
 use crate::calib::settings::AccelUnits;
 use crate::error::Error;
