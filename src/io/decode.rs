@@ -1121,10 +1121,6 @@ const TLOG_LOOKAHEAD: usize = 2 * (8 + MAX_FRAME_BYTES) + 8;
 /// The longest MAVLink frame: a v2 header of 10 bytes, 255 of payload, a CRC and a 13-byte signature.
 const MAX_FRAME_BYTES: usize = 280;
 
-/// Bytes read from a stream at a time into a decoder's window ([`TlogStream`], the DataFlash
-/// reader): large enough that a read costs little per record, small against a log.
-pub(crate) const STREAM_CHUNK_BYTES: usize = 256 * 1024;
-
 /// How far from the last record time a resynchronisation trusts a timestamp on its own, us.
 const RESYNC_NEAR_US: u64 = 86_400_000_000;
 
@@ -1259,7 +1255,7 @@ impl Iterator for TlogRecords<'_> {
 }
 
 /// [`TlogRecords`] read from a stream (a file, gunzipped or not) through a window of about
-/// [`STREAM_CHUNK_BYTES`]: the same records and counts as from the whole bytes, in memory that
+/// [`crate::io::window::STREAM_CHUNK_BYTES`]: the same records and counts as from the whole bytes, in memory that
 /// does not grow with the log. A read error ends the records and is kept ([`TlogStream::error`]).
 pub(crate) struct TlogStream<R> {
     reader: R,
@@ -1278,7 +1274,7 @@ impl<R: std::io::Read> TlogStream<R> {
     pub fn new(reader: R) -> Self {
         TlogStream {
             reader,
-            buf: Vec::with_capacity(STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD),
+            buf: Vec::with_capacity(crate::io::window::STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD),
             pos: 0,
             base: 0,
             eof: false,
@@ -1313,7 +1309,7 @@ impl<R: std::io::Read> TlogStream<R> {
             if record.is_some() || self.eof {
                 return record;
             }
-            fill_window(
+            crate::io::window::fill_window(
                 &mut self.reader,
                 &mut self.buf,
                 (&mut self.pos, &mut self.base),
@@ -1329,43 +1325,6 @@ impl<R: std::io::Read> Iterator for TlogStream<R> {
 
     fn next(&mut self) -> Option<(u64, Box<Frame>)> {
         self.next_record()
-    }
-}
-
-/// Drop the bytes of `buf` before `pos` (moving `base` on by as many) and read up to
-/// [`STREAM_CHUNK_BYTES`] more; the end of the stream or a read error sets `eof` (a truncated
-/// gzip member ends the stream as its end would; other errors are kept in `error`).
-pub(crate) fn fill_window(
-    reader: &mut impl std::io::Read,
-    buf: &mut Vec<u8>,
-    (pos, base): (&mut usize, &mut usize),
-    eof: &mut bool,
-    error: &mut Option<std::io::Error>,
-) {
-    buf.drain(..*pos);
-    *base += *pos;
-    *pos = 0;
-    let want = buf.len() + STREAM_CHUNK_BYTES;
-    while buf.len() < want {
-        let have = buf.len();
-        buf.resize(want, 0);
-        match reader.read(&mut buf[have..]) {
-            Ok(0) => {
-                buf.truncate(have);
-                *eof = true;
-                return;
-            }
-            Ok(k) => buf.truncate(have + k),
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => buf.truncate(have),
-            Err(e) => {
-                buf.truncate(have);
-                *eof = true;
-                if e.kind() != std::io::ErrorKind::UnexpectedEof {
-                    *error = Some(e);
-                }
-                return;
-            }
-        }
     }
 }
 
@@ -1906,7 +1865,11 @@ pub(crate) mod tests {
             }
         }
         log.truncate(log.len() - 20);
-        assert!(log.len() > 4 * STREAM_CHUNK_BYTES, "{} bytes", log.len());
+        assert!(
+            log.len() > 4 * crate::io::window::STREAM_CHUNK_BYTES,
+            "{} bytes",
+            log.len()
+        );
         let mut whole = TlogRecords::new(&log);
         let expected: Vec<(u64, f32)> = whole.by_ref().map(|(t, f)| (t, xacc(&f))).collect();
         for step in [1 << 20, 4093] {

@@ -2,7 +2,8 @@
 //!
 //! In: [`sources`] (log files, decoded whole) and [`link`] (live transports and the paced replay
 //! of a file) hand bytes to [`decode`] (MAVLink frames, `.tlog` records, CSV) and [`flightlog`]
-//! (ArduPilot DataFlash, PX4 ULog), which turn them into samples, and [`mocap`] reads optical motion
+//! (ArduPilot DataFlash, PX4 ULog), which turn them into samples (a file read as a stream through a
+//! [`window`]), and [`mocap`] reads optical motion
 //! capture (OptiTrack Motive CSV exports) as an attitude reference; [`clock`] gives every source one
 //! time line that never goes backwards. Out: [`mavout`] encodes what the service says (MAVLink
 //! frames, JSON lines) as pure functions, [`publish`] writes files atomically.
@@ -21,3 +22,4 @@ pub mod onboard;
 pub mod publish;
 pub mod samplelog;
 pub mod sources;
+pub(crate) mod window;

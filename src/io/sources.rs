@@ -358,7 +358,7 @@ fn open_stream(path: &Path) -> Result<Opened, Error> {
 
 /// As [`decode_log_batched`], the file at `path` read as a stream (gunzipped when it is gzip):
 /// a tlog and a DataFlash log through a window of
-/// [`crate::io::decode::STREAM_CHUNK_BYTES`], so memory does not grow with the log's length; a
+/// [`crate::io::window::STREAM_CHUNK_BYTES`], so memory does not grow with the log's length; a
 /// CSV and a ULog are read whole. Progress counts the file's bytes.
 pub(crate) fn decode_file_batched(
     path: &Path,

@@ -304,7 +304,7 @@ struct Definition {
 }
 
 /// Reads the records of a DataFlash log in order ([`DfReader::next_record`]), from whole bytes
-/// or from a stream through a window of [`crate::io::decode::STREAM_CHUNK_BYTES`].
+/// or from a stream through a window of [`crate::io::window::STREAM_CHUNK_BYTES`].
 pub struct DfReader<'a> {
     data: &'a [u8],
     stream: Option<Stream<'a>>,
@@ -393,7 +393,7 @@ impl<'a> DfReader<'a> {
         if s.eof || s.buf.len() - self.pos >= MAX_RECORD {
             return;
         }
-        crate::io::decode::fill_window(
+        crate::io::window::fill_window(
             &mut s.reader,
             &mut s.buf,
             (&mut self.pos, &mut s.base),
@@ -623,7 +623,7 @@ pub(crate) mod tests {
             }
         }
         log.truncate(log.len() - 5);
-        assert!(log.len() > 4 * crate::io::decode::STREAM_CHUNK_BYTES);
+        assert!(log.len() > 4 * crate::io::window::STREAM_CHUNK_BYTES);
         let read = |mut r: DfReader<'_>| {
             let mut got = Vec::new();
             while let Some(rec) = r.next_record() {
