@@ -140,16 +140,23 @@ impl Browser {
         let mut bytes = serde_json::to_vec(&msg).unwrap();
         bytes.push(0);
         self.to.write_all(&bytes).unwrap();
+        let v = self.next_where(|v| v["id"] == id, &format!("an answer to {method}"));
+        assert!(v.get("error").is_none(), "{method}: {v}");
+        v["result"].clone()
+    }
+
+    /// The next message `want` accepts (panics when none comes in 30 s, naming what was
+    /// `awaited`); the others are kept in `events`.
+    fn next_where(&mut self, want: impl Fn(&Value) -> bool, awaited: &str) -> Value {
         let until = Instant::now() + Duration::from_secs(30);
         loop {
             let left = until.saturating_duration_since(Instant::now());
             let v = self
                 .from
                 .recv_timeout(left)
-                .unwrap_or_else(|_| panic!("no answer to {method}"));
-            if v["id"] == id {
-                assert!(v.get("error").is_none(), "{method}: {v}");
-                return v["result"].clone();
+                .unwrap_or_else(|_| panic!("no {awaited} within 30 s"));
+            if want(&v) {
+                return v;
             }
             self.events.push(v);
         }
@@ -202,18 +209,10 @@ impl Browser {
             self.events.remove(i);
             return;
         }
-        let until = Instant::now() + Duration::from_secs(30);
-        loop {
-            let left = until.saturating_duration_since(Instant::now());
-            let v = self
-                .from
-                .recv_timeout(left)
-                .unwrap_or_else(|_| panic!("{url} did not load"));
-            if v["method"] == "Page.loadEventFired" {
-                return;
-            }
-            self.events.push(v);
-        }
+        self.next_where(
+            |v| v["method"] == "Page.loadEventFired",
+            &format!("load of {url}"),
+        );
     }
 
     /// A PNG of the page.
