@@ -214,7 +214,7 @@ struct Acc {
 }
 
 impl Acc {
-    fn add(&mut self, s: &Sample, a: &Vec3) {
+    fn add(&mut self, s: &Held, a: &Vec3) {
         if self.n == 0 {
             self.t_start = s.t_s;
             self.segment = s.segment;
@@ -409,13 +409,40 @@ impl LogHistogram {
     }
 }
 
+/// What the detector reads of a sample in its window: the sample without the fields a pose
+/// never takes (a third of its size; the window copies one in and one out per sample).
+#[derive(Debug, Clone, Copy)]
+struct Held {
+    t_s: f64,
+    segment: u32,
+    ref_q: Option<[f64; 4]>,
+    mag_ut: Option<Vec3>,
+    gyro_rad_s: Option<Vec3>,
+    temp_c: Option<f64>,
+    throttle: Option<f64>,
+}
+
+impl From<&Sample> for Held {
+    fn from(s: &Sample) -> Held {
+        Held {
+            t_s: s.t_s,
+            segment: s.segment,
+            ref_q: s.ref_q,
+            mag_ut: s.mag_ut,
+            gyro_rad_s: s.gyro_rad_s,
+            temp_c: s.temp_c,
+            throttle: s.throttle,
+        }
+    }
+}
+
 /// Streaming static detector on accelerometer samples. Each accel sample is judged by the variance of
 /// the window centred on it (so output lags input by half a window); a run of still samples at least
 /// `min_pose_s` long becomes a [`Pose`].
 #[derive(Debug, Clone)]
 pub(crate) struct StaticDetector {
     cfg: GateConfig,
-    window: VecDeque<(Sample, Vec3)>,
+    window: VecDeque<(Held, Vec3)>,
     half: usize,
     len: usize,
     hist: LogHistogram,
@@ -515,7 +542,7 @@ impl StaticDetector {
             self.len = ((self.cfg.window_s * rate).round() as usize).clamp(5, 20_000) | 1;
             self.half = self.len / 2;
         }
-        self.window.push_back((*s, *accel));
+        self.window.push_back((Held::from(s), *accel));
         if self.window.len() == 1 {
             self.resum();
         } else {
