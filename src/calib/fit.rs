@@ -85,7 +85,10 @@ pub(crate) fn sphere_start(points: &[Vec3]) -> Option<Start> {
     sphere_from_normal_equations(&ata, &atb)
 }
 
-fn sphere_from_normal_equations(ata: &SMatrix<f64, 4, 4>, atb: &SVector<f64, 4>) -> Option<Start> {
+pub(crate) fn sphere_from_normal_equations(
+    ata: &SMatrix<f64, 4, 4>,
+    atb: &SVector<f64, 4>,
+) -> Option<Start> {
     let sol = cholesky(ata)?.solve(atb);
     let c = Vector3::new(sol[0], sol[1], sol[2]);
     let r2 = sol[3] + c.norm_squared();

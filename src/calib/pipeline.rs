@@ -96,6 +96,8 @@ pub struct Pipeline {
     detector: StaticDetector,
     poses: Vec<Pose>,
     mag_buffer: Vec<Vec3>,
+    /// The sums of `mag_buffer` that [`centre_from_spread_with`] reads.
+    mag_sums: SpreadSums,
     mag_stride: usize,
     mag_seen: usize,
     mag_bins: Option<DirectionBins>,
@@ -144,6 +146,7 @@ impl Pipeline {
             detector: StaticDetector::new(cfg.gate),
             poses: Vec::new(),
             mag_buffer: Vec::new(),
+            mag_sums: SpreadSums::default(),
             mag_stride: 1,
             mag_seen: 0,
             mag_bins: None,
@@ -254,12 +257,14 @@ impl Pipeline {
         self.mag_seen += 1;
         if self.mag_seen.is_multiple_of(self.mag_stride) {
             self.mag_buffer.push(m);
+            self.mag_sums.add(&m);
             self.new_inputs += 1;
             self.note_fresh_mag(m);
         }
         if self.mag_buffer.len() >= MAG_BUFFER_MAX {
             // Bounded memory before a centre is known: keep every other point, sample half as often.
             let kept: Vec<Vec3> = self.mag_buffer.iter().step_by(2).copied().collect();
+            self.mag_sums = SpreadSums::of(&kept);
             self.mag_buffer = kept;
             self.mag_stride *= 2;
             self.mag_points_changed();
@@ -273,8 +278,9 @@ impl Pipeline {
     /// of their sphere ([`centre_from_spread`]).
     fn try_start_bins(&mut self) {
         let limits = (self.mag_units == Unit::Si).then_some(&self.cfg.accept.mag);
-        if let Some(c) = centre_from_spread(
+        if let Some(c) = centre_from_spread_with(
             &self.mag_buffer,
+            &self.mag_sums,
             self.cfg.fit.centre_min_spread_radii,
             limits,
         ) {
@@ -287,6 +293,7 @@ impl Pipeline {
         for p in self.mag_buffer.drain(..) {
             b.add(&p);
         }
+        self.mag_sums = SpreadSums::default();
         self.mag_bins = Some(b);
         self.mag_points_changed();
     }
@@ -433,32 +440,105 @@ pub(crate) fn centre_from_spread(
     min_spread_radii: f64,
     limits: Option<&AcceptLimits>,
 ) -> Option<Vec3> {
-    let st = crate::calib::fit::sphere_start(points)?;
-    let r = 1.0 / st.shape[(0, 0)];
-    let c = [st.centre[0], st.centre[1], st.centre[2]];
-    if !(r.is_finite() && r > 0.0) || limits.is_some_and(|l| r < l.min_radius || r > l.max_radius) {
+    centre_from_spread_with(points, &SpreadSums::of(points), min_spread_radii, limits)
+}
+
+/// [`centre_from_spread`] with the points' sums already kept: the sphere, its radius and the
+/// spread come from the sums, and only when they pass are the points read (for the RMS distance).
+fn centre_from_spread_with(
+    points: &[Vec3],
+    sums: &SpreadSums,
+    min_spread_radii: f64,
+    limits: Option<&AcceptLimits>,
+) -> Option<Vec3> {
+    let (c, r) = sums.sphere()?;
+    if limits.is_some_and(|l| r < l.min_radius || r > l.max_radius) {
         return None;
     }
-    let n = points.len() as f64;
+    if !(sums.min_sd() >= min_spread_radii * r) {
+        return None;
+    }
     let rms = (points
         .iter()
         .map(|p| (norm(&[p[0] - c[0], p[1] - c[1], p[2] - c[2]]) - r).powi(2))
         .sum::<f64>()
-        / n)
+        / points.len() as f64)
         .sqrt();
-    if !(rms <= CENTRE_MAX_RMS_RADII * r) {
-        return None;
+    (rms <= CENTRE_MAX_RMS_RADII * r).then_some(c)
+}
+
+/// Running sums of field vectors (raw units): what the linear sphere fit's normal equations and
+/// the points' covariance need, so asking whether buffered points place a centre costs no pass
+/// over them.
+#[derive(Debug, Clone, Copy, Default)]
+struct SpreadSums {
+    n: f64,
+    /// Sum of x.
+    s: [f64; 3],
+    /// Sum of x x^T.
+    sxx: [[f64; 3]; 3],
+    /// Sum of x |x|^2.
+    sx_r2: [f64; 3],
+    /// Sum of |x|^2.
+    s_r2: f64,
+}
+
+impl SpreadSums {
+    fn of(points: &[Vec3]) -> Self {
+        let mut s = SpreadSums::default();
+        for p in points {
+            s.add(p);
+        }
+        s
     }
-    let mean = points.iter().fold([0.0; 3], |a, p| {
-        [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
-    });
-    let mut cov = Matrix3::zeros();
-    for p in points {
-        let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
-        cov += d * d.transpose() / n;
+
+    fn add(&mut self, p: &Vec3) {
+        let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
+        self.n += 1.0;
+        self.s_r2 += r2;
+        for i in 0..3 {
+            self.s[i] += p[i];
+            self.sx_r2[i] += p[i] * r2;
+            for j in 0..3 {
+                self.sxx[i][j] += p[i] * p[j];
+            }
+        }
     }
-    let min_sd = cov.symmetric_eigen().eigenvalues.min().max(0.0).sqrt();
-    (min_sd >= min_spread_radii * r).then_some(c)
+
+    /// The linear least-squares sphere |x|^2 = 2 c.x + k (design `[2x, 2y, 2z, 1]`, as
+    /// [`crate::calib::fit::sphere_start`]): its centre and radius, when at least 4 points
+    /// determine a finite, positive one.
+    fn sphere(&self) -> Option<(Vec3, f64)> {
+        if self.n < 4.0 {
+            return None;
+        }
+        let mut ata = nalgebra::SMatrix::<f64, 4, 4>::zeros();
+        let mut atb = nalgebra::SVector::<f64, 4>::zeros();
+        for i in 0..3 {
+            for j in 0..3 {
+                ata[(i, j)] = 4.0 * self.sxx[i][j];
+            }
+            ata[(i, 3)] = 2.0 * self.s[i];
+            ata[(3, i)] = 2.0 * self.s[i];
+            atb[i] = 2.0 * self.sx_r2[i];
+        }
+        ata[(3, 3)] = self.n;
+        atb[3] = self.s_r2;
+        let st = crate::calib::fit::sphere_from_normal_equations(&ata, &atb)?;
+        let r = 1.0 / st.shape[(0, 0)];
+        (r.is_finite() && r > 0.0).then_some(([st.centre[0], st.centre[1], st.centre[2]], r))
+    }
+
+    /// The points' standard deviation along their narrowest direction (the square root of their
+    /// covariance's smallest eigenvalue); 0 for no points.
+    fn min_sd(&self) -> f64 {
+        if self.n < 1.0 {
+            return 0.0;
+        }
+        let mean = self.s.map(|v| v / self.n);
+        let cov = Matrix3::from_fn(|i, j| self.sxx[i][j] / self.n - mean[i] * mean[j]);
+        cov.symmetric_eigen().eigenvalues.min().max(0.0).sqrt()
+    }
 }
 
 /// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
@@ -1713,6 +1793,62 @@ mod tests {
         for k in 0..3 {
             assert!((got[k] - c[k]).abs() < 1e-6, "{got:?}");
         }
+    }
+
+    /// The kept sums give the sphere of the point-by-point linear fit and the two-pass spread,
+    /// on points far from the origin (raw counts with a large offset) as on field-sized ones.
+    #[test]
+    fn spread_sums_match_the_fit_on_the_points() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for (offset, radius) in [
+            ([12.0, -30.0, 5.0], 48.0),
+            ([9000.0, -4000.0, 700.0], 600.0),
+        ] {
+            let pts: Vec<Vec3> = (0..3000)
+                .map(|_| {
+                    let (u, v): (f64, f64) =
+                        (rng.random_range(-1.0..1.0), rng.random_range(0.0..6.28));
+                    let (s, n) = ((1.0 - u * u).sqrt(), rng.random_range(-0.01..0.01) * radius);
+                    let r = radius + n;
+                    [
+                        offset[0] + r * s * v.cos(),
+                        offset[1] + r * s * v.sin(),
+                        offset[2] + 0.3 * r * u,
+                    ]
+                })
+                .collect();
+            let sums = SpreadSums::of(&pts);
+            let (c, r) = sums.sphere().expect("a sphere");
+            let st = crate::calib::fit::sphere_start(&pts).expect("a sphere");
+            for k in 0..3 {
+                // Measured: agree to about 1e-9 of the radius.
+                assert!(
+                    (c[k] - st.centre[k]).abs() < 1e-7 * radius,
+                    "{c:?} {:?}",
+                    st.centre
+                );
+            }
+            assert!((r - 1.0 / st.shape[(0, 0)]).abs() < 1e-7 * radius);
+            let n = pts.len() as f64;
+            let mean = pts.iter().fold([0.0; 3], |a, p| {
+                [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]
+            });
+            let mut cov = Matrix3::zeros();
+            for p in &pts {
+                let d = nalgebra::Vector3::new(p[0] - mean[0], p[1] - mean[1], p[2] - mean[2]);
+                cov += d * d.transpose() / n;
+            }
+            let two_pass = cov.symmetric_eigen().eigenvalues.min().sqrt();
+            // The flattened axis: about 0.17 radii.
+            assert!(
+                (sums.min_sd() - two_pass).abs() < 1e-9 * radius,
+                "{} {two_pass}",
+                sums.min_sd()
+            );
+        }
+        assert_eq!(SpreadSums::default().sphere(), None);
+        assert_eq!(SpreadSums::default().min_sd(), 0.0);
     }
 
     #[test]
