@@ -158,6 +158,11 @@ pub struct DaemonConfig {
     /// 1 ms, while datagrams arrive fast enough to fill the kernel's buffer. 0 = wake per datagram;
     /// ignored (0) when `attitude_every_samples` is set. At most 50. Default: 50.
     pub udp_poll_ms: f64,
+    /// Streams faster than this are averaged over equal blocks of samples to about this rate
+    /// before the calibration and the attitude filter see them (a 1 kHz IMU in blocks of ten;
+    /// [`crate::calib::blockmean`] says why nothing is lost); slower ones pass unchanged. Hz;
+    /// 0 = every sample; ignored (0) when `attitude_every_samples` is set. Default: 100.
+    pub pipeline_rate_hz: f64,
 }
 
 /// The per-user state directory's `imucald/calibration` (see [`DaemonConfig::calibration_dir`]).
@@ -197,6 +202,7 @@ impl Default for DaemonConfig {
             queue_capacity: 4096,
             silent_after_s: 3.0,
             udp_poll_ms: 50.0,
+            pipeline_rate_hz: 100.0,
         }
     }
 }
@@ -540,6 +546,15 @@ impl Config {
             return Err(err(
                 "daemon.udp_poll_ms",
                 format!("must be between 0 and 50 ms, got {}", d.udp_poll_ms),
+            ));
+        }
+        if !(d.pipeline_rate_hz.is_finite() && (0.0..=100_000.0).contains(&d.pipeline_rate_hz)) {
+            return Err(err(
+                "daemon.pipeline_rate_hz",
+                format!(
+                    "must be between 0 (every sample) and 100000 Hz, got {}",
+                    d.pipeline_rate_hz
+                ),
             ));
         }
         if d.heading_message == HeadingMessage::Attitude && d.attitude_message.euler() {

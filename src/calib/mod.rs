@@ -14,6 +14,7 @@
 //! runs off its executor.
 
 pub mod ardupilot;
+pub mod blockmean;
 pub mod coverage;
 pub mod export;
 pub mod fit;

@@ -275,7 +275,7 @@ impl Pipeline {
     }
 
     /// Start direction binning once the buffered field vectors spread enough to place the centre
-    /// of their sphere ([`centre_from_spread`]).
+    /// of their sphere ([`centre_from_spread_with`]).
     fn try_start_bins(&mut self) {
         let limits = (self.mag_units == Unit::Si).then_some(&self.cfg.accept.mag);
         if let Some(c) = centre_from_spread_with(
@@ -416,7 +416,7 @@ impl Pipeline {
 
     /// The magnetometer's centre (hard iron, raw units) as far as it is known: the last fit that
     /// passed its checks, or before one the centre of the kept points once they spread enough
-    /// ([`centre_from_spread`]). `None` before either.
+    /// ([`centre_from_spread_with`]). `None` before either.
     pub(crate) fn mag_centre(&self) -> Option<Vec3> {
         self.mag_bins.as_ref().map(|b| b.centre)
     }
@@ -434,17 +434,9 @@ impl Pipeline {
 /// them (RMS distance from it at most [`CENTRE_MAX_RMS_RADII`] radii), their standard deviation
 /// along their narrowest direction is at least `min_spread_radii` of its radius, and with `limits`
 /// (units known) the radius is within them. A still sensor's points (a small cluster, on which an
-/// algebraic sphere fit gives a small sphere through the noise) never pass.
-pub(crate) fn centre_from_spread(
-    points: &[Vec3],
-    min_spread_radii: f64,
-    limits: Option<&AcceptLimits>,
-) -> Option<Vec3> {
-    centre_from_spread_with(points, &SpreadSums::of(points), min_spread_radii, limits)
-}
-
-/// [`centre_from_spread`] with the points' sums already kept: the sphere, its radius and the
-/// spread come from the sums, and only when they pass are the points read (for the RMS distance).
+/// algebraic sphere fit gives a small sphere through the noise) never pass. `sums` are the points'
+/// own, kept as they came: the sphere, its radius and the spread come from them, and only when
+/// those pass are the points read (for the RMS distance).
 fn centre_from_spread_with(
     points: &[Vec3],
     sums: &SpreadSums,
@@ -541,7 +533,7 @@ impl SpreadSums {
     }
 }
 
-/// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
+/// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread_with`].
 pub(crate) const CENTRE_MAX_RMS_RADII: f64 = 0.1;
 
 fn failed(
@@ -1793,6 +1785,14 @@ mod tests {
         for k in 0..3 {
             assert!((got[k] - c[k]).abs() < 1e-6, "{got:?}");
         }
+    }
+
+    fn centre_from_spread(
+        points: &[Vec3],
+        min_spread_radii: f64,
+        limits: Option<&AcceptLimits>,
+    ) -> Option<Vec3> {
+        centre_from_spread_with(points, &SpreadSums::of(points), min_spread_radii, limits)
     }
 
     /// The kept sums give the sphere of the point-by-point linear fit and the two-pass spread,

@@ -1369,13 +1369,22 @@ async fn serve_udp(
     }
 }
 
+/// Receive-buffer bytes one small datagram takes in Linux's accounting (its `truesize`: the
+/// payload's allocation and the socket buffer around it), as SO_RCVBUF reads back: Linux's default
+/// `rmem_default` of 212992 bytes holds 256 datagrams of a HIGHRES_IMU's size (measured on
+/// loopback: 256 queued at the default, 2520 at 2 MiB).
+const DATAGRAM_TRUESIZE: usize = 832;
+
 /// Datagrams per poll above which the poll period shrinks (aiming at half this many per read), and
-/// below which it doubles back towards the configured one: a fast sender is read often enough that
-/// the kernel's receive buffer never fills between reads. (A socket's buffer holds about 256 small
-/// datagrams at Linux's default `rmem_default`; we ask for more, up to `net.core.rmem_max`.) The
-/// grow threshold is under half the shrink one, so doubling the period never overshoots it.
-const POLL_SHRINK_ABOVE: usize = 96;
-const POLL_GROW_BELOW: usize = 40;
+/// below which it doubles back towards the configured one, for a receive buffer of `bytes` (0:
+/// not known, taken as Linux's default): a fast sender is read often enough that the buffer never
+/// fills between reads, 3/8 of it at most (96 of the default's 256). The grow threshold is under
+/// half the shrink one, so doubling the period never overshoots it.
+fn poll_thresholds(bytes: usize) -> (usize, usize) {
+    let holds = (bytes / DATAGRAM_TRUESIZE).max(256);
+    let shrink_above = holds * 3 / 8;
+    (shrink_above, shrink_above * 5 / 12)
+}
 /// Shortest poll period.
 const POLL_MIN: Duration = Duration::from_millis(1);
 /// How long a shortened poll period is kept after the last busy read before it may grow again, so
@@ -1401,7 +1410,7 @@ fn next_on_grid(
 const POLL_RECEIVE_BUFFER: usize = 1 << 20;
 
 /// As [`serve_udp`], but the socket is taken off the reactor and read every `period` (shorter while
-/// datagrams arrive fast, see [`POLL_SHRINK_ABOVE`]): whatever queued in the kernel meanwhile is
+/// datagrams arrive fast, see [`poll_thresholds`]): whatever queued in the kernel meanwhile is
 /// taken in one go. Arriving datagrams wake nothing.
 async fn serve_udp_polled(
     sh: &Shared,
@@ -1418,9 +1427,14 @@ async fn serve_udp_polled(
     let silent_after = sh.tuning.silent;
     let mut peer: Option<SocketAddr> = None;
     let mut batch = udp_batch::UdpBatch::new();
-    if let Err(e) = udp_batch::grow_receive_buffer(&sock, POLL_RECEIVE_BUFFER) {
-        tracing::debug!("link {}: udp receive buffer left as it was: {e}", sh.index);
-    }
+    let buffer = match udp_batch::grow_receive_buffer(&sock, POLL_RECEIVE_BUFFER) {
+        Ok(b) => b,
+        Err(e) => {
+            tracing::debug!("link {}: udp receive buffer left as it was: {e}", sh.index);
+            0
+        }
+    };
+    let (shrink_above, grow_below) = poll_thresholds(buffer);
     let mut fast_until = Instant::now();
     let mut last = Instant::now();
     let mut silent = false;
@@ -1465,12 +1479,12 @@ async fn serve_udp_polled(
                         break;
                     }
                 }
-                if taken > POLL_SHRINK_ABOVE {
+                if taken > shrink_above {
                     // Aim at about half the threshold per read at the rate just seen.
-                    let aim = (POLL_SHRINK_ABOVE / 2) as u32;
+                    let aim = (shrink_above / 2) as u32;
                     every = (every * aim / taken as u32).max(POLL_MIN.min(period));
                     fast_until = Instant::now() + POLL_HOLD;
-                } else if taken < POLL_GROW_BELOW && Instant::now() >= fast_until {
+                } else if taken < grow_below && Instant::now() >= fast_until {
                     every = (every * 2).min(period);
                 }
                 let due = next_on_grid(epoch, every, tokio::time::Instant::now());
@@ -2144,6 +2158,16 @@ mod tests {
     }
 
     // --- udp -----------------------------------------------------------------------------------
+
+    #[test]
+    fn poll_thresholds_scale_with_the_buffer_the_kernel_granted() {
+        // Linux's default buffer (212992 bytes) holds 256 small datagrams: 96 and 40.
+        assert_eq!(poll_thresholds(212_992), (96, 40));
+        // Not known, or smaller: as the default.
+        assert_eq!(poll_thresholds(0), (96, 40));
+        // The 1 MiB asked for reads back as 2 MiB, 2520 datagrams: 945 and 393.
+        assert_eq!(poll_thresholds(2 << 20), (945, 393));
+    }
 
     #[tokio::test]
     async fn udpin_polled_takes_a_burst_replies_reports_silence_and_stops() {

@@ -266,6 +266,7 @@ impl State {
             Ok(p) => {
                 let (mag_units, gyro_units) = (t.pipe.mag_units, t.pipe.gyro_units);
                 t.pipe = p.with_hold_out(HOLD_OUT_EVERY);
+                t.samples_in = 0;
                 (t.pipe.mag_units, t.pipe.gyro_units) = (mag_units, gyro_units);
             }
             Err(e) => tracing::error!("calibration run not restarted: {e}"),
@@ -608,7 +609,7 @@ impl State {
                     instance: t.name.clone(),
                     compass_id: t.compass_id,
                     primary: i == 0,
-                    samples: info.map_or(t.pipe.samples, |x| x.samples),
+                    samples: info.map_or(t.samples_in, |x| x.samples),
                     time: info.map(|x| x.time.clone()).unwrap_or_default(),
                     calibration,
                 })

@@ -44,6 +44,7 @@ pub use store::{
 use store::{WriteJob, Writes};
 
 use crate::attitude::fusion::OrientationFilter;
+use crate::calib::blockmean::BlockMean;
 use crate::calib::coverage::Progress;
 use crate::calib::learn::{LearnSettings, VectorLearner};
 use crate::calib::model::Calibration;
@@ -143,6 +144,11 @@ struct Track {
     /// MAG_CAL_* `compass_id`.
     compass_id: u8,
     pipe: Pipeline,
+    /// The raw samples are averaged in blocks to `daemon.pipeline_rate_hz` before `pipe` and the
+    /// attitude filter see them ([`crate::calib::blockmean`]).
+    blocks: BlockMean,
+    /// Raw samples taken since `pipe` started (what reports count as the samples).
+    samples_in: u64,
     /// Magnetometer samples pushed (a track without any reports no magnetometer progress).
     mag_samples: u64,
     /// Counts calibration-run restarts: a fit started before the latest one is disregarded.
@@ -172,6 +178,16 @@ struct Track {
     place: Option<crate::attitude::Place>,
 }
 
+/// The length of the blocks a track averages, s: none (0) when the rate is 0 or every sample's
+/// attitude is sent back (`daemon.attitude_every_samples`).
+fn block_period_s(d: &crate::config::DaemonConfig) -> f64 {
+    if d.attitude_every_samples > 0 || d.pipeline_rate_hz <= 0.0 {
+        0.0
+    } else {
+        1.0 / d.pipeline_rate_hz
+    }
+}
+
 impl Track {
     fn new(
         cfg: &Config,
@@ -184,6 +200,8 @@ impl Track {
             name,
             compass_id,
             pipe: Pipeline::new(&cfg.calib())?.with_hold_out(HOLD_OUT_EVERY),
+            blocks: BlockMean::new(block_period_s(&cfg.daemon)),
+            samples_in: 0,
             mag_samples: 0,
             generation: 0,
             progress: Progress::new(cfg.daemon.progress_full_regions),
@@ -200,7 +218,14 @@ impl Track {
         })
     }
 
-    /// Push a sample (raw, sensor axes); true when a refit is due.
+    /// Take a raw sample: counted, and added to the block being averaged; the block's mean when
+    /// this sample completes it (what [`Track::push`] and the attitude filter take).
+    fn take(&mut self, raw: &Sample) -> Option<Sample> {
+        self.samples_in += 1;
+        self.blocks.push(raw)
+    }
+
+    /// Push a sample (a block mean, sensor axes); true when a refit is due.
     fn push(&mut self, s: &Sample) -> bool {
         if s.mag_ut.is_some() {
             self.mag_samples += 1;

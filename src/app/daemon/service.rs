@@ -391,7 +391,7 @@ impl State {
             l.handle.task.abort();
         }
         RunSummary {
-            samples: self.cals[0].tracks[0].pipe.samples,
+            samples: self.cals[0].tracks[0].samples_in,
             accepted: self.accepted,
             inbound_dropped,
             sources_failed: self.sources_failed,

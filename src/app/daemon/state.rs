@@ -246,6 +246,9 @@ impl State {
     pub(super) fn on_sample(&mut self, c: usize, s: Sample) -> bool {
         let every = self.cfg.daemon.attitude_every_samples;
         let cal = &mut self.cals[c];
+        let Some(s) = cal.tracks[0].take(&s) else {
+            return false;
+        };
         let due = cal.tracks[0].push(&s);
         let body = cal.tracks[0].pipe.to_body(&s);
         if body.mag_ut.is_some() {
@@ -545,7 +548,8 @@ impl State {
         if track == 0 {
             self.on_sample(c, s)
         } else {
-            self.cals[c].tracks[track].push(&s)
+            let t = &mut self.cals[c].tracks[track];
+            t.take(&s).is_some_and(|m| t.push(&m))
         }
     }
 

@@ -438,7 +438,7 @@ impl State {
             Some(label),
             vehicle.and_then(|v| v.conv.instance()).map(String::from),
             &stats,
-            pipe.samples,
+            cal.tracks[0].samples_in,
             pipe.last_t,
         );
         let Some(results) = cal.tracks[0].last_results.as_ref() else {

@@ -102,30 +102,35 @@ impl UdpBatch {
 }
 
 /// Ask for a receive buffer of `bytes` (SO_RCVBUF; the kernel caps it at `net.core.rmem_max`),
-/// so datagrams can wait longer between reads. Only ever grows the buffer.
+/// so datagrams can wait longer between reads. Only ever grows the buffer. Returns its size as
+/// SO_RCVBUF reads back (what the kernel counts queued datagrams against: twice what was set).
 #[cfg(target_os = "linux")]
-pub(crate) fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<()> {
+pub(crate) fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<usize> {
     use std::os::fd::AsRawFd;
     let fd = sock.as_raw_fd();
-    let mut cur: libc::c_int = 0;
-    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
-    // SAFETY: `cur` and `len` are live and sized for an int option.
-    let r = unsafe {
-        libc::getsockopt(
-            fd,
-            libc::SOL_SOCKET,
-            libc::SO_RCVBUF,
-            (&mut cur as *mut libc::c_int).cast(),
-            &mut len,
-        )
+    let read = || {
+        let mut cur: libc::c_int = 0;
+        let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+        // SAFETY: `cur` and `len` are live and sized for an int option.
+        let r = unsafe {
+            libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                libc::SO_RCVBUF,
+                (&mut cur as *mut libc::c_int).cast(),
+                &mut len,
+            )
+        };
+        if r != 0 {
+            return Err(io::Error::last_os_error());
+        }
+        Ok(usize::try_from(cur).unwrap_or(0))
     };
-    if r != 0 {
-        return Err(io::Error::last_os_error());
+    let cur = read()?;
+    if cur >= bytes {
+        return Ok(cur);
     }
     let want = libc::c_int::try_from(bytes).unwrap_or(libc::c_int::MAX);
-    if cur >= want {
-        return Ok(());
-    }
     // SAFETY: `want` is a live int of the stated size.
     let r = unsafe {
         libc::setsockopt(
@@ -139,13 +144,13 @@ pub(crate) fn grow_receive_buffer(sock: &UdpSocket, bytes: usize) -> io::Result<
     if r != 0 {
         return Err(io::Error::last_os_error());
     }
-    Ok(())
+    read()
 }
 
-/// Elsewhere the buffer is left as the system made it.
+/// Elsewhere the buffer is left as the system made it, of a size not known (0).
 #[cfg(not(target_os = "linux"))]
-pub(crate) fn grow_receive_buffer(_sock: &UdpSocket, _bytes: usize) -> io::Result<()> {
-    Ok(())
+pub(crate) fn grow_receive_buffer(_sock: &UdpSocket, _bytes: usize) -> io::Result<usize> {
+    Ok(0)
 }
 
 /// The sender's address from what `recvmmsg` wrote.
