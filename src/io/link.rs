@@ -778,12 +778,26 @@ impl Rx {
 
     /// Decode bytes and queue what they hold. False when the service is gone.
     fn on_bytes(&mut self, sh: &Shared, bytes: &[u8], datagram: bool) -> bool {
-        LinkCounters::add(&sh.counters.bytes_in, bytes.len() as u64);
         let mut local = DecodeStats::default();
+        let open = self.take_bytes(sh, bytes, datagram, now_us(), &mut local);
+        sh.merge(&local);
+        open
+    }
+
+    /// [`Rx::on_bytes`] for bytes that arrived at `time_us` (Unix us), counted into `local`:
+    /// datagrams read together share one arrival time and one merge of their counts.
+    fn take_bytes(
+        &mut self,
+        sh: &Shared,
+        bytes: &[u8],
+        datagram: bool,
+        time_us: u64,
+        local: &mut DecodeStats,
+    ) -> bool {
+        LinkCounters::add(&sh.counters.bytes_in, bytes.len() as u64);
         let mut open = true;
         match self {
             Rx::Mavlink(dec) => {
-                let time_us = now_us();
                 let mut offer = |frame: Box<Frame>| {
                     open &= sh.offer(Inbound::Frame {
                         link: sh.index,
@@ -792,10 +806,10 @@ impl Rx {
                     });
                 };
                 let n = if datagram {
-                    decode_datagram(bytes, &mut local, offer)
+                    decode_datagram(bytes, local, offer)
                 } else {
                     let frames = dec.push(bytes);
-                    local = std::mem::take(&mut dec.stats);
+                    merge_stats(local, &std::mem::take(&mut dec.stats));
                     let n = frames.len() as u64;
                     frames.into_iter().for_each(|f| offer(Box::new(f)));
                     n
@@ -837,7 +851,6 @@ impl Rx {
                 }
             }
         }
-        sh.merge(&local);
         open
     }
 }
@@ -1458,12 +1471,17 @@ async fn serve_udp_polled(
             _ = wait_stop(&mut ctl.shutdown) => return End::Stop,
             _ = &mut next => {
                 let mut taken = 0usize;
+                let mut local = DecodeStats::default();
                 loop {
                     let n = match batch.recv(&sock) {
                         Ok(n) => n,
                         Err(e) if transient_udp_error(&e) => break,
-                        Err(e) => return End::Lost(format!("udp receive failed: {e}")),
+                        Err(e) => {
+                            sh.merge(&local);
+                            return End::Lost(format!("udp receive failed: {e}"));
+                        }
                     };
+                    let time_us = now_us();
                     for i in 0..n {
                         let (bytes, from) = batch.get(i);
                         if let Some(from) = from.filter(|f| target.is_none() && peer != Some(*f)) {
@@ -1471,7 +1489,7 @@ async fn serve_udp_polled(
                             peer = Some(from);
                         }
                         taken += 1;
-                        if !rx.on_bytes(sh, bytes, true) {
+                        if !rx.take_bytes(sh, bytes, true, time_us, &mut local) {
                             return End::Stop;
                         }
                     }
@@ -1479,6 +1497,7 @@ async fn serve_udp_polled(
                         break;
                     }
                 }
+                sh.merge(&local);
                 if taken > shrink_above {
                     // Aim at about half the threshold per read at the rate just seen.
                     let aim = (shrink_above / 2) as u32;
