@@ -1103,14 +1103,32 @@ pub(crate) fn decode_tlog_with(
 /// ends the log, each counted in `stats.skipped`; `stats.records` counts frames.
 pub struct TlogRecords<'a> {
     bytes: &'a [u8],
+    cursor: TlogCursor,
+    pub stats: DecodeStats,
+}
+
+/// Where a tlog reader is in its bytes, and what it knows there.
+#[derive(Debug, Clone, Copy)]
+struct TlogCursor {
+    /// Offset of the next record.
     pos: usize,
     last_ts: Option<u64>,
-    /// More bytes follow `bytes` (a window of a [`TlogStream`]): nothing within
-    /// [`TLOG_LOOKAHEAD`] of its end is decided on, and its end is no truncation.
+    /// More bytes follow the bytes read (a window of a [`TlogStream`]): nothing within
+    /// [`TLOG_LOOKAHEAD`] of their end is decided on, and their end is no truncation.
     more: bool,
     /// A resynchronisation reached the end of the window: the next window goes on with it.
     resyncing: bool,
-    pub stats: DecodeStats,
+}
+
+impl TlogCursor {
+    fn new(more: bool) -> TlogCursor {
+        TlogCursor {
+            pos: 0,
+            last_ts: None,
+            more,
+            resyncing: false,
+        }
+    }
 }
 
 /// Bytes a window of a stream keeps beyond the last offset it decides on: a resynchronisation
@@ -1128,27 +1146,34 @@ impl<'a> TlogRecords<'a> {
     pub fn new(bytes: &'a [u8]) -> Self {
         TlogRecords {
             bytes,
-            pos: 0,
-            last_ts: None,
-            more: false,
-            resyncing: false,
+            cursor: TlogCursor::new(false),
             stats: DecodeStats::default(),
-        }
-    }
-
-    /// The offset up to which records are read: the end, or short of it by [`TLOG_LOOKAHEAD`]
-    /// when more bytes follow.
-    fn limit(&self) -> usize {
-        if self.more {
-            self.bytes.len().saturating_sub(TLOG_LOOKAHEAD)
-        } else {
-            self.bytes.len()
         }
     }
 
     /// Bytes read so far.
     pub fn position(&self) -> usize {
-        self.pos
+        self.cursor.pos
+    }
+}
+
+/// A tlog reader's bytes with its cursor and counts, borrowed for one step: [`TlogRecords`] and
+/// [`TlogStream`] read through it alike.
+struct TlogReader<'a> {
+    bytes: &'a [u8],
+    cursor: &'a mut TlogCursor,
+    stats: &'a mut DecodeStats,
+}
+
+impl TlogReader<'_> {
+    /// The offset up to which records are read: the end, or short of it by [`TLOG_LOOKAHEAD`]
+    /// when more bytes follow.
+    fn limit(&self) -> usize {
+        if self.cursor.more {
+            self.bytes.len().saturating_sub(TLOG_LOOKAHEAD)
+        } else {
+            self.bytes.len()
+        }
     }
 
     fn ts_at(&self, p: usize) -> u64 {
@@ -1170,8 +1195,8 @@ impl<'a> TlogRecords<'a> {
     /// of the last, or (two logs joined, days apart) one followed by another good record. A
     /// CRC-checked pair does not happen by chance in garbage.
     fn skip_to(&mut self, from: usize) {
-        self.pos = self.resync(from);
-        self.resyncing = self.more && self.pos >= self.limit();
+        self.cursor.pos = self.resync(from);
+        self.cursor.resyncing = self.cursor.more && self.cursor.pos >= self.limit();
     }
 
     fn resync(&self, from: usize) -> usize {
@@ -1183,7 +1208,7 @@ impl<'a> TlogRecords<'a> {
             if m == V1_MAGIC || m == V2_MAGIC {
                 if let Some(len) = self.record_at(p) {
                     let ts = self.ts_at(p);
-                    let near = match self.last_ts {
+                    let near = match self.cursor.last_ts {
                         Some(l) => ts.abs_diff(l) < RESYNC_NEAR_US,
                         None => ts > 0,
                     };
@@ -1194,11 +1219,61 @@ impl<'a> TlogRecords<'a> {
             }
             p += 1;
         }
-        if self.more {
+        if self.cursor.more {
             p
         } else {
             n
         }
+    }
+
+    /// The next record, `None` at the end (of the window, when more bytes follow).
+    fn next_record(&mut self) -> Option<(u64, Box<Frame>)> {
+        let n = self.bytes.len();
+        let end = self.limit();
+        if self.cursor.resyncing {
+            self.cursor.resyncing = false;
+            self.skip_to(self.cursor.pos);
+        }
+        while self.cursor.pos < end && self.cursor.pos + 8 < n {
+            let pos = self.cursor.pos;
+            let ts = self.ts_at(pos);
+            let rest = &self.bytes[pos + 8..];
+            // Where a record is expected, a magic byte and a frame that checks out are enough:
+            // its record time may be anything (logs joined with `cat` jump back by hours or
+            // days); the source's clock sorts that out.
+            if !(rest[0] == V1_MAGIC || rest[0] == V2_MAGIC) {
+                self.stats.skip("resync");
+                self.skip_to(pos + 1);
+                continue;
+            }
+            match parse_frame(rest) {
+                FrameParse::Frame(f, len) => {
+                    self.cursor.last_ts = Some(ts);
+                    self.cursor.pos += 8 + len;
+                    self.stats.records += 1;
+                    return Some((ts, f));
+                }
+                FrameParse::Incomplete => {
+                    self.stats.skip("truncated");
+                    self.cursor.pos = n;
+                    return None;
+                }
+                FrameParse::Skip(len, why) => {
+                    self.stats.skip(why.name());
+                    if why.whole_frame() {
+                        self.cursor.last_ts = Some(ts);
+                        self.cursor.pos += 8 + len;
+                    } else {
+                        self.skip_to(pos + 1);
+                    }
+                }
+            }
+        }
+        if !self.cursor.more && self.cursor.pos < n {
+            self.stats.skip("truncated");
+            self.cursor.pos = n;
+        }
+        None
     }
 }
 
@@ -1206,51 +1281,12 @@ impl Iterator for TlogRecords<'_> {
     type Item = (u64, Box<Frame>);
 
     fn next(&mut self) -> Option<(u64, Box<Frame>)> {
-        let n = self.bytes.len();
-        let end = self.limit();
-        if self.resyncing {
-            self.resyncing = false;
-            self.skip_to(self.pos);
+        TlogReader {
+            bytes: self.bytes,
+            cursor: &mut self.cursor,
+            stats: &mut self.stats,
         }
-        while self.pos < end && self.pos + 8 < n {
-            let ts = self.ts_at(self.pos);
-            let rest = &self.bytes[self.pos + 8..];
-            // Where a record is expected, a magic byte and a frame that checks out are enough:
-            // its record time may be anything (logs joined with `cat` jump back by hours or
-            // days); the source's clock sorts that out.
-            if !(rest[0] == V1_MAGIC || rest[0] == V2_MAGIC) {
-                self.stats.skip("resync");
-                self.skip_to(self.pos + 1);
-                continue;
-            }
-            match parse_frame(rest) {
-                FrameParse::Frame(f, len) => {
-                    self.last_ts = Some(ts);
-                    self.pos += 8 + len;
-                    self.stats.records += 1;
-                    return Some((ts, f));
-                }
-                FrameParse::Incomplete => {
-                    self.stats.skip("truncated");
-                    self.pos = n;
-                    return None;
-                }
-                FrameParse::Skip(len, why) => {
-                    self.stats.skip(why.name());
-                    if why.whole_frame() {
-                        self.last_ts = Some(ts);
-                        self.pos += 8 + len;
-                    } else {
-                        self.skip_to(self.pos + 1);
-                    }
-                }
-            }
-        }
-        if !self.more && self.pos < n {
-            self.stats.skip("truncated");
-            self.pos = n;
-        }
-        None
+        .next_record()
     }
 }
 
@@ -1260,12 +1296,9 @@ impl Iterator for TlogRecords<'_> {
 pub(crate) struct TlogStream<R> {
     reader: R,
     buf: Vec<u8>,
-    /// Offset in `buf` of the next record, and of `buf` in the stream.
-    pos: usize,
+    /// The cursor in `buf` (`more` until the stream's end), and the offset of `buf` in the stream.
+    cursor: TlogCursor,
     base: usize,
-    eof: bool,
-    last_ts: Option<u64>,
-    resyncing: bool,
     pub stats: DecodeStats,
     pub error: Option<std::io::Error>,
 }
@@ -1275,11 +1308,8 @@ impl<R: std::io::Read> TlogStream<R> {
         TlogStream {
             reader,
             buf: Vec::with_capacity(crate::io::window::STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD),
-            pos: 0,
+            cursor: TlogCursor::new(true),
             base: 0,
-            eof: false,
-            last_ts: None,
-            resyncing: false,
             stats: DecodeStats::default(),
             error: None,
         }
@@ -1287,35 +1317,30 @@ impl<R: std::io::Read> TlogStream<R> {
 
     /// Bytes of the stream read so far as records (or skipped).
     pub fn bytes_read(&self) -> usize {
-        self.base + self.pos
+        self.base + self.cursor.pos
     }
 
     /// The next record, as [`TlogRecords::next`] gives it.
     pub fn next_record(&mut self) -> Option<(u64, Box<Frame>)> {
         loop {
-            let mut window = TlogRecords {
-                bytes: &self.buf[self.pos..],
-                pos: 0,
-                last_ts: self.last_ts,
-                more: !self.eof,
-                resyncing: self.resyncing,
-                stats: std::mem::take(&mut self.stats),
-            };
-            let record = window.next();
-            self.pos += window.pos;
-            self.last_ts = window.last_ts;
-            self.resyncing = window.resyncing;
-            self.stats = window.stats;
-            if record.is_some() || self.eof {
+            let record = TlogReader {
+                bytes: &self.buf,
+                cursor: &mut self.cursor,
+                stats: &mut self.stats,
+            }
+            .next_record();
+            if record.is_some() || !self.cursor.more {
                 return record;
             }
+            let mut eof = false;
             crate::io::window::fill_window(
                 &mut self.reader,
                 &mut self.buf,
-                (&mut self.pos, &mut self.base),
-                &mut self.eof,
+                (&mut self.cursor.pos, &mut self.base),
+                &mut eof,
                 &mut self.error,
             );
+            self.cursor.more = !eof;
         }
     }
 }
