@@ -585,12 +585,12 @@ mod tests {
             let (y, x) = (3.0 * a.sin(), 3.0 * a.cos());
             worst_atan2 = worst_atan2.max((atan2_near(y, x) - y.atan2(x)).abs());
         }
-        // Measured: WORST_ACOS and WORST_ATAN2 rad.
+        // Measured: 2.2e-8 and 1.4e-8 rad.
         assert!(
-            worst_acos < 6e-8 && worst_atan2 < 6e-8,
+            worst_acos < 6.5e-8 && worst_atan2 < 4e-8,
             "{worst_acos:e} {worst_atan2:e}"
         );
-        assert!(6e-8 < NEAR_ERR_RAD);
+        const { assert!(6.5e-8 < NEAR_ERR_RAD) };
     }
 
     #[test]
