@@ -119,8 +119,45 @@ pub(crate) const MAX_BINNED: usize = 4000;
 pub struct DirectionBins {
     pub centre: Vec3,
     cell_rad: f64,
-    /// Cells by (row, column); ordered, so the kept points come out in a fixed order with no sort.
-    cells: std::collections::BTreeMap<(i32, i32), Vec3>,
+    /// Cells by (row, column) ([`cell_id`]); the kept points come out sorted by it.
+    cells: CellMap,
+    /// The cell of the last vector looked up, which is filled (it was kept there, or found
+    /// filled): a stream at IMU rates stays in one cell for many samples, which then cost no
+    /// look-up in `cells`. Cleared whenever the cells are rebuilt.
+    last: Option<u64>,
+}
+
+/// The cells of [`DirectionBins`]: a hash map with [`CellHasher`].
+type CellMap = std::collections::HashMap<u64, Vec3, std::hash::BuildHasherDefault<CellHasher>>;
+
+/// A (row, column) cell as one key that sorts as the pair does (rows and columns are never
+/// negative).
+fn cell_id(row: u32, col: u32) -> u64 {
+    (u64::from(row) << 32) | u64::from(col)
+}
+
+/// Hashes a cell id with the finaliser of SplitMix64 (Steele, Lea and Flood, "Fast splittable
+/// pseudorandom number generators", 2014): every bit of the id reaches the bits the map indexes
+/// by, at a few multiplications (the default hasher's protection against chosen keys is not
+/// needed for cells).
+#[derive(Debug, Clone, Copy, Default)]
+struct CellHasher(u64);
+
+impl std::hash::Hasher for CellHasher {
+    fn finish(&self) -> u64 {
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 << 8) | u64::from(b);
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = v;
+    }
 }
 
 impl DirectionBins {
@@ -129,10 +166,16 @@ impl DirectionBins {
             centre,
             cell_rad: min_separation_deg.max(0.01).to_radians(),
             cells: Default::default(),
+            last: None,
         }
     }
 
-    fn key(&self, raw: &Vec3) -> Option<(i32, i32)> {
+    /// The cell of a direction: rows of constant polar angle one cell high, `floor(acos(z) /
+    /// cell)`, each ring cut into as many cells as fit its circumference, column
+    /// `floor((atan2(y, x) + pi) / 2 pi * ring)`. The angles come from polynomials
+    /// ([`cell_index`]); `acos` and `atan2` are called only within a hair of a cell's edge, so the
+    /// cells are those of the formula.
+    fn key(&self, raw: &Vec3) -> Option<u64> {
         let d = [
             raw[0] - self.centre[0],
             raw[1] - self.centre[1],
@@ -142,17 +185,23 @@ impl DirectionBins {
         if !(n > 0.0) {
             return None;
         }
-        // Rows of constant polar angle one cell high, each ring cut into as many cells as fit its circumference.
         let z = (d[2] / n).clamp(-1.0, 1.0);
-        let theta = z.acos();
-        let row = (theta / self.cell_rad).floor() as i32;
+        let cell = self.cell_rad;
+        // The near positions multiply where the formula divides (a rounding apart, far inside
+        // the margin); the exact ones are the formula's.
+        let per_cell = 1.0 / cell;
+        let row = cell_index(acos_near(z) * per_cell, per_cell, || z.acos() / cell);
         // sin(theta) from z directly (the same value, without a second transcendental call).
-        let ring = ((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / self.cell_rad)
+        let ring = ((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / cell)
             .ceil()
             .max(1.0);
-        let phi = d[1].atan2(d[0]) + std::f64::consts::PI;
-        let col = ((phi / std::f64::consts::TAU) * ring).floor() as i32;
-        Some((row, col))
+        let per_turn = ring * (0.5 * std::f64::consts::FRAC_1_PI);
+        let col = cell_index(
+            (atan2_near(d[1], d[0]) + std::f64::consts::PI) * per_turn,
+            per_turn,
+            || ((d[1].atan2(d[0]) + std::f64::consts::PI) / std::f64::consts::TAU) * ring,
+        );
+        Some(cell_id(row, col))
     }
 
     /// Keep `raw` if its cell is still empty. Returns whether it was kept. Past [`MAX_BINNED`] kept
@@ -169,15 +218,19 @@ impl DirectionBins {
     }
 
     fn insert(&mut self, raw: &Vec3) -> bool {
-        match self.key(raw) {
-            Some(k) => match self.cells.entry(k) {
-                std::collections::btree_map::Entry::Vacant(e) => {
-                    e.insert(*raw);
-                    true
-                }
-                std::collections::btree_map::Entry::Occupied(_) => false,
-            },
-            None => false,
+        let Some(k) = self.key(raw) else {
+            return false;
+        };
+        if self.last == Some(k) {
+            return false;
+        }
+        self.last = Some(k);
+        match self.cells.entry(k) {
+            std::collections::hash_map::Entry::Vacant(e) => {
+                e.insert(*raw);
+                true
+            }
+            std::collections::hash_map::Entry::Occupied(_) => false,
         }
     }
 
@@ -189,7 +242,8 @@ impl DirectionBins {
     /// Re-bin the kept vectors about a new centre (after a fit moved the hard-iron estimate).
     pub(crate) fn recentre(&mut self, centre: Vec3) {
         let mut old: Vec<Vec3> = std::mem::take(&mut self.cells).into_values().collect();
-        // Deterministic order whatever the hash map did.
+        self.last = None;
+        // Deterministic order whatever the hash map did (kept vectors are distinct and finite).
         old.sort_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
         self.centre = centre;
         for p in old {
@@ -197,9 +251,11 @@ impl DirectionBins {
         }
     }
 
-    /// Kept raw vectors, in a deterministic order.
+    /// Kept raw vectors, in a deterministic order (by cell: row, then column).
     pub fn points(&self) -> Vec<Vec3> {
-        self.cells.values().copied().collect()
+        let mut kept: Vec<(u64, Vec3)> = self.cells.iter().map(|(k, v)| (*k, *v)).collect();
+        kept.sort_unstable_by_key(|(k, _)| *k);
+        kept.into_iter().map(|(_, v)| v).collect()
     }
 
     pub fn len(&self) -> usize {
@@ -207,6 +263,84 @@ impl DirectionBins {
     }
     pub fn is_empty(&self) -> bool {
         self.cells.is_empty()
+    }
+}
+
+/// Largest error of [`acos_near`] and [`atan2_near`], rad: the polynomials' own (2e-8, Abramowitz
+/// and Stegun, "Handbook of Mathematical Functions" (1964), 4.4.46 and 4.4.49) with a wide margin
+/// for rounding.
+const NEAR_ERR_RAD: f64 = 1e-6;
+
+/// The cell index `floor(u)` of a position `u` along a row or ring (in cells, not negative),
+/// given `near`, within [`NEAR_ERR_RAD`] times `per_rad` (cells per radian) of it: `exact()`,
+/// the position by the formula itself, is computed only when `near` lies that close to a cell
+/// edge, so the index is always the formula's. (Truncation is the floor here, and costs no call.)
+fn cell_index(near: f64, per_rad: f64, exact: impl FnOnce() -> f64) -> u32 {
+    let margin = NEAR_ERR_RAD * per_rad;
+    let i = near as u32;
+    let frac = near - f64::from(i);
+    if frac > margin && frac < 1.0 - margin {
+        i
+    } else {
+        exact().floor() as u32
+    }
+}
+
+/// acos(z) for z in [-1, 1] to within 2e-8 rad (Abramowitz and Stegun 4.4.46): sqrt(1 - x)
+/// times a polynomial of degree 7 for x = |z|, reflected for z < 0.
+fn acos_near(z: f64) -> f64 {
+    const A: [f64; 8] = [
+        1.570_796_305_0,
+        -0.214_598_801_6,
+        0.088_978_987_4,
+        -0.050_174_304_6,
+        0.030_891_881_0,
+        -0.017_088_125_6,
+        0.006_670_090_1,
+        -0.001_262_491_1,
+    ];
+    let x = z.abs();
+    let p = A.iter().rev().fold(0.0, |acc, &a| acc * x + a);
+    let r = (1.0 - x).max(0.0).sqrt() * p;
+    if z < 0.0 {
+        std::f64::consts::PI - r
+    } else {
+        r
+    }
+}
+
+/// atan2(y, x) in [-pi, pi] to within 2e-8 rad (Abramowitz and Stegun 4.4.49 on the octant's
+/// ratio in [0, 1], then reflected into place); `atan2` itself on the axis (signed zeros).
+fn atan2_near(y: f64, x: f64) -> f64 {
+    const A: [f64; 9] = [
+        1.0,
+        -0.333_331_452_8,
+        0.199_935_508_5,
+        -0.142_088_994_4,
+        0.106_562_639_3,
+        -0.075_289_640_0,
+        0.042_909_613_8,
+        -0.016_165_736_7,
+        0.002_866_225_7,
+    ];
+    let (ax, ay) = (x.abs(), y.abs());
+    let (lo, hi) = if ay > ax { (ax, ay) } else { (ay, ax) };
+    if !(hi > 0.0) {
+        return y.atan2(x);
+    }
+    let t = lo / hi;
+    let t2 = t * t;
+    let mut r = t * A.iter().rev().fold(0.0, |acc, &a| acc * t2 + a);
+    if ay > ax {
+        r = std::f64::consts::FRAC_PI_2 - r;
+    }
+    if x < 0.0 {
+        r = std::f64::consts::PI - r;
+    }
+    if y < 0.0 {
+        -r
+    } else {
+        r
     }
 }
 
@@ -418,6 +552,125 @@ mod tests {
         assert!(b.cell_deg() > 1.0);
         // Still the whole sphere.
         assert_eq!(coverage(&b.points(), &[10.0, -5.0, 3.0]).filled, REGIONS);
+    }
+
+    /// The cell of a direction by the defining formula, with `acos` and `atan2`.
+    fn key_by_formula(b: &DirectionBins, raw: &Vec3) -> Option<u64> {
+        let d = [
+            raw[0] - b.centre[0],
+            raw[1] - b.centre[1],
+            raw[2] - b.centre[2],
+        ];
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        if !(n > 0.0) {
+            return None;
+        }
+        let z = (d[2] / n).clamp(-1.0, 1.0);
+        let row = (z.acos() / b.cell_rad).floor() as u32;
+        let ring = ((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / b.cell_rad)
+            .ceil()
+            .max(1.0);
+        let phi = d[1].atan2(d[0]) + std::f64::consts::PI;
+        let col = ((phi / std::f64::consts::TAU) * ring).floor() as u32;
+        Some(cell_id(row, col))
+    }
+
+    #[test]
+    fn the_approximate_angles_stay_within_their_bound() {
+        let (mut worst_acos, mut worst_atan2) = (0.0f64, 0.0f64);
+        for i in 0..=200_000 {
+            let z = -1.0 + 2.0 * i as f64 / 200_000.0;
+            worst_acos = worst_acos.max((acos_near(z) - z.acos()).abs());
+            let a = std::f64::consts::TAU * i as f64 / 200_000.0 - std::f64::consts::PI;
+            let (y, x) = (3.0 * a.sin(), 3.0 * a.cos());
+            worst_atan2 = worst_atan2.max((atan2_near(y, x) - y.atan2(x)).abs());
+        }
+        // Measured: 2.2e-8 and 1.4e-8 rad.
+        assert!(
+            worst_acos < 6.5e-8 && worst_atan2 < 4e-8,
+            "{worst_acos:e} {worst_atan2:e}"
+        );
+        const { assert!(6.5e-8 < NEAR_ERR_RAD) };
+    }
+
+    #[test]
+    fn cells_are_those_of_acos_and_atan2() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        let mut edge_cases = 0;
+        for deg in [0.01, 0.5, 1.0, 2.83, 7.0, 45.0] {
+            let b = DirectionBins::new([1.5, -2.0, 0.25], deg);
+            for _ in 0..200_000 {
+                let v = [next() * 60.0, next() * 60.0, next() * 60.0];
+                assert_eq!(b.key(&v), key_by_formula(&b, &v), "{v:?} at {deg} deg");
+            }
+            // Directions on the cell edges: the axes, the poles, the branch cut of atan2, and
+            // exact multiples of the cell width.
+            let c = b.centre;
+            let r = b.cell_rad;
+            for k in 0..(std::f64::consts::PI / r) as usize + 1 {
+                let t = k as f64 * r;
+                for phi in [
+                    -std::f64::consts::PI,
+                    -1.0,
+                    0.0,
+                    1.0,
+                    t,
+                    std::f64::consts::PI,
+                ] {
+                    let v = [
+                        c[0] + 10.0 * t.sin() * phi.cos(),
+                        c[1] + 10.0 * t.sin() * phi.sin(),
+                        c[2] + 10.0 * t.cos(),
+                    ];
+                    assert_eq!(b.key(&v), key_by_formula(&b, &v), "{v:?} at {deg} deg");
+                    edge_cases += 1;
+                }
+            }
+            let axes = [
+                [0.0, 0.0, 1.0],
+                [0.0, 0.0, -1.0],
+                [-1.0, 0.0, 0.0],
+                [-1.0, -0.0, 0.0],
+            ];
+            for v in axes {
+                let v = [c[0] + v[0], c[1] + v[1], c[2] + v[2]];
+                assert_eq!(b.key(&v), key_by_formula(&b, &v), "{v:?} at {deg} deg");
+            }
+            assert_eq!(b.key(&c), None);
+        }
+        assert!(edge_cases > 1000);
+        // The kept points: the first of each cell, in the order of the cells.
+        let mut b = DirectionBins::new([1.5, -2.0, 0.25], 7.0);
+        let mut by_cell = std::collections::BTreeMap::new();
+        for i in 0..50_000 {
+            // A slow spiral, so that consecutive vectors often share a cell.
+            let t = i as f64 * 0.003;
+            let v = [
+                1.5 + 40.0 * t.cos() * (0.1 * t).sin(),
+                -2.0 + 40.0 * t.sin() * (0.1 * t).sin(),
+                0.25 + 40.0 * (0.1 * t).cos() + next(),
+            ];
+            let kept = b.add(&v);
+            let k = key_by_formula(&b, &v).unwrap();
+            assert_eq!(kept, !by_cell.contains_key(&k), "{i}");
+            by_cell.entry(k).or_insert(v);
+        }
+        assert!(
+            by_cell.len() > 300 && by_cell.len() < MAX_BINNED,
+            "{}",
+            by_cell.len()
+        );
+        assert_eq!(b.points(), by_cell.into_values().collect::<Vec<_>>());
+        let b = DirectionBins::new([0.0; 3], 1.0);
+        for v in [[-0.0, 0.0, 1.0], [-0.0, -0.0, -2.0], [0.0, -0.0, 3.0]] {
+            assert_eq!(b.key(&v), key_by_formula(&b, &v), "{v:?}");
+        }
     }
 
     /// Points on a sphere of radius 50 about `c` with polar angle below `max_deg` (Fibonacci spiral).

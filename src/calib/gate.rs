@@ -570,9 +570,9 @@ impl StaticDetector {
                     self.threshold = f * self.cfg.threshold_factor;
                 }
             }
-            let (cs, ca) = self.window[self.half];
             if var <= self.threshold {
-                self.cur.add(&cs, &ca);
+                let (cs, ca) = &self.window[self.half];
+                self.cur.add(cs, ca);
             } else {
                 out = self.close();
             }

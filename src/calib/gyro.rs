@@ -266,7 +266,8 @@ fn integrate(seg: &Segment, k: &Matrix3<f64>) -> UnitQuaternion<f64> {
 }
 
 /// The left Jacobian of SO(3) at the rotation vector `v`: `exp(v + d) ~ exp(J_l d) exp(v)`,
-/// `J_l = I + (1 - cos t)/t^2 [v]x + (t - sin t)/t^3 [v]x^2` (Taylor below 0.1 rad).
+/// `J_l = I + (1 - cos t)/t^2 [v]x + (t - sin t)/t^3 [v]x^2` (Taylor below 0.1 rad), built as
+/// `(1 - b t^2) I + a [v]x + b v v^T` (`[v]x^2 = v v^T - t^2 I`: no matrix product).
 fn left_jacobian(v: &Vector3<f64>) -> Matrix3<f64> {
     let t2 = v.norm_squared();
     let (a, b) = if t2 < 0.01 {
@@ -278,8 +279,21 @@ fn left_jacobian(v: &Vector3<f64>) -> Matrix3<f64> {
         let t = t2.sqrt();
         ((1.0 - t.cos()) / t2, (t - t.sin()) / (t2 * t))
     };
-    let x = v.cross_matrix();
-    Matrix3::identity() + x * a + x * x * b
+    let c = 1.0 - b * t2;
+    let (x, y, z) = (v.x, v.y, v.z);
+    let (bx, by, bz) = (b * x, b * y, b * z);
+    let (ax, ay, az) = (a * x, a * y, a * z);
+    Matrix3::new(
+        c + bx * x,
+        bx * y - az,
+        bx * z + ay,
+        by * x + az,
+        c + by * y,
+        by * z - ax,
+        bz * x - ay,
+        bz * y + ax,
+        c + bz * z,
+    )
 }
 
 /// [`integrate`] with the derivative of the rotation over the entries of `K` (row-major): `G`
@@ -319,14 +333,38 @@ fn residual(seg: &Segment, k: &Matrix3<f64>) -> Vector3<f64> {
     seg.up1 - pred
 }
 
-/// [`residual`] and its Jacobian over the entries of `K` (row-major): with the rotation turned by
-/// `exp(G dk)`, the carried direction `q^-1 up0` moves by `q^-1 (up0 x G dk)`.
-fn residual_and_jacobian(seg: &Segment, k: &Matrix3<f64>) -> (Vector3<f64>, SMatrix<f64, 3, 9>) {
+/// One segment carried with one `K`: the integrated rotation, the [`residual`] and its Jacobian
+/// over the entries of `K` (row-major).
+#[derive(Debug, Clone, Copy)]
+struct Carried {
+    rotation: UnitQuaternion<f64>,
+    r: Vector3<f64>,
+    j: SMatrix<f64, 3, 9>,
+}
+
+/// [`Carried`] of a segment: with the rotation turned by `exp(G dk)`, the carried direction
+/// `q^-1 up0` moves by `q^-1 (up0 x G dk)`.
+fn carry(seg: &Segment, k: &Matrix3<f64>) -> Carried {
     let (q, g) = integrate_with_derivative(seg, k);
     let inv = q.inverse();
     let r = seg.up1 - inv * seg.up0;
     let j = -(inv.to_rotation_matrix().matrix() * seg.up0.cross_matrix()) * g;
-    (r, j)
+    Carried { rotation: q, r, j }
+}
+
+/// The normal equations of carried segments: sum of squared residuals, J^T J and J^T r.
+type Normal9 = (f64, SMatrix<f64, 9, 9>, SVector<f64, 9>);
+
+fn normal_of(carried: impl Iterator<Item = Carried>) -> Normal9 {
+    let mut jtj = SMatrix::<f64, 9, 9>::zeros();
+    let mut jtr = SVector::<f64, 9>::zeros();
+    let mut ssr = 0.0;
+    for c in carried {
+        ssr += c.r.norm_squared();
+        jtj += c.j.transpose() * c.j;
+        jtr += c.j.transpose() * c.r;
+    }
+    (ssr, jtj, jtr)
 }
 
 fn k_from(p: &[f64]) -> Matrix3<f64> {
@@ -335,18 +373,22 @@ fn k_from(p: &[f64]) -> Matrix3<f64> {
 
 /// RMS angle (deg) between the measured end gravity directions and the start directions carried by
 /// the integrated rotations.
-fn rms_deg(segs: &[Segment], k: &Matrix3<f64>) -> f64 {
-    if segs.is_empty() {
+fn rms_deg(segs: &[&Segment], k: &Matrix3<f64>) -> f64 {
+    rms_deg_of(segs.iter().map(|s| (*s, integrate(s, k))))
+}
+
+/// [`rms_deg`] of segments with their rotations already integrated.
+fn rms_deg_of<'a>(
+    carried: impl ExactSizeIterator<Item = (&'a Segment, UnitQuaternion<f64>)>,
+) -> f64 {
+    let n = carried.len();
+    if n == 0 {
         return f64::NAN;
     }
-    let s: f64 = segs
-        .iter()
-        .map(|s| {
-            let q = integrate(s, k);
-            (q.inverse() * s.up0).angle(&s.up1).powi(2)
-        })
+    let s: f64 = carried
+        .map(|(s, q)| (q.inverse() * s.up0).angle(&s.up1).powi(2))
         .sum();
-    (s / segs.len() as f64).sqrt().to_degrees()
+    (s / n as f64).sqrt().to_degrees()
 }
 
 /// The rotations between consecutive static poses, bias removed.
@@ -415,7 +457,7 @@ fn segments(
 /// The isotropic scale `s` (K = s I) that best carries the gravity directions: a log-spaced scan
 /// from 1e-6 to 10 (raw counts to rad/s included), then a golden-section refinement. The cost is
 /// multimodal in `s` (an over-scaled rotation wraps around), hence the scan first.
-fn isotropic_scale(segs: &[Segment]) -> f64 {
+fn isotropic_scale(segs: &[&Segment]) -> f64 {
     let cost = |s: f64| -> f64 {
         let k = Matrix3::identity() * s;
         segs.iter().map(|g| residual(g, &k).norm_squared()).sum()
@@ -448,21 +490,17 @@ fn isotropic_scale(segs: &[Segment]) -> f64 {
 const K_FIT_MAX_ITER: usize = 50;
 
 /// Levenberg-Marquardt ([`crate::calib::lm`]) on the 9 entries of `K` from `k0`, the residuals being every
-/// segment's end-direction error, with their analytic Jacobian ([`residual_and_jacobian`]).
-/// Returns `K` and the relative conditioning of the normal matrix at the solution (smallest over
-/// largest singular value).
-fn fit_k(segs: &[Segment], k0: &Matrix3<f64>) -> (Matrix3<f64>, f64) {
+/// segment's end-direction error, with their analytic Jacobian ([`carry`]). `start`: the normal
+/// equations at `k0` when the caller has them (the iteration's first evaluation, which is at
+/// `k0`, then takes them). Returns `K` and the relative conditioning of the normal matrix at the
+/// solution (smallest over largest singular value).
+fn fit_k(segs: &[&Segment], k0: &Matrix3<f64>, start: Option<Normal9>) -> (Matrix3<f64>, f64) {
+    let mut start = start;
     let eval = |p: &SVector<f64, 9>, _with_jtj: bool| {
-        let k = k_from(p.as_slice());
-        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
-        let mut jtr = SVector::<f64, 9>::zeros();
-        let mut ssr = 0.0;
-        for s in segs {
-            let (r, j) = residual_and_jacobian(s, &k);
-            ssr += r.norm_squared();
-            jtj += j.transpose() * j;
-            jtr += j.transpose() * r;
-        }
+        let (ssr, jtj, jtr) = start.take().unwrap_or_else(|| {
+            let k = k_from(p.as_slice());
+            normal_of(segs.iter().map(|s| carry(s, &k)))
+        });
         (ssr, Some(jtj), jtr)
     };
     let p0 = SVector::<f64, 9>::from_iterator(k0.transpose().iter().copied());
@@ -549,12 +587,12 @@ impl AxisSpan {
     }
 }
 
-/// The span of the rotation vectors (axis times angle, from the gyro integrated with `k`): the
-/// eigenvalues of their scatter matrix against [`MIN_AXIS_SPREAD`].
-fn axis_span(segs: &[Segment], k: &Matrix3<f64>) -> AxisSpan {
+/// The span of the rotation vectors (axis times angle, of the rotations the gyro integrates to
+/// between poses): the eigenvalues of their scatter matrix against [`MIN_AXIS_SPREAD`].
+fn axis_span(rotations: impl Iterator<Item = UnitQuaternion<f64>>) -> AxisSpan {
     let mut m = Matrix3::zeros();
-    for s in segs {
-        let r = integrate(s, k).scaled_axis();
+    for q in rotations {
+        let r = q.scaled_axis();
         m += r * r.transpose();
     }
     let e = m.symmetric_eigen();
@@ -589,16 +627,49 @@ pub(crate) fn rotation_axes(
     if segs.is_empty() {
         return None;
     }
+    let segs: Vec<&Segment> = segs.iter().collect();
     let k0 = start_k(&segs, opt);
-    Some((axis_span(&segs, &k0), segs.len()))
+    Some((
+        axis_span(segs.iter().map(|s| integrate(s, &k0))),
+        segs.len(),
+    ))
 }
 
 /// The starting `K`: identity for a gyro in rad/s, else the best isotropic scale.
-fn start_k(segs: &[Segment], opt: &ScaleOptions) -> Matrix3<f64> {
+fn start_k(segs: &[&Segment], opt: &ScaleOptions) -> Matrix3<f64> {
     if opt.raw_in_counts {
         Matrix3::identity() * isotropic_scale(segs)
     } else {
         Matrix3::identity()
+    }
+}
+
+/// The held-out check of [`fit_scale`]: `K` fitted on every other rotation (from its own
+/// starting `K`) and scored on the rest against that start ([`HeldOut`]). `at_k0`: every
+/// segment carried with the full fit's starting `K`, which serve when the half starts from the
+/// same `K` (a gyro in rad/s).
+fn held_out_check(
+    segs: &[&Segment],
+    k0: &Matrix3<f64>,
+    at_k0: &[Carried],
+    opt: &ScaleOptions,
+) -> HeldOut {
+    let fit: Vec<&Segment> = segs.iter().step_by(2).copied().collect();
+    let test: Vec<&Segment> = segs.iter().skip(1).step_by(2).copied().collect();
+    let k0h = start_k(&fit, opt);
+    let same = k0h == *k0;
+    let start = same.then(|| normal_of(at_k0.iter().step_by(2).copied()));
+    let (kf, _) = fit_k(&fit, &k0h, start);
+    let rms_before_deg = if same {
+        let odd = segs.iter().zip(at_k0).skip(1).step_by(2);
+        rms_deg_of(odd.map(|(s, c)| (*s, c.rotation)))
+    } else {
+        rms_deg(&test, &k0h)
+    };
+    HeldOut {
+        segments: test.len(),
+        rms_before_deg,
+        rms_after_deg: rms_deg(&test, &kf),
     }
 }
 
@@ -631,11 +702,26 @@ pub(crate) fn fit_scale(
             ),
         ));
     }
+    let segs: Vec<&Segment> = segs.iter().collect();
     let k0 = start_k(&segs, opt);
-    if let Some(f) = axis_span(&segs, &k0).failure(segs.len()) {
+    // Every segment carried once with the starting `K`: the axis check, the "before" figures and
+    // the first evaluation of both fits read it.
+    let at_k0: Vec<Carried> = segs.iter().map(|s| carry(s, &k0)).collect();
+    if let Some(f) = axis_span(at_k0.iter().map(|c| c.rotation)).failure(segs.len()) {
         return Err(f);
     }
-    let (k, conditioning) = fit_k(&segs, &k0);
+    // The fit on all rotations and the check on every other one are independent: the check (a
+    // fit on half the rotations, scored on the rest) runs on a second thread meanwhile. Each sums
+    // in the same order as alone, so the results are the same.
+    let ((k, conditioning), held_out) = std::thread::scope(|scope| {
+        let check = scope.spawn(|| held_out_check(&segs, &k0, &at_k0, opt));
+        let full = fit_k(&segs, &k0, Some(normal_of(at_k0.iter().copied())));
+        let check = check
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (full, check)
+    });
+    let rms_before_deg = rms_deg_of(segs.iter().zip(&at_k0).map(|(s, c)| (*s, c.rotation)));
     if conditioning < opt.min_conditioning {
         return Err(ScaleFailure::new(
             FitFailure::NotIdentifiable,
@@ -644,21 +730,6 @@ pub(crate) fn fit_scale(
             ),
         ));
     }
-    let (mut fit, mut test) = (Vec::new(), Vec::new());
-    for (i, s) in segs.iter().enumerate() {
-        if i % 2 == 0 {
-            fit.push(s.clone());
-        } else {
-            test.push(s.clone());
-        }
-    }
-    let k0h = start_k(&fit, opt);
-    let (kf, _) = fit_k(&fit, &k0h);
-    let held_out = HeldOut {
-        segments: test.len(),
-        rms_before_deg: rms_deg(&test, &k0h),
-        rms_after_deg: rms_deg(&test, &kf),
-    };
     if !(held_out.rms_after_deg <= held_out.rms_before_deg * (1.0 + HELD_OUT_MARGIN)) {
         return Err(ScaleFailure {
             failure: FitFailure::HeldOut,
@@ -672,7 +743,7 @@ pub(crate) fn fit_scale(
     Ok(GyroFit {
         matrix: crate::calib::model::mat_to_rows(&k),
         bias: *bias,
-        rms_before_deg: rms_deg(&segs, &k0),
+        rms_before_deg,
         rms_after_deg: rms_deg(&segs, &k),
         segments: segs.len(),
         conditioning,
@@ -708,7 +779,7 @@ mod tests {
             up1: Vector3::new(-0.3, 0.5, 0.8).normalize(),
         };
         let k = Matrix3::new(1.01, 0.02, -0.01, 0.005, 0.99, 0.03, -0.02, 0.01, 1.02);
-        let (r, j) = residual_and_jacobian(&seg, &k);
+        let Carried { r, j, .. } = carry(&seg, &k);
         assert!((r - residual(&seg, &k)).norm() < 1e-15);
         let h = 1e-6;
         let mut worst: f64 = 0.0;
@@ -911,17 +982,21 @@ mod tests {
             })
             .collect();
         let k = Matrix3::identity();
-        let AxisSpan::OnePlane(n) = axis_span(&xy, &k) else {
-            panic!("{:?}", axis_span(&xy, &k))
+        let span = axis_span(xy.iter().map(|s| integrate(s, &k)));
+        let AxisSpan::OnePlane(n) = span else {
+            panic!("{span:?}")
         };
         assert!(n[2].abs() > 0.99, "{n:?}");
-        let f = axis_span(&xy, &k).failure(12).unwrap();
+        let f = span.failure(12).unwrap();
         assert_eq!(f.failure, FitFailure::NotIdentifiable);
         assert!(f.detail.contains("one plane only"), "{f}");
         // And about z too: all three.
         let mut xyz = xy;
         xyz.push(seg([0.0, 0.0, 0.5]));
-        assert_eq!(axis_span(&xyz, &k), AxisSpan::Full);
+        assert_eq!(
+            axis_span(xyz.iter().map(|s| integrate(s, &k))),
+            AxisSpan::Full
+        );
     }
 
     #[test]

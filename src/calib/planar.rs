@@ -179,6 +179,19 @@ impl PlanarPoint {
         (-f[2] / n).clamp(-1.0, 1.0).acos().to_degrees()
     }
 
+    /// Whether [`PlanarPoint::tilt_deg`] is at most `max_deg`, told by the cosine (no `acos`).
+    pub(crate) fn within_tilt(&self, max_deg: f64) -> bool {
+        if !(max_deg >= 0.0) {
+            return false;
+        }
+        if max_deg >= 180.0 {
+            return true;
+        }
+        let f = self.gravity_force();
+        let n = crate::types::norm(&f);
+        (-f[2] / n).clamp(-1.0, 1.0) >= max_deg.to_radians().cos()
+    }
+
     fn usable(&self) -> bool {
         crate::types::is_finite3(&self.mag)
             && crate::types::is_finite3(&self.accel_mps2)
@@ -687,11 +700,10 @@ pub fn fit(
     settings: &PlanarSettings,
 ) -> Result<PlanarFit, PlanarFailure> {
     let usable: Vec<&PlanarPoint> = points.iter().filter(|p| p.usable()).collect();
-    let (tilt_p95_deg, tilt_max_deg, turn_bank_deg) = tilt_and_bank(&usable);
     let level: Vec<&PlanarPoint> = usable
         .iter()
         .copied()
-        .filter(|p| p.tilt_deg() <= settings.max_tilt_deg)
+        .filter(|p| p.within_tilt(settings.max_tilt_deg))
         .collect();
     let too_tilted = usable.len() - level.len();
     let need = settings.min_points.max(7);
@@ -711,6 +723,7 @@ pub fn fit(
             });
         }
     }
+    let (tilt_p95_deg, tilt_max_deg, turn_bank_deg) = tilt_and_bank(&usable);
     let reduce = |p: &PlanarPoint| {
         let (roll, pitch) = p.roll_pitch_rad();
         Reduced {
@@ -1064,6 +1077,22 @@ mod tests {
         pts.iter()
             .map(|p| angle_diff_deg(fit.heading_deg(p), p.reference.unwrap().0).abs())
             .fold(0.0, f64::max)
+    }
+
+    #[test]
+    fn the_tilt_limit_by_cosine_is_the_tilt_by_angle() {
+        let pts = synth(20_000, 40.0, 0.5, 3);
+        let mut inside = 0;
+        for max in [0.0, 5.0, 12.5, 20.0, 39.0, 90.0, 179.0] {
+            for p in &pts {
+                let by_angle = p.tilt_deg() <= max;
+                assert_eq!(p.within_tilt(max), by_angle, "{:?} at {max}", p.accel_mps2);
+                inside += by_angle as usize;
+            }
+        }
+        assert!(inside > 20_000 && inside < 7 * 20_000, "{inside}");
+        let p = &pts[0];
+        assert!(!p.within_tilt(-1.0) && !p.within_tilt(f64::NAN) && p.within_tilt(180.0));
     }
 
     #[test]
