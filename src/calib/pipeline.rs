@@ -96,6 +96,8 @@ pub struct Pipeline {
     detector: StaticDetector,
     poses: Vec<Pose>,
     mag_buffer: Vec<Vec3>,
+    /// The spread of `mag_buffer`, kept as points come and go.
+    mag_spread: Spread,
     mag_stride: usize,
     mag_seen: usize,
     mag_bins: Option<DirectionBins>,
@@ -144,6 +146,7 @@ impl Pipeline {
             detector: StaticDetector::new(cfg.gate),
             poses: Vec::new(),
             mag_buffer: Vec::new(),
+            mag_spread: Spread::default(),
             mag_stride: 1,
             mag_seen: 0,
             mag_bins: None,
@@ -254,6 +257,7 @@ impl Pipeline {
         self.mag_seen += 1;
         if self.mag_seen.is_multiple_of(self.mag_stride) {
             self.mag_buffer.push(m);
+            self.mag_spread.add(&m);
             self.new_inputs += 1;
             self.note_fresh_mag(m);
         }
@@ -261,6 +265,7 @@ impl Pipeline {
             // Bounded memory before a centre is known: keep every other point, sample half as often.
             let kept: Vec<Vec3> = self.mag_buffer.iter().step_by(2).copied().collect();
             self.mag_buffer = kept;
+            self.mag_spread = Spread::of(&self.mag_buffer);
             self.mag_stride *= 2;
             self.mag_points_changed();
         }
@@ -273,6 +278,10 @@ impl Pipeline {
     /// of their sphere ([`centre_from_spread`]).
     fn try_start_bins(&mut self) {
         let limits = (self.mag_units == Unit::Si).then_some(&self.cfg.accept.mag);
+        let k = self.cfg.fit.centre_min_spread_radii;
+        if !self.mag_spread.may_place_centre(k, limits.map(|l| l.min_radius)) {
+            return;
+        }
         if let Some(c) = centre_from_spread(
             &self.mag_buffer,
             self.cfg.fit.centre_min_spread_radii,
@@ -287,6 +296,7 @@ impl Pipeline {
         for p in self.mag_buffer.drain(..) {
             b.add(&p);
         }
+        self.mag_spread = Spread::default();
         self.mag_bins = Some(b);
         self.mag_points_changed();
     }
@@ -463,6 +473,65 @@ pub(crate) fn centre_from_spread(
 
 /// Largest RMS distance of the points from their sphere, in radii, for [`centre_from_spread`].
 pub(crate) const CENTRE_MAX_RMS_RADII: f64 = 0.1;
+
+/// The running first and second moments of a set of points (about its first point, for
+/// rounding), so that their spread is known at every point added without a pass over them.
+#[derive(Debug, Clone, Default)]
+struct Spread {
+    origin: Option<nalgebra::Vector3<f64>>,
+    n: f64,
+    sum: nalgebra::Vector3<f64>,
+    sum_sq: Matrix3<f64>,
+}
+
+impl Spread {
+    fn of(points: &[Vec3]) -> Spread {
+        let mut s = Spread::default();
+        for p in points {
+            s.add(p);
+        }
+        s
+    }
+
+    fn add(&mut self, p: &Vec3) {
+        let p = nalgebra::Vector3::from(*p);
+        let d = p - *self.origin.get_or_insert(p);
+        self.n += 1.0;
+        self.sum += d;
+        self.sum_sq += d * d.transpose();
+    }
+
+    /// The standard deviations along the narrowest and the widest direction (population, as
+    /// [`centre_from_spread`] takes them); `None` without points or with one not finite.
+    fn extremes(&self) -> Option<(f64, f64)> {
+        if !(self.n > 0.0) {
+            return None;
+        }
+        let mean = self.sum / self.n;
+        let cov = self.sum_sq / self.n - mean * mean.transpose();
+        if !cov.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let ev = cov.symmetric_eigen().eigenvalues;
+        Some((ev.min().max(0.0).sqrt(), ev.max().max(0.0).sqrt()))
+    }
+
+    /// Whether [`centre_from_spread`] could place a centre (`min_spread_radii`; `min_radius`, the
+    /// smallest radius it takes when the units are known): a necessary condition, from the
+    /// spread alone. Points within an RMS distance of `rho r` of a sphere of radius `r` about `c`
+    /// spread along any direction by at most their RMS distance from `c`, which is at most
+    /// `(1 + rho) r`; and the narrowest spread must be at least `min_spread_radii r`. So it must be
+    /// at least `min_spread_radii` times the larger of `widest / (1 + rho)` and `min_radius`
+    /// ([`CENTRE_MAX_RMS_RADII`] for `rho`; a thousandth given to rounding). Not finite: `true`,
+    /// the full check decides.
+    fn may_place_centre(&self, min_spread_radii: f64, min_radius: Option<f64>) -> bool {
+        let Some((narrowest, widest)) = self.extremes() else {
+            return true;
+        };
+        let r_min = (widest / (1.0 + CENTRE_MAX_RMS_RADII)).max(min_radius.unwrap_or(0.0));
+        narrowest >= 0.999 * min_spread_radii * r_min
+    }
+}
 
 fn failed(
     model: CalModel,
@@ -739,14 +808,20 @@ fn masked(points: &[Vec3], mask: &[bool]) -> Vec<Vec3> {
         .collect()
 }
 
-/// A `sym9` fit to the points `mask` marks; all points classified against it ([`robust_inliers`]).
-fn sym9_inliers(points: &[Vec3], mask: &[bool], opts: &NormFitOptions) -> Option<Vec<bool>> {
+/// A `sym9` fit to the points `mask` marks, and all points classified against it
+/// ([`robust_inliers`]).
+fn sym9_inliers(
+    points: &[Vec3],
+    mask: &[bool],
+    opts: &NormFitOptions,
+) -> Option<(NormFit, Vec<bool>)> {
     let f = fit_norm(&masked(points, mask), ModelKind::Sym9, opts).ok()?;
     let r: Vec<f64> = points
         .iter()
         .map(|p| norm(&f.calibration.apply(p)) - f.radius)
         .collect();
-    Some(robust_inliers(&r, mask, 1e-9 * f.radius.abs()))
+    let inliers = robust_inliers(&r, mask, 1e-9 * f.radius.abs());
+    Some((f, inliers))
 }
 
 /// The points within 4 robust sigmas of a `sym9` fit, and how many were not. The first look is a
@@ -761,28 +836,36 @@ fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
         target_norm: spec.target_norm,
         ..Default::default()
     };
-    let Some(first) = sym9_inliers(points, &vec![true; points.len()], &opts) else {
+    let Some((_, first)) = sym9_inliers(points, &vec![true; points.len()], &opts) else {
         return (points.to_vec(), 0);
     };
     let out = first.iter().filter(|k| !**k).count();
     if out == 0 {
         return (points.to_vec(), 0);
     }
-    let refine = |mut mask: Vec<bool>| -> Vec<bool> {
+    // The set the refinement settles on, with the sym9 fit to it when the last round made it.
+    let refine = |mut mask: Vec<bool>| -> (Vec<bool>, Option<NormFit>) {
         for _ in 0..4 {
-            let Some(new) = sym9_inliers(points, &mask, &opts) else {
+            let Some((fit, new)) = sym9_inliers(points, &mask, &opts) else {
                 break;
             };
-            if new == mask || new.iter().filter(|k| **k).count() < 12 {
+            if new == mask {
+                return (mask, Some(fit));
+            }
+            if new.iter().filter(|k| **k).count() < 12 {
                 break;
             }
             mask = new;
         }
-        mask
+        (mask, None)
     };
-    // Median |residual| over all points of a sym9 fit to the marked ones.
-    let median_residual = |mask: &[bool]| -> f64 {
-        let Ok(f) = fit_norm(&masked(points, mask), ModelKind::Sym9, &opts) else {
+    // Median |residual| over all points of a sym9 fit to the marked ones (`fit`, when made).
+    let median_residual = |(mask, fit): &(Vec<bool>, Option<NormFit>)| -> f64 {
+        let fitted = match fit {
+            Some(f) => Ok(f.clone()),
+            None => fit_norm(&masked(points, mask), ModelKind::Sym9, &opts),
+        };
+        let Ok(f) = fitted else {
             return f64::INFINITY;
         };
         let mut r: Vec<f64> = points
@@ -806,7 +889,7 @@ fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
             mask = m;
         }
     }
-    let keep = masked(points, &mask);
+    let keep = masked(points, &mask.0);
     let rejected = points.len() - keep.len();
     (keep, rejected)
 }
