@@ -968,8 +968,8 @@ mod tests {
         match fit_with_field(samples(&small, &mut rng).iter(), &body_mag, None) {
             Some(Err(crate::calib::vector::VectorFailure::TooLittleTurning { spread, need })) => {
                 eprintln!("turn spread of a few degrees: {spread:.5}");
-                // Measured 0.0024.
-                assert!(spread < need / 4.0, "{spread}");
+                // Measured 0.0032, against 0.03 needed.
+                assert!(spread < 0.01 && need == crate::calib::vector::MIN_SPREAD, "{spread}");
             }
             other => panic!("{other:?}"),
         }
@@ -986,17 +986,15 @@ mod tests {
             .expect("enough readings")
             .expect("a tumble determines the field");
         assert!(v.offset_identifiable, "{}", v.offset_assumption_ut);
-        // The offset to a few hundredths of a uT (measured 0.006) and the field's direction to a
-        // few hundredths of a degree (measured 0.004 deg).
-        for k in 0..3 {
-            assert!((v.offset_ut[k] - O[k]).abs() < 0.05, "{:?}", v.offset_ut);
-        }
+        // The offset to about a hundredth of a uT (measured 0.0041) and the field's direction to
+        // about a hundredth of a degree (measured 0.0053 deg).
         let (bf, bt) = (nalgebra::Vector3::from(b), nalgebra::Vector3::from(B_NED));
         let angle_deg = bf.angle(&bt).to_degrees();
         let worst = (0..3)
             .map(|k| (v.offset_ut[k] - O[k]).abs())
             .fold(0.0, f64::max);
         eprintln!("tumble, field fitted: offset error {worst:.4} uT, field direction {angle_deg:.4} deg");
-        assert!(angle_deg < 0.05, "{angle_deg}");
+        assert!(worst < 0.015, "{:?}", v.offset_ut);
+        assert!(angle_deg < 0.016, "{angle_deg}");
     }
 }

@@ -966,8 +966,8 @@ mod tests {
             .collect();
         let (s, direct) = turn_spread_of(&small);
         eprintln!("turn spread of a few degrees: {s:.5}");
-        // Measured 0.0011: turns of a few degrees.
-        assert!(s < MIN_SPREAD / 10.0, "{s}");
+        // Measured 0.0015: turns of a few degrees.
+        assert!(s < 0.005, "{s}");
         assert!((s - direct).abs() < 1e-9, "{s} {direct}");
         // Such a set leaves the offset undetermined in the full fit too.
         let pts = points(&small, 0.1, false, &mut rng);
@@ -976,8 +976,8 @@ mod tests {
         let tumble = sphere(500, &mut rng);
         let (s, direct) = turn_spread_of(&tumble);
         eprintln!("turn spread of a tumble: {s:.3}");
-        // Measured 0.95 (a uniform tumble: 1 - cos theta of about 1 on average).
-        assert!(s > 0.3, "{s}");
+        // Measured 1.56 (a tumble: turns of 90 deg and more from the mean attitude).
+        assert!(s > 0.5, "{s}");
         assert!((s - direct).abs() < 1e-9, "{s} {direct}");
     }
 
