@@ -802,7 +802,8 @@ fn turns_enough(
     use crate::calib::vector::{MIN_SPREAD, OFFSET_ASSUMPTION_LIMIT_UT, SOFT_IRON_PRIOR};
     match sums.turn_spread() {
         Some(spread)
-            if spread < MIN_SPREAD && SOFT_IRON_PRIOR * strength_ut > OFFSET_ASSUMPTION_LIMIT_UT =>
+            if spread < MIN_SPREAD
+                && SOFT_IRON_PRIOR * strength_ut > OFFSET_ASSUMPTION_LIMIT_UT =>
         {
             Err(crate::calib::vector::VectorFailure::TooLittleTurning {
                 spread,
@@ -890,9 +891,7 @@ fn halves_agree(samples: &[Sample], body_mag: &FieldOf<'_>) -> Result<(), String
     };
     let mut fits = Vec::with_capacity(2);
     for even in [true, false] {
-        let half = samples
-            .iter()
-            .filter(|s| fitting_block(t0, s.t_s) == even);
+        let half = samples.iter().filter(|s| fitting_block(t0, s.t_s) == even);
         match fit_with_field(half, body_mag, None) {
             Some(Ok((v, _))) if v.offset_identifiable => fits.push(v),
             _ => {
@@ -969,7 +968,10 @@ mod tests {
             Some(Err(crate::calib::vector::VectorFailure::TooLittleTurning { spread, need })) => {
                 eprintln!("turn spread of a few degrees: {spread:.5}");
                 // Measured 0.0032, against 0.03 needed.
-                assert!(spread < 0.01 && need == crate::calib::vector::MIN_SPREAD, "{spread}");
+                assert!(
+                    spread < 0.01 && need == crate::calib::vector::MIN_SPREAD,
+                    "{spread}"
+                );
             }
             other => panic!("{other:?}"),
         }
@@ -993,7 +995,9 @@ mod tests {
         let worst = (0..3)
             .map(|k| (v.offset_ut[k] - O[k]).abs())
             .fold(0.0, f64::max);
-        eprintln!("tumble, field fitted: offset error {worst:.4} uT, field direction {angle_deg:.4} deg");
+        eprintln!(
+            "tumble, field fitted: offset error {worst:.4} uT, field direction {angle_deg:.4} deg"
+        );
         assert!(worst < 0.015, "{:?}", v.offset_ut);
         assert!(angle_deg < 0.016, "{angle_deg}");
     }

@@ -279,7 +279,10 @@ impl Pipeline {
     fn try_start_bins(&mut self) {
         let limits = (self.mag_units == Unit::Si).then_some(&self.cfg.accept.mag);
         let k = self.cfg.fit.centre_min_spread_radii;
-        if !self.mag_spread.may_place_centre(k, limits.map(|l| l.min_radius)) {
+        if !self
+            .mag_spread
+            .may_place_centre(k, limits.map(|l| l.min_radius))
+        {
             return;
         }
         if let Some(c) = centre_from_spread(

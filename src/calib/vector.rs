@@ -139,7 +139,10 @@ pub enum VectorFailure {
     Singular,
     /// The attitudes turn too little for any earth field to determine the offset
     /// ([`AttitudeSums::turn_spread`]): `spread` is what they give, `need` [`MIN_SPREAD`].
-    TooLittleTurning { spread: f64, need: f64 },
+    TooLittleTurning {
+        spread: f64,
+        need: f64,
+    },
 }
 
 impl std::fmt::Display for VectorFailure {
