@@ -836,7 +836,7 @@ fn classify(points: &[Vec3], f: &NormFit, mask: &[bool]) -> Vec<bool> {
 /// fit to all points; when more than 0.5% fall outside, a least-median-of-squares fit
 /// ([`lmeds_inliers`]), which a cluster of disturbed points (up to about 40%) cannot pull over, is a
 /// second start. From each start: fit the inliers and reclassify all points, until the set stops
-/// changing (at most 4 times). Of the two, the one whose fit has the smaller median residual over
+/// changing (at most 4 times) or a fit does not converge. Of the two, the one whose fit has the smaller median residual over
 /// all points wins (the least-median criterion again: a random subset of the least-median search
 /// can leave its start far off, and the plain start is the one a cluster pulls over).
 /// `sym9`: the plain fit's own `sym9` candidate to all points, when it made one (the first look).
@@ -857,17 +857,16 @@ fn inliers(points: &[Vec3], spec: &SensorSpec, sym9: Option<&NormFit>) -> (Vec<V
     if out == 0 {
         return (points.to_vec(), 0);
     }
-    // The set the refinement settles on, with the sym9 fit to it when the last round made it.
+    // The set the refinement settles on, with the sym9 fit to it when the last round made it. A
+    // fit that did not converge (it ran off: the points it was given outline no ellipsoid) says
+    // nothing about which points lie off the field's ellipsoid: the refinement stops there.
     let refine = |mut mask: Vec<bool>| -> (Vec<bool>, Option<NormFit>) {
         for _ in 0..4 {
             let Some((fit, new)) = sym9_inliers(points, &mask, &opts) else {
                 break;
             };
-            if new == mask {
+            if new == mask || !fit.converged || new.iter().filter(|k| **k).count() < 12 {
                 return (mask, Some(fit));
-            }
-            if new.iter().filter(|k| **k).count() < 12 {
-                break;
             }
             mask = new;
         }
