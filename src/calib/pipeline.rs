@@ -599,7 +599,7 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             points,
         );
     }
-    let plain = fit_sensor_on(points, spec);
+    let (plain, sym9) = fit_sensor_with_sym9(points, spec);
     // A plain fit that failed on its residuals or numerically may have been pulled apart by a
     // disturbed cluster: look for outliers then too (and when its residuals passed only as the
     // sensor's noise: a noisy stream has its wild readings too).
@@ -622,7 +622,7 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     if spec.is_accel || points.len() < 30 || !suspicious || raw_coverage_short {
         return plain;
     }
-    let (keep, rejected) = inliers(points, spec);
+    let (keep, rejected) = inliers(points, spec, sym9.as_ref());
     if rejected == 0 {
         return plain;
     }
@@ -811,50 +811,74 @@ fn masked(points: &[Vec3], mask: &[bool]) -> Vec<Vec3> {
         .collect()
 }
 
-/// A `sym9` fit to the points `mask` marks; all points classified against it ([`robust_inliers`]).
-fn sym9_inliers(points: &[Vec3], mask: &[bool], opts: &NormFitOptions) -> Option<Vec<bool>> {
+/// A `sym9` fit to the points `mask` marks, and all points classified against it
+/// ([`robust_inliers`]).
+fn sym9_inliers(
+    points: &[Vec3],
+    mask: &[bool],
+    opts: &NormFitOptions,
+) -> Option<(NormFit, Vec<bool>)> {
     let f = fit_norm(&masked(points, mask), ModelKind::Sym9, opts).ok()?;
+    let inliers = classify(points, &f, mask);
+    Some((f, inliers))
+}
+
+/// All points classified against the fit `f` to the points `mask` marks ([`robust_inliers`]).
+fn classify(points: &[Vec3], f: &NormFit, mask: &[bool]) -> Vec<bool> {
     let r: Vec<f64> = points
         .iter()
         .map(|p| norm(&f.calibration.apply(p)) - f.radius)
         .collect();
-    Some(robust_inliers(&r, mask, 1e-9 * f.radius.abs()))
+    robust_inliers(&r, mask, 1e-9 * f.radius.abs())
 }
 
 /// The points within 4 robust sigmas of a `sym9` fit, and how many were not. The first look is a
 /// fit to all points; when more than 0.5% fall outside, a least-median-of-squares fit
 /// ([`lmeds_inliers`]), which a cluster of disturbed points (up to about 40%) cannot pull over, is a
 /// second start. From each start: fit the inliers and reclassify all points, until the set stops
-/// changing (at most 4 times). Of the two, the one whose fit has the smaller median residual over
+/// changing (at most 4 times) or a fit does not converge. Of the two, the one whose fit has the smaller median residual over
 /// all points wins (the least-median criterion again: a random subset of the least-median search
 /// can leave its start far off, and the plain start is the one a cluster pulls over).
-fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
+/// `sym9`: the plain fit's own `sym9` candidate to all points, when it made one (the first look).
+fn inliers(points: &[Vec3], spec: &SensorSpec, sym9: Option<&NormFit>) -> (Vec<Vec3>, usize) {
     let opts = NormFitOptions {
         target_norm: spec.target_norm,
         ..Default::default()
     };
-    let Some(first) = sym9_inliers(points, &vec![true; points.len()], &opts) else {
+    let all = vec![true; points.len()];
+    let first = match sym9 {
+        Some(f) => Some(classify(points, f, &all)),
+        None => sym9_inliers(points, &all, &opts).map(|(_, m)| m),
+    };
+    let Some(first) = first else {
         return (points.to_vec(), 0);
     };
     let out = first.iter().filter(|k| !**k).count();
     if out == 0 {
         return (points.to_vec(), 0);
     }
-    let refine = |mut mask: Vec<bool>| -> Vec<bool> {
+    // The set the refinement settles on, with the sym9 fit to it when the last round made it. A
+    // fit that did not converge (it ran off: the points it was given outline no ellipsoid) says
+    // nothing about which points lie off the field's ellipsoid: the refinement stops there.
+    let refine = |mut mask: Vec<bool>| -> (Vec<bool>, Option<NormFit>) {
         for _ in 0..4 {
-            let Some(new) = sym9_inliers(points, &mask, &opts) else {
+            let Some((fit, new)) = sym9_inliers(points, &mask, &opts) else {
                 break;
             };
-            if new == mask || new.iter().filter(|k| **k).count() < 12 {
-                break;
+            if new == mask || !fit.converged || new.iter().filter(|k| **k).count() < 12 {
+                return (mask, Some(fit));
             }
             mask = new;
         }
-        mask
+        (mask, None)
     };
-    // Median |residual| over all points of a sym9 fit to the marked ones.
-    let median_residual = |mask: &[bool]| -> f64 {
-        let Ok(f) = fit_norm(&masked(points, mask), ModelKind::Sym9, &opts) else {
+    // Median |residual| over all points of a sym9 fit to the marked ones (`fit`, when made).
+    let median_residual = |(mask, fit): &(Vec<bool>, Option<NormFit>)| -> f64 {
+        let fitted = match fit {
+            Some(f) => Ok(f.clone()),
+            None => fit_norm(&masked(points, mask), ModelKind::Sym9, &opts),
+        };
+        let Ok(f) = fitted else {
             return f64::INFINITY;
         };
         let mut r: Vec<f64> = points
@@ -878,7 +902,7 @@ fn inliers(points: &[Vec3], spec: &SensorSpec) -> (Vec<Vec3>, usize) {
             mask = m;
         }
     }
-    let keep = masked(points, &mask);
+    let keep = masked(points, &mask.0);
     let rejected = points.len() - keep.len();
     (keep, rejected)
 }
@@ -936,6 +960,12 @@ fn lmeds_inliers(points: &[Vec3]) -> Option<Vec<bool>> {
 
 /// Candidate models, automatic choice, acceptance checks, on the points as given.
 fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
+    fit_sensor_with_sym9(points, spec).0
+}
+
+/// [`fit_sensor_on`], with its `sym9` candidate fit when it made one (the robust pass's first
+/// look, [`inliers`]).
+fn fit_sensor_with_sym9(points: &[Vec3], spec: &SensorSpec) -> (SensorResult, Option<NormFit>) {
     // The candidate fits share their set-up; its sphere fit is the centre for the "before" coverage.
     let mut fitter = crate::calib::fit::NormFitter::new(points);
     let raw_centre = fitter.sphere_centre().unwrap_or([0.0; 3]);
@@ -951,6 +981,10 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         .collect();
     let cov_before = coverage(&dirs_before, &[0.0; 3]);
     let fits = candidate_fits(&mut fitter, spec);
+    let sym9 = fits
+        .iter()
+        .find(|f| f.calibration.model == ModelKind::Sym9)
+        .cloned();
     let n = points.len();
     let mut candidates: Vec<Candidate> = fits
         .iter()
@@ -966,7 +1000,8 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     } else {
         let Some(ci) = choose_model(&fits, n) else {
             let (why, detail) = no_fit_reason(n, &cov_before, spec);
-            return empty_result(failed(spec.model.into(), spec.units, why, detail), points);
+            let r = empty_result(failed(spec.model.into(), spec.units, why, detail), points);
+            return (r, sym9);
         };
         candidates[ci].chosen = true;
         (
@@ -982,7 +1017,7 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
     }
     blame_coverage(&mut report, &cov_before, spec);
     let calibration = (report.status == CalStatus::Ok).then_some(cal);
-    SensorResult {
+    let r = SensorResult {
         report,
         calibration,
         coverage_before: cov_before,
@@ -991,7 +1026,8 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
         dirs_after,
         residuals,
         held_out: vec![],
-    }
+    };
+    (r, sym9)
 }
 
 /// The norm fits of the models `spec` asks for (every one for "auto"), those that succeed.

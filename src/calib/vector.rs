@@ -137,6 +137,12 @@ pub enum VectorFailure {
     NoField,
     /// The normal equations could not be solved (no direction determined, or a degenerate one).
     Singular,
+    /// The attitudes turn too little for any earth field to determine the offset
+    /// ([`AttitudeSums::turn_spread`]): `spread` is what they give, `need` [`MIN_SPREAD`].
+    TooLittleTurning {
+        spread: f64,
+        need: f64,
+    },
 }
 
 impl std::fmt::Display for VectorFailure {
@@ -147,6 +153,11 @@ impl std::fmt::Display for VectorFailure {
             }
             VectorFailure::NoField => write!(f, "the expected earth field is zero or not finite"),
             VectorFailure::Singular => write!(f, "the normal equations are singular"),
+            VectorFailure::TooLittleTurning { spread, need } => write!(
+                f,
+                "the attitudes turn too little to tell the offset from the soft iron, whatever the field: the field seen in body axes varies along its own direction by at most {spread:.4} of its strength, need {need:.2} (turns of about {:.0} deg from the mean attitude)",
+                (1.0 - need).acos().to_degrees()
+            ),
         }
     }
 }
@@ -282,6 +293,32 @@ impl AttitudeSums {
     /// Readings summed.
     pub(crate) fn len(&self) -> usize {
         self.raw.len()
+    }
+
+    /// How far the attitudes turn, as the most that any earth field seen in body axes can vary
+    /// along its own direction: the RMS over the readings of `1 - cos theta`, `theta` the angle of
+    /// a reading's attitude `R` from the mean attitude `R0` (the rotation nearest the mean of the
+    /// `R`). For a unit field `b` and `f = R0^T b`, the body field `e = R^T b` has
+    /// `e.f = b^T (R R0^T) b >= cos theta` (`R R0^T` turns by `theta`), so `0 <= 1 - e.f <=
+    /// 1 - cos theta`: the standard deviation of `e.f`, at most its RMS distance from 1, is at most
+    /// this, whatever `b` is. Below [`MIN_SPREAD`] that combination (the soft
+    /// iron along the field against the offset) is not determined for any field, and the offset
+    /// rests on the assumed soft iron by about [`SOFT_IRON_PRIOR`] times the field's strength.
+    /// From the sums alone: `cos theta = (<R0, R> - 1) / 2` (Frobenius product), whose square
+    /// summed is `vec(R0)^T (sum R (x) R) vec(R0)`. `None` with no readings or no mean attitude.
+    pub(crate) fn turn_spread(&self) -> Option<f64> {
+        let t = &self.totals;
+        if !(t.n > 0.0) {
+            return None;
+        }
+        let r0 = nearest_rotation(&(t.r / t.n))?;
+        // Sums of <R0, R> and of its square.
+        let v = nalgebra::SVector::<f64, 9>::from_fn(|i, _| r0[(i / 3, i % 3)]);
+        let s1: f64 = (0..9).map(|i| v[i] * t.r[(i / 3, i % 3)]).sum();
+        let s2 = (v.transpose() * t.rr * v)[(0, 0)];
+        // 1 - cos theta = (3 - <R0, R>) / 2.
+        let sq = (9.0 * t.n - 6.0 * s1 + s2) / 4.0;
+        Some((sq.max(0.0) / t.n).sqrt())
     }
 
     /// The mean over the readings of `R m (raw - o)`: the readings calibrated by `m`, `o` and
@@ -816,6 +853,15 @@ fn reverse(acc: &VectorAccumulator, fwd: &VectorFit) -> Result<VectorFit, Vector
     })
 }
 
+/// The rotation nearest `m` (Frobenius): `U diag(1, 1, det(U V^T)) V^T` of `m = U S V^T`.
+fn nearest_rotation(m: &nalgebra::Matrix3<f64>) -> Option<nalgebra::Matrix3<f64>> {
+    let svd = m.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let d = (u * vt).determinant().signum();
+    let r = u * nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 1.0, d)) * vt;
+    r.iter().all(|x| x.is_finite()).then_some(r)
+}
+
 /// Angle of the rotation `U V^T` of `a = U S V^T` (the orthogonal factor of `a = R P`), deg.
 fn polar_rotation_deg(a: &nalgebra::Matrix3<f64>) -> f64 {
     let svd = a.svd(true, true);
@@ -885,6 +931,57 @@ mod tests {
                 ]
             })
             .collect()
+    }
+
+    /// The attitudes' turn spread from the sums, against `1 - cos theta` reading by reading.
+    fn turn_spread_of(att: &[[f64; 3]]) -> (f64, f64) {
+        let rots: Vec<nalgebra::Matrix3<f64>> = att
+            .iter()
+            .map(|e| {
+                crate::sim::quat_from_euler_deg(e[0], e[1], e[2])
+                    .to_rotation_matrix()
+                    .into_inner()
+            })
+            .collect();
+        let sums = AttitudeSums::new(rots.iter().map(|r| (nalgebra::Vector3::zeros(), *r)));
+        let mean = rots.iter().sum::<nalgebra::Matrix3<f64>>() / rots.len() as f64;
+        let r0 = nearest_rotation(&mean).unwrap();
+        let direct = (rots
+            .iter()
+            .map(|r| (1.0 - ((r0.transpose() * r).trace() - 1.0) / 2.0).powi(2))
+            .sum::<f64>()
+            / rots.len() as f64)
+            .sqrt();
+        (sums.turn_spread().unwrap(), direct)
+    }
+
+    #[test]
+    fn a_barely_turning_set_has_a_small_turn_spread_and_a_tumble_a_large_one() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let small: Vec<[f64; 3]> = (0..500)
+            .map(|_| {
+                [
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    30.0 + rng.random_range(-3.0..3.0),
+                ]
+            })
+            .collect();
+        let (s, direct) = turn_spread_of(&small);
+        eprintln!("turn spread of a few degrees: {s:.5}");
+        // Measured 0.0015: turns of a few degrees.
+        assert!(s < 0.005, "{s}");
+        assert!((s - direct).abs() < 1e-9, "{s} {direct}");
+        // Such a set leaves the offset undetermined in the full fit too.
+        let pts = points(&small, 0.1, false, &mut rng);
+        let f = fit(&pts, false).unwrap();
+        assert!(!f.offset_identifiable, "{}", f.offset_assumption_ut);
+        let tumble = sphere(500, &mut rng);
+        let (s, direct) = turn_spread_of(&tumble);
+        eprintln!("turn spread of a tumble: {s:.3}");
+        // Measured 1.56 (a tumble: turns of 90 deg and more from the mean attitude).
+        assert!(s > 0.5, "{s}");
+        assert!((s - direct).abs() < 1e-9, "{s} {direct}");
     }
 
     #[test]

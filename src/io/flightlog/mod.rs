@@ -1092,7 +1092,8 @@ pub fn decode_ulog_with(
 ) -> Option<FlightLog> {
     let mut rd = ulog::UlogReader::new(bytes)?;
     let mut conv = UlogConv::new();
-    let mut cols = BTreeMap::<u16, UlogCols>::new();
+    // By message id (a u16: at most 65536 entries), so a record finds its columns by indexing.
+    let mut cols: Vec<Option<UlogCols>> = Vec::new();
     loop {
         let params_ready = conv.undo.is_some();
         let Some(d) = rd.next_data() else {
@@ -1102,10 +1103,14 @@ pub fn decode_ulog_with(
         let t_us = d.timestamp_us();
         // The topic and its columns, found once per subscription.
         let id = d.sub.msg_id;
-        if cols.get(&id).is_none_or(|c| c.serial != d.sub.serial) {
-            cols.insert(id, UlogCols::new(d.sub));
+        let slot = id as usize;
+        if cols.len() <= slot {
+            cols.resize_with(slot + 1, || None);
         }
-        let c = &cols[&id];
+        let c = match &mut cols[slot] {
+            Some(c) if c.serial == d.sub.serial => c,
+            other => other.insert(UlogCols::new(d.sub)),
+        };
         let r = UlogRecord::read(c, &d);
         let read = rd.position();
         if !params_ready {
