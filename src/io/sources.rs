@@ -416,7 +416,8 @@ pub(crate) fn decode_file_batched(
             flight_log(flight, format, b.any, path)
         }
         Format::Csv | Format::Ulg => {
-            let mut data = Vec::new();
+            // (The file's size: read once into place, not grown and copied as it is read.)
+            let mut data = Vec::with_capacity(usize::try_from(opened.total).unwrap_or(0));
             let mut reader = opened.reader;
             match std::io::Read::read_to_end(&mut reader, &mut data) {
                 Ok(_) => {}
