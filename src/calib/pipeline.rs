@@ -1843,8 +1843,10 @@ mod tests {
         ] {
             let pts: Vec<Vec3> = (0..3000)
                 .map(|_| {
-                    let (u, v): (f64, f64) =
-                        (rng.random_range(-1.0..1.0), rng.random_range(0.0..6.28));
+                    let (u, v): (f64, f64) = (
+                        rng.random_range(-1.0..1.0),
+                        rng.random_range(0.0..std::f64::consts::TAU),
+                    );
                     let (s, n) = ((1.0 - u * u).sqrt(), rng.random_range(-0.01..0.01) * radius);
                     let r = radius + n;
                     [
