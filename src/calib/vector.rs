@@ -933,16 +933,20 @@ mod tests {
             .collect()
     }
 
-    /// The attitudes' turn spread from the sums, against `1 - cos theta` reading by reading.
-    fn turn_spread_of(att: &[[f64; 3]]) -> (f64, f64) {
-        let rots: Vec<nalgebra::Matrix3<f64>> = att
-            .iter()
+    /// The rotation matrices of attitudes given as Euler angles, deg.
+    fn rotations_of(att: &[[f64; 3]]) -> Vec<nalgebra::Matrix3<f64>> {
+        att.iter()
             .map(|e| {
                 crate::sim::quat_from_euler_deg(e[0], e[1], e[2])
                     .to_rotation_matrix()
                     .into_inner()
             })
-            .collect();
+            .collect()
+    }
+
+    /// The attitudes' turn spread from the sums, against `1 - cos theta` reading by reading.
+    fn turn_spread_of(att: &[[f64; 3]]) -> (f64, f64) {
+        let rots = rotations_of(att);
         let sums = AttitudeSums::new(rots.iter().map(|r| (nalgebra::Vector3::zeros(), *r)));
         let mean = rots.iter().sum::<nalgebra::Matrix3<f64>>() / rots.len() as f64;
         let r0 = nearest_rotation(&mean).unwrap();
@@ -993,14 +997,7 @@ mod tests {
         for p in pts.iter_mut().step_by(100) {
             p.raw_ut[0] += 30.0;
         }
-        let rots: Vec<nalgebra::Matrix3<f64>> = att
-            .iter()
-            .map(|e| {
-                crate::sim::quat_from_euler_deg(e[0], e[1], e[2])
-                    .to_rotation_matrix()
-                    .into_inner()
-            })
-            .collect();
+        let rots = rotations_of(&att);
         let sums = AttitudeSums::new(
             pts.iter()
                 .zip(&rots)
