@@ -123,16 +123,17 @@ pub fn replay(
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplayOutcome, Error> {
     let mut run = run_pipelines(path, cfg, opts, progress)?;
-    let mut results = run.pipe.finish().clone();
-    let (scale, failure, span_samples) = gyro_scale_of(path, cfg, opts, &run, &results)?;
+    let fin = final_fits(path, cfg, opts, &mut run)?;
+    let (mut results, quality) = (fin.results, fin.quality);
+    let (scale, failure, span_samples) = fin.gyro_scale;
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
-    mag_method(&mut results, &run.log, &run.pipe, cfg);
+    crate::calib::magmethod::choose_with(&mut results.mag, &fin.mag_evidence);
     mounting_check(&mut results, &run.log, &run.pipe, cfg);
     run.other_mags = other_mag_methods(&mut run, cfg);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
-    report.quality = quality(&run, cfg);
+    report.quality = quality;
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -172,6 +173,54 @@ pub fn replay(
         results,
         written,
         kept,
+    })
+}
+
+/// What [`final_fits`] gives.
+struct FinalFits {
+    results: FitResults,
+    quality: Vec<crate::report::QualityReport>,
+    gyro_scale: GyroScaleOutcome,
+    /// For the primary magnetometer's method ([`crate::calib::magmethod::choose_with`]).
+    mag_evidence: crate::calib::magmethod::Evidence,
+}
+
+/// The primary's fits at the end of the log, with what does not need the magnetometer's: the
+/// magnetometer fit (the longest) runs on a thread of its own while this one fits the
+/// accelerometer and the gyro bias, then the gyro scale, the held-out quality of every compass
+/// (which use no fit of the run) and the evidence of the magnetometer's method choice (the
+/// readings and attitudes alone). Each step does what it did in turn, so the results are the same.
+fn final_fits(
+    path: &Path,
+    cfg: &Config,
+    opts: &ReplayOptions,
+    run: &mut Run,
+) -> Result<FinalFits, Error> {
+    let input = run.pipe.finish_input();
+    let calib = run.pipe.settings().clone();
+    let run_ref = &*run;
+    let (mag, accel, gyro, quality, scale, mag_evidence) = std::thread::scope(|scope| {
+        let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(&input, &calib));
+        let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
+        let fits = GyroFits {
+            gyro: &gyro,
+            accel: &accel,
+        };
+        let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
+        let quality = quality(run_ref, cfg);
+        let mag_evidence = mag_method_evidence(run_ref, cfg, input.mag_cal_units());
+        let mag = mag
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (mag, accel, gyro, quality, scale, mag_evidence)
+    });
+    let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
+    let results = run.pipe.install_final(results).clone();
+    Ok(FinalFits {
+        results,
+        quality,
+        gyro_scale: scale?,
+        mag_evidence,
     })
 }
 
@@ -362,22 +411,23 @@ fn write_quality_points(dir: &Path, run: &Run, cfg: &Config) -> Result<Vec<PathB
     Ok(written)
 }
 
-/// The primary magnetometer's method: the vector fit when the log carries an attitude and the
-/// place is known and it determines the offset, else the sphere fit ([`crate::calib::magmethod`]).
-fn mag_method(
-    results: &mut FitResults,
-    log: &crate::io::sources::Log,
-    pipe: &Pipeline,
+/// The evidence of the primary magnetometer's method ([`crate::calib::magmethod::Evidence`]):
+/// the vector fit when the log carries an attitude and the place is known and it determines the
+/// offset, else the planar or the sphere fit ([`crate::calib::magmethod`]).
+fn mag_method_evidence(
+    run: &Run,
     cfg: &Config,
-) {
+    units: crate::types::CalUnits,
+) -> crate::calib::magmethod::Evidence {
+    let pipe = &run.pipe;
     let body = |s: &crate::types::Sample| pipe.to_body(s);
-    crate::calib::magmethod::choose(
-        &mut results.mag,
-        &log.samples,
+    crate::calib::magmethod::Evidence::gather(
+        &run.log.samples,
         &body,
-        log.place(),
+        run.log.place(),
         cfg.place.as_ref(),
-    );
+        units,
+    )
 }
 
 /// The primary compass's mounting from the static poses ([`crate::calib::mounting`]), into
@@ -843,9 +893,9 @@ fn gyro_scale_of(
     cfg: &Config,
     opts: &ReplayOptions,
     run: &Run,
-    results: &FitResults,
+    fits: GyroFits<'_>,
 ) -> Result<GyroScaleOutcome, Error> {
-    if results.gyro.status != CalStatus::Ok {
+    if fits.gyro.status != CalStatus::Ok {
         return Ok((None, None, 0));
     }
     let pipe = &run.pipe;
@@ -855,8 +905,15 @@ fn gyro_scale_of(
     } else {
         gyro_spans(path, cfg, opts, run)?
     };
-    let (scale, failure) = gyro_scale(&body, &poses, pipe, results);
+    let (scale, failure) = gyro_scale(&body, &poses, pipe, fits);
     Ok((scale, failure, body.len()))
+}
+
+/// What the gyro scale needs of a run's fits: the gyroscope's bias fit and the accelerometer's.
+#[derive(Clone, Copy)]
+struct GyroFits<'a> {
+    gyro: &'a crate::calib::outcome::GyroCalibration,
+    accel: &'a crate::calib::outcome::SensorResult,
 }
 
 /// The rotations between consecutive static poses of a log too long to keep whole: every pair
@@ -936,22 +993,22 @@ fn gyro_scale(
     body: &[crate::types::Sample],
     poses: &[crate::calib::gate::Pose],
     pipe: &Pipeline,
-    results: &FitResults,
+    fits: GyroFits<'_>,
 ) -> (
     Option<crate::report::GyroScaleReport>,
     Option<crate::calib::gyro::ScaleFailure>,
 ) {
-    if results.gyro.status != CalStatus::Ok {
+    if fits.gyro.status != CalStatus::Ok {
         return (None, None);
     }
     let Some(bias) = crate::calib::gyro::bias_from_poses(pipe.poses(), &Default::default()) else {
         return (None, None);
     };
     let opt = crate::calib::gyro::ScaleOptions {
-        raw_in_counts: results.gyro.units == crate::types::CalUnits::Counts,
+        raw_in_counts: fits.gyro.units == crate::types::CalUnits::Counts,
         ..Default::default()
     };
-    let Some(accel) = results.accel.calibration.as_ref() else {
+    let Some(accel) = fits.accel.calibration.as_ref() else {
         let raw = crate::calib::model::Calibration {
             model: crate::calib::model::ModelKind::Sphere,
             offset: [0.0; 3],

@@ -179,12 +179,104 @@ pub(crate) fn choose(
     log: LogWhere,
     cfg_place: Option<&Place>,
 ) {
-    let body_mag = |s: &Sample| body(s).mag_ut;
-    let choice = decide_vector(mag, samples, &body_mag, log, cfg_place);
+    let evidence = Evidence::gather(samples, body, log, cfg_place, mag.report.units);
+    choose_with(mag, &evidence);
+}
+
+/// What the method choice learns from the readings and the attitudes alone: everything but the
+/// sphere fit's result, so it can be gathered while that fit runs ([`Evidence::gather`]) and the
+/// choice made once it is done ([`choose_with`]).
+#[derive(Debug, Clone)]
+pub(crate) struct Evidence {
+    /// The units of the magnetometer's readings (the vector and planar fits need uT).
+    units: crate::types::CalUnits,
+    vector: VectorEvidence,
+    /// Gathered when the vector method is not taken.
+    planar: Option<PlanarEvidence>,
+    /// The field of the place and day, as the report states it.
+    field_used: Option<FieldUsed>,
+}
+
+/// What the vector fit made of the readings ([`decide_vector`] turns it into a choice).
+#[derive(Debug, Clone)]
+enum VectorEvidence {
+    NoAttitude,
+    NotUt,
+    /// A place, but no earth field there.
+    NoField { source: &'static str, error: String },
+    /// The field of the place and day, and the vector fit against it.
+    Known {
+        w: Where,
+        total_ut: f64,
+        fit: Result<VectorFit, crate::calib::vector::VectorFailure>,
+    },
+    /// No place: the vector fit with the field fitted, and when it determines the offset, whether
+    /// the two halves of the flight agree on it ([`halves_agree`]).
+    Fitted {
+        fit: FieldFitted,
+        halves: Option<Result<(), String>>,
+    },
+}
+
+/// What [`fit_with_field`] gives.
+type FieldFitted = Option<Result<(VectorFit, Vec3), crate::calib::vector::VectorFailure>>;
+
+impl VectorEvidence {
+    /// The vector method is taken on this evidence (whatever the sphere fit gave).
+    fn takes_vector(&self) -> bool {
+        match self {
+            VectorEvidence::Known { fit: Ok(v), .. } => v.offset_identifiable,
+            VectorEvidence::Fitted {
+                fit: Some(Ok((v, _))),
+                halves: Some(Ok(())),
+            } => v.offset_identifiable,
+            _ => false,
+        }
+    }
+}
+
+/// What the planar fit made of the readings ([`planar_or`]).
+#[derive(Debug, Clone)]
+enum PlanarEvidence {
+    NoPoints,
+    Failed(String),
+    /// The fit, and the 95th percentile of the tilt (the logged attitude's, else the fit's), deg.
+    Fitted {
+        fit: Box<crate::calib::planar::PlanarFit>,
+        tilt_p95_deg: f64,
+    },
+}
+
+impl Evidence {
+    /// Gather the evidence from the samples (`body`: a sample in body axes) in `units`.
+    pub(crate) fn gather(
+        samples: &[Sample],
+        body: &dyn Fn(&Sample) -> Sample,
+        log: LogWhere,
+        cfg_place: Option<&Place>,
+        units: crate::types::CalUnits,
+    ) -> Evidence {
+        let body_mag = |s: &Sample| body(s).mag_ut;
+        let vector = vector_evidence(samples, &body_mag, log.clone(), cfg_place, units);
+        let planar = (!vector.takes_vector())
+            .then(|| planar_evidence(samples, body, log.clone(), cfg_place, units));
+        Evidence {
+            units,
+            vector,
+            planar,
+            field_used: field_used(samples, log, cfg_place),
+        }
+    }
+}
+
+/// [`choose`] on evidence gathered before ([`Evidence::gather`], in the units of `mag`).
+pub(crate) fn choose_with(mag: &mut SensorResult, evidence: &Evidence) {
+    debug_assert_eq!(evidence.units, mag.report.units);
+    let choice = decide_vector(mag, &evidence.vector);
     let choice = if choice.method == MagMethod::Vector {
         choice
     } else {
-        planar_or(choice, mag, samples, body, log, cfg_place)
+        planar_or(choice, evidence.planar.as_ref())
     };
     match choice.method {
         MagMethod::Vector => {
@@ -201,28 +293,26 @@ pub(crate) fn choose(
     }
     let mut choice = choice;
     if choice.earth_field.is_none() {
-        choice.earth_field = field_used(samples, log, cfg_place);
+        choice.earth_field = evidence.field_used.clone();
     }
     mag.report.method = Some(choice);
 }
 
-/// The planar fit instead of `other` (the vector fit was not chosen) when the readings stay
-/// within [`PLANAR_MAX_TILT_P95_DEG`] of level and turn through enough of the circle; `other`
-/// otherwise, its reason saying why the planar method was not taken when it was tried.
-fn planar_or(
-    other: MethodChoice,
-    mag: &SensorResult,
+/// The planar fit's evidence: its readings in body axes, fitted with the earth field of the
+/// place (in uT only).
+fn planar_evidence(
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
     log: LogWhere,
     cfg_place: Option<&Place>,
-) -> MethodChoice {
+    units: crate::types::CalUnits,
+) -> PlanarEvidence {
     let pts = crate::calib::planar::points_from_samples(samples, body);
     if pts.is_empty() {
-        return other;
+        return PlanarEvidence::NoPoints;
     }
     let field = place_of(samples, log, cfg_place)
-        .filter(|_| mag.report.units == crate::types::CalUnits::Ut)
+        .filter(|_| units == crate::types::CalUnits::Ut)
         .and_then(|w| crate::attitude::earth_field(&w.place).ok());
     let earth = field.map(|f| {
         let ned = f.field_ned_ut();
@@ -233,15 +323,28 @@ fn planar_or(
         }
     });
     let settings = crate::calib::planar::PlanarSettings::default();
-    let with = |mut c: MethodChoice, why: String| {
+    match crate::calib::planar::fit(&pts, earth.as_ref(), &settings) {
+        Ok(p) => PlanarEvidence::Fitted {
+            tilt_p95_deg: reference_tilt_p95_deg(samples).unwrap_or(p.tilt_p95_deg),
+            fit: Box::new(p),
+        },
+        Err(e) => PlanarEvidence::Failed(e.to_string()),
+    }
+}
+
+/// The planar fit instead of `other` (the vector fit was not chosen) when the readings stay
+/// within [`PLANAR_MAX_TILT_P95_DEG`] of level and turn through enough of the circle; `other`
+/// otherwise, its reason saying why the planar method was not taken when it was tried.
+fn planar_or(other: MethodChoice, evidence: Option<&PlanarEvidence>) -> MethodChoice {
+    let with = |mut c: MethodChoice, why: &str| {
         c.method_reason = format!("{}; planar not taken: {why}", c.method_reason);
         c
     };
-    let p = match crate::calib::planar::fit(&pts, earth.as_ref(), &settings) {
-        Ok(p) => p,
-        Err(e) => return with(other, e.to_string()),
+    let (p, tilt_p95_deg) = match evidence {
+        None | Some(PlanarEvidence::NoPoints) => return other,
+        Some(PlanarEvidence::Failed(e)) => return with(other, e),
+        Some(PlanarEvidence::Fitted { fit, tilt_p95_deg }) => (fit, *tilt_p95_deg),
     };
-    let tilt_p95_deg = reference_tilt_p95_deg(samples).unwrap_or(p.tilt_p95_deg);
     if tilt_p95_deg > PLANAR_MAX_TILT_P95_DEG {
         // Tilted enough for the sphere: no need to say more.
         return other;
@@ -252,7 +355,7 @@ fn planar_or(
     {
         return with(
             other,
-            format!("the turns are banked by {bank:.1} deg on average"),
+            &format!("the turns are banked by {bank:.1} deg on average"),
         );
     }
     let unknown: Vec<&str> = p.undetermined.iter().map(|u| u.describe()).collect();
@@ -280,7 +383,7 @@ fn planar_or(
         method: MagMethod::Planar,
         method_reason: reason,
         vector: other.vector,
-        planar: Some(p),
+        planar: Some((**p).clone()),
         sphere_offset: None,
         earth_field: None,
     }
@@ -328,42 +431,76 @@ fn sphere(reason: String, vector: Option<VectorFit>) -> MethodChoice {
     }
 }
 
-fn decide_vector(
-    mag: &SensorResult,
+/// The vector fit's evidence (see [`decide_vector`] for what each case means).
+fn vector_evidence(
     samples: &[Sample],
     body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
     log: LogWhere,
     cfg_place: Option<&Place>,
-) -> MethodChoice {
+    units: crate::types::CalUnits,
+) -> VectorEvidence {
     if !samples
         .iter()
         .any(|s| s.ref_q.is_some() && s.mag_ut.is_some())
     {
-        return sphere(
-            "the input carries no attitude with its magnetometer readings".into(),
-            None,
-        );
+        return VectorEvidence::NoAttitude;
     }
-    if mag.report.units != crate::types::CalUnits::Ut {
-        return sphere(
-            format!(
-                "the magnetometer is in {}, the vector method needs uT",
-                mag.report.units
-            ),
-            None,
-        );
+    if units != crate::types::CalUnits::Ut {
+        return VectorEvidence::NotUt;
     }
     let Some(w) = place_of(samples, log, cfg_place) else {
-        return fitted_field_choice(mag, samples, body_mag);
+        let fit = fit_with_field(samples.iter(), body_mag, None);
+        let halves = match &fit {
+            Some(Ok((v, _))) if v.offset_identifiable => Some(halves_agree(samples, body_mag)),
+            _ => None,
+        };
+        return VectorEvidence::Fitted { fit, halves };
     };
     let field = match crate::attitude::earth_field(&w.place) {
         Ok(f) => f,
-        Err(e) => return sphere(format!("no earth field at {}: {e}", w.source), None),
+        Err(e) => {
+            return VectorEvidence::NoField {
+                source: w.source,
+                error: e.to_string(),
+            }
+        }
     };
     let pts = points(samples, body_mag, &field.field_ned_ut());
     let with_current = current_varies(&pts);
-    let v = match crate::calib::vector::fit(&pts, with_current) {
-        Ok(v) => v,
+    VectorEvidence::Known {
+        w,
+        total_ut: field.total_ut,
+        fit: crate::calib::vector::fit(&pts, with_current),
+    }
+}
+
+/// The vector method when its evidence determines the offset, else the sphere fit (`mag`) with
+/// the reason.
+fn decide_vector(mag: &SensorResult, evidence: &VectorEvidence) -> MethodChoice {
+    let (w, total_ut, fit) = match evidence {
+        VectorEvidence::NoAttitude => {
+            return sphere(
+                "the input carries no attitude with its magnetometer readings".into(),
+                None,
+            )
+        }
+        VectorEvidence::NotUt => {
+            return sphere(
+                format!(
+                    "the magnetometer is in {}, the vector method needs uT",
+                    mag.report.units
+                ),
+                None,
+            )
+        }
+        VectorEvidence::NoField { source, error } => {
+            return sphere(format!("no earth field at {source}: {error}"), None)
+        }
+        VectorEvidence::Fitted { fit, halves } => return fitted_field_choice(mag, fit, halves),
+        VectorEvidence::Known { w, total_ut, fit } => (w, *total_ut, fit),
+    };
+    let v = match fit {
+        Ok(v) => v.clone(),
         Err(e) => {
             return sphere(
                 format!("the vector fit failed: {e}; {}", sphere_words(mag)),
@@ -380,7 +517,7 @@ fn decide_vector(
             Some(d) => format!("{d}, date from {}", w.date_source.replace('_', " ")),
             None => "no date".to_string(),
         },
-        field.total_ut
+        total_ut
     );
     let unknown: Vec<String> = v
         .unidentified()
@@ -818,11 +955,11 @@ fn turns_enough(
 /// reason, for a log with an attitude but no place.
 fn fitted_field_choice(
     mag: &SensorResult,
-    samples: &[Sample],
-    body_mag: &FieldOf<'_>,
+    fit: &FieldFitted,
+    halves: &Option<Result<(), String>>,
 ) -> MethodChoice {
     let no_place = "an attitude but no position (no GPS in the log, no [place] configured)";
-    let (v, b) = match fit_with_field(samples.iter(), body_mag, None) {
+    let (v, b) = match fit {
         None => {
             return sphere(
                 format!("{no_place}; too few readings with an attitude to fit the field"),
@@ -838,7 +975,7 @@ fn fitted_field_choice(
                 None,
             )
         }
-        Some(Ok(x)) => x,
+        Some(Ok((v, b))) => (v.clone(), *b),
     };
     let total = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
     let field = FieldUsed {
@@ -869,8 +1006,11 @@ fn fitted_field_choice(
     // With the field free the fit's own uncertainties leave out the field's: the offset counts as
     // determined only when each half of the flight (alternate blocks) determines it on its own and
     // the two agree.
-    if let Err(why) = halves_agree(samples, body_mag) {
-        return sphere(format!("{at}; {why}; {}", sphere_words(mag)), Some(v));
+    match halves {
+        Some(Ok(())) => {}
+        Some(Err(why)) => return sphere(format!("{at}; {why}; {}", sphere_words(mag)), Some(v)),
+        // (Gathered whenever the fit determines the offset.)
+        None => return sphere(format!("{at}; {}", sphere_words(mag)), Some(v)),
     }
     MethodChoice {
         method: MagMethod::Vector,

@@ -84,6 +84,13 @@ pub struct FitResults {
     pub gyro: GyroCalibration,
 }
 
+impl FitInput {
+    /// The units the magnetometer's calibration is reported in ([`fit_mag`]).
+    pub fn mag_cal_units(&self) -> CalUnits {
+        CalUnits::of(self.mag_units, CalUnits::Ut)
+    }
+}
+
 /// The streaming pipeline state.
 #[derive(Debug, Clone)]
 pub struct Pipeline {
@@ -373,8 +380,24 @@ impl Pipeline {
 
     /// End of input: close the last pose and refit.
     pub fn finish(&mut self) -> &FitResults {
+        let input = self.finish_input();
+        let r = fit_all(&input, &self.cfg);
+        self.install_final(r)
+    }
+
+    /// [`Pipeline::finish`] in steps, for a caller that runs the fits itself (on other threads):
+    /// close the last pose and copy out what the fits need.
+    pub fn finish_input(&mut self) -> FitInput {
         self.finish_poses();
-        self.refit()
+        self.snapshot()
+    }
+
+    /// The last step of [`Pipeline::finish`]: install the results of the fits of
+    /// [`Pipeline::finish_input`] at the time of the last sample.
+    pub fn install_final(&mut self, results: FitResults) -> &FitResults {
+        let t = self.last_t;
+        self.install(t, results);
+        self.latest.as_ref().expect("just installed")
     }
 
     /// Close a still run at the end of input.
@@ -1452,7 +1475,14 @@ pub(crate) fn hold_out(points: &[Vec3], every: usize) -> (Vec<Vec3>, Vec<Vec3>) 
 
 /// All fits from a snapshot. Pure; may run on any thread.
 pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
-    let au = accel_units(&input.poses, input.accel_units);
+    let mag = fit_mag(input, cfg);
+    let (accel, gyro) = fit_accel_gyro(input, cfg);
+    join_fits(mag, accel, gyro, input, cfg)
+}
+
+/// The magnetometer's part of [`fit_all`], before [`join_fits`]: on its own so that a caller can
+/// run it beside [`fit_accel_gyro`] (the two share nothing).
+pub fn fit_mag(input: &FitInput, cfg: &CalibSettings) -> SensorResult {
     let mag_full12 = cfg.fit.mag_model == MagModelChoice::Full12;
     let (mag_fit, mag_held) = hold_out(&input.mag_points, input.hold_out_every);
     let mut mag = fit_sensor(
@@ -1464,7 +1494,7 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
                 cfg.fit.mag_model.into()
             },
             target_norm: None,
-            units: CalUnits::of(input.mag_units, CalUnits::Ut),
+            units: input.mag_cal_units(),
             units_known: input.mag_units == Unit::Si,
             limits: &cfg.accept.mag,
             is_accel: false,
@@ -1472,6 +1502,12 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
         },
     );
     mag.held_out = mag_held;
+    mag
+}
+
+/// The accelerometer's and the gyroscope's part of [`fit_all`] (the gyro bias from the poses).
+pub fn fit_accel_gyro(input: &FitInput, cfg: &CalibSettings) -> (SensorResult, GyroCalibration) {
+    let au = accel_units(&input.poses, input.accel_units);
     let accel_points: Vec<Vec3> = input.poses.iter().map(|p| p.accel).collect();
     let (accel_fit, accel_held) = hold_out(&accel_points, input.hold_out_every);
     let mut accel = fit_sensor(
@@ -1487,10 +1523,22 @@ pub fn fit_all(input: &FitInput, cfg: &CalibSettings) -> FitResults {
         },
     );
     accel.held_out = accel_held;
-    if mag_full12 {
+    let gyro = fit_gyro(&input.poses, input.gyro_units);
+    (accel, gyro)
+}
+
+/// The results of [`fit_mag`] and [`fit_accel_gyro`] put together: with `fit.mag_model =
+/// "full12"` the magnetometer's rotation follows from the dip seen against the accelerometer's.
+pub fn join_fits(
+    mut mag: SensorResult,
+    accel: SensorResult,
+    gyro: GyroCalibration,
+    input: &FitInput,
+    cfg: &CalibSettings,
+) -> FitResults {
+    if cfg.fit.mag_model == MagModelChoice::Full12 {
         mag_rotation_from_dip(&mut mag, &accel, &input.poses);
     }
-    let gyro = fit_gyro(&input.poses, input.gyro_units);
     FitResults { mag, accel, gyro }
 }
 

@@ -157,7 +157,7 @@ pub(crate) struct Batch {
 }
 
 /// Samples per [`Batch`].
-pub(crate) const BATCH_SAMPLES: usize = 8192;
+pub(crate) const BATCH_SAMPLES: usize = 1024;
 
 /// Gathers decoded samples into [`Batch`]es of [`BATCH_SAMPLES`]: the primary instance's in
 /// `samples`, the others' in `others`.
