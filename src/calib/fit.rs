@@ -393,8 +393,14 @@ pub fn fit_norm(
 /// Norm fits of several models to the same points, sharing the work they have in common: the
 /// points in fit layout, the normalising sphere fit and the algebraic ellipsoid start.
 pub(crate) struct NormFitter {
-    soa: kernel::Soa,
+    frame: Frame,
     scratch: kernel::Scratch,
+}
+
+/// What the fits of a [`NormFitter`] share and only read: the points in fit layout, the
+/// normalising sphere fit and the ellipsoid start.
+struct Frame {
+    soa: kernel::Soa,
     /// Normalising sphere fit (centre, radius), raw units; `None` if the points are not enough or
     /// do not define a sphere.
     sphere: Option<(Vector3<f64>, f64)>,
@@ -402,6 +408,10 @@ pub(crate) struct NormFitter {
     /// is not a plausible ellipsoid (the fits then start from the sphere).
     ellipsoid: Option<Start>,
 }
+
+/// Points from which [`NormFitter::fit_each`] fits its last model on a second thread: below, a
+/// fit takes about as long as starting the thread (tens of microseconds).
+pub(crate) const PARALLEL_FIT_MIN_POINTS: usize = 256;
 
 impl NormFitter {
     /// Points with a non-finite coordinate are left out.
@@ -455,20 +465,65 @@ impl NormFitter {
             }
         }
         NormFitter {
-            soa,
+            frame: Frame {
+                soa,
+                sphere,
+                ellipsoid,
+            },
             scratch,
-            sphere,
-            ellipsoid,
         }
     }
 
     /// Centre of the plain sphere fit, raw units.
     pub(crate) fn sphere_centre(&self) -> Option<Vec3> {
-        self.sphere.map(|(c, _)| [c[0], c[1], c[2]])
+        self.frame.sphere.map(|(c, _)| [c[0], c[1], c[2]])
     }
 
     /// Fit one model.
     pub fn fit(&mut self, kind: ModelKind, opts: &NormFitOptions) -> Result<NormFit, FitFailure> {
+        self.frame.fit(&mut self.scratch, kind, opts)
+    }
+
+    /// Fit each of `kinds`, in order: the last on a second thread (scratch space of its own)
+    /// while this one fits the others, from [`PARALLEL_FIT_MIN_POINTS`] points on. Each fit
+    /// reads only the shared frame, so the results are those of fitting one after the other.
+    pub(crate) fn fit_each(
+        &mut self,
+        kinds: &[ModelKind],
+        opts: &NormFitOptions,
+    ) -> Vec<Result<NormFit, FitFailure>> {
+        let NormFitter { frame, scratch } = self;
+        let frame = &*frame;
+        match kinds.split_last() {
+            Some((last, first)) if !first.is_empty() && frame.soa.n >= PARALLEL_FIT_MIN_POINTS => {
+                std::thread::scope(|scope| {
+                    let other = scope.spawn(move || {
+                        let mut own = kernel::Scratch::new(frame.soa.padded);
+                        frame.fit(&mut own, *last, opts)
+                    });
+                    let mut out: Vec<_> =
+                        first.iter().map(|k| frame.fit(scratch, *k, opts)).collect();
+                    out.push(
+                        other
+                            .join()
+                            .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+                    );
+                    out
+                })
+            }
+            _ => kinds.iter().map(|k| frame.fit(scratch, *k, opts)).collect(),
+        }
+    }
+}
+
+impl Frame {
+    /// Fit one model, `scratch` its working space.
+    fn fit(
+        &self,
+        scratch: &mut kernel::Scratch,
+        kind: ModelKind,
+        opts: &NormFitOptions,
+    ) -> Result<NormFit, FitFailure> {
         let np = n_norm_params(kind);
         if self.soa.n < np + 3 {
             return Err(FitFailure::NotEnoughSamples);
@@ -482,7 +537,7 @@ impl NormFitter {
             ModelKind::Sphere => unit,
             _ => self.ellipsoid.unwrap_or(unit),
         };
-        let (soa, scratch) = (&self.soa, &mut self.scratch);
+        let soa = &self.soa;
         let shape0 = if kind == ModelKind::Full12 {
             // Upper-triangular factor R with R^T R = S^T S (Cholesky of S^2 = L L^T, R = L^T).
             let s2 = start.shape.transpose() * start.shape;
@@ -876,8 +931,8 @@ mod tests {
             let pts = noisy_ellipsoid(300 + case as u64, noise, &mut rng);
             // From the algebraic start, as the norm fits do (the first step is then short).
             let fitter = NormFitter::new(&pts);
-            let start = fitter.ellipsoid.expect("ellipsoid start");
-            let (c, s) = fitter.sphere.expect("sphere");
+            let start = fitter.frame.ellipsoid.expect("ellipsoid start");
+            let (c, s) = fitter.frame.sphere.expect("sphere");
             let centre = Vector3::from(c) + start.centre * s;
             let mut x0v = vec![centre[0], centre[1], centre[2]];
             x0v.extend(params_from_a(ModelKind::Sym9, &(start.shape / s)));
@@ -946,6 +1001,43 @@ mod tests {
         let s = ellipsoid_start(&pts).unwrap();
         assert!((s.centre - Vector3::new(1.0, -1.0, 0.0)).norm() < 1e-9);
         assert!((s.shape[(0, 0)] - 0.5).abs() < 1e-9 && (s.shape[(2, 2)] - 2.0).abs() < 1e-9);
+    }
+
+    /// The models fitted with the last on a second thread ([`NormFitter::fit_each`]) are the
+    /// models fitted one after the other, bit for bit, on a well-posed set and on a narrow patch
+    /// (fits that run off and fail).
+    #[test]
+    fn fitting_on_two_threads_gives_what_one_after_the_other_does() {
+        let kinds = [ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9];
+        let opts = NormFitOptions::default();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let tumble = noisy_ellipsoid(7, 1e-2, &mut rng);
+        // A cap of about 8 deg around +z: too little of the sphere to outline an ellipsoid.
+        let patch: Vec<Vec3> = sphere_points(300, 11)
+            .iter()
+            .map(|u| {
+                let v = Vector3::new(0.07 * u.x, 0.07 * u.y, 1.0).normalize();
+                [0, 1, 2].map(|k| 40.0 * v[k] + 0.2 * rng.random_range(-1.0..1.0))
+            })
+            .collect();
+        for pts in [tumble, patch] {
+            assert!(pts.len() >= PARALLEL_FIT_MIN_POINTS);
+            let both = NormFitter::new(&pts).fit_each(&kinds, &opts);
+            let mut one = NormFitter::new(&pts);
+            assert_eq!(both.len(), kinds.len());
+            for (k, got) in kinds.iter().zip(&both) {
+                let want = one.fit(*k, &opts);
+                match (got, &want) {
+                    (Ok(a), Ok(b)) => {
+                        assert_eq!(a.calibration, b.calibration, "{k:?}");
+                        assert_eq!(a.ssr_normalised.to_bits(), b.ssr_normalised.to_bits());
+                        assert_eq!((a.iterations, a.converged), (b.iterations, b.converged));
+                    }
+                    (Err(a), Err(b)) => assert_eq!(a, b),
+                    _ => panic!("{k:?}: {got:?} against {want:?}"),
+                }
+            }
+        }
     }
 
     #[test]

@@ -203,7 +203,10 @@ enum VectorEvidence {
     NoAttitude,
     NotUt,
     /// A place, but no earth field there.
-    NoField { source: &'static str, error: String },
+    NoField {
+        source: &'static str,
+        error: String,
+    },
     /// The field of the place and day, and the vector fit against it.
     Known {
         w: Where,
@@ -257,9 +260,9 @@ impl Evidence {
         units: crate::types::CalUnits,
     ) -> Evidence {
         let body_mag = |s: &Sample| body(s).mag_ut;
-        let vector = vector_evidence(samples, &body_mag, log.clone(), cfg_place, units);
-        let planar = (!vector.takes_vector())
-            .then(|| planar_evidence(samples, body, log.clone(), cfg_place, units));
+        let vector = vector_evidence(samples, &body_mag, log, cfg_place, units);
+        let planar =
+            (!vector.takes_vector()).then(|| planar_evidence(samples, body, log, cfg_place, units));
         Evidence {
             units,
             vector,

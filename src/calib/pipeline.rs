@@ -916,12 +916,26 @@ fn inliers(points: &[Vec3], spec: &SensorSpec, sym9: Option<&NormFit>) -> (Vec<V
             f64::INFINITY
         }
     };
-    let lmeds = (out as f64 > 0.005 * points.len() as f64)
-        .then(|| lmeds_inliers(points))
-        .flatten();
-    let mut mask = refine(first);
-    if let Some(m) = lmeds.map(refine) {
-        if median_residual(&m) < median_residual(&mask) {
+    // The second start and its refinement run on a thread of their own beside the first's (each
+    // a pure function of the points: the same sets as one after the other).
+    let second = out as f64 > 0.005 * points.len() as f64;
+    let (mut mask, lmeds) = std::thread::scope(|scope| {
+        let lmeds = second.then(|| {
+            scope.spawn(|| {
+                let m = refine(lmeds_inliers(points)?);
+                let r = median_residual(&m);
+                Some((m, r))
+            })
+        });
+        let mask = refine(first);
+        let lmeds = lmeds.and_then(|h| {
+            h.join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        });
+        (mask, lmeds)
+    });
+    if let Some((m, r)) = lmeds {
+        if r < median_residual(&mask) {
             mask = m;
         }
     }
@@ -1063,9 +1077,10 @@ fn candidate_fits(fitter: &mut crate::calib::fit::NormFitter, spec: &SensorSpec)
         ModelChoice::Auto => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
         m => m.kind().into_iter().collect(),
     };
-    kinds
-        .iter()
-        .filter_map(|k| fitter.fit(*k, &opts).ok())
+    fitter
+        .fit_each(&kinds, &opts)
+        .into_iter()
+        .filter_map(Result::ok)
         .collect()
 }
 

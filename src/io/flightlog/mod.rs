@@ -261,13 +261,20 @@ impl Assembler {
             }
             self.stats.records += 1;
             self.stats.count_sample(&s);
-            self.stats.time = self.groups[k].clock.stats.clone();
         }
         Some((k, s))
     }
 
     fn finish(self, onboard: OnboardReport, extra_skips: &BTreeMap<String, u64>) -> FlightLog {
         let mut stats = self.stats;
+        // The primary's clock, as its last sample left it (once, not a copy per sample).
+        if let Some(g) = self
+            .primary
+            .map(|k| &self.groups[k])
+            .filter(|g| g.samples > 0)
+        {
+            stats.time = g.clock.stats.clone();
+        }
         for (why, n) in extra_skips {
             stats.skip_n(why, *n);
         }
