@@ -357,9 +357,9 @@ fn open_stream(path: &Path) -> Result<Opened, Error> {
 }
 
 /// As [`decode_log_batched`], the file at `path` read as a stream (gunzipped when it is gzip):
-/// a tlog and a DataFlash log through a window of
+/// a tlog, a DataFlash log and a ULog through a window of
 /// [`crate::io::window::STREAM_CHUNK_BYTES`], so memory does not grow with the log's length; a
-/// CSV and a ULog are read whole. Progress counts the file's bytes.
+/// CSV is read whole. Progress counts the file's bytes.
 pub(crate) fn decode_file_batched(
     path: &Path,
     format: Option<Format>,
@@ -415,7 +415,29 @@ pub(crate) fn decode_file_batched(
             b.flush(sink, placeholder_instances(seen), (total, total));
             flight_log(flight, format, b.any, path)
         }
-        Format::Csv | Format::Ulg => {
+        Format::Ulg => {
+            let (read, total) = (opened.read.clone(), opened.total as usize);
+            let mut b = Batcher::new();
+            let mut seen = 0usize;
+            let mut emit = |k: usize, s: Sample, _: usize, primary: Option<usize>| {
+                seen = seen.max(k + 1);
+                if b.push(k, s, primary) {
+                    let at = (read.get() as usize).min(total);
+                    b.flush(sink, placeholder_instances(seen), (at, total));
+                }
+            };
+            let Some((flight, error)) =
+                crate::io::flightlog::decode_ulog_stream(opened.reader, &mut emit)
+            else {
+                return Err(not_ulog(path));
+            };
+            if let Some(e) = error {
+                return Err(io_err(e));
+            }
+            b.flush(sink, placeholder_instances(seen), (total, total));
+            flight_log(flight, format, b.any, path)
+        }
+        Format::Csv => {
             // (The file's size: read once into place, not grown and copied as it is read.)
             let mut data = Vec::with_capacity(usize::try_from(opened.total).unwrap_or(0));
             let mut reader = opened.reader;
@@ -612,13 +634,18 @@ fn decode_flight_log(
         _ => crate::io::flightlog::decode_ulog_with(data, &mut emit),
     };
     let Some(flight) = flight else {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            message: "not a ULog file (no `ULog` header)".into(),
-        });
+        return Err(not_ulog(path));
     };
     b.flush(sink, placeholder_instances(seen), (total, total));
     flight_log(flight, format, b.any, path)
+}
+
+/// The error of a file taken for a ULog file that does not begin as one.
+fn not_ulog(path: &Path) -> Error {
+    Error::Format {
+        path: path.to_path_buf(),
+        message: "not a ULog file (no `ULog` header)".into(),
+    }
 }
 
 /// "; skipped: 12 bad_crc, 3 resync" for an error message, or nothing when nothing was skipped.

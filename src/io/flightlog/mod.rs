@@ -1098,7 +1098,29 @@ pub fn decode_ulog_with(
     emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
 ) -> Option<FlightLog> {
     let mut rd = ulog::UlogReader::new(bytes)?;
+    Some(decode_ulog_records(&mut rd, emit))
+}
+
+/// As [`decode_ulog_with`], the log read from a stream through a window
+/// ([`ulog::UlogReader::from_reader`]); a read error comes back after what came before it.
+/// `None` when the stream does not begin as a ULog file.
+pub(crate) fn decode_ulog_stream(
+    reader: impl std::io::Read,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> Option<(FlightLog, Option<std::io::Error>)> {
+    let mut rd = ulog::UlogReader::from_reader(reader)?;
+    let log = decode_ulog_records(&mut rd, emit);
+    Some((log, rd.take_error()))
+}
+
+/// The data records of `rd` (of the topics the conversion reads, [`Topic::is_read`]) through
+/// the conversion.
+fn decode_ulog_records(
+    rd: &mut ulog::UlogReader<'_>,
+    emit: &mut dyn FnMut(usize, Sample, usize, Option<usize>),
+) -> FlightLog {
     let mut conv = UlogConv::new();
+    rd.only_topics(Topic::is_read);
     // By message id (a u16: at most 65536 entries), so a record finds its columns by indexing.
     let mut cols: Vec<Option<UlogCols>> = Vec::new();
     loop {
@@ -1118,7 +1140,7 @@ pub fn decode_ulog_with(
             Some(c) if c.serial == d.sub.serial => c,
             other => other.insert(UlogCols::new(d.sub)),
         };
-        let r = UlogRecord::read(c, &d);
+        let r = UlogRecord::read(c, multi, d.payload);
         let read = rd.position();
         if !params_ready {
             // The definitions section (parameters included) precedes the first data record.
@@ -1132,7 +1154,8 @@ pub fn decode_ulog_with(
             emit(gi, s, read, conv.asm.primary);
         }
     }
-    Some(conv.finish(&rd, bytes.len(), emit))
+    let end = rd.position();
+    conv.finish(rd, end, emit)
 }
 
 /// What the conversion takes from one ULog record.
@@ -1160,11 +1183,11 @@ enum UlogRecord {
 }
 
 impl UlogRecord {
-    /// The fields of `d` the conversion uses, by its subscription's columns `c`.
-    fn read(c: &UlogCols, d: &ulog::Data<'_>) -> UlogRecord {
+    /// The fields the conversion uses of a record of instance `multi` (its bytes `payload`), by
+    /// its subscription's column plan `c`.
+    fn read(c: &UlogCols, multi: u8, payload: &[u8]) -> UlogRecord {
         use UlogRecord as R;
-        let multi = d.sub.multi_id;
-        let val = |k: usize| c.idx[k].and_then(|i| d.value(i));
+        let val = |k: usize| c.plan[k].and_then(|(o, ty)| ty.read(payload.get(o..)?));
         let get = |f: UlField| val(f as usize);
         let v3 = |f: UlField| {
             let k = f as usize;
@@ -1523,6 +1546,29 @@ enum Topic {
     Other,
 }
 
+impl Topic {
+    /// The topic of a subscription's name.
+    fn of(name: &str) -> Topic {
+        match name {
+            "sensor_combined" => Topic::Combined,
+            "sensor_accel" => Topic::Accel,
+            "sensor_gyro" => Topic::Gyro,
+            "sensor_mag" => Topic::Mag,
+            "vehicle_magnetometer" => Topic::VehicleMag,
+            "vehicle_attitude" => Topic::Attitude,
+            "actuator_controls_0" => Topic::Actuators,
+            "battery_status" => Topic::Battery,
+            "vehicle_gps_position" => Topic::Gps,
+            _ => Topic::Other,
+        }
+    }
+
+    /// Whether the conversion reads the topic of this name.
+    fn is_read(name: &str) -> bool {
+        Topic::of(name) != Topic::Other
+    }
+}
+
 /// The ULog fields the conversion reads, in [`UL_FIELDS`] order; a vector's axes are consecutive.
 #[derive(Debug, Clone, Copy)]
 enum UlField {
@@ -1573,37 +1619,30 @@ const UL_FIELDS: [&str; 25] = [
     "time_utc_usec",
 ];
 
-/// A subscription's topic, the indices of [`UL_FIELDS`] in its fields, and its source name.
+/// A subscription's topic, its column plan (where each of [`UL_FIELDS`] is in a record, and its
+/// type), and its source name.
 struct UlogCols {
     serial: u32,
     topic: Topic,
-    idx: Vec<Option<usize>>,
+    plan: Vec<Option<(usize, ulog::Ty)>>,
     source: String,
 }
 
 impl UlogCols {
     fn new(sub: &ulog::Subscription) -> UlogCols {
-        let topic = match sub.name.as_str() {
-            "sensor_combined" => Topic::Combined,
-            "sensor_accel" => Topic::Accel,
-            "sensor_gyro" => Topic::Gyro,
-            "sensor_mag" => Topic::Mag,
-            "vehicle_magnetometer" => Topic::VehicleMag,
-            "vehicle_attitude" => Topic::Attitude,
-            "actuator_controls_0" => Topic::Actuators,
-            "battery_status" => Topic::Battery,
-            "vehicle_gps_position" => Topic::Gps,
-            _ => Topic::Other,
-        };
-        let idx = if topic == Topic::Other {
+        let topic = Topic::of(&sub.name);
+        let plan = if topic == Topic::Other {
             vec![None; UL_FIELDS.len()]
         } else {
-            UL_FIELDS.iter().map(|f| sub.field(f)).collect()
+            UL_FIELDS
+                .iter()
+                .map(|f| sub.field(f).map(|k| (sub.fields[k].offset, sub.fields[k].ty)))
+                .collect()
         };
         UlogCols {
             serial: sub.serial,
             topic,
-            idx,
+            plan,
             source: format!("{}[{}]", sub.name, sub.multi_id),
         }
     }

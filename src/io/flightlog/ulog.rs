@@ -65,7 +65,7 @@ impl Ty {
     }
 
     /// The value at the start of `b`; `None` when `b` is shorter than [`Ty::size`].
-    fn read(self, b: &[u8]) -> Option<f64> {
+    pub(crate) fn read(self, b: &[u8]) -> Option<f64> {
         match self {
             Ty::Number(n) => n.read(b),
             Ty::Bool | Ty::Char => b.first().map(|&v| v as f64),
@@ -98,6 +98,10 @@ pub struct Subscription {
     pub serial: u32,
     /// The index of the `timestamp` field.
     timestamp: Option<usize>,
+    /// Where a `uint64_t timestamp` field ends in the data (bytes), if the topic has one.
+    timestamp_end: Option<usize>,
+    /// Its records are returned ([`UlogReader::only_topics`]).
+    wanted: bool,
 }
 
 impl Subscription {
@@ -159,20 +163,44 @@ impl UlogStats {
 /// A parsed format: fields as (type name, array length, field name).
 type RawFormat = Vec<(String, Option<usize>, String)>;
 
-/// Reads a ULog file's data records in order ([`UlogReader::next_data`]); formats, parameters,
-/// information and subscriptions are taken in on the way.
+/// The longest message: a u16 size, the type byte and that many bytes.
+const MAX_MESSAGE: usize = 3 + u16::MAX as usize;
+
+/// A stream a [`UlogReader`] reads through a window, rather than whole bytes.
+struct Stream<'a> {
+    reader: Box<dyn std::io::Read + 'a>,
+    buf: Vec<u8>,
+    /// Offset of `buf` in the stream.
+    base: usize,
+    eof: bool,
+    error: Option<std::io::Error>,
+}
+
+/// Reads a ULog file's data records in order ([`UlogReader::next_data`]), from whole bytes or
+/// from a stream through a window of [`crate::io::window::STREAM_CHUNK_BYTES`]; formats,
+/// parameters, information and subscriptions are taken in on the way. Records of topics left
+/// out ([`UlogReader::only_topics`]) are counted from their header and not returned.
 pub struct UlogReader<'a> {
     data: &'a [u8],
+    stream: Option<Stream<'a>>,
+    /// Offset of the next message in the window (`data`, or the stream's buffer).
     pos: usize,
     pub version: u8,
     pub start_us: u64,
     formats: BTreeMap<String, RawFormat>,
-    subs: BTreeMap<u16, Subscription>,
+    /// Subscriptions in the order made (a re-subscription under an id replaces its entry).
+    subs: Vec<Subscription>,
+    /// Message id -> 1 + the index of its subscription in `subs` (0: none).
+    by_id: Vec<u32>,
+    /// Which topics' records are returned, by name (`None`: all).
+    topics: Option<fn(&str) -> bool>,
+    /// A data record was returned.
+    returned: bool,
     /// Every parameter's first value (the one in use when the log started).
     params: BTreeMap<String, f64>,
     /// Information messages (`I`) with text values.
     pub info: BTreeMap<String, String>,
-    /// Offsets of appended data still ahead.
+    /// Offsets (in the file) of appended data still ahead.
     appended: Vec<usize>,
     /// Subscriptions made so far.
     serial: u32,
@@ -185,23 +213,76 @@ impl<'a> UlogReader<'a> {
         if !looks_like(data) || data.len() < 16 {
             return None;
         }
-        Some(UlogReader {
+        let mut rd = Self::empty(data);
+        rd.start(data);
+        Some(rd)
+    }
+
+    /// A reader of the file `reader` gives, holding a window of it rather than the whole; `None`
+    /// when it does not start with the ULog header (or a read error comes before it).
+    pub fn from_reader(reader: impl std::io::Read + 'a) -> Option<Self> {
+        let mut rd = Self::empty(&[]);
+        rd.stream = Some(Stream {
+            reader: Box::new(reader),
+            buf: Vec::new(),
+            base: 0,
+            eof: false,
+            error: None,
+        });
+        rd.refill();
+        let head: [u8; 16] = rd.window().get(..16)?.try_into().ok()?;
+        if !looks_like(&head) {
+            return None;
+        }
+        rd.start(&head);
+        Some(rd)
+    }
+
+    fn empty(data: &'a [u8]) -> Self {
+        UlogReader {
             data,
-            pos: 16,
-            version: data[7],
-            start_us: u64::from_le_bytes(data[8..16].try_into().expect("8 bytes")),
+            stream: None,
+            pos: 0,
+            version: 0,
+            start_us: 0,
             formats: BTreeMap::new(),
-            subs: BTreeMap::new(),
+            subs: Vec::new(),
+            by_id: Vec::new(),
+            topics: None,
+            returned: false,
             params: BTreeMap::new(),
             info: BTreeMap::new(),
             appended: Vec::new(),
             serial: 0,
             stats: UlogStats::default(),
-        })
+        }
     }
 
+    /// Take the 16-byte file header `head` (already checked).
+    fn start(&mut self, head: &[u8]) {
+        self.version = head[7];
+        self.start_us = u64::from_le_bytes(head[8..16].try_into().expect("8 bytes"));
+        self.pos = 16;
+    }
+
+    /// Return the records of the topics `wanted` accepts only (and the first data record, whatever its topic,
+    /// so a caller sees the definitions section end as it would reading all). A record of
+    /// another topic is counted in its subscription's [`Subscription::records`] from its header;
+    /// one without a `uint64_t timestamp` in its bytes is returned all the same, as a record
+    /// that cannot be placed in time is the caller's to count.
+    /// Takes effect for subscriptions made after it.
+    pub fn only_topics(&mut self, wanted: fn(&str) -> bool) {
+        self.topics = Some(wanted);
+    }
+
+    /// Bytes consumed so far.
     pub fn position(&self) -> usize {
-        self.pos
+        self.pos + self.stream.as_ref().map_or(0, |s| s.base)
+    }
+
+    /// The error that ended a stream early, if one did (taken).
+    pub fn take_error(&mut self) -> Option<std::io::Error> {
+        self.stream.as_mut().and_then(|s| s.error.take())
     }
 
     /// Parameters read so far (first value of each).
@@ -209,86 +290,170 @@ impl<'a> UlogReader<'a> {
         &self.params
     }
 
-    /// Subscriptions made so far, by message id.
+    /// Subscriptions made so far.
     pub(crate) fn subscriptions(&self) -> impl Iterator<Item = &Subscription> {
-        self.subs.values()
+        self.subs.iter()
+    }
+
+    /// The bytes of the window.
+    fn window(&self) -> &[u8] {
+        match &self.stream {
+            Some(s) => &s.buf,
+            None => self.data,
+        }
+    }
+
+    /// Read more of a stream when less than the longest message is left in its window.
+    fn refill(&mut self) {
+        let Some(s) = self.stream.as_mut() else {
+            return;
+        };
+        if s.eof || s.buf.len() - self.pos >= MAX_MESSAGE {
+            return;
+        }
+        crate::io::window::fill_window(
+            &mut s.reader,
+            &mut s.buf,
+            (&mut self.pos, &mut s.base),
+            &mut s.eof,
+            &mut s.error,
+        );
+    }
+
+    /// The whole input is in the window (bytes, or a stream read to its end).
+    fn at_end(&self) -> bool {
+        self.stream.as_ref().is_none_or(|s| s.eof)
+    }
+
+    /// The input's length, once all of it is in the window.
+    fn known_len(&self) -> Option<usize> {
+        let base = self.stream.as_ref().map_or(0, |s| s.base);
+        self.at_end().then(|| base + self.window().len())
+    }
+
+    /// The index in `subs` of message id `id`'s subscription.
+    fn sub_index(&self, id: u16) -> Option<usize> {
+        match self.by_id.get(id as usize) {
+            Some(&k) if k > 0 => Some(k as usize - 1),
+            _ => None,
+        }
     }
 
     /// The next data record, or `None` at the end of the file.
     pub fn next_data(&mut self) -> Option<Data<'_>> {
         loop {
+            self.refill();
+            let here = self.position();
             // Appended data starts at its offset, whatever the message before it left.
             if let Some(&a) = self.appended.first() {
-                if self.pos >= a {
+                if here >= a {
                     self.appended.remove(0);
                 }
             }
-            let rest = &self.data[self.pos..];
-            if rest.len() < 3 {
-                if !rest.is_empty() {
+            let (left, size, ty) = {
+                let rest = &self.window()[self.pos..];
+                match rest {
+                    [a, b, t, ..] => (rest.len(), u16::from_le_bytes([*a, *b]) as usize, *t),
+                    _ => (rest.len(), 0, 0),
+                }
+            };
+            if left < 3 {
+                if left > 0 {
                     self.stats.skip("truncated");
-                    self.pos = self.data.len();
+                    self.pos += left;
                 }
                 return None;
             }
-            let size = u16::from_le_bytes([rest[0], rest[1]]) as usize;
-            let ty = rest[2];
             if !b"BFIMPQARDLCSO".contains(&ty) {
                 self.stats.skip("resync");
                 self.resync();
                 continue;
             }
             if let Some(&a) = self.appended.first() {
-                if self.pos < a && self.pos + 3 + size > a {
+                if here < a && here + 3 + size > a {
                     self.stats.skip("truncated");
-                    self.pos = a;
+                    self.skip_to(a);
                     self.appended.remove(0);
                     continue;
                 }
             }
-            if rest.len() < 3 + size {
+            if left < 3 + size {
                 self.stats.skip("truncated");
-                self.pos = self.data.len();
+                self.pos += left;
                 return None;
             }
             let start = self.pos + 3;
             self.pos += 3 + size;
             self.stats.messages += 1;
-            let body = &self.data[start..start + size];
-            if ty == b'D' {
-                if body.len() < 2 {
-                    self.stats.skip("bad_message");
-                    continue;
-                }
-                let id = u16::from_le_bytes([body[0], body[1]]);
-                let payload = &body[2..];
-                let Some(sub) = self.subs.get_mut(&id) else {
-                    self.stats.skip("unknown_subscription");
-                    continue;
-                };
-                if payload.len() < sub.used {
-                    self.stats.skip("short_data");
-                }
-                sub.records += 1;
-                self.stats.data += 1;
+            if ty != b'D' {
+                let body = self.window()[start..start + size].to_vec();
+                self.absorb(ty, &body);
+                continue;
+            }
+            let head = self.window().get(start..start + 2.min(size));
+            let Some(&[lo, hi]) = head else {
+                self.stats.skip("bad_message");
+                continue;
+            };
+            let Some(k) = self.sub_index(u16::from_le_bytes([lo, hi])) else {
+                self.stats.skip("unknown_subscription");
+                continue;
+            };
+            let payload_len = size - 2;
+            let sub = &mut self.subs[k];
+            if payload_len < sub.used {
+                self.stats.skip("short_data");
+            }
+            sub.records += 1;
+            self.stats.data += 1;
+            let timed = sub.timestamp_end.is_some_and(|e| payload_len >= e);
+            if sub.wanted || !timed || !self.returned {
+                self.returned = true;
+                let payload = &self.window()[start + 2..start + size];
                 return Some(Data {
-                    sub: self.subs.get(&id).expect("present"),
+                    sub: &self.subs[k],
                     payload,
                 });
             }
-            self.absorb(ty, body);
+        }
+    }
+
+    /// Move on to file offset `to` (at or after the current one), or to the end.
+    fn skip_to(&mut self, to: usize) {
+        loop {
+            let ahead = to - self.position();
+            let left = self.window().len() - self.pos;
+            if ahead <= left {
+                self.pos += ahead;
+                return;
+            }
+            self.pos += left;
+            if self.at_end() {
+                return;
+            }
+            self.refill();
         }
     }
 
     /// Skip to just after the next sync marker (or to the end).
     fn resync(&mut self) {
-        let from = self.pos + 1;
-        match self.data[from.min(self.data.len())..]
-            .windows(SYNC.len())
-            .position(|w| w == SYNC)
-        {
-            Some(k) => self.pos = from + k + SYNC.len(),
-            None => self.pos = self.data.len(),
+        self.pos += 1;
+        loop {
+            let found = self.window()[self.pos..]
+                .windows(SYNC.len())
+                .position(|w| w == SYNC);
+            if let Some(k) = found {
+                self.pos += k + SYNC.len();
+                return;
+            }
+            // A marker may begin in the last bytes of the window: they are searched again.
+            let keep = (SYNC.len() - 1).min(self.window().len() - self.pos);
+            self.pos = self.window().len() - keep;
+            if self.at_end() {
+                self.pos = self.window().len();
+                return;
+            }
+            self.refill();
         }
     }
 
@@ -304,7 +469,8 @@ impl<'a> UlogReader<'a> {
                     for k in 0..3 {
                         let o = 16 + 8 * k;
                         let off = u64::from_le_bytes(body[o..o + 8].try_into().expect("8"));
-                        if off > 0 && (off as usize) > self.pos && off < self.data.len() as u64 {
+                        let beyond = self.known_len().is_some_and(|n| off >= n as u64);
+                        if off > 0 && off as usize > self.position() && !beyond {
                             self.appended.push(off as usize);
                         }
                     }
@@ -333,21 +499,35 @@ impl<'a> UlogReader<'a> {
                 match flatten(&self.formats, &name, "", 0, &mut fields, &mut used, 0) {
                     Some(size) if self.subs.len() < MAX_SUBSCRIPTIONS => {
                         let timestamp = fields.iter().position(|f| f.name == "timestamp");
+                        let timestamp_end = timestamp
+                            .map(|k| &fields[k])
+                            .filter(|f| f.ty == Ty::Number(Number::U64))
+                            .map(|f| f.offset + 8);
+                        let wanted = self.topics.is_none_or(|want| want(&name));
                         self.serial += 1;
-                        self.subs.insert(
+                        let sub = Subscription {
                             msg_id,
-                            Subscription {
-                                msg_id,
-                                multi_id,
-                                name,
-                                fields,
-                                size,
-                                used,
-                                records: 0,
-                                serial: self.serial,
-                                timestamp,
-                            },
-                        );
+                            multi_id,
+                            name,
+                            fields,
+                            size,
+                            used,
+                            records: 0,
+                            serial: self.serial,
+                            timestamp,
+                            timestamp_end,
+                            wanted,
+                        };
+                        match self.sub_index(msg_id) {
+                            Some(k) => self.subs[k] = sub,
+                            None => {
+                                self.subs.push(sub);
+                                if self.by_id.len() <= msg_id as usize {
+                                    self.by_id.resize(msg_id as usize + 1, 0);
+                                }
+                                self.by_id[msg_id as usize] = self.subs.len() as u32;
+                            }
+                        }
                     }
                     _ => self.stats.skip("bad_subscription"),
                 }
