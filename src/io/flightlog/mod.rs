@@ -1636,7 +1636,10 @@ impl UlogCols {
         } else {
             UL_FIELDS
                 .iter()
-                .map(|f| sub.field(f).map(|k| (sub.fields[k].offset, sub.fields[k].ty)))
+                .map(|f| {
+                    sub.field(f)
+                        .map(|k| (sub.fields[k].offset, sub.fields[k].ty))
+                })
                 .collect()
         };
         UlogCols {

@@ -761,6 +761,133 @@ pub(crate) mod tests {
         assert_eq!(s.size, 8 + 4 + 12 + 2 + 4);
     }
 
+    /// A log of more than four windows: data of a used and an unused topic, large log texts,
+    /// damaged bytes and sync markers, a truncated tail.
+    fn long_log() -> Vec<u8> {
+        let mut f = header();
+        f.extend(msg(b'F', b"used:uint64_t timestamp;float x;"));
+        f.extend(msg(b'F', b"other:uint64_t timestamp;float y;uint8_t[3] z;"));
+        f.extend(msg(b'F', b"untimed:float w;"));
+        f.extend(sub(0, 1, "used"));
+        f.extend(sub(0, 2, "other"));
+        f.extend(sub(0, 3, "untimed"));
+        let mut x = 0x2545_F491u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..150_000u64 {
+            let id: u16 = [1, 2, 2, 3][i as usize % 4];
+            let mut b = id.to_le_bytes().to_vec();
+            b.extend(i.to_le_bytes());
+            b.extend((i as f32).to_le_bytes());
+            b.extend([1, 2, 3]);
+            f.extend(msg(b'D', &b));
+            match next() % 997 {
+                0 => {
+                    // Damaged bytes, then a sync marker to read on from.
+                    f.extend((0..1 + next() % 300).map(|_| next() as u8 | 0x80));
+                    f.extend(msg(b'S', &SYNC));
+                }
+                1 => f.extend(msg(b'S', &SYNC)),
+                2 => f.extend(msg(b'L', &vec![b'.'; 40_000 + next() as usize % 25_000])),
+                _ => {}
+            }
+        }
+        f.truncate(f.len() - 5);
+        f
+    }
+
+    /// What a reader returns: (topic, timestamp, first float), and its counts.
+    fn read_all(
+        mut r: UlogReader<'_>,
+        only_used: bool,
+    ) -> (Vec<(String, Option<u64>, f64)>, UlogStats, usize, Vec<u64>) {
+        if only_used {
+            r.only_topics(|name| name == "used");
+        }
+        let mut got = Vec::new();
+        while let Some(d) = r.next_data() {
+            let v = d.value(1).or_else(|| d.value(0)).unwrap();
+            got.push((d.sub.name.clone(), d.timestamp_us(), v));
+        }
+        let records = r.subscriptions().map(|s| s.records).collect();
+        (got, r.stats.clone(), r.position(), records)
+    }
+
+    #[test]
+    fn a_log_streamed_through_a_window_reads_as_the_whole_bytes() {
+        let log = long_log();
+        assert!(log.len() > 4 * crate::io::window::STREAM_CHUNK_BYTES);
+        for only_used in [false, true] {
+            let whole = read_all(UlogReader::new(&log).unwrap(), only_used);
+            for step in [1 << 20, 4093, 65_537] {
+                let trickle = crate::io::decode::tests::Trickle { bytes: &log, step };
+                let streamed = read_all(UlogReader::from_reader(trickle).unwrap(), only_used);
+                assert_eq!(streamed.0.len(), whole.0.len());
+                assert!(
+                    streamed == whole,
+                    "step {step}: {:?} vs {:?}",
+                    streamed.1,
+                    whole.1
+                );
+            }
+            assert_eq!(whole.2, log.len());
+            assert!(whole.1.skipped["resync"] > 50, "{:?}", whole.1);
+            assert_eq!(whole.1.skipped["truncated"], 1);
+        }
+    }
+
+    #[test]
+    fn records_of_topics_left_out_are_counted_not_returned() {
+        let log = long_log();
+        let all = read_all(UlogReader::new(&log).unwrap(), false);
+        let used = read_all(UlogReader::new(&log).unwrap(), true);
+        // The same messages read and counted per topic.
+        assert_eq!(used.1, all.1);
+        assert_eq!(used.3, all.3);
+        // Returned: the first record, then every record of `used` and of `untimed` (no timestamp).
+        let keep = |(k, r): (usize, &(String, Option<u64>, f64))| {
+            k == 0 || r.0 == "used" || r.0 == "untimed"
+        };
+        let expected: Vec<_> = all
+            .0
+            .iter()
+            .enumerate()
+            .filter(|x| keep(*x))
+            .map(|(_, r)| r.clone())
+            .collect();
+        assert_eq!(used.0, expected);
+        assert!(used.0.iter().filter(|r| r.0 == "other").count() == 0);
+        assert!(all.0.iter().filter(|r| r.0 == "other").count() > 70_000);
+    }
+
+    #[test]
+    fn a_file_cut_anywhere_in_its_last_message_is_a_counted_skip() {
+        let mut f = header();
+        f.extend(msg(b'F', b"used:uint64_t timestamp;float x;"));
+        f.extend(sub(0, 1, "used"));
+        let mut b = 1u16.to_le_bytes().to_vec();
+        b.extend(7u64.to_le_bytes());
+        b.extend(1.5f32.to_le_bytes());
+        f.extend(msg(b'D', &b));
+        f.extend(msg(b'D', &b));
+        let last = f.len() - (b.len() + 3);
+        for cut in last + 1..f.len() {
+            let trickle = crate::io::decode::tests::Trickle {
+                bytes: &f[..cut],
+                step: 3,
+            };
+            let (got, stats, read, _) = read_all(UlogReader::from_reader(trickle).unwrap(), false);
+            assert_eq!(got.len(), 1, "cut at {cut}");
+            assert_eq!(stats.skipped["truncated"], 1, "cut at {cut}");
+            assert_eq!(read, cut);
+        }
+        assert!(UlogReader::from_reader(&f[..15]).is_none());
+    }
+
     #[test]
     fn a_cyclic_format_is_refused() {
         let mut f = header();
