@@ -94,7 +94,11 @@ pub(crate) fn field_used(
     log: LogWhere,
     cfg: Option<&Place>,
 ) -> Option<FieldUsed> {
-    let w = place_of(samples, log, cfg)?;
+    field_used_at(&place_of(samples, log, cfg)?)
+}
+
+/// [`field_used`] at a place found before.
+fn field_used_at(w: &Where) -> Option<FieldUsed> {
     let f = crate::attitude::earth_field(&w.place).ok()?;
     Some(FieldUsed {
         model: f.model,
@@ -260,14 +264,16 @@ impl Evidence {
         units: crate::types::CalUnits,
     ) -> Evidence {
         let body_mag = |s: &Sample| body(s).mag_ut;
-        let vector = vector_evidence(samples, &body_mag, log, cfg_place, units);
+        // The place, found once (a pass over the samples) for the three.
+        let w = place_of(samples, log, cfg_place);
+        let vector = vector_evidence(samples, &body_mag, w.clone(), units);
         let planar =
-            (!vector.takes_vector()).then(|| planar_evidence(samples, body, log, cfg_place, units));
+            (!vector.takes_vector()).then(|| planar_evidence(samples, body, w.as_ref(), units));
         Evidence {
             units,
             vector,
             planar,
-            field_used: field_used(samples, log, cfg_place),
+            field_used: w.as_ref().and_then(field_used_at),
         }
     }
 }
@@ -306,15 +312,14 @@ pub(crate) fn choose_with(mag: &mut SensorResult, evidence: &Evidence) {
 fn planar_evidence(
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
-    log: LogWhere,
-    cfg_place: Option<&Place>,
+    w: Option<&Where>,
     units: crate::types::CalUnits,
 ) -> PlanarEvidence {
     let pts = crate::calib::planar::points_from_samples(samples, body);
     if pts.is_empty() {
         return PlanarEvidence::NoPoints;
     }
-    let field = place_of(samples, log, cfg_place)
+    let field = w
         .filter(|_| units == crate::types::CalUnits::Ut)
         .and_then(|w| crate::attitude::earth_field(&w.place).ok());
     let earth = field.map(|f| {
@@ -438,8 +443,7 @@ fn sphere(reason: String, vector: Option<VectorFit>) -> MethodChoice {
 fn vector_evidence(
     samples: &[Sample],
     body_mag: &dyn Fn(&Sample) -> Option<[f64; 3]>,
-    log: LogWhere,
-    cfg_place: Option<&Place>,
+    w: Option<Where>,
     units: crate::types::CalUnits,
 ) -> VectorEvidence {
     if !samples
@@ -451,7 +455,7 @@ fn vector_evidence(
     if units != crate::types::CalUnits::Ut {
         return VectorEvidence::NotUt;
     }
-    let Some(w) = place_of(samples, log, cfg_place) else {
+    let Some(w) = w else {
         let fit = fit_with_field(samples.iter(), body_mag, None);
         let halves = match &fit {
             Some(Ok((v, _))) if v.offset_identifiable => Some(halves_agree(samples, body_mag)),
