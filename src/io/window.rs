@@ -1,8 +1,8 @@
-//! A window over a byte stream: the readers of logs read as streams (`.tlog`, DataFlash) keep
+//! A window over a byte stream: the readers of logs read as streams (`.tlog`, DataFlash, ULog) keep
 //! a bounded window of the file and move it on as they go.
 
 /// Bytes read from a stream at a time into a decoder's window ([`crate::io::decode::TlogStream`], the DataFlash
-/// reader): large enough that a read costs little per record, small against a log.
+/// and ULog readers): large enough that a read costs little per record, small against a log.
 pub(crate) const STREAM_CHUNK_BYTES: usize = 256 * 1024;
 
 /// Drop the bytes of `buf` before `pos` (moving `base` on by as many) and read up to

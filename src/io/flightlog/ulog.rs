@@ -800,11 +800,11 @@ pub(crate) mod tests {
         f
     }
 
-    /// What a reader returns: (topic, timestamp, first float), and its counts.
-    fn read_all(
-        mut r: UlogReader<'_>,
-        only_used: bool,
-    ) -> (Vec<(String, Option<u64>, f64)>, UlogStats, usize, Vec<u64>) {
+    /// A returned record: topic, timestamp, first float.
+    type Got = (String, Option<u64>, f64);
+
+    /// What a reader returns, and its counts: stats, bytes read, records per subscription.
+    fn read_all(mut r: UlogReader<'_>, only_used: bool) -> (Vec<Got>, UlogStats, usize, Vec<u64>) {
         if only_used {
             r.only_topics(|name| name == "used");
         }
@@ -849,9 +849,7 @@ pub(crate) mod tests {
         assert_eq!(used.1, all.1);
         assert_eq!(used.3, all.3);
         // Returned: the first record, then every record of `used` and of `untimed` (no timestamp).
-        let keep = |(k, r): (usize, &(String, Option<u64>, f64))| {
-            k == 0 || r.0 == "used" || r.0 == "untimed"
-        };
+        let keep = |(k, r): (usize, &Got)| k == 0 || r.0 == "used" || r.0 == "untimed";
         let expected: Vec<_> = all
             .0
             .iter()
