@@ -149,7 +149,7 @@ pub struct DaemonConfig {
     /// What to do with ArduPilot's magnetometer data, which comes with its calibration applied.
     /// Default: "undo".
     pub ardupilot_corrected_mag: ArdupilotCorrectedMag,
-    /// Capacity of the sample queue from the links to the pipeline (messages). Default: 4096.
+    /// Capacity of the queue from the links to the pipeline (frames and samples). Default: 4096.
     pub queue_capacity: usize,
     /// A link with no bytes for this long is reported silent, s. Default: 3.
     pub silent_after_s: f64,

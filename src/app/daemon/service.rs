@@ -35,7 +35,7 @@ pub(super) fn open_store(d: &crate::config::DaemonConfig) -> Result<StoredCalibr
 pub(super) fn start_links(
     d: &crate::config::DaemonConfig,
     epoch: tokio::time::Instant,
-    tx: mpsc::Sender<Inbound>,
+    tx: InboundTx,
     stop: watch::Receiver<bool>,
 ) -> Result<Vec<LinkEntry>, Error> {
     let sources = if d.sources.is_empty() {
@@ -184,12 +184,12 @@ impl State {
     /// source ended). Returns the fit job still in flight.
     pub(super) async fn serve(
         &mut self,
-        mut rx: mpsc::Receiver<Inbound>,
+        mut rx: InboundRx,
         mut shutdown: watch::Receiver<bool>,
         tm: &mut Timers,
     ) -> FitJob {
         let mut fit_job: FitJob = None;
-        let mut inbox: Vec<Inbound> = Vec::with_capacity(INBOX_BATCH);
+        let mut inbox: Vec<Queued> = Vec::with_capacity(INBOX_BATCH);
         let mut opening: Vec<_> = self
             .links
             .iter()
@@ -214,7 +214,9 @@ impl State {
                         break;
                     }
                     let mut done = false;
-                    for ev in inbox.drain(..) {
+                    for q in inbox.drain(..) {
+                        // The item's room in the queue is given back once it is handled.
+                        let (ev, _room) = q.into_parts();
                         done = done || self.on_inbound(ev, &mut fit_job).await;
                     }
                     if done {
@@ -260,12 +262,14 @@ impl State {
                 self.line_stats.count_sample(&sample);
                 self.on_sample(0, sample);
             }
-            Inbound::Frame {
-                link,
-                frame,
-                time_us,
-            } => {
-                self.on_frame(link, &frame, time_us).await;
+            Inbound::Frames { link, frames } => {
+                for (i, f) in frames.iter().enumerate() {
+                    if i > 0 {
+                        // Each frame's attitude as it was due, as for frames queued one by one.
+                        self.attitude_if_due().await;
+                    }
+                    self.on_frame(link, &f.frame, f.time_us).await;
+                }
             }
             Inbound::Status { link, status } => {
                 // A link's opening is told before its first status: the `ready` line comes
