@@ -226,6 +226,11 @@ impl Default for LinkOptions {
     }
 }
 
+/// Longest UDP poll period: a 1 kHz stream queues at most 200 of the 256 datagrams Linux's
+/// default receive buffer holds between two reads, so none is lost before the adaptive shortening
+/// (see `poll_thresholds`) reacts to a faster one.
+pub const UDP_POLL_MAX: Duration = Duration::from_millis(200);
+
 /// A duration from seconds, clamped so that no input (NaN, negative, huge) can panic.
 fn secs(x: f64) -> Duration {
     if x.is_finite() && x > 0.0 {
@@ -262,7 +267,7 @@ impl Tuning {
         Tuning {
             silent,
             udp_poll: (o.udp_poll_s.is_finite() && o.udp_poll_s > 0.0)
-                .then(|| secs(o.udp_poll_s.min(0.1)).max(Duration::from_millis(1))),
+                .then(|| secs(o.udp_poll_s).clamp(POLL_MIN, UDP_POLL_MAX)),
             poll_epoch: o.poll_epoch,
             backoff_min: min,
             backoff_max: max,

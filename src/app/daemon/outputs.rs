@@ -180,8 +180,7 @@ impl Timers {
         polled: bool,
         epoch: tokio::time::Instant,
     ) -> Timers {
-        let poll = (polled && d.udp_poll_ms > 0.0 && d.attitude_every_samples == 0)
-            .then(|| Duration::from_secs_f64(d.udp_poll_ms / 1000.0));
+        let poll = Some(d.udp_poll()).filter(|p| polled && !p.is_zero());
         let mut outputs = [
             Output::new(epoch, d.heading_rate_hz),
             Output::new(epoch, d.progress_rate_hz),

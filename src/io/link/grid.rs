@@ -5,9 +5,9 @@
 //! and wakes the process once more, at the start of that level's slot (a multiple of 64 ms from the
 //! runtime's start), to move it to the finest level: with a 50 ms poll that is a second wake-up for
 //! about three polls in four (50/64), all the same work for the kernel as the poll's own. On Linux
-//! the grid is therefore kept by a `timerfd` (the kernel's timer, absolute times on the monotonic
-//! clock, which `std::time::Instant` reads): one wake-up per tick. Elsewhere, and when tokio's clock
-//! is paused (tests), tokio's timers keep it.
+//! the grid is therefore kept by a `timerfd` (the kernel's periodic timer on the monotonic clock,
+//! which `std::time::Instant` reads; the `timerfd` crate): one wake-up per tick. Elsewhere, and
+//! when tokio's clock is paused (tests), tokio's timers keep it.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -103,14 +103,7 @@ impl GridTimer {
         match &mut self.clock {
             #[cfg(target_os = "linux")]
             Clock::Kernel(fd) => {
-                if let Err(e) = fd.arm(due, period) {
-                    // Cannot happen with a valid descriptor and times; tokio's timers take over.
-                    tracing::debug!("timerfd could not be re-armed: {e}");
-                    self.clock = Clock::Tokio {
-                        next: Box::pin(tokio::time::sleep_until(due)),
-                        guard: Box::pin(tokio::time::sleep_until(due + period)),
-                    };
-                }
+                fd.arm(due, period);
             }
             Clock::Tokio { next, guard } => {
                 next.as_mut().reset(due);
@@ -163,124 +156,80 @@ fn clock_paused() -> bool {
 #[cfg(target_os = "linux")]
 mod kernel {
     use std::io;
-    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
     use std::time::Duration;
+    use timerfd::{ClockId, SetTimeFlags, TimerState};
     use tokio::io::unix::AsyncFd;
     use tokio::time::Instant;
 
-    /// A `timerfd` on the monotonic clock, watched by the tokio reactor.
+    /// A `timerfd` on the monotonic clock (the `timerfd` crate), watched by the tokio reactor.
     pub(super) struct TimerFd {
-        fd: AsyncFd<OwnedFd>,
-    }
-
-    fn timespec(d: Duration) -> libc::timespec {
-        libc::timespec {
-            tv_sec: d.as_secs() as libc::time_t,
-            tv_nsec: d.subsec_nanos() as libc::c_long,
-        }
-    }
-
-    /// The monotonic clock's reading, as a Duration since its origin.
-    fn monotonic_now() -> io::Result<Duration> {
-        let mut ts = libc::timespec {
-            tv_sec: 0,
-            tv_nsec: 0,
-        };
-        // SAFETY: `ts` is a live timespec for the call to fill.
-        if unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) } != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        Ok(Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32))
+        fd: AsyncFd<timerfd::TimerFd>,
+        /// Armed for the grid's next point while the first one asked for was already past: the
+        /// next wait returns at once.
+        due_now: bool,
     }
 
     impl TimerFd {
         pub(super) fn new(epoch: Instant, period: Duration) -> io::Result<TimerFd> {
-            // SAFETY: plain system call; the descriptor it returns is owned below.
-            let raw = unsafe {
-                libc::timerfd_create(
-                    libc::CLOCK_MONOTONIC,
-                    libc::TFD_NONBLOCK | libc::TFD_CLOEXEC,
-                )
-            };
-            if raw < 0 {
-                return Err(io::Error::last_os_error());
-            }
-            // SAFETY: `raw` is a new descriptor that nothing else owns.
-            let owned = unsafe { OwnedFd::from_raw_fd(raw) };
-            // SAFETY: `owned` is a valid open descriptor, owned by the AsyncFd from here on (and
-            // so open, and the same, for as long as the AsyncFd lives).
-            let fd =
-                unsafe { AsyncFd::register_with_interest(owned, tokio::io::Interest::READABLE) }
-                    .map_err(|e| e.into_parts().1)?;
-            let t = TimerFd { fd };
-            t.arm(epoch, period)?;
+            let fd = timerfd::TimerFd::new_custom(ClockId::Monotonic, true, true)?;
+            // The one unsafe left: tokio (1.54 on) asks its caller to vouch for the descriptor.
+            // SAFETY: `timerfd::TimerFd` owns its descriptor (an `OwnedFd` it never gives away or
+            // replaces), so it is open and the same for as long as the AsyncFd that owns it lives.
+            let fd = unsafe { AsyncFd::register_with_interest(fd, tokio::io::Interest::READABLE) }
+                .map_err(|e| e.into_parts().1)?;
+            let mut t = TimerFd { fd, due_now: false };
+            t.arm(epoch, period);
             Ok(t)
         }
 
-        /// Expire at `first` (at once when it is past) and every `period` after it.
-        pub(super) fn arm(&self, first: Instant, period: Duration) -> io::Result<()> {
-            // `first` on the monotonic clock: its distance from now, taken from now's reading
-            // (`Instant` reads the same clock; the two readings are a few hundred ns apart, far
-            // within the kernel's timer slack of 50 us, so timers armed on one grid expire
-            // together).
+        /// Expire at `first` and every `period` after it; when `first` is past, the next wait
+        /// returns at once and the timer expires at the following points `first + k * period`.
+        pub(super) fn arm(&mut self, first: Instant, period: Duration) {
+            // Armed relative to now (`Instant` reads the monotonic clock the timer runs on): the
+            // kernel's reading of now is a few hundred ns after ours, far within its timer slack
+            // of 50 us, so timers armed on one grid expire together, and periodic expirations keep
+            // the first one's phase.
             let now = Instant::now();
-            let mono = monotonic_now()?;
-            let first = match first.checked_duration_since(now) {
-                Some(ahead) => mono + ahead,
-                None => mono.saturating_sub(now - first),
+            self.due_now = first <= now;
+            let first = if self.due_now {
+                super::next_on_grid(first, period, now)
+            } else {
+                first
             };
-            // A zero it_value would disarm the timer: the monotonic clock's origin is far behind.
-            let first = first.max(Duration::from_nanos(1));
-            let spec = libc::itimerspec {
-                it_interval: timespec(period),
-                it_value: timespec(first),
-            };
-            // SAFETY: a live descriptor and a live itimerspec; the old value is not asked for.
-            let r = unsafe {
-                libc::timerfd_settime(
-                    self.fd.get_ref().as_raw_fd(),
-                    libc::TFD_TIMER_ABSTIME,
-                    &spec,
-                    std::ptr::null_mut(),
-                )
-            };
-            if r != 0 {
-                return Err(io::Error::last_os_error());
-            }
-            Ok(())
+            // A zero time would disarm the timer.
+            let current = first
+                .saturating_duration_since(now)
+                .max(Duration::from_nanos(1));
+            // (Setting the time fails only for a bad descriptor or times out of range, which
+            // neither an owned descriptor nor a Duration can be.)
+            self.fd.get_mut().set_state(
+                TimerState::Periodic {
+                    current,
+                    interval: period,
+                },
+                SetTimeFlags::Default,
+            );
         }
 
-        /// Wait until the timer expired (once or more) and take its count.
-        pub(super) async fn wait(&self) -> io::Result<u64> {
+        /// Wait until the timer expired (once or more) and take its count (0 for the first wait
+        /// after arming for a point already past).
+        pub(super) async fn wait(&mut self) -> io::Result<u64> {
+            if std::mem::take(&mut self.due_now) {
+                return Ok(0);
+            }
             loop {
                 let mut ready = self.fd.readable().await?;
-                let read = ready.try_io(|fd| {
-                    let mut count = 0u64;
-                    // SAFETY: reads at most 8 bytes into a live u64.
-                    let n = unsafe {
-                        libc::read(
-                            fd.get_ref().as_raw_fd(),
-                            (&mut count as *mut u64).cast(),
-                            std::mem::size_of::<u64>(),
-                        )
-                    };
-                    if n < 0 {
-                        Err(io::Error::last_os_error())
-                    } else {
-                        Ok(count)
-                    }
+                // The crate's nonblocking read gives 0 when nothing expired (readiness was stale):
+                // taken as "would block", it clears the readiness and the loop waits again.
+                let read = ready.try_io(|fd| match fd.get_ref().read() {
+                    0 => Err(io::ErrorKind::WouldBlock.into()),
+                    count => Ok(count),
                 });
-                match read {
-                    Ok(Ok(count)) => {
-                        // A read takes every expiration so far: the next one is a new event (a
-                        // later read would only find nothing, one more system call per tick).
-                        ready.clear_ready();
-                        return Ok(count);
-                    }
-                    Ok(Err(e)) if e.kind() == io::ErrorKind::Interrupted => {}
-                    Ok(Err(e)) => return Err(e),
-                    // Not expired after all (readiness was stale): wait again.
-                    Err(_would_block) => {}
+                if let Ok(count) = read {
+                    // A read takes every expiration so far: the next one is a new event (a later
+                    // read would only find nothing, one more system call per tick).
+                    ready.clear_ready();
+                    return count;
                 }
             }
         }

@@ -126,7 +126,6 @@ impl InboundRx {
     }
 
     /// An item if one is queued.
-    #[cfg(test)]
     pub fn try_recv(&mut self) -> Option<Queued> {
         self.items.try_recv().ok()
     }
