@@ -328,8 +328,9 @@ fn cpu_at_1khz(seconds: f64) {
     let lp = d.loop_cpu_s() - loop0;
     let rss = d.rss_mb();
     let lines = d.lines.load(std::sync::atomic::Ordering::Relaxed);
-    // The last datagrams wait in the kernel until the next read (`daemon.udp_poll_ms`).
-    std::thread::sleep(Duration::from_millis(100));
+    // The last datagrams wait in the kernel until the next read (`daemon.udp_poll_ms`, 200 ms at
+    // most).
+    std::thread::sleep(Duration::from_millis(300));
     let (taken, dropped) = d.stop();
     println!(
         "live CPU at 1 kHz: {:.3} CPU-s over {wall:.1} s wall = {:.2}% of one core; {:.1} us per sample; {sent} frames sent, {taken} samples taken, {dropped} dropped; RSS {rss:.1} MB; {lines} JSON lines out",

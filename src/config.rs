@@ -149,20 +149,59 @@ pub struct DaemonConfig {
     /// What to do with ArduPilot's magnetometer data, which comes with its calibration applied.
     /// Default: "undo".
     pub ardupilot_corrected_mag: ArdupilotCorrectedMag,
-    /// Capacity of the sample queue from the links to the pipeline (messages). Default: 4096.
+    /// Capacity of the queue from the links to the pipeline (frames and samples). Default: 4096.
     pub queue_capacity: usize,
     /// A link with no bytes for this long is reported silent, s. Default: 3.
     pub silent_after_s: f64,
     /// UDP sources: read the socket every this many ms, taking all that queued, instead of waking
     /// for every datagram (at 1 kHz waking costs more CPU than the samples); more often, down to
     /// 1 ms, while datagrams arrive fast enough to fill the kernel's buffer. 0 = wake per datagram;
-    /// ignored (0) when `attitude_every_samples` is set. At most 50. Default: 50.
-    pub udp_poll_ms: f64,
+    /// ignored (0) when `attitude_every_samples` is set. At most
+    /// [`crate::io::link::UDP_POLL_MAX`] (200 ms). Default (not set): the period of the fastest
+    /// periodic output (heading, attitude, progress; 100 ms with their defaults), as polling more
+    /// often than anything reads the state buys no latency a consumer sees; see
+    /// [`DaemonConfig::udp_poll`].
+    pub udp_poll_ms: Option<f64>,
     /// Streams faster than this are averaged over equal blocks of samples to about this rate
     /// before the calibration and the attitude filter see them (a 1 kHz IMU in blocks of ten;
     /// [`crate::calib::blockmean`] says why nothing is lost); slower ones pass unchanged. Hz;
     /// 0 = every sample; ignored (0) when `attitude_every_samples` is set. Default: 100.
     pub pipeline_rate_hz: f64,
+}
+
+impl DaemonConfig {
+    /// How often UDP sources are read ([`DaemonConfig::udp_poll_ms`]); zero: every datagram wakes
+    /// the service (set so, or `attitude_every_samples` set). Not set: the period of the fastest
+    /// periodic output, at most [`crate::io::link::UDP_POLL_MAX`] and at least 1 ms.
+    pub fn udp_poll(&self) -> std::time::Duration {
+        use std::time::Duration;
+        if self.attitude_every_samples > 0 {
+            return Duration::ZERO;
+        }
+        match self.udp_poll_ms {
+            Some(ms) if ms.is_finite() && ms > 0.0 => {
+                Duration::from_secs_f64(ms.min(1.0e6) / 1000.0).min(crate::io::link::UDP_POLL_MAX)
+            }
+            Some(_) => Duration::ZERO,
+            None => {
+                let fastest_hz = [
+                    self.heading_rate_hz,
+                    self.attitude_rate_hz,
+                    self.progress_rate_hz,
+                ]
+                .into_iter()
+                .filter(|hz| hz.is_finite() && *hz > 0.0)
+                .fold(0.0, f64::max);
+                let period_s = if fastest_hz > 0.0 {
+                    1.0 / fastest_hz
+                } else {
+                    f64::INFINITY
+                };
+                Duration::from_secs_f64(period_s.clamp(0.001, 1.0e6))
+                    .min(crate::io::link::UDP_POLL_MAX)
+            }
+        }
+    }
 }
 
 /// The per-user state directory's `imucald/calibration` (see [`DaemonConfig::calibration_dir`]).
@@ -201,7 +240,7 @@ impl Default for DaemonConfig {
             ardupilot_corrected_mag: ArdupilotCorrectedMag::Undo,
             queue_capacity: 4096,
             silent_after_s: 3.0,
-            udp_poll_ms: 50.0,
+            udp_poll_ms: None,
             pipeline_rate_hz: 100.0,
         }
     }
@@ -542,10 +581,14 @@ impl Config {
             }
         }
         positive("daemon.silent_after_s", d.silent_after_s)?;
-        if !(d.udp_poll_ms.is_finite() && (0.0..=50.0).contains(&d.udp_poll_ms)) {
+        let poll_max_ms = crate::io::link::UDP_POLL_MAX.as_secs_f64() * 1000.0;
+        if let Some(ms) = d.udp_poll_ms.filter(|ms| !(0.0..=poll_max_ms).contains(ms)) {
             return Err(err(
                 "daemon.udp_poll_ms",
-                format!("must be between 0 and 50 ms, got {}", d.udp_poll_ms),
+                format!(
+                    "must be between 0 (wake per datagram) and {poll_max_ms} ms (a 1 kHz stream \
+                     must not fill the kernel's receive buffer between two reads), got {ms}"
+                ),
             ));
         }
         if !(d.pipeline_rate_hz.is_finite() && (0.0..=100_000.0).contains(&d.pipeline_rate_hz)) {
@@ -934,5 +977,59 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("attitude_hz"), "{e}");
+    }
+
+    /// The UDP poll follows the fastest periodic output unless set; an explicit one is taken as it
+    /// is within 0..=200 ms; the latency mode never polls.
+    #[test]
+    fn udp_poll_defaults_to_the_fastest_output() {
+        let ms = std::time::Duration::from_millis;
+        let c = Config::from_toml_str("").unwrap();
+        assert_eq!(c.daemon.udp_poll_ms, None);
+        assert_eq!(c.daemon.udp_poll(), ms(100));
+        let c = Config::from_toml_str(
+            "[daemon]
+heading_rate_hz = 20.0
+",
+        )
+        .unwrap();
+        assert_eq!(c.daemon.udp_poll(), ms(50));
+        // Slow outputs: no longer than the longest poll allowed.
+        let c = Config::from_toml_str(
+            "[daemon]
+heading_rate_hz = 1.0
+attitude_rate_hz = 2.0
+progress_rate_hz = 0.5
+",
+        )
+        .unwrap();
+        assert_eq!(c.daemon.udp_poll(), crate::io::link::UDP_POLL_MAX);
+        let c = Config::from_toml_str(
+            "[daemon]
+udp_poll_ms = 20.0
+",
+        )
+        .unwrap();
+        assert_eq!(c.daemon.udp_poll(), ms(20));
+        let c = Config::from_toml_str(
+            "[daemon]
+udp_poll_ms = 0.0
+",
+        )
+        .unwrap();
+        assert_eq!(c.daemon.udp_poll(), ms(0));
+        let c = Config::from_toml_str(
+            "[daemon]
+attitude_every_samples = 10
+",
+        )
+        .unwrap();
+        assert_eq!(c.daemon.udp_poll(), ms(0));
+        for bad in ["-1.0", "nan", "200.5", "1e12"] {
+            let e = Config::from_toml_str(&format!("[daemon]\nudp_poll_ms = {bad}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("daemon.udp_poll_ms") && e.contains("200"), "{e}");
+        }
     }
 }

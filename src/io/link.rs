@@ -22,11 +22,15 @@ use crate::io::decode::{
 };
 
 mod address;
+mod grid;
+mod queue;
 mod text;
 mod udp_batch;
 use crate::error::Error;
 use crate::types::Sample;
 pub use address::*;
+pub(crate) use grid::GridTimer;
+pub(crate) use queue::{inbound_queue, InboundRx, InboundTx, Queued};
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -102,18 +106,24 @@ impl Payload {
 /// One item from a link to the service.
 #[derive(Debug, Clone)]
 pub(crate) enum Inbound {
-    /// A MAVLink frame; `time_us` is the arrival time (Unix microseconds) or, for `file:`, the
-    /// tlog timestamp.
-    Frame {
+    /// MAVLink frames read together (a UDP poll's datagrams, a stream's read, a replay's records
+    /// due at once; at most [`queue::FRAMES_PER_ITEM`]), in the order read.
+    Frames {
         link: usize,
-        /// Boxed: a MAVLink message is a few hundred bytes, moved several times on its way.
-        frame: Box<Frame>,
-        time_us: u64,
+        frames: Vec<TimedFrame>,
     },
     /// A sample from a text-line link, a CSV file or `sim:`.
     Sample { link: usize, sample: Sample },
     /// A change of the link's state.
     Status { link: usize, status: LinkStatus },
+}
+
+/// A MAVLink frame and its time: the arrival time (Unix microseconds) or, for `file:`, the tlog
+/// timestamp.
+#[derive(Debug, Clone)]
+pub(crate) struct TimedFrame {
+    pub time_us: u64,
+    pub frame: Frame,
 }
 
 /// State changes of a link.
@@ -216,6 +226,11 @@ impl Default for LinkOptions {
     }
 }
 
+/// Longest UDP poll period: a 1 kHz stream queues at most 200 of the 256 datagrams Linux's
+/// default receive buffer holds between two reads, so none is lost before the adaptive shortening
+/// (see `poll_thresholds`) reacts to a faster one.
+pub const UDP_POLL_MAX: Duration = Duration::from_millis(200);
+
 /// A duration from seconds, clamped so that no input (NaN, negative, huge) can panic.
 fn secs(x: f64) -> Duration {
     if x.is_finite() && x > 0.0 {
@@ -252,7 +267,7 @@ impl Tuning {
         Tuning {
             silent,
             udp_poll: (o.udp_poll_s.is_finite() && o.udp_poll_s > 0.0)
-                .then(|| secs(o.udp_poll_s.min(0.1)).max(Duration::from_millis(1))),
+                .then(|| secs(o.udp_poll_s).clamp(POLL_MIN, UDP_POLL_MAX)),
             poll_epoch: o.poll_epoch,
             backoff_min: min,
             backoff_max: max,
@@ -265,8 +280,8 @@ impl Tuning {
 
 /// Frames of one UDP datagram. Unlike the stream decoder, a datagram's end is a frame boundary:
 /// an unfinished frame there is counted `truncated`; each run of garbage counts one `resync`.
-/// Each frame goes to `emit` as it is found (boxed, as it will travel); returns how many.
-fn decode_datagram(buf: &[u8], stats: &mut DecodeStats, mut emit: impl FnMut(Box<Frame>)) -> u64 {
+/// Each frame goes to `emit` as it is found; returns how many.
+fn decode_datagram(buf: &[u8], stats: &mut DecodeStats, mut emit: impl FnMut(Frame)) -> u64 {
     let mut n_frames = 0;
     let mut pos = 0;
     let mut in_garbage = false;
@@ -309,7 +324,7 @@ use crate::io::clock::now_us;
 /// The link's fixed parts, shared by all its loops.
 struct Shared {
     index: usize,
-    inbound: mpsc::Sender<Inbound>,
+    inbound: InboundTx,
     counters: Arc<LinkCounters>,
     stats: Arc<Mutex<DecodeStats>>,
     tuning: Tuning,
@@ -319,16 +334,33 @@ struct Shared {
 }
 
 impl Shared {
-    /// Queue an item without waiting (live links). False when the service is gone.
+    /// Queue an item without waiting (live links); when there is no room it is dropped, each of
+    /// its frames counted. False when the service is gone.
     fn offer(&self, item: Inbound) -> bool {
+        let n = match &item {
+            Inbound::Frames { frames, .. } => frames.len() as u64,
+            Inbound::Sample { .. } | Inbound::Status { .. } => 1,
+        };
         match self.inbound.try_send(item) {
             Ok(()) => true,
-            Err(mpsc::error::TrySendError::Full(_)) => {
-                LinkCounters::add(&self.counters.inbound_dropped, 1);
+            Err(queue::Refused::Full) => {
+                LinkCounters::add(&self.counters.inbound_dropped, n);
                 true
             }
-            Err(mpsc::error::TrySendError::Closed(_)) => false,
+            Err(queue::Refused::Closed) => false,
         }
+    }
+
+    /// Queue a live link's frames read so far, if any (see [`Shared::offer`]).
+    fn offer_frames(&self, batch: &mut Vec<TimedFrame>) -> bool {
+        if batch.is_empty() {
+            return true;
+        }
+        let frames = std::mem::take(batch);
+        self.offer(Inbound::Frames {
+            link: self.index,
+            frames,
+        })
     }
 
     /// Tell how the first opening went (later ones are not told: the first is the start-up's).
@@ -396,16 +428,18 @@ impl Rx {
         }
     }
 
-    /// Decode bytes and queue what they hold. False when the service is gone.
+    /// Decode bytes and queue what they hold, as one item. False when the service is gone.
     fn on_bytes(&mut self, sh: &Shared, bytes: &[u8], datagram: bool) -> bool {
         let mut local = DecodeStats::default();
-        let open = self.take_bytes(sh, bytes, datagram, now_us(), &mut local);
+        let mut batch = Vec::new();
+        let open = self.take_bytes(sh, bytes, datagram, now_us(), &mut local, &mut batch);
         sh.merge(&local);
-        open
+        open && sh.offer_frames(&mut batch)
     }
 
-    /// [`Rx::on_bytes`] for bytes that arrived at `time_us` (Unix us), counted into `local`:
-    /// datagrams read together share one arrival time and one merge of their counts.
+    /// [`Rx::on_bytes`] for bytes that arrived at `time_us` (Unix us), counted into `local`, their
+    /// frames added to `batch` (queued once full; the caller queues the rest): datagrams read
+    /// together share one arrival time, one item and one merge of their counts.
     fn take_bytes(
         &mut self,
         sh: &Shared,
@@ -413,25 +447,26 @@ impl Rx {
         datagram: bool,
         time_us: u64,
         local: &mut DecodeStats,
+        batch: &mut Vec<TimedFrame>,
     ) -> bool {
         LinkCounters::add(&sh.counters.bytes_in, bytes.len() as u64);
         let mut open = true;
         match self {
             Rx::Mavlink(dec) => {
-                let mut offer = |frame: Box<Frame>| {
-                    open &= sh.offer(Inbound::Frame {
-                        link: sh.index,
-                        frame,
-                        time_us,
-                    });
+                let max = sh.inbound.max_batch();
+                let add = |frame: Frame| {
+                    batch.push(TimedFrame { time_us, frame });
+                    if batch.len() >= max {
+                        open &= sh.offer_frames(batch);
+                    }
                 };
                 let n = if datagram {
-                    decode_datagram(bytes, local, offer)
+                    decode_datagram(bytes, local, add)
                 } else {
                     let frames = dec.push(bytes);
                     merge_stats(local, &std::mem::take(&mut dec.stats));
                     let n = frames.len() as u64;
-                    frames.into_iter().for_each(|f| offer(Box::new(f)));
+                    frames.into_iter().for_each(add);
                     n
                 };
                 local.records += n;
@@ -638,7 +673,7 @@ pub(crate) fn spawn_link(
     index: usize,
     addr: Address,
     payload: Payload,
-    inbound: mpsc::Sender<Inbound>,
+    inbound: InboundTx,
     shutdown: watch::Receiver<bool>,
     opts: LinkOptions,
 ) -> LinkHandle {
@@ -1023,22 +1058,6 @@ const POLL_MIN: Duration = Duration::from_millis(1);
 /// How long a shortened poll period is kept after the last busy read before it may grow again, so
 /// a sender that pauses briefly does not come back to a long period (and a full buffer).
 const POLL_HOLD: Duration = Duration::from_secs(2);
-/// The first point of the grid `epoch + k * every` after `now` (`now + every` when `now` is before
-/// the epoch or `every` is zero).
-fn next_on_grid(
-    epoch: tokio::time::Instant,
-    every: Duration,
-    now: tokio::time::Instant,
-) -> tokio::time::Instant {
-    let (since, step) = (now.saturating_duration_since(epoch), every.as_nanos());
-    if now < epoch || step == 0 {
-        return now + every;
-    }
-    let k = since.as_nanos() / step + 1;
-    // (k * step is at most `since + every`, so it fits a Duration whenever `now + every` does.)
-    epoch + Duration::from_nanos(u64::try_from(k * step).unwrap_or(u64::MAX))
-}
-
 /// Receive buffer asked for on a polled socket, bytes (the kernel caps it at `net.core.rmem_max`).
 const POLL_RECEIVE_BUFFER: usize = 1 << 20;
 
@@ -1076,32 +1095,30 @@ async fn serve_udp_polled(
         .tuning
         .poll_epoch
         .unwrap_or_else(tokio::time::Instant::now);
-    let next = tokio::time::sleep(Duration::ZERO);
-    tokio::pin!(next);
-    // A second timer, never awaited, kept one period past `next`. When `next` fires, the timer
-    // driver's next wake-up becomes the earliest timer left; without this one that is later than
-    // the next poll (or none), and re-arming `next` earlier than it makes tokio wake its driver
-    // (an eventfd write and one more epoll_wait per poll). With it, re-arming is never earlier, and
-    // moving `guard` later only extends a pending timer.
-    let guard = tokio::time::sleep_until(next_on_grid(epoch, every, tokio::time::Instant::now()));
-    tokio::pin!(guard);
+    // The first poll at once (at the epoch, or on the grid's first point passed).
+    let mut polls = GridTimer::new(epoch, every);
     loop {
         tokio::select! {
             biased;
             _ = wait_stop(&mut ctl.shutdown) => return End::Stop,
-            _ = &mut next => {
+            _ = polls.tick() => {
                 let mut taken = 0usize;
                 let mut local = DecodeStats::default();
+                let mut frames = Vec::new();
                 loop {
                     let n = match batch.recv(&sock) {
                         Ok(n) => n,
                         Err(e) if transient_udp_error(&e) => break,
                         Err(e) => {
                             sh.merge(&local);
+                            if !sh.offer_frames(&mut frames) {
+                                return End::Stop;
+                            }
                             return End::Lost(format!("udp receive failed: {e}"));
                         }
                     };
                     let time_us = now_us();
+                    frames.reserve(n.min(sh.inbound.max_batch()));
                     for i in 0..n {
                         let (bytes, from) = batch.get(i);
                         if let Some(from) = from.filter(|f| target.is_none() && peer != Some(*f)) {
@@ -1109,7 +1126,7 @@ async fn serve_udp_polled(
                             peer = Some(from);
                         }
                         taken += 1;
-                        if !rx.take_bytes(sh, bytes, true, time_us, &mut local) {
+                        if !rx.take_bytes(sh, bytes, true, time_us, &mut local, &mut frames) {
                             return End::Stop;
                         }
                     }
@@ -1118,6 +1135,9 @@ async fn serve_udp_polled(
                     }
                 }
                 sh.merge(&local);
+                if !sh.offer_frames(&mut frames) {
+                    return End::Stop;
+                }
                 if taken > shrink_above {
                     // Aim at about half the threshold per read at the rate just seen.
                     let aim = (shrink_above / 2) as u32;
@@ -1126,9 +1146,7 @@ async fn serve_udp_polled(
                 } else if taken < grow_below && Instant::now() >= fast_until {
                     every = (every * 2).min(period);
                 }
-                let due = next_on_grid(epoch, every, tokio::time::Instant::now());
-                next.as_mut().reset(due);
-                guard.as_mut().reset(due + every);
+                polls.set_period(every);
                 let got = taken > 0;
                 if got {
                     last = Instant::now();
@@ -1199,7 +1217,13 @@ impl Pacer {
 
     /// Wait until `t_s` is due. False on shutdown.
     async fn wait(&mut self, sh: &Shared, ctl: &mut Control, t_s: f64) -> bool {
-        match self.deadline(t_s) {
+        let due = self.deadline(t_s);
+        self.wait_until(sh, ctl, due).await
+    }
+
+    /// Wait until `due` (a [`Pacer::deadline`]; none: no wait). False on shutdown.
+    async fn wait_until(&self, sh: &Shared, ctl: &mut Control, due: Option<Instant>) -> bool {
+        match due {
             Some(d) if d > Instant::now() => {
                 guarded(ctl, &sh.counters, tokio::time::sleep_until(d))
                     .await
@@ -1347,30 +1371,43 @@ async fn run_file(
     }
 }
 
+/// Replay a tlog's records paced by their timestamps; the records due together (all of them at
+/// speed 0) go as one item, up to the queue's batch size.
 async fn replay_tlog(sh: &Shared, ctl: &mut Control, data: &[u8], speed: f64) -> bool {
     let mut records = TlogRecords::new(data);
     let mut pacer = Pacer::new(speed);
-    let mut ok = true;
+    let mut batch: Vec<TimedFrame> = Vec::new();
+    let max = sh.inbound.max_batch();
     while let Some((ts, frame)) = records.next() {
         // Publish the records and skips so far.
         sh.merge(&std::mem::take(&mut records.stats));
-        if !pacer.wait(sh, ctl, ts as f64 * 1e-6).await {
-            ok = false;
-            break;
+        let due = pacer.deadline(ts as f64 * 1e-6);
+        let wait = due.is_some_and(|d| d > Instant::now());
+        if (wait || batch.len() >= max)
+            && !(deliver_frames(sh, ctl, &mut batch).await && pacer.wait_until(sh, ctl, due).await)
+        {
+            sh.merge(&records.stats);
+            return false;
         }
         LinkCounters::add(&sh.counters.frames_in, 1);
-        let item = Inbound::Frame {
-            link: sh.index,
-            frame,
+        batch.push(TimedFrame {
             time_us: ts,
-        };
-        if !deliver(sh, ctl, item).await {
-            ok = false;
-            break;
-        }
+            frame: *frame,
+        });
     }
     sh.merge(&records.stats);
-    ok
+    deliver_frames(sh, ctl, &mut batch).await
+}
+
+/// Queue a replay's frames so far, if any, waiting for room. False on shutdown or when the
+/// service is gone.
+async fn deliver_frames(sh: &Shared, ctl: &mut Control, batch: &mut Vec<TimedFrame>) -> bool {
+    if batch.is_empty() {
+        return true;
+    }
+    let frames = std::mem::take(batch);
+    let link = sh.index;
+    deliver(sh, ctl, Inbound::Frames { link, frames }).await
 }
 
 /// Emit samples paced by their `t_s`. False on shutdown.

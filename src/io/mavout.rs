@@ -862,7 +862,7 @@ mod tests {
         match parse_frame(bytes) {
             FrameParse::Frame(f, n) => {
                 assert_eq!(n, bytes.len());
-                *f
+                f
             }
             other => panic!("{other:?}"),
         }

@@ -58,7 +58,8 @@ use crate::error::Error;
 use crate::io::clock::{ClockSettings, SourceClock};
 use crate::io::decode::{InstanceChoice, MessageConverter};
 use crate::io::link::{
-    spawn_link, Address, Inbound, LinkHandle, LinkOpening, LinkOptions, LinkStatus, Payload,
+    inbound_queue, spawn_link, Address, Inbound, InboundRx, InboundTx, LinkHandle, LinkOpening,
+    LinkOptions, LinkStatus, Payload, Queued,
 };
 use crate::io::mavout::{self, LiveEvent, MavEncoder, ParamWriter};
 use crate::report::{GyroCalibration, SensorCalibration};
@@ -423,7 +424,7 @@ pub async fn run_reporting_ready(
         None => None,
     };
     sinks.extend(ui.as_ref().map(|u| Sink::ui(u.feed())));
-    let (tx, rx) = mpsc::channel::<Inbound>(cfg.daemon.queue_capacity);
+    let (tx, rx) = inbound_queue(cfg.daemon.queue_capacity);
     // The time grid the UDP polls and the periodic outputs share.
     let epoch = tokio::time::Instant::now();
     let (link_stop_tx, link_stop_rx) = watch::channel(false);

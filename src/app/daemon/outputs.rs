@@ -164,7 +164,8 @@ impl Averager {
 /// more ahead, would cost tokio's timer wheel a wake-up of its own to move it to its finest level).
 /// Any other keeps a timer of its own, so every output stays evenly spaced.
 pub(super) struct Timers {
-    pub(super) clock: tokio::time::Interval,
+    /// On the polls' grid ([`crate::io::link::GridTimer`]: one wake-up per tick on Linux).
+    pub(super) clock: crate::io::link::GridTimer,
     pub(super) heading: Output,
     pub(super) progress: Output,
     pub(super) attitude: Output,
@@ -179,8 +180,7 @@ impl Timers {
         polled: bool,
         epoch: tokio::time::Instant,
     ) -> Timers {
-        let poll = (polled && d.udp_poll_ms > 0.0 && d.attitude_every_samples == 0)
-            .then(|| Duration::from_secs_f64(d.udp_poll_ms / 1000.0));
+        let poll = Some(d.udp_poll()).filter(|p| polled && !p.is_zero());
         let mut outputs = [
             Output::new(epoch, d.heading_rate_hz),
             Output::new(epoch, d.progress_rate_hz),
@@ -197,8 +197,7 @@ impl Timers {
             o.use_clock(epoch, clock_period);
         }
         let [heading, progress, attitude] = outputs;
-        let mut clock = tokio::time::interval_at(epoch, clock_period);
-        clock.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+        let clock = crate::io::link::GridTimer::new(epoch, clock_period);
         Timers {
             clock,
             heading,

@@ -35,7 +35,7 @@ pub(super) fn open_store(d: &crate::config::DaemonConfig) -> Result<StoredCalibr
 pub(super) fn start_links(
     d: &crate::config::DaemonConfig,
     epoch: tokio::time::Instant,
-    tx: mpsc::Sender<Inbound>,
+    tx: InboundTx,
     stop: watch::Receiver<bool>,
 ) -> Result<Vec<LinkEntry>, Error> {
     let sources = if d.sources.is_empty() {
@@ -57,11 +57,8 @@ pub(super) fn start_links(
         let opts = LinkOptions {
             silent_after_s: d.silent_after_s,
             // A consumer of per-sample attitude wants each sample at once.
-            udp_poll_s: if d.attitude_every_samples > 0 {
-                0.0
-            } else {
-                d.udp_poll_ms / 1000.0
-            },
+            // (Zero, every datagram at once, for a consumer of per-sample attitude.)
+            udp_poll_s: d.udp_poll().as_secs_f64(),
             poll_epoch: Some(epoch),
             ..LinkOptions::default()
         };
@@ -184,12 +181,12 @@ impl State {
     /// source ended). Returns the fit job still in flight.
     pub(super) async fn serve(
         &mut self,
-        mut rx: mpsc::Receiver<Inbound>,
+        mut rx: InboundRx,
         mut shutdown: watch::Receiver<bool>,
         tm: &mut Timers,
     ) -> FitJob {
         let mut fit_job: FitJob = None;
-        let mut inbox: Vec<Inbound> = Vec::with_capacity(INBOX_BATCH);
+        let mut inbox: Vec<Queued> = Vec::with_capacity(INBOX_BATCH);
         let mut opening: Vec<_> = self
             .links
             .iter()
@@ -210,14 +207,7 @@ impl State {
                     if *shutdown.borrow() { break; }
                 }
                 n = rx.recv_many(&mut inbox, INBOX_BATCH) => {
-                    if n == 0 {
-                        break;
-                    }
-                    let mut done = false;
-                    for ev in inbox.drain(..) {
-                        done = done || self.on_inbound(ev, &mut fit_job).await;
-                    }
-                    if done {
+                    if n == 0 || self.on_inbox(&mut inbox, &mut fit_job).await {
                         break;
                     }
                 }
@@ -226,7 +216,12 @@ impl State {
                     self.fits_done(r).await;
                 }
                 _ = all_opened(&mut opening), if !self.ready.told => self.tell_ready_if_open(),
-                t = tm.clock.tick() => self.on_clock(t, tm).await,
+                t = tm.clock.tick() => {
+                    if self.take_polled(&mut rx, &mut inbox, &mut fit_job).await {
+                        break;
+                    }
+                    self.on_clock(t, tm).await
+                }
                 _ = tm.heading.own_tick(), if tm.heading.own.is_some() => self.on_heading_tick().await,
                 _ = tm.progress.own_tick(), if tm.progress.own.is_some() => self.publish_progress().await,
                 _ = tm.attitude.own_tick(), if tm.attitude.own.is_some() => self.publish_attitudes().await,
@@ -239,6 +234,40 @@ impl State {
         }
         self.flush_mav();
         fit_job
+    }
+
+    /// Handles the items taken from the queue; true when the service is to stop.
+    async fn on_inbox(&mut self, inbox: &mut Vec<Queued>, fit_job: &mut FitJob) -> bool {
+        let mut done = false;
+        for q in inbox.drain(..) {
+            // The item's room in the queue is given back once it is handled.
+            let (ev, _room) = q.into_parts();
+            done = done || self.on_inbound(ev, fit_job).await;
+        }
+        done
+    }
+
+    /// At a clock tick, before the outputs read the state: the UDP polls on the same grid point
+    /// woke their links in the same wake-up; they run first (one yield) and what they queued is
+    /// handled, so the outputs see the frames of this tick's poll rather than one poll late. True
+    /// when the service is to stop.
+    async fn take_polled(
+        &mut self,
+        rx: &mut InboundRx,
+        inbox: &mut Vec<Queued>,
+        fit_job: &mut FitJob,
+    ) -> bool {
+        if !self.links.iter().any(|l| l.polled && !l.ended) {
+            return false;
+        }
+        tokio::task::yield_now().await;
+        while inbox.len() < INBOX_BATCH {
+            match rx.try_recv() {
+                Some(q) => inbox.push(q),
+                None => break,
+            }
+        }
+        self.on_inbox(inbox, fit_job).await
     }
 
     async fn attitude_if_due(&mut self) {
@@ -260,12 +289,14 @@ impl State {
                 self.line_stats.count_sample(&sample);
                 self.on_sample(0, sample);
             }
-            Inbound::Frame {
-                link,
-                frame,
-                time_us,
-            } => {
-                self.on_frame(link, &frame, time_us).await;
+            Inbound::Frames { link, frames } => {
+                for (i, f) in frames.iter().enumerate() {
+                    if i > 0 {
+                        // Each frame's attitude as it was due, as for frames queued one by one.
+                        self.attitude_if_due().await;
+                    }
+                    self.on_frame(link, &f.frame, f.time_us).await;
+                }
             }
             Inbound::Status { link, status } => {
                 // A link's opening is told before its first status: the `ready` line comes

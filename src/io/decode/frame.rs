@@ -74,9 +74,10 @@ pub struct Frame {
 
 /// Result of looking for one frame at the start of a buffer.
 #[derive(Debug)]
+#[allow(clippy::large_enum_variant)] // The frame is moved once, into where it is kept: no box.
 pub enum FrameParse {
     /// A good frame and the number of bytes it used.
-    Frame(Box<Frame>, usize),
+    Frame(Frame, usize),
     /// The buffer holds the start of a frame but not all of it.
     Incomplete,
     /// Not a frame here (or a damaged one): skip `usize` bytes, counted under the reason.
@@ -168,12 +169,12 @@ pub fn parse_frame(buf: &[u8]) -> FrameParse {
     }
     match MavMessage::parse(version, msgid, payload) {
         Ok(message) => FrameParse::Frame(
-            Box::new(Frame {
+            Frame {
                 version,
                 system_id: sys,
                 component_id: comp,
                 message,
-            }),
+            },
             total,
         ),
         Err(_) => FrameParse::Skip(total, SkipReason::BadPayload),
@@ -219,7 +220,7 @@ impl FrameDecoder {
         while pos < self.buf.len() {
             match parse_frame(&self.buf[pos..]) {
                 FrameParse::Frame(f, n) => {
-                    out.push(*f);
+                    out.push(f);
                     pos += n;
                 }
                 FrameParse::Incomplete => break,

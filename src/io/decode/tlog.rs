@@ -191,7 +191,7 @@ impl TlogReader<'_> {
                     self.cursor.last_ts = Some(ts);
                     self.cursor.pos += 8 + len;
                     self.stats.records += 1;
-                    return Some((ts, f));
+                    return Some((ts, Box::new(f)));
                 }
                 FrameParse::Incomplete => {
                     self.stats.skip("truncated");

@@ -7,24 +7,6 @@ use mavlink::dialects::ardupilotmega as apm;
 use mavlink::MavlinkVersion;
 use std::sync::atomic::Ordering::Relaxed;
 
-/// Polls land on the shared grid, strictly after now, whatever the phase of `now`.
-#[test]
-fn polls_land_on_the_shared_grid() {
-    let epoch = tokio::time::Instant::now();
-    let ms = Duration::from_millis;
-    assert_eq!(next_on_grid(epoch, ms(10), epoch), epoch + ms(10));
-    assert_eq!(next_on_grid(epoch, ms(10), epoch + ms(3)), epoch + ms(10));
-    assert_eq!(next_on_grid(epoch, ms(10), epoch + ms(10)), epoch + ms(20));
-    assert_eq!(
-        next_on_grid(epoch, ms(10), epoch + ms(1234)),
-        epoch + ms(1240)
-    );
-    // Before the epoch, or no period: one period from now.
-    let later = epoch + ms(50);
-    assert_eq!(next_on_grid(later, ms(10), epoch), epoch + ms(10));
-    assert_eq!(next_on_grid(epoch, Duration::ZERO, later), later);
-}
-
 const WAIT: Duration = Duration::from_secs(5);
 
 fn frame_bytes(msg: &apm::MavMessage, v: MavlinkVersion) -> Vec<u8> {
@@ -63,29 +45,38 @@ fn fast_opts() -> LinkOptions {
 }
 
 struct Rig {
-    rx: mpsc::Receiver<Inbound>,
+    rx: InboundRx,
+    /// Frames of an item taken, not yet looked at.
+    pending: std::collections::VecDeque<TimedFrame>,
     stop: watch::Sender<bool>,
     handle: LinkHandle,
 }
 
 fn start(addr: Address, payload: Payload, opts: LinkOptions, capacity: usize) -> Rig {
-    let (tx, rx) = mpsc::channel(capacity);
+    let (tx, rx) = inbound_queue(capacity);
     let (stop, stop_rx) = watch::channel(false);
     let handle = spawn_link(7, addr, payload, tx, stop_rx, opts);
-    Rig { rx, stop, handle }
+    Rig {
+        rx,
+        pending: Default::default(),
+        stop,
+        handle,
+    }
 }
 
 impl Rig {
+    /// The next item (its room in the queue given back at once).
     async fn next(&mut self) -> Inbound {
         match tokio::time::timeout(WAIT, self.rx.recv()).await {
-            Ok(Some(i)) => i,
+            Ok(Some(q)) => q.into_parts().0,
             Ok(None) => panic!("inbound channel closed"),
             Err(_) => panic!("nothing from the link within {WAIT:?}"),
         }
     }
 
-    /// The next status, skipping data items.
+    /// The next status, skipping data items (and the frames not looked at yet).
     async fn status(&mut self) -> LinkStatus {
+        self.pending.clear();
         loop {
             if let Inbound::Status { link, status } = self.next().await {
                 assert_eq!(link, 7);
@@ -94,18 +85,20 @@ impl Rig {
         }
     }
 
+    /// The next frame, from the item taken last or the next one.
     async fn frame(&mut self) -> (Frame, u64) {
-        match self.next().await {
-            Inbound::Frame {
-                link,
-                frame,
-                time_us,
-            } => {
-                assert_eq!(link, 7);
-                (*frame, time_us)
+        if self.pending.is_empty() {
+            match self.next().await {
+                Inbound::Frames { link, frames } => {
+                    assert_eq!(link, 7);
+                    assert!(!frames.is_empty(), "an empty batch was queued");
+                    self.pending.extend(frames);
+                }
+                other => panic!("expected frames, got {other:?}"),
             }
-            other => panic!("expected a frame, got {other:?}"),
         }
+        let f = self.pending.pop_front().expect("a frame");
+        (f.frame, f.time_us)
     }
 
     /// Stop the link and check that its task ends promptly and without a panic.
@@ -561,6 +554,51 @@ async fn udp_full_inbound_drops_and_counts_without_blocking() {
 }
 
 #[tokio::test]
+async fn frames_of_one_read_go_as_one_item_and_a_full_queue_drops_whole_items() {
+    // Room for 4 frames: a datagram of 5 is queued as an item of 4 (the most an item holds in such
+    // a queue) and one of 1, which finds no room while the first is not handled: dropped, counted.
+    let port = free_udp_port();
+    let addr = Address::UdpIn(format!("127.0.0.1:{port}").parse().unwrap());
+    let mut rig = start(addr, Payload::Mavlink, fast_opts(), 4);
+    assert!(matches!(rig.status().await, LinkStatus::Connected(_)));
+    let client = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let dgram: Vec<u8> = (0..5)
+        .flat_map(|i| frame_bytes(&imu(i as f32), MavlinkVersion::V2))
+        .collect();
+    client.send_to(&dgram, ("127.0.0.1", port)).await.unwrap();
+    let c = rig.handle.counters.clone();
+    until("the reader takes the datagram", || {
+        c.frames_in.load(Relaxed) >= 5
+    })
+    .await;
+    match rig.next().await {
+        Inbound::Frames { frames, .. } => {
+            let xs: Vec<f32> = frames
+                .iter()
+                .map(|f| match &f.frame.message {
+                    apm::MavMessage::HIGHRES_IMU(d) => d.xacc,
+                    other => panic!("{other:?}"),
+                })
+                .collect();
+            assert_eq!(xs, [0.0, 1.0, 2.0, 3.0]);
+            assert!(frames.iter().all(|f| f.time_us == frames[0].time_us));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(c.inbound_dropped.load(Relaxed), 1);
+    // The queue is empty again: the next datagram comes whole, as one item.
+    client
+        .send_to(&dgram[..dgram.len() / 5 * 2], ("127.0.0.1", port))
+        .await
+        .unwrap();
+    match rig.next().await {
+        Inbound::Frames { frames, .. } => assert_eq!(frames.len(), 2),
+        other => panic!("{other:?}"),
+    }
+    rig.stop().await;
+}
+
+#[tokio::test]
 async fn udpout_sends_to_target_and_reports_silence_once_per_gap() {
     let peer = UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let target = peer.local_addr().unwrap();
@@ -662,7 +700,7 @@ async fn tcpout_refused_is_lost_once_and_outbound_dropped_while_down() {
     until("retries with backoff", || c.reconnects.load(Relaxed) >= 2).await;
     assert_eq!(c.outbound_dropped.load(Relaxed), 1);
     // Repeated failures are not reported again.
-    assert!(rig.rx.try_recv().is_err());
+    assert!(rig.rx.try_recv().is_none());
     rig.stop().await;
 }
 
@@ -976,7 +1014,7 @@ async fn live_links_stop_promptly() {
         .unwrap();
     assert!(t0.elapsed() < Duration::from_millis(100));
     // Already stopped before it started: returns at once.
-    let (tx, _rx) = mpsc::channel(1);
+    let (tx, _rx) = inbound_queue(1);
     let (_s, stop_rx) = watch::channel(true);
     let h = spawn_link(
         0,
