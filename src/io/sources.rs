@@ -396,7 +396,7 @@ pub(crate) fn decode_file_batched(
             b.flush(sink, (conv.instances(), conv.units()), (total, total));
             tlog_log(conv, date, b.any, path)
         }
-        Format::Bin => {
+        Format::Bin | Format::Ulg => {
             let (read, total) = (opened.read.clone(), opened.total as usize);
             let mut b = Batcher::new();
             let mut seen = 0usize;
@@ -407,28 +407,14 @@ pub(crate) fn decode_file_batched(
                     b.flush(sink, placeholder_instances(seen), (at, total));
                 }
             };
-            let (flight, error) =
-                crate::io::flightlog::decode_dataflash_stream(opened.reader, &mut emit);
-            if let Some(e) = error {
-                return Err(io_err(e));
-            }
-            b.flush(sink, placeholder_instances(seen), (total, total));
-            flight_log(flight, format, b.any, path)
-        }
-        Format::Ulg => {
-            let (read, total) = (opened.read.clone(), opened.total as usize);
-            let mut b = Batcher::new();
-            let mut seen = 0usize;
-            let mut emit = |k: usize, s: Sample, _: usize, primary: Option<usize>| {
-                seen = seen.max(k + 1);
-                if b.push(k, s, primary) {
-                    let at = (read.get() as usize).min(total);
-                    b.flush(sink, placeholder_instances(seen), (at, total));
-                }
+            let decoded = match format {
+                Format::Bin => Some(crate::io::flightlog::decode_dataflash_stream(
+                    opened.reader,
+                    &mut emit,
+                )),
+                _ => crate::io::flightlog::decode_ulog_stream(opened.reader, &mut emit),
             };
-            let Some((flight, error)) =
-                crate::io::flightlog::decode_ulog_stream(opened.reader, &mut emit)
-            else {
+            let Some((flight, error)) = decoded else {
                 return Err(not_ulog(path));
             };
             if let Some(e) = error {

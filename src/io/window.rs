@@ -41,3 +41,88 @@ pub(crate) fn fill_window(
         }
     }
 }
+
+/// The bytes a log reader reads: a whole file's bytes, or a stream read through a bounded
+/// window that [`Window::refill`] moves on (the DataFlash and ULog readers).
+pub(crate) struct Window<'a> {
+    /// Whole bytes (empty for a stream).
+    data: &'a [u8],
+    stream: Option<Stream<'a>>,
+}
+
+/// A stream a [`Window`] reads, and where its buffer stands in it.
+struct Stream<'a> {
+    reader: Box<dyn std::io::Read + 'a>,
+    buf: Vec<u8>,
+    /// Offset of `buf` in the stream.
+    base: usize,
+    eof: bool,
+    error: Option<std::io::Error>,
+}
+
+impl<'a> Window<'a> {
+    /// A window that is all of `data`.
+    pub fn whole(data: &'a [u8]) -> Self {
+        Window { data, stream: None }
+    }
+
+    /// A window over the stream `reader` gives, empty until the first [`Window::refill`].
+    pub fn stream(reader: impl std::io::Read + 'a) -> Self {
+        Window {
+            data: &[],
+            stream: Some(Stream {
+                reader: Box::new(reader),
+                buf: Vec::new(),
+                base: 0,
+                eof: false,
+                error: None,
+            }),
+        }
+    }
+
+    /// The bytes in the window.
+    pub fn bytes(&self) -> &[u8] {
+        match &self.stream {
+            Some(s) => &s.buf,
+            None => self.data,
+        }
+    }
+
+    /// Read more of a stream when fewer than `need` bytes are left after `pos` (an offset in the
+    /// window, moved with it as the bytes before it are dropped).
+    pub fn refill(&mut self, pos: &mut usize, need: usize) {
+        let Some(s) = self.stream.as_mut() else {
+            return;
+        };
+        if s.eof || s.buf.len() - *pos >= need {
+            return;
+        }
+        fill_window(
+            &mut s.reader,
+            &mut s.buf,
+            (pos, &mut s.base),
+            &mut s.eof,
+            &mut s.error,
+        );
+    }
+
+    /// The offset in the input of `pos`, an offset in the window.
+    pub fn offset(&self, pos: usize) -> usize {
+        pos + self.stream.as_ref().map_or(0, |s| s.base)
+    }
+
+    /// The whole input is in the window (whole bytes, or a stream read to its end).
+    pub fn at_end(&self) -> bool {
+        self.stream.as_ref().is_none_or(|s| s.eof)
+    }
+
+    /// The input's length, once all of it is in the window.
+    pub fn known_len(&self) -> Option<usize> {
+        self.at_end().then(|| self.offset(self.bytes().len()))
+    }
+
+    /// The error that ended a stream early, if one did (taken).
+    pub fn take_error(&mut self) -> Option<std::io::Error> {
+        self.stream.as_mut().and_then(|s| s.error.take())
+    }
+}

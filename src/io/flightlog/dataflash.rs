@@ -13,6 +13,7 @@
 //! record: what came before is kept). The state is bounded: at most 256 formats.
 
 use super::number::Number;
+use crate::io::window::Window;
 use std::collections::BTreeMap;
 
 /// The two bytes that start every record.
@@ -286,16 +287,6 @@ impl Meta {
 /// The longest record: its length is one byte.
 const MAX_RECORD: usize = 255;
 
-/// A stream a [`DfReader`] reads through a window, rather than whole bytes.
-struct Stream<'a> {
-    reader: Box<dyn std::io::Read + 'a>,
-    buf: Vec<u8>,
-    /// Offset of `buf` in the stream.
-    base: usize,
-    eof: bool,
-    error: Option<std::io::Error>,
-}
-
 /// The FMT payload a type was defined by, and the instance column that gave.
 #[derive(Debug, Clone)]
 struct Definition {
@@ -306,9 +297,8 @@ struct Definition {
 /// Reads the records of a DataFlash log in order ([`DfReader::next_record`]), from whole bytes
 /// or from a stream through a window of [`crate::io::window::STREAM_CHUNK_BYTES`].
 pub struct DfReader<'a> {
-    data: &'a [u8],
-    stream: Option<Stream<'a>>,
-    /// Offset of the next record in the window (`data`, or the stream's buffer).
+    win: Window<'a>,
+    /// Offset of the next record in the window.
     pos: usize,
     formats: Vec<Option<MessageFormat>>,
     /// Per type id, the FMT payload that defined it and the instance column it gave: an FMT
@@ -322,6 +312,15 @@ pub struct DfReader<'a> {
 
 impl<'a> DfReader<'a> {
     pub fn new(data: &'a [u8]) -> Self {
+        Self::over(Window::whole(data))
+    }
+
+    /// A reader of the log `reader` gives, holding a window of it rather than the whole.
+    pub fn from_reader(reader: impl std::io::Read + 'a) -> Self {
+        Self::over(Window::stream(reader))
+    }
+
+    fn over(win: Window<'a>) -> Self {
         let mut formats = vec![None; 256];
         formats[FMT_TYPE as usize] = MessageFormat::new(
             FMT_TYPE,
@@ -333,8 +332,7 @@ impl<'a> DfReader<'a> {
         let mut meta = [Meta::None; 256];
         meta[FMT_TYPE as usize] = Meta::Fmt;
         DfReader {
-            data,
-            stream: None,
+            win,
             pos: 0,
             formats,
             defined_by: vec![None; 256],
@@ -344,27 +342,14 @@ impl<'a> DfReader<'a> {
         }
     }
 
-    /// A reader of the log `reader` gives, holding a window of it rather than the whole.
-    pub fn from_reader(reader: impl std::io::Read + 'a) -> Self {
-        let mut rd = DfReader::new(&[]);
-        rd.stream = Some(Stream {
-            reader: Box::new(reader),
-            buf: Vec::new(),
-            base: 0,
-            eof: false,
-            error: None,
-        });
-        rd
-    }
-
     /// Bytes consumed so far.
     pub fn position(&self) -> usize {
-        self.pos + self.stream.as_ref().map_or(0, |s| s.base)
+        self.win.offset(self.pos)
     }
 
     /// The error that ended a stream early, if one did (taken).
     pub fn take_error(&mut self) -> Option<std::io::Error> {
-        self.stream.as_mut().and_then(|s| s.error.take())
+        self.win.take_error()
     }
 
     /// The format of type `id`, once defined.
@@ -379,27 +364,12 @@ impl<'a> DfReader<'a> {
 
     /// The bytes of the window.
     fn window(&self) -> &[u8] {
-        match &self.stream {
-            Some(s) => &s.buf,
-            None => self.data,
-        }
+        self.win.bytes()
     }
 
     /// Read more of a stream when less than a record is left in its window.
     fn refill(&mut self) {
-        let Some(s) = self.stream.as_mut() else {
-            return;
-        };
-        if s.eof || s.buf.len() - self.pos >= MAX_RECORD {
-            return;
-        }
-        crate::io::window::fill_window(
-            &mut s.reader,
-            &mut s.buf,
-            (&mut self.pos, &mut s.base),
-            &mut s.eof,
-            &mut s.error,
-        );
+        self.win.refill(&mut self.pos, MAX_RECORD);
     }
 
     /// The next record, or `None` at the end (a truncated last record is counted, not returned).

@@ -18,6 +18,7 @@
 //! subscriptions, [`MAX_PARAMS`] parameters, [`MAX_FIELDS`] flattened fields per topic.
 
 use super::number::Number;
+use crate::io::window::Window;
 use std::collections::BTreeMap;
 
 /// The file magic (`ULog`, then 01 12 35), followed by a version byte and the start time.
@@ -166,24 +167,13 @@ type RawFormat = Vec<(String, Option<usize>, String)>;
 /// The longest message: a u16 size, the type byte and that many bytes.
 const MAX_MESSAGE: usize = 3 + u16::MAX as usize;
 
-/// A stream a [`UlogReader`] reads through a window, rather than whole bytes.
-struct Stream<'a> {
-    reader: Box<dyn std::io::Read + 'a>,
-    buf: Vec<u8>,
-    /// Offset of `buf` in the stream.
-    base: usize,
-    eof: bool,
-    error: Option<std::io::Error>,
-}
-
 /// Reads a ULog file's data records in order ([`UlogReader::next_data`]), from whole bytes or
 /// from a stream through a window of [`crate::io::window::STREAM_CHUNK_BYTES`]; formats,
 /// parameters, information and subscriptions are taken in on the way. Records of topics left
 /// out ([`UlogReader::only_topics`]) are counted from their header and not returned.
 pub struct UlogReader<'a> {
-    data: &'a [u8],
-    stream: Option<Stream<'a>>,
-    /// Offset of the next message in the window (`data`, or the stream's buffer).
+    win: Window<'a>,
+    /// Offset of the next message in the window.
     pos: usize,
     pub version: u8,
     pub start_us: u64,
@@ -213,7 +203,7 @@ impl<'a> UlogReader<'a> {
         if !looks_like(data) || data.len() < 16 {
             return None;
         }
-        let mut rd = Self::empty(data);
+        let mut rd = Self::empty(Window::whole(data));
         rd.start(data);
         Some(rd)
     }
@@ -221,14 +211,7 @@ impl<'a> UlogReader<'a> {
     /// A reader of the file `reader` gives, holding a window of it rather than the whole; `None`
     /// when it does not start with the ULog header (or a read error comes before it).
     pub fn from_reader(reader: impl std::io::Read + 'a) -> Option<Self> {
-        let mut rd = Self::empty(&[]);
-        rd.stream = Some(Stream {
-            reader: Box::new(reader),
-            buf: Vec::new(),
-            base: 0,
-            eof: false,
-            error: None,
-        });
+        let mut rd = Self::empty(Window::stream(reader));
         rd.refill();
         let head: [u8; 16] = rd.window().get(..16)?.try_into().ok()?;
         if !looks_like(&head) {
@@ -238,10 +221,9 @@ impl<'a> UlogReader<'a> {
         Some(rd)
     }
 
-    fn empty(data: &'a [u8]) -> Self {
+    fn empty(win: Window<'a>) -> Self {
         UlogReader {
-            data,
-            stream: None,
+            win,
             pos: 0,
             version: 0,
             start_us: 0,
@@ -277,12 +259,12 @@ impl<'a> UlogReader<'a> {
 
     /// Bytes consumed so far.
     pub fn position(&self) -> usize {
-        self.pos + self.stream.as_ref().map_or(0, |s| s.base)
+        self.win.offset(self.pos)
     }
 
     /// The error that ended a stream early, if one did (taken).
     pub fn take_error(&mut self) -> Option<std::io::Error> {
-        self.stream.as_mut().and_then(|s| s.error.take())
+        self.win.take_error()
     }
 
     /// Parameters read so far (first value of each).
@@ -297,38 +279,22 @@ impl<'a> UlogReader<'a> {
 
     /// The bytes of the window.
     fn window(&self) -> &[u8] {
-        match &self.stream {
-            Some(s) => &s.buf,
-            None => self.data,
-        }
+        self.win.bytes()
     }
 
     /// Read more of a stream when less than the longest message is left in its window.
     fn refill(&mut self) {
-        let Some(s) = self.stream.as_mut() else {
-            return;
-        };
-        if s.eof || s.buf.len() - self.pos >= MAX_MESSAGE {
-            return;
-        }
-        crate::io::window::fill_window(
-            &mut s.reader,
-            &mut s.buf,
-            (&mut self.pos, &mut s.base),
-            &mut s.eof,
-            &mut s.error,
-        );
+        self.win.refill(&mut self.pos, MAX_MESSAGE);
     }
 
     /// The whole input is in the window (bytes, or a stream read to its end).
     fn at_end(&self) -> bool {
-        self.stream.as_ref().is_none_or(|s| s.eof)
+        self.win.at_end()
     }
 
     /// The input's length, once all of it is in the window.
     fn known_len(&self) -> Option<usize> {
-        let base = self.stream.as_ref().map_or(0, |s| s.base);
-        self.at_end().then(|| base + self.window().len())
+        self.win.known_len()
     }
 
     /// The index in `subs` of message id `id`'s subscription.
