@@ -81,6 +81,11 @@ struct Thinned {
 
 impl Thinned {
     fn push(&mut self, s: &crate::types::Sample) {
+        if self.samples.capacity() == 0 {
+            // Room for the most ever held: the list is never copied as it grows (each copy
+            // touches fresh pages), and the pages of the room not used are never touched.
+            self.samples.reserve_exact(KEPT_SAMPLES_MAX);
+        }
         self.stride = self.stride.max(1);
         self.first_t_s.get_or_insert(s.t_s);
         self.last_t_s = s.t_s;
@@ -122,8 +127,15 @@ pub fn replay(
     opts: &ReplayOptions,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<ReplayOutcome, Error> {
+    let started = std::time::Instant::now();
     let mut run = run_pipelines(path, cfg, opts, progress)?;
+    let read_s = started.elapsed().as_secs_f64();
     let fin = final_fits(path, cfg, opts, &mut run)?;
+    tracing::debug!(
+        read_ms = 1e3 * read_s,
+        fits_ms = 1e3 * (started.elapsed().as_secs_f64() - read_s),
+        "replay: log read and gated, then fitted"
+    );
     let (mut results, quality) = (fin.results, fin.quality);
     let (scale, failure, span_samples) = fin.gyro_scale;
     results.gyro.scale = scale;
@@ -186,9 +198,9 @@ struct FinalFits {
 }
 
 /// The primary's fits at the end of the log, with what does not need the magnetometer's: the
-/// magnetometer fit (the longest) runs on a thread of its own while this one fits the
-/// accelerometer and the gyro bias, then the gyro scale, the held-out quality of every compass
-/// (which use no fit of the run) and the evidence of the magnetometer's method choice (the
+/// magnetometer fit (the longest) runs on a thread of its own, the held-out quality of every
+/// compass (which uses no fit of the run) on another, while this one fits the accelerometer and
+/// the gyro bias, then the gyro scale and the evidence of the magnetometer's method choice (the
 /// readings and attitudes alone). Each step does what it did in turn, so the results are the same.
 fn final_fits(
     path: &Path,
@@ -201,17 +213,15 @@ fn final_fits(
     let run_ref = &*run;
     let (mag, accel, gyro, quality, scale, mag_evidence) = std::thread::scope(|scope| {
         let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(&input, &calib));
+        let quality = scope.spawn(|| quality(run_ref, cfg));
         let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
         let fits = GyroFits {
             gyro: &gyro,
             accel: &accel,
         };
         let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
-        let quality = quality(run_ref, cfg);
         let mag_evidence = mag_method_evidence(run_ref, cfg, input.mag_cal_units());
-        let mag = mag
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        let (mag, quality) = (joined(mag), joined(quality));
         (mag, accel, gyro, quality, scale, mag_evidence)
     });
     let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
@@ -222,6 +232,12 @@ fn final_fits(
         gyro_scale: scale?,
         mag_evidence,
     })
+}
+
+/// What a scoped thread gave; its panic, if it panicked, goes on here.
+fn joined<T>(h: std::thread::ScopedJoinHandle<'_, T>) -> T {
+    h.join()
+        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
 }
 
 /// The self-contained HTML page of the run at `p` ([`crate::app::ui::html`]).
@@ -622,9 +638,7 @@ fn run_pipelines(
             }
             progress(batch.bytes_read as u64, batch.bytes_total as u64);
         }
-        decoder
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        joined(decoder)
     });
     let mut log = decoded?;
     let all = std::iter::once(&samples).chain(&other_samples);
@@ -899,14 +913,34 @@ fn gyro_scale_of(
         return Ok((None, None, 0));
     }
     let pipe = &run.pipe;
-    let (body, poses) = if run.whole {
-        let body: Vec<_> = run.log.samples.iter().map(|s| pipe.to_body(s)).collect();
-        (body, pipe.poses().to_vec())
+    let (body, poses, span_samples) = if run.whole {
+        // Only the samples from one pose's middle to the next's are integrated
+        // ([`crate::calib::gyro::fit_scale`] finds each rotation's by bisection on time), so only
+        // those are turned into body axes, or none when the sensor's axes are the body's.
+        let poses = pipe.poses();
+        let samples = &run.log.samples[..];
+        let spans: Vec<std::ops::Range<usize>> = rotation_pairs(poses)
+            .map(|i| {
+                let (from_s, to_s) = pose_mids(poses, i);
+                let i0 = samples.partition_point(|s| s.t_s < from_s);
+                i0..samples.partition_point(|s| s.t_s < to_s).max(i0)
+            })
+            .collect();
+        let span_samples = spans.iter().map(|r| r.len()).sum();
+        let body = if pipe.sensor_is_body() {
+            std::borrow::Cow::Borrowed(samples)
+        } else {
+            let turned = spans.into_iter().flat_map(|r| &samples[r]);
+            std::borrow::Cow::Owned(turned.map(|s| pipe.to_body(s)).collect())
+        };
+        (body, poses.to_vec(), span_samples)
     } else {
-        gyro_spans(path, cfg, opts, run)?
+        let (body, poses) = gyro_spans(path, cfg, opts, run)?;
+        let n = body.len();
+        (std::borrow::Cow::Owned(body), poses, n)
     };
     let (scale, failure) = gyro_scale(&body, &poses, pipe, fits);
-    Ok((scale, failure, body.len()))
+    Ok((scale, failure, span_samples))
 }
 
 /// What the gyro scale needs of a run's fits: the gyroscope's bias fit and the accelerometer's.
@@ -930,26 +964,24 @@ fn gyro_spans(
     run: &Run,
 ) -> Result<(Vec<crate::types::Sample>, Vec<crate::calib::gate::Pose>), Error> {
     let poses = run.pipe.poses();
-    let max_gap_s = crate::calib::gyro::ScaleOptions::default().max_gap_s;
-    let mid = |p: &crate::calib::gate::Pose| 0.5 * (p.t_start + p.t_end);
-    let pairs: Vec<usize> = (1..poses.len())
-        .filter(|&i| {
-            let (a, b) = (&poses[i - 1], &poses[i]);
-            a.segment == b.segment && b.t_start - a.t_end <= max_gap_s
-        })
-        .map(|i| i - 1)
-        .collect();
+    let pairs: Vec<usize> = rotation_pairs(poses).collect();
     let rate_hz = run.primary_seen as f64 / run.duration_s.max(f64::MIN_POSITIVE);
     let expected: f64 = pairs
         .iter()
-        .map(|&i| (mid(&poses[i + 1]) - mid(&poses[i])) * rate_hz)
+        .map(|&i| {
+            let (from_s, to_s) = pose_mids(poses, i);
+            (to_s - from_s) * rate_hz
+        })
         .sum();
     let every = (expected / GYRO_SPAN_SAMPLES_MAX as f64).ceil().max(1.0) as usize;
     // (from, to, time segment) of each chosen rotation, in time order.
     let spans: Vec<(f64, f64, u32)> = pairs
         .iter()
         .step_by(every)
-        .map(|&i| (mid(&poses[i]), mid(&poses[i + 1]), poses[i].segment))
+        .map(|&i| {
+            let (from_s, to_s) = pose_mids(poses, i);
+            (from_s, to_s, poses[i].segment)
+        })
         .collect();
     let (mut body, mut k, mut whole) = (Vec::new(), 0usize, spans.len());
     crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
@@ -982,6 +1014,24 @@ fn gyro_spans(
         })
     });
     Ok((body, relabelled.collect()))
+}
+
+/// The first pose of every pair of consecutive poses that [`crate::calib::gyro::fit_scale`] could
+/// use: the same time segment, a gap of at most its `max_gap_s`.
+fn rotation_pairs(poses: &[crate::calib::gate::Pose]) -> impl Iterator<Item = usize> + '_ {
+    let max_gap_s = crate::calib::gyro::ScaleOptions::default().max_gap_s;
+    (1..poses.len())
+        .filter(move |&i| {
+            let (a, b) = (&poses[i - 1], &poses[i]);
+            a.segment == b.segment && b.t_start - a.t_end <= max_gap_s
+        })
+        .map(|i| i - 1)
+}
+
+/// The rotation from pose `i` to pose `i + 1`: from the middle of one to the middle of the other, s.
+fn pose_mids(poses: &[crate::calib::gate::Pose], i: usize) -> (f64, f64) {
+    let mid = |p: &crate::calib::gate::Pose| 0.5 * (p.t_start + p.t_end);
+    (mid(&poses[i]), mid(&poses[i + 1]))
 }
 
 /// Gyro scale and misalignment from the rotations between `poses` (see
@@ -1604,4 +1654,53 @@ pub fn summary(r: &Report) -> String {
     }
     gyro_lines(&r.calibration.gyro, &mut s);
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A log kept whole has only the samples of its rotations turned into body axes for the gyro
+    /// scale (none when the sensor's axes are the body's), and the scale is the one fitted on
+    /// every sample turned, to the last bit, with the sensor mounted turned and not.
+    #[test]
+    fn the_gyro_scale_from_the_rotations_alone_is_the_one_from_every_sample() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tumble.tlog");
+        let sim = crate::sim::simulate(&crate::sim::Scenario::named("tumble").unwrap(), 3);
+        crate::io::samplelog::write_tlog(&path, &sim.samples, &Default::default()).unwrap();
+        for orientation in ["ROTATION_NONE", "ROTATION_ROLL_180_YAW_90"] {
+            let mut cfg = Config::default();
+            cfg.orientation.sensor = orientation.into();
+            let opts = ReplayOptions::default();
+            let mut run = run_pipelines(&path, &cfg, &opts, &mut |_, _| {}).unwrap();
+            assert!(run.whole);
+            let input = run.pipe.finish_input();
+            let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, run.pipe.settings());
+            let fits = GyroFits {
+                gyro: &gyro,
+                accel: &accel,
+            };
+            let (scale, failure, spans) = gyro_scale_of(&path, &cfg, &opts, &run, fits).unwrap();
+            let every: Vec<_> = run
+                .log
+                .samples
+                .iter()
+                .map(|s| run.pipe.to_body(s))
+                .collect();
+            let (scale_all, failure_all) = gyro_scale(&every, run.pipe.poses(), &run.pipe, fits);
+            assert!(scale.is_some(), "{orientation}: {failure:?}");
+            assert_eq!(
+                format!("{scale:?}"),
+                format!("{scale_all:?}"),
+                "{orientation}"
+            );
+            assert_eq!(format!("{failure:?}"), format!("{failure_all:?}"));
+            assert!(
+                0 < spans && spans < every.len(),
+                "{spans} of {}",
+                every.len()
+            );
+        }
+    }
 }

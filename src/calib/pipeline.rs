@@ -187,6 +187,12 @@ impl Pipeline {
         &self.poses
     }
 
+    /// The sensor's axes are the body's (no mounting rotation): [`Pipeline::to_body`] changes no
+    /// finite reading, but for the sign of a zero.
+    pub fn sensor_is_body(&self) -> bool {
+        self.rot == Matrix3::identity()
+    }
+
     /// Rotate a sample's vectors from sensor to body axes.
     pub fn to_body(&self, s: &Sample) -> Sample {
         let r = |v: Option<Vec3>| v.map(|v| crate::attitude::rotate(&self.rot, &v));

@@ -991,36 +991,36 @@ pub fn points_from_samples(
         .collect();
     let tracks = ground_tracks(&fixes);
     let has_attitude = samples.iter().any(|s| s.ref_q.is_some());
-    samples
-        .iter()
-        .filter_map(|raw| {
-            let s = body(raw);
-            let track = track_at(&tracks, s.t_s);
-            let attitude = s
-                .ref_q
-                .and_then(crate::attitude::body_ned_of_ref_q)
-                .map(|q| {
-                    (
-                        crate::attitude::euler_zyx_deg(&q)[2],
-                        ReferenceKind::Attitude,
-                    )
-                });
-            let straight = s
-                .gyro_rad_s
-                .is_some_and(|w| w[2].abs() <= MAX_COURSE_YAW_RATE_RAD_S);
-            let course = track
-                .filter(|tr| !has_attitude && straight && tr.speed_mps >= MIN_COURSE_SPEED_MPS)
-                .map(|tr| (tr.course_deg, ReferenceKind::CourseOverGround));
-            Some(PlanarPoint {
-                t_s: s.t_s,
-                mag: s.mag_ut?,
-                accel_mps2: s.accel_mps2?,
-                gyro_rad_s: s.gyro_rad_s,
-                ground_speed_mps: track.map(|tr| tr.speed_mps),
-                reference: attitude.or(course),
-            })
+    // Room for every sample, so the list is not copied as it grows.
+    let mut out = Vec::with_capacity(samples.len());
+    out.extend(samples.iter().filter_map(|raw| {
+        let s = body(raw);
+        let track = track_at(&tracks, s.t_s);
+        let attitude = s
+            .ref_q
+            .and_then(crate::attitude::body_ned_of_ref_q)
+            .map(|q| {
+                (
+                    crate::attitude::euler_zyx_deg(&q)[2],
+                    ReferenceKind::Attitude,
+                )
+            });
+        let straight = s
+            .gyro_rad_s
+            .is_some_and(|w| w[2].abs() <= MAX_COURSE_YAW_RATE_RAD_S);
+        let course = track
+            .filter(|tr| !has_attitude && straight && tr.speed_mps >= MIN_COURSE_SPEED_MPS)
+            .map(|tr| (tr.course_deg, ReferenceKind::CourseOverGround));
+        Some(PlanarPoint {
+            t_s: s.t_s,
+            mag: s.mag_ut?,
+            accel_mps2: s.accel_mps2?,
+            gyro_rad_s: s.gyro_rad_s,
+            ground_speed_mps: track.map(|tr| tr.speed_mps),
+            reference: attitude.or(course),
         })
-        .collect()
+    }));
+    out
 }
 
 /// The classic tilt-compensated heading of an uncalibrated compass (all three raw axes), deg.

@@ -275,9 +275,12 @@ impl AttitudeSums {
     pub(crate) fn new(
         pairs: impl Iterator<Item = (nalgebra::Vector3<f64>, nalgebra::Matrix3<f64>)>,
     ) -> AttitudeSums {
+        // Room for as many pairs as may come, so the lists are not copied as they grow (each
+        // copy touches fresh pages).
+        let room = pairs.size_hint().1.unwrap_or(0);
         let mut out = AttitudeSums {
-            raw: Vec::new(),
-            rot: Vec::new(),
+            raw: Vec::with_capacity(room),
+            rot: Vec::with_capacity(room),
             totals: Sums::default(),
         };
         for (raw, rot) in pairs {
