@@ -88,19 +88,39 @@ pub(crate) fn wrap_pi(a: f64) -> f64 {
 pub fn euler_zyx_deg(q: &nalgebra::UnitQuaternion<f64>) -> [f64; 3] {
     let m = q.to_rotation_matrix();
     let r = m.matrix();
-    let c = (r[(0, 0)] * r[(0, 0)] + r[(1, 0)] * r[(1, 0)]).sqrt();
+    let c = cos_pitch(r);
     let pitch = (-r[(2, 0)]).atan2(c);
-    let (roll, yaw) = if c > 1e-7 {
-        (r[(2, 1)].atan2(r[(2, 2)]), r[(1, 0)].atan2(r[(0, 0)]))
+    // At +-90 deg of pitch the roll is taken as 0 (the yaw takes the whole turn about z).
+    let roll = if c > 1e-7 {
+        r[(2, 1)].atan2(r[(2, 2)])
+    } else {
+        0.0
+    };
+    [roll.to_degrees(), pitch.to_degrees(), yaw_of(r, c)]
+}
+
+/// The yaw of [`euler_zyx_deg`] alone (deg, 0..360), the same to the last bit, without the
+/// roll's and the pitch's arc tangents.
+pub fn yaw_deg(q: &nalgebra::UnitQuaternion<f64>) -> f64 {
+    let m = q.to_rotation_matrix();
+    let r = m.matrix();
+    yaw_of(r, cos_pitch(r))
+}
+
+/// `cos(pitch)` of a rotation matrix (ZYX Euler angles), from its first column.
+fn cos_pitch(r: &nalgebra::Matrix3<f64>) -> f64 {
+    (r[(0, 0)] * r[(0, 0)] + r[(1, 0)] * r[(1, 0)]).sqrt()
+}
+
+/// The yaw of a rotation matrix (deg, 0..360), `c` its [`cos_pitch`].
+fn yaw_of(r: &nalgebra::Matrix3<f64>, c: f64) -> f64 {
+    let yaw = if c > 1e-7 {
+        r[(1, 0)].atan2(r[(0, 0)])
     } else {
         // R = Rz(yaw) Ry(+-90) with roll 0: R01 = -sin(yaw), R11 = cos(yaw).
-        (0.0, (-r[(0, 1)]).atan2(r[(1, 1)]))
+        (-r[(0, 1)]).atan2(r[(1, 1)])
     };
-    [
-        roll.to_degrees(),
-        pitch.to_degrees(),
-        wrap360(yaw.to_degrees()),
-    ]
+    wrap360(yaw.to_degrees())
 }
 
 /// Signed difference a - b wrapped to (-180, 180].
@@ -379,6 +399,36 @@ mod tests {
         assert!((f.declination_deg - -3.2909).abs() < 0.01, "{f:?}");
         assert!((f.inclination_deg - 34.3203).abs() < 0.01);
         assert!((f.total_ut - 45.6768).abs() < 0.01);
+    }
+
+    /// The yaw alone is the Euler angles' yaw to the last bit: at random attitudes and at +-90
+    /// deg of pitch, where the roll is taken as 0.
+    #[test]
+    fn yaw_alone_is_the_euler_yaw() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut qs: Vec<nalgebra::UnitQuaternion<f64>> = (0..1000)
+            .map(|_| {
+                nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                    rng.random_range(-1.0..1.0),
+                ))
+            })
+            .collect();
+        for yaw in [-170.0f64, 0.0, 35.0] {
+            for pitch in [-90.0f64, 90.0] {
+                qs.push(nalgebra::UnitQuaternion::from_euler_angles(
+                    0.3,
+                    pitch.to_radians(),
+                    yaw.to_radians(),
+                ));
+            }
+        }
+        for q in &qs {
+            assert_eq!(yaw_deg(q).to_bits(), euler_zyx_deg(q)[2].to_bits(), "{q:?}");
+        }
     }
 
     #[test]

@@ -999,12 +999,7 @@ pub fn points_from_samples(
         let attitude = s
             .ref_q
             .and_then(crate::attitude::body_ned_of_ref_q)
-            .map(|q| {
-                (
-                    crate::attitude::euler_zyx_deg(&q)[2],
-                    ReferenceKind::Attitude,
-                )
-            });
+            .map(|q| (crate::attitude::yaw_deg(&q), ReferenceKind::Attitude));
         let straight = s
             .gyro_rad_s
             .is_some_and(|w| w[2].abs() <= MAX_COURSE_YAW_RATE_RAD_S);
