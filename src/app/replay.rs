@@ -197,11 +197,11 @@ struct FinalFits {
     mag_evidence: crate::calib::magmethod::Evidence,
 }
 
-/// The primary's fits at the end of the log, with what does not need the magnetometer's: the
-/// magnetometer fit (the longest) runs on a thread of its own, the held-out quality of every
-/// compass (which uses no fit of the run) on another, while this one fits the accelerometer and
-/// the gyro bias, then the gyro scale and the evidence of the magnetometer's method choice (the
-/// readings and attitudes alone). Each step does what it did in turn, so the results are the same.
+/// The primary's fits at the end of the log, with what does not need the magnetometer's, on
+/// threads of their own: the magnetometer fit; the held-out quality of every compass (which uses
+/// no fit of the run); the accelerometer and gyro bias fits, then the gyro scale; while this one
+/// gathers the evidence of the magnetometer's method choice (the readings and attitudes alone).
+/// Each step does what it did in turn, so the results are the same.
 fn final_fits(
     path: &Path,
     cfg: &Config,
@@ -211,18 +211,25 @@ fn final_fits(
     let input = run.pipe.finish_input();
     let calib = run.pipe.settings().clone();
     let run_ref = &*run;
-    let (mag, accel, gyro, quality, scale, mag_evidence) = std::thread::scope(|scope| {
+    let (mag, (accel, gyro, scale), quality, mag_evidence) = std::thread::scope(|scope| {
         let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(&input, &calib));
         let quality = scope.spawn(|| quality(run_ref, cfg));
-        let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
-        let fits = GyroFits {
-            gyro: &gyro,
-            accel: &accel,
-        };
-        let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
+        let accel_gyro = scope.spawn(|| {
+            let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
+            let fits = GyroFits {
+                gyro: &gyro,
+                accel: &accel,
+            };
+            let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
+            (accel, gyro, scale)
+        });
         let mag_evidence = mag_method_evidence(run_ref, cfg, input.mag_cal_units());
-        let (mag, quality) = (joined(mag), joined(quality));
-        (mag, accel, gyro, quality, scale, mag_evidence)
+        (
+            joined(mag),
+            joined(accel_gyro),
+            joined(quality),
+            mag_evidence,
+        )
     });
     let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
     let results = run.pipe.install_final(results).clone();

@@ -246,6 +246,9 @@ impl VectorEvidence {
 #[derive(Debug, Clone)]
 enum PlanarEvidence {
     NoPoints,
+    /// The readings tilt by more than [`PLANAR_MAX_TILT_P95_DEG`] (the logged attitude's tilt, else
+    /// the accelerometer's): the sphere's case, and the planar fit is not run.
+    Tilted,
     Failed(String),
     /// The fit, and the 95th percentile of the tilt (the logged attitude's, else the fit's), deg.
     Fitted {
@@ -315,7 +318,15 @@ fn planar_evidence(
     w: Option<&Where>,
     units: crate::types::CalUnits,
 ) -> PlanarEvidence {
-    let pts = crate::calib::planar::points_from_samples(samples, body);
+    // The tilt first: tilted enough for the sphere, the planar fit would not be taken whatever it
+    // gave, and is not run (nor are its points kept).
+    let readings = crate::calib::planar::Readings::new(samples, body);
+    let tilt_p95_deg = reference_tilt_p95_deg(samples)
+        .unwrap_or_else(|| crate::calib::planar::tilt_p95_deg(readings.points()));
+    if tilt_p95_deg > PLANAR_MAX_TILT_P95_DEG {
+        return PlanarEvidence::Tilted;
+    }
+    let pts = readings.all();
     if pts.is_empty() {
         return PlanarEvidence::NoPoints;
     }
@@ -333,7 +344,7 @@ fn planar_evidence(
     let settings = crate::calib::planar::PlanarSettings::default();
     match crate::calib::planar::fit(&pts, earth.as_ref(), &settings) {
         Ok(p) => PlanarEvidence::Fitted {
-            tilt_p95_deg: reference_tilt_p95_deg(samples).unwrap_or(p.tilt_p95_deg),
+            tilt_p95_deg,
             fit: Box::new(p),
         },
         Err(e) => PlanarEvidence::Failed(e.to_string()),
@@ -349,14 +360,11 @@ fn planar_or(other: MethodChoice, evidence: Option<&PlanarEvidence>) -> MethodCh
         c
     };
     let (p, tilt_p95_deg) = match evidence {
-        None | Some(PlanarEvidence::NoPoints) => return other,
+        // Tilted enough for the sphere: no need to say more.
+        None | Some(PlanarEvidence::NoPoints | PlanarEvidence::Tilted) => return other,
         Some(PlanarEvidence::Failed(e)) => return with(other, e),
         Some(PlanarEvidence::Fitted { fit, tilt_p95_deg }) => (fit, *tilt_p95_deg),
     };
-    if tilt_p95_deg > PLANAR_MAX_TILT_P95_DEG {
-        // Tilted enough for the sphere: no need to say more.
-        return other;
-    }
     if let Some(bank) = p
         .turn_bank_deg
         .filter(|b| b.abs() > PLANAR_MAX_TILT_P95_DEG)
@@ -1096,6 +1104,61 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    /// Readings tilted beyond the planar method's limit are the sphere's case: the planar fit is
+    /// not run and the reason says nothing of it, though it would have failed; level readings
+    /// through too few headings still say why the planar method was not taken.
+    #[test]
+    fn tilted_readings_skip_the_planar_fit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let body = |s: &Sample| *s;
+        let at = |tilt_deg: f64, rng: &mut ChaCha8Rng| -> Vec<Sample> {
+            let att: Vec<[f64; 3]> = (0..600)
+                .map(|_| {
+                    [
+                        rng.random_range(-tilt_deg..tilt_deg),
+                        rng.random_range(-tilt_deg..tilt_deg),
+                        rng.random_range(10.0..40.0),
+                    ]
+                })
+                .collect();
+            let mut out = samples(&att, rng);
+            for (s, e) in out.iter_mut().zip(&att) {
+                let q = crate::sim::quat_from_euler_deg(e[0], e[1], e[2]);
+                let g = crate::calib::vector::expected_field(&q, &[0.0, 0.0, -9.81]);
+                s.accel_mps2 = Some(g);
+            }
+            out
+        };
+        let tilted = at(60.0, &mut rng);
+        let level = at(3.0, &mut rng);
+        let units = crate::types::CalUnits::Ut;
+        assert!(matches!(
+            planar_evidence(&tilted, &body, None, units),
+            PlanarEvidence::Tilted
+        ));
+        let failed = planar_evidence(&level, &body, None, units);
+        match &failed {
+            PlanarEvidence::Failed(e) => assert!(e.contains("sectors"), "{e}"),
+            other => panic!("{other:?}"),
+        }
+        let sphere = || MethodChoice {
+            method: MagMethod::Sphere,
+            method_reason: "sphere".into(),
+            vector: None,
+            planar: None,
+            sphere_offset: None,
+            earth_field: None,
+        };
+        let quiet = planar_or(sphere(), Some(&PlanarEvidence::Tilted));
+        assert_eq!(quiet.method_reason, "sphere");
+        let told = planar_or(sphere(), Some(&failed));
+        assert!(
+            told.method_reason.contains("planar not taken"),
+            "{}",
+            told.method_reason
+        );
     }
 
     #[test]

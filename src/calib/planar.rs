@@ -648,6 +648,17 @@ fn sectors(headings_deg: impl Iterator<Item = f64>) -> usize {
 
 /// The tilts seen (95th percentile and largest, deg) and the mean bank of the turns (deg, from the
 /// pitch rate against the yaw rate while turning; `None` without turns).
+/// The 95th percentile of the usable points' tilt from level, deg (0 with none): the
+/// [`PlanarFit::tilt_p95_deg`] that [`fit`] reports of the same points (an order statistic, so
+/// the same in any order), known before fitting.
+pub fn tilt_p95_deg(points: impl Iterator<Item = PlanarPoint>) -> f64 {
+    p95(points
+        .filter(|p| p.usable())
+        .map(|p| p.tilt_deg())
+        .collect())
+    .unwrap_or(0.0)
+}
+
 fn tilt_and_bank(usable: &[&PlanarPoint]) -> (f64, f64, Option<f64>) {
     let tilts: Vec<f64> = usable.iter().map(|p| p.tilt_deg()).collect();
     let tilt_p95_deg = p95(tilts.clone()).unwrap_or(0.0);
@@ -985,17 +996,49 @@ pub fn points_from_samples(
     samples: &[Sample],
     body: &dyn Fn(&Sample) -> Sample,
 ) -> Vec<PlanarPoint> {
-    let fixes: Vec<(f64, GeoPoint)> = samples
-        .iter()
-        .filter_map(|s| Some((s.t_s, s.position?)))
-        .collect();
-    let tracks = ground_tracks(&fixes);
-    let has_attitude = samples.iter().any(|s| s.ref_q.is_some());
-    // Room for every sample, so the list is not copied as it grows.
-    let mut out = Vec::with_capacity(samples.len());
-    out.extend(samples.iter().filter_map(|raw| {
-        let s = body(raw);
-        let track = track_at(&tracks, s.t_s);
+    Readings::new(samples, body).all()
+}
+
+/// The fit's readings from samples ([`points_from_samples`]), made one at a time: what needs
+/// them all only once (the tilt first, [`tilt_p95_deg`]) holds none of them.
+pub struct Readings<'a> {
+    samples: &'a [Sample],
+    body: &'a dyn Fn(&Sample) -> Sample,
+    tracks: Vec<Track>,
+    has_attitude: bool,
+}
+
+impl<'a> Readings<'a> {
+    /// The ground tracks of the samples' fixes, and whether they carry an attitude.
+    pub fn new(samples: &'a [Sample], body: &'a dyn Fn(&Sample) -> Sample) -> Readings<'a> {
+        let fixes: Vec<(f64, GeoPoint)> = samples
+            .iter()
+            .filter_map(|s| Some((s.t_s, s.position?)))
+            .collect();
+        Readings {
+            samples,
+            body,
+            tracks: ground_tracks(&fixes),
+            has_attitude: samples.iter().any(|s| s.ref_q.is_some()),
+        }
+    }
+
+    /// Every point, in the samples' order.
+    pub fn all(&self) -> Vec<PlanarPoint> {
+        // Room for every sample, so the list is not copied as it grows.
+        let mut out = Vec::with_capacity(self.samples.len());
+        out.extend(self.points());
+        out
+    }
+
+    /// The points, in the samples' order.
+    pub fn points(&self) -> impl Iterator<Item = PlanarPoint> + '_ {
+        self.samples.iter().filter_map(|raw| self.point(raw))
+    }
+
+    fn point(&self, raw: &Sample) -> Option<PlanarPoint> {
+        let s = (self.body)(raw);
+        let track = track_at(&self.tracks, s.t_s);
         let attitude = s
             .ref_q
             .and_then(crate::attitude::body_ned_of_ref_q)
@@ -1004,7 +1047,7 @@ pub fn points_from_samples(
             .gyro_rad_s
             .is_some_and(|w| w[2].abs() <= MAX_COURSE_YAW_RATE_RAD_S);
         let course = track
-            .filter(|tr| !has_attitude && straight && tr.speed_mps >= MIN_COURSE_SPEED_MPS)
+            .filter(|tr| !self.has_attitude && straight && tr.speed_mps >= MIN_COURSE_SPEED_MPS)
             .map(|tr| (tr.course_deg, ReferenceKind::CourseOverGround));
         Some(PlanarPoint {
             t_s: s.t_s,
@@ -1014,8 +1057,7 @@ pub fn points_from_samples(
             ground_speed_mps: track.map(|tr| tr.speed_mps),
             reference: attitude.or(course),
         })
-    }));
-    out
+    }
 }
 
 /// The classic tilt-compensated heading of an uncalibrated compass (all three raw axes), deg.
