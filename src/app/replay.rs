@@ -199,9 +199,10 @@ struct FinalFits {
 
 /// The primary's fits at the end of the log, with what does not need the magnetometer's, on
 /// threads of their own: the magnetometer fit; the held-out quality of every compass (which uses
-/// no fit of the run); the accelerometer and gyro bias fits, then the gyro scale; while this one
-/// gathers the evidence of the magnetometer's method choice (the readings and attitudes alone).
-/// Each step does what it did in turn, so the results are the same.
+/// no fit of the run); the accelerometer and gyro bias fits, then the gyro scale (here, after the
+/// rest, when too few poses leave it little to do); while this one gathers the evidence of the
+/// magnetometer's method choice (the readings and attitudes alone). Each step does what it did in
+/// turn, so the results are the same.
 fn final_fits(
     path: &Path,
     cfg: &Config,
@@ -214,7 +215,7 @@ fn final_fits(
     let (mag, (accel, gyro, scale), quality, mag_evidence) = std::thread::scope(|scope| {
         let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(&input, &calib));
         let quality = scope.spawn(|| quality(run_ref, cfg));
-        let accel_gyro = scope.spawn(|| {
+        let accel_gyro = || {
             let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
             let fits = GyroFits {
                 gyro: &gyro,
@@ -222,14 +223,14 @@ fn final_fits(
             };
             let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
             (accel, gyro, scale)
-        });
+        };
+        // The gyro scale takes long only with rotations enough to fit (each from one pose to the
+        // next): then on a thread of its own, else here.
+        let min_poses = 2 * crate::calib::gyro::ScaleOptions::default().min_segments + 1;
+        let own = (run_ref.pipe.poses().len() >= min_poses).then(|| scope.spawn(accel_gyro));
         let mag_evidence = mag_method_evidence(run_ref, cfg, input.mag_cal_units());
-        (
-            joined(mag),
-            joined(accel_gyro),
-            joined(quality),
-            mag_evidence,
-        )
+        let accel_gyro = own.map_or_else(accel_gyro, joined);
+        (joined(mag), accel_gyro, joined(quality), mag_evidence)
     });
     let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
     let results = run.pipe.install_final(results).clone();

@@ -24,6 +24,13 @@ pub(crate) fn quat_from_euler(roll: f64, pitch: f64, yaw: f64) -> [f64; 4] {
 /// Body -> NED (w, x, y, z) to sensor -> ENU (the body taken as the sensor frame): NED -> ENU is
 /// the rotation of 180 deg about (1, 1, 0)/sqrt(2).
 pub(crate) fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
+    let (r, n) = half_turned(q)?;
+    Some(r.map(|x| x / n))
+}
+
+/// `q` turned by the half turn about (1, 1, 0)/sqrt(2) (NED <-> ENU), not yet normalised, and its
+/// norm; `None` when the norm is not finite or at most 0.5 (no attitude).
+fn half_turned(q: [f64; 4]) -> Option<([f64; 4], f64)> {
     let h = std::f64::consts::FRAC_1_SQRT_2;
     let a = [0.0, h, h, 0.0];
     let r = [
@@ -33,7 +40,17 @@ pub(crate) fn ned_to_enu(q: [f64; 4]) -> Option<[f64; 4]> {
         a[0] * q[3] + a[1] * q[2] - a[2] * q[1] + a[3] * q[0],
     ];
     let n = r.iter().map(|x| x * x).sum::<f64>().sqrt();
-    (n.is_finite() && n > 0.5).then(|| r.map(|x| x / n))
+    (n.is_finite() && n > 0.5).then_some((r, n))
+}
+
+/// The cosine of the tilt from level of a reference attitude (the attitude of
+/// [`body_ned_of_ref_q`], `None` where that gives none): the entry `R_zz = w^2 - x^2 - y^2 + z^2`
+/// of body -> NED, equal to `cos(roll) cos(pitch)` to rounding, with one division in place of
+/// four and no arc tangent.
+pub(crate) fn tilt_cos_of_ref_q(q: [f64; 4]) -> Option<f64> {
+    let (r, n) = half_turned(q)?;
+    let zz = r[0] * r[0] - r[1] * r[1] - r[2] * r[2] + r[3] * r[3];
+    Some((zz / (n * n)).clamp(-1.0, 1.0))
 }
 
 /// Body -> NED from a reference attitude (sensor -> ENU, as [`crate::types::Sample::ref_q`]): NED -> ENU is a

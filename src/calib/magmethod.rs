@@ -319,11 +319,15 @@ fn planar_evidence(
     units: crate::types::CalUnits,
 ) -> PlanarEvidence {
     // The tilt first: tilted enough for the sphere, the planar fit would not be taken whatever it
-    // gave, and is not run (nor are its points kept).
+    // gave, and is not run (nor are its points kept). The logged attitude's tilt, else the
+    // accelerometer's (as the fit's).
     let readings = crate::calib::planar::Readings::new(samples, body);
-    let tilt_p95_deg = reference_tilt_p95_deg(samples)
-        .unwrap_or_else(|| crate::calib::planar::tilt_p95_deg(readings.points()));
-    if tilt_p95_deg > PLANAR_MAX_TILT_P95_DEG {
+    let tilted = match reference_tilt_beyond(samples, PLANAR_MAX_TILT_P95_DEG) {
+        Some(Some(beyond)) => beyond,
+        Some(None) => reference_tilt_p95_deg(samples).is_some_and(|t| t > PLANAR_MAX_TILT_P95_DEG),
+        None => crate::calib::planar::tilt_p95_deg(readings.points()) > PLANAR_MAX_TILT_P95_DEG,
+    };
+    if tilted {
         return PlanarEvidence::Tilted;
     }
     let pts = readings.all();
@@ -344,7 +348,7 @@ fn planar_evidence(
     let settings = crate::calib::planar::PlanarSettings::default();
     match crate::calib::planar::fit(&pts, earth.as_ref(), &settings) {
         Ok(p) => PlanarEvidence::Fitted {
-            tilt_p95_deg,
+            tilt_p95_deg: reference_tilt_p95_deg(samples).unwrap_or(p.tilt_p95_deg),
             fit: Box::new(p),
         },
         Err(e) => PlanarEvidence::Failed(e.to_string()),
@@ -403,6 +407,23 @@ fn planar_or(other: MethodChoice, evidence: Option<&PlanarEvidence>) -> MethodCh
         sphere_offset: None,
         earth_field: None,
     }
+}
+
+/// Whether [`reference_tilt_p95_deg`] is beyond `limit_deg`, told from the tilts' cosines alone
+/// ([`crate::attitude::tilt_cos_of_ref_q`]: no arc tangent per reading). `None` without an
+/// attitude; `Some(None)` when the percentile's cosine is within 1e-9 of the limit's (rounding
+/// could then decide: ask [`reference_tilt_p95_deg`]).
+fn reference_tilt_beyond(samples: &[Sample], limit_deg: f64) -> Option<Option<bool>> {
+    let mut c: Vec<f64> = samples
+        .iter()
+        .filter_map(|s| crate::attitude::tilt_cos_of_ref_q(s.ref_q?))
+        .collect();
+    let n = c.len();
+    let k = ((n as f64 * 0.95) as usize).min(n.checked_sub(1)?);
+    // The k-th smallest tilt has the k-th largest cosine.
+    let ck = *c.select_nth_unstable_by(n - 1 - k, f64::total_cmp).1;
+    let limit = limit_deg.to_radians().cos();
+    Some(((ck - limit).abs() > 1e-9).then_some(ck < limit))
 }
 
 /// 95th percentile of the logged attitude's tilt from level, deg (None without an attitude):
@@ -1159,6 +1180,35 @@ mod tests {
             "{}",
             told.method_reason
         );
+    }
+
+    /// The tilt told from the cosines is the one of the Euler angles: on either side of the
+    /// limit, at attitudes spread up to several tilts, and in a set of tilts at the limit itself.
+    #[test]
+    fn the_tilt_from_cosines_decides_as_the_euler_tilt() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for spread_deg in [5.0f64, 12.0, 14.9, 15.0, 15.1, 18.0, 30.0, 90.0, 180.0] {
+            let att: Vec<[f64; 3]> = (0..500)
+                .map(|_| {
+                    [
+                        rng.random_range(-spread_deg..=spread_deg),
+                        rng.random_range(-spread_deg.min(90.0)..=spread_deg.min(90.0)),
+                        rng.random_range(0.0..360.0),
+                    ]
+                })
+                .collect();
+            let s = samples(&att, &mut rng);
+            let exact = reference_tilt_p95_deg(&s).unwrap();
+            match reference_tilt_beyond(&s, 15.0) {
+                Some(Some(beyond)) => assert_eq!(beyond, exact > 15.0, "{spread_deg}: {exact}"),
+                other => panic!("{spread_deg}: {other:?} at {exact}"),
+            }
+        }
+        // Every reading tilted by 15 deg, in roll: at the limit, the cosines leave it to the
+        // Euler angles.
+        let at_limit = samples(&vec![[15.0, 0.0, 40.0]; 50], &mut rng);
+        assert_eq!(reference_tilt_beyond(&at_limit, 15.0), Some(None));
+        assert_eq!(reference_tilt_beyond(&[Sample::default()], 15.0), None);
     }
 
     #[test]
