@@ -730,6 +730,10 @@ pub fn quality(
     cfg_place: Option<&Place>,
 ) -> Option<crate::calib::outcome::QualityReport> {
     let t0 = samples.first()?.t_s;
+    // Both fits and both scores read the logged attitude: without one there is nothing to judge.
+    if !samples.iter().any(|s| s.ref_q.is_some()) {
+        return None;
+    }
     let (fit_part, held): (Vec<&Sample>, Vec<&Sample>) =
         samples.iter().partition(|s| fitting_block(t0, s.t_s));
     // The field of the place and day, else fitted on the fitting blocks with the calibration.

@@ -1392,7 +1392,7 @@ async fn replay_tlog(sh: &Shared, ctl: &mut Control, data: &[u8], speed: f64) ->
         LinkCounters::add(&sh.counters.frames_in, 1);
         batch.push(TimedFrame {
             time_us: ts,
-            frame: *frame,
+            frame,
         });
     }
     sh.merge(&records.stats);

@@ -489,7 +489,7 @@ fn tlog_converter(cfg: &InputConfig) -> MessageConverter {
 /// sample on), and the day of the first record. The clock that stamped the records is the
 /// ground station's: a date, unless it counted from its own start.
 fn tlog_prescan(
-    mut records: impl Iterator<Item = (u64, Box<crate::io::decode::Frame>)>,
+    mut records: impl Iterator<Item = (u64, crate::io::decode::Frame)>,
     conv: &mut MessageConverter,
 ) -> Option<crate::types::LogDate> {
     let first = records.next();

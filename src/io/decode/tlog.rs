@@ -167,7 +167,7 @@ impl TlogReader<'_> {
     }
 
     /// The next record, `None` at the end (of the window, when more bytes follow).
-    fn next_record(&mut self) -> Option<(u64, Box<Frame>)> {
+    fn next_record(&mut self) -> Option<(u64, Frame)> {
         let n = self.bytes.len();
         let end = self.limit();
         if self.cursor.resyncing {
@@ -191,7 +191,7 @@ impl TlogReader<'_> {
                     self.cursor.last_ts = Some(ts);
                     self.cursor.pos += 8 + len;
                     self.stats.records += 1;
-                    return Some((ts, Box::new(f)));
+                    return Some((ts, f));
                 }
                 FrameParse::Incomplete => {
                     self.stats.skip("truncated");
@@ -218,9 +218,9 @@ impl TlogReader<'_> {
 }
 
 impl Iterator for TlogRecords<'_> {
-    type Item = (u64, Box<Frame>);
+    type Item = (u64, Frame);
 
-    fn next(&mut self) -> Option<(u64, Box<Frame>)> {
+    fn next(&mut self) -> Option<(u64, Frame)> {
         TlogReader {
             bytes: self.bytes,
             cursor: &mut self.cursor,
@@ -261,7 +261,7 @@ impl<R: std::io::Read> TlogStream<R> {
     }
 
     /// The next record, as [`TlogRecords::next`] gives it.
-    pub fn next_record(&mut self) -> Option<(u64, Box<Frame>)> {
+    pub fn next_record(&mut self) -> Option<(u64, Frame)> {
         loop {
             let record = TlogReader {
                 bytes: &self.buf,
@@ -286,9 +286,9 @@ impl<R: std::io::Read> TlogStream<R> {
 }
 
 impl<R: std::io::Read> Iterator for TlogStream<R> {
-    type Item = (u64, Box<Frame>);
+    type Item = (u64, Frame);
 
-    fn next(&mut self) -> Option<(u64, Box<Frame>)> {
+    fn next(&mut self) -> Option<(u64, Frame)> {
         self.next_record()
     }
 }
