@@ -921,7 +921,7 @@ fn gyro_scale_of(
         return Ok((None, None, 0));
     }
     let pipe = &run.pipe;
-    let (body, poses, span_samples) = if run.whole {
+    let ((scale, failure), span_samples) = if run.whole {
         // Only the samples from one pose's middle to the next's are integrated
         // ([`crate::calib::gyro::fit_scale`] finds each rotation's by bisection on time), so only
         // those are turned into body axes, or none when the sensor's axes are the body's.
@@ -935,19 +935,19 @@ fn gyro_scale_of(
             })
             .collect();
         let span_samples = spans.iter().map(|r| r.len()).sum();
-        let body = if pipe.sensor_is_body() {
-            std::borrow::Cow::Borrowed(samples)
+        let fitted = if pipe.sensor_is_body() {
+            gyro_scale(samples, poses, pipe, fits)
         } else {
             let turned = spans.into_iter().flat_map(|r| &samples[r]);
-            std::borrow::Cow::Owned(turned.map(|s| pipe.to_body(s)).collect())
+            let rates: Vec<crate::calib::gyro::Rate> =
+                turned.map(|s| (&pipe.to_body(s)).into()).collect();
+            gyro_scale(&rates, poses, pipe, fits)
         };
-        (body, poses.to_vec(), span_samples)
+        (fitted, span_samples)
     } else {
-        let (body, poses) = gyro_spans(path, cfg, opts, run)?;
-        let n = body.len();
-        (std::borrow::Cow::Owned(body), poses, n)
+        let (rates, poses) = gyro_spans(path, cfg, opts, run)?;
+        (gyro_scale(&rates, &poses, pipe, fits), rates.len())
     };
-    let (scale, failure) = gyro_scale(&body, &poses, pipe, fits);
     Ok((scale, failure, span_samples))
 }
 
@@ -962,7 +962,8 @@ struct GyroFits<'a> {
 /// of poses that [`crate::calib::gyro::fit_scale`] could use (same time segment, gap at most its
 /// `max_gap_s`), or an evenly spread choice of them when their samples would be more than
 /// [`GYRO_SPAN_SAMPLES_MAX`]; the samples from one pose's middle to the next's read again from
-/// the file, in body axes. Each chosen pair comes back as two poses of a time segment of its own
+/// the file, in body axes, each kept as the part the fit reads ([`crate::calib::gyro::Rate`], a
+/// quarter of a sample). Each chosen pair comes back as two poses of a time segment of its own
 /// (its samples relabelled alike, those of another segment set apart), so the fit integrates
 /// within pairs only, as it does on the whole log.
 fn gyro_spans(
@@ -970,7 +971,7 @@ fn gyro_spans(
     cfg: &Config,
     opts: &ReplayOptions,
     run: &Run,
-) -> Result<(Vec<crate::types::Sample>, Vec<crate::calib::gate::Pose>), Error> {
+) -> Result<(Vec<crate::calib::gyro::Rate>, Vec<crate::calib::gate::Pose>), Error> {
     let poses = run.pipe.poses();
     let pairs: Vec<usize> = rotation_pairs(poses).collect();
     let rate_hz = run.primary_seen as f64 / run.duration_s.max(f64::MIN_POSITIVE);
@@ -1005,7 +1006,7 @@ fn gyro_spans(
                 whole = k;
                 continue;
             }
-            let mut x = run.pipe.to_body(s);
+            let mut x = crate::calib::gyro::Rate::from(&run.pipe.to_body(s));
             x.segment = if s.segment == spans[k].2 {
                 k as u32
             } else {
@@ -1048,7 +1049,7 @@ fn pose_mids(poses: &[crate::calib::gate::Pose], i: usize) -> (f64, f64) {
 /// an accelerometer calibration the rotations are still looked at (with the raw accelerometer
 /// directions): about one axis or in one plane only, the scale could not be determined with one.
 fn gyro_scale(
-    body: &[crate::types::Sample],
+    body: &[impl crate::calib::gyro::RateReading],
     poses: &[crate::calib::gate::Pose],
     pipe: &Pipeline,
     fits: GyroFits<'_>,

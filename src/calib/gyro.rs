@@ -391,9 +391,69 @@ fn rms_deg_of<'a>(
     (s / n as f64).sqrt().to_degrees()
 }
 
+/// What the scale fit reads of a sample: its time (s), time segment, angular rate (rad/s, or
+/// counts) and temperature (deg C). A whole [`Sample`] has them; a [`Rate`] holds them alone.
+pub(crate) trait RateReading {
+    fn t_s(&self) -> f64;
+    fn segment(&self) -> u32;
+    fn gyro_rad_s(&self) -> Option<Vec3>;
+    fn temp_c(&self) -> Option<f64>;
+}
+
+impl RateReading for Sample {
+    fn t_s(&self) -> f64 {
+        self.t_s
+    }
+    fn segment(&self) -> u32 {
+        self.segment
+    }
+    fn gyro_rad_s(&self) -> Option<Vec3> {
+        self.gyro_rad_s
+    }
+    fn temp_c(&self) -> Option<f64> {
+        self.temp_c
+    }
+}
+
+/// The part of a sample the scale fit reads ([`RateReading`]): a quarter of a whole sample, for
+/// the rotations of a log too long to keep whole.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Rate {
+    pub t_s: f64,
+    pub segment: u32,
+    pub gyro_rad_s: Option<Vec3>,
+    pub temp_c: Option<f64>,
+}
+
+impl From<&Sample> for Rate {
+    fn from(s: &Sample) -> Rate {
+        Rate {
+            t_s: s.t_s,
+            segment: s.segment,
+            gyro_rad_s: s.gyro_rad_s,
+            temp_c: s.temp_c,
+        }
+    }
+}
+
+impl RateReading for Rate {
+    fn t_s(&self) -> f64 {
+        self.t_s
+    }
+    fn segment(&self) -> u32 {
+        self.segment
+    }
+    fn gyro_rad_s(&self) -> Option<Vec3> {
+        self.gyro_rad_s
+    }
+    fn temp_c(&self) -> Option<f64> {
+        self.temp_c
+    }
+}
+
 /// The rotations between consecutive static poses, bias removed.
 fn segments(
-    samples: &[Sample],
+    samples: &[impl RateReading],
     poses: &[Pose],
     bias: &GyroBias,
     accel: &Calibration,
@@ -418,23 +478,23 @@ fn segments(
         let tb = 0.5 * (p1.t_start + p1.t_end);
         // Sample times never decrease (`crate::io::clock`), so the span is found by bisection; a
         // caller's unsorted samples give an empty span, never a bad slice.
-        let i0 = samples.partition_point(|s| s.t_s < ta);
-        let i1 = samples.partition_point(|s| s.t_s < tb).max(i0);
+        let i0 = samples.partition_point(|s| s.t_s() < ta);
+        let i1 = samples.partition_point(|s| s.t_s() < tb).max(i0);
         let mut steps = Vec::with_capacity(i1 - i0);
         let mut prev: Option<(Vec3, f64)> = None;
         for s in &samples[i0..i1] {
-            if s.segment != p0.segment {
+            if s.segment() != p0.segment {
                 prev = None;
                 continue;
             }
-            let Some(g) = s.gyro_rad_s else { continue };
+            let Some(g) = s.gyro_rad_s() else { continue };
             if !crate::types::is_finite3(&g) {
                 continue;
             }
-            let b = bias.at(s.temp_c);
+            let b = bias.at(s.temp_c());
             let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
             if let Some((wp, tp)) = prev {
-                let dt = s.t_s - tp;
+                let dt = s.t_s() - tp;
                 if dt > 0.0 && dt < 1.0 {
                     // Midpoint rate over the step.
                     let m = [
@@ -445,7 +505,7 @@ fn segments(
                     steps.push((m, dt));
                 }
             }
-            prev = Some((w, s.t_s));
+            prev = Some((w, s.t_s()));
         }
         if !steps.is_empty() {
             segs.push(Segment { steps, up0, up1 });
@@ -617,7 +677,7 @@ fn axis_span(rotations: impl Iterator<Item = UnitQuaternion<f64>>) -> AxisSpan {
 /// accelerometer calibration (identity for raw directions) that select them, as [`fit_scale`] does.
 /// `None` without rotations.
 pub(crate) fn rotation_axes(
-    samples: &[Sample],
+    samples: &[impl RateReading],
     poses: &[Pose],
     bias: &GyroBias,
     accel: &Calibration,
@@ -684,7 +744,7 @@ fn held_out_check(
 /// scored on the rest ([`GyroFit::held_out`]) and must not be worse than the starting `K` there by
 /// more than [`HELD_OUT_MARGIN`]. Each refusal is a [`ScaleFailure`] naming its reason.
 pub(crate) fn fit_scale(
-    samples: &[Sample],
+    samples: &[impl RateReading],
     poses: &[Pose],
     bias: &GyroBias,
     accel: &Calibration,
@@ -758,6 +818,20 @@ mod tests {
 
     fn tumble(seed: u64) -> (Vec<Sample>, crate::sim::Truth) {
         tumble_with(seed, |_| {})
+    }
+
+    /// The part of the samples the fit reads ([`Rate`]) fits as the whole samples do, to the
+    /// last bit.
+    #[test]
+    fn rates_alone_fit_as_whole_samples() {
+        let (samples, truth) = tumble(12);
+        let poses = static_poses(&samples, &GateConfig::default());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        let (accel, opt) = (truth.accel.calibration(), ScaleOptions::default());
+        let rates: Vec<Rate> = samples.iter().map(Rate::from).collect();
+        let whole = fit_scale(&samples, &poses, &bias, &accel, &opt).unwrap();
+        let part = fit_scale(&rates, &poses, &bias, &accel, &opt).unwrap();
+        assert_eq!(format!("{whole:?}"), format!("{part:?}"));
     }
 
     #[test]

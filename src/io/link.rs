@@ -1390,10 +1390,7 @@ async fn replay_tlog(sh: &Shared, ctl: &mut Control, data: &[u8], speed: f64) ->
             return false;
         }
         LinkCounters::add(&sh.counters.frames_in, 1);
-        batch.push(TimedFrame {
-            time_us: ts,
-            frame,
-        });
+        batch.push(TimedFrame { time_us: ts, frame });
     }
     sh.merge(&records.stats);
     deliver_frames(sh, ctl, &mut batch).await
