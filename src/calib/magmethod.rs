@@ -325,7 +325,10 @@ fn planar_evidence(
     let tilted = match reference_tilt_beyond(samples, PLANAR_MAX_TILT_P95_DEG) {
         Some(Some(beyond)) => beyond,
         Some(None) => reference_tilt_p95_deg(samples).is_some_and(|t| t > PLANAR_MAX_TILT_P95_DEG),
-        None => crate::calib::planar::tilt_p95_deg(readings.points()) > PLANAR_MAX_TILT_P95_DEG,
+        None => crate::calib::planar::tilt_p95_beyond(readings.points(), PLANAR_MAX_TILT_P95_DEG)
+            .unwrap_or_else(|| {
+                crate::calib::planar::tilt_p95_deg(readings.points()) > PLANAR_MAX_TILT_P95_DEG
+            }),
     };
     if tilted {
         return PlanarEvidence::Tilted;

@@ -659,6 +659,34 @@ pub fn tilt_p95_deg(points: impl Iterator<Item = PlanarPoint>) -> f64 {
     .unwrap_or(0.0)
 }
 
+/// Whether [`tilt_p95_deg`] of `points` is beyond `limit_deg`, told by counting the usable
+/// points within the limit by their tilt's cosine (no arc cosine per point): the percentile is
+/// beyond it when fewer than its rank are within. `None` when points within 1e-9 of the limit's
+/// cosine could decide (rounding then matters: ask [`tilt_p95_deg`]).
+pub fn tilt_p95_beyond(points: impl Iterator<Item = PlanarPoint>, limit_deg: f64) -> Option<bool> {
+    let limit = limit_deg.to_radians().cos();
+    let (mut n, mut surely_within, mut maybe_within) = (0usize, 0usize, 0usize);
+    for p in points.filter(|p| p.usable()) {
+        let f = p.gravity_force();
+        let c = (-f[2] / crate::types::norm(&f)).clamp(-1.0, 1.0);
+        n += 1;
+        surely_within += usize::from(c > limit + 1e-9);
+        maybe_within += usize::from(c >= limit - 1e-9);
+    }
+    // The percentile's rank, as [`p95`] takes it (none without points: a tilt of 0).
+    let Some(last) = n.checked_sub(1) else {
+        return Some(false);
+    };
+    let rank = ((n as f64 * 0.95) as usize).min(last) + 1;
+    if maybe_within < rank {
+        Some(true)
+    } else if surely_within >= rank {
+        Some(false)
+    } else {
+        None
+    }
+}
+
 fn tilt_and_bank(usable: &[&PlanarPoint]) -> (f64, f64, Option<f64>) {
     let tilts: Vec<f64> = usable.iter().map(|p| p.tilt_deg()).collect();
     let tilt_p95_deg = p95(tilts.clone()).unwrap_or(0.0);
@@ -1070,6 +1098,39 @@ pub fn raw_heading_deg(p: &PlanarPoint) -> f64 {
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    /// Counting by the cosines decides as the percentile of the tilts does: for points tilted up
+    /// to several limits, and when every point sits at the limit (then it leaves it to the
+    /// percentile).
+    #[test]
+    fn tilt_counted_by_cosines_decides_as_the_percentile() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let point = |tilt_deg: f64, az: f64| {
+            let (t, g) = (tilt_deg.to_radians(), 9.81);
+            PlanarPoint {
+                t_s: 0.0,
+                mag: [20.0, 0.0, 40.0],
+                accel_mps2: [g * t.sin() * az.cos(), g * t.sin() * az.sin(), -g * t.cos()],
+                gyro_rad_s: None,
+                ground_speed_mps: None,
+                reference: None,
+            }
+        };
+        for spread in [3.0f64, 10.0, 14.0, 15.0, 16.0, 20.0, 60.0] {
+            let pts: Vec<PlanarPoint> = (0..400)
+                .map(|_| point(rng.random_range(0.0..spread), rng.random_range(0.0..6.28)))
+                .collect();
+            let exact = tilt_p95_deg(pts.iter().copied()) > 15.0;
+            assert_eq!(
+                tilt_p95_beyond(pts.iter().copied(), 15.0),
+                Some(exact),
+                "{spread}"
+            );
+        }
+        let at = vec![point(15.0, 1.0); 40];
+        assert_eq!(tilt_p95_beyond(at.iter().copied(), 15.0), None);
+        assert_eq!(tilt_p95_beyond(std::iter::empty(), 15.0), Some(false));
+    }
 
     const H: f64 = 21.0;
     const V: f64 = 42.0;
