@@ -1118,7 +1118,12 @@ mod tests {
         };
         for spread in [3.0f64, 10.0, 14.0, 15.0, 16.0, 20.0, 60.0] {
             let pts: Vec<PlanarPoint> = (0..400)
-                .map(|_| point(rng.random_range(0.0..spread), rng.random_range(0.0..6.28)))
+                .map(|_| {
+                    point(
+                        rng.random_range(0.0..spread),
+                        rng.random_range(0.0..std::f64::consts::TAU),
+                    )
+                })
                 .collect();
             let exact = tilt_p95_deg(pts.iter().copied()) > 15.0;
             assert_eq!(
