@@ -391,32 +391,9 @@ fn rms_deg_of<'a>(
     (s / n as f64).sqrt().to_degrees()
 }
 
-/// What the scale fit reads of a sample: its time (s), time segment, angular rate (rad/s, or
-/// counts) and temperature (deg C). A whole [`Sample`] has them; a [`Rate`] holds them alone.
-pub(crate) trait RateReading {
-    fn t_s(&self) -> f64;
-    fn segment(&self) -> u32;
-    fn gyro_rad_s(&self) -> Option<Vec3>;
-    fn temp_c(&self) -> Option<f64>;
-}
-
-impl RateReading for Sample {
-    fn t_s(&self) -> f64 {
-        self.t_s
-    }
-    fn segment(&self) -> u32 {
-        self.segment
-    }
-    fn gyro_rad_s(&self) -> Option<Vec3> {
-        self.gyro_rad_s
-    }
-    fn temp_c(&self) -> Option<f64> {
-        self.temp_c
-    }
-}
-
-/// The part of a sample the scale fit reads ([`RateReading`]): a quarter of a whole sample, for
-/// the rotations of a log too long to keep whole.
+/// The part of a sample the scale fit reads: its time (s), time segment, angular rate (rad/s, or
+/// counts) and temperature (deg C); a quarter of a whole sample, for the rotations of a log too
+/// long to keep whole.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Rate {
     pub t_s: f64,
@@ -436,18 +413,20 @@ impl From<&Sample> for Rate {
     }
 }
 
+/// What the scale fit reads: a whole [`Sample`], or its [`Rate`] alone.
+pub(crate) trait RateReading {
+    fn rate(&self) -> Rate;
+}
+
+impl RateReading for Sample {
+    fn rate(&self) -> Rate {
+        self.into()
+    }
+}
+
 impl RateReading for Rate {
-    fn t_s(&self) -> f64 {
-        self.t_s
-    }
-    fn segment(&self) -> u32 {
-        self.segment
-    }
-    fn gyro_rad_s(&self) -> Option<Vec3> {
-        self.gyro_rad_s
-    }
-    fn temp_c(&self) -> Option<f64> {
-        self.temp_c
+    fn rate(&self) -> Rate {
+        *self
     }
 }
 
@@ -478,23 +457,23 @@ fn segments(
         let tb = 0.5 * (p1.t_start + p1.t_end);
         // Sample times never decrease (`crate::io::clock`), so the span is found by bisection; a
         // caller's unsorted samples give an empty span, never a bad slice.
-        let i0 = samples.partition_point(|s| s.t_s() < ta);
-        let i1 = samples.partition_point(|s| s.t_s() < tb).max(i0);
+        let i0 = samples.partition_point(|s| s.rate().t_s < ta);
+        let i1 = samples.partition_point(|s| s.rate().t_s < tb).max(i0);
         let mut steps = Vec::with_capacity(i1 - i0);
         let mut prev: Option<(Vec3, f64)> = None;
-        for s in &samples[i0..i1] {
-            if s.segment() != p0.segment {
+        for s in samples[i0..i1].iter().map(RateReading::rate) {
+            if s.segment != p0.segment {
                 prev = None;
                 continue;
             }
-            let Some(g) = s.gyro_rad_s() else { continue };
+            let Some(g) = s.gyro_rad_s else { continue };
             if !crate::types::is_finite3(&g) {
                 continue;
             }
-            let b = bias.at(s.temp_c());
+            let b = bias.at(s.temp_c);
             let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
             if let Some((wp, tp)) = prev {
-                let dt = s.t_s() - tp;
+                let dt = s.t_s - tp;
                 if dt > 0.0 && dt < 1.0 {
                     // Midpoint rate over the step.
                     let m = [
@@ -505,7 +484,7 @@ fn segments(
                     steps.push((m, dt));
                 }
             }
-            prev = Some((w, s.t_s()));
+            prev = Some((w, s.t_s));
         }
         if !steps.is_empty() {
             segs.push(Segment { steps, up0, up1 });
