@@ -84,11 +84,6 @@ struct Thinned {
 
 impl Thinned {
     fn push(&mut self, s: &crate::types::Sample) {
-        if self.samples.capacity() == 0 {
-            // Room for the most ever held: the list is never copied as it grows (each copy
-            // touches fresh pages), and the pages of the room not used are never touched.
-            self.samples.reserve_exact(KEPT_SAMPLES_MAX);
-        }
         self.stride = self.stride.max(1);
         self.first_t_s.get_or_insert(s.t_s);
         self.last_t_s = s.t_s;
