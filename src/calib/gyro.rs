@@ -240,6 +240,51 @@ fn unit(v: &Vec3) -> Option<Vector3<f64>> {
     (n > 0.0 && n.is_finite()).then(|| u / n)
 }
 
+/// Steps of rotation (gyro samples) from which a pass of the scale fit over its segments is split
+/// over two threads. A step costs about 25 ns to carry and starting a thread about 20 us, so below
+/// this the second thread would save little.
+const PARALLEL_MIN_STEPS: usize = 20_000;
+
+/// `f` of every item, in order: the items from `at` on on a second thread when `at` splits them.
+/// Each result is the one `f` gives alone, so the list is the one a single thread makes, to the
+/// bit.
+fn map_split<T: Sync, U: Send>(items: &[T], at: usize, f: impl Fn(&T) -> U + Sync) -> Vec<U> {
+    if at == 0 || at >= items.len() {
+        return items.iter().map(f).collect();
+    }
+    let (first, later) = items.split_at(at);
+    let f = &f;
+    std::thread::scope(|scope| {
+        let later = scope.spawn(move || later.iter().map(f).collect::<Vec<U>>());
+        let mut out: Vec<U> = Vec::with_capacity(items.len());
+        out.extend(first.iter().map(f));
+        out.extend(
+            later
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+        );
+        out
+    })
+}
+
+/// `f` of every segment, in order ([`map_split`]), split where half of the steps are done when
+/// there are at least [`PARALLEL_MIN_STEPS`].
+fn map_segments<U: Send>(segs: &[&Segment], f: impl Fn(&Segment) -> U + Sync) -> Vec<U> {
+    let total: usize = segs.iter().map(|s| s.steps.len()).sum();
+    let at = if total >= PARALLEL_MIN_STEPS {
+        let mut done = 0;
+        segs.iter()
+            .position(|s| {
+                done += s.steps.len();
+                2 * done >= total
+            })
+            .map_or(0, |i| i + 1)
+    } else {
+        0
+    };
+    map_split(segs, at, |s| f(s))
+}
+
 /// The rotation of one step, `exp` of the rotation vector `v`: cos(t/2) + sin(t/2)/t v; Taylor
 /// below 0.1 rad (error < 1e-11), which saves the sin/cos at IMU rates.
 fn step_rotation(v: &Vector3<f64>) -> nalgebra::Quaternion<f64> {
@@ -374,7 +419,8 @@ fn k_from(p: &[f64]) -> Matrix3<f64> {
 /// RMS angle (deg) between the measured end gravity directions and the start directions carried by
 /// the integrated rotations.
 fn rms_deg(segs: &[&Segment], k: &Matrix3<f64>) -> f64 {
-    rms_deg_of(segs.iter().map(|s| (*s, integrate(s, k))))
+    let rotations = map_segments(segs, |s| integrate(s, k));
+    rms_deg_of(segs.iter().copied().zip(rotations))
 }
 
 /// [`rms_deg`] of segments with their rotations already integrated.
@@ -413,8 +459,9 @@ impl From<&Sample> for Rate {
     }
 }
 
-/// What the scale fit reads: a whole [`Sample`], or its [`Rate`] alone.
-pub(crate) trait RateReading {
+/// What the scale fit reads: a whole [`Sample`], or its [`Rate`] alone (shared with the thread of
+/// [`map_split`]).
+pub(crate) trait RateReading: Sync {
     fn rate(&self) -> Rate;
 }
 
@@ -430,7 +477,9 @@ impl RateReading for Rate {
     }
 }
 
-/// The rotations between consecutive static poses, bias removed.
+/// The rotations between consecutive static poses, bias removed. With at least
+/// [`PARALLEL_MIN_STEPS`] samples, the later half of the pose pairs on a second thread
+/// ([`map_split`]).
 fn segments(
     samples: &[impl RateReading],
     poses: &[Pose],
@@ -438,59 +487,73 @@ fn segments(
     accel: &Calibration,
     opt: &ScaleOptions,
 ) -> Vec<Segment> {
-    let mut segs = Vec::new();
-    for pair in poses.windows(2) {
-        let (p0, p1) = (&pair[0], &pair[1]);
-        // No rotation is integrated across a break in the source's time.
-        if p0.segment != p1.segment || p1.t_start - p0.t_end > opt.max_gap_s {
-            continue;
-        }
-        let (Some(up0), Some(up1)) = (unit(&accel.apply(&p0.accel)), unit(&accel.apply(&p1.accel)))
-        else {
-            continue;
-        };
-        if up0.angle(&up1).to_degrees() < opt.min_rotation_deg {
-            continue;
-        }
-        // From the middle of one pose to the middle of the next.
-        let ta = 0.5 * (p0.t_start + p0.t_end);
-        let tb = 0.5 * (p1.t_start + p1.t_end);
-        // Sample times never decrease (`crate::io::clock`), so the span is found by bisection; a
-        // caller's unsorted samples give an empty span, never a bad slice.
-        let i0 = samples.partition_point(|s| s.rate().t_s < ta);
-        let i1 = samples.partition_point(|s| s.rate().t_s < tb).max(i0);
-        let mut steps = Vec::with_capacity(i1 - i0);
-        let mut prev: Option<(Vec3, f64)> = None;
-        for s in samples[i0..i1].iter().map(RateReading::rate) {
-            if s.segment != p0.segment {
-                prev = None;
-                continue;
-            }
-            let Some(g) = s.gyro_rad_s else { continue };
-            if !crate::types::is_finite3(&g) {
-                continue;
-            }
-            let b = bias.at(s.temp_c);
-            let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
-            if let Some((wp, tp)) = prev {
-                let dt = s.t_s - tp;
-                if dt > 0.0 && dt < 1.0 {
-                    // Midpoint rate over the step.
-                    let m = [
-                        0.5 * (w[0] + wp[0]),
-                        0.5 * (w[1] + wp[1]),
-                        0.5 * (w[2] + wp[2]),
-                    ];
-                    steps.push((m, dt));
-                }
-            }
-            prev = Some((w, s.t_s));
-        }
-        if !steps.is_empty() {
-            segs.push(Segment { steps, up0, up1 });
-        }
+    let pairs: Vec<&[Pose]> = poses.windows(2).collect();
+    let at = if samples.len() >= PARALLEL_MIN_STEPS {
+        pairs.len() / 2
+    } else {
+        0
+    };
+    map_split(&pairs, at, |pair| {
+        segment(samples, (&pair[0], &pair[1]), bias, accel, opt)
+    })
+    .into_iter()
+    .flatten()
+    .collect()
+}
+
+/// The rotation from pose `p0` to the next, `p1` ([`segments`]): `None` across a break in the
+/// source's time, below [`ScaleOptions::min_rotation_deg`] or without a step.
+fn segment(
+    samples: &[impl RateReading],
+    (p0, p1): (&Pose, &Pose),
+    bias: &GyroBias,
+    accel: &Calibration,
+    opt: &ScaleOptions,
+) -> Option<Segment> {
+    // No rotation is integrated across a break in the source's time.
+    if p0.segment != p1.segment || p1.t_start - p0.t_end > opt.max_gap_s {
+        return None;
     }
-    segs
+    let up0 = unit(&accel.apply(&p0.accel))?;
+    let up1 = unit(&accel.apply(&p1.accel))?;
+    if up0.angle(&up1).to_degrees() < opt.min_rotation_deg {
+        return None;
+    }
+    // From the middle of one pose to the middle of the next.
+    let ta = 0.5 * (p0.t_start + p0.t_end);
+    let tb = 0.5 * (p1.t_start + p1.t_end);
+    // Sample times never decrease (`crate::io::clock`), so the span is found by bisection; a
+    // caller's unsorted samples give an empty span, never a bad slice.
+    let i0 = samples.partition_point(|s| s.rate().t_s < ta);
+    let i1 = samples.partition_point(|s| s.rate().t_s < tb).max(i0);
+    let mut steps = Vec::with_capacity(i1 - i0);
+    let mut prev: Option<(Vec3, f64)> = None;
+    for s in samples[i0..i1].iter().map(RateReading::rate) {
+        if s.segment != p0.segment {
+            prev = None;
+            continue;
+        }
+        let Some(g) = s.gyro_rad_s else { continue };
+        if !crate::types::is_finite3(&g) {
+            continue;
+        }
+        let b = bias.at(s.temp_c);
+        let w = [g[0] - b[0], g[1] - b[1], g[2] - b[2]];
+        if let Some((wp, tp)) = prev {
+            let dt = s.t_s - tp;
+            if dt > 0.0 && dt < 1.0 {
+                // Midpoint rate over the step.
+                let m = [
+                    0.5 * (w[0] + wp[0]),
+                    0.5 * (w[1] + wp[1]),
+                    0.5 * (w[2] + wp[2]),
+                ];
+                steps.push((m, dt));
+            }
+        }
+        prev = Some((w, s.t_s));
+    }
+    (!steps.is_empty()).then_some(Segment { steps, up0, up1 })
 }
 
 /// The isotropic scale `s` (K = s I) that best carries the gravity directions: a log-spaced scan
@@ -499,7 +562,8 @@ fn segments(
 fn isotropic_scale(segs: &[&Segment]) -> f64 {
     let cost = |s: f64| -> f64 {
         let k = Matrix3::identity() * s;
-        segs.iter().map(|g| residual(g, &k).norm_squared()).sum()
+        let squares = map_segments(segs, |g| residual(g, &k).norm_squared());
+        squares.iter().sum()
     };
     let (lo, hi, n) = (1e-6f64.ln(), 10f64.ln(), 240);
     let step = (hi - lo) / n as f64;
@@ -538,7 +602,7 @@ fn fit_k(segs: &[&Segment], k0: &Matrix3<f64>, start: Option<Normal9>) -> (Matri
     let eval = |p: &SVector<f64, 9>, _with_jtj: bool| {
         let (ssr, jtj, jtr) = start.take().unwrap_or_else(|| {
             let k = k_from(p.as_slice());
-            normal_of(segs.iter().map(|s| carry(s, &k)))
+            normal_of(map_segments(segs, |s| carry(s, &k)).into_iter())
         });
         (ssr, Some(jtj), jtr)
     };
@@ -745,7 +809,7 @@ pub(crate) fn fit_scale(
     let k0 = start_k(&segs, opt);
     // Every segment carried once with the starting `K`: the axis check, the "before" figures and
     // the first evaluation of both fits read it.
-    let at_k0: Vec<Carried> = segs.iter().map(|s| carry(s, &k0)).collect();
+    let at_k0: Vec<Carried> = map_segments(&segs, |s| carry(s, &k0));
     if let Some(f) = axis_span(at_k0.iter().map(|c| c.rotation)).failure(segs.len()) {
         return Err(f);
     }
@@ -811,6 +875,39 @@ mod tests {
         let whole = fit_scale(&samples, &poses, &bias, &accel, &opt).unwrap();
         let part = fit_scale(&rates, &poses, &bias, &accel, &opt).unwrap();
         assert_eq!(format!("{whole:?}"), format!("{part:?}"));
+    }
+
+    /// Split over two threads ([`map_split`]), the passes over the segments give what one
+    /// thread gives, to the last bit: the segments themselves and their carrying.
+    #[test]
+    fn passes_split_over_two_threads_are_those_of_one() {
+        let items: Vec<u32> = (0..10).collect();
+        let tripled: Vec<u32> = items.iter().map(|x| 3 * x).collect();
+        for at in [0, 1, 5, 9, 10, 11] {
+            assert_eq!(map_split(&items, at, |x| 3 * x), tripled, "split at {at}");
+        }
+        // At 250 Hz: enough samples and steps that both passes do split.
+        let (samples, truth) = tumble_with(12, |sc| sc.truth.rate_hz = 250.0);
+        let poses = static_poses(&samples, &GateConfig::default());
+        let bias = bias_from_poses(&poses, &BiasOptions::default()).unwrap();
+        let (accel, opt) = (truth.accel.calibration(), ScaleOptions::default());
+        assert!(samples.len() >= PARALLEL_MIN_STEPS, "{}", samples.len());
+        let split = segments(&samples, &poses, &bias, &accel, &opt);
+        let one: Vec<Segment> = poses
+            .windows(2)
+            .filter_map(|p| segment(&samples, (&p[0], &p[1]), &bias, &accel, &opt))
+            .collect();
+        assert_eq!(split.len(), one.len());
+        for (a, b) in split.iter().zip(&one) {
+            assert!(a.steps == b.steps && a.up0 == b.up0 && a.up1 == b.up1);
+        }
+        let segs: Vec<&Segment> = split.iter().collect();
+        let steps: usize = segs.iter().map(|s| s.steps.len()).sum();
+        assert!(steps >= PARALLEL_MIN_STEPS, "{steps}");
+        let k = Matrix3::new(1.01, 0.02, -0.01, 0.005, 0.99, 0.03, -0.02, 0.01, 1.02);
+        let carried = map_segments(&segs, |s| carry(s, &k));
+        let alone: Vec<Carried> = segs.iter().map(|s| carry(s, &k)).collect();
+        assert_eq!(format!("{carried:?}"), format!("{alone:?}"));
     }
 
     #[test]
