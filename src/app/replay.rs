@@ -12,7 +12,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 mod gyro_scale;
-use gyro_scale::{gyro_scale_of, GyroFits, GyroScaleOutcome};
+use gyro_scale::{gyro_scale_of, GyroFits, GyroScaleOutcome, SpanRates};
 
 /// What to write besides the report.
 #[derive(Debug, Clone, Default)]
@@ -52,8 +52,9 @@ pub(crate) const KEPT_SAMPLES_MAX: usize = 1 << 17;
 
 /// Samples of the rotations between static poses the gyro scale is fitted on, at most: as many
 /// as [`KEPT_SAMPLES_MAX`] (every rotation of a log that fits in it whole). A longer log gives an
-/// evenly spread choice of its rotations, each read again from the file at the full rate (the
-/// rotation is integrated sample by sample), a hundred and more of them for the 9 terms fitted.
+/// evenly spread choice of its rotations, each kept at the full rate as the log is read (the
+/// rotation is integrated sample by sample; [`gyro_scale::SpanRates`]), a hundred and more of
+/// them for the 9 terms fitted.
 pub(crate) const GYRO_SPAN_SAMPLES_MAX: usize = KEPT_SAMPLES_MAX;
 
 /// What a replay held of a log's samples ([`ReplayOutcome::kept`]).
@@ -128,7 +129,7 @@ pub fn replay(
     let started = std::time::Instant::now();
     let mut run = run_pipelines(path, cfg, opts, progress)?;
     let read_s = started.elapsed().as_secs_f64();
-    let fin = final_fits(path, cfg, opts, &mut run)?;
+    let fin = final_fits(cfg, &mut run);
     tracing::debug!(
         read_ms = 1e3 * read_s,
         fits_ms = 1e3 * (started.elapsed().as_secs_f64() - read_s),
@@ -201,13 +202,9 @@ struct FinalFits {
 /// rest, when too few poses leave it little to do); while this one gathers the evidence of the
 /// magnetometer's method choice (the readings and attitudes alone). Each step does what it did in
 /// turn, so the results are the same.
-fn final_fits(
-    path: &Path,
-    cfg: &Config,
-    opts: &ReplayOptions,
-    run: &mut Run,
-) -> Result<FinalFits, Error> {
+fn final_fits(cfg: &Config, run: &mut Run) -> FinalFits {
     let input = run.pipe.finish_input();
+    run.span_rates.finish(&run.pipe);
     let calib = run.pipe.settings().clone();
     let run_ref = &*run;
     let (mag, (accel, gyro, scale), quality, mag_evidence) = std::thread::scope(|scope| {
@@ -219,7 +216,7 @@ fn final_fits(
                 gyro: &gyro,
                 accel: &accel,
             };
-            let scale = gyro_scale_of(path, cfg, opts, run_ref, fits);
+            let scale = gyro_scale_of(run_ref, fits);
             (accel, gyro, scale)
         };
         // The gyro scale takes long only with rotations enough to fit (each from one pose to the
@@ -232,12 +229,12 @@ fn final_fits(
     });
     let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
     let results = run.pipe.install_final(results).clone();
-    Ok(FinalFits {
+    FinalFits {
         results,
         quality,
-        gyro_scale: scale?,
+        gyro_scale: scale,
         mag_evidence,
-    })
+    }
 }
 
 /// What a scoped thread gave; its panic, if it panicked, goes on here.
@@ -574,6 +571,9 @@ struct Run {
     largest: usize,
     /// The primary's samples were all held ([`Thinned::whole`]).
     whole: bool,
+    /// The rates of the primary's rotations between static poses, for the gyro scale when the
+    /// samples were not all held.
+    span_rates: SpanRates,
     /// The primary's samples seen, and the time they span, s.
     primary_seen: u64,
     duration_s: f64,
@@ -608,6 +608,7 @@ fn run_pipelines(
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
     // the same order as from a whole-file decode, so the result is the same.
     let mut samples = Thinned::default();
+    let mut span_rates = SpanRates::default();
     let mut others: Vec<Option<Pipeline>> = Vec::new();
     let mut other_samples: Vec<Thinned> = Vec::new();
     let decoded = std::thread::scope(|scope| {
@@ -629,6 +630,11 @@ fn run_pipelines(
                 if pipe.push(s) && opts.refits {
                     pipe.refit();
                 }
+                if samples.seen == KEPT_SAMPLES_MAX as u64 {
+                    // Too long to keep whole from here on.
+                    span_rates.start(&samples.samples, &pipe);
+                }
+                span_rates.push(s, &pipe);
                 samples.push(s);
             }
             for &(k, ref s) in &batch.others {
@@ -663,6 +669,7 @@ fn run_pipelines(
         held,
         largest,
         whole,
+        span_rates,
         primary_seen,
         duration_s,
     })
@@ -1468,6 +1475,47 @@ mod tests {
     use super::gyro_scale::gyro_scale;
     use super::*;
 
+    /// A log too long to keep whole has its rotations kept as it is read: when they all fit,
+    /// the gyro scale from them is the one fitted on every sample of the log, to the last bit,
+    /// and the log is read once.
+    #[test]
+    fn a_long_log_keeps_its_rotations_as_it_is_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("long.tlog");
+        // A tumble at 1 kHz: just too long to keep whole, its 28 rotations within the cap.
+        let sc = crate::sim::Scenario::from_toml_str(
+            "name = \"tumble\"\nrate_hz = 1000.0\npauses = 30\n",
+        )
+        .unwrap();
+        let sim = crate::sim::simulate(&sc, 5);
+        assert!(
+            sim.samples.len() > KEPT_SAMPLES_MAX,
+            "{}",
+            sim.samples.len()
+        );
+        crate::io::samplelog::write_tlog(&path, &sim.samples, &Default::default()).unwrap();
+        let (cfg, opts) = (Config::default(), ReplayOptions::default());
+        let mut run = run_pipelines(&path, &cfg, &opts, &mut |_, _| {}).unwrap();
+        assert!(!run.whole);
+        let input = run.pipe.finish_input();
+        run.span_rates.finish(&run.pipe);
+        let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, run.pipe.settings());
+        let fits = GyroFits {
+            gyro: &gyro,
+            accel: &accel,
+        };
+        // Every sample as read; then the file is not there to be read again.
+        let log = crate::io::sources::read_log(&path, None, &cfg.input).unwrap();
+        std::fs::remove_file(&path).unwrap();
+        let (scale, failure, spans) = gyro_scale_of(&run, fits);
+        let every: Vec<_> = log.samples.iter().map(|s| run.pipe.to_body(s)).collect();
+        let (scale_all, _) = gyro_scale(&every, run.pipe.poses(), &run.pipe, fits);
+        let scale = scale.unwrap_or_else(|| panic!("{failure:?}"));
+        assert_eq!(scale.segments, 28);
+        assert_eq!(format!("{:?}", Some(scale)), format!("{scale_all:?}"));
+        assert!(0 < spans && spans < every.len(), "{spans}");
+    }
+
     /// A log kept whole has only the samples of its rotations turned into body axes for the gyro
     /// scale (none when the sensor's axes are the body's), and the scale is the one fitted on
     /// every sample turned, to the last bit, with the sensor mounted turned and not.
@@ -1489,7 +1537,7 @@ mod tests {
                 gyro: &gyro,
                 accel: &accel,
             };
-            let (scale, failure, spans) = gyro_scale_of(&path, &cfg, &opts, &run, fits).unwrap();
+            let (scale, failure, spans) = gyro_scale_of(&run, fits);
             let every: Vec<_> = run
                 .log
                 .samples

@@ -195,13 +195,25 @@ impl Pipeline {
 
     /// Rotate a sample's vectors from sensor to body axes.
     pub fn to_body(&self, s: &Sample) -> Sample {
-        let r = |v: Option<Vec3>| v.map(|v| crate::attitude::rotate(&self.rot, &v));
         Sample {
-            accel_mps2: r(s.accel_mps2),
-            gyro_rad_s: r(s.gyro_rad_s),
-            mag_ut: r(s.mag_ut),
+            accel_mps2: self.vector_to_body(s.accel_mps2),
+            gyro_rad_s: self.vector_to_body(s.gyro_rad_s),
+            mag_ut: self.vector_to_body(s.mag_ut),
             ..*s
         }
+    }
+
+    /// The part of a sample the gyro scale reads, its angular rate in body axes as
+    /// [`Pipeline::to_body`] turns it (without copying the rest).
+    pub(crate) fn rate_in_body(&self, s: &Sample) -> crate::calib::gyro::Rate {
+        crate::calib::gyro::Rate {
+            gyro_rad_s: self.vector_to_body(s.gyro_rad_s),
+            ..s.into()
+        }
+    }
+
+    fn vector_to_body(&self, v: Option<Vec3>) -> Option<Vec3> {
+        v.map(|v| crate::attitude::rotate(&self.rot, &v))
     }
 
     /// Feed one sample. Returns true when a refit is due (every `fit.refit_every_s` of data).
