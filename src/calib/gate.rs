@@ -110,6 +110,27 @@ pub struct Pose {
     pub turn_rate_deg_s: Option<f64>,
 }
 
+#[cfg(test)]
+impl Pose {
+    /// A pose from `t_start` to `t_end` (s) of `samples` samples with the mean acceleration
+    /// `accel`, nothing else known: for tests.
+    pub(crate) fn still(t_start: f64, t_end: f64, samples: usize, accel: Vec3) -> Pose {
+        Pose {
+            t_start,
+            t_end,
+            segment: 0,
+            samples,
+            accel,
+            mag: None,
+            gyro: None,
+            temp_c: None,
+            throttle: None,
+            accel_var: 0.0,
+            turn_rate_deg_s: None,
+        }
+    }
+}
+
 impl Pose {
     /// Whether the pose was at rest: it turned no faster than [`REST_MAX_RATE_DEG_S`] where that
     /// can be seen. (Without an attitude or a magnetometer, nothing tells.)

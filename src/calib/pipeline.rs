@@ -1974,19 +1974,7 @@ mod tests {
     fn poses_are_bounded_and_the_newest_kept() {
         let mut p = Pipeline::new(&CalibSettings::default()).unwrap();
         for i in 0..(MAX_POSES + 500) {
-            p.add_pose(Pose {
-                t_start: i as f64,
-                t_end: i as f64 + 0.5,
-                segment: 0,
-                samples: 50,
-                accel: [0.0, 0.0, -9.8],
-                mag: None,
-                gyro: None,
-                temp_c: None,
-                throttle: None,
-                accel_var: 0.0,
-                turn_rate_deg_s: None,
-            });
+            p.add_pose(Pose::still(i as f64, i as f64 + 0.5, 50, [0.0, 0.0, -9.8]));
         }
         assert_eq!(p.poses().len(), MAX_POSES);
         assert_eq!(p.poses()[0].t_start, 500.0);

@@ -329,19 +329,7 @@ mod tests {
     use super::*;
 
     fn pose(t_s: f64) -> Pose {
-        Pose {
-            t_start: t_s,
-            t_end: t_s + 1.0,
-            segment: 0,
-            samples: 100,
-            accel: [0.0, 0.0, 9.8],
-            mag: None,
-            gyro: None,
-            temp_c: None,
-            throttle: None,
-            accel_var: 0.0,
-            turn_rate_deg_s: None,
-        }
+        Pose::still(t_s, t_s + 1.0, 100, [0.0, 0.0, 9.8])
     }
 
     /// Past [`GYRO_SPAN_SAMPLES_MAX`] rates, the rotations kept are every `stride`-th of the
