@@ -79,6 +79,11 @@ struct ReplayArgs {
     /// the history in the report's `refits` (default: one fit per sensor on all the data).
     #[arg(long)]
     refits: bool,
+    /// Write every compass to the exports as values to load, also those the held-out check or
+    /// the vehicle's own parameters say not to load (the files say so); by default those are
+    /// written as comments with the reason.
+    #[arg(long)]
+    export_all: bool,
     /// Write the JSON report here.
     #[arg(long)]
     report: Option<PathBuf>,
@@ -447,6 +452,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         rate_hz,
         quality_points,
         refits,
+        export_all,
         ..
     } = args;
     let mut cfg = load_config(config.as_ref())?;
@@ -470,6 +476,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         diagnosis,
         quality_points,
         refits,
+        export_all,
     };
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
@@ -490,7 +497,7 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
     }
     println!(
         "{}",
-        imucald::app::replay::next_step(&out.report, &out.written)
+        imucald::app::replay::next_step(&out.report, &out.written, opts.export_dir.is_some())
     );
     if imucald::app::replay::calibrated_nothing(&out.report) {
         eprintln!("error: nothing was calibrated (exit status {EXIT_NOTHING_CALIBRATED}): see the reasons above");

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 pub use crate::calib::outcome::{
     CalStatus, Candidate, GyroCalibration, GyroScaleReport, HeldOut, QualityReport, RefitReport,
-    SensorCalibration,
+    SensorCalibration, Verdict,
 };
 pub use crate::io::onboard::{OnboardCal, OnboardComparison, OnboardReport, SensorStream};
 
@@ -45,6 +45,68 @@ pub struct Report {
     /// instances'.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub quality: Vec<QualityReport>,
+    /// Per compass with a calibration: whether it is one to load on the vehicle, and why. The
+    /// exports and the terminal's `next:` follow it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub load: Vec<LoadDecision>,
+}
+
+/// Whether a compass's calibration is one to load on the vehicle ([`LoadReason`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LoadDecision {
+    pub instance: String,
+    /// The flight stack's compass number (COMPASS_OFS is 0, COMPASS_OFS2 1; CAL_MAGn n).
+    pub compass_id: u8,
+    pub load: bool,
+    pub reason: LoadReason,
+}
+
+/// Why a compass's calibration is, or is not, one to load.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LoadReason {
+    /// Better than the vehicle's own on the held-out blocks.
+    Better,
+    /// The log carries no calibration of the vehicle's; imucald's passed its checks.
+    NoOnboard,
+    /// The log has no attitude to judge it on held-out blocks; it passed its checks.
+    NotJudged,
+    /// Not clearly better than the vehicle's own on the held-out blocks: keep the vehicle's.
+    KeepVehicle,
+    /// imucald's fit on the fitting blocks failed, so nothing vouches for it held out.
+    HeldOutFailed,
+    /// The vehicle does not use this compass (COMPASS_USEn 0, CAL_MAGn_PRIO 0).
+    Unused,
+    /// Its RMS residual is over `accept.max_rms_ratio` of the field.
+    OverRmsLimit,
+    /// The fit failed: no calibration.
+    FitFailed,
+}
+
+impl LoadReason {
+    /// The reason in words, for the terminal and the exports' comments.
+    pub fn words(self) -> &'static str {
+        match self {
+            LoadReason::Better => "better than the vehicle's own on held-out blocks",
+            LoadReason::NoOnboard => {
+                "no calibration of the vehicle's to compare with; passed its checks"
+            }
+            LoadReason::NotJudged => {
+                "no attitude in the log to judge it held out; passed its checks"
+            }
+            LoadReason::KeepVehicle => {
+                "keep the vehicle's: imucald's is not better on held-out blocks"
+            }
+            LoadReason::HeldOutFailed => {
+                "imucald's fit on the fitting blocks failed: nothing vouches for it held out"
+            }
+            LoadReason::Unused => "the vehicle does not use this compass",
+            LoadReason::OverRmsLimit => {
+                "its RMS residual is over accept.max_rms_ratio of the field"
+            }
+            LoadReason::FitFailed => "the fit failed",
+        }
+    }
 }
 
 /// One IMU instance of the input and its calibration.

@@ -197,7 +197,14 @@ fn current_interference_fitted_jointly_within_a_percent() {
     );
     // Exported as ArduPilot COMPASS_MOT (after the soft iron, mGauss/A) and PX4 CAL_MAG0_?COMP
     // (before the offset, G/kA), each by its stack's sign: the truth's would be -(M k) x 10 and -k x 10.
-    assert_eq!(m.motor_ut_per_a(), Some(k));
+    // The calibration's own current term is the model ladder's, fitted with its offset and
+    // matrix: measured [0.2996, -0.2001, 0.4495], at most 0.14 % off.
+    assert!(choice.rung.is_some(), "{}", choice.method_reason);
+    let k = m.motor_ut_per_a().expect("the calibration's current term");
+    for j in 0..3 {
+        let rel = (k[j] - k_true[j]).abs() / k_true[j].abs();
+        assert!(rel < 0.007, "k {k:?}");
+    }
     let ap = imucald::calib::export::ardupilot_motor(&k, &m.matrix, 0);
     let px = imucald::calib::export::px4_motor(&k, 0);
     for (j, axis) in ["X", "Y", "Z"].iter().enumerate() {
@@ -231,7 +238,17 @@ fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
     let out = common::replay_log(&path, &cfg);
     let m = &out.report.calibration.mag;
     let choice = m.method.as_ref().unwrap();
-    assert_eq!(choice.method, MagMethod::Sphere, "{}", choice.method_reason);
+    // The full vector fit does not determine the offset; the model ladder, started from the
+    // vehicle's own CAL_MAG0 and chosen on held-out blocks, calibrates it.
+    assert_eq!(choice.method, MagMethod::Vector, "{}", choice.method_reason);
+    assert!(choice.rung.is_some(), "{}", choice.method_reason);
+    assert!(
+        choice
+            .method_reason
+            .contains("started from the vehicle's own calibration"),
+        "{}",
+        choice.method_reason
+    );
     let v = choice.vector.as_ref().unwrap();
     // Measured: one direction varied by 0.2 % of the field (+0.70 offset -0.63 soft iron (body-z)
     // -0.29 (body-x) -0.16 (body-y)); the offset rests on the soft iron for up to 2.4 uT.
@@ -243,7 +260,6 @@ fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
             && un[0].description.contains("soft iron (body-z field)")
     );
     assert!(!v.offset_identifiable && v.offset_assumption_ut > 1.0);
-    assert!(choice.method_reason.contains("do not determine the offset"));
     // Under that assumption (soft iron held at identity along that direction) the offset is near
     // the log's CAL_MAG0, within what rests on the assumption: measured [4.68, -22.24, -14.68]
     // against [2.82, -20.02, -13.69] uT, 3.06 uT apart, with 2.4 uT of it assumed (holding the
@@ -255,6 +271,25 @@ fn px4_flight_log_names_what_its_narrow_yaw_range_cannot_determine() {
         "{:?} against {:?}",
         v.offset_ut,
         onboard.offset
+    );
+    // The ladder's calibration is better than the vehicle's own held out (measured: the scale
+    // rung, norm 1.38 against 1.55 %, dip 0.79 against 0.89 deg). The log has no position: the
+    // configured place is only a stand-in of the right strength, and the common scale (1.2)
+    // takes up the difference of its horizontal field, moving the offset by 12.5 uT from
+    // CAL_MAG0. The offset is within ArduPilot's bounds, and the distance is reported.
+    let d = dist(&m.offset, &onboard.offset);
+    let q = &out.report.quality[0];
+    println!(
+        "ladder: {} rung, offset {:?}, {d:.2} uT from CAL_MAG0; {}",
+        choice.rung.unwrap(),
+        m.offset,
+        q.verdict
+    );
+    assert_eq!(
+        q.verdict_kind,
+        Some(imucald::report::Verdict::Better),
+        "{}",
+        q.verdict
     );
 }
 

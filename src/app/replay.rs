@@ -12,6 +12,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 mod gyro_scale;
+mod load;
 use gyro_scale::{gyro_scale_of, GyroFits, GyroScaleOutcome, SpanRates};
 
 /// What to write besides the report.
@@ -34,6 +35,10 @@ pub struct ReplayOptions {
     /// that history (the report's `refits`). Default false: a replay is a batch, one fit per
     /// sensor on all the data at the end.
     pub refits: bool,
+    /// Write every compass's calibration as values to load in the exports, whatever its
+    /// verdict ([`crate::report::LoadDecision`]); the files say so. Default false: a compass
+    /// not to load is written as comments with the reason.
+    pub export_all: bool,
 }
 
 pub struct ReplayOutcome {
@@ -139,12 +144,19 @@ pub fn replay(
     let (scale, failure, span_samples) = fin.gyro_scale;
     results.gyro.scale = scale;
     results.gyro.scale_failure = failure;
+    let sphere = crate::calib::magmethod::sphere_words(&results.mag);
     crate::calib::magmethod::choose_with(&mut results.mag, &fin.mag_evidence);
+    if let Some(j) = quality.iter().find(|j| j.other.is_none()) {
+        install_rung(&mut results.mag, &j.judged, &sphere);
+    }
     mounting_check(&mut results, &run.log, &run.pipe, cfg);
-    run.other_mags = other_mag_methods(&mut run, cfg);
+    run.other_mags = other_mag_methods(&mut run, cfg, &quality);
+    let quality: Vec<crate::report::QualityReport> =
+        quality.into_iter().map(|j| j.judged.report).collect();
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
+    report.load = load::decide(&report, cfg.accept.mag.max_rms_ratio);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -162,7 +174,7 @@ pub fn replay(
         written.push(p.clone());
     }
     if let Some(dir) = &opts.export_dir {
-        written.extend(write_exports(dir, &report, &results)?);
+        written.extend(write_exports(dir, &report, &results, opts.export_all)?);
     }
     if let Some(dir) = &opts.plot_dir {
         written.extend(write_plots(dir, pipe, &log.samples, &results)?);
@@ -190,7 +202,7 @@ pub fn replay(
 /// What [`final_fits`] gives.
 struct FinalFits {
     results: FitResults,
-    quality: Vec<crate::report::QualityReport>,
+    quality: Vec<CompassJudged>,
     gyro_scale: GyroScaleOutcome,
     /// For the primary magnetometer's method ([`crate::calib::magmethod::choose_with`]).
     mag_evidence: crate::calib::magmethod::Evidence,
@@ -260,6 +272,8 @@ fn write_html(
 /// One compass of a log and what judging it needs: its instance, the stream its magnetometer
 /// readings come from (to find the vehicle's calibration of it), its samples and pipeline.
 struct Compass<'a> {
+    /// The index of a further instance (`Run::others`); `None` for the primary.
+    other: Option<usize>,
     instance: String,
     source: String,
     samples: &'a [crate::types::Sample],
@@ -270,13 +284,19 @@ struct Compass<'a> {
 fn compasses(run: &Run) -> Vec<Compass<'_>> {
     let log = &run.log;
     let mut out = Vec::new();
-    if let Some(instance) = log.instance.clone() {
+    {
+        // A log of one unnamed stream (CSV) is judged under the name `primary`.
+        let instance = log
+            .instance
+            .clone()
+            .unwrap_or_else(|| load::PRIMARY.to_string());
         let source = match &log.flight {
             Some(f) => f.primary_mag_source.clone(),
             None => Some(instance.clone()),
         };
         if let Some(source) = source {
             out.push(Compass {
+                other: None,
                 instance,
                 source,
                 samples: &log.samples,
@@ -296,10 +316,11 @@ fn compasses(run: &Run) -> Vec<Compass<'_>> {
         let source = info
             .name
             .split('+')
-            .find(|p| p.contains("mag") || !info.name.contains('+'))
+            .find(|p| p.to_ascii_lowercase().contains("mag") || !info.name.contains('+'))
             .unwrap_or(&info.name)
             .to_string();
         out.push(Compass {
+            other: Some(k),
             instance: info.name.clone(),
             source,
             samples,
@@ -317,6 +338,7 @@ fn judge<R>(
     f: impl FnOnce(
         &crate::calib::magmethod::FieldOf<'_>,
         Option<&crate::calib::magmethod::FieldOf<'_>>,
+        Option<&crate::calib::ladder::Affine>,
     ) -> R,
 ) -> R {
     let pipe = c.pipe;
@@ -338,30 +360,71 @@ fn judge<R>(
             pipe.to_body(&corrected).mag_ut
         }
     });
+    // The same calibration in body axes: rot M (raw - o) with raw = rot^T u is
+    // (rot M rot^T) (u - rot o).
+    let start = slot.map(|m| {
+        let rot = pipe.sensor_rotation();
+        crate::calib::ladder::Affine {
+            matrix: rot * crate::calib::model::rows_to_mat(&m.matrix) * rot.transpose(),
+            offset: rot * nalgebra::Vector3::from(m.offset),
+        }
+    });
     f(
         &body_mag,
         onboard
             .as_ref()
             .map(|g| g as &crate::calib::magmethod::FieldOf<'_>),
+        start.as_ref(),
     )
+}
+
+/// One compass's held-out judgement ([`crate::calib::magmethod::quality`]) and which it is.
+struct CompassJudged {
+    /// The index of a further instance (`Run::others`); `None` for the primary.
+    other: Option<usize>,
+    judged: crate::calib::magmethod::Judged,
+}
+
+/// The ladder's calibration of a compass ([`crate::calib::ladder`]) as its result, when the
+/// ladder took a rung.
+/// `sphere`: what the sphere fit made of the readings, said before the method choice.
+fn install_rung(
+    mag: &mut crate::calib::outcome::SensorResult,
+    j: &crate::calib::magmethod::Judged,
+    sphere: &str,
+) {
+    if let (Some(chosen), Some(start)) = (&j.calibration, j.report.start) {
+        crate::calib::magmethod::install_rung(
+            mag,
+            chosen,
+            start,
+            j.why.as_deref().unwrap_or(""),
+            sphere,
+        );
+    }
 }
 
 /// Every compass judged on the blocks of the log it was not fitted on, against the vehicle's own
 /// calibration of the same compass ([`crate::calib::magmethod::quality`]); the primary first.
-fn quality(run: &Run, cfg: &Config) -> Vec<crate::report::QualityReport> {
+fn quality(run: &Run, cfg: &Config) -> Vec<CompassJudged> {
     let log = &run.log;
     compasses(run)
         .iter()
         .filter_map(|c| {
-            judge(log, c, |body_mag, onboard| {
+            judge(log, c, |body_mag, onboard, start| {
                 crate::calib::magmethod::quality(
                     &c.instance,
                     c.samples,
                     body_mag,
                     onboard,
+                    start,
                     log.place(),
                     cfg.place.as_ref(),
                 )
+            })
+            .map(|judged| CompassJudged {
+                other: c.other,
+                judged,
             })
         })
         .collect()
@@ -377,7 +440,7 @@ fn write_quality_points(dir: &Path, run: &Run, cfg: &Config) -> Result<Vec<PathB
     let log = &run.log;
     let mut written = Vec::new();
     for c in compasses(run) {
-        let (points, field) = judge(log, &c, |body_mag, onboard| {
+        let (points, field) = judge(log, &c, |body_mag, onboard, _| {
             crate::calib::magmethod::quality_points(
                 c.samples,
                 body_mag,
@@ -530,6 +593,7 @@ fn check_mounting(
 fn other_mag_methods(
     run: &mut Run,
     cfg: &Config,
+    judged: &[CompassJudged],
 ) -> Vec<Option<crate::calib::outcome::SensorResult>> {
     let log = &run.log;
     let mut out = Vec::with_capacity(run.others.len());
@@ -540,6 +604,7 @@ fn other_mag_methods(
         };
         let results = p.finish().clone();
         let mut mag = results.mag;
+        let sphere = crate::calib::magmethod::sphere_words(&mag);
         let samples = run.other_samples.get(k).map_or(&[][..], |v| &v[..]);
         let p = &*p;
         crate::calib::magmethod::choose(
@@ -549,6 +614,9 @@ fn other_mag_methods(
             log.place(),
             cfg.place.as_ref(),
         );
+        if let Some(j) = judged.iter().find(|j| j.other == Some(k)) {
+            install_rung(&mut mag, &j.judged, &sphere);
+        }
         let index = log.instances.get(k).map_or(k, |i| i.compass_id as usize);
         let accel = results.accel.calibration;
         check_mounting(&mut mag, accel.as_ref(), samples, log, p, cfg, index);
@@ -832,11 +900,12 @@ impl<'a> CalibratedRows<'a> {
 
 /// ArduPilot, PX4 and Fusion parameter files in `dir`: every compass of the log under its own
 /// index (COMPASS_OFS2, CAL_MAG1 ...).
-fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Vec<PathBuf>, Error> {
-    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
-        path: dir.to_path_buf(),
-        source,
-    })?;
+fn write_exports(
+    dir: &Path,
+    report: &Report,
+    results: &FitResults,
+    export_all: bool,
+) -> Result<Vec<PathBuf>, Error> {
     let a = results.accel.calibration.as_ref();
     let primary_id = report
         .instances
@@ -862,6 +931,7 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
                 cal: *c,
                 unknown: rep.unknowns(),
                 vehicle: vehicle(k),
+                withheld: load::withheld(report, k, export_all),
             })
     };
     let mut mags: Vec<crate::calib::export::CompassExport> = export(
@@ -877,9 +947,15 @@ fn write_exports(dir: &Path, report: &Report, results: &FitResults) -> Result<Ve
     }
     let m = mags.first().filter(|c| c.index == primary_id as usize);
     if mags.is_empty() && a.is_none() {
-        // Nothing passed: no file rather than an empty one a user might load.
+        // Nothing passed: no file (nor folder) rather than an empty one a user might load.
         return Ok(vec![]);
     }
+    std::fs::create_dir_all(dir).map_err(|source| Error::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    // Fusion takes one compass, the primary, and only as a value to load.
+    let m = m.filter(|c| c.withheld.is_none());
     let motors: Vec<(usize, crate::types::Vec3)> = report
         .calibration
         .mag
@@ -1103,6 +1179,7 @@ pub(crate) fn make_report(
         vehicles: Vec::new(),
         onboard: None,
         quality: Vec::new(),
+        load: Vec::new(),
     }
 }
 
@@ -1327,8 +1404,9 @@ pub fn calibrated_nothing(r: &Report) -> bool {
             .all(|i| i.calibration.mag.status != CalStatus::Ok)
 }
 
-/// The line after a replay's summary: what to do next with what it found.
-pub fn next_step(r: &Report, written: &[PathBuf]) -> String {
+/// The line after a replay's summary: what to do next with what it found. `asked_export`: the
+/// replay was given `--export` (then `next:` never asks for it).
+pub fn next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String {
     let exported = |name: &str| {
         written
             .iter()
@@ -1338,15 +1416,31 @@ pub fn next_step(r: &Report, written: &[PathBuf]) -> String {
     if calibrated_nothing(r) {
         return "next: nothing passed; each FAILED line above says what the data lacked (most often: turn the vehicle through more directions, or give the log's units), then replay again".into();
     }
+    let (load, keep) = load::named(r);
+    let not = if keep.is_empty() {
+        String::new()
+    } else {
+        format!("; not {}", keep.join("; "))
+    };
     match (exported("ardupilot.parm"), exported("px4.params")) {
+        (Some(ap), Some(px)) if load.is_empty() && !r.load.is_empty() => format!(
+            "next: keep the vehicle's own compass calibration: no compass here is one to load{not} ({ap} and {px} hold the values as comments)"
+        ),
         (Some(ap), Some(px)) => {
-            let judged = r
-                .quality
-                .first()
-                .map(|q| format!(" (first read the quality line: {})", q.verdict))
-                .unwrap_or_default();
-            format!("next: load {ap} (ArduPilot) or {px} (PX4) on the vehicle{judged}")
+            let which = if load.is_empty() {
+                String::new()
+            } else {
+                format!(": {}", load.join(", "))
+            };
+            format!("next: load {ap} (ArduPilot) or {px} (PX4) on the vehicle{which}{not}")
         }
+        _ if asked_export => format!(
+            "next: no parameter file was written: no compass or accelerometer calibration passed{not}"
+        ),
+        _ if !load.is_empty() => format!(
+            "next: add --export DIR for the ArduPilot, PX4 and Fusion parameter files of {}, --html FILE for a page of plots",
+            load.join(", ")
+        ),
         _ => "next: add --export DIR for the ArduPilot, PX4 and Fusion parameter files, --html FILE for a page of plots".into(),
     }
 }

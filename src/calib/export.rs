@@ -55,6 +55,17 @@ pub(crate) struct CompassExport {
     pub cal: Calibration,
     pub unknown: Unknowns,
     pub vehicle: std::collections::BTreeMap<String, f64>,
+    /// Not a calibration to load, and why: its values are written as comments (or, with
+    /// `written_anyway`, as values with the reason in a comment).
+    pub withheld: Option<Withheld>,
+}
+
+/// Why a compass's calibration is not one to load.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Withheld {
+    pub reason: String,
+    /// Written as values all the same (`replay --export-all`).
+    pub written_anyway: bool,
 }
 
 impl CompassExport {
@@ -65,6 +76,7 @@ impl CompassExport {
             cal,
             unknown: Unknowns::default(),
             vehicle: Default::default(),
+            withheld: None,
         }
     }
 }
@@ -108,19 +120,46 @@ fn compass_lines(
     c: &CompassExport,
     params: Vec<Param>,
     comment: &str,
+    px4: bool,
     line: &dyn Fn(&str, f64) -> String,
 ) -> String {
     let mut out = String::new();
+    // The compass's device id from the log first, so the values land on that compass only.
+    let id = if px4 {
+        format!("CAL_MAG{}_ID", c.index)
+    } else {
+        let suffix = ["", "2", "3"].get(c.index).copied().unwrap_or("");
+        format!("COMPASS_DEV_ID{suffix}")
+    };
+    if let Some(v) = c.vehicle.get(&id).filter(|v| **v > 0.0) {
+        out += &line(&id, *v);
+    }
+    let value = |out: &mut String, n: &str, v: f64| *out += &withheld_line(c, comment, &line(n, v));
+    match &c.withheld {
+        Some(w) if w.written_anyway => {
+            out += &format!(
+                "{comment} compass {}: written as values by --export-all, although {}\n",
+                c.index, w.reason
+            );
+        }
+        Some(w) => {
+            out += &format!(
+                "{comment} compass {}: not to load ({}); its values follow as comments\n",
+                c.index, w.reason
+            );
+        }
+        None => {}
+    }
     let mask = unknown_mask(&c.unknown);
     for ((n, v), unknown) in params.into_iter().zip(mask) {
         if !unknown {
-            out += &line(&n, v);
+            value(&mut out, &n, v);
         } else if let Some(own) = c.vehicle.get(&n) {
             out += &format!(
                 "{comment} {n}: not determined by this log ({}); the vehicle's own value, kept\n",
                 c.unknown.why
             );
-            out += &line(&n, *own);
+            value(&mut out, &n, *own);
         } else {
             out += &format!(
                 "{comment} {n} not written: not determined by this log ({}); the vehicle keeps its own\n",
@@ -129,6 +168,14 @@ fn compass_lines(
         }
     }
     out
+}
+
+/// A parameter's line as it is, or as a comment when the compass is not one to load.
+fn withheld_line(c: &CompassExport, comment: &str, line: &str) -> String {
+    match &c.withheld {
+        Some(w) if !w.written_anyway => format!("{comment} not to load: {line}"),
+        _ => line.to_string(),
+    }
 }
 
 /// Warnings about what a target cannot represent (asymmetric matrix, cross-axis terms dropped).
@@ -278,7 +325,7 @@ pub(crate) fn ardupilot_file(
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
-        out += &compass_lines(c, params, "#", &line);
+        out += &compass_lines(c, params, "#", false, &line);
         // The motor term is in the calibrated frame (after the matrix): only with a whole matrix.
         for (_, k) in motors.iter().filter(|(i, _)| *i == c.index) {
             if c.unknown.any() {
@@ -286,7 +333,7 @@ pub(crate) fn ardupilot_file(
                 continue;
             }
             for (n, v) in ardupilot_motor(k, &c.cal.matrix, c.index) {
-                out += &line(&n, v);
+                out += &withheld_line(c, "#", &line(&n, v));
             }
         }
     }
@@ -314,10 +361,10 @@ pub(crate) fn px4_file(
         for w in warns {
             out += &format!("# warning: {w}\n");
         }
-        out += &compass_lines(c, params, "#", &line);
+        out += &compass_lines(c, params, "#", true, &line);
         for (i, k) in motors.iter().filter(|(i, _)| *i == c.index) {
             for (n, v) in px4_motor(k, *i) {
-                out += &line(&n, v);
+                out += &withheld_line(c, "#", &line(&n, v));
             }
         }
     }

@@ -160,7 +160,7 @@ fn current_varies(points: &[VectorPoint]) -> bool {
 }
 
 /// The sphere fit's state in a few words, for the reason.
-fn sphere_words(sphere: &SensorResult) -> String {
+pub(crate) fn sphere_words(sphere: &SensorResult) -> String {
     match &sphere.report.failure {
         None => format!(
             "the sphere fit passed ({}, offset [{:.2}, {:.2}, {:.2}] uT)",
@@ -409,6 +409,8 @@ fn planar_or(other: MethodChoice, evidence: Option<&PlanarEvidence>) -> MethodCh
         planar: Some((**p).clone()),
         sphere_offset: None,
         earth_field: None,
+        rung: None,
+        current_ut_per_a: None,
     }
 }
 
@@ -468,6 +470,8 @@ fn sphere(reason: String, vector: Option<VectorFit>) -> MethodChoice {
         planar: None,
         sphere_offset: None,
         earth_field: None,
+        rung: None,
+        current_ut_per_a: None,
     }
 }
 
@@ -598,6 +602,8 @@ fn decide_vector(mag: &SensorResult, evidence: &VectorEvidence) -> MethodChoice 
         planar: None,
         sphere_offset: mag.calibration.map(|c| c.offset),
         earth_field: None,
+        rung: None,
+        current_ut_per_a: None,
     }
 }
 
@@ -618,7 +624,80 @@ pub(crate) fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn
         vector: Some(v.clone()),
         sphere_offset: None,
         earth_field: None,
+        rung: None,
+        current_ut_per_a: None,
         planar: None,
+    });
+}
+
+/// The ladder's calibration ([`crate::calib::ladder`], the rung taken on held-out blocks, fitted
+/// on every reading) as the sensor's result, with the method, the rung and why; what the method
+/// choice made of the readings before (its vector fit, the field) is kept beside it.
+/// `sphere`: what the sphere fit made of the readings ([`sphere_words`] before the method
+/// choice).
+pub(crate) fn install_rung(
+    mag: &mut SensorResult,
+    chosen: &crate::calib::ladder::Chosen,
+    start: crate::calib::ladder::Start,
+    why: &str,
+    sphere: &str,
+) {
+    let before = mag.report.method.take();
+    // The sphere fit's offset when it passed: its own result, or kept beside the vector fit's.
+    let sphere_offset = match before.as_ref() {
+        Some(b) if b.method == MagMethod::Vector => b.sphere_offset,
+        _ => mag.calibration.map(|c| c.offset),
+    };
+    let c = &chosen.calibration.affine;
+    let m = c.matrix;
+    let matrix = [
+        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+    ];
+    let r = install_full12(mag, [c.offset.x, c.offset.y, c.offset.z], matrix);
+    r.radius = chosen.field_ut;
+    r.rms_residual = chosen.rms_residual_ut;
+    // The offset's standard error from the residual, the readings taken as independent (a
+    // lower bound where the attitude's error is correlated from one reading to the next).
+    let se = chosen.rms_residual_ut / (chosen.readings.max(1) as f64).sqrt();
+    r.offset_sigma = [se; 3];
+    r.samples_used = chosen.readings;
+    r.outliers_rejected = 0;
+    let from = match start {
+        crate::calib::ladder::Start::Vehicle => "started from the vehicle's own calibration",
+        crate::calib::ladder::Start::Identity => "no calibration of the vehicle's to start from",
+    };
+    let field = before.as_ref().and_then(|b| b.earth_field.clone());
+    let vector = before.as_ref().and_then(|b| b.vector.clone());
+    let at = field.as_ref().map_or(String::new(), |f| {
+        let place = match (f.latitude_deg, f.longitude_deg) {
+            (Some(lat), Some(lon)) => format!("{lat:.4}, {lon:.4}, "),
+            _ => String::new(),
+        };
+        format!(
+            "; field from {} ({place}{}, date from {}), {:.1} uT",
+            f.place_source,
+            f.date,
+            f.date_source.replace('_', " "),
+            f.total_ut
+        )
+    });
+    mag.report.method = Some(MethodChoice {
+        method: MagMethod::Vector,
+        method_reason: format!(
+            "the model the flight determines: the {} rung of the ladder ({from}), chosen on held-out blocks: {why}{at}; {sphere}",
+            chosen.rung
+        ),
+        vector,
+        planar: None,
+        sphere_offset,
+        earth_field: field,
+        rung: Some(chosen.rung),
+        current_ut_per_a: chosen
+            .calibration
+            .raw_current_ut_per_a()
+            .map(|k| [k.x, k.y, k.z]),
     });
 }
 
@@ -715,45 +794,61 @@ pub fn held_out(
 /// The calibrated field of a sample in body axes (uT), when it has a magnetometer reading.
 pub(crate) type FieldOf<'a> = dyn Fn(&Sample) -> Option<Vec3> + 'a;
 
-/// Whether a sample falls in a fitting block (even) of the held-out check.
-fn fitting_block(t0: f64, t: f64) -> bool {
-    (((t - t0) / QUALITY_BLOCK_S).floor() as i64).rem_euclid(2) == 0
+/// A step of the log's clock longer than this counts as this much in the held-out check's blocks,
+/// s: a gap in the log (a link lost, a log cut into parts, a log of the even blocks alone) does
+/// not swallow a block, so the blocks alternate over the readings there are.
+pub(crate) const QUALITY_GAP_S: f64 = 1.0;
+
+/// Whether each sample falls in a fitting (even) block of the held-out check: blocks of
+/// [`QUALITY_BLOCK_S`] of the log's data time, counted from its first sample, each step of the
+/// clock at most [`QUALITY_GAP_S`] (a step back, at a time reset, counts as none).
+pub(crate) fn fitting_blocks(samples: &[Sample]) -> Vec<bool> {
+    let mut clock = 0.0;
+    let mut last: Option<f64> = None;
+    samples
+        .iter()
+        .map(|s| {
+            if let Some(l) = last {
+                let dt = s.t_s - l;
+                if dt.is_finite() && dt > 0.0 {
+                    clock += dt.min(QUALITY_GAP_S);
+                }
+            }
+            last = Some(s.t_s);
+            ((clock / QUALITY_BLOCK_S).floor() as i64).rem_euclid(2) == 0
+        })
+        .collect()
 }
 
-/// The primary compass judged where it was not fitted: imucald's vector fit on the even
-/// [`QUALITY_BLOCK_S`] blocks, and the vehicle's own calibration (`onboard`: the field it gives
-/// in body axes, uT, for a sample), both scored on the odd blocks by the spread of the field's
-/// norm and of its dip, with a verdict. `None` without an attitude, a place, or readings enough.
+/// A compass judged where it was not fitted, against the vehicle's own calibration (`onboard`:
+/// the field it gives in body axes, uT, for a sample), both scored on the odd
+/// [`QUALITY_BLOCK_S`] blocks by the spread of the field's norm and of its dip, with a verdict.
+/// With the earth field of the place and day known, imucald's calibration is the ladder's
+/// ([`crate::calib::ladder`]: the model the flight determines, started from `start`, the vehicle's
+/// own calibration in body axes, and chosen on the same blocks), which is also returned fitted on
+/// every reading; without a place, the vector fit with the field fitted. `None` without an
+/// attitude or readings enough.
 pub fn quality(
     instance: &str,
     samples: &[Sample],
     body_mag: &FieldOf<'_>,
     onboard: Option<&FieldOf<'_>>,
+    start: Option<&crate::calib::ladder::Affine>,
     log: LogWhere,
     cfg_place: Option<&Place>,
-) -> Option<crate::calib::outcome::QualityReport> {
-    let t0 = samples.first()?.t_s;
+) -> Option<Judged> {
+    samples.first()?;
     // Both fits and both scores read the logged attitude: without one there is nothing to judge.
     if !samples.iter().any(|s| s.ref_q.is_some()) {
         return None;
     }
-    let (fit_part, held): (Vec<&Sample>, Vec<&Sample>) =
-        samples.iter().partition(|s| fitting_block(t0, s.t_s));
-    // The field of the place and day, else fitted on the fitting blocks with the calibration.
-    let (fitted, method) = match place_of(samples, log, cfg_place) {
-        Some(w) => {
-            let field = crate::attitude::earth_field(&w.place).ok()?;
-            let pts = points_of(fit_part.iter().copied(), body_mag, &field.field_ned_ut());
-            (
-                crate::calib::vector::fit(&pts, current_varies(&pts)),
-                "vector",
-            )
-        }
-        None => (
-            fit_with_field(fit_part.iter().copied(), body_mag, None)?.map(|(v, _)| v),
-            "vector, field fitted",
-        ),
-    };
+    let blocks = fitting_blocks(samples);
+    let held: Vec<&Sample> = samples
+        .iter()
+        .zip(&blocks)
+        .filter(|(_, f)| !**f)
+        .map(|(s, _)| s)
+        .collect();
     let score = |cal: &FieldOf<'_>| {
         let r: Vec<(Vec3, nalgebra::UnitQuaternion<f64>)> = held
             .iter()
@@ -761,35 +856,76 @@ pub fn quality(
             .collect();
         held_out(&r)
     };
-    let (ours, failure) = match &fitted {
-        Ok(v) if v.offset_identifiable => {
-            let m = crate::calib::model::rows_to_mat(&v.matrix);
-            let o = nalgebra::Vector3::from(v.offset_ut);
-            let cal = |s: &Sample| {
-                let raw = nalgebra::Vector3::from(body_mag(s)?);
-                let c = m * (raw - o);
-                Some([c.x, c.y, c.z])
-            };
-            (score(&cal), None)
-        }
-        Ok(_) => (
-            None,
-            Some("the fitting blocks do not determine the offset".to_string()),
-        ),
-        Err(e) => (
-            None,
-            Some(format!("the vector fit on the fitting blocks failed: {e}")),
-        ),
-    };
     let theirs = onboard.and_then(|f| score(f));
+    let (ours, failure, method, ladder) = match place_of(samples, log, cfg_place) {
+        Some(w) => {
+            let field = crate::attitude::earth_field(&w.place).ok()?;
+            let b = nalgebra::Vector3::from(field.field_ned_ut());
+            let points: Vec<crate::calib::ladder::LadderPoint> = samples
+                .iter()
+                .zip(&blocks)
+                .filter_map(|(s, fit)| {
+                    Some(crate::calib::ladder::LadderPoint {
+                        raw_ut: nalgebra::Vector3::from(body_mag(s)?),
+                        body_ned: crate::attitude::body_ned_of_ref_q(s.ref_q?)?,
+                        fit: *fit,
+                        current_a: s.current_a,
+                    })
+                })
+                .collect();
+            let ladder = crate::calib::ladder::climb(&points, &b, start);
+            let failure = ladder.held_out.is_none().then(|| {
+                let refused: Vec<String> = ladder
+                    .rungs
+                    .iter()
+                    .filter_map(|r| Some(format!("{}: {}", r.rung, r.refused.as_ref()?)))
+                    .collect();
+                if refused.is_empty() {
+                    format!("no rung of the ladder was taken: {}", ladder.why)
+                } else {
+                    format!("no rung of the ladder was taken ({})", refused.join("; "))
+                }
+            });
+            (ladder.held_out, failure, "vector ladder", Some(ladder))
+        }
+        None => {
+            let fit_part = samples
+                .iter()
+                .zip(&blocks)
+                .filter(|(_, f)| **f)
+                .map(|(s, _)| s);
+            let fitted = fit_with_field(fit_part, body_mag, None)?.map(|(v, _)| v);
+            let (ours, failure) = match &fitted {
+                Ok(v) if v.offset_identifiable => {
+                    let m = crate::calib::model::rows_to_mat(&v.matrix);
+                    let o = nalgebra::Vector3::from(v.offset_ut);
+                    let cal = |s: &Sample| {
+                        let raw = nalgebra::Vector3::from(body_mag(s)?);
+                        let c = m * (raw - o);
+                        Some([c.x, c.y, c.z])
+                    };
+                    (score(&cal), None)
+                }
+                Ok(_) => (
+                    None,
+                    Some("the fitting blocks do not determine the offset".to_string()),
+                ),
+                Err(e) => (
+                    None,
+                    Some(format!("the vector fit on the fitting blocks failed: {e}")),
+                ),
+            };
+            (ours, failure, "vector, field fitted", None)
+        }
+    };
     if ours.is_none() && theirs.is_none() {
         return None;
     }
-    let mut verdict = verdict(ours.as_ref(), theirs.as_ref());
+    let (kind, mut verdict) = verdict(ours.as_ref(), theirs.as_ref());
     if let (None, Some(f)) = (&ours, &failure) {
         verdict = format!("{verdict} ({f})");
     }
-    Some(crate::calib::outcome::QualityReport {
+    let report = crate::calib::outcome::QualityReport {
         instance: instance.to_string(),
         block_s: QUALITY_BLOCK_S,
         method: method.into(),
@@ -797,7 +933,29 @@ pub fn quality(
         onboard: theirs,
         imucald_failure: if ours.is_none() { failure } else { None },
         verdict,
+        verdict_kind: Some(kind),
+        start: ladder.as_ref().map(|l| l.start),
+        rung: ladder
+            .as_ref()
+            .and_then(|l| l.chosen.as_ref().map(|c| c.rung)),
+        rung_reason: ladder.as_ref().map(|l| l.why.clone()),
+        rungs: ladder.as_ref().map_or_else(Vec::new, |l| l.rungs.clone()),
+    };
+    Some(Judged {
+        report,
+        why: ladder.as_ref().map(|l| l.why.clone()),
+        calibration: ladder.and_then(|l| l.chosen),
     })
+}
+
+/// What [`quality`] gives: the report's record, and the ladder's calibration fitted on every
+/// reading (the rung taken), when there is one.
+#[derive(Debug, Clone)]
+pub struct Judged {
+    pub report: crate::calib::outcome::QualityReport,
+    pub calibration: Option<crate::calib::ladder::Chosen>,
+    /// Why the rung was taken.
+    pub why: Option<String>,
 }
 
 /// One reading of the held-out check, as a peer fit takes it.
@@ -823,16 +981,15 @@ pub fn quality_points(
     log: LogWhere,
     cfg_place: Option<&Place>,
 ) -> (Vec<QualityPoint>, Option<(Place, Vec3)>) {
-    let Some(t0) = samples.first().map(|s| s.t_s) else {
-        return (Vec::new(), None);
-    };
+    let blocks = fitting_blocks(samples);
     let points = samples
         .iter()
-        .filter_map(|s| {
+        .zip(&blocks)
+        .filter_map(|(s, fit)| {
             let q = crate::attitude::body_ned_of_ref_q(s.ref_q?)?;
             Some(QualityPoint {
                 t_s: s.t_s,
-                fit: fitting_block(t0, s.t_s),
+                fit: *fit,
                 raw_body_ut: body_mag(s)?,
                 body_ned: [q.w, q.i, q.j, q.k],
                 onboard_body_ut: onboard.and_then(|f| f(s)),
@@ -851,7 +1008,8 @@ pub fn quality_points(
 fn verdict(
     ours: Option<&crate::calib::outcome::HeldOut>,
     theirs: Option<&crate::calib::outcome::HeldOut>,
-) -> String {
+) -> (crate::calib::outcome::Verdict, String) {
+    use crate::calib::outcome::Verdict;
     match (ours, theirs) {
         (Some(a), Some(b)) => {
             let worse = a.norm_spread_pct > 1.1 * b.norm_spread_pct
@@ -863,22 +1021,34 @@ fn verdict(
                 a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg, a.heading_spread_deg, b.heading_spread_deg
             );
             if better && !worse {
-                format!("imucald's is better: load the export; {figures}")
+                (Verdict::Better, format!("imucald's is better: load the export; {figures}"))
             } else if worse {
-                format!("keep the vehicle's: imucald's is not better on this flight; {figures}")
+                (
+                    Verdict::KeepVehicle,
+                    format!("keep the vehicle's: imucald's is not better on this flight; {figures}"),
+                )
             } else {
-                format!("no clear difference: keep the vehicle's; {figures}")
+                (
+                    Verdict::KeepVehicle,
+                    format!("no clear difference: keep the vehicle's; {figures}"),
+                )
             }
         }
-        (Some(a), None) => format!(
-            "no onboard calibration to compare with; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
-            a.norm_spread_pct, a.dip_spread_deg
+        (Some(a), None) => (
+            Verdict::NoOnboard,
+            format!(
+                "no onboard calibration to compare with; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
+                a.norm_spread_pct, a.dip_spread_deg
+            ),
         ),
-        (None, Some(b)) => format!(
-            "imucald's held-out fit failed; through the vehicle's the field's norm spreads {:.2} % and its dip {:.2} deg",
-            b.norm_spread_pct, b.dip_spread_deg
+        (None, Some(b)) => (
+            Verdict::Failed,
+            format!(
+                "imucald's held-out fit failed; through the vehicle's the field's norm spreads {:.2} % and its dip {:.2} deg",
+                b.norm_spread_pct, b.dip_spread_deg
+            ),
         ),
-        (None, None) => "nothing to judge".into(),
+        (None, None) => (Verdict::Failed, "nothing to judge".into()),
     }
 }
 
@@ -1062,6 +1232,8 @@ fn fitted_field_choice(
         planar: None,
         sphere_offset: mag.calibration.map(|c| c.offset),
         earth_field: Some(field),
+        rung: None,
+        current_ut_per_a: None,
     }
 }
 
@@ -1069,12 +1241,17 @@ fn fitted_field_choice(
 /// blocks: both determined, and apart by at most three of their combined standard errors plus
 /// [`crate::calib::vector::OFFSET_ASSUMPTION_LIMIT_UT`] (what the fit lets rest on assumptions).
 fn halves_agree(samples: &[Sample], body_mag: &FieldOf<'_>) -> Result<(), String> {
-    let Some(t0) = samples.first().map(|s| s.t_s) else {
+    if samples.is_empty() {
         return Err("no readings".into());
-    };
+    }
+    let blocks = fitting_blocks(samples);
     let mut fits = Vec::with_capacity(2);
     for even in [true, false] {
-        let half = samples.iter().filter(|s| fitting_block(t0, s.t_s) == even);
+        let half = samples
+            .iter()
+            .zip(&blocks)
+            .filter(|(_, f)| **f == even)
+            .map(|(s, _)| s);
         match fit_with_field(half, body_mag, None) {
             Some(Ok((v, _))) if v.offset_identifiable => fits.push(v),
             _ => {
@@ -1178,6 +1355,8 @@ mod tests {
             planar: None,
             sphere_offset: None,
             earth_field: None,
+            rung: None,
+            current_ut_per_a: None,
         };
         let quiet = planar_or(sphere(), Some(&PlanarEvidence::Tilted));
         assert_eq!(quiet.method_reason, "sphere");

@@ -21,6 +21,7 @@ pub mod fit;
 pub mod fixedyaw;
 pub mod gate;
 pub mod gyro;
+pub mod ladder;
 pub mod learn;
 pub mod lm;
 pub mod magmethod;

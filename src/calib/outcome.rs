@@ -86,6 +86,45 @@ pub struct QualityReport {
     pub imucald_failure: Option<String>,
     /// The plain answer and the next step.
     pub verdict: String,
+    /// The answer as a fixed word: `better`, `keep_vehicle`, `no_onboard`, `failed`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdict_kind: Option<Verdict>,
+    /// Where the ladder of models started: the vehicle's own calibration, or the identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start: Option<crate::calib::ladder::Start>,
+    /// The rung of the ladder taken ([`crate::calib::ladder`]), and why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rung: Option<crate::calib::ladder::Rung>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rung_reason: Option<String>,
+    /// Every rung: its held-out score, or why it gave no calibration.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rungs: Vec<crate::calib::ladder::RungReport>,
+}
+
+/// The held-out answer as a fixed word.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Verdict {
+    /// imucald's is better than the vehicle's on the held-out blocks: load it.
+    Better,
+    /// imucald's is not clearly better: keep the vehicle's.
+    KeepVehicle,
+    /// The log carries no calibration of the vehicle's to compare with.
+    NoOnboard,
+    /// imucald's held-out fit failed.
+    Failed,
+}
+
+impl Verdict {
+    pub fn word(self) -> &'static str {
+        match self {
+            Verdict::Better => "better",
+            Verdict::KeepVehicle => "keep_vehicle",
+            Verdict::NoOnboard => "no_onboard",
+            Verdict::Failed => "failed",
+        }
+    }
 }
 
 /// The field seen through one calibration on held-out readings.
@@ -233,11 +272,15 @@ impl SensorCalibration {
     /// use whose data determined it: what the motor-compensation parameters export.
     pub fn motor_ut_per_a(&self) -> Option<Vec3> {
         let m = self.method.as_ref()?;
+        if m.method != MagMethod::Vector || self.calibration_ut().is_none() {
+            return None;
+        }
+        // The ladder's calibration carries its own current term.
+        if m.rung.is_some() {
+            return m.current_ut_per_a;
+        }
         let v = m.vector.as_ref()?;
-        (m.method == MagMethod::Vector
-            && self.calibration_ut().is_some()
-            && v.current_identifiable == Some(true))
-        .then_some(v.current_ut_per_a)?
+        (v.current_identifiable == Some(true)).then_some(v.current_ut_per_a)?
     }
 }
 
@@ -341,6 +384,14 @@ pub struct MethodChoice {
     /// The earth field the vector and planar fits compare with, where the log was taken.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub earth_field: Option<FieldUsed>,
+    /// The rung of the model ladder taken ([`crate::calib::ladder`]), when the vector method's
+    /// calibration is the ladder's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rung: Option<crate::calib::ladder::Rung>,
+    /// The field per ampere of battery current of the rung's calibration, as the raw reading
+    /// carries it (raw = A h + o + k c), uT/A: when the logged current varies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub current_ut_per_a: Option<crate::types::Vec3>,
 }
 
 /// The earth field at the log's place and date, and where both came from.

@@ -194,6 +194,11 @@ impl Pipeline {
     }
 
     /// Rotate a sample's vectors from sensor to body axes.
+    /// The rotation from the sensor's axes to the body's (`orientation.sensor`).
+    pub(crate) fn sensor_rotation(&self) -> Matrix3<f64> {
+        self.rot
+    }
+
     pub fn to_body(&self, s: &Sample) -> Sample {
         Sample {
             accel_mps2: self.vector_to_body(s.accel_mps2),

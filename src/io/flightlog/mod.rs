@@ -829,7 +829,13 @@ impl DfConv {
         ) {
             if status >= 3.0 && (lat != 0.0 || lng != 0.0) {
                 self.gps = Some([lat, lng, alt]);
-                if let (Some(wk), Some(ms)) = (f.get(DfField::GWk), f.get(DfField::Gms)) {
+                // GWk and GMS; firmware before them (ArduCopter 3.2 and older) names the GPS
+                // week `Week` and the time of week `TimeMS` (then GPS time, not the boot clock).
+                let week_ms = match (f.get(DfField::GWk), f.get(DfField::Gms)) {
+                    (Some(wk), Some(ms)) => Some((wk, ms)),
+                    _ => f.get(DfField::Week).zip(f.get(DfField::TimeMs)),
+                };
+                if let Some((wk, ms)) = week_ms {
                     if (1.0..1.0e5).contains(&wk) && (0.0..1.0e9).contains(&ms) {
                         let s = GPS_EPOCH_UNIX_S + wk as u64 * 604_800 + (ms / 1000.0) as u64;
                         self.date = crate::types::LogDate::from_unix_us(
@@ -919,12 +925,13 @@ enum DfField {
     GWk,
     Gms,
     Name,
+    Week,
 }
 
-const DF_FIELDS: [&str; 34] = [
+const DF_FIELDS: [&str; 35] = [
     "TimeUS", "TimeMS", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ", "T", "MagX", "MagY",
     "MagZ", "OfsX", "OfsY", "OfsZ", "MOfsX", "MOfsY", "MOfsZ", "Roll", "Pitch", "Yaw", "C3", "ThO",
-    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type", "GWk", "GMS", "Name",
+    "ThrOut", "Curr", "Status", "Lat", "Lng", "Alt", "Value", "Type", "GWk", "GMS", "Name", "Week",
 ];
 
 fn df_group_name(instanced: bool, k: u8) -> String {
@@ -1658,6 +1665,38 @@ fn px4_group_name(k: u8) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_old_dataflash_gps_message_gives_the_date_from_week_and_time_ms() {
+        // ArduCopter 3.2 and older: GPS with Week and TimeMS (the time of week) instead of GWk
+        // and GMS. Week 1850 plus half a week is 2015-06-24.
+        let mut bytes = write::dataflash_bytes(&[], &write::OnboardMag::example()).unwrap();
+        bytes.extend(write::fmt_record(
+            133,
+            "GPS",
+            "BIHBcLLeeEefI",
+            "Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs,VZ,T",
+        ));
+        bytes.extend([0xA3, 0x95, 133, 3]);
+        bytes.extend(302_400_000u32.to_le_bytes());
+        bytes.extend(1850u16.to_le_bytes());
+        bytes.push(10);
+        bytes.extend(100i16.to_le_bytes());
+        bytes.extend(520_381_699i32.to_le_bytes());
+        bytes.extend(51_448_234i32.to_le_bytes());
+        bytes.extend(0i32.to_le_bytes());
+        bytes.extend(1000i32.to_le_bytes());
+        bytes.extend(0u32.to_le_bytes());
+        bytes.extend(0i32.to_le_bytes());
+        bytes.extend(0f32.to_le_bytes());
+        bytes.extend(0u32.to_le_bytes());
+        let log = decode_dataflash_with(&bytes, &mut |_, _, _, _| {});
+        let date = log.date.expect("a date from the GPS message");
+        assert_eq!(date.iso(), "2015-06-24");
+        assert_eq!(date.source, crate::types::DateSource::GpsTime);
+        let gps = log.onboard.gps.expect("the fix");
+        assert!((gps[0] - 52.0381699).abs() < 1e-6, "{gps:?}");
+    }
 
     #[test]
     fn ardupilot_undo_inverts_its_correction() {

@@ -64,7 +64,7 @@ fn time_us(t_s: f64) -> u64 {
     T0_US + (t_s.max(0.0) * 1e6).round() as u64
 }
 
-fn fmt_record(id: u8, name: &str, format: &str, cols: &str) -> Vec<u8> {
+pub(super) fn fmt_record(id: u8, name: &str, format: &str, cols: &str) -> Vec<u8> {
     let len: usize = 3 + format
         .bytes()
         .map(|c| super::dataflash::Kind::from_char(c).map_or(0, |k| k.size()))

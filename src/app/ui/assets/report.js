@@ -48,7 +48,9 @@
       const ok = c.status === "ok";
       s.append(el("p", {}, el("span", { class: ok ? "ok" : "bad" }, ok ? "Calibrated" : "Failed: " + (c.failure || "?")),
         c.detail ? " — " + c.detail : ""));
+      if (sv.plots_note) s.append(el("p", { class: "muted" }, sv.plots_note));
       s.append(table("Fitted values (calibrated = matrix · (raw − offset))", ["quantity", "value"], [
+        ...(c.method ? [["method", c.method + (c.method_reason ? ": " + c.method_reason : "")]] : []),
         ["model", c.model], ["units", c.units], ["offset", vec(c.offset, 4)], ["offset 1-sigma", vec(c.offset_sigma, 4)],
         ["matrix", mat(c.matrix)], ["radius", f(c.radius, 4)], ["RMS residual", f(c.rms_residual, 4)],
         ["points used", String(c.samples_used)], ["outliers left out", String(c.outliers_rejected || 0)],
@@ -72,10 +74,13 @@
           "); dashed: ± RMS " + f(rms, 4) + " " + c.units + "."));
       }
     }
-    const g = (iv.primary ? R.calibration.gyro : ((R.instances || []).find(i => i.instance === iv.instance) || {}).calibration?.gyro);
+    // The report's gyro record of this instance; without a bias, the report's reason instead.
+    const gv = iv.gyro, g = gv && gv.calibration;
     if (g) {
       s.append(el("h3", {}, "Gyroscope"));
-      const rows = [["status", g.status], ["bias", vec(g.bias, 5) + " " + g.units], ["poses used", String(g.poses_used)]];
+      const rows = [["status", g.status],
+        gv.no_bias_reason ? ["bias", "none: " + gv.no_bias_reason] : ["bias", vec(g.bias, 5) + " " + g.units + " (1-sigma " + vec(g.bias_sigma, 5) + ")"],
+        ["poses used", String(g.poses_used) + (g.poses_turning ? " (" + g.poses_turning + " left out as turning)" : "")]];
       if (g.scale) rows.push(["scale matrix", mat(g.scale.matrix)], ["gravity direction between poses", f(g.scale.rms_before_deg, 2) + " → " + f(g.scale.rms_after_deg, 2) + " deg"]);
       else if (g.scale_failure) rows.push(["scale", "not fitted: " + (g.scale_failure.detail || g.scale_failure.failure)]);
       s.append(table("Gyroscope bias from the static poses", ["quantity", "value"], rows));

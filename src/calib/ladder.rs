@@ -1,0 +1,828 @@
+//! The magnetometer model a flight determines: a ladder of models, each a rung richer than the one
+//! below, fitted against the earth field through the log's attitude, started from the vehicle's
+//! own calibration, bounded as ArduPilot bounds its own, and chosen on readings the fits never saw.
+//!
+//! A flight that turns little determines an offset but not a full soft iron; a tumble determines
+//! both. Asking every flight for the full model fails or overfits the first kind; asking every
+//! flight for offsets alone underfits the second. ArduPilot's log tool (MAGFit, `magfit_WMM.py`
+//! in pymavlink's tools) fits offsets, diagonals, off-diagonals and a scale in bounded ranges
+//! against the WMM field; here the same bounds are kept, and which rung is taken is decided by
+//! the held-out blocks rather than assumed.
+//!
+//! Rungs (`calibrated = D y + c` on `y`, the reading through the vehicle's own calibration where
+//! the log carries one, else the raw reading; all in body axes, uT, against `h = R^T B`, the earth
+//! field `B` (NED) seen at the attitude `R` (body -> NED)):
+//! - [`Rung::Offsets`]: `D = I`. Three numbers; always determined with the field known. The
+//!   vehicle's soft iron is kept as it is.
+//! - [`Rung::Scale`]: `D = s I`: one scale for the three axes, with the offsets.
+//! - [`Rung::Diagonal`]: `D` diagonal: one scale per axis.
+//! - [`Rung::Full`]: `D` a full 3x3 matrix.
+//!
+//! Each regresses the expected field on the reading (the attitude's error is the larger one; see
+//! `crate::calib::vector`), with `D - I` drawn to zero by a prior of [`PRIOR_SD`] per element
+//! weighed against the residual of the offsets alone (a ridge regression, the least-squares form
+//! of a fit bounded near the start): what the readings determine comes from them, and along what
+//! they do not (the body-z axis of a level flight) the vehicle's own holds. Each rung's result,
+//! composed with the start, must lie within ArduPilot's bounds ([`SCALE_RANGE`], then
+//! [`DIAG_RANGE`] and [`OFFDIAG_MAX`] over the scale, [`OFFSET_MAX_UT`], [`RADIUS_RANGE_UT`]); one
+//! outside is refused with the number.
+//!
+//! Choice ([`choose`]): each rung is fitted on the even [`crate::calib::magmethod::QUALITY_BLOCK_S`]
+//! blocks and scored on the odd ones (spread of the field's norm and of its dip). The ladder
+//! climbs from the lowest rung fitted: a richer rung is taken when it cuts one held-out spread by
+//! [`RICHER_GAIN`] or more and raises neither by more than [`RICHER_SLACK`]; a matrix that turns
+//! the compass by more than [`crate::calib::magmethod::MAX_SILENT_ROTATION_DEG`] must also not
+//! widen the held-out heading. The rung taken is then fitted on every reading.
+//!
+//! Pure: no I/O.
+
+use crate::calib::outcome::HeldOut;
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// ArduPilot MAGFit's bounds on the diagonal of the soft-iron matrix (COMPASS_DIA).
+pub const DIAG_RANGE: (f64, f64) = (0.8, 1.2);
+/// ... on its off-diagonal elements (COMPASS_ODI), absolute.
+pub const OFFDIAG_MAX: f64 = 0.2;
+/// ArduPilot's bounds on the common scale (COMPASS_SCALE: its calibrator's scale factor, 1/1.5
+/// to 1.5); the diagonal and off-diagonal bounds apply to the matrix over it.
+pub const SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
+/// The prior on each element of the soft iron's departure from the start: half of
+/// [`OFFDIAG_MAX`], so that ArduPilot's bounds are two standard deviations.
+pub const PRIOR_SD: f64 = OFFDIAG_MAX / 2.0;
+/// ArduPilot's COMPASS_OFFS_MAX default, 1800 mGauss, per axis, uT.
+pub const OFFSET_MAX_UT: f64 = 180.0;
+/// ArduPilot's CompassCalibrator accepts a field radius of 150 to 950 mGauss, uT.
+pub const RADIUS_RANGE_UT: (f64, f64) = (15.0, 95.0);
+/// A richer rung must cut a held-out spread by this share...
+pub const RICHER_GAIN: f64 = 0.10;
+/// ... and raise neither by more than this share.
+pub const RICHER_SLACK: f64 = 0.05;
+/// Readings a rung's fit needs at least.
+pub const MIN_READINGS: usize = crate::calib::vector::MIN_POINTS;
+
+/// One rung of the ladder, the simplest first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Rung {
+    /// Offsets only, the soft iron kept (the vehicle's, where the log carries it).
+    Offsets,
+    /// Offsets and one scale.
+    Scale,
+    /// Offsets and one scale per axis.
+    Diagonal,
+    /// Offsets and the full soft iron.
+    Full,
+}
+
+impl Rung {
+    pub const ALL: [Rung; 4] = [Rung::Offsets, Rung::Scale, Rung::Diagonal, Rung::Full];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Rung::Offsets => "offsets",
+            Rung::Scale => "scale",
+            Rung::Diagonal => "diagonal",
+            Rung::Full => "full",
+        }
+    }
+}
+
+impl std::fmt::Display for Rung {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A calibration in body axes: calibrated = `matrix` (raw - `offset`), uT.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Affine {
+    pub matrix: Matrix3<f64>,
+    pub offset: Vector3<f64>,
+}
+
+impl Affine {
+    pub fn identity() -> Affine {
+        Affine {
+            matrix: Matrix3::identity(),
+            offset: Vector3::zeros(),
+        }
+    }
+
+    pub fn apply(&self, raw: &Vector3<f64>) -> Vector3<f64> {
+        self.matrix * (raw - self.offset)
+    }
+
+    /// `calibrated = d (self(raw)) + c` as one calibration; `None` when the result is singular.
+    fn then(&self, d: &Matrix3<f64>, c: &Vector3<f64>) -> Option<Affine> {
+        let matrix = d * self.matrix;
+        let inv = matrix.try_inverse()?;
+        Some(Affine {
+            matrix,
+            offset: self.offset - inv * c,
+        })
+    }
+}
+
+/// A rung's calibration: `calibrated = affine(raw) + current_ut_per_a * current`, the current
+/// term (calibrated axes, uT/A) fitted when the logged current varies
+/// ([`crate::calib::vector::MIN_CURRENT_SD_A`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RungCal {
+    pub affine: Affine,
+    pub current_ut_per_a: Option<Vector3<f64>>,
+}
+
+impl RungCal {
+    pub fn apply(&self, p: &LadderPoint) -> Vector3<f64> {
+        let k = self.current_ut_per_a.unwrap_or_else(Vector3::zeros);
+        self.affine.apply(&p.raw_ut) + k * p.current_a.unwrap_or(0.0)
+    }
+
+    /// The current term as the raw reading carries it (`raw = A h + o + k c`, uT/A): the
+    /// calibrated-axes term turned back through the matrix.
+    pub fn raw_current_ut_per_a(&self) -> Option<Vector3<f64>> {
+        let inv = self.affine.matrix.try_inverse()?;
+        self.current_ut_per_a.map(|k| -(inv * k))
+    }
+}
+
+/// Where the ladder starts: the calibration every rung refines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Start {
+    /// The vehicle's own calibration, as the log records it.
+    Vehicle,
+    /// No calibration known: the identity.
+    Identity,
+}
+
+/// One reading: the field in body axes (any onboard correction undone), its attitude, and which
+/// block it falls in.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LadderPoint {
+    pub raw_ut: Vector3<f64>,
+    pub body_ned: UnitQuaternion<f64>,
+    /// In a fitting (even) block; else held out.
+    pub fit: bool,
+    pub current_a: Option<f64>,
+}
+
+/// Why a rung gave no calibration.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Refusal {
+    NotEnoughReadings {
+        have: usize,
+        need: usize,
+    },
+    /// The readings vary too little along `what` for its term: `spread` of the field, `need`.
+    NotDetermined {
+        what: String,
+        spread: f64,
+        need: f64,
+    },
+    /// The full fit's own refusal, in its words.
+    Vector(String),
+    /// A number outside ArduPilot's bounds.
+    OutOfBounds {
+        what: String,
+        value: f64,
+        low: f64,
+        high: f64,
+    },
+    /// Too few held-out readings to score it.
+    NotScored,
+    /// The attitudes leave a part of the soft iron undetermined, the offset rests on what is
+    /// assumed there by `offset_ut`, and the log carries no calibration of the vehicle's to hold.
+    RestsOnAssumption {
+        offset_ut: f64,
+        along: String,
+        spread: f64,
+    },
+}
+
+impl std::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Refusal::NotEnoughReadings { have, need } => {
+                write!(f, "{have} readings with an attitude, need {need}")
+            }
+            Refusal::NotDetermined { what, spread, need } => write!(
+                f,
+                "not determined: {what} varies by {spread:.3} of the field, need {need:.2}"
+            ),
+            Refusal::Vector(s) => f.write_str(s),
+            Refusal::OutOfBounds {
+                what,
+                value,
+                low,
+                high,
+            } => write!(
+                f,
+                "out of ArduPilot's bounds: {what} {value:.3} outside {low} .. {high}"
+            ),
+            Refusal::NotScored => write!(
+                f,
+                "fewer than {} held-out readings to score it",
+                crate::calib::magmethod::QUALITY_MIN_READINGS
+            ),
+            Refusal::RestsOnAssumption {
+                offset_ut,
+                along,
+                spread,
+            } => write!(
+                f,
+                "the attitudes do not determine the offset: the reading along {along} varies by {spread:.3} of the field (need {:.2}), so up to {offset_ut:.1} uT of the offset rests on an assumed soft iron, and the log has no calibration of the vehicle's to hold there",
+                crate::calib::vector::MIN_SPREAD
+            ),
+        }
+    }
+}
+
+/// One rung as the report states it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RungReport {
+    pub rung: Rung,
+    /// Fitted on the even blocks, scored on the odd ones.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out: Option<HeldOut>,
+    /// Why it gave no calibration, when it did not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refused: Option<String>,
+    /// The rung taken.
+    pub taken: bool,
+}
+
+/// What the ladder gives.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ladder {
+    pub start: Start,
+    pub rungs: Vec<RungReport>,
+    /// The rung taken, and its calibration fitted on every reading.
+    pub chosen: Option<Chosen>,
+    /// The held-out score of the rung taken (fitted on the even blocks).
+    pub held_out: Option<HeldOut>,
+    /// Which rung and why, in words.
+    pub why: String,
+    /// How far the offset could be off through the soft iron the attitudes leave undetermined
+    /// (held at the start), uT: a soft-iron error of [`crate::calib::vector::SOFT_IRON_PRIOR`]
+    /// along it.
+    pub offset_assumption_ut: f64,
+}
+
+/// The rung taken, fitted on every reading.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Chosen {
+    pub rung: Rung,
+    pub calibration: RungCal,
+    /// RMS per axis of the calibrated field against the expected one, every reading, uT.
+    pub rms_residual_ut: f64,
+    pub readings: usize,
+    /// The earth field's strength, uT.
+    pub field_ut: f64,
+}
+
+/// A rung fitted on the fitting blocks: its calibration, its held-out score, and the rotation
+/// within its matrix (deg).
+type Scored = (RungCal, HeldOut, f64);
+
+/// What [`regress`] gives: `d`, `c` and the current term `k` of `calibrated = d y + c + k i`.
+type Regressed = (Matrix3<f64>, Vector3<f64>, Option<Vector3<f64>>);
+
+/// Fit every rung on the fitting blocks of `points`, score it on the others, choose, and fit the
+/// rung chosen on every reading. `b_ned`: the earth field, uT; `start`: the vehicle's own
+/// calibration in body axes, if the log carries one.
+pub fn climb(points: &[LadderPoint], b_ned: &Vector3<f64>, start: Option<&Affine>) -> Ladder {
+    let (start_kind, start) = match start {
+        Some(a) => (Start::Vehicle, *a),
+        None => (Start::Identity, Affine::identity()),
+    };
+    let fit_part: Vec<&LadderPoint> = points.iter().filter(|p| p.fit).collect();
+    let held: Vec<&LadderPoint> = points.iter().filter(|p| !p.fit).collect();
+    let with_current = current_varies(points);
+    // What the attitudes leave undetermined of the soft iron, and what it does to the offset:
+    // held at the vehicle's own that is its calibration; held at the identity it is an
+    // assumption, and no rung is taken on it.
+    let assumed = undetermined(&fit_part, b_ned, &start);
+    let refused_all = match (&assumed, start_kind) {
+        (Some(a), Start::Identity)
+            if a.offset_ut > crate::calib::vector::OFFSET_ASSUMPTION_LIMIT_UT =>
+        {
+            Some(Refusal::RestsOnAssumption {
+                offset_ut: a.offset_ut,
+                along: a.along.clone(),
+                spread: a.spread,
+            })
+        }
+        _ => None,
+    };
+    let mut tried: Vec<(Rung, Result<Scored, Refusal>)> = Vec::new();
+    for rung in Rung::ALL {
+        let r = match &refused_all {
+            Some(e) => Err(e.clone()),
+            None => fit_rung(rung, &fit_part, b_ned, &start, with_current).and_then(|(a, rot)| {
+                let h = score(&held, &a).ok_or(Refusal::NotScored)?;
+                Ok((a, h, rot))
+            }),
+        };
+        tried.push((rung, r));
+    }
+    let scored: Vec<(Rung, HeldOut, f64)> = tried
+        .iter()
+        .filter_map(|(r, x)| x.as_ref().ok().map(|(_, h, rot)| (*r, *h, *rot)))
+        .collect();
+    let (pick, why) = choose(&scored);
+    // The rung picked, fitted on every reading; should that fall outside the bounds, the
+    // simpler rungs scored, the richest first.
+    let mut fallback = Vec::new();
+    let mut chosen = None;
+    if let Some(pick) = pick {
+        let all: Vec<&LadderPoint> = points.iter().collect();
+        for rung in scored.iter().rev().map(|s| s.0).filter(|r| *r <= pick) {
+            match fit_rung(rung, &all, b_ned, &start, with_current) {
+                Ok((calibration, _)) => {
+                    let sq: f64 = all
+                        .iter()
+                        .map(|p| {
+                            (calibration.apply(p) - p.body_ned.inverse_transform_vector(b_ned))
+                                .norm_squared()
+                        })
+                        .sum();
+                    chosen = Some(Chosen {
+                        rung,
+                        calibration,
+                        rms_residual_ut: (sq / (3.0 * all.len() as f64)).sqrt(),
+                        readings: all.len(),
+                        field_ut: b_ned.norm(),
+                    });
+                    break;
+                }
+                Err(e) => fallback.push(format!("{rung} on every reading: {e}")),
+            }
+        }
+    }
+    let taken = chosen.map(|c| c.rung);
+    let held_out = taken.and_then(|r| scored.iter().find(|s| s.0 == r).map(|s| s.1));
+    let rungs = tried
+        .iter()
+        .map(|(rung, r)| RungReport {
+            rung: *rung,
+            held_out: r.as_ref().ok().map(|x| x.1),
+            refused: r.as_ref().err().map(|e| e.to_string()),
+            taken: taken == Some(*rung),
+        })
+        .collect();
+    let mut why = match (taken, pick) {
+        (Some(t), Some(p)) if t != p => format!("{why}; but {}, so {t} taken", fallback.join("; ")),
+        (None, Some(_)) => format!("{why}; but {}", fallback.join("; ")),
+        _ => why,
+    };
+    if let Some(e) = &refused_all {
+        why = e.to_string();
+    } else if let (Some(a), Start::Vehicle, Some(_)) = (&assumed, start_kind, taken) {
+        why = format!(
+            "{why}; along {} (varied by {:.3} of the field) the vehicle's own soft iron holds, up to {:.1} uT of the offset resting on it",
+            a.along, a.spread, a.offset_ut
+        );
+    }
+    Ladder {
+        start: start_kind,
+        rungs,
+        chosen,
+        held_out,
+        why,
+        offset_assumption_ut: assumed.map_or(0.0, |a| a.offset_ut),
+    }
+}
+
+/// The rung to take among those scored (`(rung, held-out score, rotation within the matrix in
+/// deg)`, the simplest first), and why in words. See the module doc.
+pub fn choose(scored: &[(Rung, HeldOut, f64)]) -> (Option<Rung>, String) {
+    let Some(first) = scored.first() else {
+        return (None, "no rung could be fitted and scored".into());
+    };
+    let mut at = *first;
+    let mut words = Vec::new();
+    for next in &scored[1..] {
+        let (a, b) = (&at.1, &next.1);
+        let cuts_norm = b.norm_spread_pct < (1.0 - RICHER_GAIN) * a.norm_spread_pct;
+        let cuts_dip = b.dip_spread_deg < (1.0 - RICHER_GAIN) * a.dip_spread_deg;
+        let raises = b.norm_spread_pct > (1.0 + RICHER_SLACK) * a.norm_spread_pct
+            || b.dip_spread_deg > (1.0 + RICHER_SLACK) * a.dip_spread_deg;
+        let turns = next.2 > crate::calib::magmethod::MAX_SILENT_ROTATION_DEG;
+        let heading_wider = turns && b.heading_spread_deg > a.heading_spread_deg;
+        let figures = format!(
+            "norm {:.2} -> {:.2} %, dip {:.2} -> {:.2} deg",
+            a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg
+        );
+        if (cuts_norm || cuts_dip) && !raises && !heading_wider {
+            words.push(format!("{} cuts a held-out spread ({figures})", next.0));
+            at = *next;
+        } else if heading_wider && (cuts_norm || cuts_dip) && !raises {
+            words.push(format!(
+                "{} turns the compass by {:.1} deg and widens the held-out heading ({:.2} -> {:.2} deg): not taken",
+                next.0, next.2, a.heading_spread_deg, b.heading_spread_deg
+            ));
+        } else {
+            words.push(format!(
+                "{} does not cut a held-out spread by {:.0} % ({figures})",
+                next.0,
+                100.0 * RICHER_GAIN
+            ));
+        }
+    }
+    let why = if words.is_empty() {
+        format!("{} is the only rung determined", at.0)
+    } else {
+        format!("{} taken: {}", at.0, words.join("; "))
+    };
+    (Some(at.0), why)
+}
+
+/// One rung fitted on `points`: its calibration and the rotation within its matrix, deg.
+fn fit_rung(
+    rung: Rung,
+    points: &[&LadderPoint],
+    b_ned: &Vector3<f64>,
+    start: &Affine,
+    with_current: bool,
+) -> Result<(RungCal, f64), Refusal> {
+    if points.len() < MIN_READINGS {
+        return Err(Refusal::NotEnoughReadings {
+            have: points.len(),
+            need: MIN_READINGS,
+        });
+    }
+    let (d, c, k) = regress(rung, points, b_ned, start, with_current)?;
+    let affine = start
+        .then(&d, &c)
+        .ok_or_else(|| Refusal::Vector("the calibration is singular".into()))?;
+    let cal = RungCal {
+        affine,
+        current_ut_per_a: k,
+    };
+    check_bounds(&cal, points, b_ned)?;
+    Ok((cal, rotation_deg(&affine.matrix)))
+}
+
+/// `calibrated = d y + c + k current`, `y` the reading through the start: the expected field
+/// regressed on `y` (and on the battery current when `with_current`), with `d` drawn towards the
+/// identity (the start kept) by a prior of [`PRIOR_SD`] per element, weighed against the residual
+/// of the offsets alone. What the readings determine comes from them; along what they do not, the
+/// start holds (a ridge regression: the least-squares form of a fit bounded near the start).
+fn regress(
+    rung: Rung,
+    points: &[&LadderPoint],
+    b_ned: &Vector3<f64>,
+    start: &Affine,
+    with_current: bool,
+) -> Result<Regressed, Refusal> {
+    let n = points.len() as f64;
+    let rows: Vec<(Vector3<f64>, Vector3<f64>, f64)> = points
+        .iter()
+        .map(|p| {
+            (
+                start.apply(&p.raw_ut),
+                p.body_ned.inverse_transform_vector(b_ned),
+                p.current_a.unwrap_or(0.0),
+            )
+        })
+        .collect();
+    let ym = rows.iter().map(|r| r.0).sum::<Vector3<f64>>() / n;
+    let hm = rows.iter().map(|r| r.1).sum::<Vector3<f64>>() / n;
+    let im = rows.iter().map(|r| r.2).sum::<f64>() / n;
+    let nd = match rung {
+        Rung::Offsets => 0,
+        Rung::Scale => 1,
+        Rung::Diagonal => 3,
+        Rung::Full => 9,
+    };
+    let nk = if with_current { 3 } else { 0 };
+    let p = nd + nk;
+    let mut nm = nalgebra::DMatrix::<f64>::zeros(p.max(1), p.max(1));
+    let mut g = nalgebra::DVector::<f64>::zeros(p.max(1));
+    let mut rss = 0.0;
+    let mut a = vec![0.0; p];
+    for (y, h, i) in &rows {
+        let yc = y - ym;
+        let e = (h - hm) - yc;
+        rss += e.norm_squared();
+        for j in 0..3 {
+            a.iter_mut().for_each(|v| *v = 0.0);
+            match rung {
+                Rung::Offsets => {}
+                Rung::Scale => a[0] = yc[j],
+                Rung::Diagonal => a[j] = yc[j],
+                Rung::Full => {
+                    for k in 0..3 {
+                        a[3 * j + k] = yc[k];
+                    }
+                }
+            }
+            if with_current {
+                a[nd + j] = i - im;
+            }
+            for r in 0..p {
+                g[r] += a[r] * e[j];
+                for c in 0..p {
+                    nm[(r, c)] += a[r] * a[c];
+                }
+            }
+        }
+    }
+    // The prior's weight: the offsets' residual variance per axis over the prior's.
+    let lambda = (rss / (3.0 * n)) / (PRIOR_SD * PRIOR_SD);
+    for r in 0..nd {
+        nm[(r, r)] += lambda;
+    }
+    let theta = if p == 0 {
+        nalgebra::DVector::zeros(0)
+    } else {
+        nm.cholesky()
+            .ok_or_else(|| Refusal::Vector("the normal equations are singular".into()))?
+            .solve(&g)
+    };
+    let mut d = Matrix3::identity();
+    match rung {
+        Rung::Offsets => {}
+        Rung::Scale => d *= 1.0 + theta[0],
+        Rung::Diagonal => {
+            for j in 0..3 {
+                d[(j, j)] += theta[j];
+            }
+        }
+        Rung::Full => {
+            for j in 0..3 {
+                for k in 0..3 {
+                    d[(j, k)] += theta[3 * j + k];
+                }
+            }
+        }
+    }
+    let k = with_current.then(|| Vector3::new(theta[nd], theta[nd + 1], theta[nd + 2]));
+    let c = hm - d * ym - k.unwrap_or_else(Vector3::zeros) * im;
+    Ok((d, c, k))
+}
+
+/// What the attitudes leave undetermined of the soft iron ([`undetermined`]).
+#[derive(Debug, Clone, PartialEq)]
+struct Assumed {
+    /// How far the offset could be off through it, uT.
+    offset_ut: f64,
+    /// The reading's direction (body axes) least varied, in words.
+    along: String,
+    /// How much the reading varies along it, relative to the field.
+    spread: f64,
+}
+
+/// The directions of the reading (through the start, body axes) that the attitudes vary by less
+/// than [`crate::calib::vector::MIN_SPREAD`] of the field: along such a direction `u` no rung can
+/// tell the soft iron from the offset, and a soft-iron error of
+/// [`crate::calib::vector::SOFT_IRON_PRIOR`] there moves the offset by that times `u . mean(y)`.
+/// The worst such direction; `None` when every direction is varied enough.
+fn undetermined(points: &[&LadderPoint], b_ned: &Vector3<f64>, start: &Affine) -> Option<Assumed> {
+    let n = points.len() as f64;
+    if n < 2.0 {
+        return None;
+    }
+    let ys: Vec<Vector3<f64>> = points.iter().map(|p| start.apply(&p.raw_ut)).collect();
+    let ym = ys.iter().sum::<Vector3<f64>>() / n;
+    let s = ys
+        .iter()
+        .map(|y| (y - ym) * (y - ym).transpose())
+        .sum::<Matrix3<f64>>()
+        / n;
+    let field = b_ned.norm();
+    let eig = s.symmetric_eigen();
+    let axes = ["body-x", "body-y", "body-z"];
+    (0..3)
+        .filter_map(|i| {
+            let spread = eig.eigenvalues[i].max(0.0).sqrt() / field;
+            let u: Vector3<f64> = eig.eigenvectors.column(i).into();
+            (spread < crate::calib::vector::MIN_SPREAD).then(|| {
+                let sign = if u[u.iamax()] < 0.0 { -1.0 } else { 1.0 };
+                let along = (0..3)
+                    .filter(|&k| u[k].abs() >= 0.1)
+                    .map(|k| format!("{:+.2} {}", sign * u[k], axes[k]))
+                    .collect::<Vec<_>>()
+                    .join(" ");
+                Assumed {
+                    offset_ut: crate::calib::vector::SOFT_IRON_PRIOR * u.dot(&ym).abs(),
+                    along,
+                    spread,
+                }
+            })
+        })
+        .max_by(|a, b| a.offset_ut.total_cmp(&b.offset_ut))
+}
+
+/// The logged current varies enough to fit its term ([`crate::calib::vector::MIN_CURRENT_SD_A`])
+/// and every reading has one.
+fn current_varies(points: &[LadderPoint]) -> bool {
+    let c: Vec<f64> = points.iter().filter_map(|p| p.current_a).collect();
+    if c.len() < points.len() || c.is_empty() {
+        return false;
+    }
+    let m = c.iter().sum::<f64>() / c.len() as f64;
+    let var = c.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / c.len() as f64;
+    var.sqrt() >= crate::calib::vector::MIN_CURRENT_SD_A
+}
+
+fn bound(what: &str, value: f64, (low, high): (f64, f64)) -> Result<(), Refusal> {
+    if (low..=high).contains(&value) {
+        Ok(())
+    } else {
+        Err(Refusal::OutOfBounds {
+            what: what.into(),
+            value,
+            low,
+            high,
+        })
+    }
+}
+
+/// ArduPilot's bounds on a calibration: diagonal, off-diagonal, offsets per axis, and the
+/// strength of the field it gives.
+fn check_bounds(
+    rung_cal: &RungCal,
+    points: &[&LadderPoint],
+    b_ned: &Vector3<f64>,
+) -> Result<(), Refusal> {
+    let cal = &rung_cal.affine;
+    let axes = ["x", "y", "z"];
+    // The matrix as ArduPilot splits it: a scale (COMPASS_SCALE), then DIA and ODI about 1.
+    let scale = cal.matrix.determinant().cbrt();
+    bound("scale", scale, SCALE_RANGE)?;
+    let m = cal.matrix / scale;
+    for i in 0..3 {
+        bound(
+            &format!("diagonal {} over the scale", axes[i]),
+            m[(i, i)],
+            DIAG_RANGE,
+        )?;
+        for j in 0..3 {
+            if i != j {
+                bound(
+                    &format!("off-diagonal {}{} over the scale", axes[i], axes[j]),
+                    m[(i, j)],
+                    (-OFFDIAG_MAX, OFFDIAG_MAX),
+                )?;
+            }
+        }
+        bound(
+            &format!("offset {}", axes[i]),
+            cal.offset[i],
+            (-OFFSET_MAX_UT, OFFSET_MAX_UT),
+        )?;
+    }
+    let n = points.len() as f64;
+    let radius = points.iter().map(|p| rung_cal.apply(p).norm()).sum::<f64>() / n;
+    bound("radius (uT)", radius, RADIUS_RANGE_UT)?;
+    // The earth field itself must be one a compass can be calibrated against.
+    bound("earth field (uT)", b_ned.norm(), RADIUS_RANGE_UT)
+}
+
+/// The rotation within a matrix (its polar factor), deg.
+fn rotation_deg(m: &Matrix3<f64>) -> f64 {
+    let svd = m.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return 0.0;
+    };
+    let r = u * vt;
+    ((r.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// The held-out score of `cal` on `points`.
+fn score(points: &[&LadderPoint], cal: &RungCal) -> Option<HeldOut> {
+    let r: Vec<(crate::types::Vec3, UnitQuaternion<f64>)> = points
+        .iter()
+        .map(|p| {
+            let c = cal.apply(p);
+            ([c.x, c.y, c.z], p.body_ned)
+        })
+        .collect();
+    crate::calib::magmethod::held_out(&r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Readings of a compass with soft iron `a` and hard iron `o` (raw = a h + o) over attitudes
+    /// turning `tilt_deg` about level and every heading, a reading every 0.2 s, with noise.
+    fn flight(
+        a: Matrix3<f64>,
+        o: Vector3<f64>,
+        tilt_deg: f64,
+        b: &Vector3<f64>,
+    ) -> Vec<LadderPoint> {
+        let mut out = Vec::new();
+        let mut seed = 7u64;
+        let mut noise = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 33) as f64 / (1u64 << 31) as f64 - 0.5) * 0.2
+        };
+        for k in 0..1500 {
+            let t = k as f64 * 0.2;
+            let yaw = 0.05 * t;
+            let roll = tilt_deg.to_radians() * (0.3 * t).sin();
+            let pitch = tilt_deg.to_radians() * (0.17 * t).cos();
+            let q = UnitQuaternion::from_euler_angles(roll, pitch, yaw);
+            let h = q.inverse_transform_vector(b);
+            let raw = a * h + o + Vector3::new(noise(), noise(), noise());
+            out.push(LadderPoint {
+                raw_ut: raw,
+                body_ned: q,
+                fit: ((t / 20.0).floor() as i64) % 2 == 0,
+                current_a: None,
+            });
+        }
+        out
+    }
+
+    fn field() -> Vector3<f64> {
+        Vector3::new(18.0, 0.5, 45.0)
+    }
+
+    #[test]
+    fn level_flight_with_the_vehicles_soft_iron_takes_the_offsets() {
+        // The vehicle's soft iron is the true one; the hard iron moved by [3, -2, 4] uT.
+        let a = Matrix3::new(1.05, 0.02, 0.0, 0.02, 0.95, 0.01, 0.0, 0.01, 1.02);
+        let o = Vector3::new(10.0, -5.0, 8.0);
+        let pts = flight(a, o, 3.0, &field());
+        let vehicle = Affine {
+            matrix: a.try_inverse().unwrap(),
+            offset: o - Vector3::new(3.0, -2.0, 4.0),
+        };
+        let l = climb(&pts, &field(), Some(&vehicle));
+        let c = l.chosen.expect(&l.why);
+        let (rung, cal) = (c.rung, c.calibration.affine);
+        assert_eq!(rung, Rung::Offsets, "{}", l.why);
+        // Measured 0.03 uT at most.
+        assert!((cal.offset - o).amax() < 0.1, "{:?} {}", cal.offset, l.why);
+        // The richer rungs were fitted and scored, and cut no held-out spread.
+        assert!(
+            l.rungs.iter().all(|r| r.held_out.is_some()),
+            "{:?}",
+            l.rungs
+        );
+    }
+
+    #[test]
+    fn a_tumble_with_a_hidden_full_soft_iron_takes_the_full_rung() {
+        let a = Matrix3::new(1.06, 0.04, -0.03, 0.04, 0.93, 0.05, -0.03, 0.05, 1.04);
+        let o = Vector3::new(-12.0, 7.0, 20.0);
+        let pts = flight(a, o, 75.0, &field());
+        let l = climb(&pts, &field(), None);
+        let c = l.chosen.expect(&l.why);
+        let (rung, cal) = (c.rung, c.calibration.affine);
+        assert_eq!(rung, Rung::Full, "{}", l.why);
+        let want = a.try_inverse().unwrap();
+        // Within 1 % of the truth element by element (measured 0.1 %).
+        assert!(
+            (cal.matrix - want).amax() < 0.01,
+            "{} {}",
+            cal.matrix,
+            l.why
+        );
+        assert!((cal.offset - o).amax() < 0.3, "{:?}", cal.offset);
+    }
+
+    #[test]
+    fn a_calibration_out_of_bounds_is_refused_with_its_number() {
+        // A soft iron of 0.6 on x: every rung that reaches it is out of ArduPilot's bounds.
+        let a = Matrix3::new(1.0 / 0.6, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+        let pts = flight(a, Vector3::zeros(), 75.0, &field());
+        let l = climb(&pts, &field(), None);
+        let full = l.rungs.iter().find(|r| r.rung == Rung::Full).unwrap();
+        let why = full.refused.as_deref().unwrap_or("");
+        // 0.6 over the scale, the cube root of its determinant 0.843: 0.711 (the prior draws the
+        // fit to 0.714).
+        assert!(why.contains("diagonal x over the scale 0.71"), "{why}");
+    }
+
+    #[test]
+    fn choose_climbs_only_on_a_clear_held_out_gain() {
+        let h = |n: f64, d: f64| HeldOut {
+            norm_spread_pct: n,
+            dip_spread_deg: d,
+            dip_mean_deg: 60.0,
+            heading_spread_deg: 2.0,
+            readings: 100,
+        };
+        let scored = [
+            (Rung::Offsets, h(1.0, 1.0), 0.0),
+            (Rung::Scale, h(0.95, 1.0), 0.0),
+            (Rung::Diagonal, h(0.5, 0.9), 0.0),
+            (Rung::Full, h(0.45, 1.2), 0.0),
+        ];
+        let (r, why) = choose(&scored);
+        assert_eq!(r, Some(Rung::Diagonal), "{why}");
+        assert!(why.contains("full does not cut"), "{why}");
+    }
+}
