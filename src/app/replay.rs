@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 mod gyro_scale;
 mod load;
 use gyro_scale::{gyro_scale_of, GyroFits, GyroScaleOutcome, SpanRates};
+pub use load::loadable;
 
 /// What to write besides the report.
 #[derive(Debug, Clone, Default)]
@@ -151,8 +152,9 @@ pub fn replay(
     }
     mounting_check(&mut results, &run.log, &run.pipe, cfg);
     run.other_mags = other_mag_methods(&mut run, cfg, &quality);
-    let quality: Vec<crate::report::QualityReport> =
+    let mut quality: Vec<crate::report::QualityReport> =
         quality.into_iter().map(|j| j.judged.report).collect();
+    plausibility(&mut run, &mut results, &mut quality, cfg);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
@@ -376,6 +378,62 @@ fn judge<R>(
             .map(|g| g as &crate::calib::magmethod::FieldOf<'_>),
         start.as_ref(),
     )
+}
+
+/// Every compass's readings checked for a compass seeing the earth's field
+/// ([`crate::calib::plausible`]); one that is not fails (`implausible`, with its numbers), and its
+/// held-out record says it was not judged.
+fn plausibility(
+    run: &mut Run,
+    results: &mut FitResults,
+    quality: &mut [crate::report::QualityReport],
+    cfg: &Config,
+) {
+    let log = &run.log;
+    let mut found: Vec<(Option<usize>, String, crate::calib::plausible::Implausible)> = Vec::new();
+    for c in compasses(run) {
+        let field =
+            crate::calib::magmethod::earth_field_of(c.samples, log.place(), cfg.place.as_ref());
+        let b = field
+            .as_ref()
+            .map(|f| nalgebra::Vector3::from(f.field_ned_ut()));
+        let pipe = c.pipe;
+        let mut readings = Vec::new();
+        let mut expected = Vec::new();
+        for s in c.samples {
+            let Some(m) = pipe.to_body(s).mag_ut else {
+                continue;
+            };
+            let m = nalgebra::Vector3::from(m);
+            readings.push(m);
+            if let (Some(b), Some(q)) = (b, s.ref_q.and_then(crate::attitude::body_ned_of_ref_q)) {
+                expected.push((m, q.inverse_transform_vector(&b)));
+            }
+        }
+        let earth = field.as_ref().map(|f| f.total_ut);
+        if let Some(e) = crate::calib::plausible::check(&readings, &expected, earth) {
+            found.push((c.other, c.instance.clone(), e));
+        }
+    }
+    for (other, instance, e) in found {
+        let mag = match other {
+            None => Some(&mut results.mag),
+            Some(k) => run.other_mags.get_mut(k).and_then(Option::as_mut),
+        };
+        if let Some(mag) = mag {
+            mag.calibration = None;
+            mag.report.status = CalStatus::Failed;
+            mag.report.failure = Some(FitFailure::Implausible);
+            mag.report.detail = Some(e.to_string());
+        }
+        if let Some(q) = quality.iter_mut().find(|q| q.instance == instance) {
+            q.imucald = None;
+            q.rung = None;
+            q.imucald_failure = Some(e.to_string());
+            q.verdict_kind = Some(crate::calib::outcome::Verdict::Failed);
+            q.verdict = format!("not judged: {e}");
+        }
+    }
 }
 
 /// One compass's held-out judgement ([`crate::calib::magmethod::quality`]) and which it is.

@@ -39,6 +39,8 @@ pub enum FitFailure {
     NeedsCalibration,
     /// The data say the compass is mounted otherwise than configured ([`crate::calib::mounting`]).
     Orientation,
+    /// The readings are not a compass seeing the earth's field ([`crate::calib::plausible`]).
+    Implausible,
 }
 
 impl std::fmt::Display for FitFailure {
@@ -61,6 +63,7 @@ impl FitFailure {
             FitFailure::Disturbed => "disturbed",
             FitFailure::AxisFault => "axis_fault",
             FitFailure::HeldOut => "held_out",
+            FitFailure::Implausible => "implausible",
             FitFailure::NeedsCalibration => "needs_calibration",
             FitFailure::Orientation => "orientation",
         }

@@ -875,10 +875,20 @@ pub fn quality(
                 .collect();
             let ladder = crate::calib::ladder::climb(&points, &b, start);
             let failure = ladder.held_out.is_none().then(|| {
-                let refused: Vec<String> = ladder
-                    .rungs
+                // Rungs refused for the same reason are named together.
+                let mut refused: Vec<(Vec<String>, &String)> = Vec::new();
+                for r in &ladder.rungs {
+                    let Some(why) = r.refused.as_ref() else {
+                        continue;
+                    };
+                    match refused.iter_mut().find(|(_, w)| *w == why) {
+                        Some((names, _)) => names.push(r.rung.to_string()),
+                        None => refused.push((vec![r.rung.to_string()], why)),
+                    }
+                }
+                let refused: Vec<String> = refused
                     .iter()
-                    .filter_map(|r| Some(format!("{}: {}", r.rung, r.refused.as_ref()?)))
+                    .map(|(names, why)| format!("{}: {why}", names.join(", ")))
                     .collect();
                 if refused.is_empty() {
                     format!("no rung of the ladder was taken: {}", ladder.why)
@@ -918,10 +928,12 @@ pub fn quality(
             (ours, failure, "vector, field fitted", None)
         }
     };
-    if ours.is_none() && theirs.is_none() {
+    // With neither score there is nothing to judge, unless the ladder ran: its refusals are
+    // the record of why.
+    if ours.is_none() && theirs.is_none() && ladder.is_none() {
         return None;
     }
-    let (kind, mut verdict) = verdict(ours.as_ref(), theirs.as_ref());
+    let (kind, mut verdict) = verdict(ours.as_ref(), theirs.as_ref(), onboard.is_some());
     if let (None, Some(f)) = (&ours, &failure) {
         verdict = format!("{verdict} ({f})");
     }
@@ -1005,9 +1017,11 @@ pub fn quality_points(
 
 /// The plain answer: is imucald's calibration better than the vehicle's on the held-out blocks?
 /// Better means no worse on both spreads and better on at least one by a tenth.
+/// `has_onboard`: the log carries the vehicle's calibration of this compass (scored or not).
 fn verdict(
     ours: Option<&crate::calib::outcome::HeldOut>,
     theirs: Option<&crate::calib::outcome::HeldOut>,
+    has_onboard: bool,
 ) -> (crate::calib::outcome::Verdict, String) {
     use crate::calib::outcome::Verdict;
     match (ours, theirs) {
@@ -1034,6 +1048,13 @@ fn verdict(
                 )
             }
         }
+        (Some(a), None) if has_onboard => (
+            Verdict::KeepVehicle,
+            format!(
+                "keep the vehicle's: its calibration could not be scored on the held-out blocks (fewer than {QUALITY_MIN_READINGS} readings through it), so nothing shows imucald's is better; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
+                a.norm_spread_pct, a.dip_spread_deg
+            ),
+        ),
         (Some(a), None) => (
             Verdict::NoOnboard,
             format!(
@@ -1048,7 +1069,14 @@ fn verdict(
                 b.norm_spread_pct, b.dip_spread_deg
             ),
         ),
-        (None, None) => (Verdict::Failed, "nothing to judge".into()),
+        (None, None) if has_onboard => (
+            Verdict::Failed,
+            format!("imucald's held-out fit failed, and the vehicle's own calibration could not be scored either (fewer than {QUALITY_MIN_READINGS} held-out readings through it)"),
+        ),
+        (None, None) => (
+            Verdict::Failed,
+            "imucald's held-out fit failed, and the log has no calibration of the vehicle's to compare with".into(),
+        ),
     }
 }
 

@@ -30,6 +30,7 @@ pub mod mounting;
 pub mod outcome;
 pub mod pipeline;
 pub mod planar;
+pub mod plausible;
 pub mod sections;
 pub mod settings;
 pub mod vector;

@@ -105,6 +105,13 @@ pub(crate) fn withheld(
     })
 }
 
+/// Whether the replay found anything to load on the vehicle: a compass whose calibration is one
+/// to load ([`decide`]), or an accelerometer calibration that passed. A gyro bias alone is not:
+/// no parameter file carries it, and the flight controller learns its own at every start.
+pub fn loadable(r: &Report) -> bool {
+    r.load.iter().any(|d| d.load) || r.calibration.accel.status == CalStatus::Ok
+}
+
 /// The compasses to load and those not, in words, for `next:`.
 pub(crate) fn named(r: &Report) -> (Vec<String>, Vec<String>) {
     let name = |d: &LoadDecision| format!("compass {} ({})", d.compass_id, d.instance);
