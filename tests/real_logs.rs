@@ -204,6 +204,132 @@ fn px4_indoor_further_instances_say_why_with_evidence() {
     }
 }
 
+/// `px4_cuav_gps_interference` (PX4 1.16) flew with SYS_HAS_MAG 0: PX4 runs no
+/// `vehicle_magnetometer` then, and `sensor_combined` carries no field since PX4 1.11, so the
+/// primary has no magnetometer stream at all; nothing is corrected, nothing to undo, nothing
+/// dropped. Its two compasses are logged raw (`sensor_mag[0]`, `sensor_mag[1]`, 62 readings each
+/// at 1 Hz, as pyulog reads them), and each one's readings all reach its own instance. CAL_MAG0
+/// is complete (its device, PRIO 0: disabled, offsets 0 and scales 1: never calibrated); CAL_MAG1
+/// is the calibrated one (PRIO 75).
+#[test]
+fn px4_without_a_compass_in_use_drops_no_magnetometer_reading() {
+    let real = require_data!();
+    let path = real.join("px4_cuav_gps_interference.ulg");
+    let bytes = std::fs::read(&path).unwrap();
+    // Magnetometer readings emitted per instance.
+    let mut mags = std::collections::BTreeMap::<usize, u64>::new();
+    let log = imucald::io::flightlog::decode_ulog_with(&bytes, &mut |gi, s, _, _| {
+        *mags.entry(gi).or_default() += s.mag_ut.is_some() as u64;
+    })
+    .unwrap();
+    assert!(
+        !log.messages
+            .keys()
+            .any(|m| m.starts_with("vehicle_magnetometer")),
+        "{:?}",
+        log.messages
+    );
+    assert_eq!(log.messages.get("sensor_mag[0]"), Some(&62));
+    assert_eq!(log.messages.get("sensor_mag[1]"), Some(&62));
+    assert_eq!(log.primary_mag_source, None);
+    // Every raw reading reaches its compass's own instance; the primary has none.
+    for (gi, inst) in log.instances.iter().enumerate() {
+        let want = match inst.name.as_str() {
+            "sensor_combined" => 0,
+            n if n.ends_with("sensor_mag[0]") || n.ends_with("sensor_mag[1]") => 62,
+            n => panic!("instance {n}"),
+        };
+        assert_eq!(mags.get(&gi).copied().unwrap_or(0), want, "{}", inst.name);
+    }
+
+    let r = common::replay_log(&path, &Config::default()).report;
+    // Nothing skipped, nothing left out for want of its correction.
+    assert!(r.input.skipped.is_empty(), "{:?}", r.input.skipped);
+    assert!(!r.input.counts.contains_key("mag"), "{:?}", r.input.counts);
+    let on = r.onboard.as_ref().unwrap();
+    assert!(on.not_undone.is_empty(), "{:?}", on.not_undone);
+    assert!(on.undone.is_empty(), "{:?}", on.undone);
+    // The parameters as logged, each slot naming the raw stream of its device.
+    let slot = |n: u8| on.mag.iter().find(|c| c.instance == n).unwrap();
+    let (c0, c1) = (slot(0), slot(1));
+    assert_eq!(c0.device_id, Some(396_825));
+    assert_eq!(c0.params["CAL_MAG0_PRIO"], 0.0);
+    assert_eq!(c0.offset, [0.0; 3]);
+    assert_eq!(c0.sources, ["sensor_mag[0]"]);
+    assert_eq!(c1.device_id, Some(527_625));
+    assert_eq!(c1.params["CAL_MAG1_PRIO"], 75.0);
+    assert_eq!(c1.sources, ["sensor_mag[1]"]);
+    for (k, dev) in [(0u8, 396_825u32), (1, 527_625)] {
+        let s = r
+            .input
+            .sensors
+            .iter()
+            .find(|s| s.source == format!("sensor_mag[{k}]"))
+            .unwrap();
+        assert_eq!((s.samples, s.device_id), (62, Some(dev)));
+    }
+}
+
+/// A ULog's bytes without its parameter `name` (the first `P` message naming it). The message
+/// framing (u16 size, u8 type, body) after the 16-byte header is all it reads.
+fn ulog_without_param(bytes: &[u8], name: &str) -> Vec<u8> {
+    let mut at = 16;
+    while at + 3 <= bytes.len() {
+        let size = u16::from_le_bytes([bytes[at], bytes[at + 1]]) as usize;
+        let end = at + 3 + size;
+        let body = &bytes[at + 3..end];
+        if bytes[at + 2] == b'P' {
+            let key = &body[1..1 + body[0] as usize];
+            if key.split(|c| *c == b' ').nth(1) == Some(name.as_bytes()) {
+                return [&bytes[..at], &bytes[end..]].concat();
+            }
+        }
+        at = end;
+    }
+    panic!("{name} is not in the log");
+}
+
+/// `px4_tropic_ekf_failure` (PX4 1.15) logs its prime compass corrected, `vehicle_magnetometer[0]`
+/// (159 readings, device 396809 = CAL_MAG0_ID), and both compasses raw at 1 Hz. The same bytes
+/// without CAL_MAG0_XOFF: the correction cannot be undone, so every corrected reading is left out
+/// and counted with its reason, the report names the stream and the parameter, and the compass's
+/// raw `sensor_mag[0]` is still fitted in its own instance.
+#[test]
+fn px4_prime_field_without_its_offsets_is_counted_and_named() {
+    let real = require_data!();
+    let bytes = std::fs::read(real.join("px4_tropic_ekf_failure.ulg")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("no_xoff.ulg");
+    std::fs::write(&path, ulog_without_param(&bytes, "CAL_MAG0_XOFF")).unwrap();
+    let r = common::replay_log(&path, &Config::default()).report;
+    assert_eq!(r.input.skipped.get("mag_not_undone"), Some(&159));
+    assert!(!r.input.counts.contains_key("mag"), "{:?}", r.input.counts);
+    let on = r.onboard.as_ref().unwrap();
+    assert_eq!(
+        on.not_undone,
+        ["vehicle_magnetometer[0] (its compass logged raw as sensor_mag[0], fitted in that instance): 159 readings left out (skipped as mag_not_undone): CAL_MAG0_XOFF not in the log"]
+    );
+    assert!(on.undone.is_empty(), "{:?}", on.undone);
+    let raw = r
+        .input
+        .sensors
+        .iter()
+        .find(|s| s.source == "sensor_mag[0]")
+        .unwrap();
+    assert_eq!((raw.samples, raw.device_id), (79, Some(396_809)));
+    let own = r
+        .instances
+        .iter()
+        .find(|i| !i.primary && i.compass_id == 0)
+        .unwrap();
+    assert_ne!(
+        own.calibration.mag.failure,
+        Some(imucald::calib::fit::FitFailure::NotEnoughSamples),
+        "{:?}",
+        own.calibration.mag.detail
+    );
+}
+
 /// `apm_copter_2013_c`'s magnetometer y axis reads exactly -170 in 222 of its 791 readings: all
 /// while the vehicle rests on the ground (measured with pymavlink: the gyro within 5 mrad/s, x and
 /// z within 4 and 3 counts, against the 531 counts y spans over the flight). A sensor at rest, not

@@ -9,7 +9,10 @@
 //! 1 + k takes `sensor_accel[k]`, `sensor_gyro[k]`, `sensor_mag[k]` (raw), or, where the log has
 //! a `vehicle_magnetometer[j]` (j > 0) of the same device id (PX4 logs `sensor_mag` at 1 Hz by
 //! default), that faster corrected stream with its CAL_MAGn undone instead, said so in
-//! `onboard.undone` (the raw readings then skipped as `mag_slower_stream`). Within an instance a
+//! `onboard.undone` (the raw readings then skipped as `mag_slower_stream`; where that CAL_MAGn
+//! cannot be undone the raw readings stay). A vehicle that runs without a compass (PX4's
+//! SYS_HAS_MAG 0) logs no `vehicle_magnetometer`: its primary has no magnetometer, and each raw
+//! `sensor_mag[k]` is calibrated in its own instance. Within an instance a
 //! sample is made per accelerometer reading, carrying the newest gyroscope and magnetometer
 //! readings since the last one (as a MAVLink IMU message does); an instance without an
 //! accelerometer gives a sample per reading. Each instance has its own [`SourceClock`].
@@ -19,12 +22,17 @@
 //! COMPASS_OFS/DIA/ODI/SCALE of that compass (the record's own OfsX/Y/Z where the parameter is
 //! absent or differs by more than 1 mGauss: an offset changed in flight). PX4's
 //! `vehicle_magnetometer` and `sensor_combined.magnetometer_ga` are `R S (raw - OFF)` (gauss) of
-//! the prime compass (CAL_MAG_PRIME = CAL_MAGn_ID), undone to the raw field in body axes,
-//! R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
-//! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations, else not undone and said
-//! so (`onboard.not_undone`). Onboard calibrations are reported in imucald's model, calibrated =
-//! M (raw - offset) in uT: ArduPilot's as [`crate::calib::ardupilot::Correction::model`]; PX4's is
-//! CAL_MAGn_?OFF x 100, M = S (the CAL_MAGn_?COMP power compensation is not undone).
+//! the compass PX4 selected: the CAL_MAGn whose CAL_MAGn_ID is the record's `device_id` (PX4 1.12
+//! and later choose by CAL_MAGn_PRIO and log no CAL_MAG_PRIME), else the prime compass by the
+//! parameters (CAL_MAG_PRIME = CAL_MAGn_ID; without it, CAL_MAG0). Undone to the raw field in body
+//! axes, R raw = R S^-1 R^T m + R OFF, with R the compass's rotation (CAL_MAGn_ROT, the board's
+//! SENS_BOARD_ROT for -1) when it is one of the yaw / roll-180 rotations. A reading whose
+//! correction cannot be undone (no CAL_MAGn for its device, CAL_MAGn_ID 0, offsets missing, another
+//! rotation) is never taken as raw: it is skipped as `mag_not_undone`, and `onboard.not_undone`
+//! names the stream, the count and the reason. Onboard calibrations are reported in imucald's
+//! model, calibrated = M (raw - offset) in uT: ArduPilot's as
+//! [`crate::calib::ardupilot::Correction::model`]; PX4's is CAL_MAGn_?OFF x 100, M = S (the
+//! CAL_MAGn_?COMP power compensation is not undone).
 //! `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
 //! board); their onboard calibration is reported, not undone.
 
@@ -38,7 +46,7 @@ use crate::io::decode::{DecodeStats, InstanceInfo, MAX_INSTANCES};
 use crate::io::onboard::{OnboardCal, OnboardReport, SensorStream};
 use crate::types::{Sample, Sensor, Unit, Units, Vec3};
 use nalgebra::{Matrix3, Vector3};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// What a flight-controller log gave besides its samples.
 #[derive(Debug, Clone, Default)]
@@ -959,51 +967,96 @@ fn px4_rotation(id: i64) -> Option<Matrix3<f64>> {
     crate::attitude::sensor_rotation(&name).ok()
 }
 
-/// PX4's magnetometer calibration n: (OFF gauss, S, device id).
-fn px4_mag_cal(params: &BTreeMap<String, f64>, n: u8) -> Option<([f64; 3], Matrix3<f64>, u32)> {
-    let p = |s: &str| params.get(&format!("CAL_MAG{n}_{s}")).copied();
-    let id = p("ID").filter(|v| *v > 0.0 && *v < u32::MAX as f64)? as u32;
-    let off = [p("XOFF")?, p("YOFF")?, p("ZOFF")?];
-    let d = [
-        p("XSCALE").unwrap_or(1.0),
-        p("YSCALE").unwrap_or(1.0),
-        p("ZSCALE").unwrap_or(1.0),
-    ];
-    let o = [
-        p("XODIAG").unwrap_or(0.0),
-        p("YODIAG").unwrap_or(0.0),
-        p("ZODIAG").unwrap_or(0.0),
-    ];
-    Some((off, crate::calib::ardupilot::symmetric(d, o), id))
-}
-
-/// The rotation PX4 applies to calibration n's compass (CAL_MAGn_ROT, -1: the board's).
-fn px4_mag_rotation(params: &BTreeMap<String, f64>, n: u8) -> Option<Matrix3<f64>> {
-    let rot = params
-        .get(&format!("CAL_MAG{n}_ROT"))
-        .copied()
-        .unwrap_or(-1.0);
-    let id = if rot < 0.0 {
-        params.get("SENS_BOARD_ROT").copied().unwrap_or(0.0)
-    } else {
-        rot
-    };
-    px4_rotation(id as i64)
-}
-
-/// The calibration slot of the compass whose corrected field the vehicle logs (CAL_MAG_PRIME).
-fn px4_prime_slot(params: &BTreeMap<String, f64>) -> Option<u8> {
-    let prime = params.get("CAL_MAG_PRIME").copied();
-    (0..4u8).find(|n| {
-        let id = params.get(&format!("CAL_MAG{n}_ID")).copied();
-        match prime {
-            Some(p) if p != 0.0 => id == Some(p),
-            _ => *n == 0 && id.is_some(),
+/// PX4's magnetometer calibration n: (OFF gauss, S, device id), or why the log's parameters do not
+/// give it, naming them (absent, CAL_MAGn_ID 0, a value not finite). Firmware without the scale or
+/// off-diagonal parameters applied none: 1 and 0 stand for those.
+fn px4_mag_cal(
+    params: &BTreeMap<String, f64>,
+    n: u8,
+) -> Result<([f64; 3], Matrix3<f64>, u32), String> {
+    let name = |s: &str| format!("CAL_MAG{n}_{s}");
+    let p = |s: &str| params.get(&name(s)).copied();
+    let id = match p("ID") {
+        None => return Err(format!("{} not in the log", name("ID"))),
+        Some(v) if v > 0.0 && v < u32::MAX as f64 => v as u32,
+        Some(v) => {
+            return Err(format!(
+                "{} is {v} (no compass calibrated in that slot)",
+                name("ID")
+            ))
         }
-    })
+    };
+    let missing: Vec<String> = ["XOFF", "YOFF", "ZOFF"]
+        .iter()
+        .filter(|s| p(s).is_none())
+        .map(|s| name(s))
+        .collect();
+    if !missing.is_empty() {
+        return Err(format!("{} not in the log", missing.join(", ")));
+    }
+    let get = |s: &str, default: f64| p(s).unwrap_or(default);
+    let named = [
+        ("XOFF", get("XOFF", 0.0)),
+        ("YOFF", get("YOFF", 0.0)),
+        ("ZOFF", get("ZOFF", 0.0)),
+        ("XSCALE", get("XSCALE", 1.0)),
+        ("YSCALE", get("YSCALE", 1.0)),
+        ("ZSCALE", get("ZSCALE", 1.0)),
+        ("XODIAG", get("XODIAG", 0.0)),
+        ("YODIAG", get("YODIAG", 0.0)),
+        ("ZODIAG", get("ZODIAG", 0.0)),
+    ];
+    let bad: Vec<String> = named
+        .iter()
+        .filter(|(_, v)| !v.is_finite())
+        .map(|(s, _)| name(s))
+        .collect();
+    if !bad.is_empty() {
+        return Err(format!("{} not finite", bad.join(", ")));
+    }
+    let v = named.map(|(_, v)| v);
+    let off = [v[0], v[1], v[2]];
+    let s = crate::calib::ardupilot::symmetric([v[3], v[4], v[5]], [v[6], v[7], v[8]]);
+    Ok((off, s, id))
+}
+
+/// The rotation PX4 applies to calibration n's compass (CAL_MAGn_ROT, -1: the board's
+/// SENS_BOARD_ROT), or why it is not one this reader undoes.
+fn px4_mag_rotation(params: &BTreeMap<String, f64>, n: u8) -> Result<Matrix3<f64>, String> {
+    let own = format!("CAL_MAG{n}_ROT");
+    let rot = params.get(&own).copied().unwrap_or(-1.0);
+    let (name, id) = if rot < 0.0 {
+        let board = params.get("SENS_BOARD_ROT").copied().unwrap_or(0.0);
+        ("SENS_BOARD_ROT".to_string(), board)
+    } else {
+        (own, rot)
+    };
+    Some(id)
+        .filter(|v| v.is_finite() && v.fract() == 0.0)
+        .and_then(|v| px4_rotation(v as i64))
+        .ok_or_else(|| {
+            format!(
+                "{name} is {id}, not a rotation this reader undoes (0-15: yaw in 45 deg steps, roll 180 then yaw)"
+            )
+        })
+}
+
+/// The calibration slot of the prime compass by the parameters (CAL_MAG_PRIME = CAL_MAGn_ID;
+/// without CAL_MAG_PRIME, slot 0), for a corrected field whose records name no device; or why
+/// there is none.
+fn px4_prime_slot(params: &BTreeMap<String, f64>) -> Result<u8, String> {
+    let id = |n: u8| params.get(&format!("CAL_MAG{n}_ID")).copied();
+    match params.get("CAL_MAG_PRIME").copied() {
+        Some(p) if p != 0.0 => (0..4u8)
+            .find(|n| id(*n) == Some(p))
+            .ok_or_else(|| format!("CAL_MAG_PRIME is {p}, the CAL_MAGn_ID of no slot")),
+        _ if id(0).is_some() => Ok(0),
+        _ => Err("neither CAL_MAG_PRIME nor CAL_MAG0_ID in the log".into()),
+    }
 }
 
 /// The PX4 correction of slot n undone: gauss (corrected, body) in, uT out.
+#[derive(Debug)]
 struct Px4Undo {
     inv: Matrix3<f64>,
     /// R OFF, gauss.
@@ -1011,19 +1064,76 @@ struct Px4Undo {
 }
 
 impl Px4Undo {
-    fn new(params: &BTreeMap<String, f64>, n: u8) -> Option<Px4Undo> {
+    /// Slot n's correction to undo, or why the parameters do not allow it.
+    fn new(params: &BTreeMap<String, f64>, n: u8) -> Result<Px4Undo, String> {
         let (off, s, _) = px4_mag_cal(params, n)?;
         let r = px4_mag_rotation(params, n)?;
-        let inv = (r * s * r.transpose()).try_inverse()?;
-        Some(Px4Undo {
+        let inv = (r * s * r.transpose())
+            .try_inverse()
+            .ok_or_else(|| format!("CAL_MAG{n}'s scale matrix is singular"))?;
+        Ok(Px4Undo {
             inv,
             off_body: r * Vector3::from(off),
         })
     }
 
+    /// `None` when the reading is not finite.
     fn apply(&self, m_ga: Vec3) -> Option<Vec3> {
         let u = self.inv * Vector3::from(m_ga) + self.off_body;
         finite3([u[0] * 100.0, u[1] * 100.0, u[2] * 100.0])
+    }
+}
+
+/// PX4's magnetometer calibrations as the log's parameters give them, each to undo or not.
+#[derive(Debug)]
+struct Px4Cals {
+    /// Slot n's correction (CAL_MAGn_*) to undo, or why it cannot be.
+    slots: Vec<Result<Px4Undo, String>>,
+    /// The slot of each device id (CAL_MAGn_ID, complete or not; the first where two share one).
+    by_device: BTreeMap<u32, u8>,
+    /// The prime compass's slot for a corrected field whose records name no device
+    /// ([`px4_prime_slot`]).
+    prime: Result<u8, String>,
+}
+
+impl Px4Cals {
+    fn new(params: &BTreeMap<String, f64>) -> Px4Cals {
+        let mut by_device = BTreeMap::new();
+        for n in 0..4u8 {
+            let id = params.get(&format!("CAL_MAG{n}_ID")).copied();
+            if let Some(id) = id.filter(|v| *v > 0.0 && *v < u32::MAX as f64) {
+                by_device.entry(id as u32).or_insert(n);
+            }
+        }
+        Px4Cals {
+            slots: (0..4u8).map(|n| Px4Undo::new(params, n)).collect(),
+            by_device,
+            prime: px4_prime_slot(params),
+        }
+    }
+
+    /// The slot a corrected reading was corrected with: by the device id its record names (the
+    /// compass PX4 selected for that reading), else, for the prime compass's stream
+    /// (`prime`), by the parameters; or why none is known.
+    fn slot(&self, device_id: Option<u32>, prime: bool) -> Result<u8, String> {
+        match device_id.filter(|d| *d != 0) {
+            Some(d) => self
+                .by_device
+                .get(&d)
+                .copied()
+                .ok_or_else(|| format!("its device id {d} is no CAL_MAGn_ID")),
+            None if prime => self.prime.clone(),
+            None => Err("its records name no device id to find its CAL_MAGn by".into()),
+        }
+    }
+
+    /// Slot n's correction, or why it cannot be undone.
+    fn undo(&self, n: u8) -> Result<&Px4Undo, String> {
+        match self.slots.get(n as usize) {
+            Some(Ok(u)) => Ok(u),
+            Some(Err(why)) => Err(why.clone()),
+            None => Err(format!("no slot CAL_MAG{n}")),
+        }
     }
 }
 
@@ -1032,12 +1142,12 @@ fn px4_onboard(
     mag_ids: &BTreeMap<u8, u32>,
     accel_ids: &BTreeMap<u8, u32>,
     prime_source: Option<&str>,
+    prime_slots: &BTreeSet<u8>,
 ) -> OnboardReport {
     let mut r = OnboardReport {
         stack: "px4".into(),
         ..Default::default()
     };
-    let prime = px4_prime_slot(params);
     let pick = |prefix: &str| -> BTreeMap<String, f64> {
         params
             .range(prefix.to_string()..)
@@ -1046,7 +1156,7 @@ fn px4_onboard(
             .collect()
     };
     for n in 0..4u8 {
-        let Some((off, s, id)) = px4_mag_cal(params, n) else {
+        let Ok((off, s, id)) = px4_mag_cal(params, n) else {
             continue;
         };
         let mut sources: Vec<String> = mag_ids
@@ -1054,7 +1164,7 @@ fn px4_onboard(
             .filter(|(_, d)| **d == id)
             .map(|(k, _)| format!("sensor_mag[{k}]"))
             .collect();
-        if prime == Some(n) {
+        if prime_slots.contains(&n) {
             sources.extend(prime_source.map(String::from));
         }
         r.mag.push(OnboardCal {
@@ -1131,7 +1241,7 @@ fn decode_ulog_records(
     // By message id (a u16: at most 65536 entries), so a record finds its columns by indexing.
     let mut cols: Vec<Option<UlogCols>> = Vec::new();
     loop {
-        let params_ready = conv.undo.is_some();
+        let params_ready = conv.params_read;
         let Some(d) = rd.next_data() else {
             break;
         };
@@ -1258,52 +1368,56 @@ impl UlogRecord {
 /// needs at the end.
 struct UlogConv {
     asm: Assembler,
-    /// The prime compass's correction undone; `None` until the parameters are read, `Some(None)`
-    /// when they do not allow it.
-    undo: Option<Option<Px4Undo>>,
+    /// The log's magnetometer calibrations (from no parameters until they are read).
+    cals: Px4Cals,
+    params_read: bool,
     /// The stream the corrected (prime) field came from.
     prime_source: Option<String>,
+    /// The slots the prime field's readings were corrected with, and the newest device id its
+    /// records named.
+    prime_slots: BTreeSet<u8>,
+    prime_device: Option<u32>,
     /// Device id per `sensor_mag` / `sensor_accel` instance.
     mag_ids: BTreeMap<u8, u32>,
     accel_ids: BTreeMap<u8, u32>,
     gps: Option<[f64; 3]>,
     date: Option<crate::types::LogDate>,
-    /// A corrected field could not be undone.
-    not_undone: bool,
-    /// Each further compass's correction by device id (CAL_MAGn_ID), for its
-    /// `vehicle_magnetometer[k]` instance; `None` where the parameters do not allow the undo.
-    undo_by_device: BTreeMap<u32, (u8, Option<Px4Undo>)>,
-    /// `sensor_mag` instance -> the `vehicle_magnetometer` instance that feeds it instead (the
-    /// same device, logged faster), and the correction slot undone (`None`: could not be).
-    fast_mag: BTreeMap<u8, (u8, Option<u8>)>,
+    /// Per corrected stream: the slots undone from its readings.
+    undone: BTreeMap<String, BTreeSet<u8>>,
+    /// Per corrected stream: why readings were left out (`mag_not_undone`), and how many.
+    left_out: BTreeMap<String, BTreeMap<String, u64>>,
+    /// Each further `vehicle_magnetometer[k]` instance -> the `sensor_mag` instance of the same
+    /// device.
+    further: BTreeMap<u8, u8>,
+    /// `sensor_mag` instances fed by their faster `vehicle_magnetometer` instance instead (one
+    /// whose correction can be undone); their raw readings are skipped (`mag_slower_stream`).
+    fast_mag: BTreeSet<u8>,
 }
 
 impl UlogConv {
     fn new() -> Self {
         UlogConv {
             asm: Assembler::new(),
-            undo: None,
+            cals: Px4Cals::new(&BTreeMap::new()),
+            params_read: false,
             prime_source: None,
+            prime_slots: BTreeSet::new(),
+            prime_device: None,
             mag_ids: BTreeMap::new(),
             accel_ids: BTreeMap::new(),
             gps: None,
             date: None,
-            not_undone: false,
-            undo_by_device: BTreeMap::new(),
-            fast_mag: BTreeMap::new(),
+            undone: BTreeMap::new(),
+            left_out: BTreeMap::new(),
+            further: BTreeMap::new(),
+            fast_mag: BTreeSet::new(),
         }
     }
 
-    /// The parameters are read: the prime compass's correction, if it can be undone.
+    /// The parameters are read: the compasses' corrections, each to undo or not.
     fn params_known(&mut self, params: &BTreeMap<String, f64>) {
-        let slot = px4_prime_slot(params);
-        self.undo = Some(slot.and_then(|n| Px4Undo::new(params, n)));
-        for n in 0..4u8 {
-            if let Some(id) = params.get(&format!("CAL_MAG{n}_ID")) {
-                self.undo_by_device
-                    .insert(*id as u32, (n, Px4Undo::new(params, n)));
-            }
-        }
+        self.cals = Px4Cals::new(params);
+        self.params_read = true;
     }
 
     /// Convert one record of instance `multi` from stream `src` at `t_us`: the sample it completes.
@@ -1320,8 +1434,8 @@ impl UlogConv {
         let t = t_us;
         match r {
             UlogRecord::Combined(a, g, m) => self.combined(a, g, m, t, read, emit),
-            UlogRecord::VMag(m, _) if multi == 0 => self.vehicle_mag(m, t),
-            UlogRecord::VMag(m, dev) => self.further_vehicle_mag(m, multi, dev, t),
+            UlogRecord::VMag(m, dev) if multi == 0 => self.vehicle_mag(m, src, dev, t),
+            UlogRecord::VMag(m, dev) => self.further_vehicle_mag(m, multi, src, dev, t),
             UlogRecord::Accel(a, temp, dev) => {
                 self.asm.stream(Sensor::Accel, multi, src, dev);
                 if let Some(d) = dev {
@@ -1340,7 +1454,7 @@ impl UlogConv {
                 if let Some(d) = dev {
                     self.mag_ids.insert(multi, d);
                 }
-                if self.fast_mag.contains_key(&multi) {
+                if self.fast_mag.contains(&multi) {
                     // The same compass arrives faster through its vehicle_magnetometer instance.
                     self.asm.stats.skip("mag_slower_stream");
                     return None;
@@ -1403,7 +1517,7 @@ impl UlogConv {
             const SRC: &str = "sensor_combined.magnetometer_ga";
             self.asm.stream(Sensor::Mag, 0, SRC, None);
             self.prime_source.get_or_insert_with(|| SRC.into());
-            if let Some(raw) = self.undo_prime(m) {
+            if let Some(raw) = self.undo(SRC, None, true, m) {
                 if let Some((g2, s2)) = self.asm.mag(gi, t, raw) {
                     emit(g2, s2, read, self.asm.primary);
                 }
@@ -1421,26 +1535,32 @@ impl UlogConv {
         }
     }
 
-    /// A `vehicle_magnetometer[0]` record: the corrected field, undone onto the primary instance.
-    fn vehicle_mag(&mut self, m: Vec3, t: u64) -> Option<(usize, Sample)> {
-        self.asm
-            .stream(Sensor::Mag, 0, "vehicle_magnetometer[0]", None);
-        self.prime_source
-            .get_or_insert_with(|| "vehicle_magnetometer[0]".into());
+    /// A `vehicle_magnetometer[0]` record (stream `src`): the corrected field of the compass PX4
+    /// selected (`dev`, where the record names it), undone onto the primary instance.
+    fn vehicle_mag(
+        &mut self,
+        m: Vec3,
+        src: &str,
+        dev: Option<u32>,
+        t: u64,
+    ) -> Option<(usize, Sample)> {
+        self.asm.stream(Sensor::Mag, 0, src, dev);
+        self.prime_source.get_or_insert_with(|| src.into());
         let gi = self.asm.group(0, || "sensor_combined".into())?;
-        let raw = self.undo_prime(m)?;
+        let raw = self.undo(src, dev, true, m)?;
         self.asm.mag(gi, t, raw)
     }
 
-    /// A `vehicle_magnetometer[k]` record (k > 0): a further compass's corrected field, logged
-    /// faster than its raw `sensor_mag` topic (PX4 logs those at 1 Hz by default). Its correction
-    /// (the CAL_MAGn of its device id) is undone and the reading goes to the instance of the
-    /// `sensor_mag` with the same device id (else `sensor_mag[k]`), whose raw readings are then
-    /// skipped (`mag_slower_stream`). Without a correction to undo nothing is taken.
+    /// A `vehicle_magnetometer[k]` record (k > 0, stream `src`): a further compass's corrected
+    /// field, logged faster than its raw `sensor_mag` topic (PX4 logs those at 1 Hz by default).
+    /// Where its correction (the CAL_MAGn of its device id) can be undone, the reading goes to the
+    /// instance of the `sensor_mag` with the same device id (else `sensor_mag[k]`), whose raw
+    /// readings are then skipped (`mag_slower_stream`); where it cannot, the raw readings stay.
     fn further_vehicle_mag(
         &mut self,
         m: Vec3,
         k: u8,
+        src: &str,
         dev: Option<u32>,
         t: u64,
     ) -> Option<(usize, Sample)> {
@@ -1452,29 +1572,86 @@ impl UlogConv {
                     .map(|(j, _)| *j)
             })
             .unwrap_or(k);
-        let undo = dev.and_then(|d| self.undo_by_device.get(&d));
-        let slot = undo.and_then(|(n, u)| u.as_ref().map(|_| *n));
-        self.fast_mag.entry(j).or_insert((k, slot));
-        let source = format!("vehicle_magnetometer[{k}]");
-        self.asm.stream(Sensor::Mag, j, &source, dev);
-        let raw = undo.and_then(|(_, u)| u.as_ref()).and_then(|u| u.apply(m));
-        let Some(raw) = raw else {
-            self.asm.stats.skip("mag_not_undone");
-            return None;
-        };
+        self.further.entry(k).or_insert(j);
+        if !self.fast_mag.contains(&j) {
+            let undoable = self
+                .cals
+                .slot(dev, false)
+                .and_then(|n| self.cals.undo(n))
+                .is_ok();
+            if undoable {
+                self.fast_mag.insert(j);
+            }
+        }
+        self.asm.stream(Sensor::Mag, j, src, dev);
+        let raw = self.undo(src, dev, false, m)?;
         let gi = self.sensor_group(j)?;
         self.asm.mag(gi, t, raw)
     }
 
-    /// The prime compass's correction undone from `m` (gauss), uT; `None` (noted) when it cannot be.
-    fn undo_prime(&mut self, m: Vec3) -> Option<Vec3> {
-        let raw = self
-            .undo
-            .as_ref()
-            .and_then(|u| u.as_ref())
-            .and_then(|u| u.apply(m));
-        self.not_undone |= raw.is_none();
-        raw
+    /// The onboard correction undone from a reading `m` (gauss) of the corrected stream `src`:
+    /// the raw field in body axes, uT. `dev` is the device id its record names; `prime`, whether
+    /// `src` is the prime compass's field. A reading whose correction cannot be undone is never
+    /// taken as raw: it is skipped as `mag_not_undone` (the reason kept for
+    /// `onboard.not_undone`), one not finite as `non_finite`.
+    fn undo(&mut self, src: &str, dev: Option<u32>, prime: bool, m: Vec3) -> Option<Vec3> {
+        let slot = self.cals.slot(dev, prime);
+        if prime {
+            if let Ok(n) = slot {
+                self.prime_slots.insert(n);
+            }
+            if let Some(d) = dev.filter(|d| *d != 0) {
+                self.prime_device = Some(d);
+            }
+        }
+        let undone = slot.and_then(|n| Ok((n, self.cals.undo(n)?.apply(m))));
+        match undone {
+            Ok((n, Some(raw))) => {
+                match self.undone.get_mut(src) {
+                    Some(slots) => {
+                        slots.insert(n);
+                    }
+                    None => {
+                        self.undone.insert(src.to_string(), BTreeSet::from([n]));
+                    }
+                }
+                Some(raw)
+            }
+            Ok((_, None)) => {
+                self.asm.stats.skip("non_finite");
+                None
+            }
+            Err(why) => {
+                self.asm.stats.skip("mag_not_undone");
+                *self
+                    .left_out
+                    .entry(src.to_string())
+                    .or_default()
+                    .entry(why)
+                    .or_insert(0) += 1;
+                None
+            }
+        }
+    }
+
+    /// What became of a corrected stream's readings, for `onboard.undone` / `onboard.not_undone`:
+    /// what the stream is (`what`), the slots undone, and the readings left out by reason.
+    fn onboard_notes(&self, src: &str, what: &str, onboard: &mut OnboardReport) {
+        if let Some(slots) = self.undone.get(src) {
+            let names: Vec<String> = slots.iter().map(|n| format!("CAL_MAG{n}")).collect();
+            onboard.undone.push(format!(
+                "{what}: {} offsets, scales and rotation removed",
+                names.join(" and ")
+            ));
+        }
+        if let Some(why) = self.left_out.get(src) {
+            let n: u64 = why.values().sum();
+            let reasons: Vec<&str> = why.keys().map(String::as_str).collect();
+            onboard.not_undone.push(format!(
+                "{what}: {n} readings left out (skipped as mag_not_undone): {}",
+                reasons.join("; ")
+            ));
+        }
     }
 
     /// Emit what is still held, and the log with its onboard report and message counts.
@@ -1493,31 +1670,35 @@ impl UlogConv {
             &self.mag_ids,
             &self.accel_ids,
             self.prime_source.as_deref(),
+            &self.prime_slots,
         );
-        if let (Some(src), Some(n)) = (self.prime_source.as_ref(), px4_prime_slot(params)) {
-            if self.not_undone {
-                onboard.not_undone.push(format!(
-                    "{src}: CAL_MAG{n} rotation not one this reader undoes, or its parameters incomplete"
-                ));
-            } else {
-                onboard.undone.push(format!(
-                    "{src}: CAL_MAG{n} offsets, scales and rotation removed"
-                ));
+        if let Some(src) = &self.prime_source {
+            let mut what = src.clone();
+            if self.left_out.contains_key(src) {
+                // Where the same compass is also logged raw, that stream is fitted as it is.
+                let raw = self.prime_device.and_then(|d| {
+                    self.mag_ids
+                        .iter()
+                        .find(|(_, id)| **id == d)
+                        .map(|(j, _)| *j)
+                });
+                if let Some(j) = raw {
+                    what = format!("{src} (its compass logged raw as sensor_mag[{j}], fitted in that instance)");
+                }
             }
+            self.onboard_notes(src, &what, &mut onboard);
         }
-        for (j, (k, slot)) in &self.fast_mag {
-            let what = format!("vehicle_magnetometer[{k}] (the same device as sensor_mag[{j}], logged faster): used for sensor_mag[{j}]'s instance");
-            match slot {
-                Some(n) => onboard.undone.push(format!(
-                    "{what}, CAL_MAG{n} offsets, scales and rotation removed"
-                )),
-                None => onboard.not_undone.push(format!(
-                    "{what}, but no CAL_MAGn with its device id, or one whose rotation this reader does not undo: its readings are left out"
-                )),
-            }
+        for (k, j) in &self.further {
+            let src = format!("vehicle_magnetometer[{k}]");
+            let what = if self.fast_mag.contains(j) {
+                format!("{src} (the same device as sensor_mag[{j}], logged faster), used for sensor_mag[{j}]'s instance")
+            } else {
+                format!("{src} (the same device as sensor_mag[{j}], logged faster), not used: sensor_mag[{j}]'s raw readings fitted instead")
+            };
+            self.onboard_notes(&src, &what, &mut onboard);
             for c in onboard.mag.iter_mut() {
                 if c.sources.contains(&format!("sensor_mag[{j}]")) {
-                    c.sources.push(format!("vehicle_magnetometer[{k}]"));
+                    c.sources.push(src.clone());
                 }
             }
         }
@@ -1753,6 +1934,235 @@ mod tests {
         for i in 0..3 {
             assert!((back[i] - want[i]).abs() < 1e-9, "{back:?} {want:?}");
         }
+    }
+
+    #[test]
+    fn px4_undo_names_what_the_parameters_lack() {
+        let params = |kv: &[(&str, f64)]| -> BTreeMap<String, f64> {
+            kv.iter().map(|(k, v)| (k.to_string(), *v)).collect()
+        };
+        let why = |p: &BTreeMap<String, f64>| Px4Undo::new(p, 0).unwrap_err();
+        assert_eq!(why(&params(&[])), "CAL_MAG0_ID not in the log");
+        assert_eq!(
+            why(&params(&[("CAL_MAG0_ID", 0.0)])),
+            "CAL_MAG0_ID is 0 (no compass calibrated in that slot)"
+        );
+        let partial = [("CAL_MAG0_ID", 7.0), ("CAL_MAG0_YOFF", 0.1)];
+        assert_eq!(
+            why(&params(&partial)),
+            "CAL_MAG0_XOFF, CAL_MAG0_ZOFF not in the log"
+        );
+        let complete = [
+            ("CAL_MAG0_ID", 7.0),
+            ("CAL_MAG0_XOFF", 0.1),
+            ("CAL_MAG0_YOFF", 0.1),
+            ("CAL_MAG0_ZOFF", 0.1),
+        ];
+        let mut p = params(&complete);
+        p.insert("CAL_MAG0_XSCALE".into(), f64::NAN);
+        assert_eq!(why(&p), "CAL_MAG0_XSCALE not finite");
+        let mut p = params(&complete);
+        p.insert("CAL_MAG0_ROT".into(), 38.0);
+        assert!(
+            why(&p).starts_with("CAL_MAG0_ROT is 38, not a rotation"),
+            "{}",
+            why(&p)
+        );
+        let mut p = params(&complete);
+        p.insert("SENS_BOARD_ROT".into(), 20.0);
+        assert!(why(&p).starts_with("SENS_BOARD_ROT is 20,"), "{}", why(&p));
+        assert!(Px4Undo::new(&params(&complete), 0).is_ok());
+        let mut p = params(&complete);
+        p.insert("CAL_MAG_PRIME".into(), 5.0);
+        assert_eq!(
+            px4_prime_slot(&p).unwrap_err(),
+            "CAL_MAG_PRIME is 5, the CAL_MAGn_ID of no slot"
+        );
+    }
+
+    /// A record of a synthetic PX4 log ([`px4_log`]): time (us), and for the magnetometer topics
+    /// the instance, device id and field (gauss).
+    enum Px4Rec {
+        Combined(u64),
+        VehicleMag(u8, u64, u32, [f32; 3]),
+        SensorMag(u8, u64, u32, [f32; 3]),
+    }
+
+    /// A ULog with `params` (as floats) and `records`: `sensor_combined` (message 0), and
+    /// `vehicle_magnetometer[k]` (10 + k) and `sensor_mag[k]` (20 + k) for k < 2.
+    fn px4_log(params: &[(&str, f32)], records: &[Px4Rec]) -> Vec<u8> {
+        use ulog::tests::{header, msg, param, sub};
+        let mut f = header();
+        for def in [
+            &b"sensor_combined:uint64_t timestamp;float[3] gyro_rad;float[3] accelerometer_m_s2;"[..],
+            b"vehicle_magnetometer:uint64_t timestamp;uint32_t device_id;float[3] magnetometer_ga;",
+            b"sensor_mag:uint64_t timestamp;uint32_t device_id;float x;float y;float z;",
+        ] {
+            f.extend(msg(b'F', def));
+        }
+        for (k, v) in params {
+            f.extend(param(k, *v));
+        }
+        f.extend(sub(0, 0, "sensor_combined"));
+        for k in 0..2u8 {
+            f.extend(sub(k, 10 + k as u16, "vehicle_magnetometer"));
+            f.extend(sub(k, 20 + k as u16, "sensor_mag"));
+        }
+        for r in records {
+            let (id, t, body): (u16, u64, Vec<f32>) = match r {
+                Px4Rec::Combined(t) => (0, *t, vec![0.0, 0.0, 0.0, 0.0, 0.0, -9.81]),
+                Px4Rec::VehicleMag(k, t, _, m) => (10 + *k as u16, *t, m.to_vec()),
+                Px4Rec::SensorMag(k, t, _, m) => (20 + *k as u16, *t, m.to_vec()),
+            };
+            let mut b = id.to_le_bytes().to_vec();
+            b.extend(t.to_le_bytes());
+            if let Px4Rec::VehicleMag(_, _, dev, _) | Px4Rec::SensorMag(_, _, dev, _) = r {
+                b.extend(dev.to_le_bytes());
+            }
+            for v in body {
+                b.extend(v.to_le_bytes());
+            }
+            f.extend(msg(b'D', &b));
+        }
+        f
+    }
+
+    /// The log and every sample emitted, with its instance index.
+    fn px4_decode(bytes: &[u8]) -> (FlightLog, Vec<(usize, Sample)>) {
+        let mut out = Vec::new();
+        let log = decode_ulog_with(bytes, &mut |gi, s, _, _| out.push((gi, s))).unwrap();
+        (log, out)
+    }
+
+    /// The magnetometer readings emitted for the instance named `name`.
+    fn mags_of(log: &FlightLog, samples: &[(usize, Sample)], name: &str) -> Vec<Vec3> {
+        let gi = log.instances.iter().position(|i| i.name == name).unwrap();
+        samples
+            .iter()
+            .filter(|(g, _)| *g == gi)
+            .filter_map(|(_, s)| s.mag_ut)
+            .collect()
+    }
+
+    #[test]
+    fn a_px4_prime_field_that_cannot_be_undone_is_counted_and_named() {
+        // CAL_MAG0 of the compass vehicle_magnetometer[0] names lacks its X and Y offsets.
+        let params = [
+            ("CAL_MAG0_ID", 1000.0),
+            ("CAL_MAG0_ROT", 0.0),
+            ("CAL_MAG0_ZOFF", 0.1),
+        ];
+        let mut recs = Vec::new();
+        for i in 0..5u64 {
+            let t = 1_000_000 + i * 20_000;
+            recs.push(Px4Rec::SensorMag(0, t, 1000, [0.2, 0.1, -0.4]));
+            recs.push(Px4Rec::VehicleMag(0, t, 1000, [0.2, 0.1, -0.5]));
+            recs.push(Px4Rec::Combined(t + 1));
+        }
+        let (log, samples) = px4_decode(&px4_log(&params, &recs));
+        // Every corrected reading left out, counted with its reason; none fitted as raw.
+        assert_eq!(log.stats.skipped.get("mag_not_undone"), Some(&5));
+        assert_eq!(log.stats.counts.mag, 0);
+        assert!(mags_of(&log, &samples, "sensor_combined").is_empty());
+        assert_eq!(
+            log.onboard.not_undone,
+            ["vehicle_magnetometer[0] (its compass logged raw as sensor_mag[0], fitted in that instance): 5 readings left out (skipped as mag_not_undone): CAL_MAG0_XOFF, CAL_MAG0_YOFF not in the log"]
+        );
+        assert!(log.onboard.undone.is_empty(), "{:?}", log.onboard.undone);
+        // The same compass's raw readings are fitted in their own instance.
+        let raw = mags_of(&log, &samples, &px4_group_name(0));
+        assert_eq!(raw.len(), 5);
+    }
+
+    #[test]
+    fn a_px4_prime_field_is_undone_with_the_calibration_of_its_device() {
+        // PX4 1.12 and later log no CAL_MAG_PRIME: the compass PX4 selected is the device id of
+        // the vehicle_magnetometer record (CAL_MAG1's), not slot 0 (disabled, identity).
+        let (off, d, o) = ([0.1f32, -0.2, 0.3], [1.1f32, 0.9, 1.0], 0.05f32);
+        let params = [
+            ("CAL_MAG0_ID", 1000.0),
+            ("CAL_MAG0_PRIO", 0.0),
+            ("CAL_MAG0_XOFF", 0.0),
+            ("CAL_MAG0_YOFF", 0.0),
+            ("CAL_MAG0_ZOFF", 0.0),
+            ("CAL_MAG1_ID", 2000.0),
+            ("CAL_MAG1_PRIO", 75.0),
+            ("CAL_MAG1_ROT", 0.0),
+            ("CAL_MAG1_XOFF", off[0]),
+            ("CAL_MAG1_YOFF", off[1]),
+            ("CAL_MAG1_ZOFF", off[2]),
+            ("CAL_MAG1_XSCALE", d[0]),
+            ("CAL_MAG1_YSCALE", d[1]),
+            ("CAL_MAG1_ZSCALE", d[2]),
+            ("CAL_MAG1_XODIAG", o),
+        ];
+        let raw_ga = Vector3::new(0.25, -0.1, 0.45);
+        let s = Matrix3::new(
+            d[0] as f64,
+            o as f64,
+            0.0,
+            o as f64,
+            d[1] as f64,
+            0.0,
+            0.0,
+            0.0,
+            d[2] as f64,
+        );
+        let c = s * (raw_ga - Vector3::new(off[0] as f64, off[1] as f64, off[2] as f64));
+        let corrected = [c[0] as f32, c[1] as f32, c[2] as f32];
+        let mut recs = Vec::new();
+        for i in 0..4u64 {
+            let t = 1_000_000 + i * 20_000;
+            recs.push(Px4Rec::VehicleMag(0, t, 2000, corrected));
+            recs.push(Px4Rec::Combined(t + 1));
+        }
+        let (log, samples) = px4_decode(&px4_log(&params, &recs));
+        let got = mags_of(&log, &samples, "sensor_combined");
+        assert_eq!(got.len(), 4);
+        for m in got {
+            for k in 0..3 {
+                assert!((m[k] - raw_ga[k] * 100.0).abs() < 1e-4, "{m:?} {raw_ga:?}");
+            }
+        }
+        assert_eq!(
+            log.onboard.undone,
+            ["vehicle_magnetometer[0]: CAL_MAG1 offsets, scales and rotation removed"]
+        );
+        let slot1 = log.onboard.mag.iter().find(|c| c.instance == 1).unwrap();
+        assert!(slot1
+            .sources
+            .contains(&"vehicle_magnetometer[0]".to_string()));
+        assert!(log.stats.skipped.is_empty(), "{:?}", log.stats.skipped);
+    }
+
+    #[test]
+    fn a_px4_further_fast_stream_not_undone_leaves_its_raw_readings() {
+        // vehicle_magnetometer[1] is sensor_mag[0]'s device, which no CAL_MAGn names.
+        let params = [
+            ("CAL_MAG0_ID", 1000.0),
+            ("CAL_MAG0_XOFF", 0.0),
+            ("CAL_MAG0_YOFF", 0.0),
+            ("CAL_MAG0_ZOFF", 0.0),
+        ];
+        let mut recs = Vec::new();
+        for i in 0..6u64 {
+            let t = 1_000_000 + i * 20_000;
+            if i % 2 == 0 {
+                recs.push(Px4Rec::SensorMag(0, t, 3000, [0.2, 0.1, -0.4]));
+            }
+            recs.push(Px4Rec::VehicleMag(1, t, 3000, [0.2, 0.1, -0.5]));
+        }
+        let (log, samples) = px4_decode(&px4_log(&params, &recs));
+        assert_eq!(log.stats.skipped.get("mag_not_undone"), Some(&6));
+        assert_eq!(log.stats.skipped.get("mag_slower_stream"), None);
+        // The raw readings, and only those, reach the compass's instance.
+        let got = mags_of(&log, &samples, &px4_group_name(0));
+        assert_eq!(got.len(), 3);
+        assert!(got.iter().all(|m| (m[2] + 40.0).abs() < 1e-4), "{got:?}");
+        assert_eq!(
+            log.onboard.not_undone,
+            ["vehicle_magnetometer[1] (the same device as sensor_mag[0], logged faster), not used: sensor_mag[0]'s raw readings fitted instead: 6 readings left out (skipped as mag_not_undone): its device id 3000 is no CAL_MAGn_ID"]
+        );
     }
 
     #[test]
