@@ -84,17 +84,6 @@ fn same(a: &Value, b: &Value) -> bool {
     }
 }
 
-/// `NAME VALUE` lines of a `.parm` file, comments left out.
-fn parm_values(text: &str) -> std::collections::BTreeMap<String, f64> {
-    text.lines()
-        .filter(|l| !l.starts_with('#'))
-        .filter_map(|l| {
-            let mut it = l.split_whitespace();
-            Some((it.next()?.to_string(), it.next()?.parse().ok()?))
-        })
-        .collect()
-}
-
 fn check_log(log: &Path, dir: &Path) {
     let name = log.file_name().unwrap().to_string_lossy().to_string();
     let (report_path, html_path, export) = (
@@ -179,7 +168,7 @@ fn check_log(log: &Path, dir: &Path) {
         );
     } else {
         let text = std::fs::read_to_string(&parm).unwrap();
-        let values = parm_values(&text);
+        let values = common::parm_values(&text);
         for (instance, k, mag) in compasses(r) {
             let suffix = ["", "2", "3"][k.min(2) as usize];
             let ofs = values.get(&format!("COMPASS_OFS{suffix}_X"));

@@ -25,17 +25,6 @@ macro_rules! require_data {
     };
 }
 
-/// The values of an ArduPilot `.parm` file by name.
-fn parm_values(text: &str) -> std::collections::BTreeMap<String, f64> {
-    text.lines()
-        .filter(|l| !l.starts_with('#'))
-        .filter_map(|l| {
-            let mut it = l.split_whitespace();
-            Some((it.next()?.to_string(), it.next()?.parse().ok()?))
-        })
-        .collect()
-}
-
 /// An ArduPilot telemetry log streams the magnetometer with the vehicle's COMPASS_OFS applied
 /// (mGauss). imucald undoes it before fitting, so its export is what the vehicle should load:
 /// the vehicle's COMPASS_OFS (as pymavlink reads the log's PARAM_VALUE) minus ten times the offset
@@ -121,7 +110,8 @@ fn apm_telemetry_export_is_the_vehicles_offsets_plus_the_fitted_residual() {
             "{x}: {:?}",
             onboard.undone
         );
-        let parm = parm_values(&std::fs::read_to_string(export.join("ardupilot.parm")).unwrap());
+        let parm =
+            common::parm_values(&std::fs::read_to_string(export.join("ardupilot.parm")).unwrap());
         for (i, axis) in ["X", "Y", "Z"].iter().enumerate() {
             let exported = parm[&format!("COMPASS_OFS_{axis}")];
             let expected = ofs[i] - 10.0 * res_mag.offset[i];

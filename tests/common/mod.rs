@@ -518,3 +518,14 @@ pub fn pymavlink_flight_tlog(samples: &[Sample], dir: &Path) -> Option<PathBuf> 
     assert!(st.success(), "pymavlink_flight_tlog.py");
     Some(tlog)
 }
+
+/// `NAME VALUE` lines of an ArduPilot `.parm` file by name, comments left out.
+pub fn parm_values(text: &str) -> std::collections::BTreeMap<String, f64> {
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let mut it = l.split_whitespace();
+            Some((it.next()?.to_string(), it.next()?.parse().ok()?))
+        })
+        .collect()
+}
