@@ -5,9 +5,14 @@ Every log under LOG_DIR (.tlog, .csv, .csv.gz, .bin, .ulg; searched recursively)
 compass instance, whether it is the log's primary one, the fit's status ("ok", "failed", or
 "error" when the log could not be replayed at all), its failure and detail, the method (sphere,
 vector, planar), the model, the offset's three components and the 3x3 matrix (row-major, 9
-values; calibrated = matrix * (raw - offset)), the mounting verdict and the held-out verdict.
-A log that cannot be read becomes one row with status "error" and the library's message as its
-failure: the batch goes on.
+values; calibrated = matrix * (raw - offset)), the mounting verdict, the held-out verdict as a
+word (better, keep_vehicle, no_onboard, failed), whether the calibration is one to load and why
+(a word), the rung of the model ladder taken, the field's radius and the RMS residual in uT, the
+direction regions filled (the primary's), and the held-out spreads of the field's norm (%) and
+dip (deg) through imucald's calibration and through the vehicle's. A row whose status is not
+"ok" carries no numbers, only its words. A log that cannot be read becomes one row with status
+"error" and the library's message as its failure: the batch goes on. The columns are those of
+`imucald replay DIR --table` (docs/replay.md), the matrix there spread over nine columns.
 
     pip install . dask[distributed] pyarrow        # at the repository's root
     python examples_py/dask_fleet.py LOG_DIR --out fleet.parquet               # LocalCluster
@@ -58,6 +63,16 @@ def table_schema():
             ("matrix", pa.list_(pa.float64(), 9)),
             ("mounting_verdict", pa.string()),
             ("verdict", pa.string()),
+            ("load", pa.bool_()),
+            ("load_reason", pa.string()),
+            ("rung", pa.string()),
+            ("radius_ut", pa.float64()),
+            ("rms_ut", pa.float64()),
+            ("coverage_regions", pa.int64()),
+            ("heldout_norm_pct", pa.float64()),
+            ("heldout_dip_deg", pa.float64()),
+            ("vehicle_norm_pct", pa.float64()),
+            ("vehicle_dip_deg", pa.float64()),
         ]
     )
 
@@ -71,11 +86,38 @@ def find_logs(root):
     return sorted(found)
 
 
-def compass_row(log, instance, primary, mag, quality):
-    """One compass's row from its `calibration.mag` and its held-out `quality` entry (or None)."""
+# The name a log of one unnamed stream (a CSV) is judged and decided under in the report's
+# `quality` and `load`.
+UNNAMED_INSTANCE = "primary"
+
+# The columns that hold numbers: empty in a row whose status is not "ok".
+NUMBER_COLUMNS = (
+    "offset_x",
+    "offset_y",
+    "offset_z",
+    "matrix",
+    "radius_ut",
+    "rms_ut",
+    "coverage_regions",
+    "heldout_norm_pct",
+    "heldout_dip_deg",
+    "vehicle_norm_pct",
+    "vehicle_dip_deg",
+)
+
+
+def compass_row(log, instance, primary, mag, quality, load, coverage):
+    """One compass's row from its `calibration.mag`, its held-out `quality` entry and its `load`
+    decision (each None when the report has none), and `coverage`, the report's magnetometer
+    coverage when the compass is the primary (else None)."""
     offset = mag.get("offset") or [None, None, None]
     matrix = mag.get("matrix")
-    return {
+    quality = quality or {}
+    load = load or {}
+    ours = quality.get("imucald") or {}
+    theirs = quality.get("onboard") or {}
+    in_ut = mag.get("units") == "uT"
+    row = {
         "log": log,
         "instance": instance,
         "primary": primary,
@@ -90,14 +132,31 @@ def compass_row(log, instance, primary, mag, quality):
         "offset_z": offset[2],
         "matrix": [v for r in matrix for v in r] if matrix else None,
         "mounting_verdict": (mag.get("mounting") or {}).get("verdict"),
-        "verdict": quality.get("verdict") if quality else None,
+        "verdict": quality.get("verdict_kind"),
+        "load": load.get("load"),
+        "load_reason": load.get("reason"),
+        "rung": quality.get("rung") or mag.get("rung"),
+        "radius_ut": mag.get("radius") if in_ut else None,
+        "rms_ut": mag.get("rms_residual") if in_ut else None,
+        "coverage_regions": (coverage or {}).get("filled"),
+        "heldout_norm_pct": ours.get("norm_spread_pct"),
+        "heldout_dip_deg": ours.get("dip_spread_deg"),
+        "vehicle_norm_pct": theirs.get("norm_spread_pct"),
+        "vehicle_dip_deg": theirs.get("dip_spread_deg"),
     }
+    if row["status"] != "ok":
+        row.update(dict.fromkeys(NUMBER_COLUMNS))
+    return row
 
 
 def compass_rows(log, report):
     """The rows of one replay report: each instance of a multi-instance log (the primary first,
-    as the report lists them), else the log's one compass."""
+    as the report lists them), else the log's one compass. Each compass's `quality` and `load`
+    entries are those of its instance (a log of one unnamed stream's: those named
+    UNNAMED_INSTANCE)."""
     quality = {q["instance"]: q for q in report.get("quality", [])}
+    load = {d["instance"]: d for d in report.get("load", [])}
+    coverage = (report.get("coverage") or {}).get("mag")
     instances = report.get("instances") or [
         {
             "instance": report["input"].get("instance"),
@@ -105,15 +164,26 @@ def compass_rows(log, report):
             "calibration": report["calibration"],
         }
     ]
-    return [
-        compass_row(log, i["instance"], i["primary"], i["calibration"]["mag"], quality.get(i["instance"]))
-        for i in instances
-    ]
+    rows = []
+    for i in instances:
+        name = i["instance"] if i["instance"] is not None else UNNAMED_INSTANCE
+        rows.append(
+            compass_row(
+                log,
+                i["instance"],
+                i["primary"],
+                i["calibration"]["mag"],
+                quality.get(name),
+                load.get(name),
+                coverage if i["primary"] else None,
+            )
+        )
+    return rows
 
 
 def error_row(log, message):
     """The one row of a log that could not be replayed."""
-    row = compass_row(log, None, None, {}, None)
+    row = compass_row(log, None, None, {}, None, None, None)
     row.update(status="error", failure=message)
     return row
 

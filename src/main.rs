@@ -337,6 +337,9 @@ enum Outcome {
     Done,
     /// Ran, but produced nothing usable: no sensor calibrated (3).
     NothingCalibrated,
+    /// Calibrated something, but nothing to load on the vehicle: a gyro bias only, or compasses
+    /// whose calibration is not one to load (4).
+    NothingToLoad,
 }
 
 /// Exit status of an error: bad input, a file that cannot be read or written (1). A source that
@@ -344,6 +347,7 @@ enum Outcome {
 const EXIT_ERROR: u8 = 1;
 const EXIT_SOURCE_FAILED: u8 = 2;
 const EXIT_NOTHING_CALIBRATED: u8 = 3;
+const EXIT_NOTHING_TO_LOAD: u8 = 4;
 
 /// A `run` whose replays could not be read at all.
 #[derive(Debug)]
@@ -385,6 +389,7 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(Outcome::Done) => std::process::ExitCode::SUCCESS,
         Ok(Outcome::NothingCalibrated) => std::process::ExitCode::from(EXIT_NOTHING_CALIBRATED),
+        Ok(Outcome::NothingToLoad) => std::process::ExitCode::from(EXIT_NOTHING_TO_LOAD),
         Err(e) => {
             // The chain once, without a backtrace (RUST_BACKTRACE is for panics, not user errors).
             let mut text = format!("error: {e}");
@@ -503,7 +508,39 @@ fn replay_cmd(args: ReplayArgs) -> Result<Outcome> {
         eprintln!("error: nothing was calibrated (exit status {EXIT_NOTHING_CALIBRATED}): see the reasons above");
         return Ok(Outcome::NothingCalibrated);
     }
+    if !imucald::app::replay::loadable(&out.report) {
+        eprintln!(
+            "error: nothing to load (exit status {EXIT_NOTHING_TO_LOAD}): {}; keep the vehicle's calibration, or fly or turn the vehicle through more directions and replay again",
+            not_loadable(&out.report)
+        );
+        return Ok(Outcome::NothingToLoad);
+    }
     Ok(Outcome::Done)
+}
+
+/// Why a replay that calibrated something has nothing to load: each compass's load reason, the
+/// accelerometer's failure, and the gyro bias when it is what passed.
+fn not_loadable(r: &imucald::report::Report) -> String {
+    let mut why: Vec<String> = r
+        .load
+        .iter()
+        .map(|d| {
+            format!(
+                "compass {} ({}): {}",
+                d.compass_id,
+                d.instance,
+                d.reason.words()
+            )
+        })
+        .collect();
+    if why.is_empty() {
+        why.push("no compass calibrated".into());
+    }
+    why.push("the accelerometer did not pass".into());
+    if r.calibration.gyro.status == imucald::report::CalStatus::Ok {
+        why.push("the gyro bias passed, but no parameter file carries it (the flight controller learns its own)".into());
+    }
+    why.join("; ")
 }
 
 /// `imucald replay` over several logs or directories ([`imucald::app::batch`]): one bar, one line.
@@ -564,20 +601,31 @@ fn replay_batch_cmd(args: ReplayArgs) -> Result<Outcome> {
     })?;
     bar.finish_and_clear();
     println!("{}", s.line());
-    if s.failed() > 0 {
-        eprintln!(
-            "error: {} of {} logs calibrated nothing or were not replayed (exit status {EXIT_NOTHING_CALIBRATED}): {}",
-            s.failed(),
-            s.logs,
-            if s.written.is_empty() {
-                "give --table FILE.csv for each log's failure".to_string()
-            } else {
-                "each log's failure is in its row".to_string()
-            }
-        );
-        return Ok(Outcome::NothingCalibrated);
+    let in_rows = |what: &str| match opts.table {
+        Some(_) => format!("each {what} is in its row"),
+        None => format!("give --table FILE.csv for each {what}"),
+    };
+    match s.end() {
+        imucald::app::batch::BatchEnd::SomethingToLoad => Ok(Outcome::Done),
+        imucald::app::batch::BatchEnd::NothingToLoad => {
+            eprintln!(
+                "error: no log had anything to load (exit status {EXIT_NOTHING_TO_LOAD}): {} calibrated with nothing to load, {} calibrated nothing or were not replayed; {}; keep the vehicles' calibrations, or fly or turn them through more directions and replay again",
+                s.nothing_to_load,
+                s.failed(),
+                in_rows("compass's load_reason"),
+            );
+            Ok(Outcome::NothingToLoad)
+        }
+        imucald::app::batch::BatchEnd::Failed => {
+            eprintln!(
+                "error: {} of {} logs calibrated nothing or were not replayed (exit status {EXIT_NOTHING_CALIBRATED}): {}",
+                s.failed(),
+                s.logs,
+                in_rows("log's failure"),
+            );
+            Ok(Outcome::NothingCalibrated)
+        }
     }
-    Ok(Outcome::Done)
 }
 
 /// The files a batch's directories held besides logs: how many of each kind, the first few named.

@@ -1,5 +1,6 @@
 //! `imucald replay` over many logs: the table and the reports against each log's own replay, a bad
-//! log among good ones, the same table from one worker and from two.
+//! log among good ones, the same table from one worker and from two, and the exit status of logs
+//! that calibrate something but have nothing to load.
 
 use serde_json::Value;
 use std::path::{Path, PathBuf};
@@ -110,7 +111,12 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
     let said = text(&run);
     // The broken log calibrates nothing: the documented status, after the whole batch.
     assert_eq!(run.status.code(), Some(3), "{said}");
-    assert!(said.contains("5 logs, 4 calibrated, 1 failed"), "{said}");
+    assert!(
+        said.contains(
+            "5 logs, 4 calibrated (4 with something to load, 0 nothing to load), 1 failed"
+        ),
+        "{said}"
+    );
     assert!(said.contains("notes.txt (not a log name)"), "{said}");
     assert!(
         said.contains(&out.join("table2.csv").display().to_string()),
@@ -167,11 +173,48 @@ fn batch_rows_equal_each_logs_own_replay_and_a_bad_log_is_a_failure_row() {
             &row["mounting_verdict"],
             &mag["mounting"]["verdict"]
         ));
-        let verdict = report["quality"]
+        // The held-out entry and the load decision of the log's one compass.
+        let quality = report["quality"]
             .as_array()
             .and_then(|q| q.first())
-            .map_or(Value::Null, |q| q["verdict"].clone());
-        assert!(cell_matches(&row["verdict"], &verdict), "{row:?}");
+            .cloned()
+            .unwrap_or(Value::Null);
+        assert!(
+            cell_matches(&row["verdict"], &quality["verdict_kind"]),
+            "{row:?}"
+        );
+        let load = &report["load"][0];
+        assert_eq!(row["load"], load["load"].to_string(), "{name}");
+        assert!(
+            cell_matches(&row["load_reason"], &load["reason"]),
+            "{row:?}"
+        );
+        let rung = match &quality["rung"] {
+            Value::Null => &mag["rung"],
+            r => r,
+        };
+        assert!(cell_matches(&row["rung"], rung), "{row:?}");
+        assert_eq!(mag["units"], "uT");
+        assert!(cell_matches(&row["radius_ut"], &mag["radius"]), "{row:?}");
+        assert!(
+            cell_matches(&row["rms_ut"], &mag["rms_residual"]),
+            "{row:?}"
+        );
+        assert!(cell_matches(
+            &row["coverage_regions"],
+            &report["coverage"]["mag"]["filled"]
+        ));
+        for (col, who, key) in [
+            ("heldout_norm_pct", "imucald", "norm_spread_pct"),
+            ("heldout_dip_deg", "imucald", "dip_spread_deg"),
+            ("vehicle_norm_pct", "onboard", "norm_spread_pct"),
+            ("vehicle_dip_deg", "onboard", "dip_spread_deg"),
+        ] {
+            assert!(
+                cell_matches(&row[col], &quality[who][key]),
+                "{col}: {row:?}"
+            );
+        }
         for (k, axis) in ["x", "y", "z"].iter().enumerate() {
             assert!(cell_matches(
                 &row[&format!("offset_{axis}")],
@@ -226,7 +269,9 @@ fn a_batch_of_good_logs_exits_0_and_one_log_is_replayed_as_before() {
     let run = imucald(&["replay".as_ref(), logs[0].as_os_str(), logs[1].as_os_str()]);
     assert_eq!(run.status.code(), Some(0), "{}", text(&run));
     assert!(
-        text(&run).contains("2 logs, 2 calibrated, 0 failed"),
+        text(&run).contains(
+            "2 logs, 2 calibrated (2 with something to load, 0 nothing to load), 0 failed"
+        ),
         "{}",
         text(&run)
     );
@@ -288,4 +333,111 @@ fn the_table_has_the_python_examples_columns() {
     let row = r.records().next().unwrap().unwrap();
     assert_eq!(&row[3], "error");
     assert!(row[4].contains("cannot read"), "{row:?}");
+}
+
+/// A CSV of an accelerometer and a gyro (no magnetometer) resting in three poses for 5 s each at
+/// 100 Hz, turned between them: a gyro bias passes, the accelerometer (3 poses of the 7 it needs)
+/// and the compass (no readings) do not. The noise is a fixed pseudo-random sequence.
+fn gyro_bias_only_csv(path: &Path) {
+    const G_MPS2: f64 = 9.80665;
+    const BIAS_RADPS: [f64; 3] = [0.01, -0.02, 0.005];
+    let mut state: u64 = 0x2545_f491_4f6c_dd1d;
+    let mut noise = move |scale: f64| {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * scale
+    };
+    let tilt_rad: f64 = 0.5;
+    let poses = [
+        [0.0, 0.0, -G_MPS2],
+        [0.0, G_MPS2 * tilt_rad.sin(), -G_MPS2 * tilt_rad.cos()],
+        [G_MPS2 * tilt_rad.sin(), 0.0, -G_MPS2 * tilt_rad.cos()],
+    ];
+    let mut text = String::from("t,ax,ay,az,gx,gy,gz\n");
+    let mut t_s = 0.0;
+    let mut row = |accel: [f64; 3], gyro: [f64; 3], text: &mut String| {
+        text.push_str(&format!("{t_s:.2}"));
+        for a in accel {
+            text.push_str(&format!(",{:.4}", a + noise(0.03)));
+        }
+        for g in gyro {
+            text.push_str(&format!(",{:.5}", g + noise(0.003)));
+        }
+        text.push('\n');
+        t_s += 0.01;
+    };
+    for (k, pose) in poses.iter().enumerate() {
+        for _ in 0..500 {
+            row(*pose, BIAS_RADPS, &mut text);
+        }
+        if let Some(next) = poses.get(k + 1) {
+            for i in 0..100 {
+                let f = f64::from(i) / 100.0;
+                let accel = std::array::from_fn(|a| pose[a] * (1.0 - f) + next[a] * f);
+                row(accel, [0.5, 0.3, BIAS_RADPS[2]], &mut text);
+            }
+        }
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+/// A log that calibrates a gyro bias only has nothing to load: alone it exits 4 naming its
+/// compass's reason; beside a log that failed the batch exits 3 (the failure first), counting it
+/// as calibrated with nothing to load; a log with something to load beside it makes the batch's
+/// exit 0.
+#[test]
+fn a_gyro_bias_only_is_nothing_to_load_alone_and_in_a_batch() {
+    let d = tempfile::tempdir().unwrap();
+    let gyro = d.path().join("gyro.csv");
+    gyro_bias_only_csv(&gyro);
+    let alone = imucald(&["replay".as_ref(), gyro.as_os_str()]);
+    let said = text(&alone);
+    assert_eq!(alone.status.code(), Some(4), "{said}");
+    assert!(said.contains("gyro : bias"), "{said}");
+    assert!(
+        said.contains(
+            "error: nothing to load (exit status 4): compass 0 (primary): the fit failed"
+        ),
+        "{said}"
+    );
+    assert!(said.contains("keep the vehicle's calibration"), "{said}");
+
+    let broken = d.path().join("broken.tlog");
+    std::fs::write(&broken, vec![0x81u8; 4096]).unwrap();
+    let t = d.path().join("t.csv");
+    let run = imucald(&[
+        "replay".as_ref(),
+        gyro.as_os_str(),
+        broken.as_os_str(),
+        "--table".as_ref(),
+        t.as_os_str(),
+    ]);
+    let said = text(&run);
+    assert_eq!(run.status.code(), Some(3), "{said}");
+    assert!(
+        said.contains(
+            "2 logs, 1 calibrated (0 with something to load, 1 nothing to load), 1 failed"
+        ),
+        "{said}"
+    );
+    let rows = table(&t);
+    assert_eq!(rows[0]["status"], "failed");
+    assert_eq!(
+        (rows[0]["load"].as_str(), rows[0]["load_reason"].as_str()),
+        ("false", "fit_failed")
+    );
+
+    let tumble = d.path().join("tumble.tlog");
+    let sim = imucald(&["simulate".as_ref(), "--out".as_ref(), tumble.as_os_str()]);
+    assert!(sim.status.success(), "{}", text(&sim));
+    let run = imucald(&["replay".as_ref(), gyro.as_os_str(), tumble.as_os_str()]);
+    let said = text(&run);
+    assert_eq!(run.status.code(), Some(0), "{said}");
+    assert!(
+        said.contains(
+            "2 logs, 2 calibrated (1 with something to load, 1 nothing to load), 0 failed"
+        ),
+        "{said}"
+    );
 }

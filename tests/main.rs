@@ -2748,6 +2748,40 @@ mod cli_words {
         assert!(!d.path().join("out/ardupilot.parm").exists());
     }
 
+    /// A real log that calibrates a gyro bias but no compass it can load (an ArduSub ROV's two
+    /// compasses): exit 4, the stderr line naming each compass with its load reason in words.
+    #[test]
+    fn replay_with_nothing_to_load_exits_4_naming_each_compass() {
+        let Some(data) = crate::common::testdata::shared_data() else {
+            return;
+        };
+        let d = tempfile::tempdir().unwrap();
+        let log = data.join("real/ardusub_rov_two_mags.bin");
+        let (code, out, err) = imucald(
+            &["replay", log.to_str().unwrap(), "--report", "r.json"],
+            d.path(),
+        );
+        assert_eq!(code, 4, "{out}{err}");
+        assert!(
+            err.contains("error: nothing to load (exit status 4): "),
+            "{err}"
+        );
+        let report: imucald::report::Report =
+            serde_json::from_str(&std::fs::read_to_string(d.path().join("r.json")).unwrap())
+                .unwrap();
+        assert!(!report.load.is_empty());
+        for l in &report.load {
+            let said = format!(
+                "compass {} ({}): {}",
+                l.compass_id,
+                l.instance,
+                l.reason.words()
+            );
+            assert!(err.contains(&said), "{said}: {err}");
+        }
+        assert!(err.contains("keep the vehicle's calibration"), "{err}");
+    }
+
     /// `imucald replay` with no log replays the tumble built into the binary, from any directory.
     #[test]
     fn replay_of_the_embedded_tumble_works_anywhere_and_says_what_next() {

@@ -2,12 +2,14 @@
 //! thread through [`crate::app::replay::replay`], gathered into one table (a row per log and
 //! compass) and one JSON-lines file of the full reports.
 //!
-//! A log that cannot be replayed (unreadable, unknown format) or that calibrates nothing is a row
-//! with its failure, and a panic in one log's replay is caught on its worker and reported the same
-//! way: the batch always goes on. The work queue and the result queue are bounded (twice the
+//! Each log ends one of four ways: calibrated with something to load on the vehicle
+//! ([`loadable`]), calibrated with nothing to load (a gyro bias only, or compasses whose verdict is
+//! to keep the vehicle's), nothing calibrated, or not replayed. A log that cannot be replayed
+//! (unreadable, unknown format) or that calibrates nothing is a row with its failure, and a panic
+//! in one log's replay is caught on its worker and reported the same way: the batch always goes on. The work queue and the result queue are bounded (twice the
 //! workers); a full queue makes its sender wait, nothing is dropped.
 
-use crate::app::replay::{calibrated_nothing, replay, ReplayOptions};
+use crate::app::replay::{calibrated_nothing, loadable, replay, ReplayOptions};
 use crate::config::Config;
 use crate::error::Error;
 use crate::io::publish::{write_atomic_with, AtomicFile};
@@ -28,7 +30,7 @@ const QUEUE_PER_WORKER: usize = 2;
 /// The table's columns, in order: the same as the Parquet rows of `examples_py/dask_fleet.py`,
 /// with its 9-value `matrix` spread over `matrix_RC` (row R, column C; calibrated = matrix *
 /// (raw - offset)).
-pub(crate) const COLUMNS: [&str; 23] = [
+pub(crate) const COLUMNS: [&str; 33] = [
     "log",
     "instance",
     "primary",
@@ -52,7 +54,21 @@ pub(crate) const COLUMNS: [&str; 23] = [
     "matrix_22",
     "mounting_verdict",
     "verdict",
+    "load",
+    "load_reason",
+    "rung",
+    "radius_ut",
+    "rms_ut",
+    "coverage_regions",
+    "heldout_norm_pct",
+    "heldout_dip_deg",
+    "vehicle_norm_pct",
+    "vehicle_dip_deg",
 ];
+
+/// The name a log of one unnamed stream (a CSV) is judged and decided under in the report's
+/// `quality` and `load`.
+const UNNAMED_INSTANCE: &str = "primary";
 
 /// A batch's settings.
 #[derive(Debug, Clone, Default)]
@@ -170,12 +186,16 @@ pub struct Progress {
     pub failed: usize,
 }
 
-/// What a batch did.
+/// What a batch did. Every log is counted once, in `to_load`, `nothing_to_load`,
+/// `nothing_calibrated` or `errors`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BatchSummary {
     pub logs: usize,
-    /// Logs that calibrated at least one sensor.
-    pub calibrated: usize,
+    /// Logs that calibrated something to load on the vehicle ([`loadable`]).
+    pub to_load: usize,
+    /// Logs that calibrated something, but nothing to load: a gyro bias only, or compasses that
+    /// are not to load (the vehicle's is as good, the fit held out failed, ...).
+    pub nothing_to_load: usize,
     /// Logs replayed that calibrated nothing.
     pub nothing_calibrated: usize,
     /// Logs that could not be replayed (an error or a panic).
@@ -190,18 +210,48 @@ pub struct BatchSummary {
     pub written: Vec<PathBuf>,
 }
 
+/// How a batch ended as a whole, for its exit status.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BatchEnd {
+    /// Every log calibrated something, and some log has something to load.
+    SomethingToLoad,
+    /// Every log calibrated something, but no log has anything to load.
+    NothingToLoad,
+    /// Some log calibrated nothing or was not replayed (or there were none).
+    Failed,
+}
+
 impl BatchSummary {
+    /// Logs that calibrated at least one sensor (with or without something to load).
+    pub fn calibrated(&self) -> usize {
+        self.to_load + self.nothing_to_load
+    }
+
     /// Logs that calibrated nothing or could not be replayed.
     pub fn failed(&self) -> usize {
         self.nothing_calibrated + self.errors
     }
 
+    /// How the batch ended: failed when any log failed (or there were none); else nothing to
+    /// load when no log had anything to load; else something to load.
+    pub fn end(&self) -> BatchEnd {
+        if self.failed() > 0 || self.calibrated() == 0 {
+            BatchEnd::Failed
+        } else if self.to_load == 0 {
+            BatchEnd::NothingToLoad
+        } else {
+            BatchEnd::SomethingToLoad
+        }
+    }
+
     /// The one line said at the end.
     pub fn line(&self) -> String {
         let mut s = format!(
-            "{} logs, {} calibrated, {} failed ({} calibrated nothing, {} not replayed",
+            "{} logs, {} calibrated ({} with something to load, {} nothing to load), {} failed ({} calibrated nothing, {} not replayed",
             self.logs,
-            self.calibrated,
+            self.calibrated(),
+            self.to_load,
+            self.nothing_to_load,
             self.failed(),
             self.nothing_calibrated,
             self.errors
@@ -235,7 +285,8 @@ impl RowStatus {
     }
 }
 
-/// One compass of one log (or the one row of a log not replayed): the [`COLUMNS`].
+/// One compass of one log (or the one row of a log not replayed): the [`COLUMNS`]. A row whose
+/// status is not `ok` carries words only: every number is empty.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct Row {
     pub log: String,
@@ -255,19 +306,40 @@ pub(crate) struct Row {
     pub matrix: Option<[f64; 9]>,
     /// The mounting check's verdict on the configured mounting.
     pub mounting_verdict: Option<String>,
-    /// The held-out quality verdict against the vehicle's onboard calibration.
+    /// The held-out verdict against the vehicle's own calibration as a fixed word: `better`,
+    /// `keep_vehicle`, `no_onboard`, `failed`.
     pub verdict: Option<String>,
+    /// Whether the compass's calibration is one to load on the vehicle (the report's `load`).
+    pub load: Option<bool>,
+    /// Why, as a fixed word (`better`, `keep_vehicle`, `fit_failed`, ...).
+    pub load_reason: Option<String>,
+    /// The rung of the model ladder taken: `offsets`, `scale`, `diagonal`, `full`.
+    pub rung: Option<String>,
+    /// The field's magnitude through the calibration, uT (none when the units are counts).
+    pub radius_ut: Option<f64>,
+    /// The fit's RMS residual, uT (none when the units are counts).
+    pub rms_ut: Option<f64>,
+    /// Of the 100 direction regions, those the compass's readings filled: the primary's (the
+    /// report holds no other compass's).
+    pub coverage_regions: Option<u64>,
+    /// The field's norm spread, %, and dip spread, deg, on the held-out blocks through imucald's
+    /// calibration fitted on the others.
+    pub heldout_norm_pct: Option<f64>,
+    pub heldout_dip_deg: Option<f64>,
+    /// The same through the vehicle's own calibration.
+    pub vehicle_norm_pct: Option<f64>,
+    pub vehicle_dip_deg: Option<f64>,
 }
 
 impl Row {
-    /// The row of a log not replayed.
-    fn error(log: &str, message: String) -> Row {
+    /// A row of `log` with `status` and nothing else.
+    fn blank(log: &str, status: RowStatus) -> Row {
         Row {
             log: log.to_string(),
             instance: None,
             primary: None,
-            status: RowStatus::Error,
-            failure: Some(message),
+            status,
+            failure: None,
             detail: None,
             method: None,
             model: None,
@@ -276,23 +348,57 @@ impl Row {
             matrix: None,
             mounting_verdict: None,
             verdict: None,
+            load: None,
+            load_reason: None,
+            rung: None,
+            radius_ut: None,
+            rms_ut: None,
+            coverage_regions: None,
+            heldout_norm_pct: None,
+            heldout_dip_deg: None,
+            vehicle_norm_pct: None,
+            vehicle_dip_deg: None,
+        }
+    }
+
+    /// The row of a log not replayed.
+    fn error(log: &str, message: String) -> Row {
+        Row {
+            failure: Some(message),
+            ..Row::blank(log, RowStatus::Error)
+        }
+    }
+
+    /// Every number emptied, the words kept: what a row whose fit did not pass shows (a failed
+    /// fit's offset and matrix are placeholders, and its held-out figures vouch for nothing).
+    fn without_numbers(self) -> Row {
+        Row {
+            offset: None,
+            matrix: None,
+            radius_ut: None,
+            rms_ut: None,
+            coverage_regions: None,
+            heldout_norm_pct: None,
+            heldout_dip_deg: None,
+            vehicle_norm_pct: None,
+            vehicle_dip_deg: None,
+            ..self
         }
     }
 
     /// The CSV record, in [`COLUMNS`] order; a missing value is an empty cell, a number is
     /// written as the report writes it (the shortest text that reads back to the same f64).
     fn record(&self) -> Vec<String> {
-        let text = |v: &Option<String>| v.clone().unwrap_or_default();
         let mut r = vec![
             self.log.clone(),
-            text(&self.instance),
-            self.primary.map(|p| p.to_string()).unwrap_or_default(),
+            cell(&self.instance),
+            cell(&self.primary),
             self.status.name().to_string(),
-            text(&self.failure),
-            text(&self.detail),
-            text(&self.method),
-            text(&self.model),
-            text(&self.units),
+            cell(&self.failure),
+            cell(&self.detail),
+            cell(&self.method),
+            cell(&self.model),
+            cell(&self.units),
         ];
         let numbers = |v: Option<&[f64]>, n: usize| match v {
             Some(v) => v.iter().map(|x| x.to_string()).collect(),
@@ -300,35 +406,56 @@ impl Row {
         };
         r.extend(numbers(self.offset.as_ref().map(|o| &o[..]), 3));
         r.extend(numbers(self.matrix.as_ref().map(|m| &m[..]), 9));
-        r.push(text(&self.mounting_verdict));
-        r.push(text(&self.verdict));
+        r.extend([
+            cell(&self.mounting_verdict),
+            cell(&self.verdict),
+            cell(&self.load),
+            cell(&self.load_reason),
+            cell(&self.rung),
+            cell(&self.radius_ut),
+            cell(&self.rms_ut),
+            cell(&self.coverage_regions),
+            cell(&self.heldout_norm_pct),
+            cell(&self.heldout_dip_deg),
+            cell(&self.vehicle_norm_pct),
+            cell(&self.vehicle_dip_deg),
+        ]);
         r
     }
 }
 
+/// A table cell: the value's text, or empty.
+fn cell<T: ToString>(v: &Option<T>) -> String {
+    v.as_ref().map(T::to_string).unwrap_or_default()
+}
+
 /// The rows of one replay report, read off its JSON (`imucald.report/1`, whose field names are the
 /// contract) as `examples_py/dask_fleet.py` reads them: each instance of a multi-instance log, the
-/// primary first as the report lists them, else the log's one compass; the quality verdict is the
-/// held-out entry of the same instance.
+/// primary first as the report lists them, else the log's one compass. Each compass's `quality`
+/// and `load` entries are those of the same instance (a log of one unnamed stream's: those named
+/// [`UNNAMED_INSTANCE`]); the coverage is the report's, the primary's.
 pub(crate) fn compass_rows(log: &str, report: &Value) -> Vec<Row> {
-    let quality: BTreeMap<&str, &Value> = report["quality"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|q| Some((q["instance"].as_str()?, q)))
-        .collect();
+    let by_instance = |key: &str| -> BTreeMap<&str, &Value> {
+        report[key]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|q| Some((q["instance"].as_str()?, q)))
+            .collect()
+    };
+    let (quality, load) = (by_instance("quality"), by_instance("load"));
     let one = |instance: Option<&str>, primary: bool, mag: &Value| {
-        let verdict = instance
-            .and_then(|i| quality.get(i))
-            .and_then(|q| text(&q["verdict"]));
-        Row {
-            log: log.to_string(),
+        let name = instance.unwrap_or(UNNAMED_INSTANCE);
+        let q = quality.get(name).copied().unwrap_or(&Value::Null);
+        let decision = load.get(name).copied().unwrap_or(&Value::Null);
+        let in_ut = |v: &Value| v.as_f64().filter(|_| mag["units"] == "uT");
+        let status = match mag["status"].as_str() {
+            Some("ok") => RowStatus::Ok,
+            _ => RowStatus::Failed,
+        };
+        let row = Row {
             instance: instance.map(str::to_string),
             primary: Some(primary),
-            status: match mag["status"].as_str() {
-                Some("ok") => RowStatus::Ok,
-                _ => RowStatus::Failed,
-            },
             failure: text(&mag["failure"]),
             detail: text(&mag["detail"]),
             method: text(&mag["method"]),
@@ -343,7 +470,26 @@ pub(crate) fn compass_rows(log: &str, report: &Value) -> Vec<Row> {
                     .flat_map(|r| r.as_array().into_iter().flatten()),
             ),
             mounting_verdict: text(&mag["mounting"]["verdict"]),
-            verdict,
+            verdict: text(&q["verdict_kind"]),
+            load: decision["load"].as_bool(),
+            load_reason: text(&decision["reason"]),
+            rung: text(&q["rung"]).or_else(|| text(&mag["rung"])),
+            radius_ut: in_ut(&mag["radius"]),
+            rms_ut: in_ut(&mag["rms_residual"]),
+            coverage_regions: if primary {
+                report["coverage"]["mag"]["filled"].as_u64()
+            } else {
+                None
+            },
+            heldout_norm_pct: q["imucald"]["norm_spread_pct"].as_f64(),
+            heldout_dip_deg: q["imucald"]["dip_spread_deg"].as_f64(),
+            vehicle_norm_pct: q["onboard"]["norm_spread_pct"].as_f64(),
+            vehicle_dip_deg: q["onboard"]["dip_spread_deg"].as_f64(),
+            ..Row::blank(log, status)
+        };
+        match status {
+            RowStatus::Ok => row,
+            _ => row.without_numbers(),
         }
     };
     match report["instances"].as_array().filter(|a| !a.is_empty()) {
@@ -391,7 +537,10 @@ struct Done {
 /// How one log ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum LogOutcome {
-    Calibrated,
+    /// Calibrated, something to load ([`loadable`]).
+    ToLoad,
+    /// Calibrated, nothing to load.
+    NothingToLoad,
     NothingCalibrated,
     Error,
     Panicked,
@@ -423,7 +572,8 @@ pub(crate) fn run_with(
     };
     let mut summary = BatchSummary {
         logs: logs.len(),
-        calibrated: 0,
+        to_load: 0,
+        nothing_to_load: 0,
         nothing_calibrated: 0,
         errors: 0,
         panics: 0,
@@ -458,7 +608,7 @@ pub(crate) fn run_with(
             }
             rows[done.index] = done.rows;
             progress(Progress {
-                done: summary.calibrated + summary.failed(),
+                done: summary.calibrated() + summary.failed(),
                 total: logs.len(),
                 failed: summary.failed(),
             });
@@ -481,7 +631,8 @@ pub(crate) fn run_with(
 impl BatchSummary {
     fn count(&mut self, o: LogOutcome) {
         match o {
-            LogOutcome::Calibrated => self.calibrated += 1,
+            LogOutcome::ToLoad => self.to_load += 1,
+            LogOutcome::NothingToLoad => self.nothing_to_load += 1,
             LogOutcome::NothingCalibrated => self.nothing_calibrated += 1,
             LogOutcome::Error => self.errors += 1,
             LogOutcome::Panicked => {
@@ -553,8 +704,10 @@ fn replay_log(index: usize, log: &Path, replay_one: &ReplayOne<'_>) -> Done {
 fn done_ok(index: usize, name: &str, report: &Report) -> Done {
     let outcome = if calibrated_nothing(report) {
         LogOutcome::NothingCalibrated
+    } else if loadable(report) {
+        LogOutcome::ToLoad
     } else {
-        LogOutcome::Calibrated
+        LogOutcome::NothingToLoad
     };
     match serde_json::to_value(report) {
         Ok(value) => Done {
@@ -679,7 +832,7 @@ mod tests {
         };
         let mut seen = vec![];
         let s = run_with(&logs(6), &opts, &replay_one, &mut |p| seen.push(p)).unwrap();
-        assert_eq!((s.logs, s.errors, s.panics, s.calibrated), (6, 6, 1, 0));
+        assert_eq!((s.logs, s.errors, s.panics, s.calibrated()), (6, 6, 1, 0));
         assert_eq!(s.rows.len(), 6);
         assert!(s.rows.iter().all(|r| r.status == RowStatus::Error));
         assert_eq!(
@@ -759,37 +912,285 @@ mod tests {
         assert_eq!(f.skipped, vec![(given, SkipReason::NotALogName)]);
     }
 
-    #[test]
-    fn rows_of_a_multi_instance_report_pair_each_compass_with_its_verdict() {
-        let mag = |status: &str, x: f64| {
-            serde_json::json!({
-                "status": status, "failure": if status == "ok" { Value::Null } else { "coverage".into() },
-                "detail": null, "model": "sym9", "units": "uT", "method": "vector",
-                "offset": [x, 2.0, 3.0],
-                "matrix": [[1.0, 0.0, 0.0], [0.0, 1.5, 0.0], [0.0, 0.0, 1.0]],
-                "mounting": {"verdict": "matches"}
-            })
-        };
-        let report = serde_json::json!({
-            "input": {"instance": "mag:0"},
-            "calibration": {"mag": mag("ok", 1.0)},
-            "instances": [
-                {"instance": "mag:0", "primary": true, "calibration": {"mag": mag("ok", 1.0)}},
-                {"instance": "mag:1", "primary": false, "calibration": {"mag": mag("failed", 0.25)}}
-            ],
-            "quality": [{"instance": "mag:1", "verdict": "worse than onboard"}]
-        });
-        let rows = compass_rows("f.bin", &report);
-        assert_eq!(rows.len(), 2);
-        assert_eq!(rows[0].verdict, None);
-        assert_eq!(rows[1].verdict.as_deref(), Some("worse than onboard"));
-        assert_eq!(rows[1].status, RowStatus::Failed);
-        assert_eq!(rows[1].failure.as_deref(), Some("coverage"));
-        assert_eq!(rows[1].primary, Some(false));
-        let rec = rows[1].record();
+    /// A magnetometer's record in the report's JSON: `ok` with the given offset x, or failed
+    /// (`coverage`) with the placeholders a failed fit keeps (zero offset, identity matrix).
+    fn mag_json(status: &str, x: f64) -> Value {
+        let ok = status == "ok";
+        serde_json::json!({
+            "status": status, "failure": if ok { Value::Null } else { "coverage".into() },
+            "detail": if ok { Value::Null } else { "4 of 100 sphere regions filled".into() },
+            "model": "sym9", "units": "uT", "method": "vector", "rung": "diagonal",
+            "offset": if ok { [x, 2.0, 3.0] } else { [0.0; 3] },
+            "matrix": if ok {
+                [[1.0, 0.0, 0.0], [0.0, 1.5, 0.0], [0.0, 0.0, 1.0]]
+            } else {
+                [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+            },
+            "radius": 49.5, "rms_residual": 0.25,
+            "mounting": {"verdict": "matches"}
+        })
+    }
+
+    /// A held-out entry with both scores.
+    fn quality_json(instance: &str, kind: &str) -> Value {
+        serde_json::json!({
+            "instance": instance, "verdict": "imucald's is better: load the export; held out ...",
+            "verdict_kind": kind, "rung": "full",
+            "imucald": {"norm_spread_pct": 0.24, "dip_spread_deg": 0.52},
+            "onboard": {"norm_spread_pct": 0.35, "dip_spread_deg": 0.54}
+        })
+    }
+
+    /// The record as column name -> cell.
+    fn cells(row: &Row) -> BTreeMap<&'static str, String> {
+        let rec = row.record();
         assert_eq!(rec.len(), COLUMNS.len());
-        assert_eq!(&rec[9..13], ["0.25", "2", "3", "1"]);
-        assert_eq!(rec[16], "1.5");
-        assert_eq!(rec[21], "matches");
+        COLUMNS.iter().copied().zip(rec).collect()
+    }
+
+    /// The columns that hold numbers.
+    const NUMBER_COLUMNS: [&str; 19] = [
+        "offset_x",
+        "offset_y",
+        "offset_z",
+        "matrix_00",
+        "matrix_01",
+        "matrix_02",
+        "matrix_10",
+        "matrix_11",
+        "matrix_12",
+        "matrix_20",
+        "matrix_21",
+        "matrix_22",
+        "radius_ut",
+        "rms_ut",
+        "coverage_regions",
+        "heldout_norm_pct",
+        "heldout_dip_deg",
+        "vehicle_norm_pct",
+        "vehicle_dip_deg",
+    ];
+
+    fn two_compass_report() -> Value {
+        serde_json::json!({
+            "input": {"instance": "IMU+MAG"},
+            "coverage": {"mag": {"regions": 100, "filled": 37, "gaps_pct": 63.0}},
+            "calibration": {"mag": mag_json("ok", 1.0)},
+            "instances": [
+                {"instance": "IMU+MAG", "primary": true, "calibration": {"mag": mag_json("ok", 1.0)}},
+                {"instance": "IMU2+MAG2", "primary": false, "calibration": {"mag": mag_json("failed", 0.0)}}
+            ],
+            "quality": [quality_json("IMU+MAG", "better"), quality_json("IMU2+MAG2", "keep_vehicle")],
+            "load": [
+                {"instance": "IMU+MAG", "compass_id": 0, "load": true, "reason": "better"},
+                {"instance": "IMU2+MAG2", "compass_id": 1, "load": false, "reason": "fit_failed"}
+            ]
+        })
+    }
+
+    #[test]
+    fn rows_of_a_multi_instance_report_pair_each_compass_with_its_entries() {
+        let rows = compass_rows("f.bin", &two_compass_report());
+        assert_eq!(rows.len(), 2);
+        let ok = cells(&rows[0]);
+        assert_eq!(ok["status"], "ok");
+        assert_eq!(ok["primary"], "true");
+        assert_eq!(
+            [&ok["offset_x"], &ok["offset_y"], &ok["offset_z"]],
+            ["1", "2", "3"]
+        );
+        assert_eq!(ok["matrix_11"], "1.5");
+        assert_eq!(ok["mounting_verdict"], "matches");
+        assert_eq!(ok["verdict"], "better");
+        assert_eq!(
+            (ok["load"].as_str(), ok["load_reason"].as_str()),
+            ("true", "better")
+        );
+        // The held-out entry's rung before the calibration's.
+        assert_eq!(ok["rung"], "full");
+        assert_eq!(
+            (ok["radius_ut"].as_str(), ok["rms_ut"].as_str()),
+            ("49.5", "0.25")
+        );
+        assert_eq!(ok["coverage_regions"], "37");
+        assert_eq!(
+            [
+                &ok["heldout_norm_pct"],
+                &ok["heldout_dip_deg"],
+                &ok["vehicle_norm_pct"],
+                &ok["vehicle_dip_deg"]
+            ],
+            ["0.24", "0.52", "0.35", "0.54"]
+        );
+        assert_eq!(rows[1].primary, Some(false));
+        assert_eq!(rows[1].instance.as_deref(), Some("IMU2+MAG2"));
+    }
+
+    #[test]
+    fn a_failed_row_carries_its_words_and_no_numbers() {
+        let rows = compass_rows("f.bin", &two_compass_report());
+        let failed = cells(&rows[1]);
+        assert_eq!(failed["status"], "failed");
+        for c in NUMBER_COLUMNS {
+            assert_eq!(failed[c], "", "{c}: {failed:?}");
+        }
+        assert_eq!(failed["failure"], "coverage");
+        assert_eq!(failed["detail"], "4 of 100 sphere regions filled");
+        assert_eq!(failed["verdict"], "keep_vehicle");
+        assert_eq!(failed["load"], "false");
+        assert_eq!(failed["load_reason"], "fit_failed");
+        assert_eq!(
+            (failed["method"].as_str(), failed["model"].as_str()),
+            ("vector", "sym9")
+        );
+        // A log not replayed: its error, nothing else.
+        let error = cells(&Row::error("x.tlog", "cannot read".into()));
+        assert_eq!(error["status"], "error");
+        assert_eq!(error["failure"], "cannot read");
+        for c in NUMBER_COLUMNS
+            .iter()
+            .chain(&["primary", "load", "load_reason"])
+        {
+            assert_eq!(error[c], "", "{c}");
+        }
+    }
+
+    #[test]
+    fn the_verdict_column_is_the_word_not_the_prose() {
+        let rows = compass_rows("f.bin", &two_compass_report());
+        assert_eq!(rows[0].verdict.as_deref(), Some("better"));
+        let words = ["better", "keep_vehicle", "no_onboard", "failed"];
+        assert!(rows
+            .iter()
+            .all(|r| words.contains(&r.verdict.as_deref().unwrap())));
+    }
+
+    #[test]
+    fn a_log_of_one_unnamed_stream_takes_the_entries_named_primary() {
+        let report = serde_json::json!({
+            "input": {"instance": null},
+            "coverage": {"mag": {"regions": 100, "filled": 94, "gaps_pct": 6.0}},
+            "calibration": {"mag": {"status": "ok", "units": "counts", "radius": 812.0,
+                "rms_residual": 3.0, "offset": [1.0, 2.0, 3.0],
+                "matrix": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}},
+            "quality": [quality_json("primary", "no_onboard")],
+            "load": [{"instance": "primary", "compass_id": 0, "load": true, "reason": "no_onboard"}]
+        });
+        let rows = compass_rows("f.csv", &report);
+        assert_eq!(rows.len(), 1);
+        let c = cells(&rows[0]);
+        assert_eq!(c["instance"], "");
+        assert_eq!(c["verdict"], "no_onboard");
+        assert_eq!(
+            (c["load"].as_str(), c["load_reason"].as_str()),
+            ("true", "no_onboard")
+        );
+        assert_eq!(c["coverage_regions"], "94");
+        assert_eq!(c["offset_x"], "1");
+        // In counts: no figure in uT.
+        assert_eq!((c["radius_ut"].as_str(), c["rms_ut"].as_str()), ("", ""));
+    }
+
+    /// A report of a log whose fits all failed: what `kind` then makes of it.
+    fn report_of(kind: &str) -> Report {
+        use crate::report::{CalStatus, LoadDecision, LoadReason};
+        let mut pipe =
+            crate::calib::pipeline::Pipeline::new(&Config::default().calib()).expect("a pipeline");
+        let results = pipe.finish().clone();
+        let input = crate::report::InputReport::new(
+            "bin",
+            None,
+            Some("IMU+MAG".into()),
+            &Default::default(),
+            1,
+            1.0,
+        );
+        let mut r = crate::app::replay::make_report(input, &pipe, &results, None);
+        let decision = |load, reason| LoadDecision {
+            instance: "IMU+MAG".into(),
+            compass_id: 0,
+            load,
+            reason,
+        };
+        match kind {
+            "gyro_only" => {
+                r.calibration.gyro.status = CalStatus::Ok;
+                r.load = vec![decision(false, LoadReason::FitFailed)];
+            }
+            "keep_vehicle" | "better" => {
+                r.calibration.mag = crate::testdata::passing_mag_calibration(
+                    crate::calib::model::CalModel::Sym9,
+                    [1.0, 2.0, 3.0],
+                );
+                r.load = vec![if kind == "better" {
+                    decision(true, LoadReason::Better)
+                } else {
+                    decision(false, LoadReason::KeepVehicle)
+                }];
+            }
+            _ => r.load = vec![decision(false, LoadReason::FitFailed)],
+        }
+        r
+    }
+
+    /// A batch of logs named for what their replay gives: `gyro_only`, `keep_vehicle`, `better`,
+    /// `nothing`, `unreadable`.
+    fn batch_of(kinds: &[&str]) -> BatchSummary {
+        let logs: Vec<PathBuf> = kinds
+            .iter()
+            .map(|k| PathBuf::from(format!("{k}.bin")))
+            .collect();
+        let replay_one = |p: &Path| -> Result<Report, Error> {
+            match p.file_stem().and_then(|s| s.to_str()) {
+                Some("unreadable") => Err(Error::Other("unreadable".into())),
+                Some(kind) => Ok(report_of(kind)),
+                None => unreachable!(),
+            }
+        };
+        let opts = BatchOptions {
+            jobs: Some(2),
+            ..Default::default()
+        };
+        run_with(&logs, &opts, &replay_one, &mut |_| {}).unwrap()
+    }
+
+    #[test]
+    fn a_gyro_bias_only_or_keep_vehicle_is_calibrated_with_nothing_to_load() {
+        let s = batch_of(&["gyro_only", "keep_vehicle"]);
+        assert_eq!(
+            (s.to_load, s.nothing_to_load, s.nothing_calibrated, s.errors),
+            (0, 2, 0, 0)
+        );
+        assert_eq!((s.calibrated(), s.failed()), (2, 0));
+        assert_eq!(s.end(), BatchEnd::NothingToLoad);
+        assert!(
+            s.line().starts_with(
+                "2 logs, 2 calibrated (0 with something to load, 2 nothing to load), 0 failed"
+            ),
+            "{}",
+            s.line()
+        );
+        assert_eq!(s.rows[1].load_reason.as_deref(), Some("keep_vehicle"));
+        // Nothing to load anywhere, and a log failed too: the failure is what the batch says.
+        let s = batch_of(&["gyro_only", "unreadable"]);
+        assert_eq!((s.nothing_to_load, s.errors), (1, 1));
+        assert_eq!(s.end(), BatchEnd::Failed);
+    }
+
+    #[test]
+    fn the_batch_ends_by_what_its_logs_had_to_load() {
+        let s = batch_of(&["better", "keep_vehicle", "gyro_only"]);
+        assert_eq!((s.to_load, s.nothing_to_load), (1, 2));
+        assert_eq!(s.end(), BatchEnd::SomethingToLoad);
+        // A log that failed beside one to load: failed, as before.
+        let s = batch_of(&["better", "nothing", "unreadable"]);
+        assert_eq!(
+            (s.to_load, s.nothing_calibrated, s.errors, s.failed()),
+            (1, 1, 1, 2)
+        );
+        assert_eq!(s.end(), BatchEnd::Failed);
+        let s = batch_of(&["nothing", "unreadable"]);
+        assert_eq!((s.calibrated(), s.failed()), (0, 2));
+        assert_eq!(s.end(), BatchEnd::Failed);
     }
 }

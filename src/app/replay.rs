@@ -1495,6 +1495,9 @@ pub fn next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String 
         _ if asked_export => format!(
             "next: no parameter file was written: no compass or accelerometer calibration passed{not}"
         ),
+        _ if load.is_empty() && !r.load.is_empty() => format!(
+            "next: keep the vehicle's own compass calibration: no compass here is one to load{not}"
+        ),
         _ if !load.is_empty() => format!(
             "next: add --export DIR for the ArduPilot, PX4 and Fusion parameter files of {}, --html FILE for a page of plots",
             load.join(", ")

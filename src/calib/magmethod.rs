@@ -1035,7 +1035,7 @@ fn verdict(
                 a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg, a.heading_spread_deg, b.heading_spread_deg
             );
             if better && !worse {
-                (Verdict::Better, format!("imucald's is better: load the export; {figures}"))
+                (Verdict::Better, format!("imucald's is better; {figures}"))
             } else if worse {
                 (
                     Verdict::KeepVehicle,

@@ -1,12 +1,13 @@
 //! Is it a compass seeing the earth's field? Two checks on a compass's readings before any
 //! calibration of it is believed, each failing with its numbers:
 //!
-//! - **Strength.** A flight stack accepts a hard iron of at most COMPASS_OFFS_MAX (ArduPilot's
-//!   default 1800 mGauss, [`crate::calib::ladder::OFFSET_MAX_UT`]), and the earth's field is at most
-//!   [`EARTH_MAX_UT`] anywhere (the place's own strength where it is known). Readings whose typical
-//!   strength is beyond the two together are not a compass reading the earth's field through a
-//!   hard iron any stack would calibrate: a magnet or a power lead beside it, a failing sensor, or
-//!   a wrong unit.
+//! - **Strength.** The common drone compasses read at most +-8 gauss ([`FULL_SCALE_UT`]: the
+//!   HMC5883L's and QMC5883L's largest range), and the earth's field is at most [`EARTH_MAX_UT`]
+//!   anywhere (the place's own strength where it is known). Readings whose typical strength is
+//!   beyond the two together are not a compass reading the earth's field through a hard iron:
+//!   a magnet or a power lead beside it, a failing sensor, or a wrong unit. (A phone's hard iron
+//!   of 400 uT is within; a flight stack accepts at most COMPASS_OFFS_MAX, 180 uT, which the
+//!   model ladder's bounds check.)
 //! - **Turning.** With the vehicle's attitude and the earth's field, the field seen in body axes
 //!   varies as the vehicle turns by a known amount; the readings must vary with it. Readings that
 //!   vary by less than [`MIN_TURN_RATIO`] of it do not turn with the vehicle (a field fixed in the
@@ -21,6 +22,8 @@ use nalgebra::Vector3;
 
 /// The strongest earth field anywhere (about 66 uT near the south magnetic pole), uT.
 pub const EARTH_MAX_UT: f64 = 67.0;
+/// The largest range of the common drone compasses, +-8 gauss (HMC5883L: 8.1 G; QMC5883L: 8 G), uT.
+pub const FULL_SCALE_UT: f64 = 800.0;
 /// Readings varying by less than this share of the expected field's variation do not turn with
 /// the vehicle. A soft iron scales the field by 0.8-1.2 ([`crate::calib::ladder::DIAG_RANGE`]);
 /// a fifth is far outside anything a calibration can correct.
@@ -61,7 +64,7 @@ impl std::fmt::Display for Implausible {
                 earth_ut,
             } => write!(
                 f,
-                "the compass reads {median_ut:.0} uT (median), the earth's field is {earth_ut:.0} uT: more than a hard iron any flight stack accepts (COMPASS_OFFS_MAX 1800 mGauss) can explain ({limit_ut:.0} uT at most); look for a magnet or a power lead beside the compass, a failing sensor, or a wrong unit"
+                "the compass reads {median_ut:.0} uT (median), the earth's field is {earth_ut:.0} uT: beyond the +-8 gauss of the common drone compasses with the earth's field on top ({limit_ut:.0} uT at most), no hard iron a calibration can take out; look for a magnet or a power lead beside the compass, a failing sensor, or a wrong unit"
             ),
             Implausible::DoesNotTurn {
                 readings_ut,
@@ -101,7 +104,7 @@ pub fn check(
             let mid = norms.len() / 2;
             let median_ut = *norms.select_nth_unstable_by(mid, f64::total_cmp).1;
             let earth = earth_ut.unwrap_or(EARTH_MAX_UT);
-            let limit_ut = crate::calib::ladder::OFFSET_MAX_UT + earth;
+            let limit_ut = FULL_SCALE_UT + earth;
             if median_ut > limit_ut {
                 return Some(Implausible::TooStrong {
                     median_ut,
@@ -160,7 +163,8 @@ mod tests {
 
     #[test]
     fn an_ordinary_compass_passes_and_a_large_hard_iron_too() {
-        let p = turning(1.0, Vector3::new(40.0, -100.0, 60.0));
+        // A phone's hard iron of 400 uT (the tyrex recordings) is a compass all the same.
+        let p = turning(1.0, Vector3::new(40.0, -100.0, 400.0));
         let r: Vec<_> = p.iter().map(|x| x.0).collect();
         assert_eq!(check(&r, &p, Some(48.0)), None);
     }
