@@ -31,14 +31,67 @@
 //! blocks and scored on the odd ones (spread of the field's norm and of its dip). The ladder
 //! climbs from the lowest rung fitted: a richer rung is taken when it cuts one held-out spread by
 //! [`RICHER_GAIN`] or more and raises neither by more than [`RICHER_SLACK`]; a matrix that turns
-//! the compass by more than [`crate::calib::magmethod::MAX_SILENT_ROTATION_DEG`] must also not
+//! the compass by more than [`MAX_SILENT_ROTATION_DEG`] must also not
 //! widen the held-out heading. The rung taken is then fitted on every reading.
 //!
 //! Pure: no I/O.
 
 use crate::calib::outcome::HeldOut;
+pub use crate::calib::outcome::{Rung, RungReport, Start};
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
-use serde::{Deserialize, Serialize};
+
+/// A rotation within a soft iron above this is named in the reason (and a rung whose matrix turns
+/// the compass more must not widen the held-out heading), deg.
+pub(crate) const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
+
+/// Readings a held-out score needs at least.
+pub(crate) const QUALITY_MIN_READINGS: usize = 30;
+
+/// The spread of the field seen through a calibration: `readings` are (calibrated field in body
+/// axes, uT; body -> NED attitude). `None` with fewer than [`QUALITY_MIN_READINGS`].
+pub fn held_out(
+    readings: &[(crate::types::Vec3, nalgebra::UnitQuaternion<f64>)],
+) -> Option<HeldOut> {
+    let mut norms = Vec::with_capacity(readings.len());
+    let mut dips = Vec::with_capacity(readings.len());
+    let (mut east, mut north) = (0.0f64, 0.0f64);
+    for (m, q) in readings {
+        let v = nalgebra::Vector3::from(*m);
+        let n = v.norm();
+        if !(n.is_finite() && n > 0.0) {
+            continue;
+        }
+        // The field in NED; its dip is the angle below the horizontal (down positive).
+        let ned = q * v;
+        norms.push(n);
+        dips.push((ned.z / n).clamp(-1.0, 1.0).asin().to_degrees());
+        let h = ned.x.hypot(ned.y);
+        if h > 0.0 {
+            north += ned.x / h;
+            east += ned.y / h;
+        }
+    }
+    if norms.len() < QUALITY_MIN_READINGS {
+        return None;
+    }
+    let mean_sd = |x: &[f64]| {
+        let m = x.iter().sum::<f64>() / x.len() as f64;
+        let v = x.iter().map(|a| (a - m) * (a - m)).sum::<f64>() / x.len() as f64;
+        (m, v.sqrt())
+    };
+    let (nm, nsd) = mean_sd(&norms);
+    let (dm, dsd) = mean_sd(&dips);
+    // Circular standard deviation of the horizontal direction: sqrt(-2 ln R), R the mean
+    // resultant length of its unit vectors.
+    let r = (north.hypot(east) / norms.len() as f64).clamp(1e-12, 1.0);
+    Some(HeldOut {
+        norm_spread_pct: 100.0 * nsd / nm,
+        dip_spread_deg: dsd,
+        dip_mean_deg: dm,
+        heading_spread_deg: (-2.0 * r.ln()).sqrt().to_degrees(),
+        readings: norms.len(),
+    })
+}
 
 /// ArduPilot MAGFit's bounds on the diagonal of the soft-iron matrix (COMPASS_DIA).
 pub const DIAG_RANGE: (f64, f64) = (0.8, 1.2);
@@ -63,39 +116,6 @@ pub const RICHER_GAIN: f64 = 0.10;
 pub const RICHER_SLACK: f64 = 0.05;
 /// Readings a rung's fit needs at least.
 pub const MIN_READINGS: usize = crate::calib::vector::MIN_POINTS;
-
-/// One rung of the ladder, the simplest first.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Rung {
-    /// Offsets only, the soft iron kept (the vehicle's, where the log carries it).
-    Offsets,
-    /// Offsets and one scale.
-    Scale,
-    /// Offsets and one scale per axis.
-    Diagonal,
-    /// Offsets and the full soft iron.
-    Full,
-}
-
-impl Rung {
-    pub const ALL: [Rung; 4] = [Rung::Offsets, Rung::Scale, Rung::Diagonal, Rung::Full];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Rung::Offsets => "offsets",
-            Rung::Scale => "scale",
-            Rung::Diagonal => "diagonal",
-            Rung::Full => "full",
-        }
-    }
-}
-
-impl std::fmt::Display for Rung {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
 
 /// A calibration in body axes: calibrated = `matrix` (raw - `offset`), uT.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -148,16 +168,6 @@ impl RungCal {
         let inv = self.affine.matrix.try_inverse()?;
         self.current_ut_per_a.map(|k| -(inv * k))
     }
-}
-
-/// Where the ladder starts: the calibration every rung refines.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Start {
-    /// The vehicle's own calibration, as the log records it.
-    Vehicle,
-    /// No calibration known: the identity.
-    Identity,
 }
 
 /// One reading: the field in body axes (any onboard correction undone), its attitude, and which
@@ -230,7 +240,7 @@ impl std::fmt::Display for Refusal {
             Refusal::NotScored => write!(
                 f,
                 "fewer than {} held-out readings to score it",
-                crate::calib::magmethod::QUALITY_MIN_READINGS
+                QUALITY_MIN_READINGS
             ),
             Refusal::RestsOnAssumption {
                 offset_ut,
@@ -243,20 +253,6 @@ impl std::fmt::Display for Refusal {
             ),
         }
     }
-}
-
-/// One rung as the report states it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RungReport {
-    pub rung: Rung,
-    /// Fitted on the even blocks, scored on the odd ones.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub held_out: Option<HeldOut>,
-    /// Why it gave no calibration, when it did not.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub refused: Option<String>,
-    /// The rung taken.
-    pub taken: bool,
 }
 
 /// What the ladder gives.
@@ -415,7 +411,7 @@ pub fn choose(scored: &[(Rung, HeldOut, f64)]) -> (Option<Rung>, String) {
         let cuts_dip = b.dip_spread_deg < (1.0 - RICHER_GAIN) * a.dip_spread_deg;
         let raises = b.norm_spread_pct > (1.0 + RICHER_SLACK) * a.norm_spread_pct
             || b.dip_spread_deg > (1.0 + RICHER_SLACK) * a.dip_spread_deg;
-        let turns = next.2 > crate::calib::magmethod::MAX_SILENT_ROTATION_DEG;
+        let turns = next.2 > MAX_SILENT_ROTATION_DEG;
         let heading_wider = turns && b.heading_spread_deg > a.heading_spread_deg;
         let figures = format!(
             "norm {:.2} -> {:.2} %, dip {:.2} -> {:.2} deg",
@@ -744,7 +740,7 @@ fn score(points: &[&LadderPoint], cal: &RungCal) -> Option<HeldOut> {
             ([c.x, c.y, c.z], p.body_ned)
         })
         .collect();
-    crate::calib::magmethod::held_out(&r)
+    held_out(&r)
 }
 
 #[cfg(test)]

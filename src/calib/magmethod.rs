@@ -19,8 +19,7 @@ pub use crate::calib::outcome::{FieldUsed, MagMethod, MethodChoice};
 use crate::calib::vector::{VectorFit, VectorPoint, MIN_CURRENT_SD_A};
 use crate::types::{DateSource, GeoPoint, LogWhere, Sample, Vec3};
 
-/// A rotation within the vector fit's soft iron above this is named in the reason, deg.
-pub(crate) const MAX_SILENT_ROTATION_DEG: f64 = 3.0;
+use crate::calib::ladder::MAX_SILENT_ROTATION_DEG;
 
 /// The planar method is taken when 95 % of the readings are within this of level (by the logged
 /// attitude when there is one, else by the accelerometer) and the turns' mean bank is within
@@ -742,54 +741,8 @@ fn install_full12(
 /// of an ordinary flight, short enough that a flight of a few minutes gives several of each.
 pub(crate) const QUALITY_BLOCK_S: f64 = 20.0;
 
-/// Readings a held-out score needs at least.
-pub(crate) const QUALITY_MIN_READINGS: usize = 30;
-
-/// The spread of the field seen through a calibration: `readings` are (calibrated field in body
-/// axes, uT; body -> NED attitude). `None` with fewer than [`QUALITY_MIN_READINGS`].
-pub fn held_out(
-    readings: &[(Vec3, nalgebra::UnitQuaternion<f64>)],
-) -> Option<crate::calib::outcome::HeldOut> {
-    let mut norms = Vec::with_capacity(readings.len());
-    let mut dips = Vec::with_capacity(readings.len());
-    let (mut east, mut north) = (0.0, 0.0);
-    for (m, q) in readings {
-        let v = nalgebra::Vector3::from(*m);
-        let n = v.norm();
-        if !(n.is_finite() && n > 0.0) {
-            continue;
-        }
-        // The field in NED; its dip is the angle below the horizontal (down positive).
-        let ned = q * v;
-        norms.push(n);
-        dips.push((ned.z / n).clamp(-1.0, 1.0).asin().to_degrees());
-        let h = ned.x.hypot(ned.y);
-        if h > 0.0 {
-            north += ned.x / h;
-            east += ned.y / h;
-        }
-    }
-    if norms.len() < QUALITY_MIN_READINGS {
-        return None;
-    }
-    let mean_sd = |x: &[f64]| {
-        let m = x.iter().sum::<f64>() / x.len() as f64;
-        let v = x.iter().map(|a| (a - m) * (a - m)).sum::<f64>() / x.len() as f64;
-        (m, v.sqrt())
-    };
-    let (nm, nsd) = mean_sd(&norms);
-    let (dm, dsd) = mean_sd(&dips);
-    // Circular standard deviation of the horizontal direction: sqrt(-2 ln R), R the mean
-    // resultant length of its unit vectors.
-    let r = (north.hypot(east) / norms.len() as f64).clamp(1e-12, 1.0);
-    Some(crate::calib::outcome::HeldOut {
-        norm_spread_pct: 100.0 * nsd / nm,
-        dip_spread_deg: dsd,
-        dip_mean_deg: dm,
-        heading_spread_deg: (-2.0 * r.ln()).sqrt().to_degrees(),
-        readings: norms.len(),
-    })
-}
+pub use crate::calib::ladder::held_out;
+use crate::calib::ladder::QUALITY_MIN_READINGS;
 
 /// The calibrated field of a sample in body axes (uT), when it has a magnetometer reading.
 pub(crate) type FieldOf<'a> = dyn Fn(&Sample) -> Option<Vec3> + 'a;

@@ -91,15 +91,72 @@ pub struct QualityReport {
     pub verdict_kind: Option<Verdict>,
     /// Where the ladder of models started: the vehicle's own calibration, or the identity.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub start: Option<crate::calib::ladder::Start>,
+    pub start: Option<Start>,
     /// The rung of the ladder taken ([`crate::calib::ladder`]), and why.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rung: Option<crate::calib::ladder::Rung>,
+    pub rung: Option<Rung>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rung_reason: Option<String>,
     /// Every rung: its held-out score, or why it gave no calibration.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub rungs: Vec<crate::calib::ladder::RungReport>,
+    pub rungs: Vec<RungReport>,
+}
+
+/// One rung of the ladder, the simplest first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Rung {
+    /// Offsets only, the soft iron kept (the vehicle's, where the log carries it).
+    Offsets,
+    /// Offsets and one scale.
+    Scale,
+    /// Offsets and one scale per axis.
+    Diagonal,
+    /// Offsets and the full soft iron.
+    Full,
+}
+
+impl Rung {
+    pub const ALL: [Rung; 4] = [Rung::Offsets, Rung::Scale, Rung::Diagonal, Rung::Full];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Rung::Offsets => "offsets",
+            Rung::Scale => "scale",
+            Rung::Diagonal => "diagonal",
+            Rung::Full => "full",
+        }
+    }
+}
+
+impl std::fmt::Display for Rung {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Where the ladder starts: the calibration every rung refines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Start {
+    /// The vehicle's own calibration, as the log records it.
+    Vehicle,
+    /// No calibration known: the identity.
+    Identity,
+}
+
+/// One rung as the report states it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RungReport {
+    pub rung: Rung,
+    /// Fitted on the even blocks, scored on the odd ones.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out: Option<HeldOut>,
+    /// Why it gave no calibration, when it did not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refused: Option<String>,
+    /// The rung taken.
+    pub taken: bool,
 }
 
 /// The held-out answer as a fixed word.
@@ -387,7 +444,7 @@ pub struct MethodChoice {
     /// The rung of the model ladder taken ([`crate::calib::ladder`]), when the vector method's
     /// calibration is the ladder's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rung: Option<crate::calib::ladder::Rung>,
+    pub rung: Option<Rung>,
     /// The field per ampere of battery current of the rung's calibration, as the raw reading
     /// carries it (raw = A h + o + k c), uT/A: when the logged current varies.
     #[serde(default, skip_serializing_if = "Option::is_none")]
