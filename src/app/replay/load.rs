@@ -68,6 +68,14 @@ fn reason(
         Some(Verdict::Better) => LoadReason::Better,
         Some(Verdict::NoOnboard) => LoadReason::NoOnboard,
         Some(Verdict::KeepVehicle) => LoadReason::KeepVehicle,
+        // The held-out fit is the vector ladder's: it cannot judge a planar calibration, which
+        // its own checks (the headings' sectors, the 2-D soft iron) vouch for.
+        Some(Verdict::Failed)
+            if mag.method.as_ref().map(|m| m.method)
+                == Some(crate::calib::outcome::MagMethod::Planar) =>
+        {
+            LoadReason::NotJudged
+        }
         Some(Verdict::Failed) => LoadReason::HeldOutFailed,
         None => LoadReason::NotJudged,
     }
