@@ -144,6 +144,15 @@ def gcs():
         if k == 0:
             command(42424, 1, 191, p1=0, p2=0, p3=0)  # start, to our ids, autosave 0
         else:
+            # As a ground station does, the next run is started only once the last one reported
+            # (a busy machine may finish the fit after the data ended): 5 s at the most.
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline and not any(r["run"] == 0 for r in g["reports"]):
+                msg = m.recv_match(blocking=False)
+                if msg is None:
+                    time.sleep(0.01)
+                else:
+                    handle(msg)
             command(42424, 0, 0, p1=0, p2=0, p3=0)  # start, broadcast
         run[0] = k
 
