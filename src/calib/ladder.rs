@@ -24,13 +24,16 @@
 //! of a fit bounded near the start): what the readings determine comes from them, and along what
 //! they do not (the body-z axis of a level flight) the vehicle's own holds. Each rung's result,
 //! composed with the start, must lie within ArduPilot's bounds ([`SCALE_RANGE`], then
-//! [`DIAG_RANGE`] and [`OFFDIAG_MAX`] over the scale, [`OFFSET_MAX_UT`], [`RADIUS_RANGE_UT`]); one
-//! outside is refused with the number.
+//! [`DIAG_RANGE`] and [`OFFDIAG_MAX`] over the scale, [`OFFSET_MAX_UT`], [`RADIUS_RANGE_UT`]). A
+//! matrix outside is drawn back by the weakest stronger prior that brings it within (the ridge
+//! path stopped at the bounds, as a bounded fit stops there); an offset outside is refused with
+//! the number.
 //!
 //! Choice ([`choose`]): each rung is fitted on the even [`crate::calib::magmethod::QUALITY_BLOCK_S`]
 //! blocks and scored on the odd ones (spread of the field's norm and of its dip). The ladder
 //! climbs from the lowest rung fitted: a richer rung is taken when it cuts one held-out spread by
-//! [`RICHER_GAIN`] or more and raises neither by more than [`RICHER_SLACK`]; a matrix that turns
+//! [`RICHER_GAIN`] or more and raises neither by more than [`RICHER_SLACK`] (or, in a trade, by
+//! more than [`RICHER_TRADE`] of the cut); a matrix that turns
 //! the compass by more than [`MAX_SILENT_ROTATION_DEG`] must also not
 //! widen the held-out heading. The rung taken is then fitted on every reading.
 //!
@@ -101,8 +104,12 @@ pub const OFFDIAG_MAX: f64 = 0.2;
 /// to 1.5); the diagonal and off-diagonal bounds apply to the matrix over it.
 pub const SCALE_RANGE: (f64, f64) = (1.0 / 1.5, 1.5);
 /// How many times a matrix out of bounds is fitted again with a prior four times as strong
-/// (the last prior, 4^7 times the first, holds the start nearly as it is).
+/// (the last prior, 4^7 times the first, holds the start nearly as it is), before
+/// [`PRIOR_BISECTIONS`] find the weakest prior within the bounds.
 pub const PRIOR_TIGHTENINGS: usize = 8;
+/// How many times the prior's weight is then halved in log between the last weight out of bounds
+/// and the first within (six: the weakest prior within the bounds to 2 % of its weight).
+pub const PRIOR_BISECTIONS: usize = 6;
 /// The prior on each element of the soft iron's departure from the start: half of
 /// [`OFFDIAG_MAX`], so that ArduPilot's bounds are two standard deviations.
 pub const PRIOR_SD: f64 = OFFDIAG_MAX / 2.0;
@@ -112,8 +119,13 @@ pub const OFFSET_MAX_UT: f64 = 180.0;
 pub const RADIUS_RANGE_UT: (f64, f64) = (15.0, 95.0);
 /// A richer rung must cut a held-out spread by this share...
 pub const RICHER_GAIN: f64 = 0.10;
-/// ... and raise neither by more than this share.
+/// ... and raise neither by more than this share, or by more than [`RICHER_TRADE`] times the
+/// share it cuts the other by, whichever is larger.
 pub const RICHER_SLACK: f64 = 0.05;
+/// A rung that cuts one spread by a share `x` may raise the other by up to this times `x`: a
+/// trade is taken when the gain outweighs the loss threefold (a ROV's full soft iron cuts the dip
+/// spread by 40 % and raises the norm's by 11 %).
+pub const RICHER_TRADE: f64 = 1.0 / 3.0;
 /// Readings a rung's fit needs at least.
 pub const MIN_READINGS: usize = crate::calib::vector::MIN_POINTS;
 
@@ -407,10 +419,13 @@ pub fn choose(scored: &[(Rung, HeldOut, f64)]) -> (Option<Rung>, String) {
     let mut words = Vec::new();
     for next in &scored[1..] {
         let (a, b) = (&at.1, &next.1);
-        let cuts_norm = b.norm_spread_pct < (1.0 - RICHER_GAIN) * a.norm_spread_pct;
-        let cuts_dip = b.dip_spread_deg < (1.0 - RICHER_GAIN) * a.dip_spread_deg;
-        let raises = b.norm_spread_pct > (1.0 + RICHER_SLACK) * a.norm_spread_pct
-            || b.dip_spread_deg > (1.0 + RICHER_SLACK) * a.dip_spread_deg;
+        // Each spread's change as a share of the simpler rung's: negative cuts.
+        let norm = b.norm_spread_pct / a.norm_spread_pct - 1.0;
+        let dip = b.dip_spread_deg / a.dip_spread_deg - 1.0;
+        let cuts_norm = norm < -RICHER_GAIN;
+        let cuts_dip = dip < -RICHER_GAIN;
+        let cut = (-norm).max(-dip);
+        let raises = norm.max(dip) > RICHER_SLACK.max(RICHER_TRADE * cut);
         let turns = next.2 > MAX_SILENT_ROTATION_DEG;
         let heading_wider = turns && b.heading_spread_deg > a.heading_spread_deg;
         let figures = format!(
@@ -424,6 +439,13 @@ pub fn choose(scored: &[(Rung, HeldOut, f64)]) -> (Option<Rung>, String) {
             words.push(format!(
                 "{} turns the compass by {:.1} deg and widens the held-out heading ({:.2} -> {:.2} deg): not taken",
                 next.0, next.2, a.heading_spread_deg, b.heading_spread_deg
+            ));
+        } else if (cuts_norm || cuts_dip) && raises {
+            words.push(format!(
+                "{} cuts one held-out spread by {:.0} % but raises the other by {:.0} % ({figures})",
+                next.0,
+                100.0 * cut,
+                100.0 * norm.max(dip)
             ));
         } else {
             words.push(format!(
@@ -456,10 +478,9 @@ fn fit_rung(
         });
     }
     // A matrix outside the bounds is drawn back towards the start by a stronger prior, as a
-    // bounded fit stops at its bounds: the prior's weight grows fourfold at a time.
-    let mut last = None;
-    for tighten in 0..PRIOR_TIGHTENINGS {
-        let weight = 4f64.powi(tighten as i32);
+    // bounded fit stops at its bounds: the prior's weight grows fourfold at a time until the
+    // matrix is within them, then is bisected back to the weakest prior that keeps it there.
+    let fit_at = |weight: f64| -> Result<(RungCal, f64), Refusal> {
         let (d, c, k) = regress(rung, points, b_ned, start, with_current, weight)?;
         let affine = start
             .then(&d, &c)
@@ -468,8 +489,29 @@ fn fit_rung(
             affine,
             current_ut_per_a: k,
         };
-        match check_bounds(&cal, points, b_ned) {
-            Ok(()) => return Ok((cal, rotation_deg(&affine.matrix))),
+        check_bounds(&cal, points, b_ned)?;
+        Ok((cal, rotation_deg(&affine.matrix)))
+    };
+    let mut last = None;
+    for tighten in 0..PRIOR_TIGHTENINGS {
+        let weight = 4f64.powi(tighten as i32);
+        match fit_at(weight) {
+            Ok(mut best) => {
+                if tighten > 0 {
+                    let (mut out, mut within) = (weight / 4.0, weight);
+                    for _ in 0..PRIOR_BISECTIONS {
+                        let mid = (out * within).sqrt();
+                        match fit_at(mid) {
+                            Ok(fit) => {
+                                best = fit;
+                                within = mid;
+                            }
+                            Err(_) => out = mid,
+                        }
+                    }
+                }
+                return Ok(best);
+            }
             Err(e @ Refusal::OutOfBounds { matrix: true, .. }) if rung != Rung::Offsets => {
                 last = Some(e)
             }
@@ -876,5 +918,32 @@ mod tests {
         let (r, why) = choose(&scored);
         assert_eq!(r, Some(Rung::Diagonal), "{why}");
         assert!(why.contains("full does not cut"), "{why}");
+    }
+
+    #[test]
+    fn choose_takes_a_trade_only_when_the_gain_outweighs_the_loss_threefold() {
+        let h = |n: f64, d: f64| HeldOut {
+            norm_spread_pct: n,
+            dip_spread_deg: d,
+            dip_mean_deg: 60.0,
+            heading_spread_deg: 2.0,
+            readings: 100,
+        };
+        // The ROV's first compass: full cuts the dip spread by 40 % and raises the norm's by 11 %.
+        let rov = [
+            (Rung::Offsets, h(1.03, 1.13), 0.0),
+            (Rung::Diagonal, h(0.83, 1.12), 0.0),
+            (Rung::Full, h(0.92, 0.67), 0.0),
+        ];
+        let (r, why) = choose(&rov);
+        assert_eq!(r, Some(Rung::Full), "{why}");
+        // A cut of 15 % bought with a raise of 8 % (over a third of it) is no trade.
+        let poor = [
+            (Rung::Offsets, h(1.0, 1.0), 0.0),
+            (Rung::Scale, h(1.08, 0.85), 0.0),
+        ];
+        let (r, why) = choose(&poor);
+        assert_eq!(r, Some(Rung::Offsets), "{why}");
+        assert!(why.contains("but raises the other by 8 %"), "{why}");
     }
 }
