@@ -400,18 +400,31 @@ fn plausibility(
         let pipe = c.pipe;
         let mut readings = Vec::new();
         let mut expected = Vec::new();
+        let (mut with_accel, mut accel) = (Vec::new(), Vec::new());
         for s in c.samples {
-            let Some(m) = pipe.to_body(s).mag_ut else {
+            let body = pipe.to_body(s);
+            let Some(m) = body.mag_ut else {
                 continue;
             };
             let m = nalgebra::Vector3::from(m);
             readings.push(m);
+            if let Some(a) = body.accel_mps2 {
+                with_accel.push(m);
+                accel.push(nalgebra::Vector3::from(a));
+            }
             if let (Some(b), Some(q)) = (b, s.ref_q.and_then(crate::attitude::body_ned_of_ref_q)) {
                 expected.push((m, q.inverse_transform_vector(&b)));
             }
         }
         let earth = field.as_ref().map(|f| f.total_ut);
-        if let Some(e) = crate::calib::plausible::check(&readings, &expected, earth) {
+        let still = || {
+            expected
+                .is_empty()
+                .then(|| crate::calib::plausible::check_still(&with_accel, &accel))
+                .flatten()
+        };
+        if let Some(e) = crate::calib::plausible::check(&readings, &expected, earth).or_else(still)
+        {
             found.push((c.other, c.instance.clone(), e));
         }
     }
@@ -1319,8 +1332,14 @@ fn write_plots(
     Ok(out)
 }
 
-/// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise.
+/// Coverage about the calibrated centre when the fit is good, about the raw sphere centre otherwise;
+/// none at all where the readings are not the field the sensor should see (implausible, e.g. a
+/// compass whose field does not turn): their directions about a centre of their own are noise,
+/// not poses.
 fn shown_coverage(r: &crate::calib::outcome::SensorResult) -> crate::calib::coverage::Coverage {
+    if r.report.failure == Some(crate::calib::fit::FitFailure::Implausible) {
+        return crate::calib::coverage::coverage(&[], &[0.0; 3]);
+    }
     if r.calibration.is_some() {
         r.coverage_after.clone()
     } else {

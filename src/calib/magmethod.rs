@@ -654,7 +654,12 @@ pub(crate) fn install_rung(
         [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
         [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
     ];
-    let r = install_full12(mag, [c.offset.x, c.offset.y, c.offset.z], matrix);
+    let r = install_matrix(
+        mag,
+        model_holding(&matrix),
+        [c.offset.x, c.offset.y, c.offset.z],
+        matrix,
+    );
     r.radius = chosen.field_ut;
     r.rms_residual = chosen.rms_residual_ut;
     // The offset's standard error from the residual, the readings taken as independent (a
@@ -717,8 +722,30 @@ fn install_full12(
     offset: Vec3,
     matrix: [[f64; 3]; 3],
 ) -> &mut crate::calib::outcome::SensorCalibration {
+    install_matrix(mag, ModelKind::Full12, offset, matrix)
+}
+
+/// The smallest model that holds `matrix`: `diag6` when it is diagonal, `sym9` when symmetric
+/// (every rung of the ladder), else `full12`.
+fn model_holding(m: &[[f64; 3]; 3]) -> ModelKind {
+    let off = [(0, 1), (0, 2), (1, 2)];
+    if off.iter().all(|&(r, c)| m[r][c] == 0.0 && m[c][r] == 0.0) {
+        ModelKind::Diag6
+    } else if off.iter().all(|&(r, c)| (m[r][c] - m[c][r]).abs() <= 1e-12) {
+        ModelKind::Sym9
+    } else {
+        ModelKind::Full12
+    }
+}
+
+fn install_matrix(
+    mag: &mut SensorResult,
+    model: ModelKind,
+    offset: Vec3,
+    matrix: [[f64; 3]; 3],
+) -> &mut crate::calib::outcome::SensorCalibration {
     mag.calibration = Some(Calibration {
-        model: ModelKind::Full12,
+        model,
         offset,
         matrix,
     });
@@ -726,7 +753,7 @@ fn install_full12(
     r.status = crate::calib::outcome::CalStatus::Ok;
     r.failure = None;
     r.detail = None;
-    r.model = CalModel::Full12;
+    r.model = model.into();
     r.offset = offset;
     r.matrix = matrix;
     r.iterations = 0;

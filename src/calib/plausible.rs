@@ -15,6 +15,11 @@
 //!   [`MAX_TURN_RATIO`] times it change on their own (a current, a moving magnet, a failing
 //!   sensor). Judged only when the attitudes turn the expected field by [`MIN_EXPECTED_SPREAD`] of
 //!   its strength or more.
+//! - **Turning, without an attitude** ([`check_still`]). When the accelerometer's direction
+//!   spreads about two axes by [`MIN_TILT_SPREAD`] or more, the vehicle turned in a way no
+//!   rotation about the field's own direction can give, and the earth's field (at least
+//!   [`EARTH_MIN_UT`]) seen in body axes must vary with it. Readings varying by less than
+//!   [`MIN_TURN_RATIO`] of that weakest field do not turn with the vehicle.
 //!
 //! Pure: no I/O.
 
@@ -34,6 +39,12 @@ pub const MAX_TURN_RATIO: f64 = 5.0;
 /// a few degrees of attitude noise aside (0.05 is a turn of about 3 deg).
 pub const MIN_EXPECTED_SPREAD: f64 = 0.05;
 
+/// The weakest earth field anywhere (about 22 uT, in the South Atlantic Anomaly), uT.
+pub const EARTH_MIN_UT: f64 = 22.0;
+/// The accelerometer's direction must spread by this much (RMS of the unit vector, second
+/// largest axis; 0.2 is about 12 deg) about two axes before a compass is expected to turn.
+pub const MIN_TILT_SPREAD: f64 = 0.2;
+
 /// Why a compass's readings are not believed.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Implausible {
@@ -52,6 +63,12 @@ pub enum Implausible {
     VariesOnItsOwn {
         readings_ut: f64,
         expected_ut: f64,
+    },
+    /// No attitude: RMS variation of the readings, uT, while gravity's direction spread by
+    /// `tilt_spread` (RMS of the unit vector, second largest axis) about two axes.
+    StillWhileTurning {
+        readings_ut: f64,
+        tilt_spread: f64,
     },
 }
 
@@ -79,6 +96,14 @@ impl std::fmt::Display for Implausible {
             } => write!(
                 f,
                 "the field changes on its own: the readings vary by {readings_ut:.1} uT (RMS) while the earth's field seen through the attitude varies by {expected_ut:.1} uT; look for a current or a moving magnet near the compass, or a failing sensor"
+            ),
+            Implausible::StillWhileTurning {
+                readings_ut,
+                tilt_spread,
+            } => write!(
+                f,
+                "the field does not turn with the vehicle: the readings vary by {readings_ut:.2} uT (RMS) while the accelerometer shows the vehicle turned about two axes (gravity's direction spreads by {tilt_spread:.2}), which turns even the weakest earth field ({EARTH_MIN_UT:.0} uT) by more than {:.1} uT; a field fixed in the vehicle swamps the earth's, or the sensor is stuck",
+                MIN_TURN_RATIO * EARTH_MIN_UT
             ),
         }
     }
@@ -144,6 +169,46 @@ pub fn check(
     None
 }
 
+/// [`check`]'s turning without an attitude: `readings` (uT) and the accelerometer's readings
+/// (any unit) of the same samples. `None` when the vehicle did not turn about two axes, the
+/// readings turn, or they are all weaker than the variation asked for (another unit).
+pub fn check_still(readings: &[Vector3<f64>], accel: &[Vector3<f64>]) -> Option<Implausible> {
+    if readings.len() < MIN_READINGS || accel.len() < MIN_READINGS {
+        return None;
+    }
+    let units: Vec<Vector3<f64>> = accel.iter().filter_map(|a| a.try_normalize(1e-9)).collect();
+    if units.len() < MIN_READINGS {
+        return None;
+    }
+    let covariance = |v: &[Vector3<f64>]| {
+        let n = v.len() as f64;
+        let mean = v.iter().sum::<Vector3<f64>>() / n;
+        v.iter()
+            .map(|x| (x - mean) * (x - mean).transpose())
+            .sum::<nalgebra::Matrix3<f64>>()
+            / n
+    };
+    let mut eig: Vec<f64> = covariance(&units)
+        .symmetric_eigen()
+        .eigenvalues
+        .iter()
+        .copied()
+        .collect();
+    eig.sort_by(|a, b| b.total_cmp(a));
+    let tilt_spread = eig[1].max(0.0).sqrt();
+    let readings_ut = covariance(readings).trace().max(0.0).sqrt();
+    // Readings weaker than the variation asked for are in another unit (gauss read as uT), which
+    // the fit's radius check names; not a field that stays put.
+    let strength_ut = readings.iter().map(|r| r.norm()).sum::<f64>() / readings.len() as f64;
+    let floor_ut = MIN_TURN_RATIO * EARTH_MIN_UT;
+    (tilt_spread >= MIN_TILT_SPREAD && readings_ut < floor_ut && strength_ut >= floor_ut).then_some(
+        Implausible::StillWhileTurning {
+            readings_ut,
+            tilt_spread,
+        },
+    )
+}
+
 /// Fewest readings judged.
 pub const MIN_READINGS: usize = 20;
 
@@ -176,6 +241,29 @@ mod tests {
         let e = check(&r, &p, Some(48.0)).expect("implausible");
         assert!(matches!(e, Implausible::TooStrong { .. }), "{e}");
         assert!(e.to_string().contains("uT (median)"), "{e}");
+    }
+
+    #[test]
+    fn a_field_that_stays_put_while_the_accelerometer_turns_is_named_without_an_attitude() {
+        let turn = |k: usize| {
+            let (a, b) = (k as f64 * 0.07, k as f64 * 0.05);
+            Vector3::new(a.sin() * b.cos(), a.sin() * b.sin(), a.cos())
+        };
+        let accel: Vec<Vector3<f64>> = (0..300).map(|k| turn(k) * 9.8).collect();
+        // A field of 1.3 uT about a fixed 35 uT: stuck, or swamped by the vehicle's own.
+        let still: Vec<Vector3<f64>> = (0..300)
+            .map(|k| Vector3::new(20.0, 21.0, 19.0) + turn(k) * 1.3)
+            .collect();
+        let e = check_still(&still, &accel).expect("named");
+        assert!(
+            e.to_string().contains("does not turn with the vehicle"),
+            "{e}"
+        );
+        // The earth's 48 uT turning with the vehicle passes, and so does a level vehicle.
+        let turning: Vec<Vector3<f64>> = (0..300).map(|k| turn(k) * 48.0).collect();
+        assert_eq!(check_still(&turning, &accel), None);
+        let level: Vec<Vector3<f64>> = (0..300).map(|_| Vector3::new(0.0, 0.0, 9.8)).collect();
+        assert_eq!(check_still(&still, &level), None);
     }
 
     #[test]
