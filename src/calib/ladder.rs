@@ -276,6 +276,8 @@ impl std::fmt::Display for Refusal {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Ladder {
     pub start: Start,
+    /// Readings set aside before any rung was fitted ([`set_aside`]).
+    pub aside: Option<Aside>,
     pub rungs: Vec<RungReport>,
     /// The rung taken, and its calibration fitted on every reading.
     pub chosen: Option<Chosen>,
@@ -316,8 +318,12 @@ pub fn climb(points: &[LadderPoint], b_ned: &Vector3<f64>, start: Option<&Affine
         Some(a) => (Start::Vehicle, *a),
         None => (Start::Identity, Affine::identity()),
     };
-    let fit_part: Vec<&LadderPoint> = points.iter().filter(|p| p.fit).collect();
+    // Scored on every held-out reading, as any other calibration is; fitted on those not set
+    // aside.
     let held: Vec<&LadderPoint> = points.iter().filter(|p| !p.fit).collect();
+    let (kept, aside) = set_aside(points, b_ned, &start);
+    let points: &[LadderPoint] = &kept;
+    let fit_part: Vec<&LadderPoint> = points.iter().filter(|p| p.fit).collect();
     let with_current = current_varies(points);
     // What the attitudes leave undetermined of the soft iron, and what it does to the offset:
     // held at the vehicle's own that is its calibration; held at the identity it is an
@@ -404,14 +410,100 @@ pub fn climb(points: &[LadderPoint], b_ned: &Vector3<f64>, start: Option<&Affine
             a.along, a.spread, a.offset_ut
         );
     }
+    if let Some(a) = &aside {
+        why = format!("{why}; {a}");
+    }
     Ladder {
         start: start_kind,
+        aside,
         rungs,
         chosen,
         held_out,
         why,
         offset_assumption_ut: assumed.map_or(0.0, |a| a.offset_ut),
     }
+}
+
+/// Readings set aside: their field is off the earth's far more than the rest's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aside {
+    pub readings: usize,
+    pub of: usize,
+    /// The largest misfit set aside, and the limit it passed, uT.
+    pub worst_ut: f64,
+    pub limit_ut: f64,
+}
+
+impl std::fmt::Display for Aside {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} of {} readings set aside: their field is off the earth's by {:.1} to {:.1} uT where the rest stay within {:.1} uT (a field where the vehicle was, a magnet or steel it passed, not the compass's own: no rung may absorb it)",
+            self.readings, self.of, self.limit_ut, self.worst_ut, self.limit_ut
+        )
+    }
+}
+
+/// A reading is set aside when its misfit under the full rung fitted to every reading exceeds
+/// this many times the median misfit: the median of the norm of a three-dimensional normal
+/// misfit is 1.54 standard deviations, so the limit is about 7.7 of them, where no reading of
+/// the ordinary spread lies.
+pub const ASIDE_FACTOR: f64 = 5.0;
+/// ... and at least this share of the earth's field: a fifth of it, more than a soft iron within
+/// ArduPilot's bounds ([`OFFDIAG_MAX`]) can give or take.
+pub const ASIDE_MIN_SHARE: f64 = 0.2;
+/// ... and only when they are at most this share of the readings: a misfit spread over more is
+/// the model's or the attitude's, not a place's.
+pub const ASIDE_MAX_SHARE: f64 = 0.1;
+
+/// The readings a ladder climbs on: all but those whose field is off the earth's far more than
+/// the rest's ([`ASIDE_FACTOR`], [`ASIDE_MIN_SHARE`], [`ASIDE_MAX_SHARE`]). A field that changes with where the vehicle
+/// is (a magnet it passes, a steel roof) is not the compass's own, and no calibration may absorb
+/// it; the full rung fitted to every reading shows where the misfit is local.
+fn set_aside(
+    points: &[LadderPoint],
+    b_ned: &Vector3<f64>,
+    start: &Affine,
+) -> (Vec<LadderPoint>, Option<Aside>) {
+    let all: Vec<&LadderPoint> = points.iter().collect();
+    if all.len() < MIN_READINGS {
+        return (points.to_vec(), None);
+    }
+    let Some(cal) = [Rung::Full, Rung::Offsets].iter().find_map(|&rung| {
+        let (d, c, k) = regress(rung, &all, b_ned, start, false, 1.0).ok()?;
+        let affine = start.then(&d, &c)?;
+        debug_assert!(k.is_none());
+        Some(RungCal {
+            affine,
+            current_ut_per_a: None,
+        })
+    }) else {
+        return (points.to_vec(), None);
+    };
+    let misfit: Vec<f64> = points
+        .iter()
+        .map(|p| (cal.apply(p) - p.body_ned.inverse_transform_vector(b_ned)).norm())
+        .collect();
+    let mut sorted = misfit.clone();
+    sorted.sort_by(f64::total_cmp);
+    let limit_ut = (ASIDE_FACTOR * sorted[sorted.len() / 2]).max(ASIDE_MIN_SHARE * b_ned.norm());
+    let out: Vec<f64> = misfit.iter().copied().filter(|m| *m > limit_ut).collect();
+    if out.is_empty() || out.len() as f64 > ASIDE_MAX_SHARE * points.len() as f64 {
+        return (points.to_vec(), None);
+    }
+    let kept = points
+        .iter()
+        .zip(&misfit)
+        .filter(|(_, m)| **m <= limit_ut)
+        .map(|(p, _)| *p)
+        .collect();
+    let aside = Aside {
+        readings: out.len(),
+        of: points.len(),
+        worst_ut: out.iter().copied().fold(0.0, f64::max),
+        limit_ut,
+    };
+    (kept, Some(aside))
 }
 
 /// The rung to take among those scored (`(rung, held-out score, rotation within the matrix in
@@ -1010,6 +1102,33 @@ mod tests {
         let m = cal.affine.matrix;
         assert!((m - m.transpose()).norm() < 1e-12, "{m}");
         assert!(rotation < 1e-3, "{rotation}"); // 2e-6 deg of rounding measured
+    }
+
+    #[test]
+    fn a_magnet_the_vehicle_passes_is_set_aside_not_absorbed() {
+        // A hidden soft iron and hard iron, and for 6 s of the flight a magnet's 30 uT where
+        // the vehicle was (fixed in the world, so it turns in body axes as the vehicle turns).
+        let a = Matrix3::new(1.08, 0.04, 0.0, 0.04, 0.95, 0.03, 0.0, 0.03, 1.02);
+        let o = Vector3::new(12.0, -25.0, 40.0);
+        let mut pts = flight(a, o, 75.0, &field());
+        let magnet_ned = Vector3::new(20.0, -15.0, 17.0);
+        for p in &mut pts[700..730] {
+            p.raw_ut += a * p.body_ned.inverse_transform_vector(&magnet_ned);
+        }
+        let l = climb(&pts, &field(), None);
+        let aside = l.aside.expect("set aside");
+        assert_eq!(aside.readings, 30, "{aside}");
+        let chosen = l.chosen.expect("a rung");
+        let off = (chosen.calibration.affine.offset - o).norm();
+        // Absorbed, the magnet moves the full rung's offset by more.
+        let all: Vec<&LadderPoint> = pts.iter().collect();
+        let (absorbed, _) = fit_rung(Rung::Full, &all, &field(), &Affine::identity(), false)
+            .expect("the full rung on every reading");
+        let absorbed_off = (absorbed.affine.offset - o).norm();
+        // Measured 0.001 uT set aside, 1.37 uT absorbed.
+        assert!(off < 0.5, "{off} {}", l.why);
+        assert!(absorbed_off > 0.5, "{absorbed_off} against {off}");
+        assert!(l.why.contains("30 of 1500 readings set aside"), "{}", l.why);
     }
 
     #[test]
