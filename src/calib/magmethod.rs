@@ -837,93 +837,148 @@ pub fn quality(
         held_out(&r)
     };
     let theirs = onboard.and_then(|f| score(f));
-    let (ours, failure, method, ladder) = match place_of(samples, log, cfg_place) {
-        Some(w) => {
-            let field = crate::attitude::earth_field(&w.place).ok()?;
-            let b = nalgebra::Vector3::from(field.field_ned_ut());
-            let points: Vec<crate::calib::ladder::LadderPoint> = samples
-                .iter()
-                .zip(&blocks)
-                .filter_map(|(s, fit)| {
-                    Some(crate::calib::ladder::LadderPoint {
-                        raw_ut: nalgebra::Vector3::from(body_mag(s)?),
-                        body_ned: crate::attitude::body_ned_of_ref_q(s.ref_q?)?,
-                        fit: *fit,
-                        current_a: s.current_a,
-                    })
-                })
-                .collect();
-            let ladder = crate::calib::ladder::climb(&points, &b, start);
-            let failure = ladder.held_out.is_none().then(|| {
-                // Rungs refused for the same reason are named together.
-                let mut refused: Vec<(Vec<String>, &String)> = Vec::new();
-                for r in &ladder.rungs {
-                    let Some(why) = r.refused.as_ref() else {
-                        continue;
-                    };
-                    match refused.iter_mut().find(|(_, w)| *w == why) {
-                        Some((names, _)) => names.push(r.rung.to_string()),
-                        None => refused.push((vec![r.rung.to_string()], why)),
-                    }
-                }
-                let refused: Vec<String> = refused
-                    .iter()
-                    .map(|(names, why)| format!("{}: {why}", names.join(", ")))
-                    .collect();
-                if refused.is_empty() {
-                    format!("no rung of the ladder was taken: {}", ladder.why)
-                } else {
-                    format!("no rung of the ladder was taken ({})", refused.join("; "))
-                }
-            });
-            (ladder.held_out, failure, "vector ladder", Some(ladder))
-        }
-        None => {
-            let fit_part = samples
-                .iter()
-                .zip(&blocks)
-                .filter(|(_, f)| **f)
-                .map(|(s, _)| s);
-            let fitted = fit_with_field(fit_part, body_mag, None)?.map(|(v, _)| v);
-            let (ours, failure) = match &fitted {
-                Ok(v) if v.offset_identifiable => {
-                    let m = crate::calib::model::rows_to_mat(&v.matrix);
-                    let o = nalgebra::Vector3::from(v.offset_ut);
-                    let cal = |s: &Sample| {
-                        let raw = nalgebra::Vector3::from(body_mag(s)?);
-                        let c = m * (raw - o);
-                        Some([c.x, c.y, c.z])
-                    };
-                    (score(&cal), None)
-                }
-                Ok(_) => (
-                    None,
-                    Some("the fitting blocks do not determine the offset".to_string()),
-                ),
-                Err(e) => (
-                    None,
-                    Some(format!("the vector fit on the fitting blocks failed: {e}")),
-                ),
-            };
-            (ours, failure, "vector, field fitted", None)
-        }
+    let ours = match place_of(samples, log, cfg_place) {
+        Some(w) => climb_at(&w.place, samples, &blocks, body_mag, start)?,
+        None => field_fitted(samples, &blocks, body_mag, &score)?,
     };
     // With neither score there is nothing to judge, unless the ladder ran: its refusals are
     // the record of why.
-    if ours.is_none() && theirs.is_none() && ladder.is_none() {
+    if ours.held_out.is_none() && theirs.is_none() && ours.ladder.is_none() {
         return None;
     }
-    let (kind, mut verdict) = verdict(ours.as_ref(), theirs.as_ref(), onboard.is_some());
-    if let (None, Some(f)) = (&ours, &failure) {
+    Some(judged(instance, ours, theirs, onboard.is_some()))
+}
+
+/// imucald's side of a held-out check: its score, why there is none, the method that made it,
+/// and the ladder where it ran.
+struct Ours {
+    held_out: Option<crate::calib::outcome::HeldOut>,
+    failure: Option<String>,
+    method: &'static str,
+    ladder: Option<crate::calib::ladder::Ladder>,
+}
+
+/// The ladder of the readings with an attitude, against the earth field of `place`.
+fn climb_at(
+    place: &Place,
+    samples: &[Sample],
+    blocks: &[bool],
+    body_mag: &FieldOf<'_>,
+    start: Option<&crate::calib::ladder::Affine>,
+) -> Option<Ours> {
+    let field = crate::attitude::earth_field(place).ok()?;
+    let b = nalgebra::Vector3::from(field.field_ned_ut());
+    let points: Vec<crate::calib::ladder::LadderPoint> = samples
+        .iter()
+        .zip(blocks)
+        .filter_map(|(s, fit)| {
+            Some(crate::calib::ladder::LadderPoint {
+                raw_ut: nalgebra::Vector3::from(body_mag(s)?),
+                body_ned: crate::attitude::body_ned_of_ref_q(s.ref_q?)?,
+                fit: *fit,
+                current_a: s.current_a,
+            })
+        })
+        .collect();
+    let ladder = crate::calib::ladder::climb(&points, &b, start);
+    let failure = ladder.held_out.is_none().then(|| no_rung_words(&ladder));
+    Some(Ours {
+        held_out: ladder.held_out,
+        failure,
+        method: "vector ladder",
+        ladder: Some(ladder),
+    })
+}
+
+/// Why no rung was taken: the rungs refused for the same reason named together.
+fn no_rung_words(ladder: &crate::calib::ladder::Ladder) -> String {
+    let mut refused: Vec<(Vec<String>, &String)> = Vec::new();
+    for r in &ladder.rungs {
+        let Some(why) = r.refused.as_ref() else {
+            continue;
+        };
+        match refused.iter_mut().find(|(_, w)| *w == why) {
+            Some((names, _)) => names.push(r.rung.to_string()),
+            None => refused.push((vec![r.rung.to_string()], why)),
+        }
+    }
+    let refused: Vec<String> = refused
+        .iter()
+        .map(|(names, why)| format!("{}: {why}", names.join(", ")))
+        .collect();
+    if refused.is_empty() {
+        format!("no rung of the ladder was taken: {}", ladder.why)
+    } else {
+        format!("no rung of the ladder was taken ({})", refused.join("; "))
+    }
+}
+
+/// With no place: the vector fit with the field's direction fitted, on the fitting blocks, scored
+/// by `score` when it determines the offset.
+fn field_fitted(
+    samples: &[Sample],
+    blocks: &[bool],
+    body_mag: &FieldOf<'_>,
+    score: &dyn Fn(&FieldOf<'_>) -> Option<crate::calib::outcome::HeldOut>,
+) -> Option<Ours> {
+    let fit_part = samples
+        .iter()
+        .zip(blocks)
+        .filter(|(_, f)| **f)
+        .map(|(s, _)| s);
+    let fitted = fit_with_field(fit_part, body_mag, None)?.map(|(v, _)| v);
+    let (held_out, failure) = match &fitted {
+        Ok(v) if v.offset_identifiable => {
+            let m = crate::calib::model::rows_to_mat(&v.matrix);
+            let o = nalgebra::Vector3::from(v.offset_ut);
+            let cal = |s: &Sample| {
+                let raw = nalgebra::Vector3::from(body_mag(s)?);
+                let c = m * (raw - o);
+                Some([c.x, c.y, c.z])
+            };
+            (score(&cal), None)
+        }
+        Ok(_) => (
+            None,
+            Some("the fitting blocks do not determine the offset".to_string()),
+        ),
+        Err(e) => (
+            None,
+            Some(format!("the vector fit on the fitting blocks failed: {e}")),
+        ),
+    };
+    Some(Ours {
+        held_out,
+        failure,
+        method: "vector, field fitted",
+        ladder: None,
+    })
+}
+
+/// The record of a held-out check: imucald's side against the vehicle's (`theirs`; `has_onboard`:
+/// the log carries the vehicle's calibration).
+fn judged(
+    instance: &str,
+    ours: Ours,
+    theirs: Option<crate::calib::outcome::HeldOut>,
+    has_onboard: bool,
+) -> Judged {
+    let (kind, mut verdict) = verdict(ours.held_out.as_ref(), theirs.as_ref(), has_onboard);
+    if let (None, Some(f)) = (&ours.held_out, &ours.failure) {
         verdict = format!("{verdict} ({f})");
     }
+    let ladder = ours.ladder;
     let report = crate::calib::outcome::QualityReport {
         instance: instance.to_string(),
         block_s: QUALITY_BLOCK_S,
-        method: method.into(),
-        imucald: ours,
+        method: ours.method.into(),
+        imucald: ours.held_out,
         onboard: theirs,
-        imucald_failure: if ours.is_none() { failure } else { None },
+        imucald_failure: if ours.held_out.is_none() {
+            ours.failure
+        } else {
+            None
+        },
         verdict,
         verdict_kind: Some(kind),
         start: ladder.as_ref().map(|l| l.start),
@@ -933,11 +988,11 @@ pub fn quality(
         rung_reason: ladder.as_ref().map(|l| l.why.clone()),
         rungs: ladder.as_ref().map_or_else(Vec::new, |l| l.rungs.clone()),
     };
-    Some(Judged {
+    Judged {
         report,
         why: ladder.as_ref().map(|l| l.why.clone()),
         calibration: ladder.and_then(|l| l.chosen),
-    })
+    }
 }
 
 /// What [`quality`] gives: the report's record, and the ladder's calibration fitted on every
