@@ -1131,15 +1131,19 @@ mod tests {
         assert!(l.why.contains("30 of 1500 readings set aside"), "{}", l.why);
     }
 
-    #[test]
-    fn choose_climbs_only_on_a_clear_held_out_gain() {
-        let h = |n: f64, d: f64| HeldOut {
+    /// A held-out score of norm spread `n` % and dip spread `d` deg.
+    fn h(n: f64, d: f64) -> HeldOut {
+        HeldOut {
             norm_spread_pct: n,
             dip_spread_deg: d,
             dip_mean_deg: 60.0,
             heading_spread_deg: 2.0,
             readings: 100,
-        };
+        }
+    }
+
+    #[test]
+    fn choose_climbs_only_on_a_clear_held_out_gain() {
         let scored = [
             (Rung::Offsets, h(1.0, 1.0), 0.0),
             (Rung::Scale, h(0.95, 1.0), 0.0),
@@ -1153,13 +1157,6 @@ mod tests {
 
     #[test]
     fn choose_takes_a_trade_only_when_the_gain_outweighs_the_loss_threefold() {
-        let h = |n: f64, d: f64| HeldOut {
-            norm_spread_pct: n,
-            dip_spread_deg: d,
-            dip_mean_deg: 60.0,
-            heading_spread_deg: 2.0,
-            readings: 100,
-        };
         // The ROV's first compass: full cuts the dip spread by 40 % and raises the norm's by 11 %.
         let rov = [
             (Rung::Offsets, h(1.03, 1.13), 0.0),
