@@ -468,7 +468,9 @@ fn ui_live_page_shows_the_services_completion_and_does_not_hold_its_exit() {
     let stop_s = t.elapsed().as_secs_f64();
     assert!(status.success(), "{status:?}: {log}");
     eprintln!("stopped {stop_s:.3} s after SIGTERM, {compared} comparisons");
-    assert!(stop_s < 1.0, "{stop_s}");
+    // Prompt with the event stream open, not held by it: under 1 s alone on the 2-core VM, and a
+    // held stream is the 5 s the stop waits; the bound leaves room for a loaded machine.
+    assert!(stop_s < 3.5, "{stop_s}");
     // The page says the connection went.
     b.wait_for(
         "document.getElementById('link').textContent.includes('lost')",
