@@ -171,6 +171,69 @@ fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(&b[..end]).into_owned()
 }
 
+/// How a numeric column's bytes become its value ([`Record::value`]): the format character's
+/// number type and scale as one choice, so a record's field is read with one dispatch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Read {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    I64,
+    U64,
+    F32,
+    F64,
+    /// The integer * 0.01 (`c`, `C`, `e`, `E`).
+    CentiI16,
+    CentiU16,
+    CentiI32,
+    CentiU32,
+    /// int32 * 1e-7 (`L`).
+    LatLon,
+}
+
+/// Where a numeric column is in a record of its type, and how it is read
+/// ([`Record::number_at`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct NumberAt {
+    pub offset: usize,
+    pub read: Read,
+}
+
+impl NumberAt {
+    /// Column `c` as a number; `None` for text and arrays, which have no value.
+    pub(crate) fn of(c: &Column) -> Option<NumberAt> {
+        let read = match c.kind {
+            Kind::Number(n) => match n {
+                Number::I8 => Read::I8,
+                Number::U8 => Read::U8,
+                Number::I16 => Read::I16,
+                Number::U16 => Read::U16,
+                Number::I32 => Read::I32,
+                Number::U32 => Read::U32,
+                Number::I64 => Read::I64,
+                Number::U64 => Read::U64,
+                Number::F32 => Read::F32,
+                Number::F64 => Read::F64,
+            },
+            Kind::Centi(Number::I16) => Read::CentiI16,
+            Kind::Centi(Number::U16) => Read::CentiU16,
+            Kind::Centi(Number::I32) => Read::CentiI32,
+            Kind::Centi(Number::U32) => Read::CentiU32,
+            // Only the four above are made by format characters.
+            Kind::Centi(_) => return None,
+            Kind::LatLon => Read::LatLon,
+            Kind::Text(_) | Kind::I16Array => return None,
+        };
+        Some(NumberAt {
+            offset: c.offset,
+            read,
+        })
+    }
+}
+
 /// One record: its format and its payload (after head and type).
 #[derive(Debug, Clone, Copy)]
 pub struct Record<'a> {
@@ -183,13 +246,49 @@ impl Record<'_> {
     /// `L`: 1e-7), as pymavlink's DFReader gives it. `None` for text, arrays and bad indices.
     pub fn value(&self, col: usize) -> Option<f64> {
         let c = self.format.columns.get(col)?;
-        let b = self.payload.get(c.offset..c.offset + c.kind.size())?;
-        match c.kind {
+        self.value_at(c.offset, c.kind)
+    }
+
+    /// The number of kind `kind` at byte `offset` of the payload, as [`Record::value`] reads a
+    /// column there: for a reader that found a column's place once and reads it record by record.
+    #[inline]
+    pub(crate) fn value_at(&self, offset: usize, kind: Kind) -> Option<f64> {
+        let b = self.payload.get(offset..offset + kind.size())?;
+        match kind {
             Kind::Number(n) => n.read(b),
             Kind::Centi(n) => Some(n.read(b)? * 0.01),
             Kind::LatLon => Some(Number::I32.read(b)? * 1e-7),
             Kind::Text(_) | Kind::I16Array => None,
         }
+    }
+
+    /// The number `at` reads ([`NumberAt`]): [`Record::value_at`] of its column, in one step.
+    #[inline]
+    pub(crate) fn number_at(&self, at: NumberAt) -> Option<f64> {
+        let p = self.payload;
+        let o = at.offset;
+        /// `N` bytes from `o`, or `None` past the payload's end.
+        #[inline(always)]
+        fn take<const N: usize>(p: &[u8], o: usize) -> Option<[u8; N]> {
+            p.get(o..o + N)?.try_into().ok()
+        }
+        Some(match at.read {
+            Read::I8 => take::<1>(p, o)?[0] as i8 as f64,
+            Read::U8 => take::<1>(p, o)?[0] as f64,
+            Read::I16 => i16::from_le_bytes(take(p, o)?) as f64,
+            Read::U16 => u16::from_le_bytes(take(p, o)?) as f64,
+            Read::I32 => i32::from_le_bytes(take(p, o)?) as f64,
+            Read::U32 => u32::from_le_bytes(take(p, o)?) as f64,
+            Read::I64 => i64::from_le_bytes(take(p, o)?) as f64,
+            Read::U64 => u64::from_le_bytes(take(p, o)?) as f64,
+            Read::F32 => f32::from_le_bytes(take(p, o)?) as f64,
+            Read::F64 => f64::from_le_bytes(take(p, o)?),
+            Read::CentiI16 => i16::from_le_bytes(take(p, o)?) as f64 * 0.01,
+            Read::CentiU16 => u16::from_le_bytes(take(p, o)?) as f64 * 0.01,
+            Read::CentiI32 => i32::from_le_bytes(take(p, o)?) as f64 * 0.01,
+            Read::CentiU32 => u32::from_le_bytes(take(p, o)?) as f64 * 0.01,
+            Read::LatLon => i32::from_le_bytes(take(p, o)?) as f64 * 1e-7,
+        })
     }
 
     /// Column `name` as a number ([`Record::value`]).

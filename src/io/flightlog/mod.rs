@@ -419,24 +419,42 @@ fn ap_undo(
 }
 
 /// [`ap_undo`] with the compass's correction from its parameters, when they give one.
+#[cfg(test)]
 fn ap_undo_with(
     correction: Option<crate::calib::ardupilot::Correction>,
     mag_mg: Vec3,
     rec_ofs: Option<Vec3>,
     mofs: Option<Vec3>,
 ) -> Option<Vec3> {
-    use crate::calib::ardupilot::Correction;
-    let mut c = match correction {
-        Some(c) => c,
+    ap_undo_cached(correction.map(ApUndo::new).as_ref(), mag_mg, rec_ofs, mofs)
+}
+
+/// The inverse of the identity soft iron, for records undone with their own offsets alone.
+fn identity_undo() -> &'static ApUndo {
+    static ID: std::sync::OnceLock<ApUndo> = std::sync::OnceLock::new();
+    ID.get_or_init(|| ApUndo::new(crate::calib::ardupilot::Correction::offsets_only([0.0; 3])))
+}
+
+/// Undo a MAG record's correction: the compass's from its parameters (`correction`, with its
+/// inverse), else the record's offsets `rec_ofs` with no soft iron; the record's offsets stand in
+/// for the parameter's where they differ by more than 1 mGauss (an offset changed in flight).
+fn ap_undo_cached(
+    correction: Option<&ApUndo>,
+    mag_mg: Vec3,
+    rec_ofs: Option<Vec3>,
+    mofs: Option<Vec3>,
+) -> Option<Vec3> {
+    let (undo, mut ofs) = match correction {
+        Some(c) => (c, c.correction.ofs_mg),
         // No parameters: the record's offsets, no soft iron.
-        None => Correction::offsets_only(rec_ofs?),
+        None => (identity_undo(), rec_ofs?),
     };
     if let Some(r) = rec_ofs {
-        if (0..3).any(|i| (r[i] - c.ofs_mg[i]).abs() > 1.0) {
-            c.ofs_mg = r;
+        if (0..3).any(|i| (r[i] - ofs[i]).abs() > 1.0) {
+            ofs = r;
         }
     }
-    c.undo(mag_mg, mofs)
+    undo.undo(&ofs, mag_mg, mofs)
 }
 
 /// Which sensor instance a DataFlash message name is (old per-instance names), or `None`.
@@ -485,18 +503,15 @@ fn decode_dataflash_records(
     error: &mut Option<std::io::Error>,
 ) -> FlightLog {
     let mut conv = DfConv::new();
-    // Per type id, found once per definition: the columns of the fields used ([`DF_FIELDS`]) and
-    // what the type is to the conversion ([`DfType`]).
-    let mut types: Vec<Option<(DfType, Vec<Option<usize>>)>> = vec![None; 256];
+    // Per type id, found once per definition: where the fields used are ([`DfPlan`]) and what
+    // the type is to the conversion ([`DfType`]).
+    let mut types: Vec<Option<DfPlan>> = vec![None; 256];
     // The FMT payload each type was last defined by: the same again keeps what was found.
     let mut defined_by: Vec<Option<Box<[u8]>>> = vec![None; 256];
     while let Some(rec) = rd.next_record() {
-        let (ty, c) = types[rec.format.type_id as usize].get_or_insert_with(|| {
-            let cols = DF_FIELDS.iter().map(|f| rec.format.column(f)).collect();
-            (DfType::of(&rec.format.name), cols)
-        });
-        let ty = *ty;
-        let f = DfFields { c, rec };
+        let plan = types[rec.format.type_id as usize].get_or_insert_with(|| DfPlan::of(rec.format));
+        let ty = plan.ty;
+        let f = DfFields { plan, rec };
         let k = conv.count(&rec, ty);
         if ty.kind == DfKind::Fmt {
             // A type (re)defined otherwise: its columns are looked up again.
@@ -575,27 +590,55 @@ impl DfType {
     }
 }
 
-/// One DataFlash record with the columns of the fields the conversion reads.
+/// What the conversion found of a message type once per definition: what the type is to it, and
+/// for each of [`DF_FIELDS`] its column and that column's place and kind in a record (so a record
+/// is read by offset, not column by column through the format).
+#[derive(Debug, Clone)]
+struct DfPlan {
+    ty: DfType,
+    cols: [Option<usize>; DF_FIELDS.len()],
+    at: [Option<dataflash::NumberAt>; DF_FIELDS.len()],
+}
+
+impl DfPlan {
+    fn of(format: &dataflash::MessageFormat) -> DfPlan {
+        let cols = DF_FIELDS.map(|f| format.column(f));
+        DfPlan {
+            ty: DfType::of(&format.name),
+            cols,
+            at: cols.map(|c| c.and_then(|k| dataflash::NumberAt::of(&format.columns[k]))),
+        }
+    }
+}
+
+/// One DataFlash record with the plan of its type.
 struct DfFields<'a> {
-    c: &'a [Option<usize>],
+    plan: &'a DfPlan,
     rec: dataflash::Record<'a>,
 }
 
 impl DfFields<'_> {
+    #[inline]
     fn get(&self, f: DfField) -> Option<f64> {
-        self.c[f as usize].and_then(|k| self.rec.value(k))
+        self.at(f as usize)
+    }
+
+    /// Field `i` of [`DF_FIELDS`] as [`dataflash::Record::value`] reads its column.
+    #[inline]
+    fn at(&self, i: usize) -> Option<f64> {
+        self.rec.number_at(self.plan.at[i]?)
     }
 
     /// The three consecutive fields from `f` (a vector's axes).
+    #[inline]
     fn get3(&self, f: DfField) -> Option<Vec3> {
         let k = f as usize;
-        let v = |i: usize| self.c[i].and_then(|c| self.rec.value(c));
-        Some([v(k)?, v(k + 1)?, v(k + 2)?])
+        Some([self.at(k)?, self.at(k + 1)?, self.at(k + 2)?])
     }
 
     /// A text field, without a copy when it is UTF-8 (as parameter names are).
     fn text(&self, f: DfField) -> Option<std::borrow::Cow<'_, str>> {
-        self.c[f as usize].and_then(|k| self.rec.text_at(k))
+        self.plan.cols[f as usize].and_then(|k| self.rec.text_at(k))
     }
 
     /// `TimeUS`, or `TimeMS` * 1000 (older logs), us.
@@ -620,21 +663,54 @@ struct DfConv {
     undone: std::collections::BTreeSet<String>,
     gps: Option<[f64; 3]>,
     date: Option<crate::types::LogDate>,
-    /// Records per type id, and per (type id, instance) for instanced types.
+    /// Records per type id, and per instance for instanced types (by type id, made on its first
+    /// record: a count per record is an index, not a look-up).
     type_counts: [u64; 256],
-    inst_counts: BTreeMap<(u8, u8), u64>,
+    inst_counts: Vec<Option<Box<[u64; 256]>>>,
     /// (type id, instance of an instanced type) -> its name (`MAG[1]`, `MAG2`).
     names: BTreeMap<(u8, Option<u8>), String>,
     /// Bumped whenever a parameter changes.
     params_version: u64,
     /// Per compass instance, what its parameters give, as of a `params_version`.
     compasses: Vec<Option<CompassParams>>,
+    /// Per stream of records ([`DfStreamKey`]), what its records resolve to the same way every
+    /// time ([`DfStream`]), found on its first record.
+    streams: Vec<Vec<Option<DfStream>>>,
+}
+
+/// A stream of records: its type id, whether the type has an instance column, and the instance.
+/// Its name ([`df_source`]) is fixed by its first record, so is everything [`DfStream`] keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct DfStreamKey {
+    type_id: u8,
+    instanced: bool,
+    instance: u8,
+}
+
+impl DfStreamKey {
+    /// The index of its list in [`DfConv::streams`] (by type id and whether instanced).
+    fn list(self) -> usize {
+        2 * self.type_id as usize + self.instanced as usize
+    }
+}
+
+/// What the records of one stream resolve to, kept after its first record so the next ones
+/// need no look-up by name: the name they are reported under, the entries of its sensor streams
+/// in the assembler (by [`sensor_order`]), its instance group, and whether its source is named in
+/// `sources` and `undone` already.
+#[derive(Debug, Clone)]
+struct DfStream {
+    src: String,
+    sensors: [Option<usize>; 3],
+    group: Option<usize>,
+    sourced: bool,
+    undone: bool,
 }
 
 /// A compass's correction and device id from the parameters, as of a version of them.
 struct CompassParams {
     version: u64,
-    correction: Option<crate::calib::ardupilot::Correction>,
+    correction: Option<ApUndo>,
     dev_id: Option<u32>,
 }
 
@@ -642,9 +718,41 @@ impl CompassParams {
     fn new(params: &BTreeMap<String, f64>, k: u8, version: u64) -> CompassParams {
         CompassParams {
             version,
-            correction: crate::calib::ardupilot::correction(params, k, true),
+            correction: crate::calib::ardupilot::correction(params, k, true).map(ApUndo::new),
             dev_id: crate::calib::ardupilot::dev_id(params, k),
         }
+    }
+}
+
+/// ArduPilot's correction of a compass with the inverse of its soft iron, worked out once per
+/// correction rather than once per reading: [`ApUndo::undo`] gives what
+/// [`crate::calib::ardupilot::Correction::undo`] gives, to the bit (the same inverse, the same
+/// operations in the same order).
+#[derive(Debug, Clone, Copy)]
+struct ApUndo {
+    correction: crate::calib::ardupilot::Correction,
+    /// S^-1; `None` when S is singular (nothing can be undone).
+    inverse: Option<Matrix3<f64>>,
+}
+
+impl ApUndo {
+    fn new(correction: crate::calib::ardupilot::Correction) -> ApUndo {
+        ApUndo {
+            correction,
+            inverse: correction.s.try_inverse(),
+        }
+    }
+
+    /// The raw field (uT) behind a corrected one (mGauss) with the motor term `mot_mg` removed,
+    /// the offsets `ofs_mg` in place of the correction's: raw = (S^-1 (mag - MOT)) / scale - OFS.
+    /// `None` when S is singular or a value not finite.
+    fn undo(&self, ofs_mg: &Vec3, mag_mg: Vec3, mot_mg: Option<Vec3>) -> Option<Vec3> {
+        use crate::calib::ardupilot::MGAUSS_PER_UT;
+        let inv = self.inverse?;
+        let c = Vector3::from(mag_mg) - Vector3::from(mot_mg.unwrap_or([0.0; 3]));
+        let u = inv * c / self.correction.scale;
+        let raw = [0, 1, 2].map(|i| (u[i] - ofs_mg[i]) / MGAUSS_PER_UT);
+        raw.iter().all(|x| x.is_finite()).then_some(raw)
     }
 }
 
@@ -659,10 +767,11 @@ impl DfConv {
             gps: None,
             date: None,
             type_counts: [0; 256],
-            inst_counts: BTreeMap::new(),
+            inst_counts: (0..256).map(|_| None).collect(),
             names: BTreeMap::new(),
             params_version: 0,
             compasses: (0..256).map(|_| None).collect(),
+            streams: (0..512).map(|_| Vec::new()).collect(),
         }
     }
 
@@ -677,7 +786,8 @@ impl DfConv {
             ty.name_instance
         };
         if inst_col {
-            let n = self.inst_counts.entry((id, k)).or_insert(0);
+            let n = &mut self.inst_counts[id as usize].get_or_insert_with(|| Box::new([0; 256]))
+                [k as usize];
             *n += 1;
             if *n == 1 {
                 self.names
@@ -767,7 +877,7 @@ impl DfConv {
 
     /// Compass `k`'s correction as the parameters give it ([`crate::calib::ardupilot::correction`])
     /// and its device id, worked out again only when a parameter changed.
-    fn compass(&mut self, k: u8) -> (Option<crate::calib::ardupilot::Correction>, Option<u32>) {
+    fn compass(&mut self, k: u8) -> (Option<ApUndo>, Option<u32>) {
         let version = self.params_version;
         let params = &self.params;
         let c = self.compasses[k as usize]
@@ -786,17 +896,90 @@ impl DfConv {
             self.asm.stats.skip("bad_record");
             return None;
         };
-        let src = df_source(&self.names, &f.rec, k);
-        self.asm.stream(Sensor::Accel, k, src, None);
-        self.asm.stream(Sensor::Gyro, k, src, None);
-        self.sources
-            .entry((1, k))
-            .or_insert_with(|| src.to_string());
-        let inst_col = f.rec.format.instance.is_some();
+        let key = self.stream_key(&f.rec, k);
+        self.count_stream(key, Sensor::Accel, None);
+        self.count_stream(key, Sensor::Gyro, None);
+        self.name_source(key, 1);
+        let gi = self.stream_group(key)?;
+        self.asm.accel(gi, t, a, Some(g), f.get(DfField::T))
+    }
+
+    /// The stream of record `rec` of instance `k`, its [`DfStream`] made on its first record.
+    fn stream_key(&mut self, rec: &dataflash::Record<'_>, k: u8) -> DfStreamKey {
+        let key = DfStreamKey {
+            type_id: rec.format.type_id,
+            instanced: rec.format.instance.is_some(),
+            instance: k,
+        };
+        let list = &mut self.streams[key.list()];
+        if list.len() <= k as usize {
+            list.resize_with(k as usize + 1, || None);
+        }
+        if list[k as usize].is_none() {
+            list[k as usize] = Some(DfStream {
+                src: df_source(&self.names, rec, k).to_string(),
+                sensors: [None; 3],
+                group: None,
+                sourced: false,
+                undone: false,
+            });
+        }
+        key
+    }
+
+    /// The [`DfStream`] of `key` ([`DfConv::stream_key`] made it).
+    fn stream(&mut self, key: DfStreamKey) -> &mut DfStream {
+        self.streams[key.list()][key.instance as usize]
+            .as_mut()
+            .expect("made by stream_key")
+    }
+
+    /// Count a reading of sensor `s` of stream `key` ([`Assembler::stream`]), its entry in the
+    /// assembler found by name once.
+    fn count_stream(&mut self, key: DfStreamKey, s: Sensor, device_id: Option<u32>) {
+        let o = sensor_order(s) as usize;
+        let (streams, asm) = (&mut self.streams, &mut self.asm);
+        let st = streams[key.list()][key.instance as usize]
+            .as_mut()
+            .expect("made by stream_key");
+        if let Some(i) = st.sensors[o] {
+            let e = &mut asm.sensors[i];
+            e.3 += 1;
+            if device_id.is_some() {
+                e.4 = device_id;
+            }
+            return;
+        }
+        asm.stream(s, key.instance, &st.src, device_id);
+        // Entries are only added (and sorted at the end): its index stays.
+        st.sensors[o] = asm
+            .sensors
+            .iter()
+            .position(|e| e.0 as usize == o && e.1 == key.instance && e.2 == st.src);
+    }
+
+    /// The stream's name as the source of sensor `sensor` (0 mag, 1 accel) of its instance, if
+    /// that has none yet.
+    fn name_source(&mut self, key: DfStreamKey, sensor: u8) {
+        if self.stream(key).sourced {
+            return;
+        }
+        let src = self.stream(key).src.clone();
+        self.sources.entry((sensor, key.instance)).or_insert(src);
+        self.stream(key).sourced = true;
+    }
+
+    /// The instance group of the stream ([`Assembler::group`]), found once.
+    fn stream_group(&mut self, key: DfStreamKey) -> Option<usize> {
+        if let Some(gi) = self.stream(key).group {
+            return Some(gi);
+        }
+        let k = key.instance;
         let gi = self
             .asm
-            .group(u16::from(k), || df_group_name(inst_col, k))?;
-        self.asm.accel(gi, t, a, Some(g), f.get(DfField::T))
+            .group(u16::from(k), || df_group_name(key.instanced, k))?;
+        self.stream(key).group = Some(gi);
+        Some(gi)
     }
 
     /// A MAG record of instance `k`: ArduPilot's correction undone, uT.
@@ -806,24 +989,22 @@ impl DfConv {
             return None;
         };
         let (correction, dev_id) = self.compass(k);
-        let src = df_source(&self.names, &f.rec, k);
-        self.asm.stream(Sensor::Mag, k, src, dev_id);
-        self.sources
-            .entry((0, k))
-            .or_insert_with(|| src.to_string());
+        let key = self.stream_key(&f.rec, k);
+        self.count_stream(key, Sensor::Mag, dev_id);
+        self.name_source(key, 0);
         let ofs = f.get3(DfField::OfsX);
         let mofs = f.get3(DfField::MOfsX);
-        let Some(raw) = ap_undo_with(correction, m, ofs, mofs) else {
+        let Some(raw) = ap_undo_cached(correction.as_ref(), m, ofs, mofs) else {
             self.asm.stats.skip("not_undone");
             return None;
         };
-        if !self.undone.contains(src) {
-            self.undone.insert(src.to_string());
+        let st = self.stream(key);
+        if !st.undone {
+            st.undone = true;
+            let src = st.src.clone();
+            self.undone.insert(src);
         }
-        let inst_col = f.rec.format.instance.is_some();
-        let gi = self
-            .asm
-            .group(u16::from(k), || df_group_name(inst_col, k))?;
+        let gi = self.stream_group(key)?;
         self.asm.mag(gi, t, raw)
     }
 
@@ -883,9 +1064,14 @@ impl DfConv {
                 *log.messages.entry(name.clone()).or_insert(0) += n;
             }
         }
-        for ((id, k), n) in &self.inst_counts {
-            if let Some(name) = self.names.get(&(*id, Some(*k))) {
-                *log.messages.entry(name.clone()).or_insert(0) += n;
+        for (id, counts) in self.inst_counts.iter().enumerate() {
+            for (k, n) in counts.iter().flat_map(|c| c.iter().enumerate()) {
+                if *n == 0 {
+                    continue;
+                }
+                if let Some(name) = self.names.get(&(id as u8, Some(k as u8))) {
+                    *log.messages.entry(name.clone()).or_insert(0) += n;
+                }
             }
         }
         log
