@@ -140,7 +140,8 @@ pub fn decode_log(
     Ok(log)
 }
 
-/// Samples handed on while a log is decoded, with what is known so far.
+/// Samples handed on while a log is decoded, with what is known so far. Its sample lists go
+/// back to the decoder that made it when it is dropped ([`Recycled`]).
 pub(crate) struct Batch {
     /// Samples of the primary instance.
     pub samples: Vec<Sample>,
@@ -154,9 +155,74 @@ pub(crate) struct Batch {
     /// Bytes of the (decompressed) log read so far, and in all.
     pub bytes_read: usize,
     pub bytes_total: usize,
+    /// Where the lists go when the batch is dropped, if anywhere.
+    recycle: Option<std::sync::Arc<Recycled>>,
 }
 
-/// Samples per [`Batch`].
+impl Drop for Batch {
+    fn drop(&mut self) {
+        if let Some(r) = self.recycle.take() {
+            r.give(
+                std::mem::take(&mut self.samples),
+                std::mem::take(&mut self.others),
+            );
+        }
+    }
+}
+
+/// The sample lists of batches their consumer has dropped, for the decoder to fill again: a
+/// long log then goes over in the same few lists, not in a fresh allocation per batch (whose
+/// pages the kernel would map and zero again each time). At most [`RECYCLED_MAX`] of each are
+/// kept; a consumer that keeps its batches simply leaves the decoder to allocate.
+#[derive(Debug, Default)]
+struct Recycled(std::sync::Mutex<RecycledLists>);
+
+/// The lists [`Recycled`] keeps: of primary samples, and of the other instances' samples.
+type RecycledLists = (Vec<Vec<Sample>>, Vec<Vec<(usize, Sample)>>);
+
+/// Lists of each kind [`Recycled`] keeps.
+const RECYCLED_MAX: usize = 8;
+
+impl Recycled {
+    fn give(&self, mut samples: Vec<Sample>, mut others: Vec<(usize, Sample)>) {
+        // A poisoned lock (a panic elsewhere) only means the lists are not reused.
+        let Ok(mut kept) = self.0.lock() else {
+            return;
+        };
+        if samples.capacity() > 0 && kept.0.len() < RECYCLED_MAX {
+            samples.clear();
+            kept.0.push(samples);
+        }
+        if others.capacity() > 0 && kept.1.len() < RECYCLED_MAX {
+            others.clear();
+            kept.1.push(others);
+        }
+    }
+
+    /// An empty list for primary samples, with room for `room` of them.
+    fn samples(&self, room: usize) -> Vec<Sample> {
+        let mut v = self
+            .0
+            .lock()
+            .ok()
+            .and_then(|mut kept| kept.0.pop())
+            .unwrap_or_default();
+        v.reserve(room);
+        v
+    }
+
+    /// An empty list for the other instances' samples.
+    fn others(&self) -> Vec<(usize, Sample)> {
+        self.0
+            .lock()
+            .ok()
+            .and_then(|mut kept| kept.1.pop())
+            .unwrap_or_default()
+    }
+}
+
+/// Samples per [`Batch`]: few enough that the consumer starts soon after the decoding does, and
+/// that the batches in flight stay in the processor's caches between the two.
 pub(crate) const BATCH_SAMPLES: usize = 1024;
 
 /// Gathers decoded samples into [`Batch`]es of [`BATCH_SAMPLES`]: the primary instance's in
@@ -164,6 +230,8 @@ pub(crate) const BATCH_SAMPLES: usize = 1024;
 struct Batcher {
     samples: Vec<Sample>,
     others: Vec<(usize, Sample)>,
+    /// The lists of the batches dropped, to fill again.
+    recycled: std::sync::Arc<Recycled>,
     /// A primary sample was handed on.
     any: bool,
 }
@@ -173,6 +241,7 @@ impl Batcher {
         Batcher {
             samples: Vec::with_capacity(BATCH_SAMPLES),
             others: Vec::new(),
+            recycled: std::sync::Arc::default(),
             any: false,
         }
     }
@@ -198,13 +267,20 @@ impl Batcher {
             return;
         }
         self.any |= !self.samples.is_empty();
+        let samples = self.recycled.samples(BATCH_SAMPLES);
+        let others = if self.others.is_empty() {
+            Vec::new()
+        } else {
+            self.recycled.others()
+        };
         sink(Batch {
-            samples: std::mem::replace(&mut self.samples, Vec::with_capacity(BATCH_SAMPLES)),
-            others: std::mem::take(&mut self.others),
+            samples: std::mem::replace(&mut self.samples, samples),
+            others: std::mem::replace(&mut self.others, others),
             instances: info.0,
             units: info.1,
             bytes_read: read.0,
             bytes_total: read.1,
+            recycle: Some(self.recycled.clone()),
         });
     }
 }
@@ -263,6 +339,7 @@ pub(crate) fn decode_log_batched(
                 units,
                 bytes_read: data.len(),
                 bytes_total: data.len(),
+                recycle: None,
             });
             Ok(Log {
                 format,

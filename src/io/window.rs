@@ -5,38 +5,65 @@
 /// and ULog readers): large enough that a read costs little per record, small against a log.
 pub(crate) const STREAM_CHUNK_BYTES: usize = 256 * 1024;
 
-/// Drop the bytes of `buf` before `pos` (moving `base` on by as many) and read up to
-/// [`STREAM_CHUNK_BYTES`] more; the end of the stream or a read error sets `eof` (a truncated
-/// gzip member ends the stream as its end would; other errors are kept in `error`).
-pub(crate) fn fill_window(
-    reader: &mut impl std::io::Read,
-    buf: &mut Vec<u8>,
-    (pos, base): (&mut usize, &mut usize),
-    eof: &mut bool,
-    error: &mut Option<std::io::Error>,
-) {
-    buf.drain(..*pos);
-    *base += *pos;
-    *pos = 0;
-    let want = buf.len() + STREAM_CHUNK_BYTES;
-    while buf.len() < want {
-        let have = buf.len();
-        buf.resize(want, 0);
-        match reader.read(&mut buf[have..]) {
-            Ok(0) => {
-                buf.truncate(have);
-                *eof = true;
-                return;
-            }
-            Ok(k) => buf.truncate(have + k),
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => buf.truncate(have),
-            Err(e) => {
-                buf.truncate(have);
-                *eof = true;
-                if e.kind() != std::io::ErrorKind::UnexpectedEof {
-                    *error = Some(e);
+/// The bytes of a stream held by a reader: a buffer allocated (and zeroed) once and then reused,
+/// so moving the window on costs a copy of the bytes still to be read and the reads, not a fresh
+/// zeroing of a chunk per read.
+#[derive(Debug, Default)]
+pub(crate) struct StreamBuf {
+    /// The buffer; its first `filled` bytes are the window.
+    bytes: Vec<u8>,
+    filled: usize,
+}
+
+impl StreamBuf {
+    /// An empty window with room for `capacity` bytes before it grows.
+    pub fn with_capacity(capacity: usize) -> StreamBuf {
+        StreamBuf {
+            bytes: Vec::with_capacity(capacity),
+            filled: 0,
+        }
+    }
+
+    /// The bytes in the window.
+    #[inline]
+    pub fn data(&self) -> &[u8] {
+        &self.bytes[..self.filled]
+    }
+
+    /// Drop the bytes before `pos` (moving `base` on by as many) and read up to
+    /// [`STREAM_CHUNK_BYTES`] more; the end of the stream or a read error sets `eof` (a truncated
+    /// gzip member ends the stream as its end would; other errors are kept in `error`).
+    pub fn fill(
+        &mut self,
+        reader: &mut impl std::io::Read,
+        (pos, base): (&mut usize, &mut usize),
+        eof: &mut bool,
+        error: &mut Option<std::io::Error>,
+    ) {
+        self.bytes.copy_within(*pos..self.filled, 0);
+        self.filled -= *pos;
+        *base += *pos;
+        *pos = 0;
+        let want = self.filled + STREAM_CHUNK_BYTES;
+        if self.bytes.len() < want {
+            // Zeroed once, when the window first needs the room.
+            self.bytes.resize(want, 0);
+        }
+        while self.filled < want {
+            match reader.read(&mut self.bytes[self.filled..want]) {
+                Ok(0) => {
+                    *eof = true;
+                    return;
                 }
-                return;
+                Ok(k) => self.filled += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    *eof = true;
+                    if e.kind() != std::io::ErrorKind::UnexpectedEof {
+                        *error = Some(e);
+                    }
+                    return;
+                }
             }
         }
     }
@@ -53,7 +80,7 @@ pub(crate) struct Window<'a> {
 /// A stream a [`Window`] reads, and where its buffer stands in it.
 struct Stream<'a> {
     reader: Box<dyn std::io::Read + 'a>,
-    buf: Vec<u8>,
+    buf: StreamBuf,
     /// Offset of `buf` in the stream.
     base: usize,
     eof: bool,
@@ -72,7 +99,7 @@ impl<'a> Window<'a> {
             data: &[],
             stream: Some(Stream {
                 reader: Box::new(reader),
-                buf: Vec::new(),
+                buf: StreamBuf::default(),
                 base: 0,
                 eof: false,
                 error: None,
@@ -83,7 +110,7 @@ impl<'a> Window<'a> {
     /// The bytes in the window.
     pub fn bytes(&self) -> &[u8] {
         match &self.stream {
-            Some(s) => &s.buf,
+            Some(s) => s.buf.data(),
             None => self.data,
         }
     }
@@ -94,16 +121,11 @@ impl<'a> Window<'a> {
         let Some(s) = self.stream.as_mut() else {
             return;
         };
-        if s.eof || s.buf.len() - *pos >= need {
+        if s.eof || s.buf.data().len() - *pos >= need {
             return;
         }
-        fill_window(
-            &mut s.reader,
-            &mut s.buf,
-            (pos, &mut s.base),
-            &mut s.eof,
-            &mut s.error,
-        );
+        s.buf
+            .fill(&mut s.reader, (pos, &mut s.base), &mut s.eof, &mut s.error);
     }
 
     /// The offset in the input of `pos`, an offset in the window.

@@ -235,7 +235,7 @@ impl Iterator for TlogRecords<'_> {
 /// does not grow with the log. A read error ends the records and is kept ([`TlogStream::error`]).
 pub(crate) struct TlogStream<R> {
     reader: R,
-    buf: Vec<u8>,
+    buf: crate::io::window::StreamBuf,
     /// The cursor in `buf` (`more` until the stream's end), and the offset of `buf` in the stream.
     cursor: TlogCursor,
     base: usize,
@@ -247,7 +247,9 @@ impl<R: std::io::Read> TlogStream<R> {
     pub fn new(reader: R) -> Self {
         TlogStream {
             reader,
-            buf: Vec::with_capacity(crate::io::window::STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD),
+            buf: crate::io::window::StreamBuf::with_capacity(
+                crate::io::window::STREAM_CHUNK_BYTES + TLOG_LOOKAHEAD,
+            ),
             cursor: TlogCursor::new(true),
             base: 0,
             stats: DecodeStats::default(),
@@ -264,7 +266,7 @@ impl<R: std::io::Read> TlogStream<R> {
     pub fn next_record(&mut self) -> Option<(u64, Frame)> {
         loop {
             let record = TlogReader {
-                bytes: &self.buf,
+                bytes: self.buf.data(),
                 cursor: &mut self.cursor,
                 stats: &mut self.stats,
             }
@@ -273,9 +275,8 @@ impl<R: std::io::Read> TlogStream<R> {
                 return record;
             }
             let mut eof = false;
-            crate::io::window::fill_window(
+            self.buf.fill(
                 &mut self.reader,
-                &mut self.buf,
                 (&mut self.cursor.pos, &mut self.base),
                 &mut eof,
                 &mut self.error,
