@@ -366,8 +366,9 @@ impl LogHistogram {
         let exp = ((bits >> 52) & 0x7ff) as f64 - 1023.0;
         let mant = f64::from_bits((bits & ((1u64 << 52) - 1)) | (1023u64 << 52));
         let log10 = (exp + mant - 1.0) * std::f64::consts::LOG10_2;
+        // Clamped to whole bounds first, then truncated: the floor of the clamped value, which
+        // is the clamped floor (a truncation, not a call to `floor`, per sample).
         let mut i = ((log10 - HIST_MIN_LOG10) * HIST_BINS_PER_DECADE)
-            .floor()
             .clamp(1.0, (HIST_BINS - 2) as f64) as usize;
         while v < edges[i] {
             i -= 1;
@@ -382,8 +383,14 @@ impl LogHistogram {
         10f64.powf(HIST_MIN_LOG10 + (bin as f64 + 0.5) / HIST_BINS_PER_DECADE)
     }
 
+    /// `ceil(q * total)`, at least 1.
     fn target(&self) -> u64 {
-        (self.q * self.total as f64).ceil().max(1.0) as u64
+        let x = self.q * self.total as f64;
+        // The ceiling of a non-negative product below 2^53 by truncation: the same value as
+        // `x.ceil()`, without a call per sample.
+        let t = x as u64;
+        let c = if (t as f64) < x { t + 1 } else { t };
+        c.max(1)
     }
 
     fn add(&mut self, v: f64) {
@@ -530,11 +537,21 @@ impl StaticDetector {
         self.since_exact = 0;
     }
 
-    fn add_sums(&mut self, a: &Vec3, sign: f64) {
+    /// Take a sample into the running sums.
+    fn add_sums(&mut self, a: &Vec3) {
         for k in 0..3 {
             let d = a[k] - self.sum_ref[k];
-            self.sum[k] += sign * d;
-            self.sum2[k] += sign * d * d;
+            self.sum[k] += d;
+            self.sum2[k] += d * d;
+        }
+    }
+
+    /// Take a sample out of the running sums (the exact negation of [`Self::add_sums`]'s terms).
+    fn remove_sums(&mut self, a: &Vec3) {
+        for k in 0..3 {
+            let d = a[k] - self.sum_ref[k];
+            self.sum[k] -= d;
+            self.sum2[k] -= d * d;
         }
     }
 
@@ -567,7 +584,7 @@ impl StaticDetector {
         if self.window.len() == 1 {
             self.resum();
         } else {
-            self.add_sums(accel, 1.0);
+            self.add_sums(accel);
         }
         if self.len == 0 {
             // Rate not known yet: keep the first samples (bounded) until it is.
@@ -576,7 +593,7 @@ impl StaticDetector {
         let mut out = None;
         while self.window.len() > self.len {
             if let Some((_, a)) = self.window.pop_front() {
-                self.add_sums(&a, -1.0);
+                self.remove_sums(&a);
             }
         }
         self.since_exact += 1;
@@ -602,6 +619,10 @@ impl StaticDetector {
     }
 
     fn close(&mut self) -> Option<Pose> {
+        if self.cur.n == 0 {
+            // Nothing since the last close: `cur` is as new already.
+            return None;
+        }
         let acc = std::mem::take(&mut self.cur);
         if acc.n > 0 && acc.t_end - acc.t_start >= self.cfg.min_pose_s {
             Some(acc.pose())
@@ -619,6 +640,21 @@ impl StaticDetector {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_quantile_target_is_the_ceiling_of_its_product() {
+        for q in [0.1, 0.05, 0.5, 0.9, 1.0 / 3.0] {
+            let mut h = LogHistogram::new(q);
+            for total in 0..200_000u64 {
+                h.total = total;
+                assert_eq!(
+                    h.target(),
+                    (q * total as f64).ceil().max(1.0) as u64,
+                    "{q} {total}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn histogram_bins_match_the_log10_formula() {
