@@ -247,25 +247,36 @@ struct Sums {
 }
 
 impl Sums {
-    /// Add (`sign` 1) or take out (-1) one reading.
-    fn add(&mut self, rot: &nalgebra::Matrix3<f64>, raw: &nalgebra::Vector3<f64>, sign: f64) {
+    /// Add (`sign` 1) or take out (-1) one reading. `rr` is symmetric and only its upper
+    /// triangle (row <= column) is summed here, half the work per reading; [`Sums::mirror`]
+    /// copies it to the lower one once the readings are in. The lower entries it gives are
+    /// those a full sum would give, to the bit: entry (i, j) adds `(sign R_i) R_j` and (j, i)
+    /// adds `(sign R_j) R_i`, the same product (`sign` is +-1, which scales exactly).
+    fn add_upper(&mut self, rot: &nalgebra::Matrix3<f64>, raw: &nalgebra::Vector3<f64>, sign: f64) {
         self.n += sign;
         self.r += rot * sign;
-        for p in 0..3 {
-            for a in 0..3 {
-                let x = sign * rot[(p, a)];
-                for q in 0..3 {
-                    for c in 0..3 {
-                        self.rr[(3 * p + a, 3 * q + c)] += x * rot[(q, c)];
-                    }
-                }
-                for j in 0..3 {
-                    self.r_raw[(3 * p + a, j)] += x * raw[j];
-                }
+        // R's entries by (3p + a): rv[3p + a] = R[p][a].
+        let rv: [f64; 9] = std::array::from_fn(|i| rot[(i / 3, i % 3)]);
+        for (i, &ri) in rv.iter().enumerate() {
+            let x = sign * ri;
+            for (j, &rj) in rv.iter().enumerate().skip(i) {
+                self.rr[(i, j)] += x * rj;
+            }
+            for j in 0..3 {
+                self.r_raw[(i, j)] += x * raw[j];
             }
         }
         self.raw += raw * sign;
         self.raw_raw += raw * raw.transpose() * sign;
+    }
+
+    /// Fill `rr`'s lower triangle from its upper one ([`Sums::add_upper`]).
+    fn mirror(&mut self) {
+        for i in 0..9 {
+            for j in 0..i {
+                self.rr[(i, j)] = self.rr[(j, i)];
+            }
+        }
     }
 }
 
@@ -285,11 +296,12 @@ impl AttitudeSums {
         };
         for (raw, rot) in pairs {
             if raw.iter().chain(rot.iter()).all(|v| v.is_finite()) {
-                out.totals.add(&rot, &raw, 1.0);
+                out.totals.add_upper(&rot, &raw, 1.0);
                 out.raw.push(raw);
                 out.rot.push(rot);
             }
         }
+        out.totals.mirror();
         out
     }
 
@@ -354,8 +366,9 @@ impl AttitudeSums {
             |keep| {
                 let mut s = self.totals.clone();
                 for (i, _) in keep.iter().enumerate().filter(|(_, k)| !**k) {
-                    s.add(&self.rot[i], &self.raw[i], -1.0);
+                    s.add_upper(&self.rot[i], &self.raw[i], -1.0);
                 }
+                s.mirror();
                 accumulator_of(&s, b)?.solve()
             },
         )
@@ -989,6 +1002,40 @@ mod tests {
         // Measured 1.56 (a tumble: turns of 90 deg and more from the mean attitude).
         assert!(s > 0.5, "{s}");
         assert!((s - direct).abs() < 1e-9, "{s} {direct}");
+    }
+
+    #[test]
+    fn the_half_summed_products_are_the_full_sums_to_the_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let att = sphere(700, &mut rng);
+        let rots = rotations_of(&att);
+        let raws: Vec<nalgebra::Vector3<f64>> = sphere(700, &mut rng)
+            .iter()
+            .map(|v| nalgebra::Vector3::new(40.0 * v[0] + 3.0, 40.0 * v[1] - 7.0, 40.0 * v[2]))
+            .collect();
+        let sums = AttitudeSums::new(raws.iter().copied().zip(rots.iter().copied()));
+        // Every product summed in full, in the same order.
+        let mut rr = nalgebra::SMatrix::<f64, 9, 9>::zeros();
+        for r in &rots {
+            for i in 0..9 {
+                for j in 0..9 {
+                    rr[(i, j)] += r[(i / 3, i % 3)] * r[(j / 3, j % 3)];
+                }
+            }
+        }
+        assert_eq!(sums.totals.rr, rr);
+        // Readings taken out again, as the outlier cut does.
+        let mut s = sums.totals.clone();
+        for k in (0..rots.len()).step_by(7) {
+            s.add_upper(&rots[k], &raws[k], -1.0);
+            for i in 0..9 {
+                for j in 0..9 {
+                    rr[(i, j)] += -rots[k][(i / 3, i % 3)] * rots[k][(j / 3, j % 3)];
+                }
+            }
+        }
+        s.mirror();
+        assert_eq!(s.rr, rr);
     }
 
     #[test]
