@@ -4,6 +4,16 @@
 //! RMSE over the movement phase). Prints a per-trial table, a per-class table, the means and ratios,
 //! and the cost per sample of both filters (imucald's `OrientationFilter::update_sample` against
 //! VQF's C++ batch update on the same data); figures, not assertions.
+//!
+//! imucald's filter sees each trial's magnetometer through the calibration `imucald replay` of
+//! that trial picks ([`replay_pick`]: the library's `replay` with the default configuration, the
+//! primary compass's calibration when its load decision is to load it), so the bench scores what
+//! a user of replay gets; the table names it per trial (`none: <reason>` when the replay offers
+//! none, and the filter then runs on the raw field). A vector calibration comes with the field it
+//! was fitted against, whose declination (against the attitude's north) the filter takes
+//! ([`MagPick::declination_deg`]). VQF gets the raw field, as the trials carry it.
+//! A second table sets the heading error at rest (`moving == 0`) through that calibration beside
+//! the one on the raw field: the calibration must not put a heading offset there ([`RestHeading`]).
 //! VQF runs through `scripts/vqf_peer.py` with `$IMUCALD_PYTHON` or `.venv/bin/python`.
 //!
 //! `cargo bench --bench broad -- --tune` is the procedure that chose the filter's defaults (see
@@ -21,7 +31,8 @@
 //!
 //! `cargo bench --bench broad -- --dump NAME OUT.csv` writes the per-sample errors (deg) of both
 //! filters on the trial whose name contains NAME, with imucald's state (rest, disturbance, bias,
-//! sensor -> ENU quaternion), for a look at where they fail.
+//! sensor -> ENU quaternion) and the signed heading errors of imucald, of imucald on the raw field
+//! and of VQF, for a look at where they fail.
 //!
 //! Needs `[[bench]] name = "broad" harness = false` in Cargo.toml (without it cargo builds this file
 //! under the test harness, which never calls `main`: hence the allow below).
@@ -33,10 +44,14 @@ mod python;
 #[path = "../tests/common/untuned.rs"]
 mod untuned;
 
+use imucald::app::replay::{replay, ReplayOptions};
 use imucald::attitude::eval::{errors, evaluate, reference, EvalResult};
 use imucald::attitude::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
+use imucald::calib::model::Calibration;
+use imucald::calib::outcome::MagMethod;
+use imucald::config::Config;
 use imucald::io::sources::read_log;
-use imucald::types::Sample;
+use imucald::types::{Sample, Vec3};
 use nalgebra::{Quaternion, UnitQuaternion};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -65,10 +80,113 @@ fn class_of(name: &str) -> usize {
 struct Trial {
     name: String,
     class: usize,
+    /// The trial's samples, the magnetometer through [`Trial::cal`] (raw where it is none): what
+    /// imucald's filter is scored on.
     samples: Vec<Sample>,
+    /// The magnetometer as the trial carries it, one per sample: the raw field the calibration is
+    /// compared with at rest.
+    raw_mag_ut: Vec<Option<Vec3>>,
+    /// The magnetometer calibration `imucald replay` of the trial picks.
+    cal: MagPick,
     /// VQF's metrics and its batch-update time, s.
     vqf: Option<(EvalResult, f64)>,
     vqf_q: Vec<UnitQuaternion<f64>>,
+}
+
+/// The magnetometer calibration `imucald replay` of a trial picks for its (only, primary) compass.
+struct MagPick {
+    /// What the table says: the model and method (`full12 vector`), or `none: <reason>`.
+    label: String,
+    /// The calibration applied before the filter; `None` leaves the field raw.
+    cal: Option<Calibration>,
+    /// The declination of the earth field the calibration was fitted against (deg east of the
+    /// attitude's north: the report's `earth_field`, a vector or planar calibration's), which the
+    /// filter's heading takes; 0 otherwise (magnetic north, BROAD's reference north). A vector
+    /// calibration maps a reading to `R^T B`, the fitted field `B` seen in the body: its
+    /// horizontal part points at `B`'s declination, not at the attitude's north, so a filter
+    /// that takes the calibrated field's azimuth for north (declination 0) is off by that
+    /// declination everywhere, at rest included; the field and the calibration are one fit.
+    declination_deg: f64,
+}
+
+/// What `imucald replay TRIAL` (no configuration file: `Config::default()`) picks for the primary
+/// compass, through the library's own `replay`: its reported calibration when the report's load
+/// decision for that compass is to load it (what the exports write as values), with the
+/// declination of the field a vector or planar calibration was fitted against; else none, with
+/// the decision's reason (`none: the fit failed (did_not_converge)`).
+fn replay_pick(path: &Path) -> MagPick {
+    let out = match replay(
+        path,
+        &Config::default(),
+        &ReplayOptions::default(),
+        &mut |_, _| {},
+    ) {
+        Ok(o) => o,
+        Err(e) => {
+            return MagPick {
+                label: format!("none: replay failed: {e}"),
+                cal: None,
+                declination_deg: 0.0,
+            }
+        }
+    };
+    let r = &out.report;
+    let primary_id = r
+        .instances
+        .iter()
+        .find(|i| i.primary)
+        .map_or(0, |i| i.compass_id);
+    let mag = &r.calibration.mag;
+    match r.load.iter().find(|d| d.compass_id == primary_id) {
+        Some(d) if d.load => match mag.calibration() {
+            Some(cal) => {
+                let field = mag
+                    .method
+                    .as_ref()
+                    .filter(|m| matches!(m.method, MagMethod::Vector | MagMethod::Planar))
+                    .and_then(|m| m.earth_field.as_ref());
+                MagPick {
+                    label: format!(
+                        "{}{}{}",
+                        mag.model.name(),
+                        mag.method
+                            .as_ref()
+                            .map_or(String::new(), |m| format!(" {}", m.method.name())),
+                        field.map_or(String::new(), |f| format!(
+                            ", field {} decl {:+.1} deg",
+                            serde_json::to_value(f.model)
+                                .ok()
+                                .and_then(|v| v.as_str().map(str::to_string))
+                                .unwrap_or_default(),
+                            f.declination_deg
+                        ))
+                    ),
+                    cal: Some(cal),
+                    declination_deg: field.map_or(0.0, |f| f.declination_deg),
+                }
+            }
+            None => MagPick {
+                label: "none: to load, but no calibration passed".into(),
+                cal: None,
+                declination_deg: 0.0,
+            },
+        },
+        Some(d) => MagPick {
+            label: format!(
+                "none: {}{}",
+                d.reason.words(),
+                mag.failure
+                    .map_or(String::new(), |f| format!(" ({})", f.name()))
+            ),
+            cal: None,
+            declination_deg: 0.0,
+        },
+        None => MagPick {
+            label: "none: no load decision for the primary compass".into(),
+            cal: None,
+            declination_deg: 0.0,
+        },
+    }
 }
 
 fn python() -> Option<String> {
@@ -155,8 +273,18 @@ fn run_ours(samples: &[Sample], cfg: &FusionConfig) -> (Vec<UnitQuaternion<f64>>
     (q, start.elapsed().as_secs_f64())
 }
 
+/// imucald's filter over a trial as scored: its samples through the replay's calibration, with
+/// that calibration's declination ([`MagPick::declination_deg`]).
+fn run_trial(t: &Trial, cfg: &FusionConfig) -> (Vec<UnitQuaternion<f64>>, f64) {
+    let cfg = FusionConfig {
+        declination_deg: t.cal.declination_deg,
+        ..*cfg
+    };
+    run_ours(&t.samples, &cfg)
+}
+
 fn score(t: &Trial, cfg: &FusionConfig) -> EvalResult {
-    evaluate(&t.samples, &run_ours(&t.samples, cfg).0)
+    evaluate(&t.samples, &run_trial(t, cfg).0)
 }
 
 fn load(dir: &Path, py: Option<&str>) -> Vec<Trial> {
@@ -200,15 +328,151 @@ fn load(dir: &Path, py: Option<&str>) -> Vec<Trial> {
             }
             None => (None, vec![]),
         };
+        let cal = replay_pick(p);
+        let raw_mag_ut: Vec<Option<Vec3>> = log.samples.iter().map(|s| s.mag_ut).collect();
+        let mut samples = log.samples;
+        if let Some(c) = &cal.cal {
+            for s in &mut samples {
+                s.mag_ut = s.mag_ut.map(|m| c.apply(&m));
+            }
+        }
         trials.push(Trial {
             class: class_of(&name),
             name,
-            samples: log.samples,
+            samples,
+            raw_mag_ut,
+            cal,
             vqf,
             vqf_q,
         });
     }
     trials
+}
+
+/// The signed heading error of an estimate against the reference (both sensor -> ENU), rad: the
+/// angle of `q_est q_ref^-1` about the vertical (its twist about z), positive counter-clockwise
+/// seen from above. [`errors`] gives its size alone.
+fn heading_signed(q_est: &UnitQuaternion<f64>, q_ref: &UnitQuaternion<f64>) -> f64 {
+    let e = (q_est * q_ref.inverse()).into_inner();
+    let s = if e.w < 0.0 { -1.0 } else { 1.0 };
+    2.0 * (s * e.k).atan2(s * e.w)
+}
+
+/// The heading error at rest (`moving == 0`) of one run of the filter over a trial: what the
+/// field alone sets the heading to when nothing moves (the gyro integrates nothing then), so a
+/// constant offset the calibration puts on the field shows there undiluted.
+#[derive(Debug, Clone, Copy)]
+struct RestHeading {
+    /// The mean signed heading error of each rest phase (a run of `moving == 0` samples with a
+    /// reference), deg, in time order: the first is the rest before the movement.
+    phase_means_deg: [Option<f64>; 2],
+    /// The RMS heading error over every rest sample, deg.
+    rms_deg: f64,
+}
+
+/// [`RestHeading`] of the estimates `q` (one per sample) over the rests of `samples`;
+/// `phase_means_deg` holds the first and the last rest phase.
+fn rest_heading(samples: &[Sample], q: &[UnitQuaternion<f64>]) -> RestHeading {
+    let mut phases: Vec<(f64, usize)> = Vec::new();
+    let mut in_rest = false;
+    let (mut sum_sq, mut n) = (0.0, 0usize);
+    for (s, e) in samples.iter().zip(q) {
+        let rest = s.moving == Some(false);
+        let Some(r) = reference(s).filter(|_| rest) else {
+            in_rest &= rest;
+            continue;
+        };
+        let h = heading_signed(e, &r).to_degrees();
+        if !in_rest {
+            phases.push((0.0, 0));
+            in_rest = true;
+        }
+        let p = phases.last_mut().expect("a phase started");
+        p.0 += h;
+        p.1 += 1;
+        sum_sq += h * h;
+        n += 1;
+    }
+    let phase_mean = |p: Option<&(f64, usize)>| p.map(|(s, n)| s / (*n).max(1) as f64);
+    RestHeading {
+        phase_means_deg: [phase_mean(phases.first()), phase_mean(phases.last())],
+        rms_deg: (sum_sq / n.max(1) as f64).sqrt(),
+    }
+}
+
+/// The trial's samples with the magnetometer as the trial carries it (no calibration).
+fn raw_samples(t: &Trial) -> Vec<Sample> {
+    t.samples
+        .iter()
+        .zip(&t.raw_mag_ut)
+        .map(|(s, m)| Sample { mag_ut: *m, ..*s })
+        .collect()
+}
+
+/// The heading at rest through the replay's calibration beside the one on the raw field
+/// (declination 0), per trial (`cal`: the runs on the calibrated samples, as scored), with the
+/// movement phase's total RMSE of both. The first rest is where the calibration alone shows:
+/// the filter's heading there comes from the field and nothing else (no motion yet); the last
+/// rest also carries what the motion left. "Added" is the growth of the first rest's |mean
+/// heading error| and of the RMS over every rest, the calibration's against the raw field's.
+fn rest_table(trials: &[&Trial], cal: &[(EvalResult, RestHeading)], cfg: &FusionConfig) {
+    println!("== heading error at rest (moving == 0), deg: mean signed over the first rest / the last rest, RMS over every rest; total RMSE over moving == 1");
+    println!(
+        "{:<44} {:>27}   {:>27}   {:>13}",
+        "trial", "raw field (decl 0)", "replay's calibration", "added: first, RMS"
+    );
+    let f = |r: &RestHeading, e: &EvalResult| {
+        let p = |x: Option<f64>| x.map_or("-".into(), |v| format!("{v:+.2}"));
+        format!(
+            "{:>6} {:>6} {:>5.2} {:>6.2}",
+            p(r.phase_means_deg[0]),
+            p(r.phase_means_deg[1]),
+            r.rms_deg,
+            e.total_rmse_deg
+        )
+    };
+    let first = |h: &RestHeading| h.phase_means_deg[0].map_or(0.0, f64::abs);
+    let (mut first_raw, mut first_cal, mut rms_raw, mut rms_cal) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut worst: Option<(f64, &str)> = None;
+    for (t, (e_cal, h_cal)) in trials.iter().zip(cal) {
+        let (e_raw, h_raw) = if t.cal.cal.is_some() {
+            let raw = raw_samples(t);
+            let q = run_ours(&raw, cfg).0;
+            (evaluate(&raw, &q), rest_heading(&raw, &q))
+        } else {
+            (*e_cal, *h_cal)
+        };
+        let added_first = first(h_cal) - first(&h_raw);
+        let added_rms = h_cal.rms_deg - h_raw.rms_deg;
+        if t.cal.cal.is_some() {
+            first_raw.push(first(&h_raw));
+            first_cal.push(first(h_cal));
+            rms_raw.push(h_raw.rms_deg);
+            rms_cal.push(h_cal.rms_deg);
+            if worst.is_none_or(|(w, _)| added_first > w) {
+                worst = Some((added_first, &t.name));
+            }
+        }
+        println!(
+            "{:<44} {}   {}   {:>+6.2} {:>+6.2}   {}",
+            t.name,
+            f(&h_raw, &e_raw),
+            f(h_cal, e_cal),
+            added_first,
+            added_rms,
+            t.cal.label
+        );
+    }
+    let n = first_raw.len();
+    println!(
+        "over the {n} trials the replay calibrated: first rest |mean heading error| raw field {:.2}, replay's calibration {:.2} deg (most added {}); RMS over every rest {:.2} and {:.2} deg",
+        mean(first_raw.into_iter()),
+        mean(first_cal.into_iter()),
+        worst.map_or("-".into(), |(w, name)| format!("{w:+.2} deg, {name}")),
+        mean(rms_raw.into_iter()),
+        mean(rms_cal.into_iter()),
+    );
 }
 
 fn mean(v: impl Iterator<Item = f64>) -> f64 {
@@ -231,19 +495,27 @@ fn means(v: &[EvalResult]) -> String {
 fn report(title: &str, trials: &[&Trial], ours: &[EvalResult]) -> Option<(f64, f64)> {
     println!("== {title}: total / heading / inclination RMSE (deg) over moving == 1");
     println!(
-        "{:<44} {:>20}   {:>20}   {:>6}",
+        "{:<44} {:>20}   {:>20}   {:>6}   magnetometer calibration (imucald; VQF: raw)",
         "trial", "imucald", "VQF 9D (defaults)", "ratio"
     );
     for (t, e) in trials.iter().zip(ours) {
         match &t.vqf {
             Some((v, _)) => println!(
-                "{:<44} {}   {}   {:6.2}",
+                "{:<44} {}   {}   {:6.2}   {}",
                 t.name,
                 fmt(e),
                 fmt(v),
-                e.total_rmse_deg / v.total_rmse_deg
+                e.total_rmse_deg / v.total_rmse_deg,
+                t.cal.label
             ),
-            None => println!("{:<44} {}", t.name, fmt(e)),
+            None => println!(
+                "{:<44} {}   {:>20}   {:>6}   {}",
+                t.name,
+                fmt(e),
+                "",
+                "",
+                t.cal.label
+            ),
         }
     }
     let all_vqf = trials.iter().all(|t| t.vqf.is_some());
@@ -690,23 +962,42 @@ fn dump(trials: &[Trial], pattern: &str, out: &Path) {
     };
     let cfg = FusionConfig {
         world: WorldFrame::Enu,
+        declination_deg: t.cal.declination_deg,
         ..configured()
     };
     let dt = median_dt(&t.samples);
     let mut flt = OrientationFilter::new(cfg);
+    // The same filter on the raw field (declination 0), for the signed heading beside ours.
+    let raw = raw_samples(t);
+    let raw_q = run_ours(
+        &raw,
+        &FusionConfig {
+            declination_deg: 0.0,
+            ..cfg
+        },
+    )
+    .0;
     let mut s = String::from(
-        "t,moving,ours_total,ours_heading,ours_incl,vqf_total,vqf_heading,vqf_incl,rest,mag_disturbed,bias_x,bias_y,bias_z,qw,qx,qy,qz\n",
+        "t,moving,ours_total,ours_heading,ours_incl,vqf_total,vqf_heading,vqf_incl,rest,mag_disturbed,bias_x,bias_y,bias_z,qw,qx,qy,qz,ours_heading_signed,raw_heading_signed,vqf_heading_signed\n",
     );
     for (i, smp) in t.samples.iter().enumerate() {
         flt.update_sample(smp, dt);
         let Some(r) = reference(smp) else { continue };
         let (a, b, c) = errors(&flt.quaternion_enu(), &r);
+        let signed = |q: Option<&UnitQuaternion<f64>>| {
+            q.map_or(f64::NAN, |q| heading_signed(q, &r).to_degrees())
+        };
+        let signed = [
+            signed(Some(&flt.quaternion_enu())),
+            signed(raw_q.get(i)),
+            signed(t.vqf_q.get(i)),
+        ];
         let v = t.vqf_q.get(i).map(|v| errors(v, &r));
         let (d, e, f) = v.unwrap_or((f64::NAN, f64::NAN, f64::NAN));
         let bias = flt.bias();
         let q = flt.quaternion_enu();
         s += &format!(
-            "{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7},{:.7}\n",
+            "{:.4},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{},{},{:.6},{:.6},{:.6},{:.7},{:.7},{:.7},{:.7},{:.4},{:.4},{:.4}\n",
             smp.t_s,
             u8::from(smp.moving == Some(true)),
             a.to_degrees(),
@@ -723,7 +1014,10 @@ fn dump(trials: &[Trial], pattern: &str, out: &Path) {
             q.w,
             q.i,
             q.j,
-            q.k
+            q.k,
+            signed[0],
+            signed[1],
+            signed[2]
         );
     }
     match std::fs::write(out, s) {
@@ -782,22 +1076,29 @@ fn main() {
     // One trial after the other on this thread, so the times are the filter's alone.
     let cfg = configured();
     let mut ours = Vec::new();
+    let mut rest = Vec::new();
     let (mut secs, mut n) = (0.0, 0usize);
     for t in &trials {
         // The fastest of three runs, as for VQF (scripts/vqf_peer.py): the machine's other work
         // only ever adds time.
-        let (q, s) = run_ours(&t.samples, &cfg);
-        let s = (0..2).fold(s, |best, _| best.min(run_ours(&t.samples, &cfg).1));
+        let (q, s) = run_trial(t, &cfg);
+        let s = (0..2).fold(s, |best, _| best.min(run_trial(t, &cfg).1));
         secs += s;
         n += t.samples.len();
-        ours.push(evaluate(&t.samples, &q));
+        let e = evaluate(&t.samples, &q);
+        ours.push(e);
+        rest.push((e, rest_heading(&t.samples, &q)));
     }
     let all: Vec<&Trial> = trials.iter().collect();
     report(
-        &format!("BROAD, {} trials, default settings", trials.len()),
+        &format!(
+            "BROAD, {} trials, default settings, the magnetometer through the replay's calibration",
+            trials.len()
+        ),
         &all,
         &ours,
     );
+    rest_table(&all, &rest, &cfg);
     print!(
         "cost per sample: imucald {:.2} us ({n} samples, one thread)",
         secs / n as f64 * 1e6
