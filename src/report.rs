@@ -89,13 +89,13 @@ impl LoadReason {
         match self {
             LoadReason::Better => "better than the vehicle's own on held-out blocks",
             LoadReason::NoOnboard => {
-                "no calibration of the vehicle's to compare with; passed its checks"
+                "no calibration of the vehicle's; better than the readings as logged on held-out blocks, or passed its checks where they cannot be scored"
             }
             LoadReason::NotJudged => {
                 "no attitude in the log to judge it held out; passed its checks"
             }
             LoadReason::KeepVehicle => {
-                "keep the vehicle's: imucald's is not better on held-out blocks"
+                "keep the vehicle's (the readings as logged, where it has none): imucald's is not better on held-out blocks"
             }
             LoadReason::HeldOutFailed => {
                 "imucald's fit on the fitting blocks failed: nothing vouches for it held out"

@@ -46,6 +46,40 @@ fn a_compass_turned_by_yaw_90_is_refused_naming_the_parameter() {
     );
 }
 
+/// The exports offer the mounting to set as a value (ArduPilot's COMPASS_ORIENT, PX4's
+/// CAL_MAG0_ROT), with a comment saying why, and write no calibration of that compass.
+#[test]
+fn the_exports_offer_the_mounting_found_and_no_calibration_of_that_compass() {
+    let mut sc = Scenario::named("tumble").unwrap();
+    sc.effects.mag_accel_rotation_deg = Some(rotation_vector_deg(
+        &Mounting::standard(2).unwrap().matrix(),
+    ));
+    let sim = simulate(&sc, 11);
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("log.csv");
+    imucald::io::samplelog::write_csv(&log, &sim.samples).unwrap();
+    let opts = imucald::app::replay::ReplayOptions {
+        export_dir: Some(dir.path().join("export")),
+        ..Default::default()
+    };
+    let out =
+        imucald::app::replay::replay(&log, &Config::default(), &opts, &mut |_, _| {}).unwrap();
+    assert_eq!(
+        out.report.calibration.mag.failure,
+        Some(FitFailure::Orientation)
+    );
+    let ap = std::fs::read_to_string(dir.path().join("export/ardupilot.parm")).unwrap();
+    assert!(ap.lines().any(|l| l == "COMPASS_ORIENT 2.000000"), "{ap}");
+    assert!(ap.contains("ROTATION_YAW_90"), "{ap}");
+    assert!(!ap.contains("COMPASS_OFS_X"), "{ap}");
+    let px = std::fs::read_to_string(dir.path().join("export/px4.params")).unwrap();
+    assert!(
+        px.lines().any(|l| l.starts_with("1\t1\tCAL_MAG0_ROT\t2.")),
+        "{px}"
+    );
+    assert!(!px.contains("CAL_MAG0_XOFF"), "{px}");
+}
+
 #[test]
 fn a_correctly_mounted_compass_is_not_refused() {
     let mag = replay_tumble(None, 11);

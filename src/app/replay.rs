@@ -154,6 +154,7 @@ pub fn replay(
     run.other_mags = other_mag_methods(&mut run, cfg, &quality);
     let mut quality: Vec<crate::report::QualityReport> =
         quality.into_iter().map(|j| j.judged.report).collect();
+    judge_sphere_fits(&run, &results.mag, &mut quality);
     plausibility(&mut run, &mut results, &mut quality, cfg);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
@@ -378,6 +379,50 @@ fn judge<R>(
             .map(|g| g as &crate::calib::magmethod::FieldOf<'_>),
         start.as_ref(),
     )
+}
+
+/// A compass whose calibration is the sphere fit although the log has an attitude (no place,
+/// and the vector fit with the field fitted not taken; no ladder ran) is judged on the held-out
+/// blocks by that calibration, the one it offers, in place of the vector fit's
+/// ([`crate::calib::magmethod::judge_sphere`]).
+fn judge_sphere_fits(
+    run: &Run,
+    primary: &crate::calib::outcome::SensorResult,
+    quality: &mut [crate::report::QualityReport],
+) {
+    for c in compasses(run) {
+        let mag = match c.other {
+            None => primary,
+            Some(k) => match run.other_mags.get(k).and_then(|m| m.as_ref()) {
+                Some(m) => m,
+                None => continue,
+            },
+        };
+        let sphere = mag.report.method.as_ref().map(|m| m.method)
+            == Some(crate::calib::outcome::MagMethod::Sphere);
+        let (true, Some(cal)) = (sphere, mag.calibration) else {
+            continue;
+        };
+        let Some(q) = quality
+            .iter_mut()
+            .find(|q| q.instance == c.instance && q.start.is_none())
+        else {
+            continue;
+        };
+        let pipe = c.pipe;
+        // In sensor axes, as the pipeline fitted it, then into body axes.
+        let ours = |s: &crate::types::Sample| {
+            let v = cal.apply(&s.mag_ut?);
+            pipe.to_body(&crate::types::Sample {
+                mag_ut: Some(v),
+                ..*s
+            })
+            .mag_ut
+        };
+        *q = judge(&run.log, &c, |body_mag, onboard, _| {
+            crate::calib::magmethod::judge_sphere(&c.instance, c.samples, body_mag, onboard, &ours)
+        });
+    }
 }
 
 /// Every compass's readings checked for a compass seeing the earth's field
@@ -1017,7 +1062,26 @@ fn write_exports(
         mags.extend(export(i.compass_id, m, m.calibration_ut().as_ref()));
     }
     let m = mags.first().filter(|c| c.index == primary_id as usize);
-    if mags.is_empty() && a.is_none() {
+    // A compass refused for its mounting: the mounting to set, in place of a calibration.
+    let mut records = vec![(primary_id, &report.calibration.mag)];
+    for i in report.instances.iter().filter(|i| !i.primary) {
+        records.push((i.compass_id, &i.calibration.mag));
+    }
+    let mountings: Vec<crate::calib::export::MountingFix> = records
+        .into_iter()
+        .filter(|(_, rep)| rep.failure == Some(crate::calib::fit::FitFailure::Orientation))
+        .filter_map(|(k, rep)| match &rep.mounting.as_ref()?.verdict {
+            crate::calib::mounting::Verdict::Differs { set } => {
+                Some(crate::calib::export::MountingFix {
+                    index: k as usize,
+                    found: set.mounting.clone(),
+                    vehicle: vehicle(k),
+                })
+            }
+            _ => None,
+        })
+        .collect();
+    if mags.is_empty() && mountings.is_empty() && a.is_none() {
         // Nothing passed: no file (nor folder) rather than an empty one a user might load.
         return Ok(vec![]);
     }
@@ -1038,11 +1102,11 @@ fn write_exports(
     for (name, text) in [
         (
             "ardupilot.parm",
-            crate::calib::export::ardupilot_file(&mags, &motors, a),
+            crate::calib::export::ardupilot_file(&mags, &mountings, &motors, a),
         ),
         (
             "px4.params",
-            crate::calib::export::px4_file(&mags, &motors, a),
+            crate::calib::export::px4_file(&mags, &mountings, &motors, a),
         ),
         ("fusion.h", crate::calib::export::fusion_file(m, a)),
     ] {
@@ -1501,7 +1565,7 @@ pub fn next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String 
     };
     match (exported("ardupilot.parm"), exported("px4.params")) {
         (Some(ap), Some(px)) if load.is_empty() && !r.load.is_empty() => format!(
-            "next: keep the vehicle's own compass calibration: no compass here is one to load{not} ({ap} and {px} hold the values as comments)"
+            "next: keep the vehicle's compasses as they are: no compass here is one to load{not} ({ap} and {px} hold the values as comments)"
         ),
         (Some(ap), Some(px)) => {
             let which = if load.is_empty() {
@@ -1515,7 +1579,7 @@ pub fn next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String 
             "next: no parameter file was written: no compass or accelerometer calibration passed{not}"
         ),
         _ if load.is_empty() && !r.load.is_empty() => format!(
-            "next: keep the vehicle's own compass calibration: no compass here is one to load{not}"
+            "next: keep the vehicle's compasses as they are: no compass here is one to load{not}"
         ),
         _ if !load.is_empty() => format!(
             "next: add --export DIR for the ArduPilot, PX4 and Fusion parameter files of {}, --html FILE for a page of plots",

@@ -14,6 +14,7 @@
 
 use crate::calib::ardupilot;
 use crate::calib::model::Calibration;
+use crate::calib::mounting::Mounting;
 use crate::types::{Vec3, STANDARD_GRAVITY_MPS2};
 
 /// A parameter name and value.
@@ -308,12 +309,87 @@ pub fn px4_motor(k_ut_per_a: &Vec3, index: usize) -> Vec<Param> {
 /// [`px4_motor`] export beside the calibrations.
 pub(crate) type CompassMotors = [(usize, Vec3)];
 
+/// A compass the mounting check ([`crate::calib::mounting`]) finds turned against the mounting
+/// its readings are in: the mounting to set, offered as a value (as ArduPilot's calibrator sets
+/// COMPASS_ORIENTn itself when COMPASS_AUTO_ROT finds a clear rotation). Its calibration was
+/// refused, so none is written: the compass is to be calibrated again in its new mounting.
+#[derive(Debug, Clone)]
+pub(crate) struct MountingFix {
+    pub index: usize,
+    /// The mounting the data say, relative to the frame the readings were logged in (body = R
+    /// readings).
+    pub found: Mounting,
+    /// The vehicle's own parameters as the log carries them (its COMPASS_ORIENTn / CAL_MAGn_ROT,
+    /// which the readings were already turned by).
+    pub vehicle: std::collections::BTreeMap<String, f64>,
+}
+
+impl MountingFix {
+    /// The mounting to set on the vehicle: the one found composed with the vehicle's own (the
+    /// readings were turned by the vehicle's rotation first), and the name of its parameter.
+    /// `None` for the mounting when the composition is no rotation of the table.
+    fn to_set(&self, px4: bool) -> (String, Option<Mounting>) {
+        let name = if px4 {
+            format!("CAL_MAG{}_ROT", self.index)
+        } else {
+            u8::try_from(self.index)
+                .ok()
+                .and_then(|k| ardupilot::single(ardupilot::Single::Orient, k))
+                .unwrap_or_else(|| format!("COMPASS_ORIENT{}", self.index + 1))
+        };
+        let own = self
+            .vehicle
+            .get(&name)
+            .and_then(|v| u8::try_from(*v as i64).ok())
+            .and_then(Mounting::standard);
+        let total = match &own {
+            Some(own) => Mounting::of_matrix(&(self.found.matrix() * own.matrix())),
+            None => match self.found {
+                Mounting::Standard { .. } => Some(self.found.clone()),
+                Mounting::Custom { .. } => None,
+            },
+        };
+        (name, total)
+    }
+}
+
+/// The lines of a mounting to set: a comment saying why, then the value (or, when the rotation
+/// is none of the table's, a comment naming it as a custom mounting).
+fn mounting_lines(
+    f: &MountingFix,
+    px4: bool,
+    comment: &str,
+    line: &dyn Fn(&str, f64) -> String,
+) -> String {
+    let (name, total) = f.to_set(px4);
+    let own = f
+        .vehicle
+        .get(&name)
+        .map_or(String::new(), |v| format!(" (the vehicle's {name} is {v})"));
+    let mut out = format!(
+        "{comment} compass {}: the readings fit {} more closely than the mounting they were logged in{own}; set the mounting, then calibrate this compass again (no calibration of it is written)\n",
+        f.index,
+        f.found.label()
+    );
+    match total {
+        Some(m) => out += &line(&name, m.ardupilot_compass_orient() as f64),
+        None => {
+            out += &format!(
+                "{comment} {name} not written: the rotation is none of the table's, a custom mounting ({})\n",
+                f.found.parameters(f.index)
+            )
+        }
+    }
+    out
+}
+
 /// Magnetometer calibrations to export, one per compass.
 pub(crate) type CompassCalibrations = [CompassExport];
 
 /// ArduPilot `.parm` text ("NAME VALUE" per line) with warnings as comments.
 pub(crate) fn ardupilot_file(
     mags: &CompassCalibrations,
+    mountings: &[MountingFix],
     motors: &CompassMotors,
     accel: Option<&Calibration>,
 ) -> String {
@@ -337,6 +413,9 @@ pub(crate) fn ardupilot_file(
             }
         }
     }
+    for f in mountings {
+        out += &mounting_lines(f, false, "#", &line);
+    }
     if let Some((params, warns)) = accel.map(ardupilot_accel) {
         for w in warns {
             out += &format!("# warning: {w}\n");
@@ -351,6 +430,7 @@ pub(crate) fn ardupilot_file(
 /// PX4/QGroundControl `.params` text (vehicle, component, name, value, type 9 = float).
 pub(crate) fn px4_file(
     mags: &CompassCalibrations,
+    mountings: &[MountingFix],
     motors: &CompassMotors,
     accel: Option<&Calibration>,
 ) -> String {
@@ -367,6 +447,9 @@ pub(crate) fn px4_file(
                 out += &withheld_line(c, "#", &line(&n, v));
             }
         }
+    }
+    for f in mountings {
+        out += &mounting_lines(f, true, "#", &line);
     }
     if let Some((params, warns)) = accel.map(px4_accel) {
         for w in warns {
@@ -478,12 +561,12 @@ mod tests {
             assert!((got - h[r] * 0.01).abs() < 1e-12, "PX4 axis {r}: {got}");
         }
         // Both files carry them beside the calibration.
-        let ap = ardupilot_file(&[CompassExport::determined(1, cal)], &[(1, k)], None);
+        let ap = ardupilot_file(&[CompassExport::determined(1, cal)], &[], &[(1, k)], None);
         assert!(
             ap.contains("COMPASS_MOT2_X") && ap.contains("COMPASS_MOTCT 2"),
             "{ap}"
         );
-        let px = px4_file(&[CompassExport::determined(0, cal)], &[(0, k)], None);
+        let px = px4_file(&[CompassExport::determined(0, cal)], &[], &[(0, k)], None);
         assert!(
             px.contains("CAL_MAG0_XCOMP") && px.contains("CAL_MAG_COMP_TYP"),
             "{px}"
@@ -644,7 +727,7 @@ mod tests {
             axis: [false, false, true],
             why: "turns about the vertical only".into(),
         };
-        let ap = ardupilot_file(std::slice::from_ref(&c), &[], None);
+        let ap = ardupilot_file(std::slice::from_ref(&c), &[], &[], None);
         for n in [
             "COMPASS_OFS_Z",
             "COMPASS_DIA_Z",
@@ -662,13 +745,13 @@ mod tests {
         ] {
             assert!(ap.lines().any(|l| l.starts_with(n)), "{n} missing:\n{ap}");
         }
-        let px = px4_file(std::slice::from_ref(&c), &[], None);
+        let px = px4_file(std::slice::from_ref(&c), &[], &[], None);
         assert!(!px.contains("\tCAL_MAG0_ZOFF\t"), "{px}");
         assert!(px.contains("\tCAL_MAG0_XOFF\t"), "{px}");
         assert!(fusion_file(Some(&c), None).contains("magnetometer not written"));
         // The vehicle's own value, when the log has it, is kept and said so.
         c.vehicle.insert("COMPASS_OFS_Z".into(), -130.0);
-        let ap = ardupilot_file(std::slice::from_ref(&c), &[], None);
+        let ap = ardupilot_file(std::slice::from_ref(&c), &[], &[], None);
         assert!(ap.contains("COMPASS_OFS_Z -130.000000"), "{ap}");
         assert!(ap.contains("the vehicle's own value, kept"), "{ap}");
     }

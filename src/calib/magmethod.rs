@@ -823,20 +823,15 @@ pub fn quality(
         return None;
     }
     let blocks = fitting_blocks(samples);
-    let held: Vec<&Sample> = samples
-        .iter()
-        .zip(&blocks)
-        .filter(|(_, f)| !**f)
-        .map(|(s, _)| s)
-        .collect();
-    let score = |cal: &FieldOf<'_>| {
-        let r: Vec<(Vec3, nalgebra::UnitQuaternion<f64>)> = held
-            .iter()
-            .filter_map(|s| Some((cal(s)?, crate::attitude::body_ned_of_ref_q(s.ref_q?)?)))
-            .collect();
-        held_out(&r)
-    };
+    let score = |cal: &FieldOf<'_>| score_held_out(samples, &blocks, cal);
     let theirs = onboard.and_then(|f| score(f));
+    // With no calibration of the vehicle's, the readings as logged are what a calibration must
+    // beat: a sensor calibrated upstream gains nothing from a fit of the flight's errors.
+    let as_logged = if onboard.is_none() {
+        score(body_mag)
+    } else {
+        None
+    };
     let ours = match place_of(samples, log, cfg_place) {
         Some(w) => climb_at(&w.place, samples, &blocks, body_mag, start)?,
         None => field_fitted(samples, &blocks, body_mag, &score)?,
@@ -846,7 +841,55 @@ pub fn quality(
     if ours.held_out.is_none() && theirs.is_none() && ours.ladder.is_none() {
         return None;
     }
-    Some(judged(instance, ours, theirs, onboard.is_some()))
+    Some(judged(instance, ours, theirs, onboard.is_some(), as_logged))
+}
+
+/// The spread of the field through `cal` on the held-out (odd) blocks ([`held_out`]).
+fn score_held_out(
+    samples: &[Sample],
+    blocks: &[bool],
+    cal: &FieldOf<'_>,
+) -> Option<crate::calib::outcome::HeldOut> {
+    let r: Vec<(Vec3, nalgebra::UnitQuaternion<f64>)> = samples
+        .iter()
+        .zip(blocks)
+        .filter(|(_, f)| !**f)
+        .filter_map(|(s, _)| Some((cal(s)?, crate::attitude::body_ned_of_ref_q(s.ref_q?)?)))
+        .collect();
+    held_out(&r)
+}
+
+/// The held-out record of a compass whose calibration is the sphere fit although the log has an
+/// attitude (no place, and the vector fit with the field fitted not taken): the sphere fit's
+/// calibration (`ours`: the field through it in body axes), the one the compass offers, scored
+/// on the odd blocks against the vehicle's (`onboard`) or, with none, the readings as logged.
+/// The sphere fit is made on every reading (it does not split into blocks); with thousands of
+/// readings and at most twelve parameters, what it learns of the odd blocks is small.
+pub fn judge_sphere(
+    instance: &str,
+    samples: &[Sample],
+    body_mag: &FieldOf<'_>,
+    onboard: Option<&FieldOf<'_>>,
+    ours: &FieldOf<'_>,
+) -> crate::calib::outcome::QualityReport {
+    let blocks = fitting_blocks(samples);
+    let score = |cal: &FieldOf<'_>| score_held_out(samples, &blocks, cal);
+    let held_out = score(ours);
+    let ours = Ours {
+        failure: held_out.is_none().then(|| {
+            format!("fewer than {QUALITY_MIN_READINGS} held-out readings through the sphere fit")
+        }),
+        held_out,
+        method: "sphere (fitted on every reading)",
+        ladder: None,
+    };
+    let theirs = onboard.and_then(|f| score(f));
+    let as_logged = if onboard.is_none() {
+        score(body_mag)
+    } else {
+        None
+    };
+    judged(instance, ours, theirs, onboard.is_some(), as_logged).report
 }
 
 /// imucald's side of a held-out check: its score, why there is none, the method that made it,
@@ -962,8 +1005,14 @@ fn judged(
     ours: Ours,
     theirs: Option<crate::calib::outcome::HeldOut>,
     has_onboard: bool,
+    as_logged: Option<crate::calib::outcome::HeldOut>,
 ) -> Judged {
-    let (kind, mut verdict) = verdict(ours.held_out.as_ref(), theirs.as_ref(), has_onboard);
+    let (kind, mut verdict) = verdict(
+        ours.held_out.as_ref(),
+        theirs.as_ref(),
+        has_onboard,
+        as_logged.as_ref(),
+    );
     if let (None, Some(f)) = (&ours.held_out, &ours.failure) {
         verdict = format!("{verdict} ({f})");
     }
@@ -1057,19 +1106,17 @@ fn verdict(
     ours: Option<&crate::calib::outcome::HeldOut>,
     theirs: Option<&crate::calib::outcome::HeldOut>,
     has_onboard: bool,
+    as_logged: Option<&crate::calib::outcome::HeldOut>,
 ) -> (crate::calib::outcome::Verdict, String) {
     use crate::calib::outcome::Verdict;
     match (ours, theirs) {
         (Some(a), Some(b)) => {
-            let worse = a.norm_spread_pct > 1.1 * b.norm_spread_pct
-                || a.dip_spread_deg > 1.1 * b.dip_spread_deg;
-            let better = a.norm_spread_pct < 0.9 * b.norm_spread_pct
-                || a.dip_spread_deg < 0.9 * b.dip_spread_deg;
+            let (better, worse) = compare(a, b);
             let figures = format!(
                 "held out, the field's norm spreads {:.2} % through imucald's against {:.2} % through the vehicle's, its dip {:.2} against {:.2} deg, the heading against the vehicle's yaw {:.2} against {:.2} deg",
                 a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg, a.heading_spread_deg, b.heading_spread_deg
             );
-            if better && !worse {
+            if better {
                 (Verdict::Better, format!("imucald's is better; {figures}"))
             } else if worse {
                 (
@@ -1090,13 +1137,31 @@ fn verdict(
                 a.norm_spread_pct, a.dip_spread_deg
             ),
         ),
-        (Some(a), None) => (
-            Verdict::NoOnboard,
-            format!(
-                "no onboard calibration to compare with; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
-                a.norm_spread_pct, a.dip_spread_deg
+        (Some(a), None) => match as_logged {
+            Some(b) => {
+                let figures = format!(
+                    "held out, the field's norm spreads {:.2} % through imucald's against {:.2} % as logged, its dip {:.2} against {:.2} deg",
+                    a.norm_spread_pct, b.norm_spread_pct, a.dip_spread_deg, b.dip_spread_deg
+                );
+                match compare(a, b) {
+                    (true, false) => (
+                        Verdict::NoOnboard,
+                        format!("no onboard calibration; imucald's is better than the readings as logged; {figures}"),
+                    ),
+                    _ => (
+                        Verdict::KeepVehicle,
+                        format!("keep the readings as logged: no onboard calibration, and imucald's is not clearly better than none; {figures}"),
+                    ),
+                }
+            }
+            None => (
+                Verdict::NoOnboard,
+                format!(
+                    "no onboard calibration to compare with; held out, the field's norm spreads {:.2} % and its dip {:.2} deg through imucald's",
+                    a.norm_spread_pct, a.dip_spread_deg
+                ),
             ),
-        ),
+        },
         (None, Some(b)) => (
             Verdict::Failed,
             format!(
@@ -1113,6 +1178,16 @@ fn verdict(
             "imucald's held-out fit failed, and the log has no calibration of the vehicle's to compare with".into(),
         ),
     }
+}
+
+/// Whether `a` is better than `b` held out (no worse on both spreads, by a tenth, and better on
+/// at least one by a tenth) and whether it is worse (on either, by a tenth).
+fn compare(a: &crate::calib::outcome::HeldOut, b: &crate::calib::outcome::HeldOut) -> (bool, bool) {
+    let worse =
+        a.norm_spread_pct > 1.1 * b.norm_spread_pct || a.dip_spread_deg > 1.1 * b.dip_spread_deg;
+    let better =
+        a.norm_spread_pct < 0.9 * b.norm_spread_pct || a.dip_spread_deg < 0.9 * b.dip_spread_deg;
+    (better && !worse, worse)
 }
 
 // ---------------------------------------------------------------------------------------------

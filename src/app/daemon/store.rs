@@ -145,11 +145,11 @@ pub fn save_store(dir: &Path, store: &StoredCalibration) -> Result<(), Error> {
         .collect();
     crate::io::publish::write_atomic(
         &dir.join("ardupilot.parm"),
-        crate::calib::export::ardupilot_file(&mags, &motors, a.as_ref()).as_bytes(),
+        crate::calib::export::ardupilot_file(&mags, &[], &motors, a.as_ref()).as_bytes(),
     )?;
     crate::io::publish::write_atomic(
         &dir.join("px4.params"),
-        crate::calib::export::px4_file(&mags, &motors, a.as_ref()).as_bytes(),
+        crate::calib::export::px4_file(&mags, &[], &motors, a.as_ref()).as_bytes(),
     )?;
     crate::io::publish::write_atomic(
         &dir.join("fusion.h"),
