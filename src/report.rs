@@ -79,6 +79,9 @@ pub enum LoadReason {
     Unused,
     /// Its RMS residual is over `accept.max_rms_ratio` of the field.
     OverRmsLimit,
+    /// Another record of the log is of the same compass (PX4's `vehicle_magnetometer` is one of
+    /// its `sensor_mag[k]`) and its calibration is the one to load: one per compass.
+    SameCompass,
     /// The fit failed: no calibration.
     FitFailed,
 }
@@ -105,6 +108,9 @@ impl LoadReason {
                 "its RMS residual is over accept.max_rms_ratio of the field"
             }
             LoadReason::FitFailed => "the fit failed",
+            LoadReason::SameCompass => {
+                "the same compass as another record of this log, whose calibration is the one to load"
+            }
         }
     }
 }

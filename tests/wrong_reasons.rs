@@ -155,3 +155,45 @@ fn a_calibration_no_better_than_the_readings_as_logged_is_not_offered() {
         }
     }
 }
+
+/// PX4's primary compass is the one `vehicle_magnetometer` was selected from: on
+/// `flightlogs/px4_cubeorange_two_mags.ulg` that is CAL_MAG1's device (592905, `sensor_mag[1]`),
+/// so the primary's record is compass 1, not compass 0 (another device): its calibration would
+/// otherwise be judged against, and exported to, the wrong compass.
+#[test]
+fn the_primary_px4_compass_is_the_slot_its_magnetometer_belongs_to() {
+    let Some(data) = common::testdata::shared_data() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("r.json");
+    Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .args(["replay", "--report"])
+        .arg(&report)
+        .arg(data.join("flightlogs/px4_cubeorange_two_mags.ulg"))
+        .output()
+        .expect("run imucald");
+    let r: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let slot = r["onboard"]["mag"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| {
+            m["sources"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|s| s == "vehicle_magnetometer[0]")
+        })
+        .expect("a slot for vehicle_magnetometer[0]");
+    assert_eq!(slot["device_id"], 592905);
+    let primary = r["instances"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|i| i["primary"] == true)
+        .expect("a primary");
+    assert_eq!(primary["compass_id"], slot["instance"], "{primary}");
+    assert_eq!(primary["compass_id"], 1);
+    assert_eq!(r["load"][0]["compass_id"], 1);
+}

@@ -1038,7 +1038,8 @@ fn write_exports(
             .flat_map(|c| c.params.clone())
             .collect()
     };
-    let export = |k: u8,
+    let export = |instance: &str,
+                  k: u8,
                   rep: &crate::report::SensorCalibration,
                   cal: Option<&crate::calib::model::Calibration>| {
         cal.filter(|_| rep.units == crate::types::CalUnits::Ut)
@@ -1047,10 +1048,11 @@ fn write_exports(
                 cal: *c,
                 unknown: rep.unknowns(),
                 vehicle: vehicle(k),
-                withheld: load::withheld(report, k, export_all),
+                withheld: load::withheld(report, instance, export_all),
             })
     };
     let mut mags: Vec<crate::calib::export::CompassExport> = export(
+        &load::primary_instance(report),
         primary_id,
         &report.calibration.mag,
         results.mag.calibration.as_ref(),
@@ -1059,7 +1061,12 @@ fn write_exports(
     .collect();
     for i in report.instances.iter().filter(|i| !i.primary) {
         let m = &i.calibration.mag;
-        mags.extend(export(i.compass_id, m, m.calibration_ut().as_ref()));
+        mags.extend(export(
+            &i.instance,
+            i.compass_id,
+            m,
+            m.calibration_ut().as_ref(),
+        ));
     }
     let m = mags.first().filter(|c| c.index == primary_id as usize);
     // A compass refused for its mounting: the mounting to set, in place of a calibration.

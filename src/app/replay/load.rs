@@ -12,20 +12,19 @@ pub(crate) const PRIMARY: &str = "primary";
 /// A compass is to load when it passed, the vehicle uses it, its RMS residual is within
 /// `max_rms_ratio` of the field, and its held-out verdict is `better` or `no_onboard` (or the
 /// log has no attitude to judge it on).
+/// Two records of the same compass (the same `compass_id`) are never both to load: the first to
+/// load (the primary's first) is, the other is [`LoadReason::SameCompass`].
 pub(crate) fn decide(r: &Report, max_rms_ratio: f64) -> Vec<LoadDecision> {
     let primary = r.instances.iter().find(|i| i.primary);
     let mut compasses = vec![(
-        primary
-            .map(|i| i.instance.clone())
-            .or_else(|| r.input.instance.clone())
-            .unwrap_or_else(|| PRIMARY.to_string()),
+        primary_instance(r),
         primary.map_or(0, |i| i.compass_id),
         &r.calibration.mag,
     )];
     for i in r.instances.iter().filter(|i| !i.primary) {
         compasses.push((i.instance.clone(), i.compass_id, &i.calibration.mag));
     }
-    compasses
+    let mut decisions: Vec<LoadDecision> = compasses
         .into_iter()
         .map(|(instance, compass_id, mag)| {
             let reason = reason(r, &instance, compass_id, mag, max_rms_ratio);
@@ -39,7 +38,26 @@ pub(crate) fn decide(r: &Report, max_rms_ratio: f64) -> Vec<LoadDecision> {
                 reason,
             }
         })
-        .collect()
+        .collect();
+    for k in 0..decisions.len() {
+        let id = decisions[k].compass_id;
+        if decisions[k].load && decisions[..k].iter().any(|d| d.load && d.compass_id == id) {
+            decisions[k].load = false;
+            decisions[k].reason = LoadReason::SameCompass;
+        }
+    }
+    decisions
+}
+
+/// The name the primary compass is judged and decided under: its instance's, the input's, or
+/// [`PRIMARY`].
+pub(crate) fn primary_instance(r: &Report) -> String {
+    r.instances
+        .iter()
+        .find(|i| i.primary)
+        .map(|i| i.instance.clone())
+        .or_else(|| r.input.instance.clone())
+        .unwrap_or_else(|| PRIMARY.to_string())
 }
 
 fn reason(
@@ -98,18 +116,19 @@ fn unused(r: &Report, k: u8) -> bool {
         })
 }
 
-/// Why compass `k` is written as comments rather than values to load, or `None` to load it.
-/// With `export_all` every compass is written as values, and the reason it would not have been
-/// is said in a comment.
+/// Why the compass of record `instance` is written as comments rather than values to load, or
+/// `None` to load it. With `export_all` every compass is written as values, and the reason it
+/// would not have been is said in a comment; a second record of a compass another record loads
+/// stays comments (its values would overwrite the other's).
 pub(crate) fn withheld(
     r: &Report,
-    k: u8,
+    instance: &str,
     export_all: bool,
 ) -> Option<crate::calib::export::Withheld> {
-    let d = r.load.iter().find(|d| d.compass_id == k)?;
+    let d = r.load.iter().find(|d| d.instance == instance)?;
     (!d.load).then(|| crate::calib::export::Withheld {
         reason: d.reason.words().to_string(),
-        written_anyway: export_all,
+        written_anyway: export_all && d.reason != LoadReason::SameCompass,
     })
 }
 
@@ -213,5 +232,33 @@ mod tests {
         // 3.5 uT of 50 is 7 %, over 5 %.
         let d = decide(&report_with(Some(Verdict::Better), 1.0, 3.5), 0.05);
         assert_eq!((d[0].load, d[0].reason), (false, LoadReason::OverRmsLimit));
+    }
+
+    /// PX4's `vehicle_magnetometer` (the primary's) and the `sensor_mag[k]` it was selected from
+    /// are one compass: only the first record to load is loaded, and the export's values of the
+    /// other stay comments, even with `--export-all`.
+    #[test]
+    fn two_records_of_one_compass_are_not_both_loaded() {
+        let mut r = report_with(Some(Verdict::Better), 1.0, 0.5);
+        r.input.instance = Some("primary".into());
+        let mut again = r.quality[0].clone();
+        again.instance = "sensor_mag[0]".into();
+        r.quality[0].instance = "primary".into();
+        r.quality.push(again);
+        r.instances.push(crate::report::InstanceReport {
+            instance: "sensor_mag[0]".into(),
+            compass_id: 0,
+            primary: false,
+            samples: 100,
+            time: Default::default(),
+            calibration: r.calibration.clone(),
+        });
+        let d = decide(&r, 0.05);
+        assert_eq!((d[0].load, d[0].reason), (true, LoadReason::Better));
+        assert_eq!((d[1].load, d[1].reason), (false, LoadReason::SameCompass));
+        r.load = d;
+        assert!(withheld(&r, "primary", true).is_none());
+        let w = withheld(&r, "sensor_mag[0]", true).expect("withheld");
+        assert!(!w.written_anyway);
     }
 }

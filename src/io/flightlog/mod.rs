@@ -334,6 +334,27 @@ impl Assembler {
     }
 }
 
+impl FlightLog {
+    /// The primary instance's compass number from the calibration slot its magnetometer's stream
+    /// belongs to (PX4: `vehicle_magnetometer` is whichever `sensor_mag[k]` the vehicle selected,
+    /// matched to its CAL_MAGn by device id), so that its calibration is judged against, and
+    /// exported to, that compass and no other.
+    fn primary_compass_from_onboard(&mut self) {
+        let (Some(k), Some(src)) = (self.primary, self.primary_mag_source.as_ref()) else {
+            return;
+        };
+        let slot = self
+            .onboard
+            .mag
+            .iter()
+            .find(|c| c.sources.contains(src))
+            .map(|c| c.instance);
+        if let (Some(slot), Some(i)) = (slot, self.instances.get_mut(k)) {
+            i.compass_id = slot;
+        }
+    }
+}
+
 /// Roll and pitch (deg) of a reference attitude `ref_q` (sensor -> ENU, as [`Sample::ref_q`]).
 pub(crate) fn roll_pitch_of_ref_q(q: [f64; 4]) -> Option<(f64, f64)> {
     let b = crate::attitude::body_ned_of_ref_q(q)?;
@@ -1895,6 +1916,7 @@ impl UlogConv {
         }
         let mut log = self.asm.finish(onboard, &skips);
         log.primary_mag_source = self.prime_source;
+        log.primary_compass_from_onboard();
         log.date = self.date;
         for sub in rd.subscriptions().filter(|s| s.records > 0) {
             *log.messages
