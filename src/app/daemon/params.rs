@@ -19,10 +19,13 @@
 //! | `ACC_OK`, `ACC_OFS_*`, `ACC_M_**` | the accelerometer's, as the compass's | m/s^2 | never |
 //! | `GYR_OK`, `GYR_BIAS_X/Y/Z` | gyro bias at rest | rad/s | never |
 //!
-//! A value the data did not determine (a planar fit's z offset and z soft iron) is not in the list,
-//! and a sensor with no calibration in use has only its `_OK` (0). The list therefore grows when a
-//! calibration is installed: the count in each PARAM_VALUE is the list's length now. A refused
-//! PARAM_SET is answered, as the protocol asks, with the unchanged value, and a STATUSTEXT says why.
+//! The list never changes shape: every name is there from the start, in a fixed order (the
+//! settings, `MAG0` to `MAG2`, `ACC`, `GYR`), so the count and each name's index stay the same for
+//! the whole run, as a ground station that fills its list by index expects. A value not known
+//! reads NaN: a sensor with no calibration in use (its `_OK` 0), and a value the data did not
+//! determine (a planar fit's z offset and z soft iron). A compass numbered 3 or more is not served
+//! (ArduPilot has three). A refused PARAM_SET is answered, as the protocol asks, with the unchanged
+//! value, and a STATUSTEXT says why.
 //! Settings changed by PARAM_SET last for this run only.
 
 use super::*;
@@ -95,62 +98,68 @@ fn settings(cfg: &Config) -> Vec<Param> {
 
 const AXES: [char; 3] = ['X', 'Y', 'Z'];
 
-/// `prefix`'s `_OK`, and when a calibration in `units` is in use its values ([`values`]).
+/// Compasses served, `MAG0` to `MAG2`: ArduPilot's (COMPASS_OFS to COMPASS_OFS3).
+const SERVED_COMPASSES: u8 = crate::calib::ardupilot::COMPASSES;
+
+/// `prefix`'s `_OK` and values ([`values`]): those of its calibration when one in `units` is in
+/// use, else NaN.
 fn sensor(prefix: &str, cal: Option<&SensorCalibration>, units: CalUnits) -> Vec<Param> {
     let usable = cal.filter(|c| c.calibration().is_some() && c.units == units);
     let mut out = vec![Param {
         name: format!("{prefix}_OK"),
         value: flag(usable.is_some()),
     }];
-    if let Some(c) = usable {
-        out.extend(values(prefix, c, &c.unknowns()));
-    }
+    let unknown = usable.map(|c| c.unknowns()).unwrap_or_default();
+    out.extend(values(prefix, usable, &unknown));
     out
 }
 
-/// The offset, matrix, radius and RMS residual of `c`, leaving out what the data did not
-/// determine (`unknown`).
-fn values(prefix: &str, c: &SensorCalibration, unknown: &Unknowns) -> Vec<Param> {
+/// The offset, matrix, radius and RMS residual of `c`, always all of them, in this order; NaN
+/// without a calibration and for what the data did not determine (`unknown`).
+fn values(prefix: &str, c: Option<&SensorCalibration>, unknown: &Unknowns) -> Vec<Param> {
     let mut out = Vec::new();
-    let mut put = |name: String, v: f64| {
+    let mut put = |name: String, v: Option<f64>| {
         out.push(Param {
             name,
-            value: v as f32,
+            value: v.map_or(f32::NAN, |v| v as f32),
         })
     };
     for (k, a) in AXES.iter().enumerate() {
-        if !unknown.offset[k] {
-            put(format!("{prefix}_OFS_{a}"), c.offset[k]);
-        }
+        put(
+            format!("{prefix}_OFS_{a}"),
+            c.filter(|_| !unknown.offset[k]).map(|c| c.offset[k]),
+        );
     }
     for (r, ra) in AXES.iter().enumerate() {
         for (col, ca) in AXES.iter().enumerate() {
-            if !(unknown.axis[r] || unknown.axis[col]) {
-                put(format!("{prefix}_M_{ra}{ca}"), c.matrix[r][col]);
-            }
+            put(
+                format!("{prefix}_M_{ra}{ca}"),
+                c.filter(|_| !(unknown.axis[r] || unknown.axis[col]))
+                    .map(|c| c.matrix[r][col]),
+            );
         }
     }
-    put(format!("{prefix}_RADIUS"), c.radius);
-    put(format!("{prefix}_RMS"), c.rms_residual);
+    put(format!("{prefix}_RADIUS"), c.map(|c| c.radius));
+    put(format!("{prefix}_RMS"), c.map(|c| c.rms_residual));
     out
 }
 
-/// The parameter list of calibrated vehicle `cal`: the settings, then each compass (primary
-/// first), the accelerometer and the gyro.
+/// The parameter list of calibrated vehicle `cal`: the settings, then `MAG0` to `MAG2`, the
+/// accelerometer and the gyro; the same names in the same order whatever is calibrated.
 pub(super) fn table(cfg: &Config, cal: &Cal) -> Vec<Param> {
     let store = &cal.store;
     let mut out = settings(cfg);
-    out.extend(sensor(
-        &format!("MAG{}", store.compass_id),
-        store.mag.as_ref(),
-        CalUnits::Ut,
-    ));
-    for i in &store.instances {
-        out.extend(sensor(
-            &format!("MAG{}", i.compass_id),
-            i.mag.as_ref(),
-            CalUnits::Ut,
-        ));
+    for k in 0..SERVED_COMPASSES {
+        let mag = if store.compass_id == k {
+            store.mag.as_ref()
+        } else {
+            store
+                .instances
+                .iter()
+                .find(|i| i.compass_id == k)
+                .and_then(|i| i.mag.as_ref())
+        };
+        out.extend(sensor(&format!("MAG{k}"), mag, CalUnits::Ut));
     }
     out.extend(sensor("ACC", store.accel.as_ref(), CalUnits::Mps2));
     let gyro = store
@@ -161,13 +170,11 @@ pub(super) fn table(cfg: &Config, cal: &Cal) -> Vec<Param> {
         name: "GYR_OK".into(),
         value: flag(gyro.is_some()),
     });
-    if let Some(g) = gyro {
-        for (k, a) in AXES.iter().enumerate() {
-            out.push(Param {
-                name: format!("GYR_BIAS_{a}"),
-                value: g.bias[k] as f32,
-            });
-        }
+    for (k, a) in AXES.iter().enumerate() {
+        out.push(Param {
+            name: format!("GYR_BIAS_{a}"),
+            value: gyro.map_or(f32::NAN, |g| g.bias[k] as f32),
+        });
     }
     out
 }
@@ -303,15 +310,12 @@ mod tests {
     }
 
     #[test]
-    fn a_sensor_lists_only_what_the_data_determined() {
+    fn a_sensor_lists_every_value_and_nan_for_what_the_data_did_not_determine() {
+        let names = |ps: &[Param]| ps.iter().map(|p| p.name.clone()).collect::<Vec<_>>();
         let none = sensor("MAG0", None, CalUnits::Ut);
-        assert_eq!(
-            none,
-            vec![Param {
-                name: "MAG0_OK".into(),
-                value: 0.0
-            }]
-        );
+        assert_eq!(none.len(), 1 + 3 + 9 + 2);
+        assert_eq!(none[0].value, 0.0);
+        assert!(none[1..].iter().all(|p| p.value.is_nan()));
         let mut c = SensorCalibration::new(
             crate::report::CalStatus::Ok,
             crate::calib::model::CalModel::Full12,
@@ -319,22 +323,30 @@ mod tests {
         );
         c.offset = [1.0, 2.0, 3.0];
         let full = sensor("MAG0", Some(&c), CalUnits::Ut);
-        assert_eq!(full.len(), 1 + 3 + 9 + 2);
+        // The same names in the same order, calibrated or not.
+        assert_eq!(names(&full), names(&none));
         assert!(full.iter().all(|p| p.name.len() <= 16));
+        assert!(full.iter().all(|p| !p.value.is_nan()));
+        assert_eq!(full[0].value, 1.0);
         // Counts are not uT: no values.
-        assert_eq!(sensor("MAG0", Some(&c), CalUnits::Mps2).len(), 1);
+        let counts = sensor("MAG0", Some(&c), CalUnits::Mps2);
+        assert_eq!(counts[0].value, 0.0);
+        assert!(counts[1..].iter().all(|p| p.value.is_nan()));
+        // A planar fit: its z offset and z row and column are not determined.
         let planar = Unknowns {
             offset: [false, false, true],
             axis: [false, false, true],
             why: String::new(),
         };
-        let names: Vec<_> = values("MAG0", &c, &planar)
-            .into_iter()
-            .map(|p| p.name)
+        let values = values("MAG0", Some(&c), &planar);
+        assert_eq!(names(&values), names(&none[1..]));
+        let unknown: Vec<_> = values
+            .iter()
+            .filter(|p| p.value.is_nan())
+            .map(|p| p.name.clone())
             .collect();
-        assert!(names.contains(&"MAG0_OFS_Y".to_string()), "{names:?}");
-        assert!(!names.iter().any(|n| n.contains('Z')), "{names:?}");
-        // 2 offsets, the 2x2 block of x and y, radius and RMS.
-        assert_eq!(names.len(), 2 + 4 + 2, "{names:?}");
+        assert!(unknown.iter().all(|n| n.contains('Z')), "{unknown:?}");
+        // Known: 2 offsets, the 2x2 block of x and y, radius and RMS.
+        assert_eq!(values.len() - unknown.len(), 2 + 4 + 2, "{unknown:?}");
     }
 }
