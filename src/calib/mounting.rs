@@ -416,16 +416,33 @@ fn prepare(points: &[MountPoint], field: Option<&EarthField>) -> Prepared {
     }
 }
 
-/// Largest angle between two of the directions, deg.
+/// Largest angle between two of the directions, deg: the angle of the smallest cosine, so `acos`
+/// is called once rather than per pair (on every pair within [`SPREAD_COS_TIE`] of the smallest,
+/// so the largest angle is the one `acos` gives per pair even where it is not strictly monotone).
 fn spread_deg(dirs: &[Vector3<f64>]) -> f64 {
+    let mut least = f64::INFINITY;
+    for (i, a) in dirs.iter().enumerate() {
+        for b in &dirs[i + 1..] {
+            least = least.min(a.dot(b).clamp(-1.0, 1.0));
+        }
+    }
+    if least == f64::INFINITY {
+        return 0.0;
+    }
     let mut worst: f64 = 0.0;
     for (i, a) in dirs.iter().enumerate() {
         for b in &dirs[i + 1..] {
-            worst = worst.max(angle_deg(a, b));
+            if a.dot(b).clamp(-1.0, 1.0) <= least + SPREAD_COS_TIE {
+                worst = worst.max(angle_deg(a, b));
+            }
         }
     }
     worst
 }
+
+/// Cosines this close to the smallest have their angle taken in [`spread_deg`] (a few rounding
+/// steps of a cosine, far above any step of `acos` out of order).
+const SPREAD_COS_TIE: f64 = 1e-12;
 
 /// The best continuous yaw for a roll of 0 or 180 deg: a grid, then golden-section refinement.
 fn best_custom(p: &Prepared) -> Scored {
