@@ -192,9 +192,8 @@ impl DirectionBins {
         let per_cell = 1.0 / cell;
         let row = cell_index(acos_near(z) * per_cell, per_cell, || z.acos() / cell);
         // sin(theta) from z directly (the same value, without a second transcendental call).
-        let ring = ((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / cell)
-            .ceil()
-            .max(1.0);
+        let ring =
+            ceil_small((1.0 - z * z).max(0.0).sqrt() * std::f64::consts::TAU / cell).max(1.0);
         let per_turn = ring * (0.5 * std::f64::consts::FRAC_1_PI);
         let col = cell_index(
             (atan2_near(d[1], d[0]) + std::f64::consts::PI) * per_turn,
@@ -270,6 +269,22 @@ impl DirectionBins {
 /// and Stegun, "Handbook of Mathematical Functions" (1964), 4.4.46 and 4.4.49) with a wide margin
 /// for rounding.
 const NEAR_ERR_RAD: f64 = 1e-6;
+
+/// `x.ceil()` without a call to libm's `ceil` (the baseline x86-64 target has no rounding
+/// instruction) for `x` above 0 and below 2^52: the truncation (exact there), one up when it fell
+/// short. `ceil` itself elsewhere (zeros, negatives, NaN, larger values).
+fn ceil_small(x: f64) -> f64 {
+    if x > 0.0 && x < 4_503_599_627_370_496.0 {
+        let t = x as u64 as f64;
+        if t < x {
+            t + 1.0
+        } else {
+            t
+        }
+    } else {
+        x.ceil()
+    }
+}
 
 /// The cell index `floor(u)` of a position `u` along a row or ring (in cells, not negative),
 /// given `near`, within [`NEAR_ERR_RAD`] times `per_rad` (cells per radian) of it: `exact()`,
@@ -573,6 +588,34 @@ mod tests {
         let phi = d[1].atan2(d[0]) + std::f64::consts::PI;
         let col = ((phi / std::f64::consts::TAU) * ring).floor() as u32;
         Some(cell_id(row, col))
+    }
+
+    #[test]
+    fn ceil_small_is_ceil() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut values = vec![
+            0.0,
+            -0.0,
+            0.5,
+            1.0,
+            1.5,
+            2.0,
+            1e-300,
+            4_503_599_627_370_495.5,
+        ];
+        values.extend([4_503_599_627_370_496.0, 1e300, f64::INFINITY]);
+        for _ in 0..200_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            // Cells per ring as key() forms them (up to a few thousand), and their neighbours.
+            let v = (x >> 11) as f64 / (1u64 << 53) as f64 * 4000.0;
+            values.extend([v, v.floor(), v.ceil(), v.next_up(), v.next_down()]);
+        }
+        for v in values {
+            assert_eq!(ceil_small(v).to_bits(), v.ceil().to_bits(), "{v:e}");
+        }
+        assert!(ceil_small(f64::NAN).is_nan());
     }
 
     #[test]
