@@ -180,14 +180,6 @@ pub fn check_still(readings: &[Vector3<f64>], accel: &[Vector3<f64>]) -> Option<
     if units.len() < MIN_READINGS {
         return None;
     }
-    let covariance = |v: &[Vector3<f64>]| {
-        let n = v.len() as f64;
-        let mean = v.iter().sum::<Vector3<f64>>() / n;
-        v.iter()
-            .map(|x| (x - mean) * (x - mean).transpose())
-            .sum::<nalgebra::Matrix3<f64>>()
-            / n
-    };
     let mut eig: Vec<f64> = covariance(&units)
         .symmetric_eigen()
         .eigenvalues
@@ -196,7 +188,7 @@ pub fn check_still(readings: &[Vector3<f64>], accel: &[Vector3<f64>]) -> Option<
         .collect();
     eig.sort_by(|a, b| b.total_cmp(a));
     let tilt_spread = eig[1].max(0.0).sqrt();
-    let readings_ut = covariance(readings).trace().max(0.0).sqrt();
+    let readings_ut = variance_sum(readings).max(0.0).sqrt();
     // Readings weaker than the variation asked for are in another unit (gauss read as uT), which
     // the fit's radius check names; not a field that stays put.
     let strength_ut = readings.iter().map(|r| r.norm()).sum::<f64>() / readings.len() as f64;
@@ -207,6 +199,42 @@ pub fn check_still(readings: &[Vector3<f64>], accel: &[Vector3<f64>]) -> Option<
             tilt_spread,
         },
     )
+}
+
+/// The covariance of `v` about its mean: the sum of the outer products `(x - mean)(x - mean)^T`
+/// over `n`, each element summed in the order of `v`, as nalgebra's matrix product and sum give
+/// it (to the bit), without a general matrix product per point.
+fn covariance(v: &[Vector3<f64>]) -> nalgebra::Matrix3<f64> {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<Vector3<f64>>() / n;
+    let mut c = [[0.0f64; 3]; 3];
+    for x in v {
+        let d = x - mean;
+        for (i, row) in c.iter_mut().enumerate() {
+            for (j, e) in row.iter_mut().enumerate() {
+                *e += d[i] * d[j];
+            }
+        }
+    }
+    nalgebra::Matrix3::from_fn(|i, j| c[i][j]) / n
+}
+
+/// The trace of [`covariance`] (its diagonal alone summed, as nalgebra's `trace` sums it).
+fn variance_sum(v: &[Vector3<f64>]) -> f64 {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<Vector3<f64>>() / n;
+    let mut c = [0.0f64; 3];
+    for x in v {
+        let d = x - mean;
+        for (i, e) in c.iter_mut().enumerate() {
+            *e += d[i] * d[i];
+        }
+    }
+    let mut trace = 0.0;
+    for e in c {
+        trace += e / n;
+    }
+    trace
 }
 
 /// Fewest readings judged.
@@ -224,6 +252,34 @@ mod tests {
                 (h * scale + hard_iron_ut, h)
             })
             .collect()
+    }
+
+    #[test]
+    fn the_covariance_is_nalgebras_to_the_bit() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64 * 100.0 - 30.0
+        };
+        for n in [1usize, 2, 20, 1000, 20_000] {
+            let v: Vec<Vector3<f64>> = (0..n)
+                .map(|_| Vector3::new(next(), next(), next()))
+                .collect();
+            let nf = n as f64;
+            let mean = v.iter().sum::<Vector3<f64>>() / nf;
+            let by_nalgebra = v
+                .iter()
+                .map(|x| (x - mean) * (x - mean).transpose())
+                .sum::<nalgebra::Matrix3<f64>>()
+                / nf;
+            let ours = covariance(&v);
+            for (a, b) in ours.iter().zip(by_nalgebra.iter()) {
+                assert_eq!(a.to_bits(), b.to_bits(), "{n}");
+            }
+            assert_eq!(variance_sum(&v).to_bits(), by_nalgebra.trace().to_bits());
+        }
     }
 
     #[test]
