@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 mod gyro_scale;
 mod load;
-use gyro_scale::{gyro_scale_of, GyroFits, GyroScaleOutcome, SpanRates};
+use gyro_scale::{gyro_scale_of, GyroFits, SpanRates};
 pub use load::loadable;
 
 /// What to write besides the report.
@@ -91,6 +91,10 @@ struct Thinned {
 
 impl Thinned {
     fn push(&mut self, s: &crate::types::Sample) {
+        if self.samples.capacity() == 0 {
+            // Room for as many as are kept, taken up only as they come (no copies as it grows).
+            self.samples.reserve_exact(KEPT_SAMPLES_MAX);
+        }
         self.stride = self.stride.max(1);
         self.first_t_s.get_or_insert(s.t_s);
         self.last_t_s = s.t_s;
@@ -141,21 +145,13 @@ pub fn replay(
         fits_ms = 1e3 * (started.elapsed().as_secs_f64() - read_s),
         "replay: log read and gated, then fitted"
     );
-    let (mut results, quality) = (fin.results, fin.quality);
-    let (scale, failure, span_samples) = fin.gyro_scale;
-    results.gyro.scale = scale;
-    results.gyro.scale_failure = failure;
-    let sphere = crate::calib::magmethod::sphere_words(&results.mag);
-    crate::calib::magmethod::choose_with(&mut results.mag, &fin.mag_evidence);
-    if let Some(j) = quality.iter().find(|j| j.other.is_none()) {
-        install_rung(&mut results.mag, &j.judged, &sphere);
-    }
-    mounting_check(&mut results, &run.log, &run.pipe, cfg);
+    run.pipe.install_final(fin.installed);
+    let (mut results, quality, span_samples) = (fin.results, fin.quality, fin.span_samples);
     run.other_mags = other_mag_methods(&mut run, cfg, &quality);
     let mut quality: Vec<crate::report::QualityReport> =
         quality.into_iter().map(|j| j.judged.report).collect();
     judge_sphere_fits(&run, &results.mag, &mut quality);
-    plausibility(&mut run, &mut results, &mut quality, cfg);
+    mark_implausible(fin.implausible, &mut run, &mut results, &mut quality);
     let declination = cfg.declination_deg()?;
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
@@ -204,52 +200,86 @@ pub fn replay(
 
 /// What [`final_fits`] gives.
 struct FinalFits {
+    /// The fits for the primary's pipeline to install ([`Pipeline::install_final`]).
+    installed: FitResults,
+    /// The same after the magnetometer's method choice, the ladder's rung and the mounting
+    /// check, with the gyro scale.
     results: FitResults,
     quality: Vec<CompassJudged>,
-    gyro_scale: GyroScaleOutcome,
-    /// For the primary magnetometer's method ([`crate::calib::magmethod::choose_with`]).
-    mag_evidence: crate::calib::magmethod::Evidence,
+    /// The samples the gyro scale was fitted on.
+    span_samples: usize,
+    /// The compasses that see no earth field ([`implausible`]).
+    implausible: Vec<Implausible>,
 }
 
 /// The primary's fits at the end of the log, with what does not need the magnetometer's, on
 /// threads of their own: the magnetometer fit; the held-out quality of every compass (which uses
-/// no fit of the run); the accelerometer and gyro bias fits, then the gyro scale (here, after the
-/// rest, when too few poses leave it little to do); while this one gathers the evidence of the
-/// magnetometer's method choice (the readings and attitudes alone). Each step does what it did in
+/// no fit of the run); every compass's check for the earth's field; the accelerometer and
+/// gyro bias fits, then the gyro scale (here, after the rest, when too few poses leave it little
+/// to do), while this one gathers the evidence of the magnetometer's method choice (the readings
+/// and attitudes alone). The accelerometer's and gyro bias fits are handed on as soon as they
+/// are made, so the method choice, the ladder's rung and the mounting check of the primary run
+/// here while the gyro scale, which none of them reads, is fitted. Each step does what it did in
 /// turn, so the results are the same.
 fn final_fits(cfg: &Config, run: &mut Run) -> FinalFits {
     let input = run.pipe.finish_input();
     run.span_rates.finish(&run.pipe);
     let calib = run.pipe.settings().clone();
     let run_ref = &*run;
-    let (mag, (accel, gyro, scale), quality, mag_evidence) = std::thread::scope(|scope| {
-        let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(&input, &calib));
+    let (input, calib) = (&input, &calib);
+    std::thread::scope(|scope| {
+        let mag = scope.spawn(|| crate::calib::pipeline::fit_mag(input, calib));
         let quality = scope.spawn(|| quality(run_ref, cfg));
-        let accel_gyro = || {
-            let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(&input, &calib);
+        let implausible = scope.spawn(|| implausible(run_ref, cfg));
+        let (fits_tx, fits_rx) = std::sync::mpsc::channel();
+        let accel_gyro = move || {
+            let (accel, gyro) = crate::calib::pipeline::fit_accel_gyro(input, calib);
+            // The receiver is there until this is joined.
+            let _ = fits_tx.send((accel.clone(), gyro.clone()));
             let fits = GyroFits {
                 gyro: &gyro,
                 accel: &accel,
             };
-            let scale = gyro_scale_of(run_ref, fits);
-            (accel, gyro, scale)
+            gyro_scale_of(run_ref, fits)
         };
         // The gyro scale takes long only with rotations enough to fit (each from one pose to the
         // next): then on a thread of its own, else here.
         let min_poses = 2 * crate::calib::gyro::ScaleOptions::default().min_segments + 1;
-        let own = (run_ref.pipe.poses().len() >= min_poses).then(|| scope.spawn(accel_gyro));
+        let (own, here) = if run_ref.pipe.poses().len() >= min_poses {
+            (Some(scope.spawn(accel_gyro)), None)
+        } else {
+            (None, Some(accel_gyro))
+        };
         let mag_evidence = mag_method_evidence(run_ref, cfg, input.mag_cal_units());
-        let accel_gyro = own.map_or_else(accel_gyro, joined);
-        (joined(mag), accel_gyro, joined(quality), mag_evidence)
-    });
-    let results = crate::calib::pipeline::join_fits(mag, accel, gyro, &input, &calib);
-    let results = run.pipe.install_final(results).clone();
-    FinalFits {
-        results,
-        quality,
-        gyro_scale: scale,
-        mag_evidence,
-    }
+        let scale_here = here.map(|f| f());
+        let Ok((accel, gyro)) = fits_rx.recv() else {
+            // The thread ended without them: its panic goes on here.
+            own.map(joined);
+            unreachable!("the accelerometer and gyro fits end in a result or a panic");
+        };
+        let quality = joined(quality);
+        let installed = crate::calib::pipeline::join_fits(joined(mag), accel, gyro, input, calib);
+        let mut results = installed.clone();
+        let sphere = crate::calib::magmethod::sphere_words(&results.mag);
+        crate::calib::magmethod::choose_with(&mut results.mag, &mag_evidence);
+        if let Some(j) = quality.iter().find(|j| j.other.is_none()) {
+            install_rung(&mut results.mag, &j.judged, &sphere);
+        }
+        mounting_check(&mut results, &run_ref.log, &run_ref.pipe, cfg);
+        let (scale, failure, span_samples) = match own {
+            Some(h) => joined(h),
+            None => scale_here.expect("fitted here"),
+        };
+        results.gyro.scale = scale;
+        results.gyro.scale_failure = failure;
+        FinalFits {
+            installed,
+            results,
+            quality,
+            span_samples,
+            implausible: joined(implausible),
+        }
+    })
 }
 
 /// What a scoped thread gave; its panic, if it panicked, goes on here.
@@ -425,17 +455,15 @@ fn judge_sphere_fits(
     }
 }
 
+/// A compass that sees no earth field ([`implausible`]): the index of a further instance
+/// (`Run::others`, `None` for the primary), its name and why.
+type Implausible = (Option<usize>, String, crate::calib::plausible::Implausible);
+
 /// Every compass's readings checked for a compass seeing the earth's field
-/// ([`crate::calib::plausible`]); one that is not fails (`implausible`, with its numbers), and its
-/// held-out record says it was not judged.
-fn plausibility(
-    run: &mut Run,
-    results: &mut FitResults,
-    quality: &mut [crate::report::QualityReport],
-    cfg: &Config,
-) {
+/// ([`crate::calib::plausible`]): those that do not ([`mark_implausible`]).
+fn implausible(run: &Run, cfg: &Config) -> Vec<Implausible> {
     let log = &run.log;
-    let mut found: Vec<(Option<usize>, String, crate::calib::plausible::Implausible)> = Vec::new();
+    let mut found: Vec<Implausible> = Vec::new();
     for c in compasses(run) {
         let field =
             crate::calib::magmethod::earth_field_of(c.samples, log.place(), cfg.place.as_ref());
@@ -443,9 +471,16 @@ fn plausibility(
             .as_ref()
             .map(|f| nalgebra::Vector3::from(f.field_ned_ut()));
         let pipe = c.pipe;
-        let mut readings = Vec::new();
+        let n = c.samples.len();
+        // Every reading with an accelerometer's (as usual): those readings are all of them.
+        let all_with_accel = c
+            .samples
+            .iter()
+            .all(|s| s.mag_ut.is_none() || s.accel_mps2.is_some());
+        let mut readings = Vec::with_capacity(n);
         let mut expected = Vec::new();
-        let (mut with_accel, mut accel) = (Vec::new(), Vec::new());
+        let mut with_accel = Vec::new();
+        let mut accel = Vec::with_capacity(n);
         for s in c.samples {
             let body = pipe.to_body(s);
             let Some(m) = body.mag_ut else {
@@ -454,7 +489,9 @@ fn plausibility(
             let m = nalgebra::Vector3::from(m);
             readings.push(m);
             if let Some(a) = body.accel_mps2 {
-                with_accel.push(m);
+                if !all_with_accel {
+                    with_accel.push(m);
+                }
                 accel.push(nalgebra::Vector3::from(a));
             }
             if let (Some(b), Some(q)) = (b, s.ref_q.and_then(crate::attitude::body_ned_of_ref_q)) {
@@ -465,7 +502,14 @@ fn plausibility(
         let still = || {
             expected
                 .is_empty()
-                .then(|| crate::calib::plausible::check_still(&with_accel, &accel))
+                .then(|| {
+                    let with_accel = if all_with_accel {
+                        &readings
+                    } else {
+                        &with_accel
+                    };
+                    crate::calib::plausible::check_still(with_accel, &accel)
+                })
                 .flatten()
         };
         if let Some(e) = crate::calib::plausible::check(&readings, &expected, earth).or_else(still)
@@ -473,6 +517,17 @@ fn plausibility(
             found.push((c.other, c.instance.clone(), e));
         }
     }
+    found
+}
+
+/// The compasses [`implausible`] found fail (`implausible`, with its numbers), and their
+/// held-out records say they were not judged.
+fn mark_implausible(
+    found: Vec<Implausible>,
+    run: &mut Run,
+    results: &mut FitResults,
+    quality: &mut [crate::report::QualityReport],
+) {
     for (other, instance, e) in found {
         let mag = match other {
             None => Some(&mut results.mag),
@@ -790,18 +845,29 @@ fn run_pipelines(
     let mut pipe = Pipeline::new(&cfg.calib())?;
     // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
-    // the same order as from a whole-file decode, so the result is the same.
-    let mut samples = Thinned::default();
+    // the same order as from a whole-file decode, so the result is the same. The decoding thread
+    // also keeps the primary's record ([`Thinned`]): the copies and the fresh memory they fill are
+    // its work, not the pipeline's.
     let mut span_rates = SpanRates::default();
+    // The rates in body axes of the primary's samples while the log may still be kept whole,
+    // for the rotations of a longer one ([`SpanRates::start`]).
+    let mut rates: Vec<crate::calib::gyro::Rate> = Vec::new();
+    let mut primary_seen: u64 = 0;
     let mut others: Vec<Option<Pipeline>> = Vec::new();
     let mut other_samples: Vec<Thinned> = Vec::new();
-    let decoded = std::thread::scope(|scope| {
+    let (decoded, samples) = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
         let decoder = scope.spawn(move || {
-            crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
-                // The receiver only goes away on a panic; nothing then to hand on to.
-                let _ = tx.send(b);
-            })
+            let mut samples = Thinned::default();
+            let decoded =
+                crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
+                    for s in &b.samples {
+                        samples.push(s);
+                    }
+                    // The receiver only goes away on a panic; nothing then to hand on to.
+                    let _ = tx.send(b);
+                });
+            (decoded, samples)
         });
         let mut first = true;
         for batch in rx {
@@ -814,12 +880,18 @@ fn run_pipelines(
                 if pipe.push(s) && opts.refits {
                     pipe.refit();
                 }
-                if samples.seen == KEPT_SAMPLES_MAX as u64 {
+                if primary_seen < KEPT_SAMPLES_MAX as u64 {
+                    if rates.capacity() == 0 {
+                        // Room for as many as there may be, taken up only as they come.
+                        rates.reserve_exact(GYRO_SPAN_SAMPLES_MAX);
+                    }
+                    rates.push(pipe.rate_in_body(s));
+                } else if primary_seen == KEPT_SAMPLES_MAX as u64 {
                     // Too long to keep whole from here on.
-                    span_rates.start(&samples.samples, &pipe);
+                    span_rates.start(std::mem::take(&mut rates), &pipe);
                 }
                 span_rates.push(s, &pipe);
-                samples.push(s);
+                primary_seen += 1;
             }
             for &(k, ref s) in &batch.others {
                 if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
@@ -836,6 +908,7 @@ fn run_pipelines(
         }
         joined(decoder)
     });
+    drop(rates);
     let mut log = decoded?;
     let all = std::iter::once(&samples).chain(&other_samples);
     let seen = all.clone().map(|t| t.seen).sum();

@@ -95,31 +95,44 @@ pub(super) struct SpanRates {
 }
 
 impl SpanRates {
-    /// Start with `held`, every sample of the log until now, and the poses `pipe` found in them:
-    /// the rotations between those poses, and the rates from the middle of the newest on.
-    pub(super) fn start(&mut self, held: &[crate::types::Sample], pipe: &Pipeline) {
+    /// Start with `held`, the rate in body axes of every sample of the log until now
+    /// ([`Pipeline::rate_in_body`]), at most [`GYRO_SPAN_SAMPLES_MAX`], and the poses `pipe` found
+    /// in them: the rotations between those poses, and the rates from the middle of the newest on.
+    /// Every rotation of them is kept (they are no more rates than are kept), each moved up in
+    /// `held`, which then holds the rates kept.
+    pub(super) fn start(&mut self, mut held: Vec<Rate>, pipe: &Pipeline) {
+        assert!(held.len() <= GYRO_SPAN_SAMPLES_MAX);
         self.started = true;
         self.stride = 1;
-        // Room for all the rates kept, taken up only as they come.
-        self.rates = Vec::with_capacity(GYRO_SPAN_SAMPLES_MAX);
         let poses = pipe.poses();
-        let index = |t_s: f64| held.partition_point(|x| x.t_s < t_s);
-        for i in rotation_pairs(poses) {
-            let (from_s, to_s) = pose_mids(poses, i);
-            let rates = &held[index(from_s)..index(to_s)];
-            if self.room_for([poses[i], poses[i + 1]], rates.len()) {
-                self.rates
-                    .extend(rates.iter().map(|x| pipe.rate_in_body(x)));
-            }
-        }
+        let index = |held: &[Rate], t_s: f64| held.partition_point(|x| x.t_s < t_s);
         self.newest = poses.last().copied();
-        let from = index(self.newest.as_ref().map_or(f64::NEG_INFINITY, pose_mid));
+        let from = index(
+            &held,
+            self.newest.as_ref().map_or(f64::NEG_INFINITY, pose_mid),
+        );
         let room = held.len().saturating_sub(PENDING_RATES_MAX);
         if room > from {
             self.dropped_until_s = Some(held[room - 1].t_s);
         }
-        let pending = &held[from.max(room)..];
-        self.pending = pending.iter().map(|x| pipe.rate_in_body(x)).collect();
+        self.pending = held[from.max(room)..].iter().copied().collect();
+        // The rotations in time order, each after the one before: each is moved up to where the
+        // one before ends.
+        let mut at = 0;
+        for i in rotation_pairs(poses) {
+            let (from_s, to_s) = pose_mids(poses, i);
+            let span = index(&held, from_s)..index(&held, to_s);
+            let n = span.len();
+            self.kept
+                .push((self.seen, [poses[i], poses[i + 1]], at..at + n));
+            self.seen += 1;
+            held.copy_within(span, at);
+            at += n;
+        }
+        held.truncate(at);
+        // Room for all the rates kept, taken up only as they come.
+        held.reserve_exact(GYRO_SPAN_SAMPLES_MAX - at);
+        self.rates = held;
     }
 
     /// Take a sample the pipeline `pipe` was just given (once started), and the rotation that
