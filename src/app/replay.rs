@@ -834,6 +834,100 @@ impl Run {
     }
 }
 
+/// The pipeline thread's time on the batches it was handed, and their samples: what the decoding
+/// thread weighs its own against ([`Split`]).
+#[derive(Default)]
+struct Handover {
+    busy_ns: std::sync::atomic::AtomicU64,
+    samples: std::sync::atomic::AtomicU64,
+}
+
+impl Handover {
+    fn add(&self, busy: std::time::Duration, samples: usize) {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.busy_ns.fetch_add(busy.as_nanos() as u64, Relaxed);
+        self.samples.fetch_add(samples as u64, Relaxed);
+    }
+
+    /// Nanoseconds per sample, once a batch was taken.
+    fn per_sample_ns(&self) -> Option<f64> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let n = self.samples.load(Relaxed);
+        (n > 0).then(|| self.busy_ns.load(Relaxed) as f64 / n as f64)
+    }
+}
+
+/// Which thread keeps the primary's record ([`Thinned`]): the decoding thread from the start,
+/// until the share of the log that leaves both threads about as busy (decoding and keeping on
+/// one, the pipeline on the other, each timed per sample over the first [`Split::LEARN`]
+/// batches); then it goes to the pipeline thread with the batch it was last given. Where it is
+/// kept changes nothing in it: each sample is pushed once, in order.
+#[derive(Default)]
+struct Split {
+    /// When the last batch was handed on: what follows until the next is decoding.
+    sent: Option<std::time::Instant>,
+    decode_ns: u64,
+    decoded: u64,
+    keep_ns: u64,
+    kept: u64,
+    batches: u32,
+    seen: u64,
+    /// Samples after which the record goes to the pipeline thread, once worked out.
+    at: Option<u64>,
+}
+
+impl Split {
+    const LEARN: u32 = 4;
+
+    /// Batch `b`'s samples into the record `kept` while this thread has it; the record when it
+    /// is to go with `b` to the pipeline thread (`busy`: its time so far).
+    fn batch(
+        &mut self,
+        b: &crate::io::sources::Batch,
+        kept: &mut Option<Thinned>,
+        busy: &Handover,
+    ) -> Option<Thinned> {
+        let now = std::time::Instant::now();
+        let n = b.samples.len() as u64;
+        self.seen += n;
+        if let Some(sent) = self.sent {
+            self.decode_ns += (now - sent).as_nanos() as u64;
+            self.decoded += n;
+        }
+        let record = kept.as_mut()?;
+        for s in &b.samples {
+            record.push(s);
+        }
+        self.keep_ns += now.elapsed().as_nanos() as u64;
+        self.kept += n;
+        self.batches += 1;
+        if self.at.is_none() && self.batches >= Self::LEARN && self.decoded > 0 && self.kept > 0 {
+            if let Some(p) = busy.per_sample_ns() {
+                let d = self.decode_ns as f64 / self.decoded as f64;
+                let k = self.keep_ns as f64 / self.kept as f64;
+                // The share f of the log kept here that makes d + f k = p + (1 - f) k.
+                let f = if k > 0.0 {
+                    ((p + k - d) / (2.0 * k)).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                let total = self.seen as f64 * b.bytes_total as f64 / b.bytes_read.max(1) as f64;
+                self.at = Some((f * total) as u64);
+            }
+        }
+        if self.at.is_some_and(|at| self.seen >= at) {
+            kept.take()
+        } else {
+            None
+        }
+    }
+
+    /// A batch was handed on.
+    fn sent(&mut self) {
+        self.sent = Some(std::time::Instant::now());
+    }
+}
+
 /// Read the log at `path` as a stream and push every sample through its instance's pipeline,
 /// keeping a bounded, thinned record of each instance's samples ([`Thinned`]).
 fn run_pipelines(
@@ -845,9 +939,9 @@ fn run_pipelines(
     let mut pipe = Pipeline::new(&cfg.calib())?;
     // Decoding runs on its own thread and hands samples on in batches over a bounded channel, so
     // the pipeline works on one batch while the next is decoded. The samples reach the pipeline in
-    // the same order as from a whole-file decode, so the result is the same. The decoding thread
-    // also keeps the primary's record ([`Thinned`]): the copies and the fresh memory they fill are
-    // its work, not the pipeline's.
+    // the same order as from a whole-file decode, so the result is the same. The primary's record
+    // ([`Thinned`]) is kept by the decoding thread at first and handed on with a batch to this one
+    // where that shares the work evenly ([`Handover`]); either keeps the same record.
     let mut span_rates = SpanRates::default();
     // The rates in body axes of the primary's samples while the log may still be kept whole,
     // for the rotations of a longer one ([`SpanRates::start`]).
@@ -855,22 +949,27 @@ fn run_pipelines(
     let mut primary_seen: u64 = 0;
     let mut others: Vec<Option<Pipeline>> = Vec::new();
     let mut other_samples: Vec<Thinned> = Vec::new();
-    let (decoded, samples) = std::thread::scope(|scope| {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<crate::io::sources::Batch>(4);
+    let mut kept_here: Option<Thinned> = None;
+    let pipeline_busy = Handover::default();
+    let (decoded, kept_there) = std::thread::scope(|scope| {
+        type Handed = (crate::io::sources::Batch, Option<Thinned>);
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Handed>(4);
+        let busy = &pipeline_busy;
         let decoder = scope.spawn(move || {
-            let mut samples = Thinned::default();
+            let mut samples = Some(Thinned::default());
+            let mut split = Split::default();
             let decoded =
                 crate::io::sources::decode_file_batched(path, opts.format, &cfg.input, &mut |b| {
-                    for s in &b.samples {
-                        samples.push(s);
-                    }
+                    let handed = split.batch(&b, &mut samples, busy);
                     // The receiver only goes away on a panic; nothing then to hand on to.
-                    let _ = tx.send(b);
+                    let _ = tx.send((b, handed));
+                    split.sent();
                 });
             (decoded, samples)
         });
         let mut first = true;
-        for batch in rx {
+        for (batch, handed) in rx {
+            let started = std::time::Instant::now();
             if first {
                 pipe.mag_units = batch.units.mag;
                 pipe.gyro_units = batch.units.gyro;
@@ -893,6 +992,14 @@ fn run_pipelines(
                 span_rates.push(s, &pipe);
                 primary_seen += 1;
             }
+            if let Some(kept) = kept_here.as_mut() {
+                for s in &batch.samples {
+                    kept.push(s);
+                }
+            }
+            if handed.is_some() {
+                kept_here = handed;
+            }
             for &(k, ref s) in &batch.others {
                 if let Some(p) = other_pipeline(&mut others, k, &batch, cfg) {
                     if p.push(s) && opts.refits {
@@ -905,9 +1012,13 @@ fn run_pipelines(
                 }
             }
             progress(batch.bytes_read as u64, batch.bytes_total as u64);
+            pipeline_busy.add(started.elapsed(), batch.samples.len());
         }
         joined(decoder)
     });
+    let Some(samples) = kept_there.or(kept_here) else {
+        unreachable!("the record is on one thread or the other")
+    };
     drop(rates);
     let mut log = decoded?;
     let all = std::iter::once(&samples).chain(&other_samples);
