@@ -424,6 +424,23 @@ pub fn climb(points: &[LadderPoint], b_ned: &Vector3<f64>, start: Option<&Affine
     }
 }
 
+/// `rung` fitted on the fitting blocks of `points` as [`climb`] fits it before scoring it (readings
+/// set aside left out, the current term where it varies), for a score on some of the held-out
+/// readings; `None` when it cannot be fitted.
+pub(crate) fn fit_on_fitting_blocks(
+    rung: Rung,
+    points: &[LadderPoint],
+    b_ned: &Vector3<f64>,
+    start: Option<&Affine>,
+) -> Option<RungCal> {
+    let start = start.copied().unwrap_or_else(Affine::identity);
+    let (kept, _) = set_aside(points, b_ned, &start);
+    let fit_part: Vec<&LadderPoint> = kept.iter().filter(|p| p.fit).collect();
+    fit_rung(rung, &fit_part, b_ned, &start, current_varies(&kept))
+        .ok()
+        .map(|(c, _)| c)
+}
+
 /// Readings set aside: their field is off the earth's far more than the rest's.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Aside {

@@ -606,29 +606,6 @@ fn decide_vector(mag: &SensorResult, evidence: &VectorEvidence) -> MethodChoice 
     }
 }
 
-/// The live service's learnt vector fit ([`crate::calib::learn`]) as the sensor's result, with
-/// the method and its reason in the report (the sphere fit's failure kept in the reason).
-pub(crate) fn install_learnt(mag: &mut SensorResult, offer: &crate::calib::learn::Offer) {
-    let v = &offer.fit;
-    let reason = format!(
-        "learnt live from {} readings with the vehicle's attitude, field from {}; {}",
-        v.points,
-        offer.field_from,
-        sphere_words(mag)
-    );
-    install(mag, v);
-    mag.report.method = Some(MethodChoice {
-        method: MagMethod::Vector,
-        method_reason: reason,
-        vector: Some(v.clone()),
-        sphere_offset: None,
-        earth_field: None,
-        rung: None,
-        current_ut_per_a: None,
-        planar: None,
-    });
-}
-
 /// The ladder's calibration ([`crate::calib::ladder`], the rung taken on held-out blocks, fitted
 /// on every reading) as the sensor's result, with the method, the rung and why; what the method
 /// choice made of the readings before (its vector fit, the field) is kept beside it.

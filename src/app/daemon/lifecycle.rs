@@ -64,6 +64,8 @@ impl Cal {
     /// A magnetometer calibration of track `i` in use from now on (the store is written by the
     /// caller). The primary's also goes to the heading and attitude.
     pub(super) fn install_mag(&mut self, i: usize, cal: SensorCalibration) {
+        // Its caller says when it is a rung learnt from the track's readings (`on_fit`).
+        self.tracks[i].rung_until_s = None;
         tracing::info!(sensor = "mag", compass = self.tracks[i].compass_id, model = %cal.model, rms = cal.rms_residual, "calibration accepted");
         if i > 0 {
             let (name, id) = (self.tracks[i].name.clone(), self.tracks[i].compass_id);
@@ -86,18 +88,26 @@ impl Cal {
 }
 
 impl State {
-    /// A refit of calibrated vehicle `c`'s track `i` came back: decide, store, publish.
-    pub(super) async fn on_fit(&mut self, c: usize, i: usize, t: f64, mut results: FitResults) {
+    /// A refit of calibrated vehicle `c`'s track `i` came back (with the ladder climbed on its
+    /// learnt readings, `live`, when the sphere fit failed): decide, store, publish.
+    pub(super) async fn on_fit(
+        &mut self,
+        c: usize,
+        i: usize,
+        t: f64,
+        mut results: FitResults,
+        live: Option<Box<LiveLadder>>,
+    ) {
         let mut changed = false;
         let cal = &mut self.cals[c];
-        // The vector fit needs no coverage: once it determines the offset, the run is complete.
-        let by_vector = cal.tracks[i].take_vector(&mut results);
-        let id = cal.tracks[i].compass_id;
         // A commanded run is judged on its own, as ArduPilot's calibrator judges a run: its
         // result is reported whatever the calibration in use (accepting it is the ground
         // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
         // which installs it or holds it for the ground station.
         let commanded = matches!(cal.tracks[i].mag_run, MagCalRun::Running { .. });
+        // The learnt rung needs no coverage: once the ladder takes one, the run is complete.
+        let by_vector = cal.tracks[i].take_rung(&mut results, live.as_deref(), !commanded);
+        let id = cal.tracks[i].compass_id;
         let current_mag = cal.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
         let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
             Ok(()) => true,
@@ -151,6 +161,9 @@ impl State {
             };
             mag_installed = self.mag_event(c, i, ev).await.0;
             changed |= mag_installed;
+            if mag_installed && by_vector {
+                self.cals[c].tracks[i].rung_until_s = live.as_ref().and_then(|l| l.last_t_s);
+            }
         } else if failure_report_due(mag, completion) {
             cal.tracks[i].mag_failed = Some(mag.clone());
             self.mag_event(c, i, MagCalEvent::FitFailed).await;
@@ -522,15 +535,28 @@ fn fit_track(
 
 impl State {
     /// Start a fit of every track whose refit is due (`all`: of every track, with its last poses
-    /// closed: the end of a replay), off the executor.
+    /// closed: the end of a replay), off the executor. With each track's snapshot goes a copy of
+    /// its learnt readings ([`Track::ladder_job`]): when the sphere fit fails the job climbs the
+    /// ladder on them too.
     pub(super) fn start_fits(&mut self, all: bool) -> tokio::task::JoinHandle<TrackFits> {
         let mut inputs = vec![];
-        for (c, cal) in self.cals.iter_mut().enumerate() {
-            for (i, t) in cal.tracks.iter_mut().enumerate() {
+        for c in 0..self.cals.len() {
+            let onboard = self.cals[c]
+                .vehicle
+                .and_then(|v| self.vehicles[v].conv.ardupilot_onboard());
+            for i in 0..self.cals[c].tracks.len() {
+                let cal = &self.cals[c];
+                let t = &cal.tracks[i];
+                if !all && !t.refit_wanted {
+                    continue;
+                }
+                let ladder = t.ladder_job(
+                    t.vehicle_start(onboard.as_ref()),
+                    cal.in_use(i, Sensor::Mag),
+                );
+                let t = &mut self.cals[c].tracks[i];
                 if all {
                     t.pipe.finish_poses();
-                } else if !t.refit_wanted {
-                    continue;
                 }
                 t.refit_wanted = false;
                 let compass = (i == 0).then_some(t.compass_id as usize);
@@ -541,6 +567,7 @@ impl State {
                     t.pipe.last_t,
                     t.pipe.snapshot(),
                     compass,
+                    ladder,
                 ));
             }
         }
@@ -548,8 +575,18 @@ impl State {
         tokio::task::spawn_blocking(move || {
             inputs
                 .into_iter()
-                .map(|(c, i, generation, t, input, compass)| {
-                    (c, i, generation, t, fit_track(&input, &cfg, compass))
+                .map(|(c, i, generation, t, input, compass, ladder)| {
+                    let r = fit_track(&input, &cfg, compass);
+                    let live = ladder.filter(|_| ladder_stands_in(&r)).map(
+                        |(points, start, incumbent)| {
+                            Box::new(crate::calib::learn::climb_live(
+                                &points,
+                                start.as_ref(),
+                                incumbent.as_ref(),
+                            ))
+                        },
+                    );
+                    (c, i, generation, t, r, live)
                 })
                 .collect()
         })
@@ -559,9 +596,9 @@ impl State {
     pub(super) async fn fits_done(&mut self, r: Result<TrackFits, tokio::task::JoinError>) {
         match r {
             Ok(fits) => {
-                for (c, i, generation, t, res) in fits {
+                for (c, i, generation, t, res, live) in fits {
                     if generation == self.cals[c].tracks[i].generation {
-                        self.on_fit(c, i, t, res).await;
+                        self.on_fit(c, i, t, res, live).await;
                     } else {
                         tracing::info!(
                             "a fit from before the calibration run restarted: disregarded"

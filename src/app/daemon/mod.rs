@@ -46,7 +46,8 @@ use store::{WriteJob, Writes};
 use crate::attitude::fusion::OrientationFilter;
 use crate::calib::blockmean::BlockMean;
 use crate::calib::coverage::Progress;
-use crate::calib::learn::{LearnSettings, VectorLearner};
+use crate::calib::ladder::{Affine, RungCal};
+use crate::calib::learn::{Incumbent, LadderInput, LearnSettings, LiveLadder, VectorLearner};
 use crate::calib::model::Calibration;
 use crate::calib::outcome::SensorResult;
 use crate::calib::pipeline::{fit_all, Calibrated, Calibrator, FitResults, Pipeline};
@@ -172,11 +173,14 @@ struct Track {
     /// When the newest of `recent` arrived: a fixed-yaw calibration wants the vehicle as it is
     /// now, not as it was before the data stopped.
     recent_at: Option<tokio::time::Instant>,
-    /// The vector fit learnt from every reading that comes with the vehicle's attitude
-    /// ([`crate::calib::learn`]); it stands in for a failed sphere fit once it determines the offset.
+    /// The readings learnt from every reading that comes with the vehicle's attitude
+    /// ([`crate::calib::learn`]): the ladder climbed on them stands in for a failed sphere fit.
     learner: VectorLearner,
     /// `[place]`: where the earth field is evaluated when the vehicle sends no position.
     place: Option<crate::attitude::Place>,
+    /// The magnetometer calibration in use is a rung learnt from `learner`'s readings up to this
+    /// time, s: a later rung is judged against it only on readings after it.
+    rung_until_s: Option<f64>,
 }
 
 /// The length of the blocks a track averages, s: none (0) when the rate is 0 or every sample's
@@ -216,6 +220,7 @@ impl Track {
             learner: VectorLearner::new(LearnSettings::DEFAULT)
                 .on_date(&crate::io::clock::today().iso()),
             place: cfg.place.clone(),
+            rung_until_s: None,
         })
     }
 
@@ -253,34 +258,138 @@ impl Track {
     }
 }
 
+/// Whether the ladder may stand in for the magnetometer's sphere fit: it failed, the readings
+/// are in uT, and the compass was not refused for its mounting (a rung's matrix would turn the
+/// readings and hide a wrong mounting).
+fn ladder_stands_in(results: &FitResults) -> bool {
+    results.mag.calibration.is_none()
+        && results.mag.report.units == crate::types::CalUnits::Ut
+        && results.mag.report.failure != Some(crate::calib::fit::FitFailure::Orientation)
+}
+
+/// What a fit job needs of a track's learner: its readings, the vehicle's own calibration to
+/// start from, and the calibration a rung must beat.
+type LadderJob = (LadderInput, Option<Affine>, Option<Incumbent>);
+
 impl Track {
-    /// When the sphere fit failed and the vector fit learnt so far determines the offset and
-    /// passes its checks ([`crate::calib::learn::acceptable`]), the vector fit takes the
-    /// magnetometer's place in `results`, as `replay` does. Returns whether it did.
-    fn take_vector(&self, results: &mut FitResults) -> bool {
-        // A compass refused for its mounting stays refused: the vector fit's matrix would
-        // turn the readings and hide the wrong mounting.
-        if results.mag.calibration.is_some()
-            || results.mag.report.units != crate::types::CalUnits::Ut
-            || results.mag.report.failure == Some(crate::calib::fit::FitFailure::Orientation)
-        {
-            return false;
-        }
-        let Some(offer) = self.learner.offer() else {
+    /// The vehicle's own calibration of this track's compass in body axes, when its telemetry
+    /// gives one: ArduPilot's COMPASS_OFS/DIA/ODI/SCALE as read to undo them from its readings
+    /// (`onboard`: the vehicle's converter's record). A PX4 vehicle's CAL_MAGn_* are not read.
+    fn vehicle_start(&self, onboard: Option<&crate::io::onboard::OnboardReport>) -> Option<Affine> {
+        let m = onboard?
+            .mag
+            .iter()
+            .find(|m| m.instance == self.compass_id || m.sources.contains(&self.name))
+            .filter(|m| m.units == crate::types::CalUnits::Ut)?;
+        // rot M (raw - o) with raw = rot^T u is (rot M rot^T) (u - rot o), as `replay` turns it.
+        let rot = self.pipe.sensor_rotation();
+        Some(Affine {
+            matrix: rot * crate::calib::model::rows_to_mat(&m.matrix) * rot.transpose(),
+            offset: rot * nalgebra::Vector3::from(m.offset),
+        })
+    }
+
+    /// What the fit job climbs the ladder on, when the learner holds readings enough: the ring,
+    /// `start` (the vehicle's own), and the incumbent: `in_use` (the service's calibration of
+    /// this compass, with its current term), else the vehicle's own.
+    fn ladder_job(
+        &self,
+        start: Option<Affine>,
+        in_use: Option<&SensorCalibration>,
+    ) -> Option<LadderJob> {
+        let input = self.learner.ladder_input()?;
+        let ours = in_use.and_then(|m| {
+            let c = m.calibration_ut()?;
+            let matrix = crate::calib::model::rows_to_mat(&c.matrix);
+            Some(Incumbent {
+                calibration: RungCal {
+                    affine: Affine {
+                        matrix,
+                        offset: nalgebra::Vector3::from(c.offset),
+                    },
+                    // The raw reading's term (raw = A h + o + k i) in calibrated axes: -M k.
+                    current_ut_per_a: m
+                        .motor_ut_per_a()
+                        .map(|k| -(matrix * nalgebra::Vector3::from(k))),
+                },
+                what: "the calibration in use",
+                fitted_until_s: self.rung_until_s,
+            })
+        });
+        let incumbent = ours.or_else(|| {
+            start.map(|affine| Incumbent {
+                calibration: RungCal {
+                    affine,
+                    current_ut_per_a: None,
+                },
+                what: "the vehicle's own calibration",
+                fitted_until_s: None,
+            })
+        });
+        Some((input, start, incumbent))
+    }
+
+    /// When the sphere fit failed ([`ladder_stands_in`]) and the ladder climbed in the fit job on
+    /// the learner's readings took a rung that passes its checks and is better held out than
+    /// the incumbent ([`LiveLadder::decide`]; `compare`: judged against it, not in a commanded
+    /// run), the rung's calibration takes the magnetometer's place in `results`, as `replay`
+    /// installs it, with the rung and why in the method's reason. Returns whether it did.
+    fn take_rung(
+        &self,
+        results: &mut FitResults,
+        live: Option<&LiveLadder>,
+        compare: bool,
+    ) -> bool {
+        let Some(live) = live.filter(|_| ladder_stands_in(results)) else {
             return false;
         };
-        if let Err(why) = crate::calib::learn::acceptable(&offer.fit) {
-            tracing::debug!(compass = self.compass_id, "vector fit not offered: {why}");
-            return false;
+        let (chosen, judged) = match live.decide(ACCEPT_MARGIN, compare) {
+            Ok(x) => x,
+            Err(why) => {
+                tracing::info!(
+                    compass = self.compass_id,
+                    "learnt calibration not offered: {why}"
+                );
+                return false;
+            }
+        };
+        let sphere = crate::calib::magmethod::sphere_words(&results.mag);
+        let mag = &mut results.mag;
+        crate::calib::magmethod::install_rung(
+            mag,
+            chosen,
+            live.ladder.start,
+            &live.ladder.why,
+            &sphere,
+        );
+        if let Some(m) = mag.report.method.as_mut() {
+            let dropped = if live.dropped > 0 {
+                format!(", {} older dropped", live.dropped)
+            } else {
+                String::new()
+            };
+            let judged = if judged.is_empty() {
+                String::new()
+            } else {
+                format!("; {judged}")
+            };
+            m.vector = live.vector.clone();
+            m.method_reason = format!(
+                "learnt live from {} readings with the vehicle's attitude (at most one a second, the last {} kept{dropped}), field from {}: {}{judged}",
+                live.readings,
+                crate::calib::learn::RING_CAPACITY,
+                live.field_from,
+                m.method_reason
+            );
         }
-        crate::calib::magmethod::install_learnt(&mut results.mag, &offer);
         true
     }
 }
 
 /// Which tracks a fit job fitted: (calibrated vehicle, track, its generation when the job
-/// started, time, results).
-type TrackFits = Vec<(usize, usize, u64, f64, FitResults)>;
+/// started, time, results, the ladder climbed on the track's learnt readings when the sphere
+/// fit failed).
+type TrackFits = Vec<(usize, usize, u64, f64, FitResults, Option<Box<LiveLadder>>)>;
 
 /// Calibrated vehicles kept at most (further vehicles' samples are counted, not calibrated).
 const MAX_CALIBRATED_VEHICLES: usize = 8;
