@@ -231,8 +231,8 @@ impl Track {
         self.blocks.push(raw)
     }
 
-    /// Push a sample (a block mean, sensor axes); true when a refit is due.
-    fn push(&mut self, s: &Sample) -> bool {
+    /// Push a sample (a block mean, sensor axes); a refit due is marked (`refit_wanted`).
+    fn push(&mut self, s: &Sample) {
         if s.mag_ut.is_some() {
             self.mag_samples += 1;
         }
@@ -252,9 +252,7 @@ impl Track {
                     .push(s.t_s, &m, &q, s.current_a, s.position, self.place.as_ref());
             }
         }
-        let due = self.pipe.push(s);
-        self.refit_wanted |= due;
-        due
+        self.refit_wanted |= self.pipe.push(s);
     }
 }
 

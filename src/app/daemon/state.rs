@@ -242,14 +242,14 @@ impl State {
     }
 
     /// A sample of calibrated vehicle `c`'s primary instance: calibrated for the heading and
-    /// attitude, and pushed.
-    pub(super) fn on_sample(&mut self, c: usize, s: Sample) -> bool {
+    /// attitude, and pushed (a refit due is marked on the track).
+    pub(super) fn on_sample(&mut self, c: usize, s: Sample) {
         let every = self.cfg.daemon.attitude_every_samples;
         let cal = &mut self.cals[c];
         let Some(s) = cal.tracks[0].take(&s) else {
-            return false;
+            return;
         };
-        let due = cal.tracks[0].push(&s);
+        cal.tracks[0].push(&s);
         let body = cal.tracks[0].pipe.to_body(&s);
         if body.mag_ut.is_some() {
             cal.last_body_mag = body.mag_ut;
@@ -266,7 +266,6 @@ impl State {
                 cal.attitude_due = true;
             }
         }
-        due
     }
 
     /// A sample from a link that times its own samples (text lines: the time they were read, or
@@ -477,10 +476,10 @@ impl State {
         link: usize,
         frame: &crate::io::decode::Frame,
         time_us: u64,
-    ) -> bool {
+    ) {
         if self.is_own(frame.system_id, frame.component_id) {
             self.own_echo += 1;
-            return false;
+            return;
         }
         match &frame.message {
             MavMessage::HEARTBEAT(_) => {
@@ -500,17 +499,14 @@ impl State {
                         self.status(MavSeverity::MAV_SEVERITY_WARNING, "ArduPilot link: its magnetometer data is already calibrated; set daemon.ardupilot_corrected_mag = \"undo\" to fit it".into()).await;
                     }
                 }
-                false
             }
             MavMessage::COMMAND_LONG(c) => {
                 self.on_command(link, frame, c).await;
-                false
             }
             MavMessage::PARAM_REQUEST_LIST(_)
             | MavMessage::PARAM_REQUEST_READ(_)
             | MavMessage::PARAM_SET(_) => {
                 self.on_param_request(&frame.message).await;
-                false
             }
             MavMessage::PARAM_VALUE(_) => {
                 let v = self.vehicle(link, frame.system_id);
@@ -522,34 +518,35 @@ impl State {
                         }
                     }
                 }
-                false
             }
             _ => {
                 let v = self.vehicle(link, frame.system_id);
                 let Some((k, s)) = self.vehicles[v].conv.convert_any(&frame.message, time_us)
                 else {
-                    return false;
+                    return;
                 };
                 let Some(c) = self.cal_of(v, link).await else {
-                    return false;
+                    return;
                 };
                 let Some(track) = self.track_of(c, k).await else {
-                    return false;
+                    return;
                 };
-                self.on_vehicle_sample(c, track, s)
+                self.on_vehicle_sample(c, track, s);
             }
         }
     }
 
     /// A sample of calibrated vehicle `c`'s track `track` (an ArduPilot vehicle's magnetometer
     /// reading already has its onboard calibration undone by the converter, or is held back
-    /// until its parameters are known). True when a refit is due.
-    fn on_vehicle_sample(&mut self, c: usize, track: usize, s: Sample) -> bool {
+    /// until its parameters are known). A refit due is marked on the track (`refit_wanted`).
+    fn on_vehicle_sample(&mut self, c: usize, track: usize, s: Sample) {
         if track == 0 {
-            self.on_sample(c, s)
+            self.on_sample(c, s);
         } else {
             let t = &mut self.cals[c].tracks[track];
-            t.take(&s).is_some_and(|m| t.push(&m))
+            if let Some(m) = t.take(&s) {
+                t.push(&m);
+            }
         }
     }
 
