@@ -31,48 +31,11 @@ async fn stream(
     seed: u64,
     configure: impl FnOnce(&mut imucald::config::Config),
 ) -> (SensorCalibration, Vec<String>) {
-    use imucald::io::mavout::MavEncoder;
-    use std::time::Duration;
     let sim = simulate(sc, seed);
     let dir = tempfile::tempdir().unwrap();
     let (port, mut cfg) = common::udpin_config(dir.path());
-    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
     configure(&mut cfg);
-    let daemon = common::Daemon::ready(cfg).await;
-    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
-    let mut enc = MavEncoder::new(1, 1);
-    let mut state = imucald::io::samplelog::VehicleStateStream::default();
-    let mut lines = Vec::new();
-    let mut buf = vec![0u8; 65536];
-    let mut read = |sink: &tokio::net::UdpSocket, lines: &mut Vec<String>| {
-        while let Ok(n) = sink.try_recv(&mut buf) {
-            lines.extend(
-                String::from_utf8_lossy(&buf[..n])
-                    .lines()
-                    .map(str::to_string),
-            );
-        }
-    };
-    for (k, s) in sim.samples.iter().enumerate() {
-        let boot_us = 10_000_000 + (s.t_s * 1e6).round() as u64;
-        let mut msgs = state.messages(s, boot_us);
-        msgs.push(imucald::io::samplelog::highres_imu(s, boot_us));
-        for m in msgs {
-            peer.send_to(&enc.encode(&m), ("127.0.0.1", port))
-                .await
-                .unwrap();
-        }
-        // 2 ms per 200 samples: the service's queue is bounded.
-        if k % 200 == 199 {
-            tokio::time::sleep(Duration::from_millis(2)).await;
-            read(&sink, &mut lines);
-        }
-    }
-    let to = common::testdata::SERVICE_IDS;
-    common::testdata::taken(&peer, port, to, Duration::from_secs(20), |_| {}).await;
-    daemon.stop(Duration::from_secs(5)).await;
-    read(&sink, &mut lines);
+    let lines = common::stream_flight(&sim.samples, port, cfg).await;
     let store = imucald::app::daemon::load_store(&dir.path().join("cal"))
         .unwrap()
         .expect("a calibration stored");

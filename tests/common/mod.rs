@@ -69,6 +69,51 @@ pub fn mavlink_source(address: impl Into<String>) -> SourceConfig {
     }
 }
 
+/// A simulated flight streamed to a live service over UDP as a flight controller sends it
+/// (HIGHRES_IMU with the vehicle's state: `io::samplelog::VehicleStateStream`), paced like a fast
+/// link (2 ms per 200 samples: the service's queue is bounded); the service (`cfg`, from
+/// [`udpin_config`] with its `port`) publishes its JSON lines to a socket of ours and is stopped
+/// once it took everything sent. Returns those lines.
+pub async fn stream_flight(samples: &[Sample], port: u16, mut cfg: Config) -> Vec<String> {
+    use imucald::io::mavout::MavEncoder;
+    let sink = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    cfg.daemon.publish = vec![format!("udp:{}", sink.local_addr().unwrap())];
+    let daemon = Daemon::ready(cfg).await;
+    let peer = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut enc = MavEncoder::new(1, 1);
+    let mut state = imucald::io::samplelog::VehicleStateStream::default();
+    let mut lines = Vec::new();
+    let mut buf = vec![0u8; 65536];
+    let mut read = |lines: &mut Vec<String>| {
+        while let Ok(n) = sink.try_recv(&mut buf) {
+            lines.extend(
+                String::from_utf8_lossy(&buf[..n])
+                    .lines()
+                    .map(str::to_string),
+            );
+        }
+    };
+    for (k, s) in samples.iter().enumerate() {
+        let boot_us = 10_000_000 + (s.t_s * 1e6).round() as u64;
+        let mut msgs = state.messages(s, boot_us);
+        msgs.push(imucald::io::samplelog::highres_imu(s, boot_us));
+        for m in msgs {
+            peer.send_to(&enc.encode(&m), ("127.0.0.1", port))
+                .await
+                .unwrap();
+        }
+        if k % 200 == 199 {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+            read(&mut lines);
+        }
+    }
+    let to = testdata::SERVICE_IDS;
+    testdata::taken(&peer, port, to, Duration::from_secs(20), |_| {}).await;
+    daemon.stop(Duration::from_secs(5)).await;
+    read(&mut lines);
+    lines
+}
+
 /// A service config with one `udpin:` MAVLink source on a free loopback port (returned) and its
 /// calibration directory under `dir`.
 pub fn udpin_config(dir: &Path) -> (u16, Config) {
