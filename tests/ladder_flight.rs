@@ -12,17 +12,7 @@ use imucald::sim::{simulate, Scenario};
 /// The place and day of the simulated flights (the DataFlash log written here carries no GPS).
 const ZURICH: &str = "[place]\nlatitude_deg = 47.3769\nlongitude_deg = 8.5417\naltitude_m = 600.0\ndate = \"2026-06-01\"\n";
 
-/// A symmetric soft iron a compass near ferrous parts might have (the `M` of calibrated =
-/// M (raw - offset)).
-const SOFT_IRON: [[f64; 3]; 3] = [
-    [1.04, 0.03, -0.02],
-    [0.03, 0.95, 0.025],
-    [-0.02, 0.025, 1.02],
-];
-
-fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
-}
+use common::{dist, SOFT_IRON};
 
 /// A 20-minute cruise logged at 1 Hz (one IMU, magnetometer and attitude record a second, as a
 /// ground station keeps telemetry), the vehicle flying with its own calibration: the true soft

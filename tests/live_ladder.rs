@@ -11,17 +11,7 @@ use imucald::calib::magmethod::MagMethod;
 use imucald::report::SensorCalibration;
 use imucald::sim::{simulate, Scenario};
 
-/// A symmetric soft iron a compass near ferrous parts might have (the `M` of calibrated =
-/// M (raw - offset)).
-const SOFT_IRON: [[f64; 3]; 3] = [
-    [1.04, 0.03, -0.02],
-    [0.03, 0.95, 0.025],
-    [-0.02, 0.025, 1.02],
-];
-
-fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
-}
+use common::{dist, SOFT_IRON};
 
 /// Stream the scenario's flight to a live service over UDP (configured further by `configure`),
 /// paced like a fast link, and return the magnetometer calibration it stored, with the JSON

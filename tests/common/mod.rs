@@ -69,6 +69,19 @@ pub fn mavlink_source(address: impl Into<String>) -> SourceConfig {
     }
 }
 
+/// A symmetric soft iron a compass near ferrous parts might have (the `M` of calibrated =
+/// M (raw - offset)), hidden in simulated flights.
+pub const SOFT_IRON: [[f64; 3]; 3] = [
+    [1.04, 0.03, -0.02],
+    [0.03, 0.95, 0.025],
+    [-0.02, 0.025, 1.02],
+];
+
+/// The distance between two vectors.
+pub fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
+}
+
 /// A simulated flight streamed to a live service over UDP as a flight controller sends it
 /// (HIGHRES_IMU with the vehicle's state: `io::samplelog::VehicleStateStream`), paced like a fast
 /// link (2 ms per 200 samples: the service's queue is bounded); the service (`cfg`, from
