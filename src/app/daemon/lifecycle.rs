@@ -257,11 +257,15 @@ impl State {
                         self.cals[c].tracks[i].reported_mag = Some(*cal);
                     }
                 }
-                MagCalEffect::ReportFailure => {
-                    if let Some(mag) = self.cals[c].tracks[i].mag_failed.take() {
-                        self.send_mav(To::Cal(c), &[mavout::mag_cal_report(id, &mag)])
-                            .await;
+                MagCalEffect::ReportFailure | MagCalEffect::RepeatFailure => {
+                    if let Some(mag) = self.cals[c].tracks[i].mag_failed.as_ref() {
+                        let msg = mavout::mag_cal_report(id, mag);
+                        self.send_mav(To::Cal(c), &[msg]).await;
                     }
+                }
+                MagCalEffect::RepeatSuccess { cal, autosaved } => {
+                    let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
+                    self.send_mav(To::Cal(c), &[msg]).await;
                 }
             }
         }
@@ -466,7 +470,7 @@ impl Cal {
         field: &crate::attitude::EarthField,
     ) -> Result<SensorCalibration, String> {
         let t = &self.tracks[i];
-        if !matches!(t.mag_run, MagCalRun::Idle) {
+        if t.mag_run.collecting() {
             return Err(
                 "a calibration run is in progress: cancel it first (MAVProxy `magcal cancel`)"
                     .into(),

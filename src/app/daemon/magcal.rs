@@ -20,10 +20,33 @@ pub(super) enum MagCalRun {
     Waiting { start_at_s: f64, opts: MagCalStart },
     /// Collecting from zero coverage; the next passing fit ends the run.
     Running { opts: MagCalStart },
-    /// Passed with autosave off: the result waits for DO_ACCEPT_MAG_CAL (not installed, not written).
-    Held { cal: Box<SensorCalibration> },
-    /// Failed with retry off; stays so until a new start or a cancel.
-    Failed,
+    /// A commanded run passed (ArduPilot's SUCCESS): installed and written already when `saved`
+    /// (autosave), else waiting for DO_ACCEPT_MAG_CAL. Its report is repeated every
+    /// [`REPORT_REPEAT_S`] (`next_report_s`, s since the service started; `None` until the first
+    /// tick) until an accept or a cancel ends the run, as ArduPilot repeats MAG_CAL_REPORT while
+    /// its calibrator holds a result: a report lost on the way is sent again.
+    Succeeded {
+        cal: Box<SensorCalibration>,
+        saved: bool,
+        next_report_s: Option<f64>,
+    },
+    /// A commanded run failed with retry off; its report is repeated as [`MagCalRun::Succeeded`]'s
+    /// until a new start, an accept or a cancel.
+    Failed { next_report_s: Option<f64> },
+}
+
+/// How often a result waiting to be accepted is reported again, s (about the rate of ArduPilot's
+/// MAG_CAL_REPORT stream, which a ground station accepts on the first it hears).
+pub(super) const REPORT_REPEAT_S: f64 = 1.0;
+
+/// The time of the next repeat of a report: the first tick sets it, one that reaches it repeats
+/// the report (`true`) and sets the next.
+fn repeat_due(next_report_s: Option<f64>, now_s: f64) -> (Option<f64>, bool) {
+    match next_report_s {
+        Some(at) if now_s < at => (Some(at), false),
+        Some(_) => (Some(now_s + REPORT_REPEAT_S), true),
+        None => (Some(now_s + REPORT_REPEAT_S), false),
+    }
 }
 
 /// What happens to a calibration run.
@@ -65,6 +88,14 @@ pub(super) enum MagCalEffect {
     },
     /// MAG_CAL_REPORT of the failed fit.
     ReportFailure,
+    /// The MAG_CAL_REPORT of a result waiting to be accepted, again (nothing else: no text, no
+    /// install).
+    RepeatSuccess {
+        cal: Box<SensorCalibration>,
+        autosaved: bool,
+    },
+    /// The failed run's MAG_CAL_REPORT, again.
+    RepeatFailure,
 }
 
 impl MagCalRun {
@@ -117,39 +148,106 @@ impl MagCalRun {
                     complete: false, ..
                 },
             ) => (R::Running { opts }, vec![]),
-            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => {
-                (R::Idle, autosave(cal, true))
-            }
+            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => (
+                R::Succeeded {
+                    cal: cal.clone(),
+                    saved: true,
+                    next_report_s: None,
+                },
+                autosave(cal, true),
+            ),
             (R::Running { .. }, V::FitPassed { cal, .. }) => (
-                R::Held { cal: cal.clone() },
+                R::Succeeded {
+                    cal: cal.clone(),
+                    saved: false,
+                    next_report_s: None,
+                },
                 vec![E::ReportSuccess {
                     cal,
                     autosaved: false,
                     commanded: true,
                 }],
             ),
+            (
+                R::Succeeded {
+                    cal,
+                    saved,
+                    next_report_s,
+                },
+                V::Tick { now_s },
+            ) => {
+                let (next_report_s, due) = repeat_due(next_report_s, now_s);
+                let fx = if due {
+                    vec![E::RepeatSuccess {
+                        cal: cal.clone(),
+                        autosaved: saved,
+                    }]
+                } else {
+                    vec![]
+                };
+                (
+                    R::Succeeded {
+                        cal,
+                        saved,
+                        next_report_s,
+                    },
+                    fx,
+                )
+            }
+            (R::Failed { next_report_s }, V::Tick { now_s }) => {
+                let (next_report_s, due) = repeat_due(next_report_s, now_s);
+                let fx = if due { vec![E::RepeatFailure] } else { vec![] };
+                (R::Failed { next_report_s }, fx)
+            }
             (R::Idle, V::FitPassed { cal, .. }) if continuous => (R::Idle, autosave(cal, false)),
             (R::Running { opts }, V::FitFailed) if opts.retry => {
                 (R::Running { opts }, vec![E::ReportFailure, E::Restart])
             }
-            (R::Running { .. }, V::FitFailed) => (R::Failed, vec![E::ReportFailure]),
+            (R::Running { .. }, V::FitFailed) => (
+                R::Failed {
+                    next_report_s: None,
+                },
+                vec![E::ReportFailure],
+            ),
             (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
             (s, V::Accept { mask } | V::Cancel { mask }) if !ours(mask) => {
                 (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
             }
-            (R::Held { cal }, V::Accept { .. }) => (
+            // Accept ends the run, as ArduPilot's (its calibrator stops whatever the answer).
+            (
+                R::Succeeded {
+                    cal, saved: false, ..
+                },
+                V::Accept { .. },
+            ) => (
                 R::Idle,
                 vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
             ),
             // Nothing waits to be accepted (the run saved its result, or none ran): accepted, as
             // ArduPilot's compass calibration answers when its result is already saved, so a
             // ground station that accepts every report (MAVProxy) sees it succeed.
-            (R::Idle, V::Accept { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
-            // Still collecting, or failed: nothing to accept.
-            (s, V::Accept { .. }) => (s, vec![ack(MavResult::MAV_RESULT_FAILED)]),
+            (R::Succeeded { saved: true, .. } | R::Idle, V::Accept { .. }) => {
+                (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)])
+            }
+            // Still collecting, or failed: nothing to accept; the run stops all the same.
+            (_, V::Accept { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_FAILED)]),
             (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
             (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
         }
+    }
+
+    /// Whether the run needs the clock ([`MagCalEvent::Tick`]): a delayed start, or a report to
+    /// repeat.
+    pub(super) fn wants_ticks(&self) -> bool {
+        matches!(
+            self,
+            MagCalRun::Waiting { .. } | MagCalRun::Succeeded { .. } | MagCalRun::Failed { .. }
+        )
+    }
+
+    /// Whether a run is collecting or about to (a fixed-yaw calibration waits for it to end).
+    pub(super) fn collecting(&self) -> bool {
+        matches!(self, MagCalRun::Waiting { .. } | MagCalRun::Running { .. })
     }
 
     /// Whether magnetometer progress is reported: during a commanded run, or while idle when the
@@ -217,7 +315,12 @@ mod tests {
             false,
             0,
         );
-        assert_eq!(s, MagCalRun::Held { cal: run_cal(3.0) });
+        let held = |next_report_s| MagCalRun::Succeeded {
+            cal: run_cal(3.0),
+            saved: false,
+            next_report_s,
+        };
+        assert_eq!(s, held(None));
         assert_eq!(
             fx,
             vec![E::ReportSuccess {
@@ -227,6 +330,7 @@ mod tests {
             }]
         );
         assert!(!s.reports_progress(true));
+        assert!(s.wants_ticks() && !s.collecting());
         // Held: later fits change nothing.
         let (s, fx) = s.on(
             V::FitPassed {
@@ -236,7 +340,22 @@ mod tests {
             true,
             0,
         );
-        assert!(fx.is_empty() && s == MagCalRun::Held { cal: run_cal(3.0) });
+        assert!(fx.is_empty() && s == held(None));
+        // The report again every REPORT_REPEAT_S until accepted: the first tick sets the time,
+        // a tick before it does nothing, one at it repeats the report.
+        let (s, fx) = s.on(V::Tick { now_s: 20.0 }, false, 0);
+        assert!(fx.is_empty() && s == held(Some(21.0)));
+        let (s, fx) = s.on(V::Tick { now_s: 20.5 }, false, 0);
+        assert!(fx.is_empty() && s == held(Some(21.0)));
+        let (s, fx) = s.on(V::Tick { now_s: 21.0 }, false, 0);
+        assert_eq!(s, held(Some(22.0)));
+        assert_eq!(
+            fx,
+            vec![E::RepeatSuccess {
+                cal: run_cal(3.0),
+                autosaved: false
+            }]
+        );
         let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
         assert_eq!(s, MagCalRun::Idle);
         assert_eq!(fx, vec![E::Install(run_cal(3.0)), accepted.clone()]);
@@ -247,8 +366,9 @@ mod tests {
         let running = MagCalRun::Running {
             opts: opts(false, false, 0.0),
         };
-        let (_, fx) = running.on(V::Accept { mask: 0 }, false, 0);
-        assert_eq!(fx, vec![failed.clone()]);
+        // ... and stops it, as ArduPilot's calibrator stops on any accept.
+        let (s2, fx) = running.on(V::Accept { mask: 0 }, false, 0);
+        assert_eq!((s2, fx), (MagCalRun::Idle, vec![failed.clone()]));
         let (s, _) = s.on(
             V::Start {
                 opts: opts(false, false, 0.0),
@@ -267,7 +387,8 @@ mod tests {
         );
         let (s, fx) = s.on(V::Cancel { mask: 0 }, false, 0);
         assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
-        // Autosave on: installed and reported as saved at once, back to idle.
+        // Autosave on: installed and reported as saved at once; the report repeats (saved) until
+        // the ground station accepts it, which answers ACCEPTED and ends the run.
         let (s, _) = MagCalRun::Idle.on(
             V::Start {
                 opts: opts(true, false, 0.0),
@@ -284,7 +405,14 @@ mod tests {
             false,
             0,
         );
-        assert_eq!(s, MagCalRun::Idle);
+        assert_eq!(
+            s,
+            MagCalRun::Succeeded {
+                cal: run_cal(1.0),
+                saved: true,
+                next_report_s: None
+            }
+        );
         assert_eq!(
             fx,
             vec![
@@ -296,6 +424,17 @@ mod tests {
                 }
             ]
         );
+        let (s, _) = s.on(V::Tick { now_s: 1.0 }, false, 0);
+        let (s, fx) = s.on(V::Tick { now_s: 2.0 }, false, 0);
+        assert_eq!(
+            fx,
+            vec![E::RepeatSuccess {
+                cal: run_cal(1.0),
+                autosaved: true
+            }]
+        );
+        let (s, fx) = s.on(V::Accept { mask: 1 }, false, 0);
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![accepted.clone()]));
         // Delay: collecting starts (from zero) when it has passed.
         let (s, fx) = MagCalRun::Idle.on(
             V::Start {
@@ -323,7 +462,8 @@ mod tests {
             opts: opts(true, false, 0.0),
         }
         .on(V::FitFailed, false, 0);
-        assert_eq!((s.clone(), fx), (MagCalRun::Failed, vec![E::ReportFailure]));
+        let failed_run = |next_report_s| MagCalRun::Failed { next_report_s };
+        assert_eq!((s.clone(), fx), (failed_run(None), vec![E::ReportFailure]));
         let (s, fx) = s.on(
             V::FitPassed {
                 cal: run_cal(1.0),
@@ -332,7 +472,16 @@ mod tests {
             true,
             0,
         );
-        assert!(fx.is_empty() && s == MagCalRun::Failed);
+        assert!(fx.is_empty() && s == failed_run(None));
+        // Its report repeats too, until an accept (answered FAILED: nothing to save) ends it.
+        let (s, _) = s.on(V::Tick { now_s: 5.0 }, false, 0);
+        let (s, fx) = s.on(V::Tick { now_s: 6.0 }, false, 0);
+        assert_eq!(
+            (s.clone(), fx),
+            (failed_run(Some(7.0)), vec![E::RepeatFailure])
+        );
+        let (s, fx) = s.on(V::Accept { mask: 0 }, false, 0);
+        assert_eq!((s, fx), (MagCalRun::Idle, vec![failed.clone()]));
         // A mask without compass 0 is refused and changes nothing.
         let other = MagCalStart {
             mask: 0b10,

@@ -374,7 +374,7 @@ impl State {
         }
         for c in 0..self.cals.len() {
             for i in 0..self.cals[c].tracks.len() {
-                if matches!(self.cals[c].tracks[i].mag_run, MagCalRun::Waiting { .. }) {
+                if self.cals[c].tracks[i].mag_run.wants_ticks() {
                     let now_s = self.now_s();
                     self.mag_event(c, i, MagCalEvent::Tick { now_s }).await;
                 }
