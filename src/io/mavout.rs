@@ -180,24 +180,25 @@ fn array_text<const N: usize>(a: &CharArray<N>) -> String {
 // ---------------------------------------------------------------------------------------------
 // MAG_CAL_PROGRESS
 
-/// `1 << compass_id` for the MAG_CAL_* `cal_mask` (0 for ids of 8 and more, which it cannot hold).
-fn cal_mask(compass_id: u8) -> u8 {
+/// `1 << compass_id` (0 for ids of 8 and more, which a MAG_CAL_* `cal_mask` cannot hold).
+pub(crate) fn compass_bit(compass_id: u8) -> u8 {
     1u8.checked_shl(compass_id as u32).unwrap_or(0)
 }
 
 /// MAG_CAL_PROGRESS: `cal_status` is RUNNING_STEP_ONE below 100 % and RUNNING_STEP_TWO at 100 %
-/// (`completion_pct` is capped at 100); `direction` is the latest sample's direction for display.
+/// (`completion_pct` is capped at 100); `cal_mask` the compasses of the run (ArduPilot's: every
+/// compass whose calibrator is not idle); `direction_*` 0, as ArduPilot sends them.
 pub(crate) fn mag_cal_progress(
     compass_id: u8,
+    cal_mask: u8,
     completion_pct: u8,
     mask: [u8; 10],
-    direction: [f32; 3],
     attempt: u8,
 ) -> MavMessage {
     let pct = completion_pct.min(100);
     MavMessage::MAG_CAL_PROGRESS(MAG_CAL_PROGRESS_DATA {
         compass_id,
-        cal_mask: cal_mask(compass_id),
+        cal_mask,
         cal_status: if pct < 100 {
             MagCalStatus::MAG_CAL_RUNNING_STEP_ONE
         } else {
@@ -206,9 +207,9 @@ pub(crate) fn mag_cal_progress(
         attempt,
         completion_pct: pct,
         completion_mask: mask,
-        direction_x: direction[0],
-        direction_y: direction[1],
-        direction_z: direction[2],
+        direction_x: 0.0,
+        direction_y: 0.0,
+        direction_z: 0.0,
     })
 }
 
@@ -311,17 +312,19 @@ fn mag_cal_status_enum(code: u8) -> MagCalStatus {
 
 /// MAG_CAL_REPORT for a magnetometer calibration in uT, with `autosaved` = 0.
 /// See [`mag_cal_report_autosaved`].
-pub(crate) fn mag_cal_report(compass_id: u8, cal: &SensorCalibration) -> MavMessage {
-    mag_cal_report_autosaved(compass_id, cal, false)
+pub(crate) fn mag_cal_report(compass_id: u8, cal_mask: u8, cal: &SensorCalibration) -> MavMessage {
+    mag_cal_report_autosaved(compass_id, cal_mask, cal, false)
 }
 
 /// MAG_CAL_REPORT in ArduPilot's conventions: `fitness` the RMS residual in mGauss; `ofs_*`,
 /// `diag_*` and `offdiag_*` as COMPASS_OFS/DIA/ODI ([`ardupilot::Correction::from_model`]: the
 /// offset negated in mGauss, the symmetric part of the matrix); `cal_status` from
-/// [`mag_cal_status_code`]; `cal_mask` = 1 << compass_id; `scale_factor` 1.0; orientation fields
-/// unused (ROTATION_NONE, confidence 0). The calibration's numbers are taken to be in uT.
+/// [`mag_cal_status_code`]; `cal_mask` the compasses of the run (as [`mag_cal_progress`]);
+/// `scale_factor` 1.0; orientation fields unused (ROTATION_NONE, confidence 0). The calibration's
+/// numbers are taken to be in uT.
 pub(crate) fn mag_cal_report_autosaved(
     compass_id: u8,
+    cal_mask: u8,
     cal: &SensorCalibration,
     autosaved: bool,
 ) -> MavMessage {
@@ -342,7 +345,7 @@ pub(crate) fn mag_cal_report_autosaved(
         offdiag_y,
         offdiag_z,
         compass_id,
-        cal_mask: cal_mask(compass_id),
+        cal_mask,
         cal_status: mag_cal_status_enum(mag_cal_status_code(cal)),
         autosaved: autosaved as u8,
         scale_factor: 1.0,
@@ -992,13 +995,13 @@ mod tests {
     #[test]
     fn progress_message_status_and_round_trip() {
         let mask = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10];
-        let m = mag_cal_progress(1, 42, mask, [0.1, -0.2, 0.97], 2);
+        let m = mag_cal_progress(1, 0b11, 42, mask, 2);
         let MavMessage::MAG_CAL_PROGRESS(d) = &m else {
             panic!()
         };
         assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_ONE);
-        assert_eq!((d.cal_mask, d.compass_id, d.attempt), (2, 1, 2));
-        let MavMessage::MAG_CAL_PROGRESS(d) = mag_cal_progress(0, 120, mask, [0.0; 3], 1) else {
+        assert_eq!((d.cal_mask, d.compass_id, d.attempt), (3, 1, 2));
+        let MavMessage::MAG_CAL_PROGRESS(d) = mag_cal_progress(0, 1, 120, mask, 1) else {
             panic!()
         };
         assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_TWO);
@@ -1008,7 +1011,10 @@ mod tests {
             MavMessage::MAG_CAL_PROGRESS(r) => {
                 assert_eq!(r.completion_mask, mask);
                 assert_eq!(r.completion_pct, 42);
-                assert_eq!(r.direction_z, 0.97);
+                assert_eq!(
+                    (r.direction_x, r.direction_y, r.direction_z),
+                    (0.0, 0.0, 0.0)
+                );
             }
             other => panic!("{other:?}"),
         }
@@ -1017,7 +1023,7 @@ mod tests {
     #[test]
     fn report_in_ardupilot_units_and_signs() {
         let cal = sensor_cal(CalStatus::Ok, None);
-        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report(0, &cal) else {
+        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report(0, 1, &cal) else {
             panic!()
         };
         assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_SUCCESS);
@@ -1029,7 +1035,7 @@ mod tests {
         assert!((d.offdiag_y + 0.01).abs() < 1e-7);
         assert!((d.offdiag_z - 0.04).abs() < 1e-7);
         assert_eq!((d.cal_mask, d.autosaved, d.scale_factor), (1, 0, 1.0));
-        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report_autosaved(2, &cal, true) else {
+        let MavMessage::MAG_CAL_REPORT(d) = mag_cal_report_autosaved(2, 4, &cal, true) else {
             panic!()
         };
         assert_eq!((d.cal_mask, d.autosaved, d.compass_id), (4, 1, 2));
@@ -1075,7 +1081,7 @@ mod tests {
         ] {
             let cal = sensor_cal(CalStatus::Failed, failure);
             assert_eq!(mag_cal_status_code(&cal), code);
-            let bytes = MavEncoder::default().encode(&mag_cal_report(0, &cal));
+            let bytes = MavEncoder::default().encode(&mag_cal_report(0, 1, &cal));
             // MAVLink 2 header is 10 bytes; cal_status is payload byte 42 (after 10 floats, id, mask).
             assert_eq!(bytes[10 + 42], code, "{failure:?}");
             match decode(&bytes).message {

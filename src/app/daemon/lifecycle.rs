@@ -28,8 +28,9 @@ impl State {
         }
         {
             let p = t.pipe.progress(&mut t.progress, centre);
-            let dir = p.direction.map(|v| v as f32);
-            let msg = mavout::mag_cal_progress(t.compass_id, p.completion_pct, p.mask, dir, 1);
+            let run_mask = cal.run_mask(i);
+            let t = &cal.tracks[i];
+            let msg = mavout::mag_cal_progress(t.compass_id, run_mask, p.completion_pct, p.mask, 1);
             let ev = LiveEvent::Progress {
                 sensor: "mag".into(),
                 instance: t.compass_id,
@@ -58,6 +59,22 @@ impl Cal {
             Sensor::Mag => mag.as_ref(),
             Sensor::Accel => accel.as_ref(),
             Sensor::Gyro => None,
+        }
+    }
+
+    /// The MAG_CAL_* `cal_mask` for track `i`: every compass of this vehicle with a calibration
+    /// run (ArduPilot's: every compass whose calibrator is not idle), or track `i`'s own bit when
+    /// none runs (continuous calibration).
+    pub(super) fn run_mask(&self, i: usize) -> u8 {
+        let running = self
+            .tracks
+            .iter()
+            .filter(|t| !matches!(t.mag_run, MagCalRun::Idle))
+            .fold(0u8, |m, t| m | mavout::compass_bit(t.compass_id));
+        if running == 0 {
+            mavout::compass_bit(self.tracks[i].compass_id)
+        } else {
+            running
         }
     }
 
@@ -236,7 +253,8 @@ impl State {
                         });
                     if commanded || moved {
                         reported = autosaved;
-                        let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
+                        let mask = self.cals[c].run_mask(i);
+                        let msg = mavout::mag_cal_report_autosaved(id, mask, &cal, autosaved);
                         self.send_mav(To::Cal(c), &[msg]).await;
                         let what = if autosaved {
                             "mag calibrated"
@@ -258,13 +276,15 @@ impl State {
                     }
                 }
                 MagCalEffect::ReportFailure | MagCalEffect::RepeatFailure => {
+                    let mask = self.cals[c].run_mask(i);
                     if let Some(mag) = self.cals[c].tracks[i].mag_failed.as_ref() {
-                        let msg = mavout::mag_cal_report(id, mag);
+                        let msg = mavout::mag_cal_report(id, mask, mag);
                         self.send_mav(To::Cal(c), &[msg]).await;
                     }
                 }
                 MagCalEffect::RepeatSuccess { cal, autosaved } => {
-                    let msg = mavout::mag_cal_report_autosaved(id, &cal, autosaved);
+                    let mask = self.cals[c].run_mask(i);
+                    let msg = mavout::mag_cal_report_autosaved(id, mask, &cal, autosaved);
                     self.send_mav(To::Cal(c), &[msg]).await;
                 }
             }
@@ -428,7 +448,8 @@ impl State {
                         "mag calibrated at a fixed yaw of {:.1} deg{label}: offset [{:.2}, {:.2}, {:.2}] uT",
                         cmd.param1, cal.offset[0], cal.offset[1], cal.offset[2]
                     );
-                    let msg = mavout::mag_cal_report_autosaved(id, &cal, true);
+                    let msg =
+                        mavout::mag_cal_report_autosaved(id, mavout::compass_bit(id), &cal, true);
                     self.cals[c].install_mag(i, cal.clone());
                     self.cals[c].tracks[i].reported_mag = Some(cal);
                     self.send_mav(To::Cal(c), &[msg]).await;
