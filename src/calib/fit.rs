@@ -398,6 +398,57 @@ pub fn fit_norm(
 pub(crate) struct NormFitter {
     frame: Frame,
     scratch: kernel::Scratch,
+    outline: Option<Outline>,
+}
+
+/// Whether points outline a sphere at all, read from the moments of the linear fits before any
+/// iteration: their spread (the standard deviation along their second-widest direction: a cap
+/// of a sphere spreads in two directions, a ring or a full sphere in at least two) against their
+/// scatter about the closest sphere (the linear sphere fit's RMS distance, its algebraic residual
+/// over twice its radius). Readings that scatter about any sphere nearly as far as they spread
+/// are a blob, not an outline: no centre, let alone an ellipsoid, is determined by them.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Outline {
+    /// Standard deviation of the points along their second-widest direction, raw units.
+    pub spread: f64,
+    /// RMS distance of the points from the linear sphere fit, raw units.
+    pub scatter: f64,
+    /// That sphere's radius, raw units.
+    pub radius: f64,
+}
+
+impl Outline {
+    /// From the ellipsoid design's moments (`n`, `g` = D^T D, `ab` = D^T 1, points in a frame
+    /// scaled by `scale`) and the sphere fit's normal equations read from them.
+    fn from_moments(
+        n: f64,
+        g: &SMatrix<f64, 9, 9>,
+        ab: &SVector<f64, 9>,
+        ata: &SMatrix<f64, 4, 4>,
+        atb: &SVector<f64, 4>,
+        scale: f64,
+    ) -> Option<Outline> {
+        if !(n > 4.0) {
+            return None;
+        }
+        let sol = cholesky(ata)?.solve(atb);
+        // The right-hand side |x|^2 is d0 + d1 + d2: its square sums to these entries of g.
+        let btb: f64 = (0..3).flat_map(|i| (0..3).map(move |j| g[(i, j)])).sum();
+        let ssr = (btb - sol.dot(atb)).max(0.0);
+        let c = Vector3::new(sol[0], sol[1], sol[2]);
+        let r = (sol[3] + c.norm_squared()).sqrt();
+        // Columns 6..9 are 2x, 2y, 2z.
+        let mean = Vector3::from_fn(|i, _| ab[6 + i] / (2.0 * n));
+        let cov = Matrix3::from_fn(|i, j| g[(6 + i, 6 + j)] / (4.0 * n) - mean[i] * mean[j]);
+        let mut ev: [f64; 3] = cov.symmetric_eigen().eigenvalues.into();
+        ev.sort_by(f64::total_cmp);
+        let out = Outline {
+            spread: ev[1].max(0.0).sqrt() * scale,
+            scatter: (ssr / n).sqrt() / (2.0 * r) * scale,
+            radius: r * scale,
+        };
+        (out.spread.is_finite() && out.scatter.is_finite() && r > 0.0).then_some(out)
+    }
 }
 
 /// What the fits of a [`NormFitter`] share and only read: the points in fit layout, the
@@ -437,6 +488,7 @@ impl NormFitter {
         let mut scratch = kernel::Scratch::new(soa.padded);
         let mut sphere = None;
         let mut ellipsoid = None;
+        let mut outline = None;
         if pts.len() >= 4 {
             // Normalise: centre and scale from the sphere fit (defined when the points are not
             // coplanar). With enough points for the ellipsoid start, its normal equations hold the
@@ -450,6 +502,9 @@ impl NormFitter {
                     (ata, atb)
                 }
             };
+            outline = with_ellipsoid
+                .as_ref()
+                .and_then(|(n, g, ab)| Outline::from_moments(*n, g, ab, &ata, &atb, s1));
             if let Some(sph) = sphere_from_normal_equations(&ata, &atb) {
                 // The sphere in the first frame: centre c1, radius r1.
                 let (c1, r1) = (sph.centre, 1.0 / sph.shape[(0, 0)]);
@@ -474,7 +529,14 @@ impl NormFitter {
                 ellipsoid,
             },
             scratch,
+            outline,
         }
+    }
+
+    /// How far the points spread against how far they scatter about the closest sphere, from
+    /// the moments the set-up summed ([`Outline`]); `None` under nine points.
+    pub(crate) fn outline(&self) -> Option<Outline> {
+        self.outline
     }
 
     /// Centre of the plain sphere fit, raw units.
@@ -495,7 +557,7 @@ impl NormFitter {
         kinds: &[ModelKind],
         opts: &NormFitOptions,
     ) -> Vec<Result<NormFit, FitFailure>> {
-        let NormFitter { frame, scratch } = self;
+        let NormFitter { frame, scratch, .. } = self;
         let frame = &*frame;
         match kinds.split_last() {
             Some((last, first)) if !first.is_empty() && frame.soa.n >= PARALLEL_FIT_MIN_POINTS => {

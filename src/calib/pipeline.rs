@@ -645,7 +645,7 @@ fn fit_sensor(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
             points,
         );
     }
-    let (plain, sym9) = fit_sensor_with_sym9(points, spec);
+    let (plain, sym9, _) = fit_sensor_with_sym9(points, spec);
     // A plain fit that failed on its residuals or numerically may have been pulled apart by a
     // disturbed cluster: look for outliers then too (and when its residuals passed only as the
     // sensor's noise: a noisy stream has its wild readings too).
@@ -1106,8 +1106,11 @@ fn fit_sensor_on(points: &[Vec3], spec: &SensorSpec) -> SensorResult {
 }
 
 /// [`fit_sensor_on`], with its `sym9` candidate fit when it made one (the robust pass's first
-/// look, [`inliers`]).
-fn fit_sensor_with_sym9(points: &[Vec3], spec: &SensorSpec) -> (SensorResult, Option<NormFit>) {
+/// look, [`inliers`]) and whether the fit was refused before it ran ([`undetermined`]).
+fn fit_sensor_with_sym9(
+    points: &[Vec3],
+    spec: &SensorSpec,
+) -> (SensorResult, Option<NormFit>, bool) {
     // The candidate fits share their set-up; its sphere fit is the centre for the "before" coverage.
     let mut fitter = crate::calib::fit::NormFitter::new(points);
     let raw_centre = fitter.sphere_centre().unwrap_or([0.0; 3]);
@@ -1122,6 +1125,29 @@ fn fit_sensor_with_sym9(points: &[Vec3], spec: &SensorSpec) -> (SensorResult, Op
         })
         .collect();
     let cov_before = coverage(&dirs_before, &[0.0; 3]);
+    if let Some(detail) = undetermined(&fitter, &cov_before, spec) {
+        let report = failed(
+            spec.model.into(),
+            spec.units,
+            FitFailure::NotIdentifiable,
+            detail,
+        );
+        let r = SensorResult {
+            coverage_after: cov_before.clone(),
+            dirs_after: dirs_before.clone(),
+            coverage_before: cov_before,
+            dirs_before,
+            ..empty_result(report, &[])
+        };
+        // The robust pass ([`fit_sensor`]) still looks for readings off the field's ellipsoid
+        // (a disturbance can scatter the rest): its first look is the sym9 fit the candidates
+        // would have made.
+        let sym9 = candidate_kinds(spec)
+            .contains(&ModelKind::Sym9)
+            .then(|| fitter.fit(ModelKind::Sym9, &candidate_options(spec)).ok())
+            .flatten();
+        return (r, sym9, true);
+    }
     let fits = candidate_fits(&mut fitter, spec);
     let sym9 = fits
         .iter()
@@ -1143,7 +1169,7 @@ fn fit_sensor_with_sym9(points: &[Vec3], spec: &SensorSpec) -> (SensorResult, Op
         let Some(ci) = choose_model(&fits, n) else {
             let (why, detail) = no_fit_reason(n, &cov_before, spec);
             let r = empty_result(failed(spec.model.into(), spec.units, why, detail), points);
-            return (r, sym9);
+            return (r, sym9, false);
         };
         candidates[ci].chosen = true;
         (
@@ -1169,24 +1195,68 @@ fn fit_sensor_with_sym9(points: &[Vec3], spec: &SensorSpec) -> (SensorResult, Op
         residuals,
         held_out: vec![],
     };
-    (r, sym9)
+    (r, sym9, false)
+}
+
+/// Most a magnetometer's readings may scatter about the closest sphere, as a share of their
+/// spread ([`crate::calib::fit::Outline`]), for a norm fit to be run on them. Readings that
+/// outline a sphere, even a small cap of one, spread several times their scatter (a tumble by
+/// hand: 0.05; the logs whose fits pass: at most 0.2); from about a half the readings are a blob
+/// whose sphere, let alone ellipsoid, no fit determines: the iterations would run off or stop on
+/// a shape the noise made (a hover log: 0.7, and every fit of it failed to converge).
+pub(crate) const MAX_SCATTER_OF_SPREAD: f64 = 0.5;
+
+/// Why a magnetometer's norm fit cannot be determined by `fitter`'s points, before it is run;
+/// `None` when it can be tried. Only where the coverage suffices: short of it, the fit is
+/// refused on the coverage as before.
+fn undetermined(
+    fitter: &crate::calib::fit::NormFitter,
+    cov_before: &Coverage,
+    spec: &SensorSpec,
+) -> Option<String> {
+    if spec.is_accel || cov_before.filled < spec.limits.min_filled_regions {
+        return None;
+    }
+    let o = fitter.outline()?;
+    let unit = if spec.units_known { " uT" } else { "" };
+    (o.scatter > MAX_SCATTER_OF_SPREAD * o.spread).then(|| {
+        format!(
+            "the readings spread {:.2}{unit} across (their second-widest direction) and scatter {:.2}{unit} \
+             about the closest sphere (radius {:.2}{unit}), need a spread of at least {:.0} times the \
+             scatter: they outline no sphere, so no field ellipsoid is determined (the {} of 100 regions \
+             they fill are the scatter's, about a centre among them); turn the vehicle through more \
+             directions, away from magnets and running motors",
+            o.spread,
+            o.scatter,
+            o.radius,
+            1.0 / MAX_SCATTER_OF_SPREAD,
+            cov_before.filled
+        )
+    })
 }
 
 /// The norm fits of the models `spec` asks for (every one for "auto"), those that succeed.
 fn candidate_fits(fitter: &mut crate::calib::fit::NormFitter, spec: &SensorSpec) -> Vec<NormFit> {
-    let opts = NormFitOptions {
-        target_norm: spec.target_norm,
-        ..Default::default()
-    };
-    let kinds: Vec<ModelKind> = match spec.model {
-        ModelChoice::Auto => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
-        m => m.kind().into_iter().collect(),
-    };
     fitter
-        .fit_each(&kinds, &opts)
+        .fit_each(&candidate_kinds(spec), &candidate_options(spec))
         .into_iter()
         .filter_map(Result::ok)
         .collect()
+}
+
+/// The models `spec` asks for (every one for "auto"), simplest first.
+fn candidate_kinds(spec: &SensorSpec) -> Vec<ModelKind> {
+    match spec.model {
+        ModelChoice::Auto => vec![ModelKind::Sphere, ModelKind::Diag6, ModelKind::Sym9],
+        m => m.kind().into_iter().collect(),
+    }
+}
+
+fn candidate_options(spec: &SensorSpec) -> NormFitOptions {
+    NormFitOptions {
+        target_norm: spec.target_norm,
+        ..Default::default()
+    }
 }
 
 /// The simplest of `fits` (ordered simplest first) that a richer one does not beat significantly.
@@ -1849,6 +1919,54 @@ mod tests {
     }
 
     use super::*;
+
+    /// Readings that scatter about any sphere nearly as far as they spread (a hover: the field
+    /// barely turns, the noise and the motors make the rest) are refused before any iteration,
+    /// with their spread and scatter named; a tumble as noisy is fitted and passes.
+    #[test]
+    fn a_blob_of_readings_is_refused_before_fitting_and_a_tumble_is_not() {
+        let mut seed = 99u64;
+        let mut gauss = || {
+            let mut u = || {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()
+        };
+        let limits = crate::calib::settings::AcceptConfig::default().mag;
+        let spec = SensorSpec {
+            model: ModelChoice::Auto,
+            target_norm: None,
+            units: CalUnits::Ut,
+            units_known: true,
+            limits: &limits,
+            is_accel: false,
+            noise: None,
+        };
+        let blob: Vec<Vec3> = (0..600)
+            .map(|_| [20.0 + gauss(), -5.0 + gauss(), 40.0 + gauss()])
+            .collect();
+        let r = fit_sensor(&blob, &spec);
+        assert_eq!(r.report.failure, Some(FitFailure::NotIdentifiable));
+        assert_eq!(r.report.iterations, 0);
+        assert!(r.report.candidates.is_empty());
+        let why = r.report.detail.unwrap();
+        assert!(why.contains("they outline no sphere"), "{why}");
+        let tumble: Vec<Vec3> = (0..600)
+            .map(|i| {
+                let (a, b) = (i as f64 * 0.37, (i as f64 * 0.011).sin() * 1.4);
+                [
+                    10.0 + 50.0 * a.cos() * b.cos() + gauss(),
+                    -20.0 + 45.0 * a.sin() * b.cos() + gauss(),
+                    5.0 + 48.0 * b.sin() + gauss(),
+                ]
+            })
+            .collect();
+        let r = fit_sensor(&tumble, &spec);
+        assert_eq!(r.report.status, CalStatus::Ok, "{:?}", r.report.detail);
+    }
 
     /// A sensor resting for a third of a run (a vehicle on the ground streamed at a low rate)
     /// repeats one y reading exactly while x and z jitter by a count: not a stuck axis. The same
