@@ -379,7 +379,7 @@ fn judge<R>(
         .onboard()
         .and_then(|o| o.mag.iter().find(|m| m.sources.contains(&c.source)))
         .filter(|m| m.units == crate::types::CalUnits::Ut);
-    let body_mag = |s: &crate::types::Sample| pipe.to_body(s).mag_ut;
+    let body_mag = |s: &crate::types::Sample| pipe.mag_in_body(s);
     let onboard = slot.map(|m| {
         let mat = crate::calib::model::rows_to_mat(&m.matrix);
         let o = nalgebra::Vector3::from(m.offset);
@@ -388,9 +388,9 @@ fn judge<R>(
             let v = mat * (raw - o);
             let corrected = crate::types::Sample {
                 mag_ut: Some([v.x, v.y, v.z]),
-                ..*s
+                ..Default::default()
             };
-            pipe.to_body(&corrected).mag_ut
+            pipe.mag_in_body(&corrected)
         }
     });
     // The same calibration in body axes: rot M (raw - o) with raw = rot^T u is
@@ -674,9 +674,11 @@ fn mag_method_evidence(
 ) -> crate::calib::magmethod::Evidence {
     let pipe = &run.pipe;
     let body = |s: &crate::types::Sample| pipe.to_body(s);
+    let body_mag = |s: &crate::types::Sample| pipe.mag_in_body(s);
     crate::calib::magmethod::Evidence::gather(
         &run.log.samples,
         &body,
+        &body_mag,
         run.log.place(),
         cfg.place.as_ref(),
         units,
@@ -1328,7 +1330,7 @@ fn onboard_comparison(
     };
     let (mut sq, mut max, mut n) = (0.0, 0.0f64, 0usize);
     for s in samples {
-        let (Some(m), Some(q)) = (pipe.to_body(s).mag_ut, s.ref_q) else {
+        let (Some(m), Some(q)) = (pipe.mag_in_body(s), s.ref_q) else {
             continue;
         };
         let Some((roll, pitch)) = crate::io::flightlog::roll_pitch_of_ref_q(q) else {
@@ -1547,7 +1549,7 @@ fn write_plots(
     let (mut tm, mut rm) = (vec![], vec![]);
     if let Some(c) = r.mag.calibration {
         for s in samples {
-            if let Some(m) = pipe.to_body(s).mag_ut {
+            if let Some(m) = pipe.mag_in_body(s) {
                 tm.push(s.t_s);
                 rm.push(crate::types::norm(&c.apply(&m)) - r.mag.report.radius);
             }

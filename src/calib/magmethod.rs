@@ -182,7 +182,8 @@ pub(crate) fn choose(
     log: LogWhere,
     cfg_place: Option<&Place>,
 ) {
-    let evidence = Evidence::gather(samples, body, log, cfg_place, mag.report.units);
+    let body_mag = |s: &Sample| body(s).mag_ut;
+    let evidence = Evidence::gather(samples, body, &body_mag, log, cfg_place, mag.report.units);
     choose_with(mag, &evidence);
 }
 
@@ -261,14 +262,14 @@ impl Evidence {
     pub(crate) fn gather(
         samples: &[Sample],
         body: &dyn Fn(&Sample) -> Sample,
+        body_mag: &FieldOf<'_>,
         log: LogWhere,
         cfg_place: Option<&Place>,
         units: crate::types::CalUnits,
     ) -> Evidence {
-        let body_mag = |s: &Sample| body(s).mag_ut;
         // The place, found once (a pass over the samples) for the three.
         let w = place_of(samples, log, cfg_place);
-        let vector = vector_evidence(samples, &body_mag, w.clone(), units);
+        let vector = vector_evidence(samples, body_mag, w.clone(), units);
         let planar =
             (!vector.takes_vector()).then(|| planar_evidence(samples, body, w.as_ref(), units));
         Evidence {

@@ -217,6 +217,12 @@ impl Pipeline {
         }
     }
 
+    /// A sample's magnetometer reading in body axes, as [`Pipeline::to_body`] turns it (without
+    /// turning or copying the rest).
+    pub(crate) fn mag_in_body(&self, s: &Sample) -> Option<Vec3> {
+        self.vector_to_body(s.mag_ut)
+    }
+
     fn vector_to_body(&self, v: Option<Vec3>) -> Option<Vec3> {
         v.map(|v| crate::attitude::rotate(&self.rot, &v))
     }
