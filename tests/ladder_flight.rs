@@ -99,10 +99,7 @@ fn steep_banks_with_a_hidden_full_soft_iron_take_the_full_rung() {
     assert_eq!(m.status, CalStatus::Ok, "{:?}", m.detail);
     let choice = m.method.as_ref().unwrap();
     assert_eq!(choice.rung, Some(Rung::Full), "{}", choice.method_reason);
-    let worst = (0..3)
-        .flat_map(|i| (0..3).map(move |j| (i, j)))
-        .map(|(i, j)| (m.matrix[i][j] - SOFT_IRON[i][j]).abs())
-        .fold(0.0f64, f64::max);
+    let worst = common::matrix_dist(&m.matrix, &SOFT_IRON);
     let err = dist(&m.offset, &sc.truth.mag.offset);
     println!(
         "steep banks: matrix within {worst:.4} of the truth, offset {err:.3} uT; {}",

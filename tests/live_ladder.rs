@@ -78,10 +78,7 @@ async fn steep_banks_with_a_hidden_full_soft_iron_take_the_full_rung_live() {
     sc.truth.mag.matrix = SOFT_IRON;
     let (m, _) = stream(&sc, 2, |cfg| cfg.accept.mag.min_filled_regions = 100).await;
     let choice = m.method.as_ref().expect("the method is recorded");
-    let worst = (0..3)
-        .flat_map(|i| (0..3).map(move |j| (i, j)))
-        .map(|(i, j)| (m.matrix[i][j] - SOFT_IRON[i][j]).abs())
-        .fold(0.0f64, f64::max);
+    let worst = common::matrix_dist(&m.matrix, &SOFT_IRON);
     let err = dist(&m.offset, &sc.truth.mag.offset);
     println!(
         "live full rung: matrix within {worst:.4} of the truth, offset {err:.3} uT; {}",

@@ -1888,11 +1888,9 @@ fn mag_rotation_from_dip(mag: &mut SensorResult, accel: &SensorResult, poses: &[
 #[cfg(test)]
 mod tests {
 
-    #[test]
-    fn the_noise_meter_finds_white_noise_under_a_steady_turn() {
-        // Deterministic pseudo-random noise of 0.5 per axis on a field turning steadily.
-        let mut seed = 12345u64;
-        let mut gauss = || {
+    /// Deterministic standard normal numbers (a 64-bit LCG through Box-Muller) from `seed`.
+    fn gaussian(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
             let mut u = || {
                 seed = seed
                     .wrapping_mul(6364136223846793005)
@@ -1900,7 +1898,13 @@ mod tests {
                 ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
             };
             (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()
-        };
+        }
+    }
+
+    #[test]
+    fn the_noise_meter_finds_white_noise_under_a_steady_turn() {
+        // Deterministic pseudo-random noise of 0.5 per axis on a field turning steadily.
+        let mut gauss = gaussian(12345);
         let mut m = NoiseMeter::default();
         for i in 0..5000 {
             let a = i as f64 * 0.01;
@@ -1931,16 +1935,7 @@ mod tests {
     /// with their spread and scatter named; a tumble as noisy is fitted and passes.
     #[test]
     fn a_blob_of_readings_is_refused_before_fitting_and_a_tumble_is_not() {
-        let mut seed = 99u64;
-        let mut gauss = || {
-            let mut u = || {
-                seed = seed
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((seed >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-            };
-            (-2.0 * u().ln()).sqrt() * (2.0 * std::f64::consts::PI * u()).cos()
-        };
+        let mut gauss = gaussian(99);
         let limits = crate::calib::settings::AcceptConfig::default().mag;
         let spec = SensorSpec {
             model: ModelChoice::Auto,

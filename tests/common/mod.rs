@@ -77,6 +77,13 @@ pub const SOFT_IRON: [[f64; 3]; 3] = [
     [-0.02, 0.025, 1.02],
 ];
 
+/// The largest difference between two matrices, element by element.
+pub fn matrix_dist(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> f64 {
+    (0..3)
+        .flat_map(|i| (0..3).map(move |j| (a[i][j] - b[i][j]).abs()))
+        .fold(0.0, f64::max)
+}
+
 /// The distance between two vectors.
 pub fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
