@@ -136,14 +136,7 @@ impl State {
         let by_vector = cal.tracks[i].take_rung(&mut results, live.as_deref(), !commanded);
         let id = cal.tracks[i].compass_id;
         if commanded {
-            let tolerance = magcal::fitness_tolerance_mgauss(
-                self.cfg.daemon.mag_cal_fit_mgauss,
-                id,
-                self.compass_external(c, id),
-            );
-            if magcal::fail_on_fitness(&mut results.mag.report, tolerance) {
-                results.mag.calibration = None;
-            }
+            self.judge_fitness(c, id, &mut results);
         }
         let cal = &mut self.cals[c];
         let current_mag = cal.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
@@ -221,6 +214,19 @@ impl State {
         }
         if let Some(job) = self.report_job() {
             self.report_writes.want(job);
+        }
+    }
+
+    /// A commanded run's magnetometer fit against ArduPilot's calibrator tolerance for compass
+    /// `id` of vehicle `c` ([`magcal::fail_on_fitness`]): over it, the fit fails.
+    fn judge_fitness(&self, c: usize, id: u8, results: &mut FitResults) {
+        let tolerance = magcal::fitness_tolerance_mgauss(
+            self.cfg.daemon.mag_cal_fit_mgauss,
+            id,
+            self.compass_external(c, id),
+        );
+        if magcal::fail_on_fitness(&mut results.mag.report, tolerance) {
+            results.mag.calibration = None;
         }
     }
 
