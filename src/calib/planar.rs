@@ -732,28 +732,81 @@ fn attitude_sectors(points: &[&PlanarPoint], settings: &PlanarSettings) -> Optio
     (by_attitude().count() >= settings.min_reference_points).then(|| sectors(by_attitude()))
 }
 
-/// Fit the horizontal calibration, then the deviation curve against the references.
+/// Fit the horizontal calibration, then the deviation curve against the references: the level
+/// readings ([`level_points`]), a first fit from the ellipse, its outliers left out
+/// ([`without_outliers`]), the fit again on the rest ([`solve`]), the headings' spread and the
+/// soft iron checked ([`check_shape`]), and the deviation curve ([`add_deviation`]).
 pub fn fit(
     points: &[PlanarPoint],
     earth: Option<&PlanarEarth>,
     settings: &PlanarSettings,
 ) -> Result<PlanarFit, PlanarFailure> {
     let usable: Vec<&PlanarPoint> = points.iter().filter(|p| p.usable()).collect();
+    let level = level_points(&usable, settings)?;
+    let too_tilted = usable.len() - level.len();
+    let (tilt_p95_deg, tilt_max_deg, turn_bank_deg) = tilt_and_bank(&usable);
+    let kept: Vec<Reduced> = level.iter().map(|p| reduce(p)).collect();
+    let (mut start, horizontal) =
+        ellipse_start(&kept, earth.map(|e| e.horizontal)).ok_or(PlanarFailure::NotAnEllipse)?;
+    start[5] = earth.map_or(0.0, |e| e.vertical);
+    let (first, _) = gauss_newton(&kept, start, horizontal, true);
+    let (level, kept, outliers_rejected) =
+        without_outliers(level, kept, &first, horizontal, settings)?;
+    let s = solve(&kept, first, horizontal, earth, settings);
+    let mut fit = PlanarFit {
+        offset_xy: [s.p[0], s.p[1]],
+        offset_sigma_xy: [s.cov[(0, 0)].max(0.0).sqrt(), s.cov[(1, 1)].max(0.0).sqrt()],
+        soft_iron_xy: [[s.p[2], s.p[3]], [s.p[3], s.p[4]]],
+        vertical: s.p[5],
+        vertical_sigma: s.vertical_sigma,
+        horizontal,
+        rms_residual: s.rms_residual,
+        points: kept.len(),
+        outliers_rejected,
+        too_tilted,
+        tilt_p95_deg,
+        tilt_max_deg,
+        turn_bank_deg,
+        yaw_sectors: 0,
+        declination_deg: earth.map(|e| e.declination_deg),
+        deviation: None,
+        deviation_skipped: None,
+        undetermined: s.undetermined,
+    };
+    let referenced: Vec<&PlanarPoint> = level
+        .iter()
+        .copied()
+        .filter(|p| p.reference.is_some_and(|r| r.0.is_finite()))
+        .collect();
+    check_shape(&mut fit, &level, &referenced, settings)?;
+    add_deviation(&mut fit, &referenced, settings);
+    Ok(fit)
+}
+
+/// Fewest level readings a fit needs: [`PlanarSettings::min_points`], at least 7.
+fn min_points(settings: &PlanarSettings) -> usize {
+    settings.min_points.max(7)
+}
+
+/// The readings level enough to fit (within [`PlanarSettings::max_tilt_deg`]), or why there are
+/// too few of them, or why no fit can pass: when the logged attitude's headings already visit
+/// too few sectors, no calibration can claim more ([`attitude_sectors`]), and the fit is not run.
+fn level_points<'a>(
+    usable: &[&'a PlanarPoint],
+    settings: &PlanarSettings,
+) -> Result<Vec<&'a PlanarPoint>, PlanarFailure> {
     let level: Vec<&PlanarPoint> = usable
         .iter()
         .copied()
         .filter(|p| p.within_tilt(settings.max_tilt_deg))
         .collect();
-    let too_tilted = usable.len() - level.len();
-    let need = settings.min_points.max(7);
+    let need = min_points(settings);
     if level.len() < need {
         return Err(PlanarFailure::NotEnoughPoints {
             have: level.len(),
             need,
         });
     }
-    // The logged attitude's headings bound the sectors any fit can claim (below): when they
-    // already visit too few, no calibration can pass, and the fit is not run.
     if let Some(sectors) = attitude_sectors(&level, settings) {
         if sectors < settings.min_yaw_sectors {
             return Err(PlanarFailure::NarrowYaw {
@@ -762,23 +815,31 @@ pub fn fit(
             });
         }
     }
-    let (tilt_p95_deg, tilt_max_deg, turn_bank_deg) = tilt_and_bank(&usable);
-    let reduce = |p: &PlanarPoint| {
-        let (roll, pitch) = p.roll_pitch_rad();
-        Reduced {
-            m: [p.mag[0], p.mag[1]],
-            tilt: Tilt::of(roll, pitch),
-        }
-    };
-    let mut kept: Vec<Reduced> = level.iter().map(|p| reduce(p)).collect();
-    let (mut start, horizontal) =
-        ellipse_start(&kept, earth.map(|e| e.horizontal)).ok_or(PlanarFailure::NotAnEllipse)?;
-    start[5] = earth.map_or(0.0, |e| e.vertical);
-    let (first, _) = gauss_newton(&kept, start, horizontal, true);
-    // One pass of outlier rejection on the first fit's residuals.
+    Ok(level)
+}
+
+/// A reading reduced to the horizontal raw field and the tilt.
+fn reduce(p: &PlanarPoint) -> Reduced {
+    let (roll, pitch) = p.roll_pitch_rad();
+    Reduced {
+        m: [p.mag[0], p.mag[1]],
+        tilt: Tilt::of(roll, pitch),
+    }
+}
+
+/// One pass of outlier rejection on the first fit's residuals (beyond
+/// [`PlanarSettings::outlier_sigmas`] robust sigmas): the readings kept, reduced and as given,
+/// and how many were left out; an error when too few are left.
+fn without_outliers<'a>(
+    level: Vec<&'a PlanarPoint>,
+    kept: Vec<Reduced>,
+    first: &Params,
+    horizontal: f64,
+    settings: &PlanarSettings,
+) -> Result<(Vec<&'a PlanarPoint>, Vec<Reduced>, usize), PlanarFailure> {
     let res: Vec<f64> = kept
         .iter()
-        .map(|r| residual(&first, r, horizontal))
+        .map(|r| residual(first, r, horizontal))
         .collect();
     let sigma = MAD_TO_SIGMA * median(res.iter().map(|r| r.abs()).collect());
     let cut = settings.outlier_sigmas * sigma.max(1e-12 * horizontal);
@@ -790,66 +851,88 @@ pub fn fit(
         }
     }
     let level: Vec<&PlanarPoint> = keep_idx.iter().map(|&i| level[i]).collect();
-    kept = keep_idx.iter().map(|&i| kept[i]).collect();
+    let kept: Vec<Reduced> = keep_idx.iter().map(|&i| kept[i]).collect();
     let outliers_rejected = before - kept.len();
+    let need = min_points(settings);
     if kept.len() < need {
         return Err(PlanarFailure::NotEnoughPoints {
             have: kept.len(),
             need,
         });
     }
-    let (mut p, mut jtj) = gauss_newton(&kept, first, horizontal, true);
-    let var = |p: &Params, np: usize| {
-        let r: Vec<f64> = kept.iter().map(|r| residual(p, r, horizontal)).collect();
-        let s2 = r.iter().map(|x| x * x).sum::<f64>() / (r.len().saturating_sub(np)).max(1) as f64;
-        (s2, rms(&r))
-    };
-    let (mut s2, mut rms_residual) = var(&p, 6);
-    let cov = |jtj: &DMatrix<f64>, s2: f64| {
-        jtj.clone()
-            .try_inverse()
-            .map(|inv| inv * s2)
-            .unwrap_or_else(|| DMatrix::from_element(jtj.nrows(), jtj.ncols(), f64::INFINITY))
-    };
-    let mut c = cov(&jtj, s2);
-    let mut vertical_sigma = Some(c[(5, 5)].max(0.0).sqrt());
+    Ok((level, kept, outliers_rejected))
+}
+
+/// The fit on the kept readings: its parameters, their covariance, the RMS residual, the
+/// vertical field's sigma (`None` when held) and what it leaves undetermined.
+struct Solved {
+    p: Params,
+    cov: DMatrix<f64>,
+    rms_residual: f64,
+    vertical_sigma: Option<f64>,
+    undetermined: Vec<Undetermined>,
+}
+
+/// The fit again from `first` on the kept readings; when the vertical field comes out less
+/// certain than [`PlanarSettings::max_vertical_sigma_fraction`] of the horizontal, it is held at
+/// the earth's (or 0) and the fit made again without it.
+fn solve(
+    kept: &[Reduced],
+    first: Params,
+    horizontal: f64,
+    earth: Option<&PlanarEarth>,
+    settings: &PlanarSettings,
+) -> Solved {
+    let (mut p, mut jtj) = gauss_newton(kept, first, horizontal, true);
+    let (mut s2, mut rms_residual) = residual_variance(kept, &p, horizontal, 6);
+    let mut cov = covariance(&jtj, s2);
+    let mut vertical_sigma = Some(cov[(5, 5)].max(0.0).sqrt());
     let mut undetermined = vec![Undetermined::OffsetZ, Undetermined::SoftIronZ];
     if !vertical_sigma.is_some_and(|s| s <= settings.max_vertical_sigma_fraction * horizontal) {
         let mut held = p;
         held[5] = earth.map_or(0.0, |e| e.vertical);
-        (p, jtj) = gauss_newton(&kept, held, horizontal, false);
-        (s2, rms_residual) = var(&p, 5);
-        c = cov(&jtj, s2);
+        (p, jtj) = gauss_newton(kept, held, horizontal, false);
+        (s2, rms_residual) = residual_variance(kept, &p, horizontal, 5);
+        cov = covariance(&jtj, s2);
         vertical_sigma = None;
         undetermined.push(Undetermined::FieldVertical);
     }
-    let mut fit = PlanarFit {
-        offset_xy: [p[0], p[1]],
-        offset_sigma_xy: [c[(0, 0)].max(0.0).sqrt(), c[(1, 1)].max(0.0).sqrt()],
-        soft_iron_xy: [[p[2], p[3]], [p[3], p[4]]],
-        vertical: p[5],
-        vertical_sigma,
-        horizontal,
+    Solved {
+        p,
+        cov,
         rms_residual,
-        points: kept.len(),
-        outliers_rejected,
-        too_tilted,
-        tilt_p95_deg,
-        tilt_max_deg,
-        turn_bank_deg,
-        yaw_sectors: 0,
-        declination_deg: earth.map(|e| e.declination_deg),
-        deviation: None,
-        deviation_skipped: None,
+        vertical_sigma,
         undetermined,
-    };
-    let referenced: Vec<&PlanarPoint> = level
-        .iter()
-        .copied()
-        .filter(|p| p.reference.is_some_and(|r| r.0.is_finite()))
-        .collect();
+    }
+}
+
+/// The residuals' variance with `np` parameters fitted, and their RMS.
+fn residual_variance(kept: &[Reduced], p: &Params, horizontal: f64, np: usize) -> (f64, f64) {
+    let r: Vec<f64> = kept.iter().map(|r| residual(p, r, horizontal)).collect();
+    let s2 = r.iter().map(|x| x * x).sum::<f64>() / (r.len().saturating_sub(np)).max(1) as f64;
+    (s2, rms(&r))
+}
+
+/// The parameters' covariance from the normal matrix and the residual variance; infinite where
+/// the matrix is singular.
+fn covariance(jtj: &DMatrix<f64>, s2: f64) -> DMatrix<f64> {
+    jtj.clone()
+        .try_inverse()
+        .map(|inv| inv * s2)
+        .unwrap_or_else(|| DMatrix::from_element(jtj.nrows(), jtj.ncols(), f64::INFINITY))
+}
+
+/// The fit's heading sectors (the calibrated headings', at most the logged attitude's) into
+/// `fit.yaw_sectors`, and the checks on the shape: enough sectors, and a soft iron within
+/// [`SOFT_IRON_EIGEN_BOUNDS`].
+fn check_shape(
+    fit: &mut PlanarFit,
+    level: &[&PlanarPoint],
+    referenced: &[&PlanarPoint],
+    settings: &PlanarSettings,
+) -> Result<(), PlanarFailure> {
     fit.yaw_sectors = sectors(level.iter().map(|p| fit.compass_heading_deg(p)));
-    if let Some(by_attitude) = attitude_sectors(&referenced, settings) {
+    if let Some(by_attitude) = attitude_sectors(referenced, settings) {
         fit.yaw_sectors = fit.yaw_sectors.min(by_attitude);
     }
     if fit.yaw_sectors < settings.min_yaw_sectors {
@@ -865,8 +948,14 @@ pub fn fit(
     {
         return Err(PlanarFailure::SoftIron { eigenvalues });
     }
+    Ok(())
+}
+
+/// The deviation curve against the references ([`deviation`]) when there are enough of them,
+/// else why not; without one, the heading deviation is named undetermined.
+fn add_deviation(fit: &mut PlanarFit, referenced: &[&PlanarPoint], settings: &PlanarSettings) {
     if referenced.len() >= settings.min_reference_points {
-        match deviation(&fit, &referenced, settings) {
+        match deviation(fit, referenced, settings) {
             Ok(d) => fit.deviation = Some(d),
             Err(why) => fit.deviation_skipped = Some(why),
         }
@@ -880,7 +969,6 @@ pub fn fit(
     if fit.deviation.is_none() {
         fit.undetermined.push(Undetermined::HeadingDeviation);
     }
-    Ok(fit)
 }
 
 /// Least squares of the deviation curve to reference minus compass heading (one pass of outlier

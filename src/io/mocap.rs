@@ -129,151 +129,230 @@ struct BodyColumns {
     pos: [usize; 3],
 }
 
-/// As [`read_motive`], from the file's bytes; `path` only names it in errors.
+/// As [`read_motive`], from the file's bytes; `path` only names it in errors. In steps: the
+/// header block ([`header_block`]), the metadata ([`Meta::of`]), the rigid bodies' columns
+/// ([`rigid_body_columns`]), the data rows ([`data_rows`]), then the body asked for or the first
+/// tracked one ([`first_tracked`]).
 pub(crate) fn parse_motive(
     bytes: &[u8],
     path: &Path,
     rigid_body: Option<&str>,
 ) -> Result<MocapTake, Error> {
-    let bad = |message: String| Error::Format {
-        path: path.to_path_buf(),
-        message,
-    };
-    let not_motive = |what: &str| {
-        bad(format!(
-            "not an OptiTrack Motive CSV export ({what}); expected a first row starting \
-             `Format Version,...`, rows labelled Type, Name and ID, and a row `Frame,Time (Seconds),...`"
-        ))
-    };
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(false)
         .flexible(true)
         .from_reader(bytes);
     let mut records = reader.records();
+    let (header, axis_row) = header_block(&mut records, path)?;
+    let meta = Meta::of(&header, path)?;
+    let bodies = rigid_body_columns(&header, &axis_row, path)?;
+    // Every row parsed once; the body chosen afterwards (the first tracked one by default).
+    let rows = data_rows(records);
+    first_tracked(&bodies, &rows, meta, rigid_body, path)
+}
+
+/// A format error naming the file.
+fn bad(path: &Path, message: String) -> Error {
+    Error::Format {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// The file is not a Motive export: `what` is missing, and what one looks like.
+fn not_motive(path: &Path, what: &str) -> Error {
+    bad(
+        path,
+        format!(
+            "not an OptiTrack Motive CSV export ({what}); expected a first row starting \
+             `Format Version,...`, rows labelled Type, Name and ID, and a row `Frame,Time (Seconds),...`"
+        ),
+    )
+}
+
+/// The header block's rows (at most 16) and the axis row `Frame,Time (Seconds),...` that ends it.
+fn header_block(
+    records: &mut csv::StringRecordsIter<'_, &[u8]>,
+    path: &Path,
+) -> Result<(Vec<csv::StringRecord>, csv::StringRecord), Error> {
     let mut header: Vec<csv::StringRecord> = Vec::new();
-    // The header block ends with the axis row `Frame,Time (Seconds),...`.
-    let axis_row = loop {
+    loop {
         match records.next() {
-            None => return Err(not_motive("no `Frame,Time` row")),
-            Some(Err(e)) => return Err(not_motive(&format!("unreadable header: {e}"))),
+            None => return Err(not_motive(path, "no `Frame,Time` row")),
+            Some(Err(e)) => return Err(not_motive(path, &format!("unreadable header: {e}"))),
             Some(Ok(r)) => {
                 let first = r.get(0).unwrap_or("").trim();
                 let second = r.get(1).unwrap_or("").trim();
                 if first.eq_ignore_ascii_case("frame")
                     && second.to_ascii_lowercase().starts_with("time")
                 {
-                    break r;
+                    return Ok((header, r));
                 }
                 if header.len() >= 16 {
-                    return Err(not_motive("no `Frame,Time` row in the first 16 rows"));
+                    return Err(not_motive(path, "no `Frame,Time` row in the first 16 rows"));
                 }
                 header.push(r);
             }
         }
-    };
-    let meta = header
-        .first()
-        .filter(|r| r.get(0).is_some_and(|c| c.trim() == "Format Version"))
-        .ok_or_else(|| not_motive("first row is not `Format Version,...`"))?;
-    let meta_value = |key: &str| -> Option<String> {
-        let cells: Vec<&str> = meta.iter().map(str::trim).collect();
-        cells
-            .iter()
-            .position(|c| c.eq_ignore_ascii_case(key))
-            .and_then(|i| cells.get(i + 1))
-            .map(|s| s.to_string())
-    };
-    if let Some(rt) = meta_value("Rotation Type") {
-        if !rt.eq_ignore_ascii_case("quaternion") {
-            return Err(bad(format!(
-                "rotations are exported as `{rt}`: export them as Quaternion (Motive's export dialog)"
-            )));
-        }
     }
-    // Motive's default length unit is the millimetre.
-    let unit_m = match meta_value("Length Units")
-        .as_deref()
-        .map(str::to_ascii_lowercase)
-    {
-        None => 1e-3,
-        Some(u) if u.starts_with("millimet") => 1e-3,
-        Some(u) if u.starts_with("centimet") => 1e-2,
-        Some(u) if u.starts_with("met") => 1.0,
-        Some(u) => return Err(bad(format!("unknown length unit `{u}`"))),
-    };
-    let export_rate_hz = meta_value("Export Frame Rate")
-        .and_then(|s| s.parse::<f64>().ok())
-        .filter(|r| r.is_finite() && *r > 0.0);
-    let take_name = meta_value("Take Name");
+}
+
+/// What the metadata row (`Format Version,...`) gives.
+struct Meta {
+    /// Metres per length unit of the positions.
+    unit_m: f64,
+    /// The export frame rate, Hz.
+    export_rate_hz: Option<f64>,
+    take_name: Option<String>,
+}
+
+impl Meta {
+    /// The metadata of the first header row; an error when it is not one, when the rotations are
+    /// not quaternions or the length unit is unknown.
+    fn of(header: &[csv::StringRecord], path: &Path) -> Result<Meta, Error> {
+        let meta = header
+            .first()
+            .filter(|r| r.get(0).is_some_and(|c| c.trim() == "Format Version"))
+            .ok_or_else(|| not_motive(path, "first row is not `Format Version,...`"))?;
+        let meta_value = |key: &str| -> Option<String> {
+            let cells: Vec<&str> = meta.iter().map(str::trim).collect();
+            cells
+                .iter()
+                .position(|c| c.eq_ignore_ascii_case(key))
+                .and_then(|i| cells.get(i + 1))
+                .map(|s| s.to_string())
+        };
+        if let Some(rt) = meta_value("Rotation Type") {
+            if !rt.eq_ignore_ascii_case("quaternion") {
+                return Err(bad(
+                    path,
+                    format!(
+                        "rotations are exported as `{rt}`: export them as Quaternion (Motive's export dialog)"
+                    ),
+                ));
+            }
+        }
+        // Motive's default length unit is the millimetre.
+        let unit_m = match meta_value("Length Units")
+            .as_deref()
+            .map(str::to_ascii_lowercase)
+        {
+            None => 1e-3,
+            Some(u) if u.starts_with("millimet") => 1e-3,
+            Some(u) if u.starts_with("centimet") => 1e-2,
+            Some(u) if u.starts_with("met") => 1.0,
+            Some(u) => return Err(bad(path, format!("unknown length unit `{u}`"))),
+        };
+        let export_rate_hz = meta_value("Export Frame Rate")
+            .and_then(|s| s.parse::<f64>().ok())
+            .filter(|r| r.is_finite() && *r > 0.0);
+        Ok(Meta {
+            unit_m,
+            export_rate_hz,
+            take_name: meta_value("Take Name"),
+        })
+    }
+}
+
+/// The rigid bodies' columns from the rows labelled Type, Name and ID and the column-kind row
+/// (the last of the header block); an error when a row is missing or no body has all seven.
+fn rigid_body_columns(
+    header: &[csv::StringRecord],
+    axis_row: &csv::StringRecord,
+    path: &Path,
+) -> Result<Vec<BodyColumns>, Error> {
     let labelled = |label: &str| {
         header.iter().find(|r| {
             r.get(1)
                 .is_some_and(|c| c.trim().eq_ignore_ascii_case(label))
         })
     };
-    let types = labelled("Type").ok_or_else(|| not_motive("no `Type` row"))?;
-    let names = labelled("Name").ok_or_else(|| not_motive("no `Name` row"))?;
+    let types = labelled("Type").ok_or_else(|| not_motive(path, "no `Type` row"))?;
+    let names = labelled("Name").ok_or_else(|| not_motive(path, "no `Name` row"))?;
     let ids = labelled("ID");
     let kinds = header
         .last()
-        .ok_or_else(|| not_motive("no column-kind row"))?;
+        .ok_or_else(|| not_motive(path, "no column-kind row"))?;
     let cell = |r: &csv::StringRecord, i: usize| r.get(i).unwrap_or("").trim().to_string();
-    let bodies = body_columns(&axis_row, types, names, ids, kinds, &cell);
+    let bodies = body_columns(axis_row, types, names, ids, kinds, &cell);
     if bodies.is_empty() {
         return Err(bad(
+            path,
             "no rigid body with Rotation X, Y, Z, W and Position X, Y, Z columns".into(),
         ));
     }
-    // Every row parsed once; the body chosen afterwards (the first tracked one by default).
+    Ok(bodies)
+}
+
+/// The data rows, blank ones left out; a broken line is kept as a row that does not parse (a
+/// malformed row when read).
+fn data_rows(records: csv::StringRecordsIter<'_, &[u8]>) -> Vec<csv::StringRecord> {
     let mut rows: Vec<csv::StringRecord> = Vec::new();
     for r in records {
         match r {
             Ok(r) if r.iter().all(|c| c.trim().is_empty()) => {}
             Ok(r) => rows.push(r),
-            // A broken line is a malformed row, counted below as one that does not parse.
             Err(_) => rows.push(csv::StringRecord::from(vec!["?"])),
         }
     }
+    rows
+}
+
+/// The take of the body named `rigid_body`, or of the first body tracked in at least one row;
+/// an error naming the bodies when there is no such body or it is never tracked.
+fn first_tracked(
+    bodies: &[BodyColumns],
+    rows: &[csv::StringRecord],
+    meta: Meta,
+    rigid_body: Option<&str>,
+    path: &Path,
+) -> Result<MocapTake, Error> {
     let rigid_bodies: Vec<String> = bodies.iter().map(|b| b.name.clone()).collect();
     let candidates: Vec<&BodyColumns> = match rigid_body {
         Some(want) => {
             let b = bodies.iter().find(|b| b.name == want).ok_or_else(|| {
-                bad(format!(
-                    "no rigid body named `{want}`; the file has: {}",
-                    rigid_bodies.join(", ")
-                ))
+                bad(
+                    path,
+                    format!(
+                        "no rigid body named `{want}`; the file has: {}",
+                        rigid_bodies.join(", ")
+                    ),
+                )
             })?;
             vec![b]
         }
         None => bodies.iter().collect(),
     };
-    let times = row_times(&rows, export_rate_hz);
+    let times = row_times(rows, meta.export_rate_hz);
     for b in &candidates {
-        let take = read_body(b, &rows, &times, unit_m);
+        let take = read_body(b, rows, &times, meta.unit_m);
         if !take.samples.is_empty() {
             return Ok(MocapTake {
                 path: path.to_path_buf(),
                 rigid_body: b.name.clone(),
                 rigid_bodies,
                 rows: rows.len(),
-                export_rate_hz,
+                export_rate_hz: meta.export_rate_hz,
                 time_from_frames: times.from_frames,
-                take_name,
+                take_name: meta.take_name,
                 ..take
             });
         }
     }
-    Err(bad(match rigid_body {
-        Some(want) => format!(
-            "rigid body `{want}` is never tracked in its {} rows",
-            rows.len()
-        ),
-        None => format!(
-            "no rigid body is tracked in any of the {} rows (bodies: {})",
-            rows.len(),
-            rigid_bodies.join(", ")
-        ),
-    }))
+    Err(bad(
+        path,
+        match rigid_body {
+            Some(want) => format!(
+                "rigid body `{want}` is never tracked in its {} rows",
+                rows.len()
+            ),
+            None => format!(
+                "no rigid body is tracked in any of the {} rows (bodies: {})",
+                rows.len(),
+                rigid_bodies.join(", ")
+            ),
+        },
+    ))
 }
 
 /// The rigid bodies whose seven columns are all present, in column order.

@@ -61,6 +61,8 @@ pub(crate) const FIELDS: [&str; 21] = [
 /// Decode CSV text (header row first; blank lines and `#` lines before it are skipped). Cells
 /// may be quoted (RFC 4180). Columns may come in any order and subset; empty cells mean "no
 /// reading". Rows with the wrong number of cells or unparsable numbers are counted and skipped.
+/// In steps: the header ([`csv_header`]), the fields' columns ([`field_columns`]), the rows'
+/// period when there is no time column ([`row_period_s`]), then the rows ([`read_rows`]).
 pub fn decode_csv(
     text: &str,
     mapping: &CsvMapping,
@@ -78,7 +80,27 @@ pub fn decode_csv(
         return Err("empty file: no header row".into());
     }
     let cols: Vec<String> = row.iter().map(|c| c.to_string()).collect();
-    // field index -> column index
+    let idx = field_columns(&cols, mapping, header)?;
+    let layout = RowLayout {
+        idx,
+        width: cols.len(),
+        row_period_s: row_period_s(&idx, mapping, preamble_rate_hz, header)?,
+        scale: FIELDS
+            .iter()
+            .map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0))
+            .collect(),
+    };
+    Ok(read_rows(&mut rows, &layout, stats))
+}
+
+/// Each field's column in the header `cols` (`usize::MAX`: none), by the mapping's name for it or
+/// its own; an error when the mapping names an unknown field or a column not in the header, or
+/// when no sensor column is found.
+fn field_columns(
+    cols: &[String],
+    mapping: &CsvMapping,
+    header: &str,
+) -> Result<[usize; FIELDS.len()], String> {
     let mut idx = [usize::MAX; FIELDS.len()];
     for (fi, f) in FIELDS.iter().enumerate() {
         let want = mapping.columns.get(*f).map(String::as_str).unwrap_or(f);
@@ -100,36 +122,62 @@ pub fn decode_csv(
             ));
         }
     }
-    let has = |f: &str| idx[FIELDS.iter().position(|x| *x == f).expect("field")] != usize::MAX;
-    if !(has("ax") || has("mx") || has("gx")) {
+    if !(has_field(&idx, "ax") || has_field(&idx, "mx") || has_field(&idx, "gx")) {
         return Err(format!(
             "no sensor columns found in header `{header}`: expected ax/ay/az, gx/gy/gz or mx/my/mz, or a [input.csv] columns mapping"
         ));
     }
-    // Row i's time when the file has no time column.
-    let row_period_s = if has("t") {
-        None
-    } else {
-        match mapping.rate_hz.or(preamble_rate_hz) {
-            Some(r) if r.is_finite() && r > 0.0 => Some(1.0 / r),
-            Some(r) => return Err(format!("the sample rate {r} Hz is not a positive number")),
-            None => {
-                return Err(format!(
-                    "no time column in header `{header}` and no sample rate: give the rate (`imucald replay --rate-hz 100`, or rate_hz = 100 under [input.csv]), or name the time column (t = \"your_column\" under [input.csv.columns])"
-                ))
-            }
-        }
-    };
-    let scale: Vec<f64> = FIELDS
-        .iter()
-        .map(|f| mapping.scales.get(*f).copied().unwrap_or(1.0))
-        .collect();
+    Ok(idx)
+}
+
+/// Whether field `f` has a column in `idx` ([`field_columns`]).
+fn has_field(idx: &[usize; FIELDS.len()], f: &str) -> bool {
+    idx[FIELDS.iter().position(|x| *x == f).expect("field")] != usize::MAX
+}
+
+/// Row i's time step, s, when the file has no time column: from the mapping's rate, else the
+/// preamble's; `None` with a time column; an error when neither gives a positive rate.
+fn row_period_s(
+    idx: &[usize; FIELDS.len()],
+    mapping: &CsvMapping,
+    preamble_rate_hz: Option<f64>,
+    header: &str,
+) -> Result<Option<f64>, String> {
+    if has_field(idx, "t") {
+        return Ok(None);
+    }
+    match mapping.rate_hz.or(preamble_rate_hz) {
+        Some(r) if r.is_finite() && r > 0.0 => Ok(Some(1.0 / r)),
+        Some(r) => Err(format!("the sample rate {r} Hz is not a positive number")),
+        None => Err(format!(
+            "no time column in header `{header}` and no sample rate: give the rate (`imucald replay --rate-hz 100`, or rate_hz = 100 under [input.csv]), or name the time column (t = \"your_column\" under [input.csv.columns])"
+        )),
+    }
+}
+
+/// How the data rows are read: each field's column ([`field_columns`]), the cells a row has,
+/// the row period without a time column ([`row_period_s`]) and each field's scale.
+struct RowLayout {
+    idx: [usize; FIELDS.len()],
+    width: usize,
+    row_period_s: Option<f64>,
+    scale: Vec<f64>,
+}
+
+/// The samples of the data rows, stamped by one clock (the `t` column is the message clock, kept
+/// as the file has it; there is no receive clock). Bad rows, non-finite times and repeated rows
+/// are counted and skipped; the clock's counts go into `stats.time`.
+fn read_rows(
+    rows: &mut csv::Reader<&[u8]>,
+    layout: &RowLayout,
+    stats: &mut DecodeStats,
+) -> Vec<Sample> {
     let mut out = Vec::new();
-    // The `t` column is the message clock, kept as the file has it; there is no receive clock.
     let mut clock = SourceClock::new(ClockSettings {
         keep_origin: true,
         ..ClockSettings::default()
     });
+    let mut row = csv::StringRecord::new();
     let mut last: Option<Sample> = None;
     let mut row_no = 0u64;
     loop {
@@ -146,31 +194,11 @@ pub fn decode_csv(
             continue;
         }
         row_no += 1;
-        if row.len() != cols.len() {
+        let Some(vals) = row_values(&row, layout) else {
             stats.skip("bad_row");
             continue;
-        }
-        let mut vals = [None::<f64>; FIELDS.len()];
-        let mut bad = false;
-        for fi in 0..FIELDS.len() {
-            let ci = idx[fi];
-            if ci == usize::MAX {
-                continue;
-            }
-            let c = &row[ci];
-            if c.is_empty() {
-                continue;
-            }
-            match c.parse::<f64>() {
-                Ok(v) => vals[fi] = Some(v * scale[fi]),
-                Err(_) => bad = true,
-            }
-        }
-        if bad {
-            stats.skip("bad_row");
-            continue;
-        }
-        let t_s = match row_period_s {
+        };
+        let t_s = match layout.row_period_s {
             Some(dt) => (row_no - 1) as f64 * dt,
             None => vals[0].unwrap_or(f64::NAN),
         };
@@ -194,7 +222,32 @@ pub fn decode_csv(
         out.push(s);
     }
     stats.time = clock.stats;
-    Ok(out)
+    out
+}
+
+/// A row's values per field, scaled (`None` for an empty cell or a field without a column);
+/// `None` when the row has the wrong number of cells or a cell is not a number.
+fn row_values(row: &csv::StringRecord, layout: &RowLayout) -> Option<[Option<f64>; FIELDS.len()]> {
+    if row.len() != layout.width {
+        return None;
+    }
+    let mut vals = [None::<f64>; FIELDS.len()];
+    let mut bad = false;
+    for fi in 0..FIELDS.len() {
+        let ci = layout.idx[fi];
+        if ci == usize::MAX {
+            continue;
+        }
+        let c = &row[ci];
+        if c.is_empty() {
+            continue;
+        }
+        match c.parse::<f64>() {
+            Ok(v) => vals[fi] = Some(v * layout.scale[fi]),
+            Err(_) => bad = true,
+        }
+    }
+    (!bad).then_some(vals)
 }
 
 /// Where a CSV's header row starts (byte offset), the header line, and the rate its preamble
