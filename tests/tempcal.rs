@@ -228,3 +228,60 @@ fn the_exports_name_scale_and_range_every_parameter_as_the_stacks_do() {
         assert!(v >= lo && v <= hi);
     }
 }
+
+#[test]
+fn a_replay_of_a_simulated_warm_up_reports_and_exports_its_temperature_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("warm.csv");
+    let written = imucald::app::simulate::write_warmup(&out, 3, None).unwrap();
+    assert_eq!(written.len(), 3);
+    let exports = dir.path().join("exp");
+    let opts = imucald::app::replay::ReplayOptions {
+        export_dir: Some(exports.clone()),
+        ..Default::default()
+    };
+    let cfg = imucald::config::Config::default();
+    let r = imucald::app::replay::replay(&written[1], &cfg, &opts, &mut |_, _| {}).unwrap();
+    let t = &r.report.temperature;
+    assert_eq!(t.len(), 1);
+    assert_eq!(t[0].onboard, imucald::report::OnboardTcal::NoParameters);
+    let c = calibrated(&t[0].result.outcome);
+    assert!(c.points >= 40, "{}", c.points);
+    let json = serde_json::to_value(&r.report).unwrap();
+    assert_eq!(json["temperature"][0]["status"], "calibrated");
+    assert!(json["temperature"][0]["gyro"]["axes"][2]["held_out"]["shrink"].is_number());
+    let summary = imucald::app::replay::summary(&r.report);
+    assert!(
+        summary.contains("temperature (primary, IMU 0)"),
+        "{summary}"
+    );
+    let parm = std::fs::read_to_string(exports.join("tempcal_ardupilot.parm")).unwrap();
+    assert!(parm.contains("\nINS_TCAL1_GYR3_Z "), "{parm}");
+    let px4 = std::fs::read_to_string(exports.join("tempcal_px4.params")).unwrap();
+    assert!(px4.contains("\tTC_G0_X3_2\t"), "{px4}");
+}
+
+#[test]
+fn a_log_without_temperature_has_no_temperature_section() {
+    let dir = tempfile::tempdir().unwrap();
+    let w = simulate(
+        &WarmupSettings {
+            duration_s: 60.0,
+            instances: 1,
+            ..Default::default()
+        },
+        2,
+    );
+    let samples: Vec<_> = w.instances[0]
+        .iter()
+        .map(|s| imucald::types::Sample { temp_c: None, ..*s })
+        .collect();
+    let p = dir.path().join("cold.csv");
+    imucald::io::samplelog::write_csv(&p, &samples).unwrap();
+    let cfg = imucald::config::Config::default();
+    let r = imucald::app::replay::replay(&p, &cfg, &Default::default(), &mut |_, _| {}).unwrap();
+    assert!(r.report.temperature.is_empty());
+    let json = serde_json::to_value(&r.report).unwrap();
+    assert!(json.get("temperature").is_none(), "{json}");
+    assert!(!imucald::app::replay::summary(&r.report).contains("temperature"));
+}

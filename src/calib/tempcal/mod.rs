@@ -205,8 +205,11 @@ pub struct TempCalResult {
 }
 
 /// Whether any sample carries a temperature (no temperature: no temperature calibration at all).
+/// A stream whose every temperature is exactly 0 has none: loggers write 0 for a sensor without one.
 pub fn has_temperature(samples: &[Sample]) -> bool {
-    samples.iter().any(|s| s.temp_c.is_some_and(f64::is_finite))
+    samples
+        .iter()
+        .any(|s| s.temp_c.is_some_and(|t| t.is_finite() && t != 0.0))
 }
 
 /// The temperature calibration of one IMU instance's samples (time-ordered, sensor axes).
@@ -349,4 +352,34 @@ pub fn binned_points(samples: &[Sample], s: &TempCalSettings) -> Vec<[Point; 6]>
         .filter(|b| b.n >= s.min_per_bin)
         .map(|b| std::array::from_fn(|k| b.point(k)))
         .collect()
+}
+
+/// Whether a temperature calibration the flight controller applied before logging was undone.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OnboardTcal {
+    /// The log's parameters enable one (INS_TCALn_ENABLE 1, TC_A/G_ENABLE 1): undone first.
+    Undone,
+    /// The log's parameters have it disabled (or learning): the readings are the sensor's.
+    NotEnabled,
+    /// A flight-controller log whose reader does not hand on INS_TCALn_* / TC_* parameters: a
+    /// correction applied onboard, if any, stays in the readings.
+    NotExposed,
+    /// The input carries no parameters (CSV, telemetry).
+    NoParameters,
+}
+
+/// The report's record of one IMU instance's temperature calibration (`temperature`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TempCalReport {
+    /// The log's instance (`IMU2+MAG2`, `primary` for a single stream).
+    pub instance: String,
+    /// The IMU's instance number, 0-based (ArduPilot's INS_TCAL{imu + 1}, PX4's TC_*{imu}).
+    pub imu: usize,
+    /// The accelerometer's device id, where the log gives it (PX4's TC_*n_ID).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_id: Option<u32>,
+    pub onboard: OnboardTcal,
+    #[serde(flatten)]
+    pub result: TempCalResult,
 }
