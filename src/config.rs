@@ -143,6 +143,13 @@ pub struct DaemonConfig {
     /// DO_START/ACCEPT/CANCEL_MAG_CAL addressed to our ids (or broadcast) start, accept and cancel a
     /// run. Default: "continuous".
     pub mag_cal: MagCalMode,
+    /// The largest fitness (RMS residual of the fit, mGauss) a ground-station calibration run
+    /// passes with: ArduPilot's COMPASS_CAL_FIT. As ArduPilot, compass 0 gets it as given when its
+    /// COMPASS_EXTERNAL says external, every other compass (and compass 0 when internal or not
+    /// known) twice it. A run whose fitness is above fails (MAG_CAL_REPORT status
+    /// FAILED_RESIDUALS_HIGH). Continuous calibration is judged on held-out points instead.
+    /// Default: 16 (1.6 uT; 32 for an internal or further compass).
+    pub mag_cal_fit_mgauss: f64,
     /// How links map to vehicles: "separate" (each link and system id is a vehicle, calibrated on
     /// its own) or "merged" (every link is one vehicle). Default: "separate".
     pub links: Links,
@@ -236,6 +243,7 @@ impl Default for DaemonConfig {
             component_id: 191,
             heartbeat_rate_hz: 1.0,
             mag_cal: MagCalMode::Continuous,
+            mag_cal_fit_mgauss: 16.0,
             links: Links::Separate,
             ardupilot_corrected_mag: ArdupilotCorrectedMag::Undo,
             queue_capacity: 4096,
@@ -581,6 +589,7 @@ impl Config {
             }
         }
         positive("daemon.silent_after_s", d.silent_after_s)?;
+        positive("daemon.mag_cal_fit_mgauss", d.mag_cal_fit_mgauss)?;
         let poll_max_ms = crate::io::link::UDP_POLL_MAX.as_secs_f64() * 1000.0;
         if let Some(ms) = d.udp_poll_ms.filter(|ms| !(0.0..=poll_max_ms).contains(ms)) {
             return Err(err(

@@ -346,3 +346,186 @@ fn mavproxy_magcal_yaw_on_stale_data_is_refused_with_the_reason() {
         assert!(v["mag"].is_null(), "{stored}");
     }
 }
+
+/// The number after `name : ` in a pymavlink message as MAVProxy prints it
+/// (`MAG_CAL_PROGRESS {compass_id : 0, cal_mask : 1, cal_status : 1, attempt : 1, ...}`).
+fn printed_field(line: &str, name: &str) -> Option<u32> {
+    let at = line.find(&format!("{name} : "))? + name.len() + 3;
+    let digits: String = line[at..]
+        .chars()
+        .take_while(|c| c.is_ascii_digit())
+        .collect();
+    digits.parse().ok()
+}
+
+/// A run started from MAVProxy with a 3 s delay and retry on (`long DO_START_MAG_CAL 0 1 1 3`), on
+/// a magnetometer too noisy to pass ArduPilot's default fitness: MAVProxy's `status
+/// MAG_CAL_PROGRESS` shows WAITING_TO_START first, then the run collecting (attempt 1), then,
+/// after the fit fails, attempt 2 collecting again, with the reason said and no report.
+#[test]
+fn mavproxy_delayed_start_waits_then_retries_after_a_failure() {
+    let Some(mavproxy) = mavproxy() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let port = common::free_udp_port();
+    let scenario = dir.path().join("noisy.toml");
+    std::fs::write(&scenario, "name = \"tumble\"\n[mag]\nnoise_sd = 4.0\n").unwrap();
+    let (mut gcs, mut stdin, rx) = mavproxy_session(
+        &mavproxy,
+        dir.path(),
+        port,
+        &["--target-system=1", "--target-component=191"],
+    );
+    let mut seen = Vec::new();
+    let within = Duration::from_secs(60);
+    let up = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Waiting for heartbeat"),
+        within,
+    );
+    assert!(up.is_some(), "MAVProxy did not start:\n{}", seen.join("\n"));
+    let (_, mut svc) = common::spawn_on_command_service(
+        dir.path(),
+        &[
+            format!("{{ address = \"sim:{}?speed=10\" }}", scenario.display()),
+            format!("{{ address = \"udpin:127.0.0.1:{port}\" }}"),
+        ],
+    );
+    let heard = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Detected vehicle 1:191"),
+        within,
+    );
+    assert!(heard.is_some(), "no service:\n{}", seen.join("\n"));
+    // Every compass, retry, autosave, a 3 s delay.
+    send(&mut stdin, "long DO_START_MAG_CAL 0 1 1 3");
+    let mut progress: Vec<(u32, u32)> = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut asked = Instant::now();
+    while Instant::now() < deadline && !progress.iter().any(|p| p.1 >= 2) {
+        if asked.elapsed() > Duration::from_millis(400) {
+            send(&mut stdin, "status MAG_CAL_PROGRESS");
+            asked = Instant::now();
+        }
+        let Ok(l) = rx.recv_timeout(Duration::from_millis(100)) else {
+            continue;
+        };
+        if l.contains("MAG_CAL_PROGRESS {") {
+            if let (Some(s), Some(a)) = (
+                printed_field(&l, "cal_status"),
+                printed_field(&l, "attempt"),
+            ) {
+                if progress.last() != Some(&(s, a)) {
+                    progress.push((s, a));
+                }
+            }
+        }
+        seen.push(l);
+    }
+    send(&mut stdin, "magcal cancel");
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = Command::new("kill").arg(svc.id().to_string()).status();
+    let _ = gcs.kill();
+    let _ = svc.wait();
+    let _ = gcs.wait();
+    while let Ok(l) = rx.try_recv() {
+        seen.push(l);
+    }
+    let said = seen.join("\n");
+    eprintln!("(cal_status, attempt) in order: {progress:?}");
+    assert!(said.contains("DO_START_MAG_CAL: ACCEPTED"), "{said}");
+    // WAITING_TO_START (1) first, then collecting (2 or 3) as attempt 1, then attempt 2.
+    assert_eq!(progress.first(), Some(&(1, 1)), "{progress:?}\n{said}");
+    let collecting = progress.iter().position(|&(s, a)| s >= 2 && a == 1);
+    let retried = progress.iter().position(|&(s, a)| s >= 2 && a == 2);
+    assert!(
+        collecting.is_some() && retried.is_some() && collecting < retried,
+        "{progress:?}\n{said}"
+    );
+    assert!(said.contains("retrying, attempt 2"), "{said}");
+    // A retry sends no MAG_CAL_REPORT (ArduPilot's calibrator goes straight back to collecting).
+    assert!(!said.contains("Calibration of compass"), "{said}");
+}
+
+/// `magcal yaw 90` (latitude and longitude 0) from MAVProxy to a vehicle at rest at yaw 90 that
+/// streams GLOBAL_POSITION_INT (a `.tlog` written by `imucald simulate`, played at its pace): the
+/// service takes the vehicle's position, as ArduPilot takes its own, and calibrates (said in a
+/// STATUSTEXT, written); no `[place]` is configured.
+#[test]
+fn mavproxy_magcal_yaw_uses_the_vehicle_position() {
+    let Some(mavproxy) = mavproxy() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let port = common::free_udp_port();
+    let scenario = dir.path().join("rest.toml");
+    std::fs::write(
+        &scenario,
+        "name = \"tumble\"\nattitudes = [[1.0, -2.0, 90.0]]\npause_s = [300.0, 300.0]\n\
+         [place]\nlatitude_deg = 47.4\nlongitude_deg = 8.5\n",
+    )
+    .unwrap();
+    let log = dir.path().join("rest.tlog");
+    let out = Command::new(env!("CARGO_BIN_EXE_imucald"))
+        .args(["simulate", "--seed", "3", "--scenario"])
+        .arg(&scenario)
+        .arg("--out")
+        .arg(&log)
+        .output()
+        .unwrap();
+    common::assert_success(&out);
+    let (mut gcs, mut stdin, rx) =
+        mavproxy_session(&mavproxy, dir.path(), port, &["--target-system=1"]);
+    let mut seen = Vec::new();
+    let within = Duration::from_secs(60);
+    let up = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Waiting for heartbeat"),
+        within,
+    );
+    assert!(up.is_some(), "MAVProxy did not start:\n{}", seen.join("\n"));
+    let (cal, mut svc) = common::spawn_on_command_service(
+        dir.path(),
+        &[
+            format!("{{ address = \"file:{}?speed=1\" }}", log.display()),
+            format!("{{ address = \"udpin:127.0.0.1:{port}\" }}"),
+        ],
+    );
+    let heard = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("Detected vehicle 1:191"),
+        within,
+    );
+    assert!(heard.is_some(), "no service:\n{}", seen.join("\n"));
+    // A few seconds of rest (the fixed-yaw window is 1 s), then the command.
+    std::thread::sleep(Duration::from_secs(4));
+    send(&mut stdin, "magcal yaw 90");
+    let answer = next_line(
+        &rx,
+        &mut seen,
+        |l| l.contains("FIXED_MAG_CAL_YAW: "),
+        Duration::from_secs(20),
+    );
+    let written = |text: &str| {
+        serde_json::from_str::<serde_json::Value>(text).is_ok_and(|v| v["mag"]["status"] == "ok")
+    };
+    let stored = common::wait_for_file(
+        &cal.join("calibration.json"),
+        written,
+        Duration::from_secs(20),
+    );
+    let _ = Command::new("kill").arg(svc.id().to_string()).status();
+    let _ = gcs.kill();
+    let _ = svc.wait();
+    let _ = gcs.wait();
+    let said = seen.join("\n");
+    let answer = answer.unwrap_or_else(|| panic!("no COMMAND_ACK:\n{said}"));
+    assert!(answer.contains("FIXED_MAG_CAL_YAW: ACCEPTED"), "{said}");
+    assert!(!said.contains("no position available"), "{said}");
+    assert!(
+        said.contains("AP: mag calibrated at a fixed yaw of 90.0 deg"),
+        "{said}"
+    );
+    assert!(stored.is_some(), "no calibration written:\n{said}");
+}

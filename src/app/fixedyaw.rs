@@ -92,7 +92,7 @@ pub fn calibrate(
     }
     let soft = in_use.mag.filter(|m| m.calibration_ut().is_some());
     let accel = in_use.accel.and_then(SensorCalibration::calibration);
-    let matrix = soft.map_or(crate::calib::model::IDENTITY, |m| m.matrix);
+    let matrix = soft.map_or(crate::calib::model::IDENTITY, |m| true_scale(m, field));
     let pairs = body_pairs(recent, pipe, accel.as_ref());
     let fixed = fixed_yaw_offset(&pairs, yaw_deg, field, &matrix, settings)
         .map_err(FixedYawError::Refused)?;
@@ -102,6 +102,19 @@ pub fn calibrate(
         soft_iron_kept: soft.is_some(),
         accel_calibrated: accel.is_some(),
     })
+}
+
+/// The soft iron in use at its true scale: a fit's matrix is known only up to a factor (the norm
+/// fits give it determinant 1, the field's strength going to `radius`, the calibrated norm), so it
+/// is scaled to take the readings to the earth field's strength at the place, as ArduPilot's
+/// calibrator scales its fit to the World Magnetic Model's field (`fix_radius`). Unscaled when the
+/// calibration gives no radius.
+fn true_scale(m: &SensorCalibration, field: &EarthField) -> [[f64; 3]; 3] {
+    let k = field.total_ut / m.radius;
+    if !(k.is_finite() && k > 0.0) {
+        return m.matrix;
+    }
+    m.matrix.map(|row| row.map(|x| x * k))
 }
 
 /// The readings in body axes, the specific force through the accelerometer calibration.
@@ -139,7 +152,11 @@ fn offset_calibration(
         )),
         offset: fy.offset_ut,
         matrix: soft.map_or(crate::calib::model::IDENTITY, |m| m.matrix),
-        radius: field.total_ut,
+        // The calibrated norm: the soft iron in use keeps its own scale.
+        radius: soft
+            .map(|m| m.radius)
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .unwrap_or(field.total_ut),
         samples_used: fy.samples,
         ..SensorCalibration::new(CalStatus::Ok, model, CalUnits::Ut)
     }
@@ -428,6 +445,58 @@ mod tests {
         )
         .unwrap();
         assert!(!c.soft_iron_kept);
+    }
+
+    /// A soft iron that shrinks the field to 0.95 of its strength, in use as the norm fits give
+    /// it: the matrix with determinant 1 (here the identity) and the field's strength in the
+    /// radius. Scaled back to the earth field's strength, the offset is the hard iron; unscaled
+    /// (as before), it is off by 5 % of the field along it.
+    #[test]
+    fn the_soft_iron_keeps_its_true_scale() {
+        let a = [[0.95, 0.0, 0.0], [0.0, 0.95, 0.0], [0.0, 0.0, 0.95]];
+        let o = [7.0, -12.0, 30.0];
+        let s = resting([3.0, -2.0, 200.0], o, a, 1.0);
+        let pipe = Pipeline::new(&Config::default().calib()).unwrap();
+        let fitted = SensorCalibration {
+            radius: 0.95 * field().total_ut,
+            ..soft_iron(crate::calib::model::IDENTITY)
+        };
+        let in_use = InUse {
+            mag: Some(&fitted),
+            accel: None,
+        };
+        let f = calibrate(&s, &pipe, &in_use, 200.0, &field(), &Default::default()).unwrap();
+        let err_mgauss = (0..3)
+            .map(|k| (f.calibration.offset[k] - o[k]).abs())
+            .fold(0.0, f64::max)
+            * 10.0;
+        let unscaled = SensorCalibration {
+            radius: 0.0,
+            ..fitted.clone()
+        };
+        let before = calibrate(
+            &s,
+            &pipe,
+            &InUse {
+                mag: Some(&unscaled),
+                accel: None,
+            },
+            200.0,
+            &field(),
+            &Default::default(),
+        )
+        .unwrap();
+        let before_mgauss = (0..3)
+            .map(|k| (before.calibration.offset[k] - o[k]).abs())
+            .fold(0.0, f64::max)
+            * 10.0;
+        eprintln!("offset error {err_mgauss:.4} mGauss at the true scale, {before_mgauss:.1} mGauss unscaled");
+        // Measured: 0.0011 mGauss at the true scale, 21.5 mGauss unscaled.
+        assert!(err_mgauss < 0.5, "{err_mgauss} mGauss");
+        assert!(before_mgauss > 7.0, "{before_mgauss} mGauss");
+        // The calibration installed keeps the soft iron in use and its calibrated norm.
+        assert_eq!(f.calibration.matrix, fitted.matrix);
+        assert_eq!(f.calibration.radius, fitted.radius);
     }
 
     #[test]

@@ -122,6 +122,13 @@ impl Telemetry {
         }
     }
 
+    /// Whether compass k is external (COMPASS_EXTERNAL, COMPASS_EXTERN2, ...: non-zero), when
+    /// the vehicle has sent that parameter.
+    pub(crate) fn compass_external(&self, k: u8) -> Option<bool> {
+        let name = crate::calib::ardupilot::single(crate::calib::ardupilot::Single::External, k)?;
+        self.params.get(&name).map(|v| *v != 0.0)
+    }
+
     /// Every parameter of the vehicle's list has arrived.
     pub(crate) fn list_complete(&self) -> bool {
         self.param_count

@@ -185,28 +185,44 @@ pub(crate) fn compass_bit(compass_id: u8) -> u8 {
     1u8.checked_shl(compass_id as u32).unwrap_or(0)
 }
 
-/// MAG_CAL_PROGRESS: `cal_status` is RUNNING_STEP_ONE below 100 % and RUNNING_STEP_TWO at 100 %
-/// (`completion_pct` is capped at 100); `cal_mask` the compasses of the run (ArduPilot's: every
-/// compass whose calibrator is not idle); `direction_*` 0, as ArduPilot sends them.
+/// Where a calibration run stands, as MAG_CAL_PROGRESS says it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum ProgressStatus {
+    /// Started with a delay that has not passed (ArduPilot's WAITING_TO_START).
+    WaitingToStart,
+    /// Collecting (RUNNING_STEP_ONE, or RUNNING_STEP_TWO once the sphere is covered).
+    Running,
+}
+
+/// MAG_CAL_PROGRESS: `cal_status` WAITING_TO_START while the run waits out its start delay (with
+/// `completion_pct` 0 and an empty mask, as ArduPilot's calibrator reports it then); collecting,
+/// RUNNING_STEP_ONE below 100 % and RUNNING_STEP_TWO at 100 % (`completion_pct` is capped at
+/// 100); `attempt` the run's attempt (1, one more per retry after a failure); `cal_mask` the
+/// compasses of the run (ArduPilot's: every compass whose calibrator is not idle);
+/// `direction_*` 0, as ArduPilot sends them.
 pub(crate) fn mag_cal_progress(
     compass_id: u8,
     cal_mask: u8,
     completion_pct: u8,
     mask: [u8; 10],
     attempt: u8,
+    status: ProgressStatus,
 ) -> MavMessage {
-    let pct = completion_pct.min(100);
+    let waiting = status == ProgressStatus::WaitingToStart;
+    let pct = if waiting { 0 } else { completion_pct.min(100) };
     MavMessage::MAG_CAL_PROGRESS(MAG_CAL_PROGRESS_DATA {
         compass_id,
         cal_mask,
-        cal_status: if pct < 100 {
+        cal_status: if waiting {
+            MagCalStatus::MAG_CAL_WAITING_TO_START
+        } else if pct < 100 {
             MagCalStatus::MAG_CAL_RUNNING_STEP_ONE
         } else {
             MagCalStatus::MAG_CAL_RUNNING_STEP_TWO
         },
         attempt,
         completion_pct: pct,
-        completion_mask: mask,
+        completion_mask: if waiting { [0; 10] } else { mask },
         direction_x: 0.0,
         direction_y: 0.0,
         direction_z: 0.0,
@@ -283,7 +299,8 @@ pub(crate) fn command_ack(
 // MAG_CAL_REPORT
 
 /// Wire value of MAG_CAL_STATUS for a calibration result: 4 (MAG_CAL_SUCCESS) when the status is
-/// "ok"; for a failure, by reason: radius 7 (MAG_CAL_FAILED_RADIUS), offsets 8
+/// "ok"; for a failure, by reason: orientation 6 (MAG_CAL_FAILED_ORIENTATION, ArduPilot's
+/// BAD_ORIENTATION), radius 7 (MAG_CAL_FAILED_RADIUS, ArduPilot's BAD_RADIUS), offsets 8
 /// (MAG_CAL_FAILED_OFFSETS), diagonal_scaling 9 (MAG_CAL_FAILED_DIAG_SCALING), residuals 10
 /// (MAG_CAL_FAILED_RESIDUALS_HIGH), anything else 5 (MAG_CAL_FAILED).
 pub(crate) fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
@@ -291,6 +308,7 @@ pub(crate) fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
         return 4;
     }
     match cal.failure {
+        Some(FitFailure::Orientation) => 6,
         Some(FitFailure::Radius) => 7,
         Some(FitFailure::Offsets) => 8,
         Some(FitFailure::DiagonalScaling) => 9,
@@ -302,6 +320,7 @@ pub(crate) fn mag_cal_status_code(cal: &SensorCalibration) -> u8 {
 fn mag_cal_status_enum(code: u8) -> MagCalStatus {
     match code {
         4 => MagCalStatus::MAG_CAL_SUCCESS,
+        6 => MagCalStatus::MAG_CAL_FAILED_ORIENTATION,
         7 => MagCalStatus::MAG_CAL_FAILED_RADIUS,
         8 => MagCalStatus::MAG_CAL_FAILED_OFFSETS,
         9 => MagCalStatus::MAG_CAL_FAILED_DIAG_SCALING,
@@ -320,8 +339,8 @@ pub(crate) fn mag_cal_report(compass_id: u8, cal_mask: u8, cal: &SensorCalibrati
 /// `diag_*` and `offdiag_*` as COMPASS_OFS/DIA/ODI ([`ardupilot::Correction::from_model`]: the
 /// offset negated in mGauss, the symmetric part of the matrix); `cal_status` from
 /// [`mag_cal_status_code`]; `cal_mask` the compasses of the run (as [`mag_cal_progress`]);
-/// `scale_factor` 1.0; orientation fields unused (ROTATION_NONE, confidence 0). The calibration's
-/// numbers are taken to be in uT.
+/// `scale_factor` 1.0; the orientation fields from the mounting check ([`orientation_fields`]),
+/// ROTATION_NONE and confidence 0 without one. The calibration's numbers are taken to be in uT.
 pub(crate) fn mag_cal_report_autosaved(
     compass_id: u8,
     cal_mask: u8,
@@ -333,6 +352,7 @@ pub(crate) fn mag_cal_report_autosaved(
     let (dia, odi) = c.dia_odi();
     let [diag_x, diag_y, diag_z] = dia.map(|x| x as f32);
     let [offdiag_x, offdiag_y, offdiag_z] = odi.map(|x| x as f32);
+    let (orientation_confidence, old, new) = orientation_fields(cal);
     MavMessage::MAG_CAL_REPORT(MAG_CAL_REPORT_DATA {
         fitness: (cal.rms_residual * ardupilot::MGAUSS_PER_UT) as f32,
         ofs_x,
@@ -349,8 +369,52 @@ pub(crate) fn mag_cal_report_autosaved(
         cal_status: mag_cal_status_enum(mag_cal_status_code(cal)),
         autosaved: autosaved as u8,
         scale_factor: 1.0,
-        ..Default::default()
+        orientation_confidence,
+        old_orientation: sensor_orientation(old),
+        new_orientation: sensor_orientation(new),
     })
+}
+
+/// MAG_CAL_REPORT's orientation fields from the mounting check of the fit
+/// ([`crate::calib::mounting`]), in ArduPilot's sense (its `calculate_orientation`):
+/// `old_orientation` the configured mounting; `new_orientation` the one the data clearly say when
+/// they rule the configured one out (verdict `differs`), else the configured one (ArduPilot keeps
+/// it when its check does not pass); `orientation_confidence` the runner-up's score over the
+/// best's, squared (ArduPilot's is a ratio of variances, mean squares; ours of RMS angles).
+/// (0, ROTATION_NONE, ROTATION_NONE) without a check, or with a custom rotation (which has no
+/// MAV_SENSOR_ORIENTATION number; ArduPilot's calibrator does not try those either).
+pub(crate) fn orientation_fields(cal: &SensorCalibration) -> (f32, u8, u8) {
+    use crate::calib::mounting::{Mounting, Verdict};
+    let Some(m) = cal.mounting.as_ref() else {
+        return (0.0, 0, 0);
+    };
+    let number = |mounting: &Mounting| match mounting {
+        Mounting::Standard { number, .. } => Some(*number),
+        Mounting::Custom { .. } => None,
+    };
+    let configured = crate::attitude::sensor_rotation(&m.configured)
+        .ok()
+        .and_then(|r| Mounting::of_matrix(&r))
+        .as_ref()
+        .and_then(number);
+    let Some(old) = configured else {
+        return (0.0, 0, 0);
+    };
+    let new = match &m.verdict {
+        Verdict::Differs { set } => number(&set.mounting).unwrap_or(old),
+        _ => old,
+    };
+    let confidence = m
+        .margin_ratio
+        .filter(|r| r.is_finite())
+        .map_or(0.0, |r| (r * r) as f32);
+    (confidence, old, new)
+}
+
+/// The MAV_SENSOR_ORIENTATION of a rotation number (ROTATION_NONE for one MAVLink lacks).
+fn sensor_orientation(number: u8) -> mavlink::dialects::ardupilotmega::MavSensorOrientation {
+    use num_traits::FromPrimitive;
+    mavlink::dialects::ardupilotmega::MavSensorOrientation::from_u8(number).unwrap_or_default()
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -995,17 +1059,27 @@ mod tests {
     #[test]
     fn progress_message_status_and_round_trip() {
         let mask = [1, 2, 3, 4, 5, 6, 7, 8, 9, 10];
-        let m = mag_cal_progress(1, 0b11, 42, mask, 2);
+        let m = mag_cal_progress(1, 0b11, 42, mask, 2, ProgressStatus::Running);
         let MavMessage::MAG_CAL_PROGRESS(d) = &m else {
             panic!()
         };
         assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_ONE);
         assert_eq!((d.cal_mask, d.compass_id, d.attempt), (3, 1, 2));
-        let MavMessage::MAG_CAL_PROGRESS(d) = mag_cal_progress(0, 1, 120, mask, 1) else {
+        let MavMessage::MAG_CAL_PROGRESS(d) =
+            mag_cal_progress(0, 1, 120, mask, 1, ProgressStatus::Running)
+        else {
             panic!()
         };
         assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_RUNNING_STEP_TWO);
         assert_eq!(d.completion_pct, 100);
+        // Waiting out the start delay: WAITING_TO_START at 0 % with nothing filled, as ArduPilot.
+        let MavMessage::MAG_CAL_PROGRESS(d) =
+            mag_cal_progress(0, 1, 37, mask, 1, ProgressStatus::WaitingToStart)
+        else {
+            panic!()
+        };
+        assert_eq!(d.cal_status, MagCalStatus::MAG_CAL_WAITING_TO_START);
+        assert_eq!((d.completion_pct, d.completion_mask), (0, [0; 10]));
         let f = decode(&MavEncoder::default().encode(&m));
         match f.message {
             MavMessage::MAG_CAL_PROGRESS(r) => {
@@ -1071,7 +1145,8 @@ mod tests {
     #[test]
     fn report_failure_codes_reach_the_wire_including_8_to_10() {
         for (failure, code) in [
-            (Some(FitFailure::Radius), 7u8),
+            (Some(FitFailure::Orientation), 6u8),
+            (Some(FitFailure::Radius), 7),
             (Some(FitFailure::Offsets), 8),
             (Some(FitFailure::DiagonalScaling), 9),
             (Some(FitFailure::Residuals), 10),
@@ -1093,6 +1168,55 @@ mod tests {
             }
         }
         assert_eq!(mag_cal_status_code(&sensor_cal(CalStatus::Ok, None)), 4);
+    }
+
+    /// A compass the mounting check finds turned 90 deg in yaw, configured as not turned: the
+    /// report says BAD_ORIENTATION with the configured and the found rotation and the
+    /// confidence; a check that cannot tell keeps the configured one as the new one.
+    #[test]
+    fn report_orientation_fields_come_from_the_mounting_check() {
+        use crate::calib::mounting::{Basis, Mounting, MountingReport, Scored, Verdict};
+        let scored = |number: u8, score_deg: f64| {
+            let mounting = Mounting::standard(number).unwrap();
+            Scored {
+                ardupilot_compass_orient: mounting.ardupilot_compass_orient(),
+                px4_cal_mag_rot: mounting.px4_cal_mag_rot(),
+                mounting,
+                score_deg,
+            }
+        };
+        let check = |verdict: Verdict| MountingReport {
+            basis: Basis::GravityAngle,
+            poses: 12,
+            spread_deg: 150.0,
+            configured: "ROTATION_NONE".into(),
+            configured_score_deg: 20.0,
+            best: scored(2, 1.0),
+            runner_up: Some(scored(0, 3.0)),
+            margin_ratio: Some(3.0),
+            custom: None,
+            field_to_up_deg: 150.0,
+            expected_field_to_up_deg: None,
+            verdict,
+        };
+        let mut cal = sensor_cal(CalStatus::Failed, Some(FitFailure::Orientation));
+        cal.mounting = Some(check(Verdict::Differs {
+            set: scored(2, 1.0),
+        }));
+        let MavMessage::MAG_CAL_REPORT(r) = mag_cal_report(0, 1, &cal) else {
+            panic!()
+        };
+        assert_eq!(r.cal_status, MagCalStatus::MAG_CAL_FAILED_ORIENTATION);
+        assert_eq!(r.old_orientation as u32, 0);
+        // MAV_SENSOR_ROTATION_YAW_90 is 2.
+        assert_eq!(r.new_orientation as u32, 2);
+        assert_eq!(r.orientation_confidence, 9.0);
+        cal.mounting = Some(check(Verdict::Mismatch {
+            candidates: vec![scored(2, 1.0), scored(0, 3.0)],
+        }));
+        assert_eq!(orientation_fields(&cal), (9.0, 0, 0));
+        cal.mounting = None;
+        assert_eq!(orientation_fields(&cal), (0.0, 0, 0));
     }
 
     #[test]

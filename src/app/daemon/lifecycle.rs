@@ -23,14 +23,24 @@ impl State {
             .and_then(|m| m.calibration())
             .map(|m| m.offset);
         let t = &mut cal.tracks[i];
-        if (i > 0 && t.mag_samples == 0) || !t.mag_run.reports_progress(continuous) {
+        let Some((status, attempt)) = t.mag_run.progress(continuous) else {
+            return;
+        };
+        if i > 0 && t.mag_samples == 0 {
             return;
         }
         {
             let p = t.pipe.progress(&mut t.progress, centre);
             let run_mask = cal.run_mask(i);
             let t = &cal.tracks[i];
-            let msg = mavout::mag_cal_progress(t.compass_id, run_mask, p.completion_pct, p.mask, 1);
+            let msg = mavout::mag_cal_progress(
+                t.compass_id,
+                run_mask,
+                p.completion_pct,
+                p.mask,
+                attempt,
+                status,
+            );
             let ev = LiveEvent::Progress {
                 sensor: "mag".into(),
                 instance: t.compass_id,
@@ -121,10 +131,14 @@ impl State {
         // result is reported whatever the calibration in use (accepting it is the ground
         // station's call). The magnetometer's result goes to the calibration run (`mag_event`),
         // which installs it or holds it for the ground station.
-        let commanded = matches!(cal.tracks[i].mag_run, MagCalRun::Running { .. });
+        let commanded = cal.tracks[i].mag_run.running();
         // The learnt rung needs no coverage: once the ladder takes one, the run is complete.
         let by_vector = cal.tracks[i].take_rung(&mut results, live.as_deref(), !commanded);
         let id = cal.tracks[i].compass_id;
+        if commanded {
+            self.judge_fitness(c, id, &mut results);
+        }
+        let cal = &mut self.cals[c];
         let current_mag = cal.in_use(i, Sensor::Mag).filter(|_| !commanded).cloned();
         let mag_passed = match accept(&results.mag, current_mag.as_ref()) {
             Ok(()) => true,
@@ -203,6 +217,19 @@ impl State {
         }
     }
 
+    /// A commanded run's magnetometer fit against ArduPilot's calibrator tolerance for compass
+    /// `id` of vehicle `c` ([`magcal::fail_on_fitness`]): over it, the fit fails.
+    fn judge_fitness(&self, c: usize, id: u8, results: &mut FitResults) {
+        let tolerance = magcal::fitness_tolerance_mgauss(
+            self.cfg.daemon.mag_cal_fit_mgauss,
+            id,
+            self.compass_external(c, id),
+        );
+        if magcal::fail_on_fitness(&mut results.mag.report, tolerance) {
+            results.mag.calibration = None;
+        }
+    }
+
     /// A new calibration in the store: counted, and written off the run loop (with what the
     /// orientation filter has learnt).
     pub(super) fn store_changed(&mut self, c: usize) {
@@ -275,6 +302,9 @@ impl State {
                         self.cals[c].tracks[i].reported_mag = Some(*cal);
                     }
                 }
+                MagCalEffect::SayFailure { retry_attempt } => {
+                    self.say_mag_failure(c, i, retry_attempt).await
+                }
                 MagCalEffect::ReportFailure | MagCalEffect::RepeatFailure => {
                     let mask = self.cals[c].run_mask(i);
                     if let Some(mag) = self.cals[c].tracks[i].mag_failed.as_ref() {
@@ -317,6 +347,37 @@ impl State {
         );
         self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
             .await;
+    }
+
+    /// A STATUSTEXT for track `i`'s failed run: why its fit failed, and the attempt that starts
+    /// now when it retries.
+    async fn say_mag_failure(&mut self, c: usize, i: usize, retry_attempt: Option<u8>) {
+        let cal = &self.cals[c];
+        let why = cal.tracks[i]
+            .mag_failed
+            .as_ref()
+            .map(|m| {
+                let reason = m.failure.map_or("failed".to_string(), |f| f.to_string());
+                match &m.detail {
+                    Some(d) => format!("{reason}: {d}"),
+                    None => reason,
+                }
+            })
+            .unwrap_or_else(|| "failed".into());
+        let next = retry_attempt.map_or(String::new(), |a| format!("; retrying, attempt {a}"));
+        let text = format!(
+            "mag calibration failed{}: {why}{next}",
+            cal.compass_label(i)
+        );
+        self.status_for(c, MavSeverity::MAV_SEVERITY_WARNING, text)
+            .await;
+    }
+
+    /// Whether compass `compass_id` of calibrated vehicle `c` is external, as its COMPASS_EXTERNAL
+    /// parameters say (`None`: not known, no ArduPilot parameters read).
+    fn compass_external(&self, c: usize, compass_id: u8) -> Option<bool> {
+        let v = self.cals[c].vehicle?;
+        self.vehicles[v].conv.compass_external(compass_id)
     }
 
     /// COMMAND_LONG: the ground station's calibration commands for the calibrated vehicles it
@@ -407,9 +468,11 @@ impl State {
 impl State {
     /// MAV_CMD_FIXED_MAG_CAL_YAW for calibrated vehicle `c`, as ArduPilot answers it: param1 the
     /// vehicle's true yaw (deg), param2 the compass mask (0: all), param3/param4 latitude and
-    /// longitude (deg; both 0: `[place]`). Each compass of the mask with magnetometer data in uT
-    /// gets the offsets [`crate::calib::fixedyaw`] finds from its latest samples, installed, reported
-    /// (MAG_CAL_REPORT) and written; one COMMAND_ACK: accepted when a compass was calibrated.
+    /// longitude (deg; both 0: the vehicle's own position, [`State::own_place`]; none: refused
+    /// with ArduPilot's "Mag: no position available"). Each compass of the mask with magnetometer
+    /// data in uT gets the offsets [`crate::calib::fixedyaw`] finds from its latest samples,
+    /// installed, reported (MAG_CAL_REPORT) and written; one COMMAND_ACK: accepted when a compass
+    /// was calibrated.
     async fn fixed_yaw(
         &mut self,
         c: usize,
@@ -420,15 +483,27 @@ impl State {
         // The field of today where `[place]` gives no date: a fixed-yaw calibration is of now.
         let today = crate::io::clock::today().iso();
         let place = if lat == 0.0 && lon == 0.0 {
-            self.cfg.place.as_ref().map(|p| p.dated(&today))
+            self.own_place(c)
         } else {
-            Some(crate::attitude::Place::at(lat, lon).dated(&today))
+            Some(crate::attitude::Place::at(lat, lon))
         };
-        let field = match place.as_ref().map(crate::attitude::earth_field) {
-            Some(Ok(f)) => Ok(f),
-            Some(Err(e)) => Err(e),
-            None => Err("no position: give the latitude and longitude in the command (param3, param4) or set [place]".to_string()),
+        let Some(place) = place.map(|p| p.dated(&today)) else {
+            self.status_for(
+                c,
+                MavSeverity::MAV_SEVERITY_ERROR,
+                NO_POSITION_TEXT.to_string(),
+            )
+            .await;
+            let ack = mavout::command_ack(
+                cmd.command,
+                MavResult::MAV_RESULT_FAILED,
+                frame.system_id,
+                frame.component_id,
+            );
+            self.send_mav(To::Cal(c), &[ack]).await;
+            return;
         };
+        let field = crate::attitude::earth_field(&place);
         let mask = mavout::mask_param(cmd.param2);
         let mut calibrated = 0;
         for i in 0..self.cals[c].tracks.len() {
@@ -476,6 +551,27 @@ impl State {
             if self.cfg.daemon.write_params {
                 self.cals[c].start_param_write(self.cfg.daemon.param_target);
             }
+        }
+    }
+}
+
+/// What ArduPilot says when a fixed-yaw calibration at latitude and longitude 0 finds no position
+/// (its `mag_cal_fixed_yaw`), word for word: ground stations show it as the reason.
+const NO_POSITION_TEXT: &str = "Mag: no position available";
+
+impl State {
+    /// Where vehicle `c` is, for a fixed-yaw calibration given latitude and longitude 0: as
+    /// ArduPilot takes its own position, the vehicle's newest fix (GLOBAL_POSITION_INT, or
+    /// GPS_RAW_INT with a 3-D fix, as the primary's samples carry it); without one, `[place]`,
+    /// the position the operator configured; `None` when neither is known.
+    fn own_place(&self, c: usize) -> Option<crate::attitude::Place> {
+        let fix = self.cals[c].tracks.iter().find_map(|t| t.position);
+        match fix {
+            Some(p) => Some(crate::attitude::Place {
+                altitude_m: p.alt_m,
+                ..crate::attitude::Place::at(p.lat_deg, p.lon_deg)
+            }),
+            None => self.cfg.place.clone(),
         }
     }
 }

@@ -4,8 +4,9 @@
 //! installed, reported and acknowledged. Pure: the run loop (`lifecycle`) carries out the
 //! [`MagCalEffect`]s; `io::mavout` reads the commands and builds the messages.
 
-use crate::io::mavout::{mask_selects, MagCalStart};
-use crate::report::SensorCalibration;
+use crate::calib::fit::FitFailure;
+use crate::io::mavout::{mask_selects, MagCalStart, ProgressStatus};
+use crate::report::{CalStatus, SensorCalibration};
 use mavlink::dialects::ardupilotmega::MavResult;
 
 /// Where the magnetometer calibration stands, in the manner of ArduPilot's compass calibrator:
@@ -15,11 +16,17 @@ pub(super) enum MagCalRun {
     /// No commanded run: passing fits are installed as they come when the service calibrates
     /// continuously (`daemon.mag_cal = "continuous"`), and not at all otherwise.
     Idle,
-    /// Started with a delay: collecting from zero coverage begins at `start_at_s` (s since the
-    /// service started).
-    Waiting { start_at_s: f64, opts: MagCalStart },
-    /// Collecting from zero coverage; the next passing fit ends the run.
-    Running { opts: MagCalStart },
+    /// Started with a delay (ArduPilot's WAITING_TO_START): collecting from zero coverage begins
+    /// at `start_at_s` (s since the service started). Progress is reported meanwhile, at 0 %.
+    Waiting {
+        start_at_s: f64,
+        opts: MagCalStart,
+        attempt: u8,
+    },
+    /// Collecting from zero coverage; the next passing fit ends the run. `attempt`: 1 for the
+    /// run the command started, one more for each retry after a failure (DO_START_MAG_CAL
+    /// param2), as MAG_CAL_PROGRESS carries it.
+    Running { opts: MagCalStart, attempt: u8 },
     /// A commanded run passed (ArduPilot's SUCCESS): installed and written already when `saved`
     /// (autosave), else waiting for DO_ACCEPT_MAG_CAL. Its report is repeated every
     /// [`REPORT_REPEAT_S`] (`next_report_s`, s since the service started; `None` until the first
@@ -88,6 +95,9 @@ pub(super) enum MagCalEffect {
     },
     /// MAG_CAL_REPORT of the failed fit.
     ReportFailure,
+    /// A STATUSTEXT saying why the fit failed; `retry_attempt`: the attempt that starts now (a
+    /// retry sends no MAG_CAL_REPORT, as ArduPilot's calibrator goes straight back to collecting).
+    SayFailure { retry_attempt: Option<u8> },
     /// The MAG_CAL_REPORT of a result waiting to be accepted, again (nothing else: no text, no
     /// install).
     RepeatSuccess {
@@ -98,141 +108,156 @@ pub(super) enum MagCalEffect {
     RepeatFailure,
 }
 
+/// What a transition gives: the next status and what to do.
+type Step = (MagCalRun, Vec<MagCalEffect>);
+
 impl MagCalRun {
     /// The transition function of compass `compass_id`'s run: the next status and what to do,
     /// given whether the service calibrates without a command (`continuous`). Commands whose
     /// compass mask leaves this compass out are refused (MAV_RESULT_FAILED) and change nothing.
-    pub(super) fn on(
-        self,
-        ev: MagCalEvent,
-        continuous: bool,
-        compass_id: u8,
-    ) -> (MagCalRun, Vec<MagCalEffect>) {
+    pub(super) fn on(self, ev: MagCalEvent, continuous: bool, compass_id: u8) -> Step {
         let ours = |mask: u8| mask_selects(mask, compass_id);
-        use MagCalEffect as E;
-        use MagCalEvent as V;
+        match ev {
+            MagCalEvent::Start { opts, .. } if !ours(opts.mask) => {
+                (self, vec![MagCalEffect::Ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            MagCalEvent::Start { opts, now_s } => start(opts, now_s),
+            MagCalEvent::Accept { mask } | MagCalEvent::Cancel { mask } if !ours(mask) => {
+                (self, vec![MagCalEffect::Ack(MavResult::MAV_RESULT_FAILED)])
+            }
+            MagCalEvent::Accept { .. } => self.on_accept(),
+            MagCalEvent::Cancel { .. } => (
+                MagCalRun::Idle,
+                vec![MagCalEffect::Ack(MavResult::MAV_RESULT_ACCEPTED)],
+            ),
+            MagCalEvent::Tick { now_s } => self.on_tick(now_s),
+            MagCalEvent::FitPassed { cal, complete } => {
+                self.on_fit_passed(cal, complete, continuous)
+            }
+            MagCalEvent::FitFailed => self.on_fit_failed(continuous),
+        }
+    }
+
+    /// Time passes: a delayed start begins, a held report is repeated when due.
+    fn on_tick(self, now_s: f64) -> Step {
         use MagCalRun as R;
-        let ack = E::Ack;
-        // A passing fit installed and written at once, and reported.
-        let autosave = |cal: Box<SensorCalibration>, commanded: bool| {
-            vec![
-                E::Install(cal.clone()),
-                E::ReportSuccess {
-                    cal,
-                    autosaved: true,
-                    commanded,
-                },
-            ]
-        };
-        match (self, ev) {
-            (s, V::Start { opts, .. }) if !ours(opts.mask) => {
-                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
-            }
-            (_, V::Start { opts, now_s }) if opts.delay_s > 0.0 => (
-                R::Waiting {
-                    start_at_s: now_s + opts.delay_s,
-                    opts,
-                },
-                vec![ack(MavResult::MAV_RESULT_ACCEPTED)],
-            ),
-            (_, V::Start { opts, .. }) => (
-                R::Running { opts },
-                vec![ack(MavResult::MAV_RESULT_ACCEPTED), E::Restart],
-            ),
-            (R::Waiting { start_at_s, opts }, V::Tick { now_s }) if now_s >= start_at_s => {
-                (R::Running { opts }, vec![E::Restart])
-            }
-            (
-                R::Running { opts },
-                V::FitPassed {
-                    complete: false, ..
-                },
-            ) => (R::Running { opts }, vec![]),
-            (R::Running { opts }, V::FitPassed { cal, .. }) if opts.autosave => (
-                R::Succeeded {
-                    cal: cal.clone(),
-                    saved: true,
-                    next_report_s: None,
-                },
-                autosave(cal, true),
-            ),
-            (R::Running { .. }, V::FitPassed { cal, .. }) => (
-                R::Succeeded {
-                    cal: cal.clone(),
-                    saved: false,
-                    next_report_s: None,
-                },
-                vec![E::ReportSuccess {
-                    cal,
-                    autosaved: false,
-                    commanded: true,
-                }],
-            ),
-            (
-                R::Succeeded {
-                    cal,
-                    saved,
-                    next_report_s,
-                },
-                V::Tick { now_s },
-            ) => {
+        match self {
+            R::Waiting {
+                start_at_s,
+                opts,
+                attempt,
+            } if now_s >= start_at_s => (R::Running { opts, attempt }, vec![MagCalEffect::Restart]),
+            R::Succeeded {
+                cal,
+                saved,
+                next_report_s,
+            } => {
                 let (next_report_s, due) = repeat_due(next_report_s, now_s);
                 let fx = if due {
-                    vec![E::RepeatSuccess {
+                    vec![MagCalEffect::RepeatSuccess {
                         cal: cal.clone(),
                         autosaved: saved,
                     }]
                 } else {
                     vec![]
                 };
-                (
-                    R::Succeeded {
-                        cal,
-                        saved,
-                        next_report_s,
-                    },
-                    fx,
-                )
+                let next = R::Succeeded {
+                    cal,
+                    saved,
+                    next_report_s,
+                };
+                (next, fx)
             }
-            (R::Failed { next_report_s }, V::Tick { now_s }) => {
+            R::Failed { next_report_s } => {
                 let (next_report_s, due) = repeat_due(next_report_s, now_s);
-                let fx = if due { vec![E::RepeatFailure] } else { vec![] };
+                let fx = if due {
+                    vec![MagCalEffect::RepeatFailure]
+                } else {
+                    vec![]
+                };
                 (R::Failed { next_report_s }, fx)
             }
-            (R::Idle, V::FitPassed { cal, .. }) if continuous => (R::Idle, autosave(cal, false)),
-            (R::Running { opts }, V::FitFailed) if opts.retry => {
-                (R::Running { opts }, vec![E::ReportFailure, E::Restart])
+            s => (s, vec![]),
+        }
+    }
+
+    /// A passing fit: it ends a commanded run once the data covered the sphere (installed at once
+    /// with autosave, else held for the accept); while idle, continuous calibration installs it.
+    fn on_fit_passed(self, cal: Box<SensorCalibration>, complete: bool, continuous: bool) -> Step {
+        match self {
+            MagCalRun::Running { opts, attempt } if !complete => {
+                (MagCalRun::Running { opts, attempt }, vec![])
             }
-            (R::Running { .. }, V::FitFailed) => (
-                R::Failed {
+            MagCalRun::Running { opts, .. } => {
+                let next = MagCalRun::Succeeded {
+                    cal: cal.clone(),
+                    saved: opts.autosave,
+                    next_report_s: None,
+                };
+                if opts.autosave {
+                    (next, autosave(cal, true))
+                } else {
+                    let report = MagCalEffect::ReportSuccess {
+                        cal,
+                        autosaved: false,
+                        commanded: true,
+                    };
+                    (next, vec![report])
+                }
+            }
+            MagCalRun::Idle if continuous => (MagCalRun::Idle, autosave(cal, false)),
+            s => (s, vec![]),
+        }
+    }
+
+    /// A failed fit once the data covered the sphere: with retry, collecting again from zero as
+    /// the next attempt (no report, as ArduPilot's calibrator); without, failed and reported.
+    fn on_fit_failed(self, continuous: bool) -> Step {
+        use MagCalEffect as E;
+        match self {
+            MagCalRun::Running { opts, attempt } if opts.retry => {
+                let attempt = attempt.saturating_add(1);
+                let say = E::SayFailure {
+                    retry_attempt: Some(attempt),
+                };
+                (MagCalRun::Running { opts, attempt }, vec![say, E::Restart])
+            }
+            MagCalRun::Running { .. } => (
+                MagCalRun::Failed {
                     next_report_s: None,
                 },
-                vec![E::ReportFailure],
+                vec![
+                    E::SayFailure {
+                        retry_attempt: None,
+                    },
+                    E::ReportFailure,
+                ],
             ),
-            (R::Idle, V::FitFailed) if continuous => (R::Idle, vec![E::ReportFailure]),
-            (s, V::Accept { mask } | V::Cancel { mask }) if !ours(mask) => {
-                (s, vec![ack(MavResult::MAV_RESULT_FAILED)])
-            }
-            // Accept ends the run, as ArduPilot's (its calibrator stops whatever the answer).
-            (
-                R::Succeeded {
-                    cal, saved: false, ..
-                },
-                V::Accept { .. },
-            ) => (
-                R::Idle,
-                vec![E::Install(cal), ack(MavResult::MAV_RESULT_ACCEPTED)],
+            MagCalRun::Idle if continuous => (MagCalRun::Idle, vec![E::ReportFailure]),
+            s => (s, vec![]),
+        }
+    }
+
+    /// DO_ACCEPT_MAG_CAL for this compass: ends the run whatever it held, as ArduPilot's (its
+    /// calibrator stops on any accept). A held result is installed; with nothing waiting (saved
+    /// already, or no run) it is ACCEPTED, as ArduPilot answers, so a ground station that accepts
+    /// every report (MAVProxy) sees it succeed; still collecting or failed: FAILED.
+    fn on_accept(self) -> Step {
+        let ack = |r| MagCalEffect::Ack(r);
+        match self {
+            MagCalRun::Succeeded {
+                cal, saved: false, ..
+            } => (
+                MagCalRun::Idle,
+                vec![
+                    MagCalEffect::Install(cal),
+                    ack(MavResult::MAV_RESULT_ACCEPTED),
+                ],
             ),
-            // Nothing waits to be accepted (the run saved its result, or none ran): accepted, as
-            // ArduPilot's compass calibration answers when its result is already saved, so a
-            // ground station that accepts every report (MAVProxy) sees it succeed.
-            (R::Succeeded { saved: true, .. } | R::Idle, V::Accept { .. }) => {
-                (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)])
+            MagCalRun::Succeeded { saved: true, .. } | MagCalRun::Idle => {
+                (MagCalRun::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)])
             }
-            // Still collecting, or failed: nothing to accept; the run stops all the same.
-            (_, V::Accept { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_FAILED)]),
-            (_, V::Cancel { .. }) => (R::Idle, vec![ack(MavResult::MAV_RESULT_ACCEPTED)]),
-            (s, V::Tick { .. } | V::FitPassed { .. } | V::FitFailed) => (s, vec![]),
+            _ => (MagCalRun::Idle, vec![ack(MavResult::MAV_RESULT_FAILED)]),
         }
     }
 
@@ -250,15 +275,91 @@ impl MagCalRun {
         matches!(self, MagCalRun::Waiting { .. } | MagCalRun::Running { .. })
     }
 
-    /// Whether magnetometer progress is reported: during a commanded run, or while idle when the
-    /// service calibrates continuously.
-    pub(super) fn reports_progress(&self, continuous: bool) -> bool {
+    /// Whether the commanded run is collecting (its fits are judged as ArduPilot's calibrator
+    /// judges them, fitness included).
+    pub(super) fn running(&self) -> bool {
+        matches!(self, MagCalRun::Running { .. })
+    }
+
+    /// What MAG_CAL_PROGRESS says of the run, when it reports progress: during a commanded run
+    /// (waiting to start or collecting, with its attempt), or while idle when the service
+    /// calibrates continuously (attempt 1). `None`: no progress to report.
+    pub(super) fn progress(&self, continuous: bool) -> Option<(ProgressStatus, u8)> {
         match self {
-            MagCalRun::Running { .. } => true,
-            MagCalRun::Idle => continuous,
-            _ => false,
+            MagCalRun::Waiting { attempt, .. } => Some((ProgressStatus::WaitingToStart, *attempt)),
+            MagCalRun::Running { attempt, .. } => Some((ProgressStatus::Running, *attempt)),
+            MagCalRun::Idle if continuous => Some((ProgressStatus::Running, 1)),
+            _ => None,
         }
     }
+
+    /// Whether magnetometer progress is reported (see [`MagCalRun::progress`]).
+    #[cfg(test)]
+    pub(super) fn reports_progress(&self, continuous: bool) -> bool {
+        self.progress(continuous).is_some()
+    }
+}
+
+/// DO_START_MAG_CAL for this compass: attempt 1, waiting out the delay (param4) first when there
+/// is one, as ArduPilot's calibrator (WAITING_TO_START), else collecting from zero at once.
+fn start(opts: MagCalStart, now_s: f64) -> Step {
+    let accepted = MagCalEffect::Ack(MavResult::MAV_RESULT_ACCEPTED);
+    if opts.delay_s > 0.0 {
+        let waiting = MagCalRun::Waiting {
+            start_at_s: now_s + opts.delay_s,
+            opts,
+            attempt: 1,
+        };
+        (waiting, vec![accepted])
+    } else {
+        let running = MagCalRun::Running { opts, attempt: 1 };
+        (running, vec![accepted, MagCalEffect::Restart])
+    }
+}
+
+/// A passing fit installed and written at once, and reported.
+fn autosave(cal: Box<SensorCalibration>, commanded: bool) -> Vec<MagCalEffect> {
+    vec![
+        MagCalEffect::Install(cal.clone()),
+        MagCalEffect::ReportSuccess {
+            cal,
+            autosaved: true,
+            commanded,
+        },
+    ]
+}
+
+/// ArduPilot's calibrator tolerance (COMPASS_CAL_FIT, `fit_mgauss`) for compass `compass_id`:
+/// as given for the first compass when it is external, twice that for every other (internal
+/// compasses, and further ones, are noisier, as ArduPilot's `_start_calibration` says).
+/// `external`: COMPASS_EXTERNAL as the vehicle's parameters give it; unknown counts as internal.
+pub(super) fn fitness_tolerance_mgauss(
+    fit_mgauss: f64,
+    compass_id: u8,
+    external: Option<bool>,
+) -> f64 {
+    if compass_id == 0 && external == Some(true) {
+        fit_mgauss
+    } else {
+        2.0 * fit_mgauss
+    }
+}
+
+/// A commanded run's passing fit judged against the calibrator's tolerance, as ArduPilot's
+/// `fit_acceptable` does last: a fitness (RMS residual, mGauss) above `tolerance_mgauss` fails
+/// the fit (failure `residuals`, MAG_CAL_REPORT status FAILED_RESIDUALS_HIGH), saying both figures.
+/// Returns whether it failed it.
+pub(super) fn fail_on_fitness(mag: &mut SensorCalibration, tolerance_mgauss: f64) -> bool {
+    let fitness_mgauss = mag.rms_residual * crate::calib::ardupilot::MGAUSS_PER_UT;
+    if mag.status != CalStatus::Ok || fitness_mgauss <= tolerance_mgauss {
+        return false;
+    }
+    mag.status = CalStatus::Failed;
+    mag.failure = Some(FitFailure::Residuals);
+    mag.detail = Some(format!(
+        "fitness {fitness_mgauss:.1} mGauss over the tolerance {tolerance_mgauss:.1} mGauss (daemon.mag_cal_fit_mgauss, ArduPilot's COMPASS_CAL_FIT)"
+    ));
+    true
 }
 
 #[cfg(test)]
@@ -365,6 +466,7 @@ mod tests {
         assert_eq!((s.clone(), fx), (MagCalRun::Idle, vec![accepted.clone()]));
         let running = MagCalRun::Running {
             opts: opts(false, false, 0.0),
+            attempt: 1,
         };
         // ... and stops it, as ArduPilot's calibrator stops on any accept.
         let (s2, fx) = running.on(V::Accept { mask: 0 }, false, 0);
@@ -445,25 +547,37 @@ mod tests {
             0,
         );
         assert_eq!(fx, vec![accepted.clone()]);
-        assert!(!s.reports_progress(true));
+        // Waiting out the delay: progress says WAITING_TO_START, attempt 1.
+        assert_eq!(s.progress(false), Some((ProgressStatus::WaitingToStart, 1)));
         let (s, fx) = s.on(V::Tick { now_s: 11.9 }, false, 0);
         assert!(fx.is_empty() && matches!(s, MagCalRun::Waiting { .. }));
         let (s, fx) = s.on(V::Tick { now_s: 12.0 }, false, 0);
         assert_eq!(fx, vec![E::Restart]);
-        assert!(matches!(s, MagCalRun::Running { .. }));
-        // Failure: with retry, again from zero; without, failed until restarted or cancelled.
-        let (s, fx) = MagCalRun::Running {
+        assert_eq!(s.progress(false), Some((ProgressStatus::Running, 1)));
+        // Failure: with retry, again from zero as attempt 2, then 3 (said, not reported, as
+        // ArduPilot's calibrator retries); without, failed until restarted or cancelled.
+        let retrying = MagCalRun::Running {
             opts: opts(true, true, 0.0),
-        }
-        .on(V::FitFailed, false, 0);
-        assert_eq!(fx, vec![E::ReportFailure, E::Restart]);
-        assert!(matches!(s, MagCalRun::Running { .. }));
+            attempt: 1,
+        };
+        let (s, fx) = retrying.on(V::FitFailed, false, 0);
+        let said = |retry_attempt| E::SayFailure { retry_attempt };
+        assert_eq!(fx, vec![said(Some(2)), E::Restart]);
+        assert_eq!(s.progress(false), Some((ProgressStatus::Running, 2)));
+        let (s, fx) = s.on(V::FitFailed, false, 0);
+        assert_eq!(fx, vec![said(Some(3)), E::Restart]);
+        assert_eq!(s.progress(false), Some((ProgressStatus::Running, 3)));
         let (s, fx) = MagCalRun::Running {
             opts: opts(true, false, 0.0),
+            attempt: 1,
         }
         .on(V::FitFailed, false, 0);
         let failed_run = |next_report_s| MagCalRun::Failed { next_report_s };
-        assert_eq!((s.clone(), fx), (failed_run(None), vec![E::ReportFailure]));
+        assert_eq!(
+            (s.clone(), fx),
+            (failed_run(None), vec![said(None), E::ReportFailure])
+        );
+        assert_eq!(s.progress(true), None);
         let (s, fx) = s.on(
             V::FitPassed {
                 cal: run_cal(1.0),
@@ -545,5 +659,32 @@ mod tests {
             .is_empty());
         assert!(MagCalRun::Idle.on(V::FitFailed, false, 0).1.is_empty());
         assert!(MagCalRun::Idle.reports_progress(true) && !MagCalRun::Idle.reports_progress(false));
+    }
+
+    #[test]
+    fn fitness_over_the_tolerance_fails_the_fit_as_ardupilot_does() {
+        // COMPASS_CAL_FIT as given only for an external compass 0; doubled otherwise, unknown
+        // counting as internal.
+        assert_eq!(fitness_tolerance_mgauss(16.0, 0, Some(true)), 16.0);
+        assert_eq!(fitness_tolerance_mgauss(16.0, 0, Some(false)), 32.0);
+        assert_eq!(fitness_tolerance_mgauss(16.0, 0, None), 32.0);
+        assert_eq!(fitness_tolerance_mgauss(16.0, 1, Some(true)), 32.0);
+        // 4.16 uT RMS is 41.6 mGauss: over 32, failed as residuals (FAILED_RESIDUALS_HIGH).
+        let mut noisy = *run_cal(1.0);
+        noisy.rms_residual = 4.16;
+        assert!(fail_on_fitness(&mut noisy, 32.0));
+        assert_eq!(noisy.status, CalStatus::Failed);
+        assert_eq!(noisy.failure, Some(FitFailure::Residuals));
+        assert!(
+            noisy.detail.as_deref().unwrap().contains("41.6"),
+            "{noisy:?}"
+        );
+        assert_eq!(crate::io::mavout::mag_cal_status_code(&noisy), 10);
+        // At the tolerance it passes, and a failed fit stays as it was.
+        let mut fine = *run_cal(1.0);
+        fine.rms_residual = 3.2;
+        assert!(!fail_on_fitness(&mut fine, 32.0));
+        assert_eq!(fine.status, CalStatus::Ok);
+        assert!(!fail_on_fitness(&mut noisy.clone(), 1.0));
     }
 }

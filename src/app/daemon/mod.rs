@@ -178,6 +178,9 @@ struct Track {
     learner: VectorLearner,
     /// `[place]`: where the earth field is evaluated when the vehicle sends no position.
     place: Option<crate::attitude::Place>,
+    /// The vehicle's newest position (its GLOBAL_POSITION_INT, or GPS_RAW_INT with a 3-D fix, as
+    /// the samples carry it): where a fixed-yaw calibration at "latitude and longitude 0" is.
+    position: Option<crate::types::GeoPoint>,
     /// The magnetometer calibration in use is a rung learnt from `learner`'s readings up to this
     /// time, s: a later rung is judged against it only on readings after it.
     rung_until_s: Option<f64>,
@@ -217,6 +220,7 @@ impl Track {
             refit_wanted: false,
             recent: std::collections::VecDeque::with_capacity(FIXED_YAW.window_samples),
             recent_at: None,
+            position: None,
             learner: VectorLearner::new(LearnSettings::DEFAULT)
                 .on_date(&crate::io::clock::today().iso()),
             place: cfg.place.clone(),
@@ -228,6 +232,7 @@ impl Track {
     /// this sample completes it (what [`Track::push`] and the attitude filter take).
     fn take(&mut self, raw: &Sample) -> Option<Sample> {
         self.samples_in += 1;
+        self.position = raw.position.or(self.position);
         self.blocks.push(raw)
     }
 

@@ -284,6 +284,12 @@ impl MessageConverter {
         self
     }
 
+    /// Whether compass `k` of an ArduPilot vehicle is external, as its parameters say (`None`:
+    /// not known).
+    pub(crate) fn compass_external(&self, k: u8) -> Option<bool> {
+        self.ardupilot.compass_external(k)
+    }
+
     /// A HEARTBEAT has named the vehicle's flight stack ArduPilot.
     pub(crate) fn is_ardupilot(&self) -> bool {
         self.autopilot == Autopilot::ArduPilot
