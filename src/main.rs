@@ -217,8 +217,8 @@ struct FixedYawArgs {
 
 #[derive(Args)]
 struct SimulateArgs {
-    /// A built-in scenario (turntable, tumble, flight, bench, cruise, rover) or a scenario TOML
-    /// file.
+    /// A built-in scenario (turntable, tumble, flight, bench, cruise, rover; warmup: a warm-up
+    /// at rest, one CSV per IMU instance) or a scenario TOML file.
     #[arg(long, default_value = "tumble")]
     scenario: String,
     /// Output log; the format follows the extension.
@@ -967,6 +967,12 @@ fn simulate_cmd(args: SimulateArgs) -> Result<()> {
         message,
         mavlink_version,
     } = args;
+    if scenario == imucald::app::simulate::WARMUP {
+        for p in imucald::app::simulate::write_warmup(&out, seed, truth.as_deref())? {
+            println!("wrote {}", p.display());
+        }
+        return Ok(());
+    }
     let sc = imucald::sim::named::scenario(&scenario)
         .with_context(|| format!("--scenario {scenario}"))?;
     let Some(kind) = SimLog::of(&out) else {

@@ -10,6 +10,7 @@ pub use crate::calib::outcome::{
     CalStatus, Candidate, GyroCalibration, GyroScaleReport, HeldOut, QualityReport, RefitReport,
     SensorCalibration, Verdict,
 };
+pub use crate::calib::tempcal::{OnboardTcal, TempCalReport};
 pub use crate::io::onboard::{OnboardCal, OnboardComparison, OnboardReport, SensorStream};
 
 pub(crate) const SCHEMA: &str = "imucald.report/1";
@@ -49,6 +50,11 @@ pub struct Report {
     /// exports and the terminal's `next:` follow it.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub load: Vec<LoadDecision>,
+    /// Per IMU instance whose readings carry a temperature: the accelerometer's and gyro's
+    /// biases against temperature from a warm-up at rest, or why none was made. Absent for
+    /// logs without temperature.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub temperature: Vec<TempCalReport>,
 }
 
 /// Whether a compass's calibration is one to load on the vehicle ([`LoadReason`]).

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 
 mod gyro_scale;
 mod load;
+mod tempcal;
 use gyro_scale::{gyro_scale_of, GyroFits, SpanRates};
 pub use load::loadable;
 
@@ -156,6 +157,7 @@ pub fn replay(
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
     report.load = load::decide(&report, cfg.accept.mag.max_rms_ratio);
+    report.temperature = tempcal::temperature(&run);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -174,6 +176,7 @@ pub fn replay(
     }
     if let Some(dir) = &opts.export_dir {
         written.extend(write_exports(dir, &report, &results, opts.export_all)?);
+        written.extend(tempcal::write_exports(dir, &report.temperature)?);
     }
     if let Some(dir) = &opts.plot_dir {
         written.extend(write_plots(dir, pipe, &log.samples, &results)?);
@@ -1508,6 +1511,7 @@ pub(crate) fn make_report(
         onboard: None,
         quality: Vec::new(),
         load: Vec::new(),
+        temperature: Vec::new(),
     }
 }
 
@@ -1898,6 +1902,7 @@ pub fn summary(r: &Report) -> String {
         );
     }
     gyro_lines(&r.calibration.gyro, &mut s);
+    s += &tempcal::summary_lines(&r.temperature);
     s
 }
 

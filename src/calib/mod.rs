@@ -33,4 +33,5 @@ pub mod planar;
 pub mod plausible;
 pub mod sections;
 pub mod settings;
+pub mod tempcal;
 pub mod vector;

@@ -12,6 +12,7 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 pub mod named;
+pub mod warmup;
 mod trajectory;
 use trajectory::{
     build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan,
