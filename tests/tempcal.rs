@@ -376,3 +376,40 @@ fn an_enabled_onboard_temperature_correction_is_undone_before_fitting() {
     assert!(errors[0][0] < 0.01 && errors[0][1] < 1.8e-4, "{errors:?}");
     assert!(errors[1][0] > 0.023 && errors[1][1] > 1.3e-3, "{errors:?}");
 }
+
+#[test]
+fn a_dataflash_warm_up_of_three_imus_calibrates_each_into_one_parameter_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("warm.bin");
+    let truth = dir.path().join("truth.json");
+    let written = imucald::app::simulate::write_warmup(&out, 3, Some(&truth)).unwrap();
+    assert_eq!(written, [out.clone(), truth.clone()]);
+    let truths: Vec<InstanceTruth> =
+        serde_json::from_str(&std::fs::read_to_string(&truth).unwrap()).unwrap();
+    let exports = dir.path().join("exp");
+    let opts = imucald::app::replay::ReplayOptions {
+        export_dir: Some(exports.clone()),
+        ..Default::default()
+    };
+    let cfg = imucald::config::Config::default();
+    let r = imucald::app::replay::replay(&out, &cfg, &opts, &mut |_, _| {}).unwrap();
+    let t = &r.report.temperature;
+    let imus: Vec<usize> = t.iter().map(|r| r.imu).collect();
+    assert_eq!(imus, [0, 1, 2], "{t:?}");
+    let mut worst = [0.0f64; 2];
+    for r in t {
+        assert_eq!(r.onboard, imucald::report::OnboardTcal::NotEnabled);
+        let e = largest_errors(calibrated(&r.result.outcome), &truths[r.imu]);
+        worst = [worst[0].max(e[0]), worst[1].max(e[1])];
+    }
+    // Measured (seed 3): largest errors over the three instances 4.3e-3 m/s^2 and 1.1e-4 rad/s;
+    // tolerances 3x.
+    assert!(worst[0] < 0.013 && worst[1] < 3.3e-4, "{worst:?}");
+    let parm = std::fs::read_to_string(exports.join("tempcal_ardupilot.parm")).unwrap();
+    for n in 1..=3 {
+        assert!(parm.contains(&format!("\nINS_TCAL{n}_ENABLE ")), "{parm}");
+        assert!(parm.contains(&format!("\nINS_TCAL{n}_GYR1_X ")), "{parm}");
+    }
+    let px4 = std::fs::read_to_string(exports.join("tempcal_px4.params")).unwrap();
+    assert!(px4.contains("\tTC_G2_X3_2\t"), "{px4}");
+}
