@@ -218,7 +218,7 @@ struct FixedYawArgs {
 #[derive(Args)]
 struct SimulateArgs {
     /// A built-in scenario (turntable, tumble, flight, bench, cruise, rover; warmup: a warm-up
-    /// at rest, one CSV per IMU instance) or a scenario TOML file.
+    /// at rest, every IMU instance in one .bin, or one CSV each) or a scenario TOML file.
     #[arg(long, default_value = "tumble")]
     scenario: String,
     /// Output log; the format follows the extension.

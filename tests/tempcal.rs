@@ -285,3 +285,131 @@ fn a_log_without_temperature_has_no_temperature_section() {
     assert!(json.get("temperature").is_none(), "{json}");
     assert!(!imucald::app::replay::summary(&r.report).contains("temperature"));
 }
+
+/// ArduPilot's temperature correction as its parameters give it: per axis
+/// `1e-6 * (c1 x + c2 x^2 + c3 x^3)`, x = T - 35 (T inside TMIN..TMAX, no calibration temperature).
+fn ardupilot_correction(c: &[[f64; 3]; 3], temp_c: f64) -> [f64; 3] {
+    let x = temp_c - 35.0;
+    std::array::from_fn(|a| 1e-6 * (c[a][0] * x + c[a][1] * x * x + c[a][2] * x * x * x))
+}
+
+/// A DataFlash warm-up logged as ArduPilot logs it with INS_TCAL1_ENABLE `enable`: the readings
+/// corrected by the INS_TCAL1_* curves (accelerometer `acc`, gyro `gyr`, 1e6 x per C^k).
+fn ardupilot_corrected_log(
+    path: &std::path::Path,
+    enable: f64,
+    acc: &[[f64; 3]; 3],
+    gyr: &[[f64; 3]; 3],
+) -> InstanceTruth {
+    let w = simulate(
+        &WarmupSettings {
+            instances: 1,
+            ..Default::default()
+        },
+        7,
+    );
+    let corrected: Vec<_> = w.instances[0]
+        .iter()
+        .map(|s| {
+            let t = s.temp_c.unwrap();
+            let (ca, cg) = (ardupilot_correction(acc, t), ardupilot_correction(gyr, t));
+            let sub = |v: [f64; 3], c: [f64; 3]| std::array::from_fn(|a| v[a] - c[a]);
+            imucald::types::Sample {
+                accel_mps2: s.accel_mps2.map(|v| sub(v, ca)),
+                gyro_rad_s: s.gyro_rad_s.map(|v| sub(v, cg)),
+                ..*s
+            }
+        })
+        .collect();
+    let mut params = vec![
+        ("INS_TCAL1_ENABLE".to_string(), enable),
+        ("INS_TCAL1_TMIN".to_string(), 5.0),
+        ("INS_TCAL1_TMAX".to_string(), 60.0),
+    ];
+    for (s, c) in [("ACC", acc), ("GYR", gyr)] {
+        for (a, axis) in ["X", "Y", "Z"].iter().enumerate() {
+            for (k, v) in c[a].iter().enumerate() {
+                params.push((format!("INS_TCAL1_{s}{}_{axis}", k + 1), *v));
+            }
+        }
+    }
+    let extra = imucald::io::flightlog::write::DataflashExtra {
+        params: &params,
+        ..Default::default()
+    };
+    let onboard = imucald::io::flightlog::write::OnboardMag::example();
+    imucald::io::flightlog::write::write_dataflash_with(path, &corrected, &onboard, &extra)
+        .unwrap();
+    w.truth[0].clone()
+}
+
+#[test]
+fn an_enabled_onboard_temperature_correction_is_undone_before_fitting() {
+    let dir = tempfile::tempdir().unwrap();
+    // Steep onboard curves: over 15..40 C several times the tolerances below.
+    let acc = [
+        [4000.0, 20.0, 0.0],
+        [-3000.0, 0.0, 1.0],
+        [2500.0, -30.0, 0.0],
+    ];
+    let gyr = [[200.0, 0.0, 0.0], [-150.0, 2.0, 0.0], [120.0, 0.0, -0.1]];
+    let cfg = imucald::config::Config::default();
+    let mut errors = vec![];
+    for enable in [1.0, 0.0] {
+        let p = dir.path().join(format!("warm{enable}.bin"));
+        let truth = ardupilot_corrected_log(&p, enable, &acc, &gyr);
+        let r =
+            imucald::app::replay::replay(&p, &cfg, &Default::default(), &mut |_, _| {}).unwrap();
+        let t = &r.report.temperature;
+        assert_eq!(t.len(), 1, "{t:?}");
+        let want = if enable == 1.0 {
+            imucald::report::OnboardTcal::Undone
+        } else {
+            imucald::report::OnboardTcal::NotEnabled
+        };
+        assert_eq!(t[0].onboard, want);
+        errors.push(largest_errors(calibrated(&t[0].result.outcome), &truth));
+    }
+    // Measured (seed 7): undone, largest errors 3.2e-3 m/s^2 and 5.9e-5 rad/s (3x as
+    // tolerance); not enabled (the readings as logged, what the onboard curve left), 6.8e-2 m/s^2
+    // and 4.0e-3 rad/s (a third as the floor).
+    assert!(errors[0][0] < 0.01 && errors[0][1] < 1.8e-4, "{errors:?}");
+    assert!(errors[1][0] > 0.023 && errors[1][1] > 1.3e-3, "{errors:?}");
+}
+
+#[test]
+fn a_dataflash_warm_up_of_three_imus_calibrates_each_into_one_parameter_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("warm.bin");
+    let truth = dir.path().join("truth.json");
+    let written = imucald::app::simulate::write_warmup(&out, 3, Some(&truth)).unwrap();
+    assert_eq!(written, [out.clone(), truth.clone()]);
+    let truths: Vec<InstanceTruth> =
+        serde_json::from_str(&std::fs::read_to_string(&truth).unwrap()).unwrap();
+    let exports = dir.path().join("exp");
+    let opts = imucald::app::replay::ReplayOptions {
+        export_dir: Some(exports.clone()),
+        ..Default::default()
+    };
+    let cfg = imucald::config::Config::default();
+    let r = imucald::app::replay::replay(&out, &cfg, &opts, &mut |_, _| {}).unwrap();
+    let t = &r.report.temperature;
+    let imus: Vec<usize> = t.iter().map(|r| r.imu).collect();
+    assert_eq!(imus, [0, 1, 2], "{t:?}");
+    let mut worst = [0.0f64; 2];
+    for r in t {
+        assert_eq!(r.onboard, imucald::report::OnboardTcal::NotEnabled);
+        let e = largest_errors(calibrated(&r.result.outcome), &truths[r.imu]);
+        worst = [worst[0].max(e[0]), worst[1].max(e[1])];
+    }
+    // Measured (seed 3): largest errors over the three instances 4.3e-3 m/s^2 and 1.1e-4 rad/s;
+    // tolerances 3x.
+    assert!(worst[0] < 0.013 && worst[1] < 3.3e-4, "{worst:?}");
+    let parm = std::fs::read_to_string(exports.join("tempcal_ardupilot.parm")).unwrap();
+    for n in 1..=3 {
+        assert!(parm.contains(&format!("\nINS_TCAL{n}_ENABLE ")), "{parm}");
+        assert!(parm.contains(&format!("\nINS_TCAL{n}_GYR1_X ")), "{parm}");
+    }
+    let px4 = std::fs::read_to_string(exports.join("tempcal_px4.params")).unwrap();
+    assert!(px4.contains("\tTC_G2_X3_2\t"), "{px4}");
+}

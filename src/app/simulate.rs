@@ -105,26 +105,46 @@ fn write_log(
 /// The warm-up scenario's name (`imucald simulate --scenario warmup`): [`write_warmup`].
 pub const WARMUP: &str = "warmup";
 
-/// The simulated warm-up at rest ([`crate::sim::warmup`], its default settings) written as one
-/// CSV per IMU instance beside `out` (`warm.csv` -> `warm_imu0.csv`, `warm_imu1.csv`, ...): the
-/// flight-log writers carry one IMU instance. With `truth`, the hidden bias curves (JSON).
+/// The simulated warm-up at rest ([`crate::sim::warmup`], its default settings) written as an
+/// ArduPilot DataFlash `.bin` with every IMU instance (`IMU` records with their instance `I` and
+/// temperature `T`), or as one CSV per IMU instance beside `out` (`warm.csv` -> `warm_imu0.csv`,
+/// `warm_imu1.csv`, ...). With `truth`, the hidden bias curves (JSON).
 pub fn write_warmup(out: &Path, seed: u64, truth: Option<&Path>) -> Result<Vec<PathBuf>, Error> {
     let name = out.to_string_lossy().to_string();
     let stem = name
         .strip_suffix(".csv.gz")
-        .or_else(|| name.strip_suffix(".csv"))
-        .ok_or_else(|| {
-            Error::Other(format!(
-                "{name}: the warm-up is written as CSV, one file per IMU instance (.csv or .csv.gz)"
-            ))
-        })?;
-    let ext = &name[stem.len()..];
+        .or_else(|| name.strip_suffix(".csv"));
+    let dataflash = name.to_ascii_lowercase().ends_with(".bin");
+    if stem.is_none() && !dataflash {
+        return Err(Error::Other(format!(
+            "{name}: the warm-up is written as a DataFlash .bin, or as CSV, one file per IMU instance (.csv or .csv.gz)"
+        )));
+    }
     let w = crate::sim::warmup::simulate(&crate::sim::warmup::WarmupSettings::default(), seed);
     let mut written = vec![];
-    for (k, samples) in w.instances.iter().enumerate() {
-        let p = PathBuf::from(format!("{stem}_imu{k}{ext}"));
-        crate::io::samplelog::write_csv(&p, samples)?;
-        written.push(p);
+    match (stem, w.instances.split_first()) {
+        (_, None) => {}
+        (None, Some((first, further))) => {
+            let extra = crate::io::flightlog::write::DataflashExtra {
+                further_imus: further,
+                params: &[],
+            };
+            crate::io::flightlog::write::write_dataflash_with(
+                out,
+                first,
+                &OnboardMag::example(),
+                &extra,
+            )?;
+            written.push(out.to_path_buf());
+        }
+        (Some(stem), Some(_)) => {
+            let ext = &name[stem.len()..];
+            for (k, samples) in w.instances.iter().enumerate() {
+                let p = PathBuf::from(format!("{stem}_imu{k}{ext}"));
+                crate::io::samplelog::write_csv(&p, samples)?;
+                written.push(p);
+            }
+        }
     }
     if let Some(t) = truth {
         crate::io::publish::write_json(t, &w.truth)?;

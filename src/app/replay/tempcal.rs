@@ -14,52 +14,41 @@ use crate::types::{Sample, Sensor};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-/// The IMU number and device id of an instance: the accelerometer stream among the instance
-/// name's parts (`IMU2+MAG2` -> `IMU2`), else the instance's position in the log.
-fn imu_of(name: &str, sensors: &[SensorStream], position: usize) -> (usize, Option<u32>) {
-    sensors
-        .iter()
-        .filter(|s| s.sensor == Sensor::Accel)
-        .find(|s| name.split('+').any(|p| p == s.source))
-        .map_or((position, None), |s| (usize::from(s.instance), s.device_id))
-}
-
-/// Every parameter the log hands on (the onboard calibration slots' own), by name.
-fn log_params(run: &Run) -> BTreeMap<String, f64> {
-    let Some(o) = run.log.onboard() else {
-        return BTreeMap::new();
+/// The IMU number of an instance and its accelerometer's and gyro's device ids: the streams
+/// among the instance name's parts (`IMU2+MAG2` -> `IMU2`), else the instance's position in the
+/// log.
+fn imu_of(name: &str, sensors: &[SensorStream], position: usize) -> (usize, [Option<u32>; 2]) {
+    let find = |sensor: Sensor| {
+        sensors
+            .iter()
+            .filter(|s| s.sensor == sensor)
+            .find(|s| name.split('+').any(|p| p == s.source))
     };
-    o.mag
-        .iter()
-        .chain(&o.accel)
-        .flat_map(|c| c.params.iter().map(|(k, v)| (k.clone(), *v)))
-        .collect()
+    let gyro_id = find(Sensor::Gyro).and_then(|s| s.device_id);
+    find(Sensor::Accel).map_or((position, [None, gyro_id]), |s| {
+        (usize::from(s.instance), [s.device_id, gyro_id])
+    })
 }
 
 /// The samples with a temperature calibration the flight controller applied undone, and which.
+/// `params`: the log's temperature calibration parameters, `None` when the input has none.
 fn undone<'a>(
     samples: &'a [Sample],
-    params: &BTreeMap<String, f64>,
-    flight_log: bool,
+    params: Option<&BTreeMap<String, f64>>,
     imu: usize,
-    device_id: Option<u32>,
+    [accel_id, gyro_id]: [Option<u32>; 2],
 ) -> (std::borrow::Cow<'a, [Sample]>, OnboardTcal) {
-    let has = |p: &str| params.keys().any(|k| k.starts_with(p));
-    if !has("INS_TCAL") && !has("TC_") {
-        let state = if flight_log {
-            OnboardTcal::NotExposed
-        } else {
-            OnboardTcal::NoParameters
-        };
-        return (samples.into(), state);
-    }
-    let applied = Applied::ardupilot(params, imu)
-        .or_else(|| device_id.and_then(|id| Applied::px4(params, id)));
+    let Some(params) = params else {
+        return (samples.into(), OnboardTcal::NoParameters);
+    };
+    let applied =
+        Applied::ardupilot(params, imu).or_else(|| Applied::px4(params, accel_id, gyro_id));
     match applied {
         Some(a) => (
             samples.iter().map(|s| a.undo(s)).collect::<Vec<_>>().into(),
             OnboardTcal::Undone,
         ),
+        None if Applied::px4_enabled(params) => (samples.into(), OnboardTcal::NotMatched),
         None => (samples.into(), OnboardTcal::NotEnabled),
     }
 }
@@ -81,15 +70,15 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
             streams.push((info.name.clone(), k, samples));
         }
     }
-    let params = log_params(run);
+    let params = log.flight.as_ref().map(|f| &f.temperature_params);
     let settings = TempCalSettings::default();
     let mut out = vec![];
     for (name, position, samples) in streams {
         if !has_temperature(samples) {
             continue;
         }
-        let (imu, device_id) = imu_of(&name, sensors, position);
-        let (samples, onboard) = undone(samples, &params, log.flight.is_some(), imu, device_id);
+        let (imu, ids) = imu_of(&name, sensors, position);
+        let (samples, onboard) = undone(samples, params, imu, ids);
         let result = calibrate(&samples, &settings);
         if result.samples == 0 {
             continue;
@@ -97,7 +86,7 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
         out.push(TempCalReport {
             instance: name,
             imu,
-            device_id,
+            device_id: ids[0],
             onboard,
             result,
         });
@@ -171,10 +160,49 @@ pub(super) fn summary_lines(t: &[TempCalReport]) -> String {
         };
         let note = match r.onboard {
             OnboardTcal::Undone => "; the onboard temperature calibration undone first",
-            OnboardTcal::NotExposed => "; an onboard temperature calibration, if the log's parameters enable one, is not undone (the reader does not hand on INS_TCAL*/TC_*)",
+            OnboardTcal::NotMatched => "; the onboard temperature calibration the parameters enable is not undone (no TC_A/TC_G slot of this sensor's device id): the fit is of what it left",
             OnboardTcal::NotEnabled | OnboardTcal::NoParameters => "",
         };
         s += &format!("{line}{note}\n");
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_px4_correction_is_undone_by_the_device_ids_of_the_instance_or_said_not_matched() {
+        let params: BTreeMap<String, f64> = [
+            ("TC_A_ENABLE", 1.0),
+            ("TC_A1_ID", 11.0),
+            ("TC_A1_X1_0", 1e-3),
+            ("TC_G_ENABLE", 1.0),
+            ("TC_G0_ID", 22.0),
+            ("TC_G0_X0_2", 0.01),
+        ]
+        .map(|(n, v)| (n.to_string(), v))
+        .into();
+        let s = [Sample {
+            temp_c: Some(35.0),
+            accel_mps2: Some([0.0; 3]),
+            gyro_rad_s: Some([0.0; 3]),
+            ..Default::default()
+        }];
+        // TREF 25 by default: the accelerometer's x gets 1e-3 * 10 back, the gyro's z 0.01.
+        let (u, state) = undone(&s, Some(&params), 0, [Some(11), Some(22)]);
+        assert_eq!(state, OnboardTcal::Undone);
+        assert!((u[0].accel_mps2.unwrap()[0] - 0.01).abs() < 1e-15);
+        assert!((u[0].gyro_rad_s.unwrap()[2] - 0.01).abs() < 1e-15);
+        // The gyro's device id is not the accelerometer's: no slot, nothing undone.
+        let (u, state) = undone(&s, Some(&params), 0, [Some(11), Some(11)]);
+        assert_eq!(state, OnboardTcal::NotMatched);
+        assert_eq!(u[0], s[0]);
+        assert_eq!(undone(&s, None, 0, [None; 2]).1, OnboardTcal::NoParameters);
+        assert_eq!(
+            undone(&s, Some(&BTreeMap::new()), 0, [None; 2]).1,
+            OnboardTcal::NotEnabled
+        );
+    }
 }

@@ -360,11 +360,13 @@ pub fn binned_points(samples: &[Sample], s: &TempCalSettings) -> Vec<[Point; 6]>
 pub enum OnboardTcal {
     /// The log's parameters enable one (INS_TCALn_ENABLE 1, TC_A/G_ENABLE 1): undone first.
     Undone,
-    /// The log's parameters have it disabled (or learning): the readings are the sensor's.
+    /// The log's parameters do not enable one (disabled, learning, or no such parameters): the
+    /// readings are the sensor's.
     NotEnabled,
-    /// A flight-controller log whose reader does not hand on INS_TCALn_* / TC_* parameters: a
-    /// correction applied onboard, if any, stays in the readings.
-    NotExposed,
+    /// The log's parameters enable one but name no slot of this instance's device id (PX4's
+    /// TC_An_ID / TC_Gn_ID; a stream whose log gives no device id): not undone, the correction
+    /// stays in the readings.
+    NotMatched,
     /// The input carries no parameters (CSV, telemetry).
     NoParameters,
 }

@@ -56,16 +56,25 @@ impl Applied {
         })
     }
 
-    /// PX4's TC_A*/TC_G* slot whose TC_An_ID / TC_Gn_ID is `device_id`, when TC_A_ENABLE /
-    /// TC_G_ENABLE is 1; a sensor without an enabled slot keeps zero coefficients. `None` when
-    /// neither applies.
-    pub fn px4(params: &BTreeMap<String, f64>, device_id: u32) -> Option<Applied> {
+    /// PX4's TC_A* slot whose TC_An_ID is `accel_id` when TC_A_ENABLE is 1, and TC_G* slot whose
+    /// TC_Gn_ID is `gyro_id` when TC_G_ENABLE is 1 (the accelerometer's and the gyro's device ids
+    /// differ); a sensor whose correction is not enabled keeps zero coefficients. `None` when
+    /// neither is enabled, or when one enabled finds no slot of its device id (nothing can be
+    /// undone: see [`Applied::px4_enabled`]).
+    pub fn px4(
+        params: &BTreeMap<String, f64>,
+        accel_id: Option<u32>,
+        gyro_id: Option<u32>,
+    ) -> Option<Applied> {
         let p = |name: String| params.get(&name).copied().filter(|v| v.is_finite());
-        let slot = |s: char| -> Option<(usize, [[f64; 4]; 3], [f64; 3])> {
-            if p(format!("TC_{s}_ENABLE"))? != 1.0 {
-                return None;
+        type Slot = ([[f64; 4]; 3], [f64; 3]);
+        // Not enabled: Some(None); enabled and found: Some(Some(slot)); enabled, not found: None.
+        let slot = |s: char, id: Option<u32>| -> Option<Option<Slot>> {
+            if p(format!("TC_{s}_ENABLE")) != Some(1.0) {
+                return Some(None);
             }
-            let j = (0..4).find(|j| p(format!("TC_{s}{j}_ID")) == Some(device_id as f64))?;
+            let id = f64::from(id?);
+            let j = (0..4).find(|j| p(format!("TC_{s}{j}_ID")) == Some(id))?;
             let c = std::array::from_fn(|a| {
                 std::array::from_fn(|k| p(format!("TC_{s}{j}_X{k}_{a}")).unwrap_or(0.0))
             });
@@ -74,22 +83,26 @@ impl Applied {
                 p(format!("TC_{s}{j}_TMAX")).unwrap_or(100.0),
                 p(format!("TC_{s}{j}_TREF")).unwrap_or(25.0),
             ];
-            Some((j, c, range))
+            Some(Some((c, range)))
         };
-        let (a, g) = (slot('A'), slot('G'));
-        if a.is_none() && g.is_none() {
-            return None;
-        }
+        let (a, g) = (slot('A', accel_id)?, slot('G', gyro_id)?);
         // One range for both: the slots a PX4 tool writes share it; the gyro's wins.
-        let range = g.as_ref().or(a.as_ref()).map(|s| s.2)?;
+        let range = g.as_ref().or(a.as_ref()).map(|s| s.1)?;
         Some(Applied {
             tmin_c: range[0],
             tmax_c: range[1],
             ref_c: range[2],
-            accel: a.map_or([[0.0; 4]; 3], |s| s.1),
-            gyro: g.map_or([[0.0; 4]; 3], |s| s.1),
+            accel: a.map_or([[0.0; 4]; 3], |s| s.0),
+            gyro: g.map_or([[0.0; 4]; 3], |s| s.0),
             cal_temp_c: [None, None],
         })
+    }
+
+    /// Whether PX4's parameters enable a temperature correction (TC_A_ENABLE or TC_G_ENABLE 1).
+    pub fn px4_enabled(params: &BTreeMap<String, f64>) -> bool {
+        ["TC_A_ENABLE", "TC_G_ENABLE"]
+            .iter()
+            .any(|n| params.get(*n) == Some(&1.0))
     }
 
     /// What was subtracted at `temp_c`: accelerometer (m/s^2) and gyro (rad/s) per axis.
@@ -167,9 +180,16 @@ mod tests {
         ] {
             p.insert(n.to_string(), v);
         }
-        let a = Applied::px4(&p, 2_490_378).unwrap();
-        let (_, cg) = a.correction(40.0);
+        let a = Applied::px4(&p, Some(1_310_988), Some(2_490_378)).unwrap();
+        let (ca, cg) = a.correction(40.0);
         assert!((cg[1] - 0.011).abs() < 1e-15, "{cg:?}");
-        assert!(Applied::px4(&p, 7).is_none());
+        // TC_A_ENABLE absent: the accelerometer keeps its readings.
+        assert_eq!(ca, [0.0; 3]);
+        assert!(Applied::px4(&p, None, Some(7)).is_none());
+        assert!(Applied::px4(&p, None, None).is_none());
+        assert!(Applied::px4_enabled(&p));
+        p.insert("TC_G_ENABLE".to_string(), 0.0);
+        assert!(Applied::px4(&p, None, Some(7)).is_none());
+        assert!(!Applied::px4_enabled(&p));
     }
 }

@@ -581,6 +581,7 @@ impl DfConv {
         let mut log = self.asm.finish(onboard, &skips);
         log.primary_mag_source = primary_mag;
         log.date = self.date;
+        log.temperature_params = super::temperature_params(&self.first_params);
         for (id, n) in self.type_counts.iter().enumerate() {
             if let (true, Some(name)) = (*n > 0, self.names.get(&(id as u8, None))) {
                 *log.messages.entry(name.clone()).or_insert(0) += n;

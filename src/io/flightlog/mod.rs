@@ -34,7 +34,9 @@
 //! [`crate::calib::ardupilot::Correction::model`]; PX4's is CAL_MAGn_?OFF x 100, M = S (the
 //! CAL_MAGn_?COMP power compensation is not undone).
 //! `sensor_mag` is raw. Accelerometer and gyroscope streams are used as logged (corrected on
-//! board); their onboard calibration is reported, not undone.
+//! board); their onboard calibration is reported, not undone. The onboard temperature
+//! calibration's parameters (INS_TCALn_*, TC_*) are handed on as they were when the log began
+//! ([`FlightLog::temperature_params`]) for the replay's temperature calibration to undo.
 //!
 //! Files. This one: the samples assembled per instance ([`FlightLog`], the assembler every
 //! conversion feeds). `dataflash_conv` and `ulog_conv`: the records of each format turned into
@@ -83,6 +85,27 @@ pub struct FlightLog {
     /// The day of the first GPS fix that gives one (DataFlash `GPS` week and milliseconds, ULog
     /// `vehicle_gps_position.time_utc_usec`).
     pub date: Option<crate::types::LogDate>,
+    /// The parameters of the onboard temperature calibration as the log began (ArduPilot
+    /// `INS_TCALn_*`, `INS_ACCn_CALTEMP`, `INS_GYRn_CALTEMP`; PX4 `TC_*`), by name. Empty when the
+    /// log has none (no parameters, or firmware without a temperature calibration).
+    pub temperature_params: BTreeMap<String, f64>,
+}
+
+/// Whether a parameter belongs to the onboard temperature calibration ([`FlightLog::temperature_params`]).
+pub(crate) fn is_temperature_param(name: &str) -> bool {
+    name.starts_with("INS_TCAL")
+        || name.starts_with("TC_")
+        || (name.starts_with("INS_ACC") || name.starts_with("INS_GYR"))
+            && name.ends_with("_CALTEMP")
+}
+
+/// The parameters of `params` that [`is_temperature_param`].
+fn temperature_params(params: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
+    params
+        .iter()
+        .filter(|(k, _)| is_temperature_param(k))
+        .map(|(k, v)| (k.clone(), *v))
+        .collect()
 }
 
 /// One instance being assembled.
@@ -342,6 +365,7 @@ impl Assembler {
             messages: self.messages,
             primary_mag_source: None,
             date: None,
+            temperature_params: BTreeMap::new(),
         }
     }
 }

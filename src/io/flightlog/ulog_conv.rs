@@ -511,6 +511,7 @@ impl UlogConv {
         log.primary_mag_source = self.prime_source;
         log.primary_compass_from_onboard();
         log.date = self.date;
+        log.temperature_params = super::temperature_params(params);
         for sub in rd.subscriptions().filter(|s| s.records > 0) {
             *log.messages
                 .entry(format!("{}[{}]", sub.name, sub.multi_id))
@@ -711,6 +712,21 @@ mod tests {
             .filter(|(g, _)| *g == gi)
             .filter_map(|(_, s)| s.mag_ut)
             .collect()
+    }
+
+    #[test]
+    fn the_temperature_calibration_parameters_are_handed_on() {
+        let params = [
+            ("CAL_MAG0_ID", 1000.0),
+            ("TC_A_ENABLE", 1.0),
+            ("TC_A0_ID", 1_310_988.0),
+            ("TC_A0_X1_2", 2.5e-4),
+        ];
+        let recs: Vec<Px4Rec> = (0..3u64).map(|i| Px4Rec::Combined(1_000_000 + i)).collect();
+        let (log, _) = px4_decode(&px4_log(&params, &recs));
+        let names: Vec<&str> = log.temperature_params.keys().map(String::as_str).collect();
+        assert_eq!(names, ["TC_A0_ID", "TC_A0_X1_2", "TC_A_ENABLE"]);
+        assert_eq!(log.temperature_params["TC_A0_ID"], 1_310_988.0);
     }
 
     #[test]

@@ -78,10 +78,31 @@ pub(super) fn fmt_record(id: u8, name: &str, format: &str, cols: &str) -> Vec<u8
     r
 }
 
+/// What a DataFlash log carries besides the primary's samples.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct DataflashExtra<'a> {
+    /// Further IMU instances (1, 2, ...), each time-ordered: their accelerometer, gyro and
+    /// temperature as `IMU` records with the instance field `I`, as ArduPilot 4.x logs them (the
+    /// primary's then carry `I` 0). Empty: the `IMU` records have no `I`, as before ArduPilot 4.
+    pub further_imus: &'a [Vec<Sample>],
+    /// Parameters logged (PARM) besides the compass's and accelerometer's, as float32.
+    pub params: &'a [(String, f64)],
+}
+
 /// ArduPilot DataFlash: FMT, PARM (COMPASS_OFS/DIA/ODI from `onboard`, INS offsets 0 and scales 1),
 /// then per sample `MAG` (mGauss, int16, after ArduPilot's correction `S (raw + OFS)`, with OfsX/Y/Z)
 /// and `IMU` (rad/s, m/s^2).
 pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Result<Vec<u8>, Error> {
+    dataflash_bytes_with(samples, onboard, &DataflashExtra::default())
+}
+
+/// [`dataflash_bytes`] with further IMU instances and parameters ([`DataflashExtra`]); the
+/// further instances' records interleaved with the primary's by time.
+pub fn dataflash_bytes_with(
+    samples: &[Sample],
+    onboard: &OnboardMag,
+    extra: &DataflashExtra<'_>,
+) -> Result<Vec<u8>, Error> {
     if !onboard.symmetric() {
         return Err(Error::Other(
             "ArduPilot's compass matrix is symmetric (DIA/ODI)".into(),
@@ -89,12 +110,22 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
     }
     let mut out = fmt_record(0x80, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns");
     out.extend(fmt_record(129, "PARM", "QNf", "TimeUS,Name,Value"));
-    out.extend(fmt_record(
-        130,
-        "IMU",
-        "QffffffIIfBBHH",
-        "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
-    ));
+    let instanced = !extra.further_imus.is_empty();
+    out.extend(if instanced {
+        fmt_record(
+            130,
+            "IMU",
+            "QBffffffIIfBBHH",
+            "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+        )
+    } else {
+        fmt_record(
+            130,
+            "IMU",
+            "QffffffIIfBBHH",
+            "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+        )
+    });
     out.extend(fmt_record(
         132,
         "ATT",
@@ -131,6 +162,7 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
             ]
             .map(|(n, v)| (n.to_string(), v)),
         )
+        .chain(extra.params.iter().cloned())
         .collect();
     for (n, v) in &params {
         out.extend([0xA3, 0x95, 129]);
@@ -141,6 +173,7 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
         out.extend((*v as f32).to_le_bytes());
     }
     let i16_of = |x: f64| x.round().clamp(i16::MIN as f64, i16::MAX as f64) as i16;
+    let mut further = FurtherImus::new(extra.further_imus);
     for s in samples {
         let t = time_us(s.t_s);
         if let Some([r, p, y]) = s.ref_q.and_then(body_ned_euler_deg) {
@@ -170,19 +203,58 @@ pub(crate) fn dataflash_bytes(samples: &[Sample], onboard: &OnboardMag) -> Resul
             out.extend((t as u32).to_le_bytes());
         }
         if let (Some(a), Some(g)) = (s.accel_mps2, s.gyro_rad_s) {
-            out.extend([0xA3, 0x95, 130]);
-            out.extend(t.to_le_bytes());
-            for v in g.iter().chain(&a) {
-                out.extend((*v as f32).to_le_bytes());
-            }
-            out.extend([0u8; 8]);
-            out.extend((s.temp_c.unwrap_or(25.0) as f32).to_le_bytes());
-            out.extend([1, 1]);
-            out.extend(1000u16.to_le_bytes());
-            out.extend(1000u16.to_le_bytes());
+            further.flush_until(t, &mut out);
+            out.extend(imu_record(t, instanced.then_some(0), a, g, s.temp_c));
         }
     }
+    further.flush_until(u64::MAX, &mut out);
     Ok(out)
+}
+
+/// An `IMU` record (id 130): gyro rad/s, accelerometer m/s^2, temperature deg C (25 when the
+/// sample has none), with the instance field `I` when given.
+fn imu_record(t: u64, instance: Option<u8>, a: Vec3, g: Vec3, temp_c: Option<f64>) -> Vec<u8> {
+    let mut out = vec![0xA3, 0x95, 130];
+    out.extend(t.to_le_bytes());
+    out.extend(instance);
+    for v in g.iter().chain(&a) {
+        out.extend((*v as f32).to_le_bytes());
+    }
+    out.extend([0u8; 8]);
+    out.extend((temp_c.unwrap_or(25.0) as f32).to_le_bytes());
+    out.extend([1, 1]);
+    out.extend(1000u16.to_le_bytes());
+    out.extend(1000u16.to_le_bytes());
+    out
+}
+
+/// The further IMU instances' samples, written in time order as the primary's go by.
+struct FurtherImus<'a> {
+    instances: &'a [Vec<Sample>],
+    /// The next sample of each instance.
+    next: Vec<usize>,
+}
+
+impl<'a> FurtherImus<'a> {
+    fn new(instances: &'a [Vec<Sample>]) -> Self {
+        FurtherImus {
+            instances,
+            next: vec![0; instances.len()],
+        }
+    }
+
+    /// Write every further sample up to `t_us` (instance order within a time).
+    fn flush_until(&mut self, t_us: u64, out: &mut Vec<u8>) {
+        for (k, v) in self.instances.iter().enumerate() {
+            let instance = u8::try_from(k + 1).unwrap_or(u8::MAX);
+            while let Some(s) = v.get(self.next[k]).filter(|s| time_us(s.t_s) <= t_us) {
+                self.next[k] += 1;
+                if let (Some(a), Some(g)) = (s.accel_mps2, s.gyro_rad_s) {
+                    out.extend(imu_record(time_us(s.t_s), Some(instance), a, g, s.temp_c));
+                }
+            }
+        }
+    }
 }
 
 fn ulog_msg(out: &mut Vec<u8>, ty: u8, body: &[u8]) {
@@ -423,5 +495,17 @@ pub fn write_flight_log(
             path.display()
         )));
     };
+    crate::io::publish::write_atomic(path, &bytes)
+}
+
+/// Write `samples` as a DataFlash `.bin` with further IMU instances and parameters
+/// ([`DataflashExtra`]) through [`crate::io::publish::write_atomic`].
+pub fn write_dataflash_with(
+    path: &std::path::Path,
+    samples: &[Sample],
+    onboard: &OnboardMag,
+    extra: &DataflashExtra<'_>,
+) -> Result<(), Error> {
+    let bytes = dataflash_bytes_with(samples, onboard, extra)?;
     crate::io::publish::write_atomic(path, &bytes)
 }
