@@ -16,6 +16,7 @@ pub mod clock;
 pub mod decode;
 pub mod flightlog;
 pub mod link;
+pub mod mavftp;
 pub mod mavout;
 pub mod mocap;
 pub mod onboard;

@@ -19,6 +19,7 @@
 //! calibration run's states and its transition function, which decides what is installed.
 //! `store`: the calibration on disk. `sinks`: JSON consumers. `outputs`: output cadences and means.
 
+mod ftp;
 mod lifecycle;
 mod magcal;
 mod mqtt;
@@ -447,6 +448,8 @@ struct Cal {
     /// The orientation filter was given a state (restored at start, or kept across a restart):
     /// it has something to save even before its first sample.
     filter_seeded: bool,
+    /// The parameter file open for each ground station's MAVFTP session.
+    ftp: crate::io::mavftp::FtpServer,
 }
 
 struct State {
@@ -457,6 +460,9 @@ struct State {
     sample_clocks: Vec<SourceClock>,
     /// Inbound frames dropped as our own echo.
     own_echo: u64,
+    /// Systems whose flight controller was heard (a HEARTBEAT naming an autopilot): MAVFTP
+    /// requests to every component of such a system are its own.
+    autopilot_systems: std::collections::BTreeSet<u8>,
     /// The calibration stores and the report, written off the run loop.
     store_writes: Writes,
     report_writes: Writes,

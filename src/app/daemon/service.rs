@@ -110,6 +110,7 @@ impl Cal {
             attitude_due: false,
             last_body_mag: None,
             filter_seeded: false,
+            ftp: Default::default(),
         };
         if let Some(f) = c.store.filter {
             c.fusion.set_state(&f);
@@ -151,6 +152,7 @@ impl State {
             cals: vec![cal0],
             sample_clocks: Vec::new(),
             own_echo: 0,
+            autopilot_systems: Default::default(),
             store_writes: Writes::default(),
             report_writes: Writes::default(),
             links,

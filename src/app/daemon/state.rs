@@ -483,6 +483,7 @@ impl State {
         }
         match &frame.message {
             MavMessage::HEARTBEAT(_) => {
+                self.note_autopilot(frame.system_id, &frame.message);
                 let v = self.vehicle(link, frame.system_id);
                 let conv = &mut self.vehicles[v].conv;
                 let was = conv.is_ardupilot();
@@ -507,6 +508,9 @@ impl State {
             | MavMessage::PARAM_REQUEST_READ(_)
             | MavMessage::PARAM_SET(_) => {
                 self.on_param_request(&frame.message).await;
+            }
+            MavMessage::FILE_TRANSFER_PROTOCOL(d) => {
+                self.on_ftp(frame.system_id, frame.component_id, d).await;
             }
             MavMessage::PARAM_VALUE(_) => {
                 let v = self.vehicle(link, frame.system_id);
