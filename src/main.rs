@@ -152,6 +152,10 @@ struct DiagnoseArgs {
     /// Write residual-versus-regressor plots (before and after) into this directory.
     #[arg(long)]
     plot: Option<PathBuf>,
+    /// Write the flight controller's parameters that remove the effects named into this
+    /// directory: diagnose.parm (ArduPilot) and diagnose.params (PX4).
+    #[arg(long)]
+    export: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -754,6 +758,7 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
         seed,
         report,
         plot,
+        export,
     } = args;
     let cfg = load_config(config.as_ref())?;
     let base = match base_model {
@@ -794,6 +799,19 @@ fn diagnose_cmd(args: DiagnoseArgs) -> Result<()> {
             println!("wrote {}", p.display());
         }
     }
+    if let Some(dir) = &export {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        for (name, text) in imucald::diagnose::fix::export_files(&r) {
+            let path = dir.join(name);
+            imucald::io::publish::write_text(&path, &text)?;
+            println!("wrote {}", path.display());
+        }
+    }
+    let shown = export.as_ref().map(|d| d.display().to_string());
+    print!(
+        "{}",
+        imucald::diagnose::fix::closing_lines(&r, shown.as_deref())
+    );
     Ok(())
 }
 

@@ -99,3 +99,49 @@ fn current_interference_is_named_from_a_pymavlink_flight_tlog() {
     // 0.15 uT was the same, so the messages' units and rates leave structure; not broken down).
     assert!(worst < 0.006, "{worst}");
 }
+
+/// The current's field ends in the flight controllers' per-ampere compensation: ArduPilot
+/// COMPASS_MOT = -(M k) x 10 mGauss/A with COMPASS_MOTCT 2, PX4 CAL_MAG0_xCOMP = -k x 10 G/kA with
+/// CAL_MAG_COMP_TYP 2 (M the truth's soft-iron matrix at unit determinant, k the hidden field
+/// per ampere).
+#[test]
+fn current_interference_exports_the_per_ampere_compensation() {
+    let k_true = [0.3, -0.2, 0.45];
+    let mut sc = Scenario::named("cruise").unwrap();
+    sc.effects.motor_interference = Some(k_true);
+    sc.effects.motor_driver = MotorDriver::Current;
+    // The export's matrix has unit determinant (the field's scale is the calibration's radius).
+    let m0 = nalgebra::Matrix3::from_fn(|r, c| sc.truth.mag.matrix[r][c]);
+    let m0 = m0 / m0.determinant().cbrt();
+    let m: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m0[(r, c)]));
+    let out = simulate(&sc, 2);
+    let cfg = Config::from_toml_str(DATE).unwrap();
+    let r = diagnose(&out.samples, &cfg, &DiagnoseOptions::default());
+    let fx = imucald::diagnose::fix::fixes(&r);
+    let f = fx
+        .iter()
+        .find(|f| f.effect == Effect::MotorInterference)
+        .expect("motor_interference named");
+    let get = |list: &[(String, f64)], n: &str| {
+        list.iter().find(|(x, _)| x == n).map(|(_, v)| *v).unwrap()
+    };
+    assert_eq!(get(&f.ardupilot, "COMPASS_MOTCT"), 2.0);
+    assert_eq!(get(&f.px4, "CAL_MAG_COMP_TYP"), 2.0);
+    let (mut e_ap, mut n_ap, mut e_px, mut n_px) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for (i, axis) in ["X", "Y", "Z"].iter().enumerate() {
+        let truth_ap = -(0..3).map(|c| m[i][c] * k_true[c]).sum::<f64>() * 10.0;
+        let got_ap = get(&f.ardupilot, &format!("COMPASS_MOT_{axis}"));
+        let truth_px = -k_true[i] * 10.0;
+        let got_px = get(&f.px4, &format!("CAL_MAG0_{axis}COMP"));
+        eprintln!("{axis}: COMPASS_MOT {got_ap:.3} (truth {truth_ap:.3}) mGauss/A, CAL_MAG0_COMP {got_px:.3} (truth {truth_px:.3}) G/kA");
+        e_ap += (got_ap - truth_ap).powi(2);
+        n_ap += truth_ap.powi(2);
+        e_px += (got_px - truth_px).powi(2);
+        n_px += truth_px.powi(2);
+    }
+    let (rel_ap, rel_px) = ((e_ap / n_ap).sqrt(), (e_px / n_px).sqrt());
+    eprintln!("relative error: ArduPilot {rel_ap:.4}, PX4 {rel_px:.4}");
+    // Measured: see docs/diagnose.md.
+    assert!(rel_ap < 0.05, "{rel_ap}");
+    assert!(rel_px < 0.02, "{rel_px}");
+}

@@ -2,6 +2,8 @@
 //! decision, the effect it concerns and every candidate's tests. The rounds ([`super::rounds`])
 //! fill these in; the report ([`super::report`]) collects them.
 
+use super::determined::{Deciding, Determination};
+use super::plausible::OutOfRange;
 use super::Effect;
 use serde::{Deserialize, Serialize};
 
@@ -24,6 +26,22 @@ pub struct CandidateReport {
     /// Whether the improvement holds on the held-out groups (refitted candidates only).
     pub held_out: Option<bool>,
     pub note: String,
+    /// Why the fitted (or, before a refit, the linearised) parameters are outside their physical
+    /// range; empty when inside.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub out_of_range: Vec<OutOfRange>,
+    /// How well the refit determines the effect's size (refitted candidates only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub size: Option<Determination>,
+}
+
+/// An effect that passed every test but whose size the data do not determine: it might be there,
+/// and this is the data that would decide it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Possible {
+    pub effect: Effect,
+    pub size: Determination,
+    pub decide_with: Deciding,
 }
 
 /// How a round of the search ended: "named", "none", "unexplained" or "not_identifiable" in the
@@ -71,6 +89,9 @@ pub struct RoundReport {
     pub effect: Option<Effect>,
     pub detail: String,
     pub candidates: Vec<CandidateReport>,
+    /// The effect that might be there (passed every test, size not determined), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub possible: Option<Possible>,
 }
 
 /// A unit as the terminal shows it: a dimensionless one (`1` in the report) as nothing.

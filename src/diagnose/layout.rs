@@ -1,7 +1,7 @@
 //! The forward model: the fixed context of a diagnosis, the parameter layout of the base model plus
 //! the catalogue of effects as switchable terms, decoding a parameter vector, the residuals every
-//! evidence unit gives in each channel ([`super::channel`]), and the physical plausibility of an
-//! effect's parameters.
+//! evidence unit gives in each channel ([`super::channel`]). The physical ranges of the effects'
+//! parameters are [`super::plausible`].
 
 use super::channel::{Ch, NCH};
 use super::evidence::{
@@ -13,25 +13,6 @@ use crate::calib::model::{a_from_params, rotation_from_vector, Calibration, Mode
 use crate::types::Vec3;
 use nalgebra::{DVector, Matrix3, Vector3};
 
-/// Plausibility: largest symmetric off-diagonal term of a normalised matrix (cross_axis), 1.
-pub(crate) const MAX_CROSS_AXIS: f64 = 0.2;
-/// Plausibility: largest rotation between the magnetometer and accelerometer frames, degrees.
-pub(crate) const MAX_MISALIGNMENT_DEG: f64 = 10.0;
-/// Plausibility: largest magnetometer bias per degree, uT/degC.
-pub(crate) const MAX_MAG_TEMP_UT_PER_C: f64 = 2.0;
-/// Plausibility: largest accelerometer bias per degree, m/s^2/degC.
-pub(crate) const MAX_ACCEL_TEMP_MPS2_PER_C: f64 = 0.05;
-/// Plausibility: largest motor field over the driver's range, in multiples of the earth field.
-pub(crate) const MAX_MOTOR_FIELD_RATIO: f64 = 2.0;
-/// Plausibility: largest mounting yaw against the reference attitude, degrees.
-pub(crate) const MAX_HEADING_OFFSET_DEG: f64 = 30.0;
-/// Plausibility: largest per-axis cubic scale coefficient, 1.
-pub(crate) const MAX_CUBIC: f64 = 0.15;
-/// Plausibility: largest change of the gyro bias over the log's time or temperature range, rad/s.
-pub(crate) const MAX_GYRO_BIAS_CHANGE_RAD_S: f64 = 0.2;
-/// Plausibility: each diagonal entry of a calibration matrix scaled to unit determinant stays in
-/// this range with the effect in (else the base calibration collapsed), 1.
-const SANE_SCALE: std::ops::Range<f64> = 0.5..2.0;
 /// Newton steps of the per-axis inverse of the cubic scale term.
 const CUBIC_NEWTON_STEPS: usize = 4;
 
@@ -701,116 +682,6 @@ pub(super) fn residuals(
     let mut out = Vec::new();
     eval_units(ctx, &md, ev, units, &mut |_, c, r| out.push((c, r)));
     out
-}
-
-/// Physical plausibility of an effect's fitted parameters. Returns (plausible, note).
-pub(super) fn plausibility(ctx: &Ctx, lay: &Layout, p: &DVector<f64>, e: Effect) -> (bool, String) {
-    let Some(b) = lay.block(e) else {
-        return (false, "not in model".into());
-    };
-    let q: Vec<f64> = (0..b.len).map(|k| p[b.start + k]).collect();
-    let maxabs = |v: &[f64]| v.iter().fold(0.0f64, |a, x| a.max(x.abs()));
-    let mut ok = true;
-    let mut why = String::new();
-    let mut check = |cond: bool, msg: String| {
-        if !cond {
-            ok = false;
-            if !why.is_empty() {
-                why.push_str("; ");
-            }
-            why.push_str(&msg);
-        }
-    };
-    let field = ctx.s0m;
-    match e {
-        Effect::CrossAxis => check(
-            maxabs(&q) < MAX_CROSS_AXIS,
-            format!("off-diagonal {:.3} beyond {MAX_CROSS_AXIS}", maxabs(&q)),
-        ),
-        Effect::MagAccelMisalignment => {
-            let a = sl3(&q).norm().to_degrees();
-            check(
-                a < MAX_MISALIGNMENT_DEG,
-                format!("rotation {a:.2} deg beyond {MAX_MISALIGNMENT_DEG}"),
-            );
-        }
-        Effect::TemperatureBias => {
-            let mut k = 0;
-            if b.mag {
-                let m = maxabs(&q[k..k + 3]);
-                check(
-                    m < MAX_MAG_TEMP_UT_PER_C,
-                    format!("mag {m:.3} uT/degC beyond {MAX_MAG_TEMP_UT_PER_C}"),
-                );
-                k += 3;
-            }
-            if b.acc {
-                let m = maxabs(&q[k..k + 3]);
-                check(
-                    m < MAX_ACCEL_TEMP_MPS2_PER_C,
-                    format!("accel {m:.4} m/s^2/degC beyond {MAX_ACCEL_TEMP_MPS2_PER_C}"),
-                );
-            }
-        }
-        Effect::MotorInterference => {
-            let k = sl3(&q).norm() * ctx.drv_range;
-            check(
-                k < MAX_MOTOR_FIELD_RATIO * field,
-                format!(
-                    "motor field {k:.2} uT over the driver range beyond {MAX_MOTOR_FIELD_RATIO} x the earth field"
-                ),
-            );
-        }
-        Effect::HeadingOffset => {
-            let a = q[0].to_degrees().abs();
-            check(
-                a < MAX_HEADING_OFFSET_DEG,
-                format!("heading offset {a:.2} deg beyond {MAX_HEADING_OFFSET_DEG}"),
-            );
-        }
-        Effect::ScaleNonlinearity => check(
-            maxabs(&q) < MAX_CUBIC,
-            format!("cubic coefficient {:.3} beyond {MAX_CUBIC}", maxabs(&q)),
-        ),
-        Effect::GyroBiasDrift => {
-            let mut k = 0;
-            if b.time {
-                let m = maxabs(&q[k..k + 3]) * ctx.time_span;
-                check(
-                    m < MAX_GYRO_BIAS_CHANGE_RAD_S,
-                    format!(
-                        "gyro bias change {m:.3} rad/s over the log beyond {MAX_GYRO_BIAS_CHANGE_RAD_S}"
-                    ),
-                );
-                k += 3;
-            }
-            if b.temp {
-                let m = maxabs(&q[k..k + 3]) * ctx.temp_range;
-                check(
-                    m < MAX_GYRO_BIAS_CHANGE_RAD_S,
-                    format!(
-                        "gyro bias change {m:.3} rad/s over the temperature range beyond {MAX_GYRO_BIAS_CHANGE_RAD_S}"
-                    ),
-                );
-            }
-        }
-    }
-    // The base calibration must stay sane with the effect in.
-    let md = decode(ctx, lay, p.as_slice());
-    for (name, a) in [("mag", md.am), ("accel", md.aa)] {
-        let d = a.determinant();
-        if d.abs() > 0.0 {
-            let nm = a / d.abs().cbrt();
-            for i in 0..3 {
-                if !SANE_SCALE.contains(&nm[(i, i)]) {
-                    ok = false;
-                    why.push_str(&format!("; {name} scale collapsed"));
-                    break;
-                }
-            }
-        }
-    }
-    (ok, why)
 }
 
 /// Start calibrations from the pipeline, falling back to a fit of the static means.

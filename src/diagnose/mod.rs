@@ -73,23 +73,35 @@
 
 mod channel;
 mod decision;
+mod determined;
 mod evidence;
+pub mod fix;
+mod follows;
+mod judge;
 mod layout;
+mod plausible;
 mod report;
 mod rounds;
+mod screen;
 mod stats;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
+mod tests_fix;
+#[cfg(test)]
 mod tests_mismatch;
 
-pub use decision::{CandidateReport, Decision, RoundReport};
+pub use decision::{CandidateReport, Decision, Possible, RoundReport};
+pub use determined::{Deciding, Determination, GroupSize, MIN_SIZE_SIGMAS};
 pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MAX_STILL_TURN_DEG, MIN_STATIC_MAG_UNITS,
     TEMP_LAGS_S, WINDOW_BLOCK, WINDOW_S,
 };
+pub use follows::{Follows, Reading, Regressor, ResidualTrace, MIN_NAMING_R};
+pub use plausible::{OutOfRange, SensorKind};
 pub use report::{
-    summary_table, ChannelRms, DiagnosisReport, EvidenceSummary, ParamEstimate, ResidualSeries,
+    summary_table, ChannelRms, DiagnosisReport, EffectShrink, EvidenceSummary, ParamEstimate,
+    ResidualSeries,
 };
 pub use rounds::EXCESS_RATIO;
 

@@ -3,9 +3,10 @@
 //! effect found (the data of `--plot`), the fitted effect parameters with uncertainties, and the
 //! terminal table.
 
-use super::channel::{ALL_CH, NCH};
+use super::channel::{Ch, ALL_CH, NCH};
 use super::decision::{shown_unit, Decision, RoundReport};
 use super::evidence::Driver;
+use super::follows::ResidualTrace;
 use super::layout::{decode, residuals, tags, Layout};
 use super::rounds::{median_count, Run, Selection, Split};
 use super::{Effect, SCHEMA};
@@ -73,7 +74,35 @@ pub struct DiagnosisReport {
     /// base model (before) and the final model (after), every unit (the data of `--plot`).
     #[serde(default)]
     pub residual_plots: Vec<ResidualSeries>,
+    /// The earth field's magnitude the residuals are relative to, uT (0 without a magnetometer).
+    #[serde(default)]
+    pub field_ut: f64,
+    /// The final model's magnetometer matrix (all units), raw to calibrated: what ArduPilot's
+    /// motor compensation goes through.
+    #[serde(default)]
+    pub mag_matrix: Option<[[f64; 3]; 3]>,
+    /// Per effect found: the held-out residual of the final model with the effect switched off and
+    /// on (the shrink it brings).
+    #[serde(default)]
+    pub effect_shrink: BTreeMap<String, EffectShrink>,
+    /// What the final model's residual follows (time, driver, heading, position).
+    #[serde(default)]
+    pub residual_trace: ResidualTrace,
     pub notes: Vec<String>,
+}
+
+/// The held-out residual of the final model without and with one effect.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EffectShrink {
+    /// RMS of all residual components, in units of their expected noise.
+    pub rms_without: f64,
+    pub rms_with: f64,
+    /// RMS of the field-magnitude residual, uT (NaN without that channel).
+    pub mag_norm_without_ut: f64,
+    pub mag_norm_with_ut: f64,
+    /// RMS of the field-direction residual, deg (NaN without that channel).
+    pub vector_mag_without_deg: f64,
+    pub vector_mag_with_deg: f64,
 }
 
 /// Residuals of one channel against the regressor of one effect, before and after adding it.
@@ -127,12 +156,17 @@ impl DiagnosisReport {
                 effect: None,
                 detail: why.clone(),
                 candidates: vec![],
+                possible: None,
             }],
             rms_before: f64::NAN,
             rms_after: f64::NAN,
             rms_channels: BTreeMap::new(),
             effects: BTreeMap::new(),
             residual_plots: vec![],
+            field_ut: 0.0,
+            mag_matrix: None,
+            effect_shrink: BTreeMap::new(),
+            residual_trace: ResidualTrace::default(),
             notes: vec![why],
         }
     }
@@ -166,10 +200,11 @@ fn effect_params(
     run: &Run,
     sel: &Selection,
     all: &[usize],
-) -> BTreeMap<String, BTreeMap<String, ParamEstimate>> {
+) -> (EffectParams, Option<[[f64; 3]; 3]>) {
     let mut effects = BTreeMap::new();
     if sel.found.is_empty() {
-        return effects;
+        let md = decode(&run.ctx, &sel.lay, sel.p.as_slice());
+        return (effects, sel.lay.mag.map(|_| mat_rows(&md.am)));
     }
     let (lay, p) = (&sel.lay, &sel.p);
     let w = run.weights(lay, p);
@@ -245,7 +280,42 @@ fn effect_params(
         }
         effects.insert(b.effect.name().to_string(), params);
     }
-    effects
+    (effects, lay.mag.map(|_| mat_rows(&md.am)))
+}
+
+/// The fitted parameters of each effect, by effect and parameter name.
+type EffectParams = BTreeMap<String, BTreeMap<String, ParamEstimate>>;
+
+fn mat_rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+}
+
+/// The held-out residual of the final model with each effect found switched off and on.
+fn effect_shrink(run: &Run, sel: &Selection, units: &[usize]) -> BTreeMap<String, EffectShrink> {
+    let (ra, pa) = run.rms(&sel.lay, &sel.p, units);
+    let mut out = BTreeMap::new();
+    for e in &sel.found {
+        let Some(b) = sel.lay.block(*e) else {
+            continue;
+        };
+        let mut off = sel.p.clone();
+        for k in 0..b.len {
+            off[b.start + k] = 0.0;
+        }
+        let (rb, pb) = run.rms(&sel.lay, &off, units);
+        out.insert(
+            e.name().to_string(),
+            EffectShrink {
+                rms_without: rb,
+                rms_with: ra,
+                mag_norm_without_ut: pb[Ch::MagNorm.i()],
+                mag_norm_with_ut: pa[Ch::MagNorm.i()],
+                vector_mag_without_deg: pb[Ch::VecMag.i()].to_degrees(),
+                vector_mag_with_deg: pa[Ch::VecMag.i()].to_degrees(),
+            },
+        );
+    }
+    out
 }
 
 /// The report of a finished selection: held-out RMS of the base (`lay0`, `base_p`) and the final
@@ -267,7 +337,9 @@ pub(super) fn assemble(
     let (rb, pb) = run.rms(lay0, base_p, &rms_units);
     let (ra, pa) = run.rms(&sel.lay, &sel.p, &rms_units);
     let rms_channels = rms_channels(run, &pb, &pa);
-    let effects = effect_params(run, &sel, &split.order);
+    let (effects, mag_matrix) = effect_params(run, &sel, &split.order);
+    let effect_shrink = effect_shrink(run, &sel, &rms_units);
+    let residual_trace = super::follows::trace(&run.ctx, ev, (&sel.lay, &sel.p), &split.order);
     let residual_plots: Vec<ResidualSeries> = sel
         .found
         .iter()
@@ -312,6 +384,14 @@ pub(super) fn assemble(
         rms_channels,
         effects,
         residual_plots,
+        field_ut: if run.ctx.ch[Ch::MagNorm.i()] || run.ctx.ch[Ch::VecMag.i()] {
+            run.ctx.s0m
+        } else {
+            0.0
+        },
+        mag_matrix,
+        effect_shrink,
+        residual_trace,
         notes,
     }
 }

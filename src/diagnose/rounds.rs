@@ -3,13 +3,12 @@
 //! decision (named, none, unexplained, not_identifiable), recorded as [`super::decision`] types.
 
 use super::channel::{Ch, ALL_CH, NCH};
-use super::decision::{shown_unit, CandidateReport, Decision, RoundReport};
+use super::decision::{CandidateReport, Decision, RoundReport};
 use super::evidence::{quat_rot, v3, Evidence, MagObs, Unit};
-use super::layout::{
-    applicable, build_layout, carry_params, decode, eval_units, plausibility, residuals, tags, Ctx,
-    Layout,
-};
-use super::stats::{columns, condition, explained, mean_sd, nested_f, select_cols, t_sf};
+use super::judge::{judge, no_effect_decision};
+use super::layout::{decode, eval_units, residuals, tags, Ctx, Layout};
+use super::screen::{linearise, screen, Cand};
+use super::stats::{mean_sd, t_sf};
 use super::{DiagnoseOptions, Effect};
 use crate::calib::lm::LmFit;
 use crate::calib::model::{params_from_a, ModelKind};
@@ -41,28 +40,6 @@ const HELD_OUT_Z: f64 = 3.0;
 const HELD_OUT_P: f64 = 0.05;
 /// ...over at least this many groups.
 const MIN_T_TEST_GROUPS: usize = 3;
-/// A regressor column with norm below this (relative to 1 + |r|) does not vary.
-const MIN_REGRESSOR_NORM: f64 = 1e-12;
-/// A regressor whose normalised column keeps less than this norm after projecting out the current
-/// model is absorbed by it (collinear, or poor coverage).
-const MIN_RESIDUAL_REGRESSOR: f64 = 0.03;
-/// Largest condition number of a candidate's projected regressors.
-const MAX_CANDIDATE_CONDITION: f64 = 1e3;
-/// Candidates are refitted jointly, in rank order, while their linearised p is below this multiple
-/// of the round's threshold alpha / m.
-const REFIT_P_FACTOR: f64 = 10.0;
-/// Largest condition number of a joint fit's normal matrix (column-normalised); above it the fit is
-/// degenerate.
-const MAX_JOINT_CONDITION: f64 = 1e12;
-/// Confounding: another significant candidate explains at least this share of the named one's
-/// linearised drop...
-const CONFOUND_SHARE: f64 = 0.8;
-/// ...and both together explain at most this multiple of the larger single drop.
-const CONFOUND_UNION: f64 = 1.1;
-/// "Unexplained" needs at least this many residual components in the channel.
-const MIN_EXCESS_COMPONENTS: usize = 5;
-/// Floor of the fraction of a channel's components left as degrees of freedom in the excess test.
-const MIN_DOF_FRACTION: f64 = 0.1;
 /// Fewest samples of a channel inside a unit for its within-unit scatter.
 const MIN_SCATTER_SAMPLES: usize = 3;
 
@@ -713,65 +690,6 @@ pub(super) struct Selection {
     pub start: (Layout, DVector<f64>),
 }
 
-/// The current model linearised with every remaining candidate appended at zero: one Jacobian for
-/// the ranking.
-struct Linearised {
-    /// Channel weights of the round.
-    w: [f64; NCH],
-    /// Weighted sum of squares of the current fit, its component count and parameter count.
-    s0: f64,
-    m: usize,
-    p_cur: usize,
-    lay_all: Layout,
-    j_all: DMatrix<f64>,
-    r_vec: DVector<f64>,
-    /// Columns of the current model (base and effects found).
-    base_cols: Vec<usize>,
-    /// Sum of squares the current model's columns explain, and an orthonormal basis of them.
-    ex0: f64,
-    u0: DMatrix<f64>,
-    /// The candidates whose lag was chosen in this round by profiling (the time constant then
-    /// counts as one more parameter in the tests).
-    lag_profiled: Vec<Effect>,
-}
-
-/// A candidate after the linearised screen.
-struct Cand {
-    e: Effect,
-    q: usize,
-    ident: bool,
-    plaus: bool,
-    note: String,
-    ds_lin: f64,
-    f_lin: f64,
-    p_lin: f64,
-    cols: Vec<usize>,
-}
-
-impl Cand {
-    fn rejected(e: Effect, q: usize, note: String, cols: Vec<usize>) -> Cand {
-        Cand {
-            e,
-            q,
-            ident: false,
-            plaus: false,
-            note,
-            ds_lin: 0.0,
-            f_lin: 0.0,
-            p_lin: 1.0,
-            cols,
-        }
-    }
-}
-
-/// How the refits of a round ended: an effect named, a decision without one, or neither (with the
-/// significant candidates that failed a check).
-struct Verdict {
-    decision: Option<(Decision, Option<Effect>, String)>,
-    named: Option<(Effect, Layout, DVector<f64>)>,
-    failed_sig: Vec<String>,
-}
-
 /// Run the rounds from the base model until one names nothing (or `max_rounds`).
 pub(super) fn select(
     run: &Run,
@@ -804,411 +722,6 @@ pub(super) fn select(
         }
     }
     sel
-}
-
-fn linearise(
-    run: &Run,
-    sel: &Selection,
-    cur_p: &DVector<f64>,
-    w: [f64; NCH],
-    cur: &LmFit,
-) -> Linearised {
-    let cands: Vec<Effect> = Effect::ALL
-        .iter()
-        .copied()
-        .filter(|e| !sel.found.contains(e))
-        .collect();
-    let mut all_effects = sel.found.clone();
-    all_effects.extend(cands.iter().copied());
-    let mut lay_all = build_layout(&run.ctx, &all_effects).with_lags_of(&sel.lay);
-    let p_all = carry_params(&sel.lay, cur_p, &lay_all);
-    let (mut j_all, r_all) = run.jac(&lay_all, &w, &run.fit_units.clone(), &p_all);
-    let r_vec = DVector::from_column_slice(&r_all);
-    let base_cols: Vec<usize> = (0..sel.lay.n_base)
-        .chain(sel.found.iter().flat_map(|e| columns(&lay_all, *e)))
-        .collect();
-    let j0 = select_cols(&j_all, &base_cols);
-    let (ex0, u0) = explained(&j0, &r_vec);
-    let lag_profiled: Vec<Effect> = cands
-        .iter()
-        .copied()
-        .filter(|&e| lay_all.lag_of(e).is_some() && applicable(&run.ctx, e).is_ok())
-        .collect();
-    for &e in &lag_profiled {
-        let (k, x) = profile_lag(run, &w, e, (&lay_all, &p_all), (&j_all, &r_all), &base_cols);
-        let cols = columns(&lay_all, e);
-        for (c, &col) in cols.iter().enumerate() {
-            j_all.set_column(col, &x.column(c));
-        }
-        lay_all = lay_all.with_lag(e, k);
-    }
-    Linearised {
-        w,
-        s0: cur.ssr,
-        m: cur.r.len(),
-        p_cur: sel.lay.n,
-        lay_all,
-        j_all,
-        r_vec,
-        base_cols,
-        ex0,
-        u0,
-        lag_profiled,
-    }
-}
-
-/// The lag of effect `e`'s grid ([`super::evidence::TEMP_LAGS_S`], [`super::evidence::DRIVER_LAGS_S`])
-/// whose regressors explain most of the current residual beyond the current model's columns (the
-/// time constant is profiled on the fit units, as least squares would fit it), with the effect's
-/// Jacobian columns at that lag.
-fn profile_lag(
-    run: &Run,
-    w: &[f64; NCH],
-    e: Effect,
-    (lay_all, p_all): (&Layout, &DVector<f64>),
-    (j_all, r0): (&DMatrix<f64>, &[f64]),
-    base_cols: &[usize],
-) -> (usize, DMatrix<f64>) {
-    let cols = columns(lay_all, e);
-    let r_vec = DVector::from_column_slice(r0);
-    let j_base = select_cols(j_all, base_cols);
-    let mut best: Option<(f64, usize, DMatrix<f64>)> = None;
-    let n_lags = lay_all.lag_of(e).map_or(1, |l| l.0);
-    for k in 0..n_lags {
-        let lay_k = lay_all.clone().with_lag(e, k);
-        let x = run.jac_cols(&lay_k, w, p_all, r0, &cols);
-        let mut jb = j_base
-            .clone()
-            .resize_horizontally(base_cols.len() + cols.len(), 0.0);
-        for c in 0..cols.len() {
-            jb.set_column(base_cols.len() + c, &x.column(c));
-        }
-        let (ex, _) = explained(&jb, &r_vec);
-        if best.as_ref().is_none_or(|b| ex > b.0) {
-            best = Some((ex, k, x));
-        }
-    }
-    match best {
-        Some((_, k, x)) => (k, x),
-        None => (0, select_cols(j_all, &cols)),
-    }
-}
-
-/// Identifiability of a candidate's regressors `x`: each must vary and must not be absorbed by the
-/// current model. Err: why not.
-fn identifiable(lin: &Linearised, cols: &[usize], x: &DMatrix<f64>) -> Result<(), String> {
-    let q = cols.len();
-    let mut xn = x.clone();
-    for c in 0..q {
-        let s = xn.column(c).norm();
-        if !(s > MIN_REGRESSOR_NORM * (1.0 + lin.r_vec.norm())) {
-            return Err(format!(
-                "regressor {} has no variation",
-                lin.lay_all.names[cols[c]].0
-            ));
-        }
-        xn.column_mut(c).scale_mut(1.0 / s);
-    }
-    let px = &xn - &lin.u0 * (lin.u0.transpose() * &xn);
-    let mut worst = f64::INFINITY;
-    let mut worst_c = 0;
-    for c in 0..q {
-        let r = px.column(c).norm();
-        if r < worst {
-            worst = r;
-            worst_c = c;
-        }
-    }
-    let sv = px.clone().svd(false, false).singular_values;
-    let cond = sv.max() / sv.min().max(1e-300);
-    if worst < MIN_RESIDUAL_REGRESSOR {
-        Err(format!(
-            "regressor {} is absorbed by the current model (collinear or poor coverage)",
-            lin.lay_all.names[cols[worst_c]].0
-        ))
-    } else if cond > MAX_CANDIDATE_CONDITION {
-        Err(format!(
-            "collinear regressors (condition {cond:.1e}): poor coverage"
-        ))
-    } else {
-        Ok(())
-    }
-}
-
-/// The linearised nested test of candidate `e` at the current fit.
-fn screen(run: &Run, lin: &Linearised, sel: &Selection, cur_p: &DVector<f64>, e: Effect) -> Cand {
-    let cols = columns(&lin.lay_all, e);
-    if let Err(why) = applicable(&run.ctx, e) {
-        return Cand::rejected(e, 0, why, cols);
-    }
-    let x = select_cols(&lin.j_all, &cols);
-    // A profiled time constant is one more parameter.
-    let q = cols.len() + usize::from(lin.lag_profiled.contains(&e));
-    if let Err(note) = identifiable(lin, &cols, &x) {
-        return Cand::rejected(e, q, note, cols);
-    }
-    let mut bc = lin.base_cols.clone();
-    bc.extend(cols.iter().copied());
-    let jb = select_cols(&lin.j_all, &bc);
-    let (ex1, _) = explained(&jb, &lin.r_vec);
-    let ds = (ex1 - lin.ex0).max(0.0);
-    // Linearised parameter step, for a first plausibility check.
-    let mut effs = sel.found.clone();
-    effs.push(e);
-    let lay1 = build_layout(&run.ctx, &effs).with_lags_of(&lin.lay_all);
-    let mut p1 = carry_params(&sel.lay, cur_p, &lay1);
-    if let Ok(step) = jb.clone().svd(true, true).solve(&(-&lin.r_vec), 1e-10) {
-        if step.len() == lay1.n {
-            p1 += step;
-        }
-    }
-    let (plaus_lin, pnote) = plausibility(&run.ctx, &lay1, &p1, e);
-    let note = if plaus_lin {
-        String::new()
-    } else {
-        format!("linearised estimate implausible: {pnote}")
-    };
-    let s1 = (lin.s0 - ds).max(1e-300);
-    let (f, pl) = nested_f(ds, s1, q, lin.m as f64 - (lin.p_cur + q) as f64, 1.0);
-    Cand {
-        e,
-        q,
-        ident: true,
-        plaus: plaus_lin,
-        note,
-        ds_lin: ds,
-        f_lin: f,
-        p_lin: pl,
-        cols,
-    }
-}
-
-/// Another significant candidate that explains the same structure as `c`, if any.
-fn confounder(lin: &Linearised, list: &[Cand], c: &Cand, thresh: f64) -> Option<Effect> {
-    for o in list {
-        if o.e == c.e || !o.ident || !(o.p_lin < thresh) {
-            continue;
-        }
-        let mut bc = lin.base_cols.clone();
-        bc.extend(c.cols.iter().copied());
-        bc.extend(o.cols.iter().copied());
-        let (exu, _) = explained(&select_cols(&lin.j_all, &bc), &lin.r_vec);
-        let dsu = (exu - lin.ex0).max(0.0);
-        if o.ds_lin >= CONFOUND_SHARE * c.ds_lin && dsu <= CONFOUND_UNION * c.ds_lin.max(o.ds_lin) {
-            return Some(o.e);
-        }
-    }
-    None
-}
-
-/// The joint refit of the current model plus candidate `c`: its report entry is updated. Returns
-/// the layout, parameters, p-value, plausibility, held-out verdict and condition number.
-fn refit(
-    run: &Run,
-    lin: &Linearised,
-    sel: &Selection,
-    cur_p: &DVector<f64>,
-    c: &Cand,
-    rep: &mut CandidateReport,
-) -> (Layout, DVector<f64>, f64, bool, bool, f64) {
-    let mut effs = sel.found.clone();
-    effs.push(c.e);
-    let lay1 = build_layout(&run.ctx, &effs).with_lags_of(&lin.lay_all);
-    let p1s = carry_params(&sel.lay, cur_p, &lay1);
-    let w = &lin.w;
-    let mut alt = run.fit(&lay1, w, &run.fit_units.clone(), p1s);
-    if !plausibility(&run.ctx, &lay1, &alt.p, c.e).0 {
-        let again = carry_params(&sel.start.0, &sel.start.1, &lay1);
-        let alt2 = run.fit(&lay1, w, &run.fit_units.clone(), again);
-        if alt2.ssr < alt.ssr {
-            alt = alt2;
-        }
-    }
-    let (m, p_cur, q, s0) = (lin.m, lin.p_cur, c.q, lin.s0);
-    let s1 = alt.ssr.max(1e-300);
-    let rho = run.autocorr(w, (&sel.lay, cur_p), (&lay1, &alt.p));
-    let defl = (1.0 - rho) / (1.0 + rho);
-    let (f, pv) = nested_f(
-        (s0 - s1).max(0.0),
-        s1,
-        q,
-        m as f64 - (p_cur + q) as f64,
-        defl,
-    );
-    let (plaus, pnote) = plausibility(&run.ctx, &lay1, &alt.p, c.e);
-    let (holds, hp, hdrop) = run.held_out(w, (&sel.lay, cur_p), (&lay1, &alt.p), q, m);
-    let cond = condition(&alt.jtj);
-    rep.statistic = f;
-    rep.p_value = pv;
-    rep.improvement = if s0 > 0.0 { (s0 - s1) / s0 } else { 0.0 };
-    rep.plausible = plaus;
-    rep.refit = true;
-    rep.held_out = Some(holds);
-    let held = if hdrop.is_finite() {
-        format!("held-out drop {:.1}% (z {:.1})", 100.0 * hdrop, hp)
-    } else {
-        "no held-out groups".to_string()
-    };
-    let params = lay1
-        .block(c.e)
-        .map(|b| {
-            (0..b.len)
-                .map(|k| {
-                    let (name, unit) = &lay1.names[b.start + k];
-                    let unit = shown_unit(unit);
-                    format!("{name} {:.4} {unit}", alt.p[b.start + k])
-                        .trim_end()
-                        .to_string()
-                })
-                .collect::<Vec<_>>()
-                .join(", ")
-        })
-        .unwrap_or_default();
-    let lag = match lay1.lag_of(c.e) {
-        Some((_, tau)) => format!(", lagged {tau:.2} s"),
-        None => String::new(),
-    };
-    let mut note = format!(
-        "{held}; lag-1 autocorrelation {rho:.2}; linearised F {:.2}; {params}{lag}",
-        c.f_lin
-    );
-    if !pnote.is_empty() {
-        note.push_str("; implausible: ");
-        note.push_str(&pnote);
-    }
-    if !(cond < MAX_JOINT_CONDITION) {
-        note.push_str(&format!("; joint fit degenerate (condition {cond:.1e})"));
-    }
-    rep.note = note;
-    (lay1, alt.p, pv, plaus, holds, cond)
-}
-
-/// Refit the candidates in rank order until one is named or a decision is reached.
-#[allow(clippy::too_many_arguments)]
-fn judge(
-    run: &Run,
-    lin: &Linearised,
-    sel: &Selection,
-    cur_p: &DVector<f64>,
-    list: &[Cand],
-    rank: &[usize],
-    reports: &mut [CandidateReport],
-    thresh: f64,
-) -> Verdict {
-    let mut failed_sig: Vec<String> = vec![];
-    for &ci in rank {
-        let c = &list[ci];
-        if !(c.p_lin < REFIT_P_FACTOR * thresh) {
-            break;
-        }
-        let (lay1, p1, pv, plaus, holds, cond) = refit(run, lin, sel, cur_p, c, &mut reports[ci]);
-        if !(pv < thresh) {
-            continue;
-        }
-        if !(cond < MAX_JOINT_CONDITION) {
-            let d = format!(
-                "{} is significant but its joint fit is degenerate (condition {cond:.1e}): poor coverage",
-                c.e.name()
-            );
-            return Verdict {
-                decision: Some((Decision::NotIdentifiable, Some(c.e), d)),
-                named: None,
-                failed_sig,
-            };
-        }
-        if !plaus || !holds {
-            failed_sig.push(format!(
-                "{} (p {:.1e}) {}",
-                c.e.name(),
-                pv,
-                if !plaus {
-                    "implausible"
-                } else {
-                    "does not hold on held-out poses"
-                }
-            ));
-            continue;
-        }
-        if let Some(o) = confounder(lin, list, c, thresh) {
-            let d = format!(
-                "{} and {} explain the same residual structure (their regressors are collinear in this data); vary them independently",
-                c.e.name(),
-                o.name()
-            );
-            return Verdict {
-                decision: Some((Decision::NotIdentifiable, Some(c.e), d)),
-                named: None,
-                failed_sig,
-            };
-        }
-        return Verdict {
-            decision: None,
-            named: Some((c.e, lay1, p1)),
-            failed_sig,
-        };
-    }
-    Verdict {
-        decision: None,
-        named: None,
-        failed_sig,
-    }
-}
-
-/// No effect named and no other decision: "unexplained" when some channel's residual variance is
-/// more than [`EXCESS_RATIO`] x its expected noise, else "none".
-fn no_effect_decision(
-    run: &Run,
-    sel: &Selection,
-    cur_p: &DVector<f64>,
-    noise_known: &[bool; NCH],
-    failed_sig: &[String],
-    (alpha, n_ident, thresh): (f64, usize, f64),
-) -> (Decision, Option<Effect>, String) {
-    let ev = run.ev;
-    let res = residuals(&run.ctx, &sel.lay, ev, &run.fit_units, cur_p.as_slice());
-    let tg = tags(&run.ctx, &sel.lay, cur_p, ev, &run.fit_units);
-    let mut chi = [0.0; NCH];
-    let mut nn = [0usize; NCH];
-    for ((ui, _, _), (c, r)) in tg.iter().zip(&res) {
-        chi[c.i()] += (r / run.noise(*ui, *c).max(1e-300)).powi(2);
-        nn[c.i()] += 1;
-    }
-    let mtot = res.len() as f64;
-    let mut excess = vec![];
-    for c in ALL_CH {
-        let i = c.i();
-        if nn[i] >= MIN_EXCESS_COMPONENTS && noise_known[i] {
-            let dof = nn[i] as f64 * (1.0 - sel.lay.n as f64 / mtot).max(MIN_DOF_FRACTION);
-            let ratio = chi[i] / dof;
-            if ratio > EXCESS_RATIO {
-                excess.push(format!(
-                    "{} residual variance {:.1}x the within-pose noise",
-                    c.name(),
-                    ratio
-                ));
-            }
-        }
-    }
-    if !excess.is_empty() {
-        let mut d = excess.join("; ");
-        if !failed_sig.is_empty() {
-            d.push_str(&format!(
-                "; candidates that fit but failed: {}",
-                failed_sig.join(", ")
-            ));
-        }
-        (Decision::Unexplained, None, d)
-    } else {
-        let d = if failed_sig.is_empty() {
-            format!(
-                "no candidate is significant at {:.1e} (alpha {alpha} / {n_ident})",
-                thresh
-            )
-        } else {
-            format!("significant but rejected: {}", failed_sig.join(", "))
-        };
-        (Decision::NoEffect, None, d)
-    }
 }
 
 /// One round: refit the current model, screen and rank the candidates, refit them in order.
@@ -1252,6 +765,8 @@ fn one_round(
             refit: false,
             held_out: None,
             note: c.note.clone(),
+            out_of_range: c.oor.clone(),
+            size: None,
         })
         .collect();
     let mut rank: Vec<usize> = (0..list.len()).filter(|&i| list[i].ident).collect();
@@ -1265,12 +780,14 @@ fn one_round(
     if let Some((e, lay1, p1)) = verdict.named {
         let rep = reports.iter().find(|r| r.name == e.name());
         let detail = format!(
-            "{} removes {:.1}% of the weighted residual (F {:.1}, p {:.1e} < {:.1e})",
+            "{} removes {:.1}% of the weighted residual (F {:.1}, p {:.1e} < {:.1e}); {}",
             e.name(),
             100.0 * rep.map(|r| r.improvement).unwrap_or(0.0),
             rep.map(|r| r.statistic).unwrap_or(0.0),
             rep.map(|r| r.p_value).unwrap_or(1.0),
-            thresh
+            thresh,
+            rep.and_then(|r| r.size.as_ref())
+                .map_or(String::new(), |d| d.to_string())
         );
         let report = RoundReport {
             round,
@@ -1278,6 +795,7 @@ fn one_round(
             effect: Some(e),
             detail,
             candidates: reports,
+            possible: None,
         };
         return (report, Some((e, lay1, p1)), cur_p);
     }
@@ -1288,7 +806,7 @@ fn one_round(
             sel,
             &cur_p,
             noise_known,
-            &verdict.failed_sig,
+            &verdict,
             (alpha, n_ident, thresh),
         ),
     };
@@ -1298,6 +816,7 @@ fn one_round(
         effect: eff,
         detail,
         candidates: reports,
+        possible: verdict.possible,
     };
     (report, None, cur_p)
 }

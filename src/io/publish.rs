@@ -96,6 +96,11 @@ pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     write_atomic_with(path, |f| f.write_all(bytes))
 }
 
+/// Write a text file atomically.
+pub fn write_text(path: &Path, text: &str) -> Result<(), Error> {
+    write_atomic(path, text.as_bytes())
+}
+
 /// Serialise as pretty JSON and write atomically.
 pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), Error> {
     let text =
