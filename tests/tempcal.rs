@@ -413,3 +413,48 @@ fn a_dataflash_warm_up_of_three_imus_calibrates_each_into_one_parameter_file() {
     let px4 = std::fs::read_to_string(exports.join("tempcal_px4.params")).unwrap();
     assert!(px4.contains("\tTC_G2_X3_2\t"), "{px4}");
 }
+
+/// A replay whose one result is a temperature calibration succeeds (exit status 0, not 3:
+/// nothing calibrated) and `next:` names the files to load.
+#[test]
+fn a_replay_that_only_calibrates_temperature_succeeds_and_says_to_load_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("warm.bin");
+    let exports = dir.path().join("exp");
+    let imucald = |args: &[&std::ffi::OsStr]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let sim = imucald(&[
+        "simulate".as_ref(),
+        "--scenario".as_ref(),
+        "warmup".as_ref(),
+        "--out".as_ref(),
+        log.as_os_str(),
+    ]);
+    assert!(sim.status.success(), "{sim:?}");
+    let out = imucald(&[
+        "replay".as_ref(),
+        log.as_os_str(),
+        "--export".as_ref(),
+        exports.as_os_str(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stdout}\n{stderr}");
+    assert!(!stderr.contains("nothing was calibrated"), "{stderr}");
+    let next = stdout.lines().find(|l| l.starts_with("next:")).unwrap();
+    let parm = exports.join("tempcal_ardupilot.parm");
+    assert!(
+        next.starts_with("next: load the temperature calibration")
+            && next.contains(&parm.display().to_string()),
+        "{next}"
+    );
+    assert_eq!(
+        stdout.matches("accel and gyro biases fitted").count(),
+        3,
+        "{stdout}"
+    );
+}

@@ -94,13 +94,40 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
     out
 }
 
+/// The names of the temperature calibration's parameter files ([`write_exports`]).
+pub(super) const ARDUPILOT_FILE: &str = "tempcal_ardupilot.parm";
+pub(super) const PX4_FILE: &str = "tempcal_px4.params";
+
+/// Whether an instance was calibrated.
+pub(super) fn calibrated_any(t: &[TempCalReport]) -> bool {
+    t.iter()
+        .any(|r| matches!(r.result.outcome, TempOutcome::Calibrated(_)))
+}
+
+/// What `next:` says of the temperature calibration, when an instance was calibrated: load the
+/// files written, or ask for them.
+pub(super) fn next_words(t: &[TempCalReport], written: &[PathBuf]) -> Option<String> {
+    if !calibrated_any(t) {
+        return None;
+    }
+    let file = |name: &str| {
+        written
+            .iter()
+            .find(|p| p.file_name().is_some_and(|f| f == name))
+            .map(|p| p.display().to_string())
+    };
+    Some(match (file(ARDUPILOT_FILE), file(PX4_FILE)) {
+        (Some(ap), Some(px)) => format!(
+            "load the temperature calibration {ap} (ArduPilot) or {px} (PX4) on the vehicle, then redo its accelerometer calibration"
+        ),
+        _ => "add --export DIR for the temperature calibration's ArduPilot and PX4 parameter files".into(),
+    })
+}
+
 /// `tempcal_ardupilot.parm` and `tempcal_px4.params` in `dir` when an instance was calibrated
 /// (else no file: nothing to load).
 pub(super) fn write_exports(dir: &Path, t: &[TempCalReport]) -> Result<Vec<PathBuf>, Error> {
-    if !t
-        .iter()
-        .any(|r| matches!(r.result.outcome, TempOutcome::Calibrated(_)))
-    {
+    if !calibrated_any(t) {
         return Ok(vec![]);
     }
     let list: Vec<InstanceExport<'_>> = t
@@ -118,8 +145,8 @@ pub(super) fn write_exports(dir: &Path, t: &[TempCalReport]) -> Result<Vec<PathB
     })?;
     let mut written = vec![];
     for (name, text) in [
-        ("tempcal_ardupilot.parm", export::ardupilot_file(&list)),
-        ("tempcal_px4.params", export::px4_file(&list)),
+        (ARDUPILOT_FILE, export::ardupilot_file(&list)),
+        (PX4_FILE, export::px4_file(&list)),
     ] {
         let p = dir.join(name);
         crate::io::publish::write_atomic(&p, text.as_bytes())?;
