@@ -458,3 +458,39 @@ fn a_replay_that_only_calibrates_temperature_succeeds_and_says_to_load_its_files
         "{stdout}"
     );
 }
+
+/// `[tempcal]` in the configuration reaches the replay's fit, and bad values name their key.
+#[test]
+fn the_tempcal_section_of_the_configuration_is_read_by_replay() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("warm.csv");
+    let written = imucald::app::simulate::write_warmup(&out, 3, None).unwrap();
+    let cfg = imucald::config::Config::from_toml_str("[tempcal]\nmin_span_c = 30.0\nbin_c = 1.0\n")
+        .unwrap();
+    assert_eq!(cfg.tempcal.bin_c, 1.0);
+    let r = imucald::app::replay::replay(&written[0], &cfg, &Default::default(), &mut |_, _| {})
+        .unwrap();
+    // The warm-up spans about 24 C: refused under a 30 C minimum, with the minimum named.
+    match &r.report.temperature[0].result.outcome {
+        TempOutcome::Refused(Refusal::Span { min_span_c, .. }) => assert_eq!(*min_span_c, 30.0),
+        o => panic!("{o:?}"),
+    }
+    let cfg = imucald::config::Config::from_toml_str("[tempcal]\nbin_c = 1.0\n").unwrap();
+    let r = imucald::app::replay::replay(&written[0], &cfg, &Default::default(), &mut |_, _| {})
+        .unwrap();
+    let c = calibrated(&r.report.temperature[0].result.outcome);
+    assert_eq!(c.bin_c, 1.0);
+    assert!(imucald::app::replay::summary(&r.report).contains("points of 1 C"));
+    for bad in [
+        "bin_c = 0.0",
+        "max_moving_fraction = 1.5",
+        "min_per_bin = 0",
+        "bins = 3",
+    ] {
+        let e = imucald::config::Config::from_toml_str(&format!("[tempcal]\n{bad}\n"))
+            .unwrap_err()
+            .to_string();
+        let key = bad.split(' ').next().unwrap();
+        assert!(e.contains(key), "{bad}: {e}");
+    }
+}

@@ -157,7 +157,7 @@ pub fn replay(
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
     report.load = load::decide(&report, cfg.accept.mag.max_rms_ratio);
-    report.temperature = tempcal::temperature(&run);
+    report.temperature = tempcal::temperature(&run, &cfg.tempcal);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {

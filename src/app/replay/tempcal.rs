@@ -55,7 +55,7 @@ fn undone<'a>(
 
 /// The temperature calibration of every instance of the run with temperature readings: the
 /// primary's first, then the further instances in the log's order. Empty when none has.
-pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
+pub(super) fn temperature(run: &Run, settings: &TempCalSettings) -> Vec<TempCalReport> {
     let log = &run.log;
     let sensors: &[SensorStream] = log.flight.as_ref().map_or(&[], |f| &f.sensors);
     let primary_at = log.flight.as_ref().and_then(|f| f.primary).unwrap_or(0);
@@ -71,7 +71,6 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
         }
     }
     let params = log.flight.as_ref().map(|f| &f.temperature_params);
-    let settings = TempCalSettings::default();
     let mut out = vec![];
     for (name, position, samples) in streams {
         if !has_temperature(samples) {
@@ -79,7 +78,7 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
         }
         let (imu, ids) = imu_of(&name, sensors, position);
         let (samples, onboard) = undone(samples, params, imu, ids);
-        let result = calibrate(&samples, &settings);
+        let result = calibrate(&samples, settings);
         if result.samples == 0 {
             continue;
         }
@@ -179,7 +178,7 @@ pub(super) fn summary_lines(t: &[TempCalReport]) -> String {
             TempOutcome::Calibrated(c) => format!(
                 "{head}, {} points of {} C: accel and gyro biases fitted (cubic), held-out shrink accel {}, gyro {} (medians of the axes)",
                 c.points,
-                TempCalSettings::default().bin_c,
+                c.bin_c,
                 shrink(&c.accel.axes),
                 shrink(&c.gyro.axes)
             ),
