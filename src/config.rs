@@ -6,6 +6,7 @@ use crate::calib::gate::GateConfig;
 pub use crate::calib::settings::{
     AccelUnits, AcceptConfig, AcceptLimits, CalibSettings, FitConfig, MagModelChoice, ModelChoice,
 };
+pub use crate::calib::tempcal::TempCalSettings;
 use crate::error::Error;
 pub use crate::io::sources::{InputConfig, InputFormat};
 use serde::{Deserialize, Serialize};
@@ -30,6 +31,8 @@ pub struct Config {
     pub daemon: DaemonConfig,
     /// `[ui]`: the live page of the service. Default: see [`UiConfig`] (no page).
     pub ui: UiConfig,
+    /// `[tempcal]`: the temperature calibration of `replay`. Default: see [`TempCalSettings`].
+    pub tempcal: TempCalSettings,
 }
 
 /// The live page (`imucald run --ui ADDR`): a web page and its JSON/event stream served by the
@@ -466,10 +469,39 @@ impl Config {
         self.validate_fit()?;
         self.validate_daemon()?;
         self.validate_ui()?;
+        self.validate_tempcal()?;
         crate::attitude::sensor_rotation(&self.orientation.sensor)
             .map_err(|m| err("orientation.sensor", m))?;
         if let Some(p) = &self.place_today() {
             crate::attitude::earth_field(p).map_err(|m| err("place", m))?;
+        }
+        Ok(())
+    }
+
+    /// `[tempcal]`: lengths and limits above 0, shares between 0 and 1.
+    fn validate_tempcal(&self) -> Result<(), Error> {
+        let t = &self.tempcal;
+        for (key, v) in [
+            ("tempcal.block_s", t.block_s),
+            ("tempcal.accel_std_max_mps2", t.accel_std_max_mps2),
+            ("tempcal.gyro_std_max_rad_s", t.gyro_std_max_rad_s),
+            ("tempcal.max_rotation_deg", t.max_rotation_deg),
+            ("tempcal.bin_c", t.bin_c),
+            ("tempcal.min_span_c", t.min_span_c),
+            ("tempcal.held_out_band_c", t.held_out_band_c),
+        ] {
+            positive(key, v)?;
+        }
+        for (key, v) in [
+            ("tempcal.max_moving_fraction", t.max_moving_fraction),
+            ("tempcal.max_thin_fraction", t.max_thin_fraction),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(err(key, format!("must be between 0 and 1, got {v}")));
+            }
+        }
+        if t.min_per_bin == 0 {
+            return Err(err("tempcal.min_per_bin", "must be 1 or more readings"));
         }
         Ok(())
     }

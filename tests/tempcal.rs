@@ -413,3 +413,84 @@ fn a_dataflash_warm_up_of_three_imus_calibrates_each_into_one_parameter_file() {
     let px4 = std::fs::read_to_string(exports.join("tempcal_px4.params")).unwrap();
     assert!(px4.contains("\tTC_G2_X3_2\t"), "{px4}");
 }
+
+/// A replay whose one result is a temperature calibration succeeds (exit status 0, not 3:
+/// nothing calibrated) and `next:` names the files to load.
+#[test]
+fn a_replay_that_only_calibrates_temperature_succeeds_and_says_to_load_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("warm.bin");
+    let exports = dir.path().join("exp");
+    let imucald = |args: &[&std::ffi::OsStr]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_imucald"))
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let sim = imucald(&[
+        "simulate".as_ref(),
+        "--scenario".as_ref(),
+        "warmup".as_ref(),
+        "--out".as_ref(),
+        log.as_os_str(),
+    ]);
+    assert!(sim.status.success(), "{sim:?}");
+    let out = imucald(&[
+        "replay".as_ref(),
+        log.as_os_str(),
+        "--export".as_ref(),
+        exports.as_os_str(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stdout}\n{stderr}");
+    assert!(!stderr.contains("nothing was calibrated"), "{stderr}");
+    let next = stdout.lines().find(|l| l.starts_with("next:")).unwrap();
+    let parm = exports.join("tempcal_ardupilot.parm");
+    assert!(
+        next.starts_with("next: load the temperature calibration")
+            && next.contains(&parm.display().to_string()),
+        "{next}"
+    );
+    assert_eq!(
+        stdout.matches("accel and gyro biases fitted").count(),
+        3,
+        "{stdout}"
+    );
+}
+
+/// `[tempcal]` in the configuration reaches the replay's fit, and bad values name their key.
+#[test]
+fn the_tempcal_section_of_the_configuration_is_read_by_replay() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("warm.csv");
+    let written = imucald::app::simulate::write_warmup(&out, 3, None).unwrap();
+    let cfg = imucald::config::Config::from_toml_str("[tempcal]\nmin_span_c = 30.0\nbin_c = 1.0\n")
+        .unwrap();
+    assert_eq!(cfg.tempcal.bin_c, 1.0);
+    let r = imucald::app::replay::replay(&written[0], &cfg, &Default::default(), &mut |_, _| {})
+        .unwrap();
+    // The warm-up spans about 24 C: refused under a 30 C minimum, with the minimum named.
+    match &r.report.temperature[0].result.outcome {
+        TempOutcome::Refused(Refusal::Span { min_span_c, .. }) => assert_eq!(*min_span_c, 30.0),
+        o => panic!("{o:?}"),
+    }
+    let cfg = imucald::config::Config::from_toml_str("[tempcal]\nbin_c = 1.0\n").unwrap();
+    let r = imucald::app::replay::replay(&written[0], &cfg, &Default::default(), &mut |_, _| {})
+        .unwrap();
+    let c = calibrated(&r.report.temperature[0].result.outcome);
+    assert_eq!(c.bin_c, 1.0);
+    assert!(imucald::app::replay::summary(&r.report).contains("points of 1 C"));
+    for bad in [
+        "bin_c = 0.0",
+        "max_moving_fraction = 1.5",
+        "min_per_bin = 0",
+        "bins = 3",
+    ] {
+        let e = imucald::config::Config::from_toml_str(&format!("[tempcal]\n{bad}\n"))
+            .unwrap_err()
+            .to_string();
+        let key = bad.split(' ').next().unwrap();
+        assert!(e.contains(key), "{bad}: {e}");
+    }
+}

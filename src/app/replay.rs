@@ -157,7 +157,7 @@ pub fn replay(
     let mut report = full_report(path, &mut run, &results, declination);
     report.quality = quality;
     report.load = load::decide(&report, cfg.accept.mag.max_rms_ratio);
-    report.temperature = tempcal::temperature(&run);
+    report.temperature = tempcal::temperature(&run, &cfg.tempcal);
     let (pipe, log) = (&run.pipe, &run.log);
     let mut written = vec![];
     if let Some(p) = &opts.report {
@@ -1732,8 +1732,14 @@ fn gyro_lines(g: &crate::report::GyroCalibration, s: &mut String) {
     }
 }
 
-/// Whether a replay calibrated nothing: no compass, no accelerometer, no gyro bias.
+/// Whether a replay calibrated nothing: no compass, no accelerometer, no gyro bias, no
+/// temperature calibration.
 pub fn calibrated_nothing(r: &Report) -> bool {
+    sensors_calibrated_nothing(r) && !tempcal::calibrated_any(&r.temperature)
+}
+
+/// No compass, no accelerometer, no gyro bias (a temperature calibration aside).
+fn sensors_calibrated_nothing(r: &Report) -> bool {
     r.calibration.mag.status != CalStatus::Ok
         && r.calibration.accel.status != CalStatus::Ok
         && r.calibration.gyro.status != CalStatus::Ok
@@ -1745,13 +1751,23 @@ pub fn calibrated_nothing(r: &Report) -> bool {
 /// The line after a replay's summary: what to do next with what it found. `asked_export`: the
 /// replay was given `--export` (then `next:` never asks for it).
 pub fn next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String {
+    let temperature = tempcal::next_words(&r.temperature, written);
+    match temperature {
+        Some(t) if sensors_calibrated_nothing(r) => format!("next: {t}"),
+        Some(t) => format!("{}; {t}", sensors_next_step(r, written, asked_export)),
+        None => sensors_next_step(r, written, asked_export),
+    }
+}
+
+/// [`next_step`] of the compasses and the accelerometer.
+fn sensors_next_step(r: &Report, written: &[PathBuf], asked_export: bool) -> String {
     let exported = |name: &str| {
         written
             .iter()
             .find(|p| p.file_name().is_some_and(|f| f == name))
             .map(|p| p.display().to_string())
     };
-    if calibrated_nothing(r) {
+    if sensors_calibrated_nothing(r) {
         return "next: nothing passed; each FAILED line above says what the data lacked (most often: turn the vehicle through more directions, or give the log's units), then replay again".into();
     }
     let (load, keep) = load::named(r);

@@ -133,10 +133,13 @@ pub(crate) fn withheld(
 }
 
 /// Whether the replay found anything to load on the vehicle: a compass whose calibration is one
-/// to load ([`decide`]), or an accelerometer calibration that passed. A gyro bias alone is not:
-/// no parameter file carries it, and the flight controller learns its own at every start.
+/// to load ([`decide`]), an accelerometer calibration that passed, or a temperature calibration
+/// made. A gyro bias alone is not: no parameter file carries it, and the flight controller learns
+/// its own at every start.
 pub fn loadable(r: &Report) -> bool {
-    r.load.iter().any(|d| d.load) || r.calibration.accel.status == CalStatus::Ok
+    r.load.iter().any(|d| d.load)
+        || r.calibration.accel.status == CalStatus::Ok
+        || super::tempcal::calibrated_any(&r.temperature)
 }
 
 /// The compasses to load and those not, in words, for `next:`.

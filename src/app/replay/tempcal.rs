@@ -55,7 +55,7 @@ fn undone<'a>(
 
 /// The temperature calibration of every instance of the run with temperature readings: the
 /// primary's first, then the further instances in the log's order. Empty when none has.
-pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
+pub(super) fn temperature(run: &Run, settings: &TempCalSettings) -> Vec<TempCalReport> {
     let log = &run.log;
     let sensors: &[SensorStream] = log.flight.as_ref().map_or(&[], |f| &f.sensors);
     let primary_at = log.flight.as_ref().and_then(|f| f.primary).unwrap_or(0);
@@ -71,7 +71,6 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
         }
     }
     let params = log.flight.as_ref().map(|f| &f.temperature_params);
-    let settings = TempCalSettings::default();
     let mut out = vec![];
     for (name, position, samples) in streams {
         if !has_temperature(samples) {
@@ -79,7 +78,7 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
         }
         let (imu, ids) = imu_of(&name, sensors, position);
         let (samples, onboard) = undone(samples, params, imu, ids);
-        let result = calibrate(&samples, &settings);
+        let result = calibrate(&samples, settings);
         if result.samples == 0 {
             continue;
         }
@@ -94,13 +93,40 @@ pub(super) fn temperature(run: &Run) -> Vec<TempCalReport> {
     out
 }
 
+/// The names of the temperature calibration's parameter files ([`write_exports`]).
+pub(super) const ARDUPILOT_FILE: &str = "tempcal_ardupilot.parm";
+pub(super) const PX4_FILE: &str = "tempcal_px4.params";
+
+/// Whether an instance was calibrated.
+pub(super) fn calibrated_any(t: &[TempCalReport]) -> bool {
+    t.iter()
+        .any(|r| matches!(r.result.outcome, TempOutcome::Calibrated(_)))
+}
+
+/// What `next:` says of the temperature calibration, when an instance was calibrated: load the
+/// files written, or ask for them.
+pub(super) fn next_words(t: &[TempCalReport], written: &[PathBuf]) -> Option<String> {
+    if !calibrated_any(t) {
+        return None;
+    }
+    let file = |name: &str| {
+        written
+            .iter()
+            .find(|p| p.file_name().is_some_and(|f| f == name))
+            .map(|p| p.display().to_string())
+    };
+    Some(match (file(ARDUPILOT_FILE), file(PX4_FILE)) {
+        (Some(ap), Some(px)) => format!(
+            "load the temperature calibration {ap} (ArduPilot) or {px} (PX4) on the vehicle, then redo its accelerometer calibration"
+        ),
+        _ => "add --export DIR for the temperature calibration's ArduPilot and PX4 parameter files".into(),
+    })
+}
+
 /// `tempcal_ardupilot.parm` and `tempcal_px4.params` in `dir` when an instance was calibrated
 /// (else no file: nothing to load).
 pub(super) fn write_exports(dir: &Path, t: &[TempCalReport]) -> Result<Vec<PathBuf>, Error> {
-    if !t
-        .iter()
-        .any(|r| matches!(r.result.outcome, TempOutcome::Calibrated(_)))
-    {
+    if !calibrated_any(t) {
         return Ok(vec![]);
     }
     let list: Vec<InstanceExport<'_>> = t
@@ -118,8 +144,8 @@ pub(super) fn write_exports(dir: &Path, t: &[TempCalReport]) -> Result<Vec<PathB
     })?;
     let mut written = vec![];
     for (name, text) in [
-        ("tempcal_ardupilot.parm", export::ardupilot_file(&list)),
-        ("tempcal_px4.params", export::px4_file(&list)),
+        (ARDUPILOT_FILE, export::ardupilot_file(&list)),
+        (PX4_FILE, export::px4_file(&list)),
     ] {
         let p = dir.join(name);
         crate::io::publish::write_atomic(&p, text.as_bytes())?;
@@ -152,7 +178,7 @@ pub(super) fn summary_lines(t: &[TempCalReport]) -> String {
             TempOutcome::Calibrated(c) => format!(
                 "{head}, {} points of {} C: accel and gyro biases fitted (cubic), held-out shrink accel {}, gyro {} (medians of the axes)",
                 c.points,
-                TempCalSettings::default().bin_c,
+                c.bin_c,
                 shrink(&c.accel.axes),
                 shrink(&c.gyro.axes)
             ),

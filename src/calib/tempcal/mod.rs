@@ -176,8 +176,9 @@ pub struct TempCal {
     pub tmax_c: f64,
     /// PX4's reference temperature (the middle of the range), deg C.
     pub px4_tref_c: f64,
-    /// Bins used as points.
+    /// Bins used as points, and their width, deg C.
     pub points: usize,
+    pub bin_c: f64,
     pub accel: SensorCurves,
     pub gyro: SensorCurves,
 }
@@ -290,6 +291,7 @@ pub fn calibrate(samples: &[Sample], s: &TempCalSettings) -> TempCalResult {
             tmax_c: tmax,
             px4_tref_c: tref,
             points: kept.len(),
+            bin_c: s.bin_c,
             accel,
             gyro,
         })),
