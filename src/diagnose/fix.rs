@@ -288,6 +288,16 @@ fn shrink_comment(s: &Option<EffectShrink>, field_ut: f64) -> String {
     }
 }
 
+/// A value as the files and the terminal show it: whole numbers (types, rotations, switches)
+/// without decimals, others with `decimals`.
+fn shown(v: f64, decimals: usize) -> String {
+    if v.fract() == 0.0 && v.abs() < 1e6 {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.decimals$}")
+    }
+}
+
 /// Integer-valued PX4 parameters (QGroundControl type 6, else 9: float).
 fn px4_type(name: &str) -> u8 {
     if name.ends_with("_TYP") || name.ends_with("_ROT") {
@@ -312,7 +322,7 @@ pub fn ardupilot_text(r: &DiagnosisReport, fixes: &[Fix]) -> String {
             out += &format!("# {n}\n");
         }
         for (n, v) in &f.ardupilot {
-            out += &format!("{n} {v:.6}\n");
+            out += &format!("{n} {}\n", shown(*v, 6));
         }
     }
     out
@@ -370,9 +380,13 @@ pub fn closing_lines(r: &DiagnosisReport, exported: Option<&str>) -> String {
         let ap: Vec<String> = f
             .ardupilot
             .iter()
-            .map(|(n, v)| format!("{n} {v:.3}"))
+            .map(|(n, v)| format!("{n} {}", shown(*v, 3)))
             .collect();
-        let px: Vec<String> = f.px4.iter().map(|(n, v)| format!("{n} {v:.5}")).collect();
+        let px: Vec<String> = f
+            .px4
+            .iter()
+            .map(|(n, v)| format!("{n} {}", shown(*v, 5)))
+            .collect();
         s += &format!(
             "fix {}: {}\n",
             f.effect.name(),
@@ -430,11 +444,12 @@ fn trace_lines(r: &DiagnosisReport) -> String {
         .take(4)
         .map(|f| {
             format!(
-                "{} R {:.2} ({}, {} points)",
+                "{} R {:.2} ({}, {} points, p {:.1e})",
                 f.regressor.name(),
                 f.r,
                 f.channel,
-                f.n
+                f.n,
+                f.p_value
             )
         })
         .collect();
@@ -446,8 +461,9 @@ fn trace_lines(r: &DiagnosisReport) -> String {
         Some(x) => s += &format!("it reads as {x}\n"),
         None => {
             s += &format!(
-                "no correlation reaches R {:.1}: it follows none of them clearly\n",
-                super::MIN_NAMING_R
+                "no correlation reaches R {:.1} at p < {:.0e}: it follows none of them clearly\n",
+                super::MIN_NAMING_R,
+                super::MAX_NAMING_P
             )
         }
     }

@@ -11,8 +11,11 @@ use super::layout::{residuals, tags, Ctx, Layout};
 use nalgebra::{DMatrix, DVector, Vector3};
 use serde::{Deserialize, Serialize};
 
-/// A regressor set must explain at least this multiple correlation R to name the residual, 1.
+/// A regressor set must explain at least this multiple correlation R to name the residual, 1...
 pub const MIN_NAMING_R: f64 = 0.5;
+/// ...and its regression F-test (neighbouring units are not independent, so a strict one) must
+/// reach this p-value.
+pub const MAX_NAMING_P: f64 = 1e-3;
 /// Fewest residual components of a channel to correlate, count.
 const MIN_COMPONENTS: usize = 8;
 /// Positions within this many metres of each other everywhere do not vary, m.
@@ -54,6 +57,8 @@ pub struct Follows {
     pub r: f64,
     /// Residual components compared.
     pub n: usize,
+    /// p-value of the regression's F-test (R^2 / k against (1 - R^2) / (n - k - 1)).
+    pub p_value: f64,
 }
 
 /// What an unexplained residual could be, by what it follows most.
@@ -64,7 +69,8 @@ pub enum Reading {
     /// cables near the ground or indoors).
     FieldNotUniform,
     /// It follows heading: the attitude the log gives (its heading) or the compass's mounting is
-    /// wrong.
+    /// wrong (or, without a logged position, a field that is not uniform where the vehicle
+    /// turned: indoors the two look alike).
     AttitudeWrong,
     /// It follows time: a field or a sensor that changes over the log.
     ChangesWithTime,
@@ -87,7 +93,9 @@ impl std::fmt::Display for Reading {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
             Reading::FieldNotUniform => "a field that is not uniform where the vehicle moved",
-            Reading::AttitudeWrong => "an attitude (heading) or a compass mounting that is wrong",
+            Reading::AttitudeWrong => {
+                "an attitude (heading) or a compass mounting that is wrong, or, where the position is not logged, a field whose direction is not uniform where the vehicle turned"
+            }
             Reading::ChangesWithTime => "a field or a sensor that changes over the log",
             Reading::DriverBeyondLinear => "a motor field that is not linear in the driver",
         })
@@ -158,6 +166,17 @@ fn multiple_r(y: &[f64], x: &[Vec<f64>]) -> Option<f64> {
     let beta = a.clone().svd(true, true).solve(&yv, 1e-10).ok()?;
     let ss_res = (&yv - &a * beta).norm_squared();
     Some((1.0 - ss_res / ss_tot).clamp(0.0, 1.0).sqrt())
+}
+
+/// p-value of a regression with `k` regressors (and an intercept) explaining R over `n` points.
+fn regression_p(r: f64, k: usize, n: usize) -> f64 {
+    let dof = n as f64 - k as f64 - 1.0;
+    if !(dof > 0.0) || !(r < 1.0) {
+        return if r >= 1.0 && dof > 0.0 { 0.0 } else { 1.0 };
+    }
+    let r2 = r * r;
+    let f = (r2 / k as f64) / ((1.0 - r2) / dof);
+    super::stats::f_sf(f, k as f64, dof)
 }
 
 /// A regressor's columns for the given units, None when it does not vary or is missing.
@@ -243,6 +262,7 @@ pub(super) fn trace(
                         regressor: reg,
                         r,
                         n: y.len(),
+                        p_value: regression_p(r, x.len(), y.len()),
                     });
                 }
             }
@@ -251,7 +271,29 @@ pub(super) fn trace(
     follows.sort_by(|a, b| b.r.total_cmp(&a.r));
     let reading = follows
         .first()
-        .filter(|f| f.r >= MIN_NAMING_R)
+        .filter(|f| f.r >= MIN_NAMING_R && f.p_value < MAX_NAMING_P)
         .map(|f| Reading::of(f.regressor));
     ResidualTrace { follows, reading }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_residual_along_a_regressor_is_followed_and_noise_is_not() {
+        let x: Vec<f64> = (0..40).map(|i| i as f64).collect();
+        let y: Vec<f64> = x.iter().map(|v| 2.0 * v + 1.0).collect();
+        let r = multiple_r(&y, std::slice::from_ref(&x)).unwrap();
+        assert!((r - 1.0).abs() < 1e-9, "{r}");
+        // A residual that alternates in sign follows no line in x.
+        let y: Vec<f64> = (0..40)
+            .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
+        let r = multiple_r(&y, &[x]).unwrap();
+        // Measured: R 0.049.
+        assert!(r < 0.15, "{r}");
+        assert!(regression_p(r, 1, 40) > 0.5);
+        assert!(regression_p(0.8, 2, 40) < MAX_NAMING_P);
+    }
 }

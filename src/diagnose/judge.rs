@@ -211,12 +211,14 @@ pub(super) fn judge(
             continue;
         }
         if !r.size.determined() {
-            v.failed_sig.push(format!(
-                "{} (p {pv:.1e}) size not determined: {}",
-                c.e.name(),
-                r.size
-            ));
-            if v.possible.is_none() {
+            if v.possible.is_some() {
+                // The first is said in full as the effect that might be there.
+                v.failed_sig.push(format!(
+                    "{} (p {pv:.1e}) size not determined: {}",
+                    c.e.name(),
+                    r.size
+                ));
+            } else {
                 v.possible = Some(Possible {
                     effect: c.e,
                     size: r.size,

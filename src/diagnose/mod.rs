@@ -97,7 +97,7 @@ pub use evidence::{
     MAX_STILL_GYRO_RAD_S, MAX_STILL_SPREAD_DEG, MAX_STILL_TURN_DEG, MIN_STATIC_MAG_UNITS,
     TEMP_LAGS_S, WINDOW_BLOCK, WINDOW_S,
 };
-pub use follows::{Follows, Reading, Regressor, ResidualTrace, MIN_NAMING_R};
+pub use follows::{Follows, Reading, Regressor, ResidualTrace, MAX_NAMING_P, MIN_NAMING_R};
 pub use plausible::{OutOfRange, SensorKind};
 pub use report::{
     summary_table, ChannelRms, DiagnosisReport, EffectShrink, EvidenceSummary, ParamEstimate,

@@ -616,11 +616,12 @@ pub fn summary_table(r: &DiagnosisReport) -> String {
         for (p, v) in params {
             let _ = writeln!(
                 s,
-                "  {:<22} {:>12.5} +- {:<10.2e} {}",
+                "  {:<22} {:>12.5} +- {:<10.2e} {:<12} ({:.1} sigma)",
                 p,
                 v.value,
                 v.sigma,
-                shown_unit(&v.unit)
+                shown_unit(&v.unit),
+                v.value.abs() / v.sigma
             );
         }
     }
