@@ -46,7 +46,9 @@ mod untuned;
 
 use imucald::app::replay::{replay, ReplayOptions};
 use imucald::attitude::eval::{errors, evaluate, reference, EvalResult};
-use imucald::attitude::fusion::{median_dt, FusionConfig, OrientationFilter, WorldFrame};
+use imucald::attitude::fusion::{
+    median_dt, FusionConfig, HeadingConfig, OrientationFilter, TiltConfig, WorldFrame,
+};
 use imucald::calib::model::Calibration;
 use imucald::calib::outcome::MagMethod;
 use imucald::config::Config;
@@ -713,8 +715,11 @@ fn lower_bound(key: &str) -> f64 {
 fn weak_mag_start() -> FusionConfig {
     let s = start_point();
     FusionConfig {
-        mag_heading_noise_deg: s.mag_heading_noise_deg * 4.0,
-        mag_rest_heading_noise_deg: s.mag_rest_heading_noise_deg * 4.0,
+        heading: HeadingConfig {
+            mag_heading_noise_deg: s.heading.mag_heading_noise_deg * 4.0,
+            mag_rest_heading_noise_deg: s.heading.mag_rest_heading_noise_deg * 4.0,
+            ..s.heading
+        },
         ..s
     }
 }
@@ -730,8 +735,11 @@ fn weak_mag_start() -> FusionConfig {
 /// ([`LOW_PASS_HELD`]) so that the rest adapt to them before they are judged.
 fn low_pass(base: FusionConfig) -> FusionConfig {
     FusionConfig {
-        acc_lp_tau_s: 1.5,
-        acc_noise_mps2: 1.0,
+        tilt: TiltConfig {
+            acc_lp_tau_s: 1.5,
+            acc_noise_mps2: 1.0,
+            ..base.tilt
+        },
         ..base
     }
 }

@@ -820,7 +820,7 @@ mod tests {
     /// VQF documents its parameters: a new key without one fails here.
     #[test]
     fn every_setting_documents_its_default() {
-        let files: [(&str, &str, &[&str]); 5] = [
+        let files: [(&str, &str, &[&str]); 12] = [
             (
                 "config.rs",
                 include_str!("config.rs"),
@@ -848,9 +848,44 @@ mod tests {
                 &["GateConfig"],
             ),
             (
-                "attitude/fusion.rs",
-                include_str!("attitude/fusion.rs"),
+                "attitude/fusion/mod.rs",
+                include_str!("attitude/fusion/mod.rs"),
                 &["FusionConfig"],
+            ),
+            (
+                "attitude/fusion/kalman.rs",
+                include_str!("attitude/fusion/kalman.rs"),
+                &["ProcessConfig", "BiasConfig"],
+            ),
+            (
+                "attitude/fusion/tilt.rs",
+                include_str!("attitude/fusion/tilt.rs"),
+                &["TiltConfig"],
+            ),
+            (
+                "attitude/fusion/heading.rs",
+                include_str!("attitude/fusion/heading.rs"),
+                &["HeadingConfig"],
+            ),
+            (
+                "attitude/fusion/magref.rs",
+                include_str!("attitude/fusion/magref.rs"),
+                &["MagRefConfig"],
+            ),
+            (
+                "attitude/fusion/delay.rs",
+                include_str!("attitude/fusion/delay.rs"),
+                &["MagDelayConfig"],
+            ),
+            (
+                "attitude/fusion/scale.rs",
+                include_str!("attitude/fusion/scale.rs"),
+                &["GyroScaleConfig"],
+            ),
+            (
+                "attitude/fusion/rest.rs",
+                include_str!("attitude/fusion/rest.rs"),
+                &["RestConfig"],
             ),
         ];
         let mut fields = 0;
