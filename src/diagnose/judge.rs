@@ -7,7 +7,7 @@ use super::decision::{shown_unit, CandidateReport, Decision, Possible};
 use super::determined::{covariance, determine, Deciding, Determination};
 use super::layout::{build_layout, carry_params, residuals, tags, Layout};
 use super::plausible::{out_of_range, render};
-use super::rounds::{Run, Selection};
+use super::run::{Run, Selection, EXCESS_RATIO};
 use super::screen::{Cand, Linearised};
 use super::stats::{condition, explained, nested_f, select_cols};
 use super::Effect;
@@ -242,7 +242,7 @@ pub(super) fn judge(
     v
 }
 
-/// The channels whose residual variance is more than [`super::rounds::EXCESS_RATIO`] x their
+/// The channels whose residual variance is more than [`EXCESS_RATIO`] x their
 /// expected noise, as (channel, ratio).
 fn excess_channels(
     run: &Run,
@@ -266,7 +266,7 @@ fn excess_channels(
         if nn[i] >= MIN_EXCESS_COMPONENTS && noise_known[i] {
             let dof = nn[i] as f64 * (1.0 - sel.lay.n as f64 / mtot).max(MIN_DOF_FRACTION);
             let ratio = chi[i] / dof;
-            if ratio > super::rounds::EXCESS_RATIO {
+            if ratio > EXCESS_RATIO {
                 excess.push((c, ratio));
             }
         }
@@ -275,7 +275,7 @@ fn excess_channels(
 }
 
 /// No effect named and no other decision: "unexplained" when some channel's residual variance is
-/// more than [`super::rounds::EXCESS_RATIO`] x its expected noise, else "not_identifiable" when a
+/// more than [`EXCESS_RATIO`] x its expected noise, else "not_identifiable" when a
 /// candidate passed every test but its size is not determined, else "none". A candidate whose size
 /// is not determined is said in either of the first two (the effect that might be there, and the
 /// data that would decide it).

@@ -82,6 +82,7 @@ mod layout;
 mod plausible;
 mod report;
 mod rounds;
+mod run;
 mod screen;
 mod stats;
 #[cfg(test)]
@@ -103,7 +104,7 @@ pub use report::{
     summary_table, ChannelRms, DiagnosisReport, EffectShrink, EvidenceSummary, ParamEstimate,
     ResidualSeries,
 };
-pub use rounds::EXCESS_RATIO;
+pub use run::EXCESS_RATIO;
 
 use crate::calib::model::ModelKind;
 use crate::config::Config;
@@ -234,7 +235,7 @@ pub fn diagnose(samples: &[Sample], cfg: &Config, opts: &DiagnoseOptions) -> Dia
         Err(why) => return DiagnosisReport::failed(base, why),
     };
     let split = rounds::split_units(ev, opts, &mut notes);
-    let mut run = rounds::Run::new(start.ctx, ev, &split);
+    let mut run = run::Run::new(start.ctx, ev, &split);
     let lay0 = layout::build_layout(&run.ctx, &[]);
     let p0 = rounds::start_params(&run, &lay0, base, &start.m0, &start.a0);
     rounds::estimate_noise(&mut run, &lay0, &p0, &prep.rot);

@@ -5,7 +5,7 @@
 use super::channel::NCH;
 use super::layout::{applicable, build_layout, carry_params, Layout};
 use super::plausible::{out_of_range, render};
-use super::rounds::{Run, Selection};
+use super::run::{Run, Selection};
 use super::stats::{columns, explained, nested_f, select_cols};
 use super::Effect;
 use crate::calib::lm::LmFit;

@@ -139,7 +139,7 @@ pub(crate) fn withheld(
 pub fn loadable(r: &Report) -> bool {
     r.load.iter().any(|d| d.load)
         || r.calibration.accel.status == CalStatus::Ok
-        || super::tempcal::calibrated_any(&r.temperature)
+        || r.temperature.iter().any(|t| t.calibrated())
 }
 
 /// The compasses to load and those not, in words, for `next:`.

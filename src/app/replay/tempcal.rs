@@ -99,8 +99,7 @@ pub(super) const PX4_FILE: &str = "tempcal_px4.params";
 
 /// Whether an instance was calibrated.
 pub(super) fn calibrated_any(t: &[TempCalReport]) -> bool {
-    t.iter()
-        .any(|r| matches!(r.result.outcome, TempOutcome::Calibrated(_)))
+    t.iter().any(TempCalReport::calibrated)
 }
 
 /// What `next:` says of the temperature calibration, when an instance was calibrated: load the

@@ -387,3 +387,10 @@ pub struct TempCalReport {
     #[serde(flatten)]
     pub result: TempCalResult,
 }
+
+impl TempCalReport {
+    /// Whether this instance got a temperature calibration.
+    pub fn calibrated(&self) -> bool {
+        matches!(self.result.outcome, TempOutcome::Calibrated(_))
+    }
+}
