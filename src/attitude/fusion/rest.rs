@@ -29,6 +29,7 @@ impl Default for RestConfig {
     }
 }
 
+/// Rest detector: the sensor is at rest when, for `rest_min_s`, (1) gyro and accel stay within
 /// thresholds of their low-passed values (steady), (2) the rate less the bias estimate is within
 /// three standard deviations of what the gyro's noise (`gyro_sample_sd`) and the bias estimate's
 /// uncertainty leave in it (not turning: a steady turn is steady but not rest), and (3) the specific force's norm is within `2 rest_acc_mps2` of

@@ -1,6 +1,7 @@
 //! The links' tests: addresses, text lines, framing, every transport against real sockets,
 //! replays and their pacing.
 
+use super::udp::*;
 use super::*;
 use crate::types::STANDARD_GRAVITY_MPS2;
 use mavlink::dialects::ardupilotmega as apm;
