@@ -347,7 +347,7 @@ enum Outcome {
 }
 
 /// Exit status of an error: bad input, a file that cannot be read or written (1). A source that
-/// can never work ends `run` with 2.
+/// can never work, or a calibration store held by another service, ends `run` with 2.
 const EXIT_ERROR: u8 = 1;
 const EXIT_SOURCE_FAILED: u8 = 2;
 const EXIT_NOTHING_CALIBRATED: u8 = 3;
@@ -407,7 +407,11 @@ fn main() -> std::process::ExitCode {
                 last = c;
             }
             eprintln!("{text}");
-            if e.downcast_ref::<SourcesFailed>().is_some() {
+            let store_locked = matches!(
+                e.downcast_ref::<imucald::error::Error>(),
+                Some(imucald::error::Error::StoreLocked { .. })
+            );
+            if e.downcast_ref::<SourcesFailed>().is_some() || store_locked {
                 std::process::ExitCode::from(EXIT_SOURCE_FAILED)
             } else {
                 std::process::ExitCode::from(EXIT_ERROR)

@@ -942,6 +942,8 @@ mod faults {
                     "ardupilot.parm",
                     "px4.params",
                     "fusion.h",
+                    // The store's lock (one service per store), not a temp file.
+                    "imucald.lock",
                 ]
                 .contains(&n.as_str())
             })

@@ -11,6 +11,7 @@ mod common;
 
 use common::testdata::{ping, pong, taken, SERVICE_IDS};
 use common::{free_udp_port, mavlink_source};
+use imucald::app::daemon::load_store;
 use imucald::config::Config;
 use imucald::io::mavout::MavEncoder;
 use imucald::sim::SimOutput;
@@ -291,7 +292,10 @@ async fn restart_with_the_other_vehicle_first(
         .await;
     daemon.stop(Duration::from_secs(2)).await;
     assert!(
-        said["text"].as_str().unwrap().contains("(resumed)"),
+        said["text"]
+            .as_str()
+            .unwrap()
+            .contains("(resumed the calibration of system 1 on udpin:"),
         "{said}"
     );
     let after: serde_json::Value =
@@ -397,4 +401,135 @@ async fn restart_with_an_edited_address(cal_dir: &std::path::Path, port_b: u16, 
         (format!("udpin:127.0.0.1:{new_port}"), 1)
     );
     assert!(!cal_dir.join("vehicle-0-1").exists());
+}
+
+/// A flight controller's HEARTBEAT (PX4: its identity is read, and its samples are used as sent)
+/// and its AUTOPILOT_VERSION with `uid`, as it sends them when asked.
+fn identity_frames(enc: &mut MavEncoder, uid: u64) -> Vec<u8> {
+    use mavlink::dialects::ardupilotmega as m;
+    let hb = MavMessage::HEARTBEAT(m::HEARTBEAT_DATA {
+        mavtype: m::MavType::MAV_TYPE_QUADROTOR,
+        autopilot: m::MavAutopilot::MAV_AUTOPILOT_PX4,
+        mavlink_version: 3,
+        ..Default::default()
+    });
+    let version = MavMessage::AUTOPILOT_VERSION(m::AUTOPILOT_VERSION_DATA {
+        uid,
+        ..Default::default()
+    });
+    [enc.encode(&hb), enc.encode(&version)].concat()
+}
+
+/// Runs the service on `cfg` and feeds vehicles `(sim, uid, port)` at once, each as system 1
+/// with its identity first (`n` samples each; all of them when `n` is 0), the first one heard
+/// first; then stops it.
+async fn feed_identified(cfg: Config, vehicles: &[(&SimOutput, u64, u16)], n: usize) {
+    let daemon = common::Daemon::ready(cfg).await;
+    let pongs: Pongs = Arc::new(tokio::sync::watch::channel(BTreeSet::new()).0);
+    // Every peer listens before any is heard: an answer to one may go out on another's link.
+    let mut peers = Vec::new();
+    for _ in vehicles {
+        let peer = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+        let (_, task) = listen(peer.clone(), pongs.clone());
+        peers.push((peer, MavEncoder::new(1, 1), task));
+    }
+    // Each names its board (so every link knows its peer), then the first one's sample (just
+    // before the run's) is taken before any other vehicle's: it is heard first.
+    for ((_, uid, port), (peer, enc, _)) in vehicles.iter().zip(peers.iter_mut()) {
+        let hello = identity_frames(enc, *uid);
+        peer.send_to(&hello, ("127.0.0.1", *port)).await.unwrap();
+    }
+    let early = imucald::io::samplelog::highres_imu(&vehicles[0].0.samples[0], 9_990_000);
+    let (peer, enc, _) = &mut peers[0];
+    let port = vehicles[0].2;
+    peer.send_to(&enc.encode(&early), ("127.0.0.1", port))
+        .await
+        .unwrap();
+    for (k, ((_, _, port), (peer, _, _))) in vehicles.iter().zip(&peers).enumerate() {
+        taken_by(peer, *port, 10 + k as u8, &pongs).await;
+    }
+    let len = vehicles.iter().map(|v| v.0.samples.len()).min().unwrap();
+    let n = if n == 0 { len } else { n.min(len) };
+    let t0 = tokio::time::Instant::now();
+    for i in 0..n {
+        for ((sim, _, port), (peer, enc, _)) in vehicles.iter().zip(peers.iter_mut()) {
+            let msg = common::highres_imu_at(&sim.samples[i]);
+            peer.send_to(&enc.encode(&msg), ("127.0.0.1", *port))
+                .await
+                .unwrap();
+        }
+        common::pace(i, t0, vehicles[0].0.samples[i].t_s, 20.0).await;
+    }
+    for (k, ((_, _, port), (peer, _, _))) in vehicles.iter().zip(&peers).enumerate() {
+        taken_by(peer, *port, 20 + k as u8, &pongs).await;
+    }
+    daemon.stop(Duration::from_secs(2)).await;
+    for (_, _, task) in peers {
+        task.abort();
+    }
+}
+
+/// Two flight controllers with system id 1 each, on two links, each naming its board's unique id
+/// (AUTOPILOT_VERSION): after a restart with the radios swapped, each gets its own calibration
+/// back (by the board's id, not by the link), says so, and neither file is taken by the other.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calibrations_follow_the_hardware_across_links() {
+    let (a, b) = two_vehicles();
+    let (uid_a, uid_b) = (0xa11ce, 0xb0b);
+    let dir = tempfile::tempdir().unwrap();
+    let cal_dir = dir.path().join("cal");
+    let ports = [free_udp_port(), free_udp_port()];
+    let sink = common::JsonSink::bind().await;
+    let mut cfg = service_config(&cal_dir, &ports, &sink);
+    cfg.fit.refit_every_s = 5.0;
+    // A on link 0 (the configured directory), B on link 1 (its board's directory).
+    feed_identified(cfg, &[(&a, uid_a, ports[0]), (&b, uid_b, ports[1])], 0).await;
+    let dir_b = cal_dir.join(format!("fc-{uid_b:016x}"));
+    let (sa, sb) = (stored_error_ut(&cal_dir, &a), stored_error_ut(&dir_b, &b));
+    eprintln!("stored offset error A {sa:.4} uT, B {sb:.4} uT");
+    assert!(sa < 0.05 && sb < 0.05, "{sa} {sb}");
+    let before_a = load_store(&cal_dir).unwrap().unwrap();
+    let before_b = load_store(&dir_b).unwrap().unwrap();
+    assert_eq!(before_a.vehicle.as_ref().unwrap().hardware.uid, Some(uid_a));
+    assert_eq!(before_b.vehicle.as_ref().unwrap().hardware.uid, Some(uid_b));
+
+    // Swapped: B now on link 0, heard first (by link and system id it would take A's); A on link 1.
+    let mut sink = common::JsonSink::bind().await;
+    let cfg = service_config(&cal_dir, &ports, &sink);
+    feed_identified(cfg, &[(&b, uid_b, ports[0]), (&a, uid_a, ports[1])], 200).await;
+    let said: Vec<String> = sink
+        .drain()
+        .await
+        .iter()
+        .filter(|v| v["type"] == "status")
+        .filter_map(|v| v["text"].as_str().map(String::from))
+        .collect();
+    let tag = |uid: u64| format!("fc-{uid:016x}");
+    let resumed = |uid: u64| {
+        said.iter().any(|t| {
+            t.contains(&format!(
+                "resumed the calibration of {} (system 1",
+                tag(uid)
+            )) && t.contains("written 20")
+        })
+    };
+    assert!(resumed(uid_a) && resumed(uid_b), "{said:#?}");
+    assert!(
+        said.iter()
+            .any(|t| t.contains(&format!("{} (resumed", dir_b.display()))),
+        "B not in its own directory: {said:#?}"
+    );
+    let after_a = load_store(&cal_dir).unwrap().unwrap();
+    let after_b = load_store(&dir_b).unwrap().unwrap();
+    assert_eq!(after_a.mag, before_a.mag, "A's calibration changed");
+    assert_eq!(after_b.mag, before_b.mag, "B's calibration changed");
+    let (va, vb) = (after_a.vehicle.unwrap(), after_b.vehicle.unwrap());
+    assert_eq!(
+        (va.hardware.uid, va.link),
+        (Some(uid_a), format!("udpin:127.0.0.1:{}", ports[1]))
+    );
+    assert_eq!(
+        (vb.hardware.uid, vb.link),
+        (Some(uid_b), format!("udpin:127.0.0.1:{}", ports[0]))
+    );
 }

@@ -15,6 +15,7 @@ pub mod ardupilot;
 pub mod clock;
 pub mod decode;
 pub mod flightlog;
+pub mod identity;
 pub mod link;
 pub mod mavftp;
 pub mod mavout;

@@ -20,7 +20,9 @@
 //! `store`: the calibration on disk. `sinks`: JSON consumers. `outputs`: output cadences and means.
 
 mod ftp;
+mod identity;
 mod lifecycle;
+mod lock;
 mod magcal;
 mod mqtt;
 mod outputs;
@@ -31,6 +33,7 @@ mod state;
 mod store;
 
 pub use crate::types::STATUS_TARGET;
+use identity::{resumable, resumed_from, same_kind};
 use magcal::{MagCalEffect, MagCalEvent, MagCalRun};
 use mavout::severity_name;
 use outputs::*;
@@ -39,8 +42,8 @@ use service::{open_store, start_links};
 use sinks::*;
 pub use store::{
     accept, failure_report_due, load_store, save_store, LoadedCalibration, NotReplaced,
-    StoredCalibration, StoredInstance, StoredVehicle, ACCEPT_MARGIN, HOLD_OUT_EVERY, STORE_FILE,
-    STORE_SCHEMA,
+    StoredCalibration, StoredInstance, StoredVehicle, VehicleSource, ACCEPT_MARGIN, HOLD_OUT_EVERY,
+    STORE_FILE, STORE_SCHEMA,
 };
 use store::{WriteJob, Writes};
 
@@ -110,6 +113,11 @@ struct Vehicle {
     cal: Option<usize>,
     /// Told the user it is not calibrated.
     announced: bool,
+    /// Its flight stack, once a HEARTBEAT named ArduPilot or PX4 (it was then asked for its
+    /// identity); `None` for a link that names none.
+    identity: Option<crate::io::identity::Stack>,
+    /// What its link said of its hardware.
+    hardware: crate::io::identity::Hardware,
 }
 
 struct LinkEntry {
@@ -131,6 +139,8 @@ struct LinkEntry {
     /// The calibrated vehicles heard on it (their messages go only to such links, or to links
     /// where none was heard).
     cals: Vec<usize>,
+    /// A `sim:` link: its samples feed calibrated vehicle 0, recorded as a simulator's.
+    simulator: bool,
 }
 
 /// One IMU instance calibrated live: its pipeline, its magnetometer calibration run and progress,
@@ -528,6 +538,8 @@ pub async fn run_reporting_ready(
 ) -> Result<RunSummary, Error> {
     // Checked here too (callers may build the config in code): bad rates would stop the timers.
     cfg.validate()?;
+    // Held until the service returns: one service per store.
+    let _lock = lock::StoreLock::take(Path::new(&cfg.daemon.calibration_dir))?;
     let store = open_store(&cfg.daemon)?;
     let declination = cfg.declination_deg()?;
     let mut sinks = cfg

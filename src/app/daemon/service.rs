@@ -10,15 +10,38 @@ pub(super) type FitJob = Option<tokio::task::JoinHandle<TrackFits>>;
 /// once per batch of samples rather than once per sample.
 const INBOX_BATCH: usize = 256;
 
-/// The stored calibration to resume from (none yet: empty); a damaged file is an error.
-pub(super) fn open_store(d: &crate::config::DaemonConfig) -> Result<StoredCalibration, Error> {
-    let cal_dir = PathBuf::from(&d.calibration_dir);
-    let store = load_store(&cal_dir)?.unwrap_or_else(StoredCalibration::empty);
+/// The folder of the simulator's calibration in `daemon.calibration_dir`.
+pub(super) const SIM_DIR: &str = "sim";
+
+/// The directory of calibrated vehicle 0 and the stored calibration to resume from there (none
+/// yet: empty); a damaged file is an error. The built-in simulator (no source configured) keeps
+/// its calibration in `calibration_dir/sim/`, as does a run with `sim:` sources whose
+/// `calibration_dir` holds a vehicle's: a simulator's calibration never takes a vehicle's place.
+pub(super) fn open_store(
+    d: &crate::config::DaemonConfig,
+) -> Result<(StoredCalibration, PathBuf), Error> {
+    let configured = PathBuf::from(&d.calibration_dir);
+    let simulated = d.sources.is_empty()
+        || d.sources
+            .iter()
+            .any(|s| matches!(Address::parse(&s.address), Ok(Address::Sim { .. })));
+    let mut cal_dir = configured.clone();
+    let mut store = load_store(&cal_dir)?;
+    let a_vehicles = |s: &Option<StoredCalibration>| {
+        s.as_ref()
+            .and_then(|s| s.vehicle.as_ref())
+            .is_some_and(|v| v.source == VehicleSource::Vehicle)
+    };
+    if simulated && (d.sources.is_empty() || a_vehicles(&store)) {
+        cal_dir = configured.join(SIM_DIR);
+        store = load_store(&cal_dir)?;
+    }
+    let store = store.unwrap_or_else(StoredCalibration::empty);
     let shown = std::path::absolute(&cal_dir).unwrap_or_else(|_| cal_dir.clone());
-    if store.mag.is_some() || store.accel.is_some() {
+    if let Some(r) = super::resumed_from(&store, &cal_dir) {
         tracing::info!(
             target: super::STATUS_TARGET,
-            "resuming from the calibration in {}",
+            "{r}, from {}",
             shown.join(STORE_FILE).display()
         );
     } else {
@@ -28,7 +51,7 @@ pub(super) fn open_store(d: &crate::config::DaemonConfig) -> Result<StoredCalibr
             shown.display()
         );
     }
-    Ok(store)
+    Ok((store, cal_dir))
 }
 
 /// Start a task per source (the embedded simulated tumble when none is configured).
@@ -63,7 +86,7 @@ pub(super) fn start_links(
             ..LinkOptions::default()
         };
         let polled = matches!(addr, Address::UdpIn(_) | Address::UdpOut(_));
-        let handle = spawn_link(i, addr, payload, tx.clone(), stop.clone(), opts);
+        let handle = spawn_link(i, addr.clone(), payload, tx.clone(), stop.clone(), opts);
         links.push(LinkEntry {
             handle,
             mavlink,
@@ -75,6 +98,7 @@ pub(super) fn start_links(
             queue_full_reported: 0,
             out: Vec::with_capacity(MAV_DATAGRAM_MAX),
             cals: Vec::new(),
+            simulator: matches!(addr, Address::Sim { .. }),
         });
     }
     Ok(links)
@@ -123,7 +147,7 @@ impl Cal {
 impl State {
     pub(super) fn new(
         cfg: Config,
-        store: StoredCalibration,
+        (store, cal_dir): (StoredCalibration, PathBuf),
         declination: Option<f64>,
         links: Vec<LinkEntry>,
         sinks: Vec<Sink>,
@@ -146,7 +170,6 @@ impl State {
             component_id: d.component_id,
         };
         let target = (d.target_system, d.target_component);
-        let cal_dir = PathBuf::from(&d.calibration_dir);
         let cal0 = Cal::new(&cfg, store, cal_dir, own, target, declination)?;
         Ok(State {
             cals: vec![cal0],
@@ -286,6 +309,7 @@ impl State {
         self.attitude_if_due().await;
         match ev {
             Inbound::Sample { link, sample } => {
+                self.note_simulator(link);
                 let sample = self.stamp(link, sample);
                 self.line_stats.records += 1;
                 self.line_stats.count_sample(&sample);

@@ -360,6 +360,8 @@ impl State {
             conv: self.new_converter.clone(),
             cal: None,
             announced: false,
+            identity: None,
+            hardware: Default::default(),
         });
         self.vehicles.len() - 1
     }
@@ -395,22 +397,11 @@ impl State {
         let me = StoredVehicle {
             link: label.clone(),
             system_id,
+            source: VehicleSource::Vehicle,
+            hardware: self.vehicles[v].hardware.clone(),
         };
-        // The first calibration is the one the stored calibration's vehicle had: the same link
-        // and system id, or the same system id when that link is no longer configured (an address
-        // edited); any vehicle's when it names none (a new one, or a merged link).
-        let merged = self.cfg.daemon.links == Links::Merged;
-        let ours = |s: &StoredVehicle| {
-            *s == me || (s.system_id == system_id && !self.links.iter().any(|l| l.label == s.link))
-        };
-        let takes_first = merged || self.cals[0].store.vehicle.as_ref().is_none_or(ours);
-        let cal0 = &mut self.cals[0];
-        if cal0.vehicle.is_none() && takes_first {
-            cal0.vehicle = Some(v);
-            if !merged {
-                cal0.store.vehicle = Some(me);
-            }
-            return Some(0);
+        if self.takes_first(&me) {
+            return Some(self.take_first(v, me).await);
         }
         let refuse = |why: String| {
             format!("{label}: IMU data of a further vehicle (system {system_id}): not calibrated, {why}")
@@ -423,8 +414,12 @@ impl State {
             }
             return None;
         }
-        let dir = PathBuf::from(&self.cfg.daemon.calibration_dir)
-            .join(format!("vehicle-{link}-{system_id}"));
+        // Kept by its hardware when the link names it, else by its link and system id.
+        let name = me
+            .hardware
+            .tag()
+            .unwrap_or_else(|| format!("vehicle-{link}-{system_id}"));
+        let dir = PathBuf::from(&self.cfg.daemon.calibration_dir).join(name);
         let d = &self.cfg.daemon;
         let own = mavout::OwnIds {
             system_id,
@@ -432,8 +427,9 @@ impl State {
         };
         let target = (system_id, d.target_component);
         let made = load_store(&dir).and_then(|store| {
-            let mut store = store.unwrap_or_else(StoredCalibration::empty);
-            store.vehicle = Some(me);
+            let store = store
+                .filter(|s| s.vehicle.as_ref().is_none_or(|s| same_kind(s, &me)))
+                .unwrap_or_else(StoredCalibration::empty);
             Cal::new(&self.cfg, store, dir.clone(), own, target, self.declination)
         });
         let mut cal = match made {
@@ -448,17 +444,77 @@ impl State {
             }
         };
         cal.vehicle = Some(v);
-        let resumed = cal.store.mag.is_some() || cal.store.accel.is_some();
+        let resumed = resumed_from(&cal.store, &dir);
+        cal.store.vehicle = Some(me);
         self.cals.push(cal);
         let c = self.cals.len() - 1;
         let text = format!(
             "{label}: a further vehicle (system {system_id}), calibrated on its own in {}{}",
             dir.display(),
-            if resumed { " (resumed)" } else { "" }
+            resumed.map(|r| format!(" ({r})")).unwrap_or_default()
         );
         self.status_for(c, MavSeverity::MAV_SEVERITY_INFO, text)
             .await;
         Some(c)
+    }
+
+    /// Whether vehicle `me` takes calibrated vehicle 0 (the configured directory): always with
+    /// merged links; never while a simulator feeds it; else when it is free and its stored
+    /// calibration names no vehicle, a simulator (not resumed: [`State::take_first`]), or `me`
+    /// ([`resumable`]).
+    fn takes_first(&self, me: &StoredVehicle) -> bool {
+        if self.cfg.daemon.links == Links::Merged {
+            return true;
+        }
+        let cal0 = &self.cals[0];
+        if cal0.vehicle.is_some() || self.links.iter().any(|l| l.simulator) {
+            return false;
+        }
+        let configured = |l: &str| self.links.iter().any(|k| k.label == l);
+        cal0.store.vehicle.as_ref().is_none_or(|s| {
+            s.source == VehicleSource::Simulator || resumable(s, me, !configured(&s.link))
+        })
+    }
+
+    /// Vehicle `v` takes calibrated vehicle 0: a simulator's calibration there is dropped (said),
+    /// a vehicle's is resumed (said, with when it was written).
+    async fn take_first(&mut self, v: usize, me: StoredVehicle) -> usize {
+        let merged = self.cfg.daemon.links == Links::Merged;
+        let was = self.cals[0].store.vehicle.clone();
+        let described = me.describe();
+        if was
+            .as_ref()
+            .is_some_and(|s| s.source == VehicleSource::Simulator)
+        {
+            let fresh = Cal::new(
+                &self.cfg,
+                StoredCalibration::empty(),
+                self.cals[0].cal_dir.clone(),
+                self.cals[0].own,
+                self.cals[0].target,
+                self.declination,
+            );
+            if let Ok(fresh) = fresh {
+                self.cals[0] = fresh;
+            }
+            let text = format!(
+                "{described}: the simulator's calibration in {} is not resumed onto a vehicle; calibrating from scratch",
+                self.cals[0].cal_dir.display()
+            );
+            self.status(MavSeverity::MAV_SEVERITY_WARNING, text).await;
+            // The directory now holds the vehicle's record (and its calibration once made).
+            self.cals[0].store.vehicle = Some(me.clone());
+            self.save(0).await;
+        } else if let Some(r) = resumed_from(&self.cals[0].store, &self.cals[0].cal_dir) {
+            let text = format!("{described}: {r}");
+            self.status(MavSeverity::MAV_SEVERITY_INFO, text).await;
+        }
+        let cal0 = &mut self.cals[0];
+        cal0.vehicle = Some(v);
+        if !merged {
+            cal0.store.vehicle = Some(me);
+        }
+        0
     }
 
     /// Whether a frame from these ids is our own, echoed back: the ids we speak for any
@@ -485,6 +541,8 @@ impl State {
             MavMessage::HEARTBEAT(_) => {
                 self.note_autopilot(frame.system_id, &frame.message);
                 let v = self.vehicle(link, frame.system_id);
+                let from = (frame.system_id, frame.component_id);
+                self.identity_heartbeat(v, link, from, &frame.message).await;
                 let conv = &mut self.vehicles[v].conv;
                 let was = conv.is_ardupilot();
                 // An onboard computer's HEARTBEAT speaks for no flight stack.
@@ -512,8 +570,13 @@ impl State {
             MavMessage::FILE_TRANSFER_PROTOCOL(d) => {
                 self.on_ftp(frame.system_id, frame.component_id, d).await;
             }
+            MavMessage::AUTOPILOT_VERSION(_) => {
+                let v = self.vehicle(link, frame.system_id);
+                self.identity_message(v, &frame.message).await;
+            }
             MavMessage::PARAM_VALUE(_) => {
                 let v = self.vehicle(link, frame.system_id);
+                self.identity_message(v, &frame.message).await;
                 self.vehicles[v].conv.convert_any(&frame.message, time_us);
                 for c in self.cals.iter_mut() {
                     if c.target.0 == frame.system_id {

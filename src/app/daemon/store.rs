@@ -4,6 +4,7 @@
 
 use super::*;
 use crate::calib::fit::FitFailure;
+pub use crate::io::identity::Hardware;
 use crate::report::CalStatus;
 
 /// What is kept on disk between runs (`calibration.json`).
@@ -31,13 +32,55 @@ pub struct StoredCalibration {
     pub vehicle: Option<StoredVehicle>,
 }
 
-/// A vehicle as the live service knows it: the link it is heard on and its system id.
+/// A vehicle as the live service knows it: the link it is heard on, its system id, what fed the
+/// calibration and, where the link carries them, the ids of its hardware.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, Eq)]
 pub struct StoredVehicle {
-    /// The link's address as configured (`udpin:0.0.0.0:14550`, `serial:/dev/ttyACM0:115200`).
+    /// The link's address as configured (`udpin:0.0.0.0:14550`, `serial:/dev/ttyACM0:115200`,
+    /// `sim:tumble`).
     pub link: String,
-    /// Its MAVLink system id.
+    /// Its MAVLink system id (0 for a simulator).
     pub system_id: u8,
+    /// What the calibration was made from: a vehicle on a link, or a simulator (never resumed
+    /// onto a vehicle). Files without it are a vehicle's.
+    #[serde(default)]
+    pub source: VehicleSource,
+    /// The flight controller's id and the compasses' device ids, as far as the link told them:
+    /// a calibration is resumed only onto the same hardware where both sides know an id.
+    #[serde(default, skip_serializing_if = "Hardware::is_unknown")]
+    pub hardware: Hardware,
+}
+
+/// What a stored calibration was made from.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum VehicleSource {
+    /// A vehicle on a MAVLink link.
+    #[default]
+    Vehicle,
+    /// The built-in simulator (`sim:` links).
+    Simulator,
+}
+
+impl StoredVehicle {
+    /// A simulator's record.
+    pub(super) fn simulator(link: &str) -> StoredVehicle {
+        StoredVehicle {
+            link: link.to_string(),
+            system_id: 0,
+            source: VehicleSource::Simulator,
+            hardware: Hardware::default(),
+        }
+    }
+
+    /// How a message names it: its hardware's tag when known, else its link and system id.
+    pub(super) fn describe(&self) -> String {
+        match (self.source, self.hardware.tag()) {
+            (VehicleSource::Simulator, _) => format!("the simulator {}", self.link),
+            (_, Some(tag)) => format!("{tag} (system {} on {})", self.system_id, self.link),
+            (_, None) => format!("system {} on {}", self.system_id, self.link),
+        }
+    }
 }
 
 /// The calibration in use of an IMU instance other than the primary.
