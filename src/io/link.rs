@@ -283,6 +283,12 @@ impl Tuning {
 
 use crate::io::clock::now_us;
 
+/// How a connection ended.
+enum End {
+    Stop,
+    Lost(String),
+}
+
 /// The link's fixed parts, shared by all its loops.
 struct Shared {
     index: usize,

@@ -4,12 +4,6 @@
 use super::udp::{serve_udp, serve_udp_polled};
 use super::*;
 
-/// How a connection ended.
-pub(super) enum End {
-    Stop,
-    Lost(String),
-}
-
 pub(super) trait Io: AsyncRead + AsyncWrite + Unpin + Send {}
 impl<T: AsyncRead + AsyncWrite + Unpin + Send> Io for T {}
 

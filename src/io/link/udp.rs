@@ -1,7 +1,7 @@
 //! UDP links: a datagram decoded on its own, and the socket served by waiting on each datagram or
 //! by polling in batches on a fixed grid.
 
-use super::live::End;
+use super::End;
 use super::*;
 
 /// Frames of one UDP datagram. Unlike the stream decoder, a datagram's end is a frame boundary:
