@@ -11,7 +11,7 @@
 //! Packet layout (the message's 251-byte `payload`, little endian): `seq_number` u16, `session`
 //! u8, `opcode` u8, `size` u8 (bytes of `data` used), `req_opcode` u8 (the request a reply
 //! answers), `burst_complete` u8, padding u8, `offset` u32, `data` 239 bytes. A reply carries the
-//! request's session and `seq_number + 1`; the packets of a burst count on from there.
+//! request's `session` byte (the protocol's handle of an open file) and `seq_number + 1`; the packets of a burst count on from there.
 //!
 //! The packed parameter file: a header (`magic` 0x671b, `num_params`, `total_params`, u16 each),
 //! then per parameter a type byte (low four bits: 4 = float; high four bits: flags, 0), a length
@@ -32,7 +32,8 @@ const HEADER_LEN: usize = 12;
 pub const PARAM_FILE: &str = "@PARAM/param.pck";
 /// Magic number of a packed parameter file without default values.
 pub const PACKED_MAGIC: u16 = 0x671b;
-/// Files open at once (the oldest is closed for a new one): one per ground station session.
+/// Files open at once (the oldest is closed for a new one): one per ground station's open
+/// handle (`session` byte).
 pub const MAX_OPEN_FILES: usize = 4;
 
 /// An operation (the `opcode` and `req_opcode` fields).
@@ -92,7 +93,7 @@ pub enum FtpError {
     EndOfFile = 6,
     /// The operation is not served here.
     UnknownCommand = 7,
-    /// No such file, or no file open in this session.
+    /// No such file, or no file open under the request's `session` byte.
     FileNotFound = 10,
 }
 

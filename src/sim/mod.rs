@@ -12,8 +12,8 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 pub mod named;
-pub mod warmup;
 mod trajectory;
+pub mod warmup;
 use trajectory::{
     build_segments, tumble_attitudes, CruisePlan, FlightPlan, Motion, Quat, RoverPlan,
     StressMotion, StressPlan, Tremor,

@@ -458,7 +458,8 @@ struct Cal {
     /// The orientation filter was given a state (restored at start, or kept across a restart):
     /// it has something to save even before its first sample.
     filter_seeded: bool,
-    /// The parameter file open for each ground station's MAVFTP session.
+    /// The parameter file each ground station has open over MAVFTP (keyed by the protocol's
+    /// `session` byte).
     ftp: crate::io::mavftp::FtpServer,
 }
 
